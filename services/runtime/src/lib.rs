@@ -1,0 +1,31 @@
+//! The small runtime every pipeline process uses: typed TOML config with validation, iceoryx2
+//! node and ports with explicit QoS, a WaitSet loop that never spins and stops on SIGINT/SIGTERM,
+//! heartbeats, per-hop and end-to-end latency histograms published on `pipeline/stats/<process>`,
+//! and tracing logs with the process name in every line.
+
+pub mod clock;
+pub mod config;
+pub mod iox;
+pub mod logging;
+pub mod ports;
+pub mod runtime;
+pub mod stats;
+
+pub use clock::monotonic_ns;
+pub use config::{ConfigError, ConfigIssue, Issues, LogFormat, PipelineConfig, ProcessSettings};
+pub use iox::IoxScope;
+pub use ports::{Input, Output, PortError};
+pub use runtime::{Flow, ProcessArgs, ProcessContext, Runtime, RuntimeOptions, StopReason, Wake};
+pub use stats::{LatencySummary, StatsReport};
+
+/// Maps the end of a process's `run` to an exit code: 0 for a finished run or a SIGTERM/SIGINT
+/// stop (a requested stop is a success for a supervised child).
+pub fn exit_code(result: &anyhow::Result<StopReason>) -> std::process::ExitCode {
+    match result {
+        Ok(_) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            tracing::error!("{e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}

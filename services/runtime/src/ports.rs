@@ -1,0 +1,296 @@
+//! Typed ports: a publisher paired with the notifier of its event service ([`Output`]), and a
+//! subscriber paired with a listener the process's WaitSet blocks on ([`Input`]).
+//!
+//! Every port is created with the QoS of its [`ServiceSpec`](shared_types::services::ServiceSpec),
+//! set explicitly. [`Output::send`] stamps `seq` and `publish_ns` (and `origin_ns` when the caller
+//! left it 0, i.e. for sensor sources), sends and notifies. [`Input`] receives and records hop and
+//! end-to-end latency into the port's histograms before handing the sample to the caller.
+
+use std::cell::RefCell;
+use std::fmt::Debug;
+use std::mem::MaybeUninit;
+use std::rc::Rc;
+
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+use iceoryx2::sample::Sample;
+use iceoryx2::sample_mut::SampleMut;
+use iceoryx2::sample_mut_uninit::SampleMutUninit;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory;
+use shared_types::HasMsgHeader;
+use shared_types::services::Qos;
+
+use crate::clock::monotonic_ns;
+use crate::stats::PortStats;
+
+/// A user header: any wire header that starts with the common `MsgHeader`.
+pub trait Header: Debug + ZeroCopySend + Default + HasMsgHeader + 'static {}
+impl<T: Debug + ZeroCopySend + Default + HasMsgHeader + 'static> Header for T {}
+
+/// Errors of creating or using a port. Each names the service.
+#[derive(Debug, thiserror::Error)]
+pub enum PortError {
+    /// The service name is not valid.
+    #[error("invalid service name `{0}`")]
+    InvalidName(String),
+    /// The publish-subscribe service could not be opened or created (often: another process
+    /// created it with a different payload type, size or QoS).
+    #[error("cannot open service `{service}`: {reason}")]
+    Open {
+        /// Service.
+        service: String,
+        /// iceoryx2's reason.
+        reason: String,
+    },
+    /// The port could not be created (e.g. too many publishers/subscribers).
+    #[error("cannot create a port on `{service}`: {reason}")]
+    Create {
+        /// Service.
+        service: String,
+        /// iceoryx2's reason.
+        reason: String,
+    },
+    /// Loaning, sending, receiving or notifying failed.
+    #[error("`{service}`: {op} failed: {reason}")]
+    Io {
+        /// Service.
+        service: String,
+        /// The operation.
+        op: &'static str,
+        /// iceoryx2's reason.
+        reason: String,
+    },
+}
+
+fn io_err(service: &str, op: &'static str, e: impl Debug) -> PortError {
+    PortError::Io { service: service.to_string(), op, reason: format!("{e:?}") }
+}
+
+fn service_name(name: &str) -> Result<ServiceName, PortError> {
+    ServiceName::new(name).map_err(|_| PortError::InvalidName(name.to_string()))
+}
+
+/// A payload type a port can carry: a fixed-size wire type `T` or a slice `[T]`.
+pub trait Payload: Debug + IceoryxSend + 'static {
+    /// Opens (or creates) the publish-subscribe service `name` with this payload, user header `H`
+    /// and `qos`.
+    fn open_service<H: Header>(node: &Node<ipc::Service>, name: &str, qos: &Qos) -> Result<PortFactory<ipc::Service, Self, H>, PortError>;
+}
+
+macro_rules! open_with_qos {
+    ($builder:expr, $name:expr, $qos:expr) => {
+        $builder
+            .max_publishers($qos.max_publishers)
+            .max_subscribers($qos.max_subscribers)
+            .max_nodes($qos.max_nodes)
+            .subscriber_max_buffer_size($qos.subscriber_buffer)
+            .subscriber_max_borrowed_samples($qos.subscriber_borrowed)
+            .history_size($qos.history)
+            .enable_safe_overflow($qos.safe_overflow)
+            .open_or_create()
+            .map_err(|e| PortError::Open { service: $name.to_string(), reason: format!("{e:?}") })
+    };
+}
+
+impl<T: Debug + ZeroCopySend + 'static> Payload for T {
+    fn open_service<H: Header>(node: &Node<ipc::Service>, name: &str, qos: &Qos) -> Result<PortFactory<ipc::Service, Self, H>, PortError> {
+        open_with_qos!(node.service_builder(&service_name(name)?).publish_subscribe::<T>().user_header::<H>(), name, qos)
+    }
+}
+
+impl<T: Debug + ZeroCopySend + 'static> Payload for [T] {
+    fn open_service<H: Header>(node: &Node<ipc::Service>, name: &str, qos: &Qos) -> Result<PortFactory<ipc::Service, Self, H>, PortError> {
+        open_with_qos!(node.service_builder(&service_name(name)?).publish_subscribe::<[T]>().user_header::<H>(), name, qos)
+    }
+}
+
+fn open_event(node: &Node<ipc::Service>, name: &str, qos: &Qos) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, PortError> {
+    node.service_builder(&service_name(name)?)
+        .event()
+        .max_notifiers(qos.max_publishers)
+        .max_listeners(qos.max_subscribers)
+        .max_nodes(qos.max_nodes)
+        .open_or_create()
+        .map_err(|e| PortError::Open { service: format!("{name} (event)"), reason: format!("{e:?}") })
+}
+
+/// A publisher with its notifier.
+pub struct Output<P: Payload + ?Sized, H: Header> {
+    service: String,
+    publisher: Publisher<ipc::Service, P, H>,
+    notifier: Notifier<ipc::Service>,
+    stats: Rc<RefCell<PortStats>>,
+    seq: u64,
+}
+
+impl<P: Payload + ?Sized, H: Header> Output<P, H> {
+    /// Service name.
+    pub fn service(&self) -> &str {
+        &self.service
+    }
+
+    /// Sequence number the next message will carry.
+    pub fn next_seq(&self) -> u64 {
+        self.seq
+    }
+
+    /// Messages sent so far.
+    pub fn sent(&self) -> u64 {
+        self.seq
+    }
+
+    /// Stamps `seq`, `publish_ns` (and `origin_ns = publish_ns` when it is 0), sends and wakes
+    /// the subscribers. Returns the number of subscribers that received the sample.
+    pub fn send(&mut self, mut sample: SampleMut<ipc::Service, P, H>) -> Result<usize, PortError>
+    where
+        P: IceoryxSend,
+    {
+        let h = sample.user_header_mut().msg_mut();
+        h.seq = self.seq;
+        h.publish_ns = monotonic_ns();
+        if h.origin_ns == 0 {
+            h.origin_ns = h.publish_ns;
+        }
+        let n = sample.send().map_err(|e| io_err(&self.service, "send", e))?;
+        self.seq += 1;
+        self.stats.borrow_mut().count += 1;
+        self.notifier.notify().map_err(|e| io_err(&self.service, "notify", e))?;
+        Ok(n)
+    }
+}
+
+impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<T, H> {
+    /// Creates a publisher of fixed-size values on `name` with `qos`.
+    pub fn create(node: &Node<ipc::Service>, name: &str, qos: &Qos, stats: Rc<RefCell<PortStats>>) -> Result<Self, PortError> {
+        let factory = T::open_service::<H>(node, name, qos)?;
+        let publisher = factory
+            .publisher_builder()
+            .max_loaned_samples(qos.publisher_loans)
+            .create()
+            .map_err(|e| PortError::Create { service: name.to_string(), reason: format!("{e:?}") })?;
+        let notifier = open_event(node, name, qos)?
+            .notifier_builder()
+            .create()
+            .map_err(|e| PortError::Create { service: format!("{name} (event)"), reason: format!("{e:?}") })?;
+        Ok(Self { service: name.to_string(), publisher, notifier, stats, seq: 0 })
+    }
+
+    /// Loans an uninitialised sample in shared memory (write it in place, then [`Output::send`]).
+    pub fn loan_uninit(&self) -> Result<SampleMutUninit<ipc::Service, MaybeUninit<T>, H>, PortError> {
+        self.publisher.loan_uninit().map_err(|e| io_err(&self.service, "loan", e))
+    }
+
+    /// Sends `value` with `header` (its `seq`/`publish_ns` are overwritten).
+    pub fn send_value(&mut self, header: H, value: T) -> Result<usize, PortError> {
+        let mut sample = self.loan_uninit()?.write_payload(value);
+        *sample.user_header_mut() = header;
+        self.send(sample)
+    }
+}
+
+impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<[T], H> {
+    /// Creates a publisher of slices on `name` with `qos`; it reserves `qos.initial_slice_len`
+    /// elements per sample and grows by powers of two when a larger slice is loaned.
+    pub fn create_slice(node: &Node<ipc::Service>, name: &str, qos: &Qos, stats: Rc<RefCell<PortStats>>) -> Result<Self, PortError> {
+        Self::create_slice_with_len(node, name, qos, qos.initial_slice_len.max(1), stats)
+    }
+
+    /// As [`Output::create_slice`] with an explicit initial slice length.
+    pub fn create_slice_with_len(
+        node: &Node<ipc::Service>,
+        name: &str,
+        qos: &Qos,
+        initial_len: usize,
+        stats: Rc<RefCell<PortStats>>,
+    ) -> Result<Self, PortError> {
+        let factory = <[T]>::open_service::<H>(node, name, qos)?;
+        let publisher = factory
+            .publisher_builder()
+            .initial_max_slice_len(initial_len.max(1))
+            .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .max_loaned_samples(qos.publisher_loans)
+            .create()
+            .map_err(|e| PortError::Create { service: name.to_string(), reason: format!("{e:?}") })?;
+        let notifier = open_event(node, name, qos)?
+            .notifier_builder()
+            .create()
+            .map_err(|e| PortError::Create { service: format!("{name} (event)"), reason: format!("{e:?}") })?;
+        Ok(Self { service: name.to_string(), publisher, notifier, stats, seq: 0 })
+    }
+
+    /// Loans an uninitialised slice of `len` elements in shared memory; fill it in place with
+    /// `write_from_fn` (or through `payload_mut`), set the header, then [`Output::send`].
+    pub fn loan_slice_uninit(&self, len: usize) -> Result<SampleMutUninit<ipc::Service, [MaybeUninit<T>], H>, PortError> {
+        self.publisher.loan_slice_uninit(len).map_err(|e| io_err(&self.service, "loan", e))
+    }
+}
+
+/// A subscriber with the listener of its event service.
+pub struct Input<P: Payload + ?Sized, H: Header> {
+    service: String,
+    subscriber: Subscriber<ipc::Service, P, H>,
+    listener: Rc<Listener<ipc::Service>>,
+    stats: Rc<RefCell<PortStats>>,
+}
+
+impl<P: Payload + ?Sized, H: Header> Input<P, H> {
+    /// Creates a subscriber on `name` with `qos`.
+    pub fn create(node: &Node<ipc::Service>, name: &str, qos: &Qos, stats: Rc<RefCell<PortStats>>) -> Result<Self, PortError> {
+        let factory = P::open_service::<H>(node, name, qos)?;
+        let subscriber = factory
+            .subscriber_builder()
+            .buffer_size(qos.subscriber_buffer)
+            .create()
+            .map_err(|e| PortError::Create { service: name.to_string(), reason: format!("{e:?}") })?;
+        let listener = open_event(node, name, qos)?
+            .listener_builder()
+            .create()
+            .map_err(|e| PortError::Create { service: format!("{name} (event)"), reason: format!("{e:?}") })?;
+        Ok(Self { service: name.to_string(), subscriber, listener: Rc::new(listener), stats })
+    }
+
+    /// Service name.
+    pub fn service(&self) -> &str {
+        &self.service
+    }
+
+    /// The listener the WaitSet attaches to.
+    pub fn listener(&self) -> Rc<Listener<ipc::Service>> {
+        self.listener.clone()
+    }
+
+    /// Messages received so far.
+    pub fn received(&self) -> u64 {
+        self.stats.borrow().count
+    }
+
+    fn record(&self, sample: &Sample<ipc::Service, P, H>) {
+        let h = sample.user_header().msg();
+        self.stats.borrow_mut().record_receive(monotonic_ns(), h.publish_ns, h.origin_ns);
+    }
+}
+
+impl<T: Debug + ZeroCopySend + 'static, H: Header> Input<T, H> {
+    /// Receives the next sample (recording its latency), or `None` when the queue is empty.
+    pub fn receive(&self) -> Result<Option<Sample<ipc::Service, T, H>>, PortError> {
+        let s = self.subscriber.receive().map_err(|e| io_err(&self.service, "receive", e))?;
+        if let Some(s) = &s {
+            self.record(s);
+        }
+        Ok(s)
+    }
+}
+
+impl<T: Debug + ZeroCopySend + 'static, H: Header> Input<[T], H> {
+    /// Receives the next slice sample (recording its latency), or `None` when the queue is empty.
+    pub fn receive(&self) -> Result<Option<Sample<ipc::Service, [T], H>>, PortError> {
+        let s = self.subscriber.receive().map_err(|e| io_err(&self.service, "receive", e))?;
+        if let Some(s) = &s {
+            self.record(s);
+        }
+        Ok(s)
+    }
+}

@@ -1,0 +1,460 @@
+//! The process runtime: one iceoryx2 node, typed ports, and a WaitSet loop that blocks until data
+//! arrives or an interval tick fires (never spins), returns on SIGINT/SIGTERM, and on the side
+//! publishes the heartbeat and the latency statistics.
+//!
+//! A process is `main` → [`ProcessContext::from_args`] → [`Runtime::new`] → create ports →
+//! [`Runtime::run`] with a handler that drains its inputs and calls the process's pure `step`.
+
+use std::cell::RefCell;
+use std::fmt::Debug;
+use std::path::PathBuf;
+use std::rc::Rc;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::Context as _;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::prelude::*;
+use shared_types::services::{self, Qos};
+use shared_types::{EndOfStream, Heartbeat, MsgHeader, name32};
+
+use crate::clock::monotonic_ns;
+use crate::config::{LogFormat, PipelineConfig, ProcessSettings, load_pipeline_config, settings_for};
+use crate::iox::IoxScope;
+use crate::ports::{Header, Input, Output, PortError};
+use crate::stats::{PortStats, StatsReport};
+
+/// Command line shared by every pipeline process.
+#[derive(Debug, Clone, clap::Parser)]
+pub struct ProcessArgs {
+    /// The pipeline config file (the same file the supervisor runs).
+    #[arg(long)]
+    pub config: PathBuf,
+    /// This process's name: its table under `[processes]`.
+    #[arg(long)]
+    pub name: String,
+    /// Log format (default: the config's `run.log_format`).
+    #[arg(long, value_enum)]
+    pub log_format: Option<LogFormat>,
+}
+
+/// Everything a process knows about its run before it opens any port.
+#[derive(Debug, Clone)]
+pub struct ProcessContext {
+    /// Process name.
+    pub name: String,
+    /// The whole pipeline config.
+    pub config: PipelineConfig,
+    /// The iceoryx2 scope (from the supervisor's environment, else from the config).
+    pub scope: IoxScope,
+    /// Output directory of the run.
+    pub out_dir: PathBuf,
+    /// Log format in effect.
+    pub log_format: LogFormat,
+}
+
+impl ProcessContext {
+    /// Loads the config and resolves the scope. Errors name the file and key.
+    pub fn from_args(args: &ProcessArgs) -> anyhow::Result<Self> {
+        let config = load_pipeline_config(&args.config)?;
+        let process = config.processes.get(&args.name).with_context(|| {
+            format!("{}: no table [processes.{}] in this config", args.config.display(), args.name)
+        })?;
+        let _ = process;
+        let scope = IoxScope::from_env().unwrap_or_else(|| IoxScope {
+            prefix: config.run.iceoryx_prefix.clone(),
+            root: config.iceoryx_root(),
+            base_config: config.iceoryx_config_file(),
+        });
+        let out_dir = std::env::var_os(ENV_OUT_DIR).map(PathBuf::from).unwrap_or_else(|| config.run.out_dir.clone());
+        let log_format = args.log_format.unwrap_or(config.run.log_format);
+        Ok(Self { name: args.name.clone(), config, scope, out_dir, log_format })
+    }
+
+    /// This process's typed, validated settings.
+    pub fn settings<T: ProcessSettings>(&self) -> anyhow::Result<T> {
+        let table = &self.config.processes[&self.name].settings;
+        settings_for::<T>(&self.name, table).map_err(|issues| {
+            anyhow::anyhow!(
+                "{}: invalid settings:{}",
+                self.config.source.display(),
+                issues.iter().map(|i| format!("\n  key `{}`: {}", i.key, i.message)).collect::<String>()
+            )
+        })
+    }
+
+    /// Runtime options from the config's `[run]` table.
+    pub fn runtime_options(&self) -> RuntimeOptions {
+        RuntimeOptions {
+            heartbeat_interval: Duration::from_secs_f64(self.config.run.heartbeat_interval_s),
+            stats_interval: Duration::from_secs_f64(self.config.run.stats_interval_s),
+            publish_control: true,
+        }
+    }
+
+    /// Where this process writes its part of summary.json (merged by the supervisor).
+    pub fn summary_part_path(&self) -> PathBuf {
+        self.out_dir.join("parts").join(format!("{}.json", self.name))
+    }
+}
+
+/// Environment variable through which the supervisor hands the run's output directory.
+pub const ENV_OUT_DIR: &str = "SLAM_PIPELINE_OUT_DIR";
+
+/// Options of a [`Runtime`].
+#[derive(Debug, Clone)]
+pub struct RuntimeOptions {
+    /// Heartbeat period.
+    pub heartbeat_interval: Duration,
+    /// Statistics period.
+    pub stats_interval: Duration,
+    /// Publish heartbeats and statistics (false for the supervisor itself).
+    pub publish_control: bool,
+}
+
+impl Default for RuntimeOptions {
+    fn default() -> Self {
+        Self {
+            heartbeat_interval: Duration::from_millis(250),
+            stats_interval: Duration::from_secs(1),
+            publish_control: true,
+        }
+    }
+}
+
+/// What woke the loop.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Wake {
+    /// At least one input was notified: drain the inputs.
+    pub data: bool,
+    /// The process's own tick (the `tick` given to [`Runtime::run`]) is due.
+    pub tick: bool,
+}
+
+/// What the handler wants next.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Flow {
+    /// Keep running.
+    Continue,
+    /// Leave the loop (e.g. after end of stream).
+    Stop,
+}
+
+/// Why [`Runtime::run`] returned.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StopReason {
+    /// The handler returned [`Flow::Stop`].
+    Finished,
+    /// SIGINT or SIGTERM (the signal number).
+    Signal(i32),
+}
+
+/// Errors of the runtime.
+#[derive(Debug, thiserror::Error)]
+pub enum RuntimeError {
+    /// iceoryx2 setup failed.
+    #[error(transparent)]
+    Iox(#[from] crate::iox::IoxError),
+    /// A port failed.
+    #[error(transparent)]
+    Port(#[from] PortError),
+    /// The service has no entry in the contract and no QoS was given.
+    #[error("service `{0}` is not in the service contract (shared_types::services::SERVICES)")]
+    UnknownService(String),
+    /// The WaitSet failed.
+    #[error("WaitSet: {0}")]
+    WaitSet(String),
+    /// Installing the signal handlers failed.
+    #[error("cannot install SIGINT/SIGTERM handlers: {0}")]
+    Signals(std::io::Error),
+}
+
+/// One process's node, ports and loop.
+pub struct Runtime {
+    name: String,
+    pid: u32,
+    node: Node<ipc::Service>,
+    started: Instant,
+    options: RuntimeOptions,
+    ports: Vec<Rc<RefCell<PortStats>>>,
+    listeners: Vec<Rc<Listener<ipc::Service>>>,
+    heartbeat: Option<Output<Heartbeat, MsgHeader>>,
+    stats_out: Option<Output<[u8], MsgHeader>>,
+    eos_out: Option<Output<EndOfStream, MsgHeader>>,
+    signal: Arc<AtomicUsize>,
+    state: u32,
+    last_heartbeat: Option<Instant>,
+    last_stats: Option<Instant>,
+}
+
+fn qos_of(service: &str) -> Result<Qos, RuntimeError> {
+    services::service_spec(service).map(|s| s.qos).ok_or_else(|| RuntimeError::UnknownService(service.into()))
+}
+
+impl Runtime {
+    /// Creates the node `name` in `scope` and installs SIGINT/SIGTERM handlers.
+    pub fn new(name: &str, scope: &IoxScope, options: RuntimeOptions) -> Result<Self, RuntimeError> {
+        let node = scope.create_node(name)?;
+        let signal = Arc::new(AtomicUsize::new(0));
+        for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+            signal_hook::flag::register_usize(sig, signal.clone(), sig as usize).map_err(RuntimeError::Signals)?;
+        }
+        let mut rt = Self {
+            name: name.to_string(),
+            pid: std::process::id(),
+            node,
+            started: Instant::now(),
+            options,
+            ports: vec![],
+            listeners: vec![],
+            heartbeat: None,
+            stats_out: None,
+            eos_out: None,
+            signal,
+            state: shared_types::STATE_STARTING,
+            last_heartbeat: None,
+            last_stats: None,
+        };
+        if rt.options.publish_control {
+            let hb_stats = Rc::new(RefCell::new(PortStats::new(services::HEARTBEAT, false)));
+            rt.heartbeat = Some(Output::create(&rt.node, services::HEARTBEAT, &services::CONTROL_QOS, hb_stats)?);
+            let st_stats = Rc::new(RefCell::new(PortStats::new("stats", false)));
+            let stats_name = services::stats_service(name);
+            rt.stats_out = Some(Output::create_slice(&rt.node, &stats_name, &services::STATS_QOS, st_stats)?);
+            rt.publish_heartbeat();
+        }
+        Ok(rt)
+    }
+
+    /// For a process started by the supervisor: context, logging guard and runtime in one call.
+    pub fn start(args: &ProcessArgs) -> anyhow::Result<(ProcessContext, Self)> {
+        let ctx = ProcessContext::from_args(args)?;
+        let rt = Runtime::new(&ctx.name, &ctx.scope, ctx.runtime_options())?;
+        Ok((ctx, rt))
+    }
+
+    /// Process name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The iceoryx2 node.
+    pub fn node(&self) -> &Node<ipc::Service> {
+        &self.node
+    }
+
+    /// Time since the runtime started.
+    pub fn uptime(&self) -> Duration {
+        self.started.elapsed()
+    }
+
+    fn port_stats(&mut self, service: &str, input: bool) -> Rc<RefCell<PortStats>> {
+        let s = Rc::new(RefCell::new(PortStats::new(service, input)));
+        self.ports.push(s.clone());
+        s
+    }
+
+    /// Publisher of fixed-size values on a service of the contract.
+    pub fn output<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(&mut self, service: &str) -> Result<Output<T, H>, RuntimeError> {
+        let qos = qos_of(service)?;
+        self.output_with_qos(service, &qos)
+    }
+
+    /// Publisher of fixed-size values with explicit QoS.
+    pub fn output_with_qos<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(&mut self, service: &str, qos: &Qos) -> Result<Output<T, H>, RuntimeError> {
+        let stats = self.port_stats(service, false);
+        Ok(Output::create(&self.node, service, qos, stats)?)
+    }
+
+    /// Publisher of slices on a service of the contract, reserving `initial_len` elements.
+    pub fn output_slice<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(&mut self, service: &str, initial_len: usize) -> Result<Output<[T], H>, RuntimeError> {
+        let qos = qos_of(service)?;
+        self.output_slice_with_qos(service, &qos, initial_len)
+    }
+
+    /// Publisher of slices with explicit QoS.
+    pub fn output_slice_with_qos<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(
+        &mut self,
+        service: &str,
+        qos: &Qos,
+        initial_len: usize,
+    ) -> Result<Output<[T], H>, RuntimeError> {
+        let stats = self.port_stats(service, false);
+        Ok(Output::create_slice_with_len(&self.node, service, qos, initial_len, stats)?)
+    }
+
+    /// Subscriber on a service of the contract (`P` = `T` or `[T]`); the loop wakes on its events.
+    pub fn input<P: crate::ports::Payload + ?Sized, H: Header>(&mut self, service: &str) -> Result<Input<P, H>, RuntimeError> {
+        let qos = qos_of(service)?;
+        self.input_with_qos(service, &qos)
+    }
+
+    /// Subscriber with explicit QoS.
+    pub fn input_with_qos<P: crate::ports::Payload + ?Sized, H: Header>(
+        &mut self,
+        service: &str,
+        qos: &Qos,
+    ) -> Result<Input<P, H>, RuntimeError> {
+        let stats = self.port_stats(service, true);
+        let input = Input::create(&self.node, service, qos, stats)?;
+        self.listeners.push(input.listener());
+        Ok(input)
+    }
+
+    /// Announces that this process has sent its last data message (`last_seq`, `messages_sent`).
+    pub fn send_end_of_stream(&mut self, last_seq: u64, messages_sent: u64) -> Result<(), RuntimeError> {
+        if self.eos_out.is_none() {
+            let stats = self.port_stats(services::END_OF_STREAM, false);
+            self.eos_out = Some(Output::create(&self.node, services::END_OF_STREAM, &services::CONTROL_QOS, stats)?);
+        }
+        let eos = EndOfStream { process: name32(&self.name), last_seq, messages_sent };
+        let now = monotonic_ns();
+        let header = MsgHeader { stamp_ns: now, origin_ns: now, ..Default::default() };
+        self.eos_out.as_mut().expect("created above").send_value(header, eos)?;
+        tracing::info!(last_seq, messages_sent, "sent end of stream");
+        Ok(())
+    }
+
+    /// The termination signal received so far, if any.
+    pub fn termination_signal(&self) -> Option<i32> {
+        match self.signal.load(Ordering::Relaxed) {
+            0 => None,
+            s => Some(s as i32),
+        }
+    }
+
+    fn publish_heartbeat(&mut self) {
+        let (messages_in, messages_out) = self.ports.iter().fold((0, 0), |(i, o), p| {
+            let p = p.borrow();
+            if p.input { (i + p.count, o) } else { (i, o + p.count) }
+        });
+        let Some(out) = self.heartbeat.as_mut() else { return };
+        let hb = Heartbeat {
+            process: name32(&self.name),
+            pid: self.pid,
+            state: self.state,
+            uptime_ns: self.started.elapsed().as_nanos() as u64,
+            messages_in,
+            messages_out,
+        };
+        let now = monotonic_ns();
+        if let Err(e) = out.send_value(MsgHeader { stamp_ns: now, origin_ns: now, ..Default::default() }, hb) {
+            tracing::warn!("heartbeat not sent: {e}");
+        }
+        self.last_heartbeat = Some(Instant::now());
+    }
+
+    /// Builds this process's statistics report (cumulative since start).
+    pub fn stats_report(&self) -> StatsReport {
+        let borrowed: Vec<_> = self.ports.iter().map(|p| p.borrow()).collect();
+        StatsReport::from_ports(&self.name, self.pid, self.started.elapsed().as_nanos() as u64, borrowed.iter().map(|b| &**b))
+    }
+
+    fn publish_stats(&mut self) {
+        self.last_stats = Some(Instant::now());
+        if self.stats_out.is_none() {
+            return;
+        }
+        let bytes = match self.stats_report().encode() {
+            Ok(b) => b,
+            Err(e) => {
+                tracing::warn!("statistics not encoded: {e}");
+                return;
+            }
+        };
+        let out = self.stats_out.as_mut().expect("checked above");
+        let result = out.loan_slice_uninit(bytes.len()).and_then(|s| {
+            let mut s = s.write_from_slice(&bytes);
+            let now = monotonic_ns();
+            *s.user_header_mut() = MsgHeader { stamp_ns: now, origin_ns: now, ..Default::default() };
+            out.send(s)
+        });
+        if let Err(e) = result {
+            tracing::warn!("statistics not sent: {e}");
+        }
+    }
+
+    fn periodic(&mut self, now: Instant) {
+        if !self.options.publish_control {
+            return;
+        }
+        if self.last_heartbeat.is_none_or(|t| now - t >= self.options.heartbeat_interval) {
+            self.publish_heartbeat();
+        }
+        if self.last_stats.is_none_or(|t| now - t >= self.options.stats_interval) {
+            self.publish_stats();
+        }
+    }
+
+    /// Runs the loop: blocks in a WaitSet on every input's events and an interval tick, calls
+    /// `handler` when an input was notified (`wake.data`) or the process's own `tick` is due
+    /// (`wake.tick`), and returns when the handler says [`Flow::Stop`] or on SIGINT/SIGTERM.
+    /// The first heartbeat with state READY goes out on entry: that is "ready" for the supervisor.
+    pub fn run<S>(
+        &mut self,
+        state: &mut S,
+        tick: Option<Duration>,
+        mut handler: impl FnMut(&mut Runtime, &mut S, Wake) -> anyhow::Result<Flow>,
+    ) -> anyhow::Result<StopReason> {
+        let listeners = self.listeners.clone();
+        let ws = WaitSetBuilder::new()
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<ipc::Service>()
+            .map_err(|e| RuntimeError::WaitSet(format!("{e:?}")))?;
+        let guards = listeners
+            .iter()
+            .map(|l| ws.attach_notification(l.as_ref()))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| RuntimeError::WaitSet(format!("attach: {e:?}")))?;
+        let mut period = tick.unwrap_or(Duration::from_secs(3600));
+        if self.options.publish_control {
+            period = period.min(self.options.heartbeat_interval).min(self.options.stats_interval);
+        }
+        let timer = ws.attach_interval(period).map_err(|e| RuntimeError::WaitSet(format!("interval: {e:?}")))?;
+
+        self.state = shared_types::STATE_READY;
+        self.publish_heartbeat();
+        tracing::info!(inputs = listeners.len(), "ready");
+        let mut next_tick = tick.map(|t| Instant::now() + t);
+        let reason = loop {
+            if let Some(sig) = self.termination_signal() {
+                break StopReason::Signal(sig);
+            }
+            let mut wake = Wake::default();
+            ws.wait_and_process_once_with_timeout(
+                |id| {
+                    for (listener, guard) in listeners.iter().zip(&guards) {
+                        if id.has_event_from(guard) {
+                            // Drain the listener, or the WaitSet wakes again at once.
+                            let _ = listener.try_wait(|_| {});
+                            wake.data = true;
+                        }
+                    }
+                    let _ = id.has_event_from(&timer);
+                    CallbackProgression::Continue
+                },
+                period,
+            )
+            .map_err(|e| RuntimeError::WaitSet(format!("wait: {e:?}")))?;
+            let now = Instant::now();
+            if let (Some(t), Some(due)) = (tick, next_tick)
+                && now >= due
+            {
+                wake.tick = true;
+                next_tick = Some(if now - due > t { now + t } else { due + t });
+            }
+            self.periodic(now);
+            if (wake.data || wake.tick) && handler(self, state, wake)? == Flow::Stop {
+                break StopReason::Finished;
+            }
+        };
+        self.state = shared_types::STATE_STOPPING;
+        if self.options.publish_control {
+            self.publish_stats();
+            self.publish_heartbeat();
+        }
+        tracing::info!(?reason, "stopping");
+        Ok(reason)
+    }
+}

@@ -1,0 +1,215 @@
+//! Latency accounting: per-hop and end-to-end HDR histograms per input port, and the
+//! `StatsReport` every process publishes on `pipeline/stats/<process>`.
+//!
+//! Hop latency of a message is `receive time − publish_ns` (the transport plus the time the message
+//! waited in the queue); end-to-end latency is `receive time − origin_ns` (everything since the
+//! oldest sensor input entered the pipeline). Both use CLOCK_MONOTONIC, which all processes on one
+//! machine share. Histograms hold nanoseconds, 3 significant digits, up to 60 s.
+//!
+//! The report carries the histograms serialised (HdrHistogram V2, deflate), bincode-encoded, so the
+//! supervisor can merge the histograms of restarted instances exactly.
+
+use hdrhistogram::Histogram;
+use hdrhistogram::serialization::{Deserializer, Serializer, V2DeflateSerializer};
+use serde::{Deserialize, Serialize};
+
+/// Largest latency a histogram records, ns (larger values are clamped).
+pub const MAX_LATENCY_NS: u64 = 60_000_000_000;
+
+/// A latency histogram in ns.
+pub fn new_histogram() -> Histogram<u64> {
+    Histogram::new_with_bounds(1, MAX_LATENCY_NS, 3).expect("static histogram bounds are valid")
+}
+
+/// Statistics of one port of a process.
+#[derive(Debug, Clone)]
+pub struct PortStats {
+    /// Service name.
+    pub service: String,
+    /// True for an input (subscriber), false for an output (publisher).
+    pub input: bool,
+    /// Messages received or sent.
+    pub count: u64,
+    /// Input messages whose header was implausible (publish/origin time in the future or zero);
+    /// they are counted, not recorded.
+    pub bad_header: u64,
+    /// Hop latency, ns.
+    pub hop: Histogram<u64>,
+    /// End-to-end latency, ns.
+    pub e2e: Histogram<u64>,
+}
+
+impl PortStats {
+    /// Empty statistics of a port.
+    pub fn new(service: &str, input: bool) -> Self {
+        Self { service: service.to_string(), input, count: 0, bad_header: 0, hop: new_histogram(), e2e: new_histogram() }
+    }
+
+    /// Records one received message with header times `publish_ns` and `origin_ns` at `now_ns`.
+    pub fn record_receive(&mut self, now_ns: u64, publish_ns: u64, origin_ns: u64) {
+        self.count += 1;
+        if publish_ns == 0 || publish_ns > now_ns || origin_ns == 0 || origin_ns > now_ns {
+            self.bad_header += 1;
+            return;
+        }
+        self.hop.saturating_record((now_ns - publish_ns).max(1));
+        self.e2e.saturating_record((now_ns - origin_ns).max(1));
+    }
+}
+
+/// One port in a [`StatsReport`].
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct PortReport {
+    /// Service name.
+    pub service: String,
+    /// Input (true) or output.
+    pub input: bool,
+    /// Messages.
+    pub count: u64,
+    /// Messages with implausible headers.
+    pub bad_header: u64,
+    /// Hop histogram, V2 deflate serialised (empty for outputs).
+    pub hop: Vec<u8>,
+    /// End-to-end histogram, V2 deflate serialised (empty for outputs).
+    pub e2e: Vec<u8>,
+}
+
+/// What a process publishes on its stats service, cumulative since the process started.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct StatsReport {
+    /// Process name.
+    pub process: String,
+    /// OS process id (distinguishes restarted instances).
+    pub pid: u32,
+    /// Time since the process started, ns.
+    pub uptime_ns: u64,
+    /// Ports.
+    pub ports: Vec<PortReport>,
+}
+
+/// Errors of encoding or decoding stats.
+#[derive(Debug, thiserror::Error)]
+pub enum StatsError {
+    /// bincode failed.
+    #[error("stats encoding: {0}")]
+    Encode(String),
+    /// The bytes are not a valid report.
+    #[error("malformed stats report: {0}")]
+    Decode(String),
+}
+
+fn ser(h: &Histogram<u64>) -> Vec<u8> {
+    let mut out = Vec::new();
+    if h.is_empty() {
+        return out;
+    }
+    // Writing into a Vec cannot fail; an error would only drop this histogram from the report.
+    let _ = V2DeflateSerializer::new().serialize(h, &mut out);
+    out
+}
+
+/// Decodes a serialised histogram (empty bytes = empty histogram).
+pub fn histogram_from_bytes(bytes: &[u8]) -> Result<Histogram<u64>, StatsError> {
+    if bytes.is_empty() {
+        return Ok(new_histogram());
+    }
+    let mut h: Histogram<u64> =
+        Deserializer::new().deserialize(&mut &bytes[..]).map_err(|e| StatsError::Decode(format!("{e:?}")))?;
+    h.auto(true);
+    Ok(h)
+}
+
+impl StatsReport {
+    /// Builds a report from port statistics.
+    pub fn from_ports<'a>(process: &str, pid: u32, uptime_ns: u64, ports: impl Iterator<Item = &'a PortStats>) -> Self {
+        Self {
+            process: process.to_string(),
+            pid,
+            uptime_ns,
+            ports: ports
+                .map(|p| PortReport {
+                    service: p.service.clone(),
+                    input: p.input,
+                    count: p.count,
+                    bad_header: p.bad_header,
+                    hop: ser(&p.hop),
+                    e2e: ser(&p.e2e),
+                })
+                .collect(),
+        }
+    }
+
+    /// bincode bytes of the report.
+    pub fn encode(&self) -> Result<Vec<u8>, StatsError> {
+        bincode::serde::encode_to_vec(self, bincode::config::standard()).map_err(|e| StatsError::Encode(e.to_string()))
+    }
+
+    /// Decodes a report from bincode bytes.
+    pub fn decode(bytes: &[u8]) -> Result<Self, StatsError> {
+        bincode::serde::decode_from_slice(bytes, bincode::config::standard())
+            .map(|(r, _)| r)
+            .map_err(|e| StatsError::Decode(e.to_string()))
+    }
+}
+
+/// p50/p99/max summary of a histogram, ms.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
+pub struct LatencySummary {
+    /// Samples.
+    pub count: u64,
+    /// Median, ms.
+    pub p50: f64,
+    /// 99th percentile, ms.
+    pub p99: f64,
+    /// 99.9th percentile, ms.
+    pub p999: f64,
+    /// Maximum, ms.
+    pub max: f64,
+}
+
+impl LatencySummary {
+    /// Summary of a histogram in ns.
+    pub fn of(h: &Histogram<u64>) -> Self {
+        if h.is_empty() {
+            return Self::default();
+        }
+        let ms = |ns: u64| ns as f64 / 1e6;
+        Self {
+            count: h.len(),
+            p50: ms(h.value_at_quantile(0.5)),
+            p99: ms(h.value_at_quantile(0.99)),
+            p999: ms(h.value_at_quantile(0.999)),
+            max: ms(h.max()),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn report_round_trips_through_bincode_and_keeps_histograms() {
+        let mut p = PortStats::new("pipeline/sensors/cloud", true);
+        for i in 1..=1000u64 {
+            p.record_receive(10_000_000 + i * 1000, 10_000_000, 9_000_000);
+        }
+        p.record_receive(5, 10, 10); // publish in the future: counted, not recorded
+        let r = StatsReport::from_ports("consumer", 42, 7, [&p].into_iter());
+        let back = StatsReport::decode(&r.encode().unwrap()).unwrap();
+        assert_eq!(back, r);
+        let hop = histogram_from_bytes(&back.ports[0].hop).unwrap();
+        assert_eq!(hop.len(), 1000);
+        assert_eq!(back.ports[0].count, 1001);
+        assert_eq!(back.ports[0].bad_header, 1);
+        let s = LatencySummary::of(&hop);
+        assert!((s.p50 - 0.5).abs() < 0.01, "{s:?}");
+        assert!((s.max - 1.0).abs() < 0.01, "{s:?}");
+    }
+
+    #[test]
+    fn garbage_bytes_are_a_decode_error_not_a_panic() {
+        assert!(StatsReport::decode(&[0xff; 7]).is_err());
+        assert!(histogram_from_bytes(&[1, 2, 3]).is_err());
+    }
+}

@@ -1,0 +1,51 @@
+//! Wire types of the SLAM pipeline.
+//!
+//! Every payload and user header that crosses a process boundary is defined here as a
+//! `#[repr(C)]`, [`ZeroCopySend`](iceoryx2::prelude::ZeroCopySend) plain-old-data struct with a pinned,
+//! versioned iceoryx2 type name (`slam_pipeline::v1::…`) and a size asserted at compile time. The
+//! byte layout of every type, and every service with its QoS, is in `docs/WIRE_FORMAT.md`, which is
+//! rendered from this crate ([`layout::render_markdown`]). No logic lives here beyond conversions to
+//! and from nalgebra ([`convert`]).
+
+pub mod convert;
+pub mod layout;
+pub mod services;
+mod types;
+
+pub use layout::{FieldLayout, TypeLayout, WireType};
+pub use types::*;
+
+/// Version of the wire contract; bumped (with the `v1` in type names) on any layout change.
+pub const WIRE_VERSION: u32 = 1;
+
+/// Layouts of every wire type, in documentation order.
+pub fn all_layouts() -> Vec<TypeLayout> {
+    vec![
+        TypeLayout::of::<MsgHeader>(),
+        TypeLayout::of::<OdometryInput>(),
+        TypeLayout::of::<StereoObservation>(),
+        TypeLayout::of::<BuoyRange>(),
+        TypeLayout::of::<DepthReading>(),
+        TypeLayout::of::<CloudPoint>(),
+        TypeLayout::of::<CloudHeader>(),
+        TypeLayout::of::<PoseEstimate>(),
+        TypeLayout::of::<Particle>(),
+        TypeLayout::of::<ParticleSetHeader>(),
+        TypeLayout::of::<Landmark>(),
+        TypeLayout::of::<LandmarkMapHeader>(),
+        TypeLayout::of::<BuoyFix>(),
+        TypeLayout::of::<SyncedPair>(),
+        TypeLayout::of::<FusedPose>(),
+        TypeLayout::of::<MapStats>(),
+        TypeLayout::of::<Voxel>(),
+        TypeLayout::of::<VoxelSetHeader>(),
+        TypeLayout::of::<Heartbeat>(),
+        TypeLayout::of::<EndOfStream>(),
+        TypeLayout::of::<ControlCommand>(),
+    ]
+}
+
+/// Renders docs/WIRE_FORMAT.md.
+pub fn wire_format_markdown() -> String {
+    layout::render_markdown(&all_layouts(), services::SERVICES)
+}

@@ -1,0 +1,173 @@
+//! Service names and their QoS: the public contract external producers write against.
+//!
+//! Each data service `X` has an event service with the same name `X` (iceoryx2 keeps the two
+//! messaging patterns apart); publishers notify it after every send. The QoS values below are the
+//! ones the pipeline creates the services with; a process that opens a service must ask for at most
+//! these values (iceoryx2 treats the opener's values as minimums).
+
+/// Quality of service of one publish-subscribe service.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Qos {
+    /// Maximum publishers.
+    pub max_publishers: usize,
+    /// Maximum subscribers.
+    pub max_subscribers: usize,
+    /// Maximum nodes that may open the service.
+    pub max_nodes: usize,
+    /// Samples a subscriber queues per publisher before the oldest is overwritten.
+    pub subscriber_buffer: usize,
+    /// Samples a subscriber may hold at once.
+    pub subscriber_borrowed: usize,
+    /// Samples replayed to a late subscriber.
+    pub history: usize,
+    /// Overwrite the oldest queued sample instead of blocking the publisher.
+    pub safe_overflow: bool,
+    /// Samples a publisher may loan at once.
+    pub publisher_loans: usize,
+    /// For slice payloads: elements reserved up front per sample (the publisher grows by powers of two).
+    pub initial_slice_len: usize,
+}
+
+impl Qos {
+    /// Data that flows at sensor rate: newest wins, the publisher never blocks.
+    pub const fn stream(max_subscribers: usize, initial_slice_len: usize) -> Self {
+        Self {
+            max_publishers: 2,
+            max_subscribers,
+            max_nodes: 32,
+            subscriber_buffer: 4,
+            subscriber_borrowed: 2,
+            history: 0,
+            safe_overflow: true,
+            publisher_loans: 2,
+            initial_slice_len,
+        }
+    }
+
+    /// Chunks one publisher of this service reserves (iceoryx2's data-segment formula).
+    pub const fn chunks_per_publisher(&self) -> usize {
+        self.max_subscribers * (self.subscriber_buffer + self.subscriber_borrowed)
+            + self.history
+            + self.publisher_loans
+    }
+}
+
+/// One service of the contract.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ServiceSpec {
+    /// iceoryx2 service name.
+    pub name: &'static str,
+    /// Payload type (`[T]` for a slice).
+    pub payload: &'static str,
+    /// User header type.
+    pub user_header: &'static str,
+    /// QoS the pipeline creates it with.
+    pub qos: Qos,
+}
+
+/// Odometry / input stream, [`crate::OdometryInput`].
+pub const ODOMETRY: &str = "pipeline/sensors/odometry";
+/// Stereo observations, `[StereoObservation]` per camera frame.
+pub const STEREO: &str = "pipeline/sensors/stereo";
+/// Buoy ranges, `[BuoyRange]`.
+pub const BUOY_RANGES: &str = "pipeline/sensors/buoy_ranges";
+/// Pressure depth, [`crate::DepthReading`].
+pub const DEPTH: &str = "pipeline/sensors/depth";
+/// Point clouds, `[CloudPoint]` with a [`crate::CloudHeader`].
+pub const CLOUD: &str = "pipeline/sensors/cloud";
+/// FastSLAM pose, [`crate::PoseEstimate`].
+pub const SLAM_POSE: &str = "pipeline/slam/pose";
+/// FastSLAM particle set, `[Particle]` with a [`crate::ParticleSetHeader`].
+pub const SLAM_PARTICLES: &str = "pipeline/slam/particles";
+/// Best particle's landmark map, `[Landmark]` with a [`crate::LandmarkMapHeader`].
+pub const SLAM_LANDMARKS: &str = "pipeline/slam/landmarks";
+/// Buoy EKF fixes, [`crate::BuoyFix`].
+pub const BUOY_FIX: &str = "pipeline/buoy/fix";
+/// Synchronised pairs, [`crate::SyncedPair`].
+pub const SYNC_PAIR: &str = "pipeline/sync/pair";
+/// Fused global pose, [`crate::FusedPose`].
+pub const FUSION_POSE: &str = "pipeline/fusion/pose";
+/// Global landmark map, `[Landmark]` with a [`crate::LandmarkMapHeader`].
+pub const FUSION_MAP: &str = "pipeline/fusion/map";
+/// Octree statistics, [`crate::MapStats`].
+pub const MAP_STATS: &str = "pipeline/map/stats";
+/// Occupied voxels, `[Voxel]` with a [`crate::VoxelSetHeader`].
+pub const MAP_VOXELS: &str = "pipeline/map/voxels";
+/// Heartbeats of every process, [`crate::Heartbeat`].
+pub const HEARTBEAT: &str = "pipeline/control/heartbeat";
+/// End of stream, [`crate::EndOfStream`].
+pub const END_OF_STREAM: &str = "pipeline/control/end_of_stream";
+/// Commands to processes, [`crate::ControlCommand`].
+pub const COMMAND: &str = "pipeline/control/command";
+/// Prefix of the per-process latency statistics services (`pipeline/stats/<process>`, `[u8]`).
+pub const STATS_PREFIX: &str = "pipeline/stats/";
+
+/// Largest number of processes one pipeline may run (sizes the control services).
+pub const MAX_PROCESSES: usize = 48;
+
+/// Control-plane QoS: many publishers (one per process), few subscribers.
+pub const CONTROL_QOS: Qos = Qos {
+    max_publishers: MAX_PROCESSES,
+    max_subscribers: 8,
+    max_nodes: MAX_PROCESSES + 8,
+    subscriber_buffer: 8,
+    subscriber_borrowed: 2,
+    history: 0,
+    safe_overflow: true,
+    publisher_loans: 2,
+    initial_slice_len: 0,
+};
+
+/// QoS of a `pipeline/stats/<process>` service (bincode bytes, see the runtime's `StatsReport`).
+pub const STATS_QOS: Qos = Qos {
+    max_publishers: 1,
+    max_subscribers: 4,
+    max_nodes: 8,
+    subscriber_buffer: 2,
+    subscriber_borrowed: 1,
+    history: 1,
+    safe_overflow: true,
+    publisher_loans: 1,
+    initial_slice_len: 16 * 1024,
+};
+
+/// Every fixed service of the contract, with the QoS the pipeline creates it with.
+pub const SERVICES: &[ServiceSpec] = &[
+    spec(ODOMETRY, "OdometryInput", "MsgHeader", Qos::stream(4, 0)),
+    spec(STEREO, "[StereoObservation]", "MsgHeader", Qos::stream(4, 1024)),
+    spec(BUOY_RANGES, "[BuoyRange]", "MsgHeader", Qos::stream(4, 16)),
+    spec(DEPTH, "DepthReading", "MsgHeader", Qos::stream(4, 0)),
+    spec(CLOUD, "[CloudPoint]", "CloudHeader", Qos {
+        subscriber_buffer: 2,
+        subscriber_borrowed: 1,
+        publisher_loans: 1,
+        ..Qos::stream(2, 320 * 240)
+    }),
+    spec(SLAM_POSE, "PoseEstimate", "MsgHeader", Qos::stream(4, 0)),
+    spec(SLAM_PARTICLES, "[Particle]", "ParticleSetHeader", Qos::stream(2, 1024)),
+    spec(SLAM_LANDMARKS, "[Landmark]", "LandmarkMapHeader", Qos::stream(2, 4096)),
+    spec(BUOY_FIX, "BuoyFix", "MsgHeader", Qos::stream(4, 0)),
+    spec(SYNC_PAIR, "SyncedPair", "MsgHeader", Qos::stream(4, 0)),
+    spec(FUSION_POSE, "FusedPose", "MsgHeader", Qos::stream(4, 0)),
+    spec(FUSION_MAP, "[Landmark]", "LandmarkMapHeader", Qos::stream(2, 4096)),
+    spec(MAP_STATS, "MapStats", "MsgHeader", Qos::stream(4, 0)),
+    spec(MAP_VOXELS, "[Voxel]", "VoxelSetHeader", Qos::stream(2, 16 * 1024)),
+    spec(HEARTBEAT, "Heartbeat", "MsgHeader", CONTROL_QOS),
+    spec(END_OF_STREAM, "EndOfStream", "MsgHeader", CONTROL_QOS),
+    spec(COMMAND, "ControlCommand", "MsgHeader", CONTROL_QOS),
+    spec("pipeline/stats/<process>", "[u8]", "MsgHeader", STATS_QOS),
+];
+
+const fn spec(name: &'static str, payload: &'static str, user_header: &'static str, qos: Qos) -> ServiceSpec {
+    ServiceSpec { name, payload, user_header, qos }
+}
+
+/// The spec of a fixed service by name.
+pub fn service_spec(name: &str) -> Option<&'static ServiceSpec> {
+    SERVICES.iter().find(|s| s.name == name)
+}
+
+/// The statistics service of a process.
+pub fn stats_service(process: &str) -> String {
+    format!("{STATS_PREFIX}{process}")
+}

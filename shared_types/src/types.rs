@@ -1,0 +1,451 @@
+//! The wire types: one per edge of the process graph (DESIGN.md), plus control messages.
+//!
+//! Conventions (SPEC §0): frames are right-handed, world z up, body x forward / y left / z up,
+//! camera optical x right / y down / z forward. Quaternions are stored (x, y, z, w). Matrices are
+//! row-major, full and symmetric for covariances. Units are SI. A 6×6 pose covariance is ordered
+//! (x, y, z, rot_x, rot_y, rot_z), where the rotation part is a small-angle error vector δ in the
+//! body frame: `world_from_body_true = world_from_body_est · Exp(δ)`.
+
+use crate::wire_type;
+use iceoryx2::prelude::ZeroCopySend;
+
+/// `frame` value: points/poses in the sensor's own frame.
+pub const FRAME_SENSOR: u32 = 0;
+/// `frame` value: body frame of the vehicle.
+pub const FRAME_BODY: u32 = 1;
+/// `frame` value: a local-map (segment) frame of FastSLAM.
+pub const FRAME_LOCAL_MAP: u32 = 2;
+/// `frame` value: the global (world) frame of the buoys.
+pub const FRAME_WORLD: u32 = 3;
+
+wire_type! {
+    /// The common header of every message, carried as (the first 32 bytes of) the iceoryx2 user
+    /// header. Latency per hop is `receive time − publish_ns`, end to end `receive time − origin_ns`.
+    type_name = "slam_pipeline::v1::MsgHeader", size = 32;
+    pub struct MsgHeader {
+        /// Measurement time in ns (CLOCK_MONOTONIC, or the replayed data set's clock).
+        pub stamp_ns: u64,
+        /// Per-publisher sequence number, +1 per message, starting at 0.
+        pub seq: u64,
+        /// CLOCK_MONOTONIC ns at which the oldest sensor input this message depends on entered the pipeline.
+        pub origin_ns: u64,
+        /// CLOCK_MONOTONIC ns at send (set by the publishing runtime).
+        pub publish_ns: u64,
+    }
+}
+
+wire_type! {
+    /// Odometry / control input U = (v, δθx, δθy, δθz) over δt (SPEC §1). The rotation increment
+    /// is in the body frame: R(k+1) = R(k)·R(δθ).
+    type_name = "slam_pipeline::v1::OdometryInput", size = 168;
+    pub struct OdometryInput {
+        /// Forward speed along body x, m/s.
+        pub v_mps: f64,
+        /// Body-frame rotation increment (δθx, δθy, δθz) over `dt_s`, rad.
+        pub delta_theta_rad: [f64; 3],
+        /// Sampling interval δt, s (> 0).
+        pub dt_s: f64,
+        /// Input noise covariance over (v, δθx, δθy, δθz), 4×4 row-major, SI units squared.
+        pub input_covariance: [f64; 16],
+    }
+}
+
+/// `StereoObservation::flags` bit: `descriptor` is valid.
+pub const STEREO_HAS_DESCRIPTOR: u32 = 1;
+/// `StereoObservation::flags` bit: `pixels_ul_ur_v` is valid.
+pub const STEREO_HAS_PIXELS: u32 = 2;
+
+wire_type! {
+    /// One triangulated stereo landmark observation (SPEC §2), an element of the slice on
+    /// `pipeline/sensors/stereo`; one message is one camera frame.
+    type_name = "slam_pipeline::v1::StereoObservation", size = 168;
+    pub struct StereoObservation {
+        /// Landmark position in the camera (optical) frame, m.
+        pub point_cam_m: [f64; 3],
+        /// Covariance of `point_cam_m`, 3×3 row-major, m².
+        pub covariance_cam_m2: [f64; 9],
+        /// Pixel triple (uL, uR, v) in the rectified pair, px; valid when flags has STEREO_HAS_PIXELS.
+        pub pixels_ul_ur_v: [f64; 3],
+        /// The data source's own landmark id (for evaluation), u64::MAX when unknown.
+        pub source_id: u64,
+        /// 32-byte binary descriptor (e.g. ORB), valid when flags has STEREO_HAS_DESCRIPTOR.
+        pub descriptor: [u8; 32],
+        /// Bit set: 1 = descriptor valid, 2 = pixels valid.
+        pub flags: u32,
+        /// Zero.
+        pub _reserved: u32,
+    }
+}
+
+wire_type! {
+    /// One acoustic range to a buoy at a known position (SPEC §5), an element of the slice on
+    /// `pipeline/sensors/buoy_ranges`.
+    type_name = "slam_pipeline::v1::BuoyRange", size = 24;
+    pub struct BuoyRange {
+        /// Buoy id as in the config's buoy table.
+        pub buoy_id: u32,
+        /// Zero.
+        pub _reserved: u32,
+        /// Measured range, m.
+        pub range_m: f64,
+        /// Standard deviation of the range, m (> 0).
+        pub sigma_m: f64,
+    }
+}
+
+wire_type! {
+    /// Pressure depth (SPEC §5): a direct measurement of −z in the world frame.
+    type_name = "slam_pipeline::v1::DepthReading", size = 16;
+    pub struct DepthReading {
+        /// Depth below the surface, m (positive down).
+        pub depth_m: f64,
+        /// Standard deviation, m.
+        pub sigma_m: f64,
+    }
+}
+
+wire_type! {
+    /// One point of a point cloud (an element of the slice on `pipeline/sensors/cloud`), in the
+    /// frame named by the cloud's header.
+    type_name = "slam_pipeline::v1::CloudPoint", size = 12;
+    pub struct CloudPoint {
+        /// x, m.
+        pub x_m: f32,
+        /// y, m.
+        pub y_m: f32,
+        /// z, m.
+        pub z_m: f32,
+    }
+}
+
+/// `CloudHeader::flags` bit: `sensor_origin_m`/`orientation_xyzw` hold the world_from_sensor pose.
+pub const CLOUD_HAS_POSE: u32 = 1;
+
+wire_type! {
+    /// User header of `pipeline/sensors/cloud`: the common header plus the sensor pose.
+    type_name = "slam_pipeline::v1::CloudHeader", size = 96;
+    pub struct CloudHeader {
+        /// Common header.
+        pub msg: MsgHeader,
+        /// Sensor origin (ray start for occupancy updates) in the world frame, m; valid with CLOUD_HAS_POSE.
+        pub sensor_origin_m: [f64; 3],
+        /// world_from_sensor rotation as quaternion (x, y, z, w); valid with CLOUD_HAS_POSE.
+        pub orientation_xyzw: [f64; 4],
+        /// Frame of the points: 0 sensor, 1 body, 2 local map, 3 world.
+        pub frame: u32,
+        /// Bit set: 1 = pose valid.
+        pub flags: u32,
+    }
+}
+
+wire_type! {
+    /// A 6-DOF pose estimate with covariance (`pipeline/slam/pose`).
+    type_name = "slam_pipeline::v1::PoseEstimate", size = 352;
+    pub struct PoseEstimate {
+        /// Position of the body in `frame`, m.
+        pub position_m: [f64; 3],
+        /// frame_from_body rotation, quaternion (x, y, z, w).
+        pub orientation_xyzw: [f64; 4],
+        /// 6×6 row-major covariance over (x, y, z, rot_x, rot_y, rot_z), m² / rad², body-frame rotation error.
+        pub covariance: [f64; 36],
+        /// Local map (segment) id; increases by one per new local map.
+        pub segment_id: u32,
+        /// Frame of the pose: 2 local map, 3 world.
+        pub frame: u32,
+    }
+}
+
+wire_type! {
+    /// One particle of the FastSLAM particle set (slice on `pipeline/slam/particles`).
+    type_name = "slam_pipeline::v1::Particle", size = 64;
+    pub struct Particle {
+        /// Position in the local-map frame, m.
+        pub position_m: [f64; 3],
+        /// map_from_body rotation, quaternion (x, y, z, w).
+        pub orientation_xyzw: [f64; 4],
+        /// Normalised log weight (natural log).
+        pub log_weight: f64,
+    }
+}
+
+wire_type! {
+    /// User header of `pipeline/slam/particles`.
+    type_name = "slam_pipeline::v1::ParticleSetHeader", size = 48;
+    pub struct ParticleSetHeader {
+        /// Common header.
+        pub msg: MsgHeader,
+        /// Local map (segment) id.
+        pub segment_id: u32,
+        /// Zero.
+        pub _reserved: u32,
+        /// Effective sample size 1/Σw².
+        pub n_eff: f64,
+    }
+}
+
+wire_type! {
+    /// A 3-D landmark with its EKF estimate (slices on `pipeline/slam/landmarks`, `pipeline/fusion/map`).
+    type_name = "slam_pipeline::v1::Landmark", size = 144;
+    pub struct Landmark {
+        /// Landmark id, unique within its map.
+        pub id: u64,
+        /// Mean position in the map's frame, m.
+        pub mean_m: [f64; 3],
+        /// Covariance of the mean, 3×3 row-major, m².
+        pub covariance_m2: [f64; 9],
+        /// Descriptor (all zero when none).
+        pub descriptor: [u8; 32],
+        /// Number of times the landmark was observed.
+        pub observation_count: u32,
+        /// Local map (segment) the landmark was built in.
+        pub segment_id: u32,
+    }
+}
+
+wire_type! {
+    /// User header of landmark-map services.
+    type_name = "slam_pipeline::v1::LandmarkMapHeader", size = 40;
+    pub struct LandmarkMapHeader {
+        /// Common header.
+        pub msg: MsgHeader,
+        /// Segment id (u32::MAX for a global map of all segments).
+        pub segment_id: u32,
+        /// Frame of the landmarks: 2 local map, 3 world.
+        pub frame: u32,
+    }
+}
+
+wire_type! {
+    /// A global position fix of the buoy EKF (`pipeline/buoy/fix`).
+    type_name = "slam_pipeline::v1::BuoyFix", size = 128;
+    pub struct BuoyFix {
+        /// Position in the world frame, m.
+        pub position_m: [f64; 3],
+        /// Covariance of the position, 3×3 row-major, m².
+        pub covariance_m2: [f64; 9],
+        /// Velocity in the world frame, m/s.
+        pub velocity_mps: [f64; 3],
+        /// Ranges accepted by the gate since the previous fix.
+        pub ranges_used: u32,
+        /// Ranges rejected by the gate since the previous fix.
+        pub ranges_rejected: u32,
+    }
+}
+
+/// `SyncedPair::flags` bit: the buoy position was extrapolated (no bracketing fix in time).
+pub const SYNC_EXTRAPOLATED: u32 = 1;
+/// `SyncedPair::flags` bit: only two fixes were available (linear interpolation).
+pub const SYNC_LINEAR: u32 = 2;
+
+wire_type! {
+    /// A local SLAM pose paired with the buoy position interpolated to its stamp (`pipeline/sync/pair`).
+    type_name = "slam_pipeline::v1::SyncedPair", size = 464;
+    pub struct SyncedPair {
+        /// The SLAM pose (local-map frame) at the header's stamp.
+        pub slam: PoseEstimate,
+        /// Buoy position interpolated to the stamp, world frame, m.
+        pub buoy_position_m: [f64; 3],
+        /// Its covariance (SPEC eq 30), 3×3 row-major, m².
+        pub buoy_covariance_m2: [f64; 9],
+        /// Stamp of the newest buoy fix used, ns.
+        pub newest_fix_stamp_ns: u64,
+        /// Bit set: 1 extrapolated, 2 linear.
+        pub flags: u32,
+        /// Number of fixes used (2 or 3).
+        pub fixes_used: u32,
+    }
+}
+
+/// `FusedPose::flags` bit: camera and buoy estimates were fused (else camera only).
+pub const FUSED_WITH_BUOY: u32 = 1;
+
+wire_type! {
+    /// The globally consistent pose (`pipeline/fusion/pose`), world frame.
+    type_name = "slam_pipeline::v1::FusedPose", size = 360;
+    pub struct FusedPose {
+        /// The pose, `frame` = 3 (world).
+        pub pose: PoseEstimate,
+        /// Bit set: 1 fused with a buoy estimate.
+        pub flags: u32,
+        /// Zero.
+        pub _reserved: u32,
+    }
+}
+
+wire_type! {
+    /// Statistics of the occupancy octree (`pipeline/map/stats`).
+    type_name = "slam_pipeline::v1::MapStats", size = 96;
+    pub struct MapStats {
+        /// Octree resolution, m.
+        pub resolution_m: f64,
+        /// Leaf nodes.
+        pub leaves: u64,
+        /// Occupied leaves.
+        pub occupied_leaves: u64,
+        /// Free leaves.
+        pub free_leaves: u64,
+        /// Inner nodes.
+        pub inner_nodes: u64,
+        /// Memory used by the tree, bytes.
+        pub memory_bytes: u64,
+        /// Clouds inserted.
+        pub clouds_inserted: u64,
+        /// Clouds dropped because insertion fell behind.
+        pub clouds_dropped: u64,
+        /// Points inserted.
+        pub points_inserted: u64,
+        /// Time of the last insertion, ms.
+        pub last_insert_ms: f64,
+        /// Navigable regions.
+        pub navigable_regions: u32,
+        /// Obstacles.
+        pub obstacles: u32,
+        /// Zero.
+        pub _reserved: u64,
+    }
+}
+
+/// `Voxel::class` value: unclassified occupied voxel.
+pub const VOXEL_OCCUPIED: u32 = 0;
+/// `Voxel::class` value: navigable (planar, climbable).
+pub const VOXEL_NAVIGABLE: u32 = 1;
+/// `Voxel::class` value: obstacle.
+pub const VOXEL_OBSTACLE: u32 = 2;
+
+wire_type! {
+    /// An occupied octree leaf (slice on `pipeline/map/voxels`), world frame.
+    type_name = "slam_pipeline::v1::Voxel", size = 24;
+    pub struct Voxel {
+        /// Voxel centre, m.
+        pub center_m: [f32; 3],
+        /// Edge length, m.
+        pub size_m: f32,
+        /// Occupancy probability.
+        pub occupancy: f32,
+        /// 0 occupied, 1 navigable, 2 obstacle.
+        pub class: u32,
+    }
+}
+
+wire_type! {
+    /// User header of `pipeline/map/voxels`.
+    type_name = "slam_pipeline::v1::VoxelSetHeader", size = 48;
+    pub struct VoxelSetHeader {
+        /// Common header.
+        pub msg: MsgHeader,
+        /// Octree resolution, m.
+        pub resolution_m: f64,
+        /// Frame of the voxels (3 world, 2 local map).
+        pub frame: u32,
+        /// Zero.
+        pub _reserved: u32,
+    }
+}
+
+/// `Heartbeat::state`: the process is setting up its ports.
+pub const STATE_STARTING: u32 = 1;
+/// `Heartbeat::state`: the process is ready and processing.
+pub const STATE_READY: u32 = 2;
+/// `Heartbeat::state`: the process is shutting down.
+pub const STATE_STOPPING: u32 = 3;
+
+wire_type! {
+    /// Liveness and readiness of a process (`pipeline/control/heartbeat`), sent periodically.
+    type_name = "slam_pipeline::v1::Heartbeat", size = 64;
+    pub struct Heartbeat {
+        /// Process name, UTF-8, NUL-padded.
+        pub process: [u8; 32],
+        /// OS process id.
+        pub pid: u32,
+        /// 1 starting, 2 ready, 3 stopping.
+        pub state: u32,
+        /// Time since the process started, ns.
+        pub uptime_ns: u64,
+        /// Messages received so far.
+        pub messages_in: u64,
+        /// Messages sent so far.
+        pub messages_out: u64,
+    }
+}
+
+wire_type! {
+    /// End of stream (`pipeline/control/end_of_stream`): the sender has sent its last message.
+    type_name = "slam_pipeline::v1::EndOfStream", size = 48;
+    pub struct EndOfStream {
+        /// Sending process name, UTF-8, NUL-padded.
+        pub process: [u8; 32],
+        /// Sequence number of the sender's last data message.
+        pub last_seq: u64,
+        /// Messages the sender published in all.
+        pub messages_sent: u64,
+    }
+}
+
+/// `ControlCommand::command`: start a new local map (segment).
+pub const COMMAND_NEW_SEGMENT: u32 = 1;
+/// `ControlCommand::command`: write a checkpoint of the process's state / outputs.
+pub const COMMAND_CHECKPOINT: u32 = 2;
+
+wire_type! {
+    /// A command to one process (`pipeline/control/command`).
+    type_name = "slam_pipeline::v1::ControlCommand", size = 48;
+    pub struct ControlCommand {
+        /// Target process name, UTF-8, NUL-padded (all zero = every process).
+        pub target: [u8; 32],
+        /// 1 new segment, 2 checkpoint.
+        pub command: u32,
+        /// Zero.
+        pub _reserved: u32,
+        /// Command argument.
+        pub arg: u64,
+    }
+}
+
+/// Encodes a name into a NUL-padded 32-byte field, truncated at a char boundary.
+pub fn name32(name: &str) -> [u8; 32] {
+    let mut out = [0u8; 32];
+    let mut end = name.len().min(32);
+    while !name.is_char_boundary(end) {
+        end -= 1;
+    }
+    out[..end].copy_from_slice(&name.as_bytes()[..end]);
+    out
+}
+
+/// Decodes a NUL-padded name field; invalid UTF-8 is replaced.
+pub fn name_from32(field: &[u8; 32]) -> String {
+    let end = field.iter().position(|&b| b == 0).unwrap_or(32);
+    String::from_utf8_lossy(&field[..end]).into_owned()
+}
+
+/// Anything whose user header starts with a [`MsgHeader`].
+pub trait HasMsgHeader {
+    /// The common header.
+    fn msg(&self) -> &MsgHeader;
+    /// The common header, mutable.
+    fn msg_mut(&mut self) -> &mut MsgHeader;
+}
+
+impl HasMsgHeader for MsgHeader {
+    fn msg(&self) -> &MsgHeader {
+        self
+    }
+    fn msg_mut(&mut self) -> &mut MsgHeader {
+        self
+    }
+}
+
+macro_rules! has_msg_header {
+    ($($t:ty),*) => {$(
+        impl HasMsgHeader for $t {
+            fn msg(&self) -> &MsgHeader { &self.msg }
+            fn msg_mut(&mut self) -> &mut MsgHeader { &mut self.msg }
+        }
+    )*};
+}
+has_msg_header!(
+    CloudHeader,
+    ParticleSetHeader,
+    LandmarkMapHeader,
+    VoxelSetHeader
+);
