@@ -212,6 +212,9 @@ pub struct ProcessConfig {
     /// Largest restart delay, s.
     #[serde(default = "default_backoff_max")]
     pub backoff_max_s: f64,
+    /// When this process fails for good (restarts exhausted), end the whole run.
+    #[serde(default)]
+    pub required: bool,
     /// `external` processes that do not use the runtime cannot report ready: set false to treat
     /// them as ready once spawned and to skip their heartbeat deadline.
     #[serde(default = "yes")]

@@ -1,1 +1,101 @@
-//! tmp
+//! The supervisor: validates a pipeline config, checks the machine, starts the processes in
+//! dependency order, watches and restarts them, ends the run, stops everything in reverse order,
+//! removes the run's iceoryx2 resources and writes `summary.json`.
+
+pub mod kinds;
+pub mod plan;
+pub mod report;
+pub mod supervise;
+
+use std::path::PathBuf;
+
+use anyhow::Context as _;
+use pipeline_runtime::{LogFormat, Runtime};
+
+/// Command line of `supervisor`.
+#[derive(Debug, clap::Parser)]
+#[command(version, about = "Runs the SLAM pipeline: starts, watches, restarts and stops its processes.")]
+pub struct Cli {
+    /// Pipeline config (TOML), e.g. config/default.toml.
+    #[arg(long)]
+    pub config: PathBuf,
+    /// Output directory (overrides run.out_dir).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// End the run after this many seconds (overrides run.duration_s).
+    #[arg(long)]
+    pub duration: Option<f64>,
+    /// iceoryx2 prefix of this run (overrides run.iceoryx_prefix).
+    #[arg(long)]
+    pub iceoryx_prefix: Option<String>,
+    /// Log format (overrides run.log_format).
+    #[arg(long, value_enum)]
+    pub log_format: Option<LogFormat>,
+    /// Only validate the config and check the machine; start nothing.
+    #[arg(long)]
+    pub check: bool,
+}
+
+/// Exit code for an invalid config or a failed pre-flight check (nothing was started).
+pub const EXIT_CONFIG: u8 = 2;
+
+/// An error before anything started (config or machine): exit code [`EXIT_CONFIG`].
+#[derive(Debug, thiserror::Error)]
+#[error(transparent)]
+pub struct SetupError(#[from] anyhow::Error);
+
+/// Runs the supervisor; returns the process exit code.
+pub fn run(cli: &Cli) -> anyhow::Result<u8> {
+    let overrides = plan::Overrides { out_dir: cli.out.clone(), duration_s: cli.duration, iceoryx_prefix: cli.iceoryx_prefix.clone() };
+    let mut plan = plan::make_plan(&cli.config, &overrides, &plan::default_bin_dir()).map_err(|e| SetupError(e.into()))?;
+    if let Some(f) = cli.log_format {
+        plan.config.run.log_format = f;
+    }
+    let pre = plan::preflight(&plan).map_err(|e| SetupError(e.into()))?;
+    tracing::info!(
+        "pre-flight ok: /dev/shm {:.0} MiB free, ~{:.0} MiB needed; fd limit {}",
+        pre.shm_free as f64 / 1048576.0,
+        pre.shm_need as f64 / 1048576.0,
+        pre.fd_limit
+    );
+    if cli.check {
+        println!("config ok: {} process(es) in order {:?}", plan.processes.len(), plan.processes.iter().map(|p| &p.name).collect::<Vec<_>>());
+        return Ok(0);
+    }
+    let census = plan.scope.node_census().map_err(|e| SetupError(e.into()))?;
+    if !census.alive.is_empty() {
+        return Err(SetupError(anyhow::anyhow!(
+            "another pipeline is running with iceoryx2 prefix `{}` (live nodes: {}); stop it or choose another run.iceoryx_prefix / --iceoryx-prefix",
+            plan.scope.prefix,
+            census.alive.join(", ")
+        ))
+        .into());
+    }
+    let removed = plan.scope.remove_all_resources().with_context(|| format!("removing stale resources under {}", plan.scope.root.display()))?;
+    if removed > 0 || census.dead > 0 {
+        tracing::info!("removed {removed} stale iceoryx2 file(s) of {} dead node(s) from an earlier run", census.dead);
+    }
+    std::fs::create_dir_all(&plan.out_dir).with_context(|| format!("creating {}", plan.out_dir.display()))?;
+    let parts = plan.out_dir.join("parts");
+    if parts.exists() {
+        std::fs::remove_dir_all(&parts).with_context(|| format!("clearing {}", parts.display()))?;
+    }
+    let scope = plan.scope.clone();
+    let out_dir = plan.out_dir.clone();
+    let outcome = {
+        let mut rt = Runtime::new("supervisor", &scope, supervise::Supervisor::runtime_options())?;
+        let sup = supervise::Supervisor::new(plan, &mut rt)?;
+        sup.run(&mut rt)?
+    };
+    // Every child is reaped and our own node is dropped: nothing of the run may remain.
+    let _ = scope.cleanup_dead_nodes();
+    match scope.remove_all_resources() {
+        Ok(n) if n > 0 => tracing::debug!("removed {n} remaining iceoryx2 file(s)"),
+        Ok(_) => {}
+        Err(e) => tracing::warn!("removing the run's iceoryx2 resources: {e}"),
+    }
+    report::write(&out_dir, &outcome.summary).with_context(|| format!("writing {}", out_dir.join("summary.json").display()))?;
+    print!("{}", report::render(&outcome.summary));
+    println!("outputs in {}", out_dir.display());
+    Ok(outcome.exit_code)
+}

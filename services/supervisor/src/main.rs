@@ -1,0 +1,23 @@
+//! `supervisor --config <file> [--out <dir>] [--duration <s>]`: runs the pipeline.
+//! Exit codes: 0 ok, 1 a process failed, 2 invalid config or machine (nothing started),
+//! 128+n stopped by signal n (130 SIGINT, 143 SIGTERM).
+
+use std::process::ExitCode;
+
+use clap::Parser;
+use supervisor::{Cli, EXIT_CONFIG, SetupError};
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let format = cli.log_format.unwrap_or_else(|| {
+        pipeline_runtime::config::load_pipeline_config(&cli.config).map(|c| c.run.log_format).unwrap_or_default()
+    });
+    let _log = pipeline_runtime::logging::init("supervisor", format);
+    match supervisor::run(&cli) {
+        Ok(code) => ExitCode::from(code),
+        Err(e) => {
+            eprintln!("supervisor: error: {e:#}");
+            ExitCode::from(if e.is::<SetupError>() { EXIT_CONFIG } else { 1 })
+        }
+    }
+}

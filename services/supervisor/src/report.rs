@@ -1,0 +1,196 @@
+//! What a run reports: `summary.json` (processes, latency per hop and end to end, plus the parts
+//! other stages write to `<out>/parts/<process>.json`), `latency.csv`, and the printed summary.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Duration;
+
+use hdrhistogram::Histogram;
+use pipeline_runtime::stats::{LatencySummary, histogram_from_bytes, new_histogram};
+use pipeline_runtime::StatsReport;
+use serde_json::{Value, json};
+
+use crate::plan::Plan;
+use crate::supervise::{EndReason, ExitInfo};
+
+/// One process as the report sees it.
+pub struct ProcessRow<'a> {
+    /// Name.
+    pub name: &'a str,
+    /// Kind.
+    pub kind: &'a str,
+    /// Final state.
+    pub state: &'a str,
+    /// Why it failed, if it did.
+    pub failure: Option<&'a str>,
+    /// Restarts.
+    pub restarts: u32,
+    /// How its last instance ended.
+    pub last_exit: Option<&'a ExitInfo>,
+    /// Latest statistics of each instance (by pid).
+    pub reports: Vec<&'a StatsReport>,
+}
+
+/// Hop latency over all inputs of one report.
+pub fn hop_summary(report: &StatsReport) -> Option<LatencySummary> {
+    let mut h = new_histogram();
+    for p in report.ports.iter().filter(|p| p.input) {
+        h.add(histogram_from_bytes(&p.hop).ok()?).ok()?;
+    }
+    Some(LatencySummary::of(&h))
+}
+
+/// Latency tables merged over every instance: key `"<service> -> <process>"`.
+pub fn merged_latency(rows: &[ProcessRow<'_>]) -> (BTreeMap<String, LatencySummary>, BTreeMap<String, LatencySummary>) {
+    let mut hop: BTreeMap<String, Histogram<u64>> = BTreeMap::new();
+    let mut e2e: BTreeMap<String, Histogram<u64>> = BTreeMap::new();
+    for row in rows {
+        for report in &row.reports {
+            for port in report.ports.iter().filter(|p| p.input) {
+                let key = format!("{} -> {}", port.service, row.name);
+                for (table, bytes) in [(&mut hop, &port.hop), (&mut e2e, &port.e2e)] {
+                    match histogram_from_bytes(bytes) {
+                        Ok(h) => {
+                            let _ = table.entry(key.clone()).or_insert_with(new_histogram).add(h);
+                        }
+                        Err(e) => tracing::warn!(process = row.name, "{e}"),
+                    }
+                }
+            }
+        }
+    }
+    let f = |t: BTreeMap<String, Histogram<u64>>| t.into_iter().map(|(k, h)| (k, LatencySummary::of(&h))).collect();
+    (f(hop), f(e2e))
+}
+
+fn lat_json(s: &LatencySummary) -> Value {
+    json!({ "count": s.count, "p50": s.p50, "p99": s.p99, "p999": s.p999, "max": s.max })
+}
+
+/// Builds summary.json.
+pub fn summary(plan: &Plan, rows: &[ProcessRow<'_>], end: &EndReason, exit_code: u8, elapsed: Duration) -> Value {
+    let processes: serde_json::Map<String, Value> = rows
+        .iter()
+        .map(|r| {
+            let counts: (u64, u64) = r.reports.iter().flat_map(|rep| rep.ports.iter()).fold((0, 0), |(i, o), p| {
+                if p.input { (i + p.count, o) } else { (i, o + p.count) }
+            });
+            (
+                r.name.to_string(),
+                json!({
+                    "kind": r.kind,
+                    "state": r.state,
+                    "failure": r.failure,
+                    "restarts": r.restarts,
+                    "instances": r.reports.len(),
+                    "last_exit": r.last_exit,
+                    "messages_in": counts.0,
+                    "messages_out": counts.1,
+                }),
+            )
+        })
+        .collect();
+    let (hop, e2e) = merged_latency(rows);
+    let mut out = json!({
+        "run": {
+            "config": plan.config_path,
+            "end_reason": end,
+            "exit_code": exit_code,
+            "duration_s": elapsed.as_secs_f64(),
+            "iceoryx_prefix": plan.scope.prefix,
+            "iceoryx_root": plan.scope.root,
+        },
+        "processes": processes,
+        "latency_ms": {
+            "hops": hop.iter().map(|(k, s)| (k.clone(), lat_json(s))).collect::<serde_json::Map<_, _>>(),
+            "end_to_end": e2e.iter().map(|(k, s)| (k.clone(), lat_json(s))).collect::<serde_json::Map<_, _>>(),
+        },
+    });
+    merge_parts(&mut out, &plan.out_dir.join("parts"));
+    out
+}
+
+/// Merges every `<dir>/*.json` object into `out` (deep merge of objects; later keys win).
+fn merge_parts(out: &mut Value, dir: &Path) {
+    let Ok(rd) = std::fs::read_dir(dir) else { return };
+    let mut files: Vec<_> = rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.extension().is_some_and(|e| e == "json")).collect();
+    files.sort();
+    for f in files {
+        match std::fs::read(&f).map_err(|e| e.to_string()).and_then(|b| serde_json::from_slice::<Value>(&b).map_err(|e| e.to_string())) {
+            Ok(v @ Value::Object(_)) => deep_merge(out, v),
+            Ok(_) => tracing::warn!("{}: not a JSON object; not merged into summary.json", f.display()),
+            Err(e) => tracing::warn!("{}: {e}; not merged into summary.json", f.display()),
+        }
+    }
+}
+
+fn deep_merge(a: &mut Value, b: Value) {
+    match (a, b) {
+        (Value::Object(a), Value::Object(b)) => {
+            for (k, v) in b {
+                deep_merge(a.entry(k).or_insert(Value::Null), v);
+            }
+        }
+        (a, b) => *a = b,
+    }
+}
+
+/// Writes summary.json and latency.csv into `out_dir`.
+pub fn write(out_dir: &Path, summary: &Value) -> std::io::Result<()> {
+    std::fs::create_dir_all(out_dir)?;
+    std::fs::write(out_dir.join("summary.json"), serde_json::to_vec_pretty(summary)?)?;
+    let mut csv = String::from("table,key,count,p50_ms,p99_ms,p999_ms,max_ms\n");
+    for table in ["hops", "end_to_end"] {
+        if let Some(Value::Object(m)) = summary["latency_ms"].get(table) {
+            for (k, v) in m {
+                csv.push_str(&format!(
+                    "{table},\"{k}\",{},{},{},{},{}\n",
+                    v["count"], v["p50"], v["p99"], v["p999"], v["max"]
+                ));
+            }
+        }
+    }
+    std::fs::write(out_dir.join("latency.csv"), csv)
+}
+
+/// The human-readable summary printed at the end of a run.
+pub fn render(summary: &Value) -> String {
+    let mut s = String::new();
+    let run = &summary["run"];
+    s.push_str(&format!(
+        "run ended: {} after {:.1} s (exit code {})\n",
+        run["end_reason"].to_string().trim_matches('"'), run["duration_s"].as_f64().unwrap_or(0.0), run["exit_code"]
+    ));
+    s.push_str(&format!("{:<20} {:<9} {:>8} {:>10} {:>10}  last exit\n", "process", "state", "restarts", "msgs in", "msgs out"));
+    if let Some(Value::Object(ps)) = summary.get("processes") {
+        for (name, p) in ps {
+            s.push_str(&format!(
+                "{:<20} {:<9} {:>8} {:>10} {:>10}  {}\n",
+                name,
+                p["state"].as_str().unwrap_or("?"),
+                p["restarts"].to_string(),
+                p["messages_in"].to_string(),
+                p["messages_out"].to_string(),
+                p["last_exit"]["description"].as_str().unwrap_or("-")
+            ));
+        }
+    }
+    for (title, table) in [("hop latency (service -> process)", "hops"), ("end-to-end latency (since sensor input)", "end_to_end")] {
+        if let Some(Value::Object(m)) = summary["latency_ms"].get(table)
+            && !m.is_empty()
+        {
+            s.push_str(&format!("{title:<44} {:>9} {:>9} {:>9} {:>9}\n", "count", "p50 ms", "p99 ms", "max ms"));
+            for (k, v) in m {
+                s.push_str(&format!(
+                    "  {:<42} {:>9} {:>9.3} {:>9.3} {:>9.3}\n",
+                    k,
+                    v["count"].to_string(),
+                    v["p50"].as_f64().unwrap_or(0.0),
+                    v["p99"].as_f64().unwrap_or(0.0),
+                    v["max"].as_f64().unwrap_or(0.0)
+                ));
+            }
+        }
+    }
+    s
+}

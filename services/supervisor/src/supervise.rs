@@ -1,0 +1,554 @@
+//! The supervision loop: start processes in dependency order once their dependencies report ready,
+//! watch them (exit via waitpid, liveness via heartbeat deadline), restart per policy with
+//! exponential backoff, clean a dead node's iceoryx2 resources after every exit, end the run
+//! (duration, end of stream, signal), stop everything in reverse order and report.
+//!
+//! The loop blocks in the runtime's WaitSet on heartbeat, end-of-stream and stats events plus a
+//! 50 ms tick (for waitpid and deadlines): it never spins.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use nix::sys::signal::{Signal, kill};
+use nix::sys::wait::{WaitPidFlag, WaitStatus, waitpid};
+use nix::unistd::Pid;
+use pipeline_runtime::config::{EndCondition, RestartPolicy};
+use pipeline_runtime::ports::Input;
+use pipeline_runtime::runtime::ENV_OUT_DIR;
+use pipeline_runtime::{Flow, Runtime, RuntimeOptions, StatsReport, StopReason};
+use serde::Serialize;
+use shared_types::services::{self, CONTROL_QOS, STATS_QOS};
+use shared_types::{EndOfStream, Heartbeat, MsgHeader, STATE_READY, name_from32};
+
+use crate::plan::{Plan, PlannedProcess};
+
+/// Environment variable with the process's own name, for external processes.
+pub const ENV_PROCESS_NAME: &str = "SLAM_PIPELINE_PROCESS";
+
+const TICK: Duration = Duration::from_millis(50);
+
+/// State of one supervised process.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ProcState {
+    /// Waiting for its dependencies.
+    Pending,
+    /// Spawned, not yet ready.
+    Starting {
+        /// When it was spawned.
+        since: Instant,
+    },
+    /// Ready and running.
+    Ready,
+    /// Waiting to be restarted.
+    Backoff {
+        /// When it restarts.
+        until: Instant,
+    },
+    /// Being stopped.
+    Stopping,
+    /// Ended and not restarted (a clean exit, or stopped by the supervisor).
+    Done,
+    /// Given up on.
+    Failed(String),
+}
+
+impl ProcState {
+    fn label(&self) -> &'static str {
+        match self {
+            ProcState::Pending => "pending",
+            ProcState::Starting { .. } => "starting",
+            ProcState::Ready => "ready",
+            ProcState::Backoff { .. } => "backoff",
+            ProcState::Stopping => "stopping",
+            ProcState::Done => "done",
+            ProcState::Failed(_) => "FAILED",
+        }
+    }
+    fn is_terminal(&self) -> bool {
+        matches!(self, ProcState::Done | ProcState::Failed(_))
+    }
+}
+
+/// How a process instance ended.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct ExitInfo {
+    /// Exit code, if it exited.
+    pub code: Option<i32>,
+    /// Signal number, if a signal ended it.
+    pub signal: Option<i32>,
+    /// Why the supervisor killed it, if it did.
+    pub killed_because: Option<String>,
+    /// Human-readable.
+    pub description: String,
+}
+
+impl ExitInfo {
+    fn from_status(status: WaitStatus, killed_because: Option<String>) -> Option<Self> {
+        let (code, signal) = match status {
+            WaitStatus::Exited(_, c) => (Some(c), None),
+            WaitStatus::Signaled(_, s, _) => (None, Some(s as i32)),
+            _ => return None,
+        };
+        let mut description = match (code, signal) {
+            (Some(c), _) => format!("exited with code {c}"),
+            (_, Some(s)) => format!("killed by signal {s} ({})", Signal::try_from(s).map(|s| s.as_str()).unwrap_or("?")),
+            _ => unreachable!(),
+        };
+        if let Some(k) = &killed_because {
+            description = format!("{description} after {k}");
+        }
+        Some(Self { code, signal, killed_because, description })
+    }
+
+    /// A clean exit: code 0 and not killed by the supervisor for a fault.
+    pub fn is_success(&self) -> bool {
+        self.code == Some(0) && self.killed_because.is_none()
+    }
+}
+
+struct Child {
+    plan: PlannedProcess,
+    state: ProcState,
+    pid: Option<Pid>,
+    restarts: u32,
+    last_exit: Option<ExitInfo>,
+    kill_reason: Option<String>,
+    last_heartbeat: Option<Instant>,
+    messages: u64,
+    rate_base: (Instant, u64),
+    rate: f64,
+    reports: BTreeMap<u32, StatsReport>,
+    stats_in: Input<[u8], MsgHeader>,
+}
+
+/// Why the run ended.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EndReason {
+    /// `run.duration_s` elapsed.
+    Duration,
+    /// The configured processes sent end of stream.
+    EndOfStream,
+    /// SIGINT/SIGTERM (the signal number).
+    Signal(i32),
+    /// A `required` process failed.
+    RequiredProcessFailed(String),
+    /// Every process ended.
+    AllProcessesEnded,
+}
+
+/// The supervisor of one run.
+pub struct Supervisor {
+    plan: Plan,
+    children: Vec<Child>,
+    heartbeats: Input<Heartbeat, MsgHeader>,
+    end_of_stream: Input<EndOfStream, MsgHeader>,
+    eos_seen: BTreeSet<String>,
+    started: Instant,
+    last_status: Instant,
+    end: Option<EndReason>,
+}
+
+/// The outcome of a run.
+#[derive(Debug, Clone)]
+pub struct RunOutcome {
+    /// Why it ended.
+    pub end: EndReason,
+    /// Conventional exit code: 0 ok, 1 a process failed, 128+signal when stopped by a signal.
+    pub exit_code: u8,
+    /// The summary written to summary.json.
+    pub summary: serde_json::Value,
+}
+
+impl Supervisor {
+    /// Creates the supervisor's node and control ports (before any child exists, so the control
+    /// services get the contract's QoS).
+    pub fn new(plan: Plan, rt: &mut Runtime) -> anyhow::Result<Self> {
+        let heartbeats = rt.input_with_qos::<Heartbeat, MsgHeader>(services::HEARTBEAT, &CONTROL_QOS)?;
+        let end_of_stream = rt.input_with_qos::<EndOfStream, MsgHeader>(services::END_OF_STREAM, &CONTROL_QOS)?;
+        let now = Instant::now();
+        let mut children = vec![];
+        for p in &plan.processes {
+            let stats_in = rt.input_with_qos::<[u8], MsgHeader>(&services::stats_service(&p.name), &STATS_QOS)?;
+            children.push(Child {
+                plan: p.clone(),
+                state: ProcState::Pending,
+                pid: None,
+                restarts: 0,
+                last_exit: None,
+                kill_reason: None,
+                last_heartbeat: None,
+                messages: 0,
+                rate_base: (now, 0),
+                rate: 0.0,
+                reports: BTreeMap::new(),
+                stats_in,
+            });
+        }
+        Ok(Self { plan, children, heartbeats, end_of_stream, eos_seen: BTreeSet::new(), started: now, last_status: now, end: None })
+    }
+
+    /// Runtime options of the supervisor's own node (it publishes no heartbeat).
+    pub fn runtime_options() -> RuntimeOptions {
+        RuntimeOptions { publish_control: false, ..Default::default() }
+    }
+
+    /// Runs until the end condition or a signal, then stops every process and reports.
+    pub fn run(mut self, rt: &mut Runtime) -> anyhow::Result<RunOutcome> {
+        tracing::info!(
+            processes = self.children.len(),
+            prefix = %self.plan.scope.prefix,
+            root = %self.plan.scope.root.display(),
+            out = %self.plan.out_dir.display(),
+            "starting pipeline"
+        );
+        let stop = rt.run(&mut self, Some(TICK), |_, sup, _wake| sup.step())?;
+        let end = match stop {
+            StopReason::Signal(s) => EndReason::Signal(s),
+            StopReason::Finished => self.end.clone().unwrap_or(EndReason::AllProcessesEnded),
+        };
+        tracing::info!(?end, "stopping pipeline");
+        self.stop_all();
+        let failed = self.children.iter().any(|c| matches!(c.state, ProcState::Failed(_)));
+        let exit_code = match &end {
+            EndReason::Signal(s) => 128 + *s as u8,
+            EndReason::RequiredProcessFailed(_) => 1,
+            _ if failed => 1,
+            _ => 0,
+        };
+        let summary = crate::report::summary(&self.plan, &self.report_rows(), &end, exit_code, self.started.elapsed());
+        Ok(RunOutcome { end, exit_code, summary })
+    }
+
+    fn report_rows(&self) -> Vec<crate::report::ProcessRow<'_>> {
+        self.children
+            .iter()
+            .map(|c| crate::report::ProcessRow {
+                name: &c.plan.name,
+                kind: &c.plan.kind,
+                state: c.state.label(),
+                failure: match &c.state {
+                    ProcState::Failed(why) => Some(why.as_str()),
+                    _ => None,
+                },
+                restarts: c.restarts,
+                last_exit: c.last_exit.as_ref(),
+                reports: c.reports.values().collect(),
+            })
+            .collect()
+    }
+
+    /// One pass of the loop: the supervisor's `step`.
+    fn step(&mut self) -> anyhow::Result<Flow> {
+        let now = Instant::now();
+        self.drain_control(now)?;
+        self.reap(false);
+        self.check_deadlines(now);
+        self.start_due(now);
+        if let Some(end) = self.end_condition(now) {
+            self.end = Some(end);
+            return Ok(Flow::Stop);
+        }
+        let every = self.plan.config.run.status_interval_s;
+        if every > 0.0 && now - self.last_status >= Duration::from_secs_f64(every) {
+            self.last_status = now;
+            self.update_rates(now);
+            tracing::info!("{}", self.status_line());
+        }
+        Ok(Flow::Continue)
+    }
+
+    fn drain_control(&mut self, now: Instant) -> anyhow::Result<()> {
+        while let Some(s) = self.heartbeats.receive()? {
+            let hb = *s.payload();
+            let name = name_from32(&hb.process);
+            let Some(c) = self.children.iter_mut().find(|c| c.plan.name == name) else { continue };
+            if c.pid.map(|p| p.as_raw() as u32) != Some(hb.pid) {
+                continue; // an earlier instance, or a stray process using the name
+            }
+            c.last_heartbeat = Some(now);
+            c.messages = hb.messages_in + hb.messages_out;
+            if hb.state == STATE_READY
+                && let ProcState::Starting { since } = c.state
+            {
+                tracing::info!(process = %name, pid = hb.pid, "ready after {:.0} ms", (now - since).as_secs_f64() * 1e3);
+                c.state = ProcState::Ready;
+            }
+        }
+        while let Some(s) = self.end_of_stream.receive()? {
+            let name = name_from32(&s.payload().process);
+            tracing::info!(process = %name, last_seq = s.payload().last_seq, "end of stream");
+            self.eos_seen.insert(name);
+        }
+        self.drain_stats();
+        Ok(())
+    }
+
+    fn drain_stats(&mut self) {
+        for c in &mut self.children {
+            loop {
+                match c.stats_in.receive() {
+                    Ok(Some(s)) => match StatsReport::decode(s.payload()) {
+                        Ok(r) if r.process == c.plan.name => {
+                            c.reports.insert(r.pid, r);
+                        }
+                        Ok(r) => tracing::warn!(process = %c.plan.name, "stats report names `{}`; ignored", r.process),
+                        Err(e) => tracing::warn!(process = %c.plan.name, "{e}"),
+                    },
+                    Ok(None) => break,
+                    Err(e) => {
+                        tracing::warn!(process = %c.plan.name, "{e}");
+                        break;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Collects exited children (without blocking) and applies the restart policy.
+    fn reap(&mut self, stopping: bool) {
+        let mut exited = false;
+        for i in 0..self.children.len() {
+            let Some(pid) = self.children[i].pid else { continue };
+            let status = match waitpid(pid, Some(WaitPidFlag::WNOHANG)) {
+                Ok(WaitStatus::StillAlive) => continue,
+                Ok(s) => s,
+                Err(e) => {
+                    tracing::error!(process = %self.children[i].plan.name, "waitpid: {e}");
+                    continue;
+                }
+            };
+            let c = &mut self.children[i];
+            let Some(info) = ExitInfo::from_status(status, c.kill_reason.take()) else { continue };
+            c.pid = None;
+            exited = true;
+            self.on_exit(i, info, stopping);
+        }
+        if exited {
+            match self.plan.scope.cleanup_dead_nodes() {
+                Ok(0) => {}
+                Ok(n) => tracing::info!("cleaned the iceoryx2 resources of {n} dead node(s)"),
+                Err(e) => tracing::warn!("cleaning dead nodes: {e}"),
+            }
+        }
+    }
+
+    fn on_exit(&mut self, i: usize, info: ExitInfo, stopping: bool) {
+        let c = &mut self.children[i];
+        let name = c.plan.name.clone();
+        c.last_heartbeat = None;
+        let failure = !info.is_success();
+        if stopping || matches!(c.state, ProcState::Stopping) {
+            tracing::info!(process = %name, "{}", info.description);
+            c.last_exit = Some(info);
+            c.state = ProcState::Done;
+            return;
+        }
+        let restart = match c.plan.config.restart {
+            RestartPolicy::Never => false,
+            RestartPolicy::OnFailure => failure,
+            RestartPolicy::Always => true,
+        };
+        if !restart {
+            c.state = if failure { ProcState::Failed(info.description.clone()) } else { ProcState::Done };
+            if failure {
+                tracing::error!(process = %name, "{}; restart policy {:?}: not restarted", info.description, c.plan.config.restart);
+            } else {
+                tracing::info!(process = %name, "{}", info.description);
+            }
+        } else if c.restarts >= c.plan.config.max_restarts {
+            let why = format!("{}; gave up after {} restart(s) (max_restarts)", info.description, c.restarts);
+            tracing::error!(process = %name, "{why}");
+            c.state = ProcState::Failed(why);
+        } else {
+            let exp = c.restarts.min(20) as i32;
+            let delay = (c.plan.config.backoff_initial_s * 2f64.powi(exp)).min(c.plan.config.backoff_max_s);
+            c.restarts += 1;
+            tracing::warn!(process = %name, "{}; restart {}/{} in {:.2} s", info.description, c.restarts, c.plan.config.max_restarts, delay);
+            c.state = ProcState::Backoff { until: Instant::now() + Duration::from_secs_f64(delay) };
+        }
+        c.last_exit = Some(info);
+    }
+
+    fn kill_child(c: &mut Child, reason: String) {
+        if let Some(pid) = c.pid {
+            tracing::error!(process = %c.plan.name, pid = pid.as_raw(), "{reason}: killing it");
+            c.kill_reason = Some(reason);
+            let _ = kill(pid, Signal::SIGKILL);
+        }
+    }
+
+    fn check_deadlines(&mut self, now: Instant) {
+        let ready_timeout = Duration::from_secs_f64(self.plan.config.run.ready_timeout_s);
+        let hb_timeout = Duration::from_secs_f64(self.plan.config.run.heartbeat_timeout_s);
+        for c in &mut self.children {
+            if c.kill_reason.is_some() {
+                continue; // already killed, waiting to be reaped
+            }
+            match c.state {
+                ProcState::Starting { since } if now - since > ready_timeout => {
+                    Self::kill_child(c, format!("not ready within {:.1} s", ready_timeout.as_secs_f64()));
+                }
+                ProcState::Ready if c.plan.config.heartbeat => {
+                    if let Some(last) = c.last_heartbeat
+                        && now - last > hb_timeout
+                    {
+                        Self::kill_child(c, format!("no heartbeat for {:.1} s", (now - last).as_secs_f64()));
+                    }
+                }
+                _ => {}
+            }
+        }
+    }
+
+    fn start_due(&mut self, now: Instant) {
+        let ready: BTreeSet<String> =
+            self.children.iter().filter(|c| c.state == ProcState::Ready).map(|c| c.plan.name.clone()).collect();
+        for i in 0..self.children.len() {
+            let due = match self.children[i].state {
+                ProcState::Pending => true,
+                ProcState::Backoff { until } => now >= until,
+                _ => false,
+            };
+            if !due || !self.children[i].plan.config.after.iter().all(|d| ready.contains(d)) {
+                continue;
+            }
+            if let Err(e) = self.spawn(i) {
+                let c = &mut self.children[i];
+                tracing::error!(process = %c.plan.name, "cannot start `{}`: {e}", c.plan.binary.display());
+                c.state = ProcState::Failed(format!("cannot start: {e}"));
+            }
+        }
+    }
+
+    fn spawn(&mut self, i: usize) -> std::io::Result<()> {
+        let out_dir = self.plan.out_dir.clone();
+        let scope = self.plan.scope.clone();
+        let log_format = self.plan.config.run.log_format;
+        let c = &mut self.children[i];
+        let mut cmd = Command::new(&c.plan.binary);
+        cmd.args(&c.plan.args).stdin(Stdio::null()).env(ENV_OUT_DIR, &out_dir).env(ENV_PROCESS_NAME, &c.plan.name);
+        if c.plan.args.iter().any(|a| a == "--config") {
+            cmd.arg("--log-format").arg(match log_format {
+                pipeline_runtime::LogFormat::Text => "text",
+                pipeline_runtime::LogFormat::Json => "json",
+            });
+        }
+        scope.export_to(&mut cmd);
+        // Own process group: a Ctrl-C in the terminal reaches only the supervisor, which then
+        // stops the children in reverse dependency order.
+        std::os::unix::process::CommandExt::process_group(&mut cmd, 0);
+        let parent = std::process::id() as libc::pid_t;
+        // SAFETY: only async-signal-safe calls (prctl, getppid, _exit) between fork and exec.
+        unsafe {
+            std::os::unix::process::CommandExt::pre_exec(&mut cmd, move || {
+                // The child dies with the supervisor, even on SIGKILL of the supervisor.
+                if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                if libc::getppid() != parent {
+                    libc::_exit(1); // the supervisor died between fork and prctl
+                }
+                Ok(())
+            });
+        }
+        let child = cmd.spawn()?;
+        let pid = Pid::from_raw(child.id() as i32);
+        drop(child); // reaped with waitpid by pid
+        tracing::info!(process = %c.plan.name, pid = pid.as_raw(), restart = c.restarts, "started");
+        c.pid = Some(pid);
+        c.kill_reason = None;
+        c.last_heartbeat = Some(Instant::now());
+        c.state = if c.plan.config.heartbeat { ProcState::Starting { since: Instant::now() } } else { ProcState::Ready };
+        Ok(())
+    }
+
+    fn end_condition(&self, now: Instant) -> Option<EndReason> {
+        let run = &self.plan.config.run;
+        if let Some(c) = self.children.iter().find(|c| c.plan.config.required && matches!(c.state, ProcState::Failed(_))) {
+            return Some(EndReason::RequiredProcessFailed(c.plan.name.clone()));
+        }
+        if run.duration_s > 0.0 && now - self.started >= Duration::from_secs_f64(run.duration_s) {
+            return Some(EndReason::Duration);
+        }
+        if run.end == EndCondition::EndOfStream {
+            let done = if run.end_of_stream_from.is_empty() {
+                !self.eos_seen.is_empty()
+            } else {
+                run.end_of_stream_from.iter().all(|n| self.eos_seen.contains(n))
+            };
+            if done {
+                return Some(EndReason::EndOfStream);
+            }
+        }
+        if self.children.iter().all(|c| c.state.is_terminal()) {
+            return Some(EndReason::AllProcessesEnded);
+        }
+        None
+    }
+
+    fn update_rates(&mut self, now: Instant) {
+        for c in &mut self.children {
+            let (t0, m0) = c.rate_base;
+            let dt = (now - t0).as_secs_f64();
+            if dt > 0.0 {
+                c.rate = c.messages.saturating_sub(m0) as f64 / dt;
+            }
+            c.rate_base = (now, c.messages);
+        }
+    }
+
+    /// The one-line status: per process state, restarts, message rate, p50/p99 hop latency.
+    pub fn status_line(&self) -> String {
+        let mut parts = vec![format!("t={:.1}s", self.started.elapsed().as_secs_f64())];
+        for c in &self.children {
+            let mut s = format!("{} {} r{} {:.1} msg/s", c.plan.name, c.state.label(), c.restarts, c.rate);
+            let current = c.pid.and_then(|p| c.reports.get(&(p.as_raw() as u32)));
+            if let Some(lat) = current.and_then(crate::report::hop_summary)
+                && lat.count > 0
+            {
+                s.push_str(&format!(" hop p50 {:.3} p99 {:.3} ms", lat.p50, lat.p99));
+            }
+            parts.push(s);
+        }
+        parts.join(" | ")
+    }
+
+    /// Stops every running process in reverse start order: SIGTERM, then SIGKILL after
+    /// `run.stop_timeout_s`; reaps all of them.
+    fn stop_all(&mut self) {
+        let timeout = Duration::from_secs_f64(self.plan.config.run.stop_timeout_s);
+        for i in (0..self.children.len()).rev() {
+            match self.children[i].state {
+                ProcState::Backoff { .. } | ProcState::Pending => self.children[i].state = ProcState::Done,
+                _ => {}
+            }
+            let Some(pid) = self.children[i].pid else { continue };
+            self.children[i].state = ProcState::Stopping;
+            let _ = kill(pid, Signal::SIGTERM);
+            let deadline = Instant::now() + timeout;
+            while self.children[i].pid.is_some() && Instant::now() < deadline {
+                std::thread::sleep(Duration::from_millis(5));
+                self.drain_stats();
+                self.reap(true);
+            }
+            if let Some(pid) = self.children[i].pid {
+                tracing::warn!(process = %self.children[i].plan.name, "did not stop within {:.1} s: SIGKILL", timeout.as_secs_f64());
+                self.children[i].kill_reason = Some("stop timeout".into());
+                let _ = kill(pid, Signal::SIGKILL);
+                while self.children[i].pid.is_some() {
+                    std::thread::sleep(Duration::from_millis(5));
+                    self.reap(true);
+                }
+            }
+        }
+        self.drain_stats();
+        // Safety net: anything still a child of ours (e.g. spawned but never tracked) is reaped.
+        while let Ok(status) = waitpid(None::<Pid>, Some(WaitPidFlag::WNOHANG)) {
+            if status == WaitStatus::StillAlive {
+                break;
+            }
+        }
+    }
+}

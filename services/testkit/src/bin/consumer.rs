@@ -1,0 +1,54 @@
+//! `pipeline-test-consumer`: receives clouds, verifies every point against the producer's formula,
+//! records latency, forwards end of stream, and writes its counters to `parts/<name>.json`.
+
+use std::process::ExitCode;
+
+use clap::Parser;
+use pipeline_runtime::{Flow, ProcessArgs, Runtime};
+use shared_types::services::{CLOUD, END_OF_STREAM};
+use shared_types::{CloudHeader, CloudPoint, EndOfStream, MsgHeader, name_from32};
+use testkit::{ConsumerCounters, ConsumerSettings, verify_cloud};
+
+fn write_part(path: &std::path::Path, counters: &ConsumerCounters) -> anyhow::Result<()> {
+    std::fs::create_dir_all(path.parent().expect("part path has a parent"))?;
+    std::fs::write(path, serde_json::to_vec_pretty(&serde_json::json!({ "test_consumer": counters }))?)?;
+    Ok(())
+}
+
+fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
+    let (ctx, mut rt) = Runtime::start(args)?;
+    let settings: ConsumerSettings = ctx.settings()?;
+    let clouds = rt.input::<[CloudPoint], CloudHeader>(CLOUD)?;
+    let eos = rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?;
+    let mut counters = ConsumerCounters::default();
+    let part = ctx.summary_part_path();
+    let result = rt.run(&mut counters, None, |rt, counters, _wake| {
+        while let Some(s) = clouds.receive()? {
+            let seq = s.user_header().msg.seq;
+            if let Err(fault) = verify_cloud(counters, settings.expect_points, seq, s.payload()) {
+                tracing::warn!(seq, ?fault, "cloud failed verification");
+            }
+        }
+        while let Some(s) = eos.receive()? {
+            let from = name_from32(&s.payload().process);
+            if from != rt.name() {
+                counters.end_of_stream_seen += 1;
+                tracing::info!(%from, frames_ok = counters.frames_ok, "end of stream from upstream");
+                if settings.forward_end_of_stream {
+                    let last = counters.last_seq.unwrap_or(0);
+                    rt.send_end_of_stream(last, counters.frames_ok + counters.frames_bad)?;
+                }
+            }
+        }
+        Ok(Flow::Continue)
+    });
+    write_part(&part, &counters)?;
+    tracing::info!(?counters, "done");
+    result
+}
+
+fn main() -> ExitCode {
+    let args = ProcessArgs::parse();
+    let _log = pipeline_runtime::logging::init(&args.name, args.log_format.unwrap_or_default());
+    pipeline_runtime::exit_code(&run(&args))
+}
