@@ -1,1 +1,228 @@
-//! tmp
+//! Harness for multi-process tests: every [`TestRun`] gets its own iceoryx2 prefix and root path
+//! and a temporary directory; the processes it starts are killed when it is dropped, and whatever
+//! they left in /dev/shm under the prefix is removed then (tests assert cleanliness *before* that).
+//!
+//! Binaries are taken from the cargo target directory of this build (`target/<profile>/`); build
+//! them first (`cargo build --workspace --bins`, which the README's test command does).
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::time::{Duration, Instant};
+
+use pipeline_runtime::IoxScope;
+
+/// Path of a workspace binary in this build's target directory.
+pub fn bin(name: &str) -> PathBuf {
+    let exe = std::env::current_exe().expect("test executable path");
+    // target/<profile>/deps/<test>-<hash>
+    let dir = exe.parent().and_then(Path::parent).expect("target/<profile> directory");
+    let path = dir.join(name);
+    assert!(path.exists(), "{} is missing: run `cargo build --workspace --bins` before the tests (the README's test command does)", path.display());
+    path
+}
+
+static COUNTER: AtomicU32 = AtomicU32::new(0);
+
+/// One isolated test run.
+pub struct TestRun {
+    /// Temporary directory (config, outputs, logs).
+    pub dir: tempfile::TempDir,
+    /// iceoryx2 scope of the run.
+    pub scope: IoxScope,
+    supervisor: Option<Child>,
+    others: Vec<Child>,
+}
+
+impl TestRun {
+    /// A new run with a unique prefix derived from `tag`.
+    pub fn new(tag: &str) -> Self {
+        let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+        let tag: String = tag.chars().filter(|c| c.is_ascii_alphanumeric()).take(12).collect();
+        let prefix = format!("pt{}_{}_{}_", tag, std::process::id(), n);
+        let dir = tempfile::Builder::new().prefix("slam-test-").tempdir().expect("temp dir");
+        let root = dir.path().join("iox");
+        Self { scope: IoxScope { prefix, root, base_config: None }, dir, supervisor: None, others: vec![] }
+    }
+
+    /// Output directory of the run.
+    pub fn out_dir(&self) -> PathBuf {
+        self.dir.path().join("out")
+    }
+
+    /// Writes a pipeline config: a `[run]` table with this run's prefix, root and output
+    /// directory plus `run_extra` lines, followed by `processes` (TOML text).
+    pub fn write_config(&self, run_extra: &str, processes: &str) -> PathBuf {
+        let text = format!(
+            "[run]\niceoryx_prefix = \"{}\"\niceoryx_root = \"{}\"\nout_dir = \"{}\"\nstatus_interval_s = 0.5\n{run_extra}\n\n{processes}\n",
+            self.scope.prefix,
+            self.scope.root.display(),
+            self.out_dir().display()
+        );
+        let path = self.dir.path().join("pipeline.toml");
+        std::fs::write(&path, text).expect("write config");
+        path
+    }
+
+    /// Path of the supervisor's combined log.
+    pub fn log_path(&self) -> PathBuf {
+        self.dir.path().join("supervisor.log")
+    }
+
+    /// Everything the supervisor and its children logged so far.
+    pub fn log(&self) -> String {
+        std::fs::read_to_string(self.log_path()).unwrap_or_default()
+    }
+
+    /// Starts the supervisor on `config` (stdout and stderr, its children's included, go to the log).
+    pub fn start_supervisor(&mut self, config: &Path, extra: &[&str]) {
+        let log = std::fs::File::create(self.log_path()).expect("log file");
+        let child = Command::new(bin("supervisor"))
+            .arg("--config")
+            .arg(config)
+            .args(extra)
+            .env("RUST_LOG", "info")
+            .stdin(Stdio::null())
+            .stdout(log.try_clone().expect("log fd"))
+            .stderr(log)
+            .spawn()
+            .expect("spawn supervisor");
+        self.supervisor = Some(child);
+    }
+
+    /// Pid of the supervisor.
+    pub fn supervisor_pid(&self) -> i32 {
+        self.supervisor.as_ref().expect("supervisor started").id() as i32
+    }
+
+    /// Sends `sig` to the supervisor.
+    pub fn signal_supervisor(&self, sig: nix::sys::signal::Signal) {
+        nix::sys::signal::kill(nix::unistd::Pid::from_raw(self.supervisor_pid()), sig).expect("signal supervisor");
+    }
+
+    /// Waits up to `timeout` for the supervisor to exit.
+    pub fn wait_supervisor(&mut self, timeout: Duration) -> Option<ExitStatus> {
+        let child = self.supervisor.as_mut().expect("supervisor started");
+        let end = Instant::now() + timeout;
+        while Instant::now() < end {
+            if let Some(s) = child.try_wait().expect("try_wait") {
+                return Some(s);
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        None
+    }
+
+    /// Waits until the log contains `needle` `times` times; panics with the log on timeout.
+    pub fn wait_for_log(&self, needle: &str, times: usize, timeout: Duration) {
+        let end = Instant::now() + timeout;
+        while Instant::now() < end {
+            if self.log().matches(needle).count() >= times {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        panic!("timed out waiting for {times}× `{needle}` in the log:\n{}", self.log());
+    }
+
+    /// Pids the supervisor logged as `started process=<name> pid=<pid>`, in order.
+    pub fn started_pids(&self, name: &str) -> Vec<i32> {
+        let needle = format!("process={name} pid=");
+        self.log()
+            .lines()
+            .filter(|l| l.contains("started") && l.contains(&needle))
+            .filter_map(|l| l.split(&needle).nth(1)?.split_whitespace().next()?.parse().ok())
+            .collect()
+    }
+
+    /// summary.json of the run.
+    pub fn summary(&self) -> serde_json::Value {
+        let path = self.out_dir().join("summary.json");
+        let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}\nlog:\n{}", path.display(), self.log()));
+        serde_json::from_slice(&bytes).expect("summary.json is JSON")
+    }
+
+    /// Files of this run's prefix in /dev/shm and files under its root path.
+    pub fn leftovers(&self) -> Vec<PathBuf> {
+        let mut v = self.scope.shm_files();
+        fn walk(d: &Path, v: &mut Vec<PathBuf>) {
+            if let Ok(rd) = std::fs::read_dir(d) {
+                for e in rd.flatten() {
+                    if e.path().is_dir() {
+                        walk(&e.path(), v)
+                    } else {
+                        v.push(e.path())
+                    }
+                }
+            }
+        }
+        walk(&self.scope.root, &mut v);
+        v
+    }
+
+    /// Spawns another process that is killed on drop; stdout is piped.
+    pub fn spawn(&mut self, cmd: &mut Command) -> &mut Child {
+        let child = cmd.stdin(Stdio::null()).stdout(Stdio::piped()).spawn().expect("spawn");
+        self.others.push(child);
+        self.others.last_mut().expect("just pushed")
+    }
+}
+
+impl TestRun {
+    /// A process started with [`TestRun::spawn`], by pid.
+    pub fn others_mut(&mut self, pid: u32) -> &mut Child {
+        self.others.iter_mut().find(|c| c.id() == pid).expect("spawned by this run")
+    }
+}
+
+/// Reads lines from a child's stdout until one equals `line` (or panics after `timeout`).
+pub fn wait_for_line(child: &mut Child, line: &str, timeout: Duration) -> Vec<String> {
+    let stdout = child.stdout.take().expect("stdout piped");
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for l in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if tx.send(l).is_err() {
+                break;
+            }
+        }
+    });
+    let end = Instant::now() + timeout;
+    let mut seen = vec![];
+    while let Some(left) = end.checked_duration_since(Instant::now()) {
+        match rx.recv_timeout(left) {
+            Ok(l) => {
+                let done = l == line;
+                seen.push(l);
+                if done {
+                    // keep draining in the background so the child never blocks on a full pipe
+                    std::thread::spawn(move || while rx.recv().is_ok() {});
+                    return seen;
+                }
+            }
+            Err(_) => break,
+        }
+    }
+    panic!("timed out waiting for line `{line}`; got {seen:?}");
+}
+
+/// True while a process exists and is not a zombie.
+pub fn process_alive(pid: i32) -> bool {
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        Ok(stat) => stat.rsplit(')').next().and_then(|r| r.split_whitespace().next()) != Some("Z"),
+        Err(_) => false,
+    }
+}
+
+impl Drop for TestRun {
+    fn drop(&mut self) {
+        for c in self.others.iter_mut().chain(self.supervisor.iter_mut()) {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+        // Children of a killed supervisor die with it (PDEATHSIG); give them a moment.
+        std::thread::sleep(Duration::from_millis(50));
+        let _ = self.scope.cleanup_dead_nodes();
+        let _ = self.scope.remove_all_resources();
+    }
+}

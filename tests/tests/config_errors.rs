@@ -1,0 +1,67 @@
+//! Invalid configs: each error names the offending key, the exit code is 2, and nothing starts
+//! (no process, no shared memory, no outputs).
+
+use std::time::Duration;
+
+use pipeline_tests::TestRun;
+
+const CONSUMER: &str = "[processes.c]\nkind = \"test_consumer\"\n";
+
+/// (case, processes TOML, the key the error must name)
+const CASES: &[(&str, &str, &str)] = &[
+    ("unknown key", "[processes.c]\nkind = \"test_consumer\"\nrestrat = \"never\"\n", "processes.c.restrat"),
+    ("wrong type", "[processes.c]\nkind = \"test_consumer\"\nmax_restarts = \"three\"\n", "processes.c.max_restarts"),
+    ("unknown enum value", "[processes.c]\nkind = \"test_consumer\"\nrestart = \"sometimes\"\n", "processes.c.restart"),
+    ("missing binary", "[processes.x]\nkind = \"external\"\nbinary = \"/nonexistent/driver\"\n", "processes.x.binary"),
+    ("external without binary", "[processes.x]\nkind = \"external\"\n", "processes.x.binary"),
+    ("unknown kind", "[processes.x]\nkind = \"teleporter\"\n", "processes.x.kind"),
+    ("unknown dependency", "[processes.c]\nkind = \"test_consumer\"\nafter = [\"ghost\"]\n", "processes.c.after"),
+    (
+        "cyclic dependency",
+        "[processes.a]\nkind = \"test_consumer\"\nafter = [\"b\"]\n[processes.b]\nkind = \"test_producer\"\nafter = [\"a\"]\n",
+        "processes.a.after",
+    ),
+    ("bad setting value", "[processes.p]\nkind = \"test_producer\"\n[processes.p.settings]\nrate_hz = -1.0\n", "processes.p.settings.rate_hz"),
+    ("unknown setting", "[processes.p]\nkind = \"test_producer\"\n[processes.p.settings]\npointz = 5\n", "processes.p.settings.pointz"),
+    ("setting of wrong type", "[processes.p]\nkind = \"test_producer\"\n[processes.p.settings]\npoints = \"many\"\n", "processes.p.settings.points"),
+];
+
+#[test]
+fn every_invalid_config_names_its_key_and_starts_nothing() {
+    for (case, processes, key) in CASES {
+        let mut run = TestRun::new("badcfg");
+        let cfg = run.write_config("end = \"signal\"", processes);
+        run.start_supervisor(&cfg, &[]);
+        let status = run.wait_supervisor(Duration::from_secs(20)).unwrap_or_else(|| panic!("{case}: supervisor did not exit"));
+        let log = run.log();
+        assert_eq!(status.code(), Some(2), "{case}: exit code; log:\n{log}");
+        assert!(log.contains(&format!("`{key}`")), "{case}: the error must name `{key}`; log:\n{log}");
+        assert!(!log.contains("started process="), "{case}: a process was started:\n{log}");
+        assert!(run.scope.shm_files().is_empty(), "{case}: shared memory was created");
+        assert!(!run.out_dir().join("summary.json").exists(), "{case}: outputs were written");
+    }
+}
+
+#[test]
+fn unknown_run_key_and_bad_run_value_are_named() {
+    for (run_extra, key) in [("ende = \"signal\"", "run.ende"), ("end = \"duration\"", "run.duration_s"), ("heartbeat_timeout_s = 0", "run.heartbeat_timeout_s")] {
+        let mut run = TestRun::new("badrun");
+        let cfg = run.write_config(run_extra, CONSUMER);
+        run.start_supervisor(&cfg, &[]);
+        let status = run.wait_supervisor(Duration::from_secs(20)).expect("exits");
+        assert_eq!(status.code(), Some(2), "{}", run.log());
+        assert!(run.log().contains(&format!("`{key}`")), "must name `{key}`:\n{}", run.log());
+    }
+}
+
+#[test]
+fn check_flag_validates_without_starting_anything() {
+    let mut run = TestRun::new("check");
+    let cfg = run.write_config("end = \"signal\"", CONSUMER);
+    run.start_supervisor(&cfg, &["--check"]);
+    let status = run.wait_supervisor(Duration::from_secs(20)).expect("exits");
+    assert_eq!(status.code(), Some(0), "{}", run.log());
+    assert!(run.log().contains("config ok: 1 process(es)"), "{}", run.log());
+    assert!(!run.log().contains("started process="));
+    assert!(run.scope.shm_files().is_empty());
+}
