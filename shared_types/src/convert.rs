@@ -65,7 +65,12 @@ pub fn isometry_to_wire(iso: &Isometry3<f64>) -> ([f64; 3], [f64; 4]) {
 
 impl PoseEstimate {
     /// Builds a pose estimate from `frame_from_body`, its 6×6 covariance, segment and frame.
-    pub fn from_nalgebra(frame_from_body: &Isometry3<f64>, covariance: &Matrix6<f64>, segment_id: u32, frame: u32) -> Self {
+    pub fn from_nalgebra(
+        frame_from_body: &Isometry3<f64>,
+        covariance: &Matrix6<f64>,
+        segment_id: u32,
+        frame: u32,
+    ) -> Self {
         let (position_m, orientation_xyzw) = isometry_to_wire(frame_from_body);
         Self { position_m, orientation_xyzw, covariance: mat6_to_row_major(covariance), segment_id, frame }
     }

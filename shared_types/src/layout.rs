@@ -44,9 +44,7 @@ pub unsafe trait WireType: Copy + Sized + 'static {
     /// The value's bytes exactly as they lie in shared memory.
     fn as_bytes(&self) -> &[u8] {
         // SAFETY: no padding (asserted by wire_type!), so every byte is initialised.
-        unsafe {
-            core::slice::from_raw_parts((self as *const Self).cast::<u8>(), size_of::<Self>())
-        }
+        unsafe { core::slice::from_raw_parts((self as *const Self).cast::<u8>(), size_of::<Self>()) }
     }
 
     /// Reads a value from bytes laid out as in shared memory; `None` when the length differs.
@@ -187,11 +185,7 @@ pub fn render_markdown(types: &[TypeLayout], services: &[crate::services::Servic
         for line in t.doc.lines() {
             let _ = writeln!(s, "{}", line.trim());
         }
-        let _ = writeln!(
-            s,
-            "\nType name `{}`, size {} bytes, alignment {}.\n",
-            t.type_name, t.size, t.align
-        );
+        let _ = writeln!(s, "\nType name `{}`, size {} bytes, alignment {}.\n", t.type_name, t.size, t.align);
         let _ = writeln!(s, "| offset | size | field | type | meaning |");
         let _ = writeln!(s, "|---:|---:|---|---|---|");
         for f in &t.fields {

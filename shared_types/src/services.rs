@@ -46,9 +46,7 @@ impl Qos {
 
     /// Chunks one publisher of this service reserves (iceoryx2's data-segment formula).
     pub const fn chunks_per_publisher(&self) -> usize {
-        self.max_subscribers * (self.subscriber_buffer + self.subscriber_borrowed)
-            + self.history
-            + self.publisher_loans
+        self.max_subscribers * (self.subscriber_buffer + self.subscriber_borrowed) + self.history + self.publisher_loans
     }
 }
 
@@ -137,12 +135,12 @@ pub const SERVICES: &[ServiceSpec] = &[
     spec(STEREO, "[StereoObservation]", "MsgHeader", Qos::stream(4, 1024)),
     spec(BUOY_RANGES, "[BuoyRange]", "MsgHeader", Qos::stream(4, 16)),
     spec(DEPTH, "DepthReading", "MsgHeader", Qos::stream(4, 0)),
-    spec(CLOUD, "[CloudPoint]", "CloudHeader", Qos {
-        subscriber_buffer: 2,
-        subscriber_borrowed: 1,
-        publisher_loans: 1,
-        ..Qos::stream(2, 320 * 240)
-    }),
+    spec(
+        CLOUD,
+        "[CloudPoint]",
+        "CloudHeader",
+        Qos { subscriber_buffer: 2, subscriber_borrowed: 1, publisher_loans: 1, ..Qos::stream(2, 320 * 240) },
+    ),
     spec(SLAM_POSE, "PoseEstimate", "MsgHeader", Qos::stream(4, 0)),
     spec(SLAM_PARTICLES, "[Particle]", "ParticleSetHeader", Qos::stream(2, 1024)),
     spec(SLAM_LANDMARKS, "[Landmark]", "LandmarkMapHeader", Qos::stream(2, 4096)),

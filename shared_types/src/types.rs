@@ -443,9 +443,4 @@ macro_rules! has_msg_header {
         }
     )*};
 }
-has_msg_header!(
-    CloudHeader,
-    ParticleSetHeader,
-    LandmarkMapHeader,
-    VoxelSetHeader
-);
+has_msg_header!(CloudHeader, ParticleSetHeader, LandmarkMapHeader, VoxelSetHeader);

@@ -19,7 +19,11 @@ pub fn bin(name: &str) -> PathBuf {
     // target/<profile>/deps/<test>-<hash>
     let dir = exe.parent().and_then(Path::parent).expect("target/<profile> directory");
     let path = dir.join(name);
-    assert!(path.exists(), "{} is missing: run `cargo build --workspace --bins` before the tests (the README's test command does)", path.display());
+    assert!(
+        path.exists(),
+        "{} is missing: run `cargo build --workspace --bins` before the tests (the README's test command does)",
+        path.display()
+    );
     path
 }
 
@@ -149,11 +153,7 @@ impl TestRun {
         fn walk(d: &Path, v: &mut Vec<PathBuf>) {
             if let Ok(rd) = std::fs::read_dir(d) {
                 for e in rd.flatten() {
-                    if e.path().is_dir() {
-                        walk(&e.path(), v)
-                    } else {
-                        v.push(e.path())
-                    }
+                    if e.path().is_dir() { walk(&e.path(), v) } else { v.push(e.path()) }
                 }
             }
         }

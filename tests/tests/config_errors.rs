@@ -21,9 +21,21 @@ const CASES: &[(&str, &str, &str)] = &[
         "[processes.a]\nkind = \"test_consumer\"\nafter = [\"b\"]\n[processes.b]\nkind = \"test_producer\"\nafter = [\"a\"]\n",
         "processes.a.after",
     ),
-    ("bad setting value", "[processes.p]\nkind = \"test_producer\"\n[processes.p.settings]\nrate_hz = -1.0\n", "processes.p.settings.rate_hz"),
-    ("unknown setting", "[processes.p]\nkind = \"test_producer\"\n[processes.p.settings]\npointz = 5\n", "processes.p.settings.pointz"),
-    ("setting of wrong type", "[processes.p]\nkind = \"test_producer\"\n[processes.p.settings]\npoints = \"many\"\n", "processes.p.settings.points"),
+    (
+        "bad setting value",
+        "[processes.p]\nkind = \"test_producer\"\n[processes.p.settings]\nrate_hz = -1.0\n",
+        "processes.p.settings.rate_hz",
+    ),
+    (
+        "unknown setting",
+        "[processes.p]\nkind = \"test_producer\"\n[processes.p.settings]\npointz = 5\n",
+        "processes.p.settings.pointz",
+    ),
+    (
+        "setting of wrong type",
+        "[processes.p]\nkind = \"test_producer\"\n[processes.p.settings]\npoints = \"many\"\n",
+        "processes.p.settings.points",
+    ),
 ];
 
 #[test]
@@ -32,7 +44,8 @@ fn every_invalid_config_names_its_key_and_starts_nothing() {
         let mut run = TestRun::new("badcfg");
         let cfg = run.write_config("end = \"signal\"", processes);
         run.start_supervisor(&cfg, &[]);
-        let status = run.wait_supervisor(Duration::from_secs(20)).unwrap_or_else(|| panic!("{case}: supervisor did not exit"));
+        let status =
+            run.wait_supervisor(Duration::from_secs(20)).unwrap_or_else(|| panic!("{case}: supervisor did not exit"));
         let log = run.log();
         assert_eq!(status.code(), Some(2), "{case}: exit code; log:\n{log}");
         assert!(log.contains(&format!("`{key}`")), "{case}: the error must name `{key}`; log:\n{log}");
@@ -44,7 +57,11 @@ fn every_invalid_config_names_its_key_and_starts_nothing() {
 
 #[test]
 fn unknown_run_key_and_bad_run_value_are_named() {
-    for (run_extra, key) in [("ende = \"signal\"", "run.ende"), ("end = \"duration\"", "run.duration_s"), ("heartbeat_timeout_s = 0", "run.heartbeat_timeout_s")] {
+    for (run_extra, key) in [
+        ("ende = \"signal\"", "run.ende"),
+        ("end = \"duration\"", "run.duration_s"),
+        ("heartbeat_timeout_s = 0", "run.heartbeat_timeout_s"),
+    ] {
         let mut run = TestRun::new("badrun");
         let cfg = run.write_config(run_extra, CONSUMER);
         run.start_supervisor(&cfg, &[]);

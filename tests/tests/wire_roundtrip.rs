@@ -10,7 +10,9 @@ fn every_wire_type_round_trips_between_two_processes() {
     let mut run = TestRun::new("wire");
     let args = |role: &str| {
         let mut c = Command::new(bin("wire-roundtrip"));
-        c.args(["--role", role, "--prefix", &run.scope.prefix, "--root"]).arg(&run.scope.root).args(["--timeout-s", "20"]);
+        c.args(["--role", role, "--prefix", &run.scope.prefix, "--root"])
+            .arg(&run.scope.root)
+            .args(["--timeout-s", "20"]);
         c
     };
     let mut sub_cmd = args("sub");

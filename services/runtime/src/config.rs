@@ -261,7 +261,8 @@ pub struct PipelineConfig {
 
 /// Reads and parses a pipeline config (stage one: syntax, unknown keys, types).
 pub fn load_pipeline_config(path: &Path) -> Result<PipelineConfig, ConfigError> {
-    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { file: path.to_path_buf(), source })?;
+    let text =
+        std::fs::read_to_string(path).map_err(|source| ConfigError::Read { file: path.to_path_buf(), source })?;
     let mut cfg: PipelineConfig = parse_toml_str(&text, path)?;
     cfg.source = path.to_path_buf();
     Ok(cfg)
@@ -281,7 +282,12 @@ pub fn parse_toml_str<T: DeserializeOwned>(text: &str, file: &Path) -> Result<T,
     serde_path_to_error::deserialize(de).map_err(|e| {
         let key = e.path().to_string();
         let inner = e.into_inner();
-        ConfigError::Parse { file: file.to_path_buf(), line: line_of(inner.span()), key, message: inner.message().to_string() }
+        ConfigError::Parse {
+            file: file.to_path_buf(),
+            line: line_of(inner.span()),
+            key,
+            message: inner.message().to_string(),
+        }
     })
 }
 
@@ -398,10 +404,7 @@ impl PipelineConfig {
             );
         }
         if let Err(cycle) = self.start_order() {
-            issues.push(
-                format!("processes.{}.after", cycle[0]),
-                format!("dependency cycle: {}", cycle.join(" -> ")),
-            );
+            issues.push(format!("processes.{}.after", cycle[0]), format!("dependency cycle: {}", cycle.join(" -> ")));
         }
         issues
     }
@@ -414,7 +417,8 @@ impl PipelineConfig {
         let mut done: BTreeSet<&str> = BTreeSet::new();
         while done.len() < enabled.len() {
             let next = enabled.iter().find(|(n, p)| {
-                !done.contains(*n) && p.after.iter().all(|d| done.contains(d.as_str()) || !enabled.contains_key(d.as_str()))
+                !done.contains(*n)
+                    && p.after.iter().all(|d| done.contains(d.as_str()) || !enabled.contains_key(d.as_str()))
             });
             match next {
                 Some((n, _)) => {
@@ -456,13 +460,10 @@ impl PipelineConfig {
 
     /// The base iceoryx2 config file, resolved against the config file's directory.
     pub fn iceoryx_config_file(&self) -> Option<PathBuf> {
-        self.run.iceoryx_config.as_ref().map(|p| {
-            if p.is_absolute() {
-                p.clone()
-            } else {
-                self.source.parent().unwrap_or(Path::new(".")).join(p)
-            }
-        })
+        self.run
+            .iceoryx_config
+            .as_ref()
+            .map(|p| if p.is_absolute() { p.clone() } else { self.source.parent().unwrap_or(Path::new(".")).join(p) })
     }
 }
 

@@ -85,7 +85,8 @@ impl IoxScope {
             Some(path) => {
                 let fp = iceoryx2::prelude::FilePath::new(path.as_os_str().as_encoded_bytes())
                     .map_err(|e| IoxError::BaseConfig { path: path.clone(), reason: format!("{e:?}") })?;
-                Config::from_file(&fp).map_err(|e| IoxError::BaseConfig { path: path.clone(), reason: format!("{e:?}") })?
+                Config::from_file(&fp)
+                    .map_err(|e| IoxError::BaseConfig { path: path.clone(), reason: format!("{e:?}") })?
             }
             None => Config::default(),
         };
@@ -95,7 +96,8 @@ impl IoxScope {
         if !root.ends_with('/') {
             root.push('/');
         }
-        let root_path = iceoryx2::prelude::Path::new(root.as_bytes()).map_err(|_| IoxError::InvalidRoot(root.clone()))?;
+        let root_path =
+            iceoryx2::prelude::Path::new(root.as_bytes()).map_err(|_| IoxError::InvalidRoot(root.clone()))?;
         if !self.root.is_absolute() {
             return Err(IoxError::InvalidRoot(root));
         }
@@ -122,9 +124,9 @@ impl IoxScope {
         let mut census = NodeCensus::default();
         Node::<ipc::Service>::list(&config, |state| {
             match state {
-                NodeState::Alive(view) => census.alive.push(
-                    view.details().as_ref().map(|d| d.name().to_string()).unwrap_or_else(|| "?".into()),
-                ),
+                NodeState::Alive(view) => census
+                    .alive
+                    .push(view.details().as_ref().map(|d| d.name().to_string()).unwrap_or_else(|| "?".into())),
                 NodeState::Dead(_) => census.dead += 1,
                 NodeState::Inaccessible(_) | NodeState::Undefined(_) => census.other += 1,
             }
@@ -193,7 +195,5 @@ fn files_with_prefix(dir: &Path, prefix: &str) -> Vec<PathBuf> {
 
 fn count_files(dir: &Path) -> usize {
     let Ok(rd) = std::fs::read_dir(dir) else { return 0 };
-    rd.filter_map(|e| e.ok())
-        .map(|e| if e.path().is_dir() { count_files(&e.path()) } else { 1 })
-        .sum()
+    rd.filter_map(|e| e.ok()).map(|e| if e.path().is_dir() { count_files(&e.path()) } else { 1 }).sum()
 }

@@ -21,7 +21,7 @@ pub fn init(name: &str, format: LogFormat) -> Option<tracing::span::EnteredSpan>
     };
     PROCESS_NAME.get_or_init(|| name.to_string());
     match (format, result) {
-        (LogFormat::Json, Ok(())) => Some(tracing::info_span!("process", name).entered()),
+        (LogFormat::Json, Ok(())) => Some(tracing::info_span!("process", process = name).entered()),
         _ => None,
     }
 }

@@ -77,7 +77,11 @@ fn service_name(name: &str) -> Result<ServiceName, PortError> {
 pub trait Payload: Debug + IceoryxSend + 'static {
     /// Opens (or creates) the publish-subscribe service `name` with this payload, user header `H`
     /// and `qos`.
-    fn open_service<H: Header>(node: &Node<ipc::Service>, name: &str, qos: &Qos) -> Result<PortFactory<ipc::Service, Self, H>, PortError>;
+    fn open_service<H: Header>(
+        node: &Node<ipc::Service>,
+        name: &str,
+        qos: &Qos,
+    ) -> Result<PortFactory<ipc::Service, Self, H>, PortError>;
 }
 
 macro_rules! open_with_qos {
@@ -96,18 +100,38 @@ macro_rules! open_with_qos {
 }
 
 impl<T: Debug + ZeroCopySend + 'static> Payload for T {
-    fn open_service<H: Header>(node: &Node<ipc::Service>, name: &str, qos: &Qos) -> Result<PortFactory<ipc::Service, Self, H>, PortError> {
-        open_with_qos!(node.service_builder(&service_name(name)?).publish_subscribe::<T>().user_header::<H>(), name, qos)
+    fn open_service<H: Header>(
+        node: &Node<ipc::Service>,
+        name: &str,
+        qos: &Qos,
+    ) -> Result<PortFactory<ipc::Service, Self, H>, PortError> {
+        open_with_qos!(
+            node.service_builder(&service_name(name)?).publish_subscribe::<T>().user_header::<H>(),
+            name,
+            qos
+        )
     }
 }
 
 impl<T: Debug + ZeroCopySend + 'static> Payload for [T] {
-    fn open_service<H: Header>(node: &Node<ipc::Service>, name: &str, qos: &Qos) -> Result<PortFactory<ipc::Service, Self, H>, PortError> {
-        open_with_qos!(node.service_builder(&service_name(name)?).publish_subscribe::<[T]>().user_header::<H>(), name, qos)
+    fn open_service<H: Header>(
+        node: &Node<ipc::Service>,
+        name: &str,
+        qos: &Qos,
+    ) -> Result<PortFactory<ipc::Service, Self, H>, PortError> {
+        open_with_qos!(
+            node.service_builder(&service_name(name)?).publish_subscribe::<[T]>().user_header::<H>(),
+            name,
+            qos
+        )
     }
 }
 
-fn open_event(node: &Node<ipc::Service>, name: &str, qos: &Qos) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, PortError> {
+fn open_event(
+    node: &Node<ipc::Service>,
+    name: &str,
+    qos: &Qos,
+) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, PortError> {
     node.service_builder(&service_name(name)?)
         .event()
         .max_notifiers(qos.max_publishers)
@@ -164,7 +188,12 @@ impl<P: Payload + ?Sized, H: Header> Output<P, H> {
 
 impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<T, H> {
     /// Creates a publisher of fixed-size values on `name` with `qos`.
-    pub fn create(node: &Node<ipc::Service>, name: &str, qos: &Qos, stats: Rc<RefCell<PortStats>>) -> Result<Self, PortError> {
+    pub fn create(
+        node: &Node<ipc::Service>,
+        name: &str,
+        qos: &Qos,
+        stats: Rc<RefCell<PortStats>>,
+    ) -> Result<Self, PortError> {
         let factory = T::open_service::<H>(node, name, qos)?;
         let publisher = factory
             .publisher_builder()
@@ -194,7 +223,12 @@ impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<T, H> {
 impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<[T], H> {
     /// Creates a publisher of slices on `name` with `qos`; it reserves `qos.initial_slice_len`
     /// elements per sample and grows by powers of two when a larger slice is loaned.
-    pub fn create_slice(node: &Node<ipc::Service>, name: &str, qos: &Qos, stats: Rc<RefCell<PortStats>>) -> Result<Self, PortError> {
+    pub fn create_slice(
+        node: &Node<ipc::Service>,
+        name: &str,
+        qos: &Qos,
+        stats: Rc<RefCell<PortStats>>,
+    ) -> Result<Self, PortError> {
         Self::create_slice_with_len(node, name, qos, qos.initial_slice_len.max(1), stats)
     }
 
@@ -223,7 +257,10 @@ impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<[T], H> {
 
     /// Loans an uninitialised slice of `len` elements in shared memory; fill it in place with
     /// `write_from_fn` (or through `payload_mut`), set the header, then [`Output::send`].
-    pub fn loan_slice_uninit(&self, len: usize) -> Result<SampleMutUninit<ipc::Service, [MaybeUninit<T>], H>, PortError> {
+    pub fn loan_slice_uninit(
+        &self,
+        len: usize,
+    ) -> Result<SampleMutUninit<ipc::Service, [MaybeUninit<T>], H>, PortError> {
         self.publisher.loan_slice_uninit(len).map_err(|e| io_err(&self.service, "loan", e))
     }
 }
@@ -238,7 +275,12 @@ pub struct Input<P: Payload + ?Sized, H: Header> {
 
 impl<P: Payload + ?Sized, H: Header> Input<P, H> {
     /// Creates a subscriber on `name` with `qos`.
-    pub fn create(node: &Node<ipc::Service>, name: &str, qos: &Qos, stats: Rc<RefCell<PortStats>>) -> Result<Self, PortError> {
+    pub fn create(
+        node: &Node<ipc::Service>,
+        name: &str,
+        qos: &Qos,
+        stats: Rc<RefCell<PortStats>>,
+    ) -> Result<Self, PortError> {
         let factory = P::open_service::<H>(node, name, qos)?;
         let subscriber = factory
             .subscriber_builder()

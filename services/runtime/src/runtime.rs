@@ -58,9 +58,10 @@ impl ProcessContext {
     /// Loads the config and resolves the scope. Errors name the file and key.
     pub fn from_args(args: &ProcessArgs) -> anyhow::Result<Self> {
         let config = load_pipeline_config(&args.config)?;
-        let process = config.processes.get(&args.name).with_context(|| {
-            format!("{}: no table [processes.{}] in this config", args.config.display(), args.name)
-        })?;
+        let process = config
+            .processes
+            .get(&args.name)
+            .with_context(|| format!("{}: no table [processes.{}] in this config", args.config.display(), args.name))?;
         let _ = process;
         let scope = IoxScope::from_env().unwrap_or_else(|| IoxScope {
             prefix: config.run.iceoryx_prefix.clone(),
@@ -256,19 +257,30 @@ impl Runtime {
     }
 
     /// Publisher of fixed-size values on a service of the contract.
-    pub fn output<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(&mut self, service: &str) -> Result<Output<T, H>, RuntimeError> {
+    pub fn output<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(
+        &mut self,
+        service: &str,
+    ) -> Result<Output<T, H>, RuntimeError> {
         let qos = qos_of(service)?;
         self.output_with_qos(service, &qos)
     }
 
     /// Publisher of fixed-size values with explicit QoS.
-    pub fn output_with_qos<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(&mut self, service: &str, qos: &Qos) -> Result<Output<T, H>, RuntimeError> {
+    pub fn output_with_qos<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(
+        &mut self,
+        service: &str,
+        qos: &Qos,
+    ) -> Result<Output<T, H>, RuntimeError> {
         let stats = self.port_stats(service, false);
         Ok(Output::create(&self.node, service, qos, stats)?)
     }
 
     /// Publisher of slices on a service of the contract, reserving `initial_len` elements.
-    pub fn output_slice<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(&mut self, service: &str, initial_len: usize) -> Result<Output<[T], H>, RuntimeError> {
+    pub fn output_slice<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(
+        &mut self,
+        service: &str,
+        initial_len: usize,
+    ) -> Result<Output<[T], H>, RuntimeError> {
         let qos = qos_of(service)?;
         self.output_slice_with_qos(service, &qos, initial_len)
     }
@@ -285,7 +297,10 @@ impl Runtime {
     }
 
     /// Subscriber on a service of the contract (`P` = `T` or `[T]`); the loop wakes on its events.
-    pub fn input<P: crate::ports::Payload + ?Sized, H: Header>(&mut self, service: &str) -> Result<Input<P, H>, RuntimeError> {
+    pub fn input<P: crate::ports::Payload + ?Sized, H: Header>(
+        &mut self,
+        service: &str,
+    ) -> Result<Input<P, H>, RuntimeError> {
         let qos = qos_of(service)?;
         self.input_with_qos(service, &qos)
     }
@@ -348,7 +363,12 @@ impl Runtime {
     /// Builds this process's statistics report (cumulative since start).
     pub fn stats_report(&self) -> StatsReport {
         let borrowed: Vec<_> = self.ports.iter().map(|p| p.borrow()).collect();
-        StatsReport::from_ports(&self.name, self.pid, self.started.elapsed().as_nanos() as u64, borrowed.iter().map(|b| &**b))
+        StatsReport::from_ports(
+            &self.name,
+            self.pid,
+            self.started.elapsed().as_nanos() as u64,
+            borrowed.iter().map(|b| &**b),
+        )
     }
 
     fn publish_stats(&mut self) {

@@ -42,7 +42,14 @@ pub struct PortStats {
 impl PortStats {
     /// Empty statistics of a port.
     pub fn new(service: &str, input: bool) -> Self {
-        Self { service: service.to_string(), input, count: 0, bad_header: 0, hop: new_histogram(), e2e: new_histogram() }
+        Self {
+            service: service.to_string(),
+            input,
+            count: 0,
+            bad_header: 0,
+            hop: new_histogram(),
+            e2e: new_histogram(),
+        }
     }
 
     /// Records one received message with header times `publish_ns` and `origin_ns` at `now_ns`.

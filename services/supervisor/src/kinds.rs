@@ -31,8 +31,14 @@ fn check_external(name: &str, table: &toml::Table) -> Result<u64, Vec<ConfigIssu
 
 /// Every kind, by name.
 pub const KINDS: &[(&str, Kind)] = &[
-    ("test_producer", Kind { binary: Some("pipeline-test-producer"), check: check::<testkit::ProducerSettings>, pipeline_args: true }),
-    ("test_consumer", Kind { binary: Some("pipeline-test-consumer"), check: check::<testkit::ConsumerSettings>, pipeline_args: true }),
+    (
+        "test_producer",
+        Kind { binary: Some("pipeline-test-producer"), check: check::<testkit::ProducerSettings>, pipeline_args: true },
+    ),
+    (
+        "test_consumer",
+        Kind { binary: Some("pipeline-test-consumer"), check: check::<testkit::ConsumerSettings>, pipeline_args: true },
+    ),
     ("external", Kind { binary: None, check: check_external, pipeline_args: false }),
 ];
 

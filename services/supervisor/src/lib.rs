@@ -46,8 +46,13 @@ pub struct SetupError(#[from] anyhow::Error);
 
 /// Runs the supervisor; returns the process exit code.
 pub fn run(cli: &Cli) -> anyhow::Result<u8> {
-    let overrides = plan::Overrides { out_dir: cli.out.clone(), duration_s: cli.duration, iceoryx_prefix: cli.iceoryx_prefix.clone() };
-    let mut plan = plan::make_plan(&cli.config, &overrides, &plan::default_bin_dir()).map_err(|e| SetupError(e.into()))?;
+    let overrides = plan::Overrides {
+        out_dir: cli.out.clone(),
+        duration_s: cli.duration,
+        iceoryx_prefix: cli.iceoryx_prefix.clone(),
+    };
+    let mut plan =
+        plan::make_plan(&cli.config, &overrides, &plan::default_bin_dir()).map_err(|e| SetupError(e.into()))?;
     if let Some(f) = cli.log_format {
         plan.config.run.log_format = f;
     }
@@ -59,7 +64,11 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
         pre.fd_limit
     );
     if cli.check {
-        println!("config ok: {} process(es) in order {:?}", plan.processes.len(), plan.processes.iter().map(|p| &p.name).collect::<Vec<_>>());
+        println!(
+            "config ok: {} process(es) in order {:?}",
+            plan.processes.len(),
+            plan.processes.iter().map(|p| &p.name).collect::<Vec<_>>()
+        );
         return Ok(0);
     }
     let census = plan.scope.node_census().map_err(|e| SetupError(e.into()))?;
@@ -71,7 +80,10 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
         ))
         .into());
     }
-    let removed = plan.scope.remove_all_resources().with_context(|| format!("removing stale resources under {}", plan.scope.root.display()))?;
+    let removed = plan
+        .scope
+        .remove_all_resources()
+        .with_context(|| format!("removing stale resources under {}", plan.scope.root.display()))?;
     if removed > 0 || census.dead > 0 {
         tracing::info!("removed {removed} stale iceoryx2 file(s) of {} dead node(s) from an earlier run", census.dead);
     }
@@ -94,7 +106,8 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
         Ok(_) => {}
         Err(e) => tracing::warn!("removing the run's iceoryx2 resources: {e}"),
     }
-    report::write(&out_dir, &outcome.summary).with_context(|| format!("writing {}", out_dir.join("summary.json").display()))?;
+    report::write(&out_dir, &outcome.summary)
+        .with_context(|| format!("writing {}", out_dir.join("summary.json").display()))?;
     print!("{}", report::render(&outcome.summary));
     println!("outputs in {}", out_dir.display());
     Ok(outcome.exit_code)

@@ -4,8 +4,8 @@
 
 use std::path::{Path, PathBuf};
 
-use pipeline_runtime::config::{ConfigError, Issues, PipelineConfig, ProcessConfig, load_pipeline_config};
 use pipeline_runtime::IoxScope;
+use pipeline_runtime::config::{ConfigError, Issues, PipelineConfig, ProcessConfig, load_pipeline_config};
 
 use crate::kinds;
 
@@ -140,7 +140,14 @@ pub fn make_plan(config_path: &Path, overrides: &Overrides, bin_dir: &Path) -> R
             args.extend(["--config".into(), config_abs.to_string_lossy().into_owned(), "--name".into(), name.clone()]);
         }
         args.extend(p.args.iter().cloned());
-        processes.push(PlannedProcess { name: name.clone(), kind: kind_name, binary, args, config: p.clone(), shm_bytes });
+        processes.push(PlannedProcess {
+            name: name.clone(),
+            kind: kind_name,
+            binary,
+            args,
+            config: p.clone(),
+            shm_bytes,
+        });
     }
     if !issues.is_empty() {
         return Err(ConfigError::Invalid { file: config_path.to_path_buf(), issues: issues.0 });
@@ -179,7 +186,9 @@ pub enum PreflightError {
     #[error("cannot inspect /dev/shm: {0}")]
     NoShm(String),
     /// Too few file descriptors.
-    #[error("the open-file limit is {hard} (hard) but {need} are needed for {processes} processes; raise it (ulimit -n, LimitNOFILE=)")]
+    #[error(
+        "the open-file limit is {hard} (hard) but {need} are needed for {processes} processes; raise it (ulimit -n, LimitNOFILE=)"
+    )]
     FileDescriptors {
         /// Hard limit.
         hard: u64,
@@ -201,25 +210,29 @@ pub struct Preflight {
     pub fd_limit: u64,
 }
 
+/// Checks that `free` bytes of /dev/shm hold what the processes reserve (`needs`: name and bytes of
+/// its data services; control services are added per process). Returns the total need.
+pub fn check_shm(free: u64, needs: &[(&str, u64)]) -> Result<u64, PreflightError> {
+    let need: u64 = needs.iter().map(|(_, b)| b + CONTROL_SHM_PER_PROCESS).sum();
+    if need <= free {
+        return Ok(need);
+    }
+    let mib = |b: u64| b as f64 / 1048576.0;
+    let detail = needs
+        .iter()
+        .map(|(n, b)| format!("{n}: {:.1} MiB", mib(b + CONTROL_SHM_PER_PROCESS)))
+        .collect::<Vec<_>>()
+        .join(", ");
+    Err(PreflightError::SharedMemory { free_mib: mib(free), need_mib: mib(need), detail })
+}
+
 /// Checks /dev/shm and the file-descriptor limit against what the plan needs (raising the soft
 /// fd limit up to the hard one when that suffices).
 pub fn preflight(plan: &Plan) -> Result<Preflight, PreflightError> {
     let st = nix::sys::statvfs::statvfs("/dev/shm").map_err(|e| PreflightError::NoShm(e.to_string()))?;
     let shm_free = st.blocks_available() as u64 * st.fragment_size() as u64;
-    let shm_need: u64 = plan.processes.iter().map(|p| p.shm_bytes + CONTROL_SHM_PER_PROCESS).sum();
-    if shm_need > shm_free {
-        let detail = plan
-            .processes
-            .iter()
-            .map(|p| format!("{}: {:.1} MiB", p.name, (p.shm_bytes + CONTROL_SHM_PER_PROCESS) as f64 / 1048576.0))
-            .collect::<Vec<_>>()
-            .join(", ");
-        return Err(PreflightError::SharedMemory {
-            free_mib: shm_free as f64 / 1048576.0,
-            need_mib: shm_need as f64 / 1048576.0,
-            detail,
-        });
-    }
+    let needs: Vec<(&str, u64)> = plan.processes.iter().map(|p| (p.name.as_str(), p.shm_bytes)).collect();
+    let shm_need = check_shm(shm_free, &needs)?;
     use nix::sys::resource::{Resource, getrlimit, setrlimit};
     let need = 256 + 64 * plan.processes.len() as u64;
     let (soft, hard) = getrlimit(Resource::RLIMIT_NOFILE).unwrap_or((u64::MAX, u64::MAX));
@@ -234,4 +247,19 @@ pub fn preflight(plan: &Plan) -> Result<Preflight, PreflightError> {
         }
     }
     Ok(Preflight { shm_free, shm_need, fd_limit })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn too_little_shared_memory_is_an_error_that_names_each_process() {
+        let needs = [("producer", 448u64 << 20), ("consumer", 0)];
+        let e = check_shm(64 << 20, &needs).unwrap_err().to_string();
+        assert!(e.contains("/dev/shm has 64.0 MiB free"), "{e}");
+        assert!(e.contains("producer: 450.0 MiB") && e.contains("consumer: 2.0 MiB"), "{e}");
+        assert!(e.contains("--shm-size"), "{e}");
+        assert_eq!(check_shm(1 << 30, &needs).unwrap(), (448 << 20) + 2 * CONTROL_SHM_PER_PROCESS);
+    }
 }

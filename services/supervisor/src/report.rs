@@ -6,8 +6,8 @@ use std::path::Path;
 use std::time::Duration;
 
 use hdrhistogram::Histogram;
-use pipeline_runtime::stats::{LatencySummary, histogram_from_bytes, new_histogram};
 use pipeline_runtime::StatsReport;
+use pipeline_runtime::stats::{LatencySummary, histogram_from_bytes, new_histogram};
 use serde_json::{Value, json};
 
 use crate::plan::Plan;
@@ -72,9 +72,11 @@ pub fn summary(plan: &Plan, rows: &[ProcessRow<'_>], end: &EndReason, exit_code:
     let processes: serde_json::Map<String, Value> = rows
         .iter()
         .map(|r| {
-            let counts: (u64, u64) = r.reports.iter().flat_map(|rep| rep.ports.iter()).fold((0, 0), |(i, o), p| {
-                if p.input { (i + p.count, o) } else { (i, o + p.count) }
-            });
+            let counts: (u64, u64) = r
+                .reports
+                .iter()
+                .flat_map(|rep| rep.ports.iter())
+                .fold((0, 0), |(i, o), p| if p.input { (i + p.count, o) } else { (i, o + p.count) });
             (
                 r.name.to_string(),
                 json!({
@@ -113,10 +115,14 @@ pub fn summary(plan: &Plan, rows: &[ProcessRow<'_>], end: &EndReason, exit_code:
 /// Merges every `<dir>/*.json` object into `out` (deep merge of objects; later keys win).
 fn merge_parts(out: &mut Value, dir: &Path) {
     let Ok(rd) = std::fs::read_dir(dir) else { return };
-    let mut files: Vec<_> = rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.extension().is_some_and(|e| e == "json")).collect();
+    let mut files: Vec<_> =
+        rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.extension().is_some_and(|e| e == "json")).collect();
     files.sort();
     for f in files {
-        match std::fs::read(&f).map_err(|e| e.to_string()).and_then(|b| serde_json::from_slice::<Value>(&b).map_err(|e| e.to_string())) {
+        match std::fs::read(&f)
+            .map_err(|e| e.to_string())
+            .and_then(|b| serde_json::from_slice::<Value>(&b).map_err(|e| e.to_string()))
+        {
             Ok(v @ Value::Object(_)) => deep_merge(out, v),
             Ok(_) => tracing::warn!("{}: not a JSON object; not merged into summary.json", f.display()),
             Err(e) => tracing::warn!("{}: {e}; not merged into summary.json", f.display()),
@@ -159,9 +165,14 @@ pub fn render(summary: &Value) -> String {
     let run = &summary["run"];
     s.push_str(&format!(
         "run ended: {} after {:.1} s (exit code {})\n",
-        run["end_reason"].to_string().trim_matches('"'), run["duration_s"].as_f64().unwrap_or(0.0), run["exit_code"]
+        run["end_reason"].to_string().trim_matches('"'),
+        run["duration_s"].as_f64().unwrap_or(0.0),
+        run["exit_code"]
     ));
-    s.push_str(&format!("{:<20} {:<9} {:>8} {:>10} {:>10}  last exit\n", "process", "state", "restarts", "msgs in", "msgs out"));
+    s.push_str(&format!(
+        "{:<20} {:<9} {:>8} {:>10} {:>10}  last exit\n",
+        "process", "state", "restarts", "msgs in", "msgs out"
+    ));
     if let Some(Value::Object(ps)) = summary.get("processes") {
         for (name, p) in ps {
             s.push_str(&format!(
@@ -175,7 +186,9 @@ pub fn render(summary: &Value) -> String {
             ));
         }
     }
-    for (title, table) in [("hop latency (service -> process)", "hops"), ("end-to-end latency (since sensor input)", "end_to_end")] {
+    for (title, table) in
+        [("hop latency (service -> process)", "hops"), ("end-to-end latency (since sensor input)", "end_to_end")]
+    {
         if let Some(Value::Object(m)) = summary["latency_ms"].get(table)
             && !m.is_empty()
         {

@@ -92,7 +92,9 @@ impl ExitInfo {
         };
         let mut description = match (code, signal) {
             (Some(c), _) => format!("exited with code {c}"),
-            (_, Some(s)) => format!("killed by signal {s} ({})", Signal::try_from(s).map(|s| s.as_str()).unwrap_or("?")),
+            (_, Some(s)) => {
+                format!("killed by signal {s} ({})", Signal::try_from(s).map(|s| s.as_str()).unwrap_or("?"))
+            }
             _ => unreachable!(),
         };
         if let Some(k) = &killed_because {
@@ -186,7 +188,16 @@ impl Supervisor {
                 stats_in,
             });
         }
-        Ok(Self { plan, children, heartbeats, end_of_stream, eos_seen: BTreeSet::new(), started: now, last_status: now, end: None })
+        Ok(Self {
+            plan,
+            children,
+            heartbeats,
+            end_of_stream,
+            eos_seen: BTreeSet::new(),
+            started: now,
+            last_status: now,
+            end: None,
+        })
     }
 
     /// Runtime options of the supervisor's own node (it publishes no heartbeat).
@@ -460,13 +471,16 @@ impl Supervisor {
         c.pid = Some(pid);
         c.kill_reason = None;
         c.last_heartbeat = Some(Instant::now());
-        c.state = if c.plan.config.heartbeat { ProcState::Starting { since: Instant::now() } } else { ProcState::Ready };
+        c.state =
+            if c.plan.config.heartbeat { ProcState::Starting { since: Instant::now() } } else { ProcState::Ready };
         Ok(())
     }
 
     fn end_condition(&self, now: Instant) -> Option<EndReason> {
         let run = &self.plan.config.run;
-        if let Some(c) = self.children.iter().find(|c| c.plan.config.required && matches!(c.state, ProcState::Failed(_))) {
+        if let Some(c) =
+            self.children.iter().find(|c| c.plan.config.required && matches!(c.state, ProcState::Failed(_)))
+        {
             return Some(EndReason::RequiredProcessFailed(c.plan.name.clone()));
         }
         if run.duration_s > 0.0 && now - self.started >= Duration::from_secs_f64(run.duration_s) {

@@ -73,14 +73,22 @@ impl Default for ConsumerSettings {
 impl ProcessSettings for ConsumerSettings {
     fn validate(&self, key: &str, issues: &mut Issues) {
         if let Some(n) = self.expect_points {
-            issues.check((1..=MAX_POINTS).contains(&n), format!("{key}.expect_points"), format!("must be 1..={MAX_POINTS}"));
+            issues.check(
+                (1..=MAX_POINTS).contains(&n),
+                format!("{key}.expect_points"),
+                format!("must be 1..={MAX_POINTS}"),
+            );
         }
     }
 }
 
 /// The deterministic content of point `i` of cloud `seq`.
 pub fn cloud_point(seq: u64, i: usize) -> CloudPoint {
-    CloudPoint { x_m: (i % 1024) as f32 * 0.01, y_m: (i / 1024) as f32 * 0.01, z_m: (seq % 4096) as f32 + (i % 7) as f32 }
+    CloudPoint {
+        x_m: (i % 1024) as f32 * 0.01,
+        y_m: (i / 1024) as f32 * 0.01,
+        z_m: (seq % 4096) as f32 + (i % 7) as f32,
+    }
 }
 
 /// Counters of the verifying consumer (written to `parts/<name>.json` as `test_consumer`).
@@ -118,11 +126,16 @@ pub enum CloudFault {
 }
 
 /// Verifies one cloud and updates the counters: the consumer's `step`.
-pub fn verify_cloud(counters: &mut ConsumerCounters, expect_points: Option<usize>, seq: u64, points: &[CloudPoint]) -> Result<(), CloudFault> {
-    if let Some(last) = counters.last_seq {
-        if seq > last + 1 {
-            counters.frames_missed += seq - last - 1;
-        }
+pub fn verify_cloud(
+    counters: &mut ConsumerCounters,
+    expect_points: Option<usize>,
+    seq: u64,
+    points: &[CloudPoint],
+) -> Result<(), CloudFault> {
+    if let Some(last) = counters.last_seq
+        && seq > last + 1
+    {
+        counters.frames_missed += seq - last - 1;
     }
     counters.last_seq = Some(seq);
     let result = match expect_points {

@@ -65,7 +65,11 @@ impl<T: WireType + ZeroCopySend + Debug> Check for Fixed<T> {
     }
     fn poll(&mut self) -> anyhow::Result<bool> {
         while let Some(s) = self.input.receive()? {
-            anyhow::ensure!(s.payload().as_bytes() == pattern(self.k, size_of::<T>()), "{}: payload bytes differ", T::TYPE_NAME);
+            anyhow::ensure!(
+                s.payload().as_bytes() == pattern(self.k, size_of::<T>()),
+                "{}: payload bytes differ",
+                T::TYPE_NAME
+            );
             anyhow::ensure!(s.user_header().stamp_ns == self.k as u64, "{}: header stamp differs", T::TYPE_NAME);
             self.done = true;
         }
@@ -151,7 +155,8 @@ fn subscribe(rt: &mut Runtime, timeout: Duration) -> anyhow::Result<()> {
             return Ok(Flow::Stop);
         }
         if Instant::now() > deadline {
-            let missing: Vec<_> = checks.iter_mut().filter_map(|c| (!c.poll().unwrap_or(false)).then(|| c.name())).collect();
+            let missing: Vec<_> =
+                checks.iter_mut().filter_map(|c| (!c.poll().unwrap_or(false)).then(|| c.name())).collect();
             anyhow::bail!("timed out; never received: {missing:?}");
         }
         Ok(Flow::Continue)
@@ -181,7 +186,9 @@ fn publish(rt: &mut Runtime, linger: Duration) -> anyhow::Result<()> {
     println!("SENT");
     std::io::stdout().flush()?;
     let end = Instant::now() + linger;
-    rt.run(&mut (), Some(Duration::from_millis(100)), |_, _, _| Ok(if Instant::now() > end { Flow::Stop } else { Flow::Continue }))?;
+    rt.run(&mut (), Some(Duration::from_millis(100)), |_, _, _| {
+        Ok(if Instant::now() > end { Flow::Stop } else { Flow::Continue })
+    })?;
     Ok(())
 }
 
@@ -191,13 +198,13 @@ fn main() -> ExitCode {
     let scope = IoxScope { prefix: args.prefix.clone(), root: args.root.clone(), base_config: None };
     let options = RuntimeOptions { publish_control: false, ..Default::default() };
     let timeout = Duration::from_secs_f64(args.timeout_s);
-    let result = Runtime::new(&format!("wire-{}", args.role), &scope, options).map_err(anyhow::Error::from).and_then(|mut rt| {
-        match args.role.as_str() {
+    let result = Runtime::new(&format!("wire-{}", args.role), &scope, options).map_err(anyhow::Error::from).and_then(
+        |mut rt| match args.role.as_str() {
             "sub" => subscribe(&mut rt, timeout),
             "pub" => publish(&mut rt, timeout),
             other => anyhow::bail!("--role must be pub or sub, got `{other}`"),
-        }
-    });
+        },
+    );
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
