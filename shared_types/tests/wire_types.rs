@@ -96,9 +96,7 @@ fn names_are_nul_padded_and_truncated_on_char_boundaries() {
 
 #[test]
 fn bytes_round_trip_and_wrong_lengths_are_refused() {
-    let mut p = PoseEstimate::default();
-    p.position_m = [1.0, -2.0, 3.5];
-    p.segment_id = 7;
+    let p = PoseEstimate { position_m: [1.0, -2.0, 3.5], segment_id: 7, ..Default::default() };
     let b = p.as_bytes().to_vec();
     assert_eq!(b.len(), 352);
     assert_eq!(PoseEstimate::from_bytes(&b), Some(p));
