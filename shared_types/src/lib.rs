@@ -49,3 +49,8 @@ pub fn all_layouts() -> Vec<TypeLayout> {
 pub fn wire_format_markdown() -> String {
     layout::render_markdown(&all_layouts(), services::SERVICES)
 }
+
+/// Renders python/slam_pipeline_wire.py.
+pub fn wire_format_python() -> String {
+    layout::render_python(&all_layouts(), services::SERVICES)
+}

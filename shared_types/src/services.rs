@@ -44,6 +44,12 @@ impl Qos {
         }
     }
 
+    /// Sensor data: nothing is overwritten; a full subscriber queue makes the publisher either
+    /// drop the new sample for that subscriber (live sources) or wait (replay with back-pressure).
+    pub const fn sensor(max_subscribers: usize, subscriber_buffer: usize, initial_slice_len: usize) -> Self {
+        Self { safe_overflow: false, subscriber_buffer, ..Self::stream(max_subscribers, initial_slice_len) }
+    }
+
     /// Chunks one publisher of this service reserves (iceoryx2's data-segment formula).
     pub const fn chunks_per_publisher(&self) -> usize {
         self.max_subscribers * (self.subscriber_buffer + self.subscriber_borrowed) + self.history + self.publisher_loans
@@ -131,10 +137,10 @@ pub const STATS_QOS: Qos = Qos {
 
 /// Every fixed service of the contract, with the QoS the pipeline creates it with.
 pub const SERVICES: &[ServiceSpec] = &[
-    spec(ODOMETRY, "OdometryInput", "MsgHeader", Qos::stream(4, 0)),
-    spec(STEREO, "[StereoObservation]", "MsgHeader", Qos::stream(4, 1024)),
-    spec(BUOY_RANGES, "[BuoyRange]", "MsgHeader", Qos::stream(4, 16)),
-    spec(DEPTH, "DepthReading", "MsgHeader", Qos::stream(4, 0)),
+    spec(ODOMETRY, "OdometryInput", "MsgHeader", Qos::sensor(4, 16, 0)),
+    spec(STEREO, "[StereoObservation]", "MsgHeader", Qos::sensor(4, 8, 1024)),
+    spec(BUOY_RANGES, "[BuoyRange]", "MsgHeader", Qos::sensor(4, 8, 16)),
+    spec(DEPTH, "DepthReading", "MsgHeader", Qos::sensor(4, 8, 0)),
     spec(
         CLOUD,
         "[CloudPoint]",

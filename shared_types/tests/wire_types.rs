@@ -127,3 +127,13 @@ proptest! {
         prop_assert!(particle.map_from_body().rotation.angle_to(&rot) < 1e-9);
     }
 }
+
+#[test]
+fn python_ctypes_module_matches_the_code() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../python/slam_pipeline_wire.py");
+    let on_disk = std::fs::read_to_string(path).expect("python/slam_pipeline_wire.py exists");
+    assert!(
+        on_disk == wire_format_python(),
+        "python/slam_pipeline_wire.py is out of date: cargo run -p shared_types --example wire_py > python/slam_pipeline_wire.py"
+    );
+}

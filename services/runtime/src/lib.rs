@@ -14,7 +14,7 @@ pub mod stats;
 pub use clock::monotonic_ns;
 pub use config::{ConfigError, ConfigIssue, Issues, LogFormat, PipelineConfig, ProcessSettings};
 pub use iox::IoxScope;
-pub use ports::{Input, Output, PortError};
+pub use ports::{Delivery, Input, Output, PortError};
 pub use runtime::{Flow, ProcessArgs, ProcessContext, Runtime, RuntimeOptions, StopReason, Wake};
 pub use stats::{LatencySummary, StatsReport};
 

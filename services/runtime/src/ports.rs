@@ -99,6 +99,24 @@ macro_rules! open_with_qos {
     };
 }
 
+macro_rules! with_delivery {
+    ($builder:expr, $delivery:expr) => {
+        match $delivery {
+            Delivery::DiscardWhenFull => $builder.backpressure_strategy(BackpressureStrategy::DiscardData),
+            Delivery::WaitWhenFull { max_wait } => $builder
+                .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
+                .set_backpressure_handler(move |info: &iceoryx2::port::BackpressureInfo| {
+                    if info.elapsed_time >= max_wait {
+                        iceoryx2::port::BackpressureAction::DiscardData
+                    } else {
+                        std::thread::sleep(std::time::Duration::from_micros(100));
+                        iceoryx2::port::BackpressureAction::Retry
+                    }
+                }),
+        }
+    };
+}
+
 impl<T: Debug + ZeroCopySend + 'static> Payload for T {
     fn open_service<H: Header>(
         node: &Node<ipc::Service>,
@@ -139,6 +157,20 @@ fn open_event(
         .max_nodes(qos.max_nodes)
         .open_or_create()
         .map_err(|e| PortError::Open { service: format!("{name} (event)"), reason: format!("{e:?}") })
+}
+
+/// What a publisher does when a subscriber's queue is full on a service that does not overflow
+/// (on an overflowing service the oldest queued sample is replaced and this does not apply).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Delivery {
+    /// Drop the new sample for that subscriber and go on: a live source never blocks.
+    DiscardWhenFull,
+    /// Wait (sleeping 100 µs between retries, never spinning) until the subscriber has room, at
+    /// most `max_wait`, then drop: replay "as fast as possible" with back-pressure.
+    WaitWhenFull {
+        /// Longest wait for one subscriber before the sample is dropped for it.
+        max_wait: std::time::Duration,
+    },
 }
 
 /// A publisher with its notifier.
@@ -192,12 +224,12 @@ impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<T, H> {
         node: &Node<ipc::Service>,
         name: &str,
         qos: &Qos,
+        delivery: Delivery,
         stats: Rc<RefCell<PortStats>>,
     ) -> Result<Self, PortError> {
         let factory = T::open_service::<H>(node, name, qos)?;
-        let publisher = factory
-            .publisher_builder()
-            .max_loaned_samples(qos.publisher_loans)
+        let builder = factory.publisher_builder().max_loaned_samples(qos.publisher_loans);
+        let publisher = with_delivery!(builder, delivery)
             .create()
             .map_err(|e| PortError::Create { service: name.to_string(), reason: format!("{e:?}") })?;
         let notifier = open_event(node, name, qos)?
@@ -229,7 +261,7 @@ impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<[T], H> {
         qos: &Qos,
         stats: Rc<RefCell<PortStats>>,
     ) -> Result<Self, PortError> {
-        Self::create_slice_with_len(node, name, qos, qos.initial_slice_len.max(1), stats)
+        Self::create_slice_with_len(node, name, qos, qos.initial_slice_len.max(1), Delivery::DiscardWhenFull, stats)
     }
 
     /// As [`Output::create_slice`] with an explicit initial slice length.
@@ -238,14 +270,16 @@ impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<[T], H> {
         name: &str,
         qos: &Qos,
         initial_len: usize,
+        delivery: Delivery,
         stats: Rc<RefCell<PortStats>>,
     ) -> Result<Self, PortError> {
         let factory = <[T]>::open_service::<H>(node, name, qos)?;
-        let publisher = factory
+        let builder = factory
             .publisher_builder()
             .initial_max_slice_len(initial_len.max(1))
             .allocation_strategy(AllocationStrategy::PowerOfTwo)
-            .max_loaned_samples(qos.publisher_loans)
+            .max_loaned_samples(qos.publisher_loans);
+        let publisher = with_delivery!(builder, delivery)
             .create()
             .map_err(|e| PortError::Create { service: name.to_string(), reason: format!("{e:?}") })?;
         let notifier = open_event(node, name, qos)?

@@ -22,7 +22,7 @@ use shared_types::{EndOfStream, Heartbeat, MsgHeader, name32};
 use crate::clock::monotonic_ns;
 use crate::config::{LogFormat, PipelineConfig, ProcessSettings, load_pipeline_config, settings_for};
 use crate::iox::IoxScope;
-use crate::ports::{Header, Input, Output, PortError};
+use crate::ports::{Delivery, Header, Input, Output, PortError};
 use crate::stats::{PortStats, StatsReport};
 
 /// Command line shared by every pipeline process.
@@ -187,6 +187,7 @@ pub struct Runtime {
     state: u32,
     last_heartbeat: Option<Instant>,
     last_stats: Option<Instant>,
+    wake_at: Option<Instant>,
 }
 
 fn qos_of(service: &str) -> Result<Qos, RuntimeError> {
@@ -216,10 +217,17 @@ impl Runtime {
             state: shared_types::STATE_STARTING,
             last_heartbeat: None,
             last_stats: None,
+            wake_at: None,
         };
         if rt.options.publish_control {
             let hb_stats = Rc::new(RefCell::new(PortStats::new(services::HEARTBEAT, false)));
-            rt.heartbeat = Some(Output::create(&rt.node, services::HEARTBEAT, &services::CONTROL_QOS, hb_stats)?);
+            rt.heartbeat = Some(Output::create(
+                &rt.node,
+                services::HEARTBEAT,
+                &services::CONTROL_QOS,
+                Delivery::DiscardWhenFull,
+                hb_stats,
+            )?);
             let st_stats = Rc::new(RefCell::new(PortStats::new("stats", false)));
             let stats_name = services::stats_service(name);
             rt.stats_out = Some(Output::create_slice(&rt.node, &stats_name, &services::STATS_QOS, st_stats)?);
@@ -262,7 +270,7 @@ impl Runtime {
         service: &str,
     ) -> Result<Output<T, H>, RuntimeError> {
         let qos = qos_of(service)?;
-        self.output_with_qos(service, &qos)
+        self.output_with_qos(service, &qos, Delivery::DiscardWhenFull)
     }
 
     /// Publisher of fixed-size values with explicit QoS.
@@ -270,9 +278,10 @@ impl Runtime {
         &mut self,
         service: &str,
         qos: &Qos,
+        delivery: Delivery,
     ) -> Result<Output<T, H>, RuntimeError> {
         let stats = self.port_stats(service, false);
-        Ok(Output::create(&self.node, service, qos, stats)?)
+        Ok(Output::create(&self.node, service, qos, delivery, stats)?)
     }
 
     /// Publisher of slices on a service of the contract, reserving `initial_len` elements.
@@ -282,7 +291,7 @@ impl Runtime {
         initial_len: usize,
     ) -> Result<Output<[T], H>, RuntimeError> {
         let qos = qos_of(service)?;
-        self.output_slice_with_qos(service, &qos, initial_len)
+        self.output_slice_with_qos(service, &qos, initial_len, Delivery::DiscardWhenFull)
     }
 
     /// Publisher of slices with explicit QoS.
@@ -291,9 +300,10 @@ impl Runtime {
         service: &str,
         qos: &Qos,
         initial_len: usize,
+        delivery: Delivery,
     ) -> Result<Output<[T], H>, RuntimeError> {
         let stats = self.port_stats(service, false);
-        Ok(Output::create_slice_with_len(&self.node, service, qos, initial_len, stats)?)
+        Ok(Output::create_slice_with_len(&self.node, service, qos, initial_len, delivery, stats)?)
     }
 
     /// Subscriber on a service of the contract (`P` = `T` or `[T]`); the loop wakes on its events.
@@ -321,7 +331,13 @@ impl Runtime {
     pub fn send_end_of_stream(&mut self, last_seq: u64, messages_sent: u64) -> Result<(), RuntimeError> {
         if self.eos_out.is_none() {
             let stats = self.port_stats(services::END_OF_STREAM, false);
-            self.eos_out = Some(Output::create(&self.node, services::END_OF_STREAM, &services::CONTROL_QOS, stats)?);
+            self.eos_out = Some(Output::create(
+                &self.node,
+                services::END_OF_STREAM,
+                &services::CONTROL_QOS,
+                Delivery::DiscardWhenFull,
+                stats,
+            )?);
         }
         let eos = EndOfStream { process: name32(&self.name), last_seq, messages_sent };
         let now = monotonic_ns();
@@ -329,6 +345,12 @@ impl Runtime {
         self.eos_out.as_mut().expect("created above").send_value(header, eos)?;
         tracing::info!(last_seq, messages_sent, "sent end of stream");
         Ok(())
+    }
+
+    /// Asks for a `wake.tick` at `at` (earlier than the regular tick, if need be): for sources that
+    /// publish on a data clock. The loop sleeps until then unless data or a signal arrives.
+    pub fn wake_at(&mut self, at: Instant) {
+        self.wake_at = Some(self.wake_at.map_or(at, |w| w.min(at)));
     }
 
     /// The termination signal received so far, if any.
@@ -454,7 +476,7 @@ impl Runtime {
                     let _ = id.has_event_from(&timer);
                     CallbackProgression::Continue
                 },
-                period,
+                self.wake_at.map_or(period, |w| w.saturating_duration_since(Instant::now()).min(period)),
             )
             .map_err(|e| RuntimeError::WaitSet(format!("wait: {e:?}")))?;
             let now = Instant::now();
@@ -463,6 +485,10 @@ impl Runtime {
             {
                 wake.tick = true;
                 next_tick = Some(if now - due > t { now + t } else { due + t });
+            }
+            if self.wake_at.is_some_and(|w| now >= w) {
+                self.wake_at = None;
+                wake.tick = true;
             }
             self.periodic(now);
             if (wake.data || wake.tick) && handler(self, state, wake)? == Flow::Stop {

@@ -170,15 +170,20 @@ fn subscribe(rt: &mut Runtime, timeout: Duration) -> anyhow::Result<()> {
 fn publish(rt: &mut Runtime, linger: Duration) -> anyhow::Result<()> {
     macro_rules! publ {
         ($t:ty, $k:expr, $rt:expr, $keep:expr) => {
-            let mut out: Output<$t, MsgHeader> = $rt.output_with_qos(&service::<$t>(), &QOS)?;
+            let mut out: Output<$t, MsgHeader> =
+                $rt.output_with_qos(&service::<$t>(), &QOS, pipeline_runtime::Delivery::DiscardWhenFull)?;
             out.send_value(MsgHeader { stamp_ns: $k, origin_ns: 1, ..Default::default() }, value::<$t>($k))?;
             $keep.push(Box::new(out)); // the publisher (and its samples) live until we return
         };
     }
     let mut keep: Vec<Box<dyn std::any::Any>> = vec![];
     for_each_wire_type!(publ, rt, keep);
-    let mut cloud: Output<[CloudPoint], CloudHeader> =
-        rt.output_slice_with_qos("test/wire/slice/CloudPoint", &QOS, SLICE_LEN)?;
+    let mut cloud: Output<[CloudPoint], CloudHeader> = rt.output_slice_with_qos(
+        "test/wire/slice/CloudPoint",
+        &QOS,
+        SLICE_LEN,
+        pipeline_runtime::Delivery::DiscardWhenFull,
+    )?;
     let mut s = cloud.loan_slice_uninit(SLICE_LEN)?.write_from_fn(|i| value::<CloudPoint>(1000 + i));
     *s.user_header_mut() = value::<CloudHeader>(999);
     s.user_header_mut().msg.origin_ns = 1;
