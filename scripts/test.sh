@@ -4,6 +4,12 @@
 # nothing else. Ends with one line "tests: N passed, N failed" totalled over every test binary.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# Python test dependency: tests/tests/python_producer.rs runs examples/python/producer.py, which
+# needs the iceoryx2 Python binding of the same version as the Rust crate (0.10.0, from PyPI).
+# Installed only when missing.
+if ! python3 -c 'import importlib.metadata as m, sys; sys.exit(m.version("iceoryx2") != "0.10.0")' >/dev/null 2>&1; then
+    python3 -m pip install --quiet iceoryx2==0.10.0
+fi
 cargo build --workspace --bins
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT
