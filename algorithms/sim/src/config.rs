@@ -137,7 +137,7 @@ impl Default for MissionConfig {
 }
 
 /// All sensors.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields, default)]
 pub struct SensorsConfig {
     /// Odometry / input.
@@ -150,18 +150,6 @@ pub struct SensorsConfig {
     pub depth_camera: DepthCameraConfig,
     /// Pressure depth.
     pub pressure: PressureConfig,
-}
-
-impl Default for SensorsConfig {
-    fn default() -> Self {
-        Self {
-            odometry: OdometryConfig::default(),
-            stereo: StereoConfig::default(),
-            buoys: BuoyConfig::default(),
-            depth_camera: DepthCameraConfig::default(),
-            pressure: PressureConfig::default(),
-        }
-    }
 }
 
 /// Odometry: the true input plus white noise.

@@ -146,6 +146,9 @@ impl SimEvent {
     }
 }
 
+/// A ray's hit distance (m) and its unit direction in the sensor frame, `None` for no hit.
+type RayHit = Option<(f64, Vector3<f64>)>;
+
 /// Independent random streams, one per sensor.
 struct Streams {
     odometry: Xoshiro256PlusPlus,
@@ -267,7 +270,7 @@ impl Simulator {
 
     /// Expected mission length (path length at cruise speed, capped by the time limit), s.
     pub fn expected_duration_s(&self) -> f64 {
-        (self.path_length_m / self.cfg.mission.speed_mps * 1.1).min(self.cfg.mission.max_duration_s)
+        (self.path_length_m / self.cfg.mission.speed_mps * 1.2).min(self.cfg.mission.max_duration_s)
     }
 
     /// The stereo camera's mounting.
@@ -468,7 +471,7 @@ impl Simulator {
         let rows_per = h.div_ceil(threads);
         // Ray casting split by rows over threads; the noise is drawn afterwards, in pixel order,
         // so the result does not depend on the number of threads.
-        let ranges: Vec<Vec<Option<(f64, Vector3<f64>)>>> = crossbeam::thread::scope(|s| {
+        let ranges: Vec<Vec<RayHit>> = crossbeam::thread::scope(|s| {
             let handles: Vec<_> = (0..threads)
                 .map(|k| {
                     s.spawn(move |_| {

@@ -10,6 +10,7 @@ pub mod logging;
 pub mod ports;
 pub mod runtime;
 pub mod stats;
+pub mod validate;
 
 pub use clock::monotonic_ns;
 pub use config::{ConfigError, ConfigIssue, Issues, LogFormat, PipelineConfig, ProcessSettings};

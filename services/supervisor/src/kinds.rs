@@ -39,6 +39,15 @@ pub const KINDS: &[(&str, Kind)] = &[
         "test_consumer",
         Kind { binary: Some("pipeline-test-consumer"), check: check::<testkit::ConsumerSettings>, pipeline_args: true },
     ),
+    (
+        "sensor_monitor",
+        Kind {
+            binary: Some("pipeline-sensor-monitor"),
+            check: check::<testkit::SensorMonitorSettings>,
+            pipeline_args: true,
+        },
+    ),
+    ("ingest", Kind { binary: Some("ingest"), check: check::<ingest::IngestSettings>, pipeline_args: true }),
     ("external", Kind { binary: None, check: check_external, pipeline_args: false }),
 ];
 

@@ -82,6 +82,36 @@ impl ProcessSettings for ConsumerSettings {
     }
 }
 
+/// Settings of `pipeline-sensor-monitor` (`kind = "sensor_monitor"`): a sink for every sensor
+/// service that validates each message, counts accepted and rejected ones by reason, and forwards
+/// end of stream. It stands in for the stages while they do not exist and checks producers.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct SensorMonitorSettings {
+    /// Buoy ids a range may name (unset: any).
+    pub known_buoy_ids: Option<Vec<u32>>,
+    /// Largest accepted cloud.
+    pub max_cloud_points: usize,
+    /// Send our own end of stream when an upstream one arrives.
+    pub forward_end_of_stream: bool,
+}
+
+impl Default for SensorMonitorSettings {
+    fn default() -> Self {
+        Self { known_buoy_ids: None, max_cloud_points: MAX_POINTS, forward_end_of_stream: true }
+    }
+}
+
+impl ProcessSettings for SensorMonitorSettings {
+    fn validate(&self, key: &str, issues: &mut Issues) {
+        issues.check(
+            (1..=MAX_POINTS).contains(&self.max_cloud_points),
+            format!("{key}.max_cloud_points"),
+            format!("must be 1..={MAX_POINTS}"),
+        );
+    }
+}
+
 /// The deterministic content of point `i` of cloud `seq`.
 pub fn cloud_point(seq: u64, i: usize) -> CloudPoint {
     CloudPoint {

@@ -1,0 +1,211 @@
+//! `ingest`: publishes the configured source's items on the sensor services, paced on the data
+//! clock, then sends end of stream. See the library docs.
+
+use std::path::Path;
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use clap::Parser;
+use ingest::{IngestSettings, Item, Pacer, SimSource, Source, SourceKind};
+use pipeline_runtime::{Delivery, Flow, Output, ProcessArgs, Runtime};
+use shared_types::convert::quat_to_xyzw;
+use shared_types::services::{self, BUOY_RANGES, CLOUD, DEPTH, ODOMETRY, STEREO};
+use shared_types::{
+    BuoyRange, CLOUD_HAS_POSE, CloudHeader, CloudPoint, DepthReading, FRAME_SENSOR, MsgHeader, OdometryInput,
+    StereoObservation,
+};
+
+struct Outputs {
+    odometry: Output<OdometryInput, MsgHeader>,
+    stereo: Output<[StereoObservation], MsgHeader>,
+    buoys: Output<[BuoyRange], MsgHeader>,
+    depth: Output<DepthReading, MsgHeader>,
+    cloud: Output<[CloudPoint], CloudHeader>,
+}
+
+struct Ingest {
+    source: Box<dyn Source>,
+    outputs: Outputs,
+    pacer: Pacer,
+    pending: Option<Item>,
+    done: bool,
+    out_dir: std::path::PathBuf,
+    progress_every: Option<Duration>,
+    last_progress: Instant,
+    started: Instant,
+    counts: [u64; 5],
+    empty_clouds: u64,
+    first_last_stamp: Option<(u64, u64)>,
+}
+
+fn header(stamp_ns: u64) -> MsgHeader {
+    MsgHeader { stamp_ns, ..Default::default() }
+}
+
+impl Ingest {
+    fn publish(&mut self, item: Item) -> anyhow::Result<()> {
+        let stamp = item.stamp_ns();
+        self.first_last_stamp = Some(self.first_last_stamp.map_or((stamp, stamp), |(a, _)| (a, stamp)));
+        let o = &mut self.outputs;
+        match item {
+            Item::Odometry { stamp_ns, input } => {
+                o.odometry.send_value(header(stamp_ns), input)?;
+                self.counts[0] += 1;
+            }
+            Item::Stereo { stamp_ns, observations } => {
+                let mut s = o.stereo.loan_slice_uninit(observations.len())?.write_from_slice(&observations);
+                *s.user_header_mut() = header(stamp_ns);
+                o.stereo.send(s)?;
+                self.counts[1] += 1;
+            }
+            Item::BuoyRanges { stamp_ns, ranges } => {
+                let mut s = o.buoys.loan_slice_uninit(ranges.len())?.write_from_slice(&ranges);
+                *s.user_header_mut() = header(stamp_ns);
+                o.buoys.send(s)?;
+                self.counts[2] += 1;
+            }
+            Item::Depth { stamp_ns, reading } => {
+                o.depth.send_value(header(stamp_ns), reading)?;
+                self.counts[3] += 1;
+            }
+            Item::Cloud { stamp_ns, world_from_sensor, points } => {
+                if points.is_empty() {
+                    self.empty_clouds += 1;
+                    return Ok(());
+                }
+                let mut s = o.cloud.loan_slice_uninit(points.len())?.write_from_fn(|i| CloudPoint {
+                    x_m: points[i][0],
+                    y_m: points[i][1],
+                    z_m: points[i][2],
+                });
+                let h = s.user_header_mut();
+                *h = CloudHeader { msg: header(stamp_ns), frame: FRAME_SENSOR, ..Default::default() };
+                if let Some(pose) = world_from_sensor {
+                    h.sensor_origin_m = pose.translation.vector.into();
+                    h.orientation_xyzw = quat_to_xyzw(&pose.rotation);
+                    h.flags = CLOUD_HAS_POSE;
+                }
+                o.cloud.send(s)?;
+                self.counts[4] += 1;
+            }
+        }
+        Ok(())
+    }
+
+    fn finish(&mut self, rt: &mut Runtime) -> anyhow::Result<()> {
+        self.source.finish(&self.out_dir)?;
+        let sent: u64 = self.counts.iter().sum();
+        rt.send_end_of_stream(sent.saturating_sub(1), sent)?;
+        let data_s = self.first_last_stamp.map_or(0.0, |(a, b)| (b - a) as f64 / 1e9);
+        let wall_s = self.started.elapsed().as_secs_f64();
+        tracing::info!("source exhausted: {sent} messages, {data_s:.1} s of data in {wall_s:.1} s");
+        let part = serde_json::json!({ "ingest": {
+            "source": self.source.describe(),
+            "messages": { "odometry": self.counts[0], "stereo": self.counts[1], "buoy_ranges": self.counts[2],
+                          "depth": self.counts[3], "cloud": self.counts[4] },
+            "empty_clouds_skipped": self.empty_clouds,
+            "data_duration_s": data_s,
+            "wall_duration_s": wall_s,
+        }});
+        let path = self.out_dir.join("parts").join(format!("{}.json", rt.name()));
+        std::fs::create_dir_all(path.parent().expect("parts dir"))?;
+        std::fs::write(path, serde_json::to_vec_pretty(&part)?)?;
+        self.done = true;
+        Ok(())
+    }
+
+    /// Publishes every item that is due; asks to be woken for the next one.
+    fn pump(&mut self, rt: &mut Runtime) -> anyhow::Result<Flow> {
+        let batch_end = Instant::now() + Duration::from_millis(20);
+        while !self.done {
+            let now = Instant::now();
+            if let Some(every) = self.progress_every
+                && now - self.last_progress >= every
+            {
+                self.last_progress = now;
+                let pct = self.source.progress().map(|p| format!("{:.0}%", p * 100.0)).unwrap_or_else(|| "?".into());
+                tracing::info!("progress {pct}: {} messages", self.counts.iter().sum::<u64>());
+            }
+            if self.pending.is_none() {
+                match self.source.next_item()? {
+                    Some(item) => self.pending = Some(item),
+                    None => {
+                        self.finish(rt)?;
+                        break;
+                    }
+                }
+            }
+            let stamp = self.pending.as_ref().expect("filled above").stamp_ns();
+            if let Some(due) = self.pacer.due(stamp, now)
+                && due > now
+            {
+                rt.wake_at(due);
+                break;
+            }
+            let item = self.pending.take().expect("filled above");
+            self.publish(item)?;
+            if Instant::now() >= batch_end {
+                rt.wake_at(Instant::now()); // let the loop publish heartbeats, then go on
+                break;
+            }
+        }
+        Ok(Flow::Continue)
+    }
+}
+
+fn make_source(settings: &IngestSettings, _config_dir: &Path, out_dir: &Path) -> anyhow::Result<Box<dyn Source>> {
+    Ok(match settings.source {
+        SourceKind::Sim => Box::new(SimSource::new(settings.sim.clone(), out_dir)?),
+        other => ingest::file_source(other, settings, _config_dir, out_dir)?,
+    })
+}
+
+fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
+    let (ctx, mut rt) = Runtime::start(args)?;
+    let settings: IngestSettings = ctx.settings()?;
+    let config_dir = ctx.config.source.parent().unwrap_or(Path::new(".")).to_path_buf();
+    let source = make_source(&settings, &config_dir, &ctx.out_dir)?;
+    tracing::info!(real_time_factor = settings.real_time_factor, "source: {}", source.describe());
+    let delivery = if settings.real_time_factor > 0.0 {
+        Delivery::DiscardWhenFull
+    } else {
+        Delivery::WaitWhenFull { max_wait: Duration::from_secs_f64(settings.backpressure_max_wait_s) }
+    };
+    let qos = |s: &str| services::service_spec(s).expect("sensor services are in the contract").qos;
+    let cloud_len = ingest::initial_cloud_len(&settings);
+    let outputs = Outputs {
+        odometry: rt.output_with_qos(ODOMETRY, &qos(ODOMETRY), delivery)?,
+        stereo: rt.output_slice_with_qos(STEREO, &qos(STEREO), 1024, delivery)?,
+        buoys: rt.output_slice_with_qos(BUOY_RANGES, &qos(BUOY_RANGES), 16, delivery)?,
+        depth: rt.output_with_qos(DEPTH, &qos(DEPTH), delivery)?,
+        cloud: rt.output_slice_with_qos(CLOUD, &qos(CLOUD), cloud_len, delivery)?,
+    };
+    let mut state = Ingest {
+        source,
+        outputs,
+        pacer: Pacer::new(settings.real_time_factor),
+        pending: None,
+        done: false,
+        out_dir: ctx.out_dir.clone(),
+        progress_every: (settings.progress_interval_s > 0.0)
+            .then(|| Duration::from_secs_f64(settings.progress_interval_s)),
+        last_progress: Instant::now(),
+        started: Instant::now(),
+        counts: [0; 5],
+        empty_clouds: 0,
+        first_last_stamp: None,
+    };
+    rt.wake_at(Instant::now());
+    // After the end of stream the process stays up (its samples stay valid) until it is stopped.
+    rt.run(
+        &mut state,
+        Some(Duration::from_millis(500)),
+        |rt, st, _| if st.done { Ok(Flow::Continue) } else { st.pump(rt) },
+    )
+}
+
+fn main() -> ExitCode {
+    let args = ProcessArgs::parse();
+    let _log = pipeline_runtime::logging::init(&args.name, args.log_format.unwrap_or_default());
+    pipeline_runtime::exit_code(&run(&args))
+}

@@ -1,0 +1,256 @@
+//! Settings of the ingest process (`[processes.<name>.settings]` with `kind = "ingest"`).
+//! Paths are relative to the pipeline config file's directory.
+
+use std::path::{Path, PathBuf};
+
+use pipeline_runtime::{Issues, ProcessSettings};
+use serde::{Deserialize, Serialize};
+use shared_types::services::{CLOUD, service_spec};
+
+/// Which data source feeds the pipeline.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum SourceKind {
+    /// The built-in simulated mission (`sim` table).
+    #[default]
+    Sim,
+    /// Plaza2 odometry and beacon ranges (`plaza2` table).
+    Plaza2,
+    /// Stereo landmark observations in the stereo_vo_large format (`stereo_vo` table).
+    StereoVo,
+    /// Point-cloud files, scan.dat or PLY (`clouds` table).
+    Clouds,
+    /// Depth images, 16-bit PNG or raw (`depth_images` table).
+    DepthImages,
+}
+
+/// Ingest settings.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct IngestSettings {
+    /// The source.
+    pub source: SourceKind,
+    /// 1.0 = real time, N = N× real time, 0 = as fast as possible with back-pressure (nothing is
+    /// dropped unless a subscriber stalls for longer than `backpressure_max_wait_s`).
+    pub real_time_factor: f64,
+    /// Longest wait for a full subscriber queue in as-fast-as-possible mode, s.
+    pub backpressure_max_wait_s: f64,
+    /// Period of the progress log line, s (0 = off).
+    pub progress_interval_s: f64,
+    /// Simulator settings.
+    pub sim: sim::SimConfig,
+    /// Plaza2 replay settings.
+    pub plaza2: Plaza2Settings,
+    /// Stereo replay settings.
+    pub stereo_vo: StereoVoSettings,
+    /// Point-cloud file settings.
+    pub clouds: CloudFileSettings,
+    /// Depth-image settings.
+    pub depth_images: DepthImageSettings,
+}
+
+impl Default for IngestSettings {
+    fn default() -> Self {
+        Self {
+            source: SourceKind::Sim,
+            real_time_factor: 1.0,
+            backpressure_max_wait_s: 1.0,
+            progress_interval_s: 5.0,
+            sim: sim::SimConfig::default(),
+            plaza2: Plaza2Settings::default(),
+            stereo_vo: StereoVoSettings::default(),
+            clouds: CloudFileSettings::default(),
+            depth_images: DepthImageSettings::default(),
+        }
+    }
+}
+
+/// Plaza2 replay.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Plaza2Settings {
+    /// Directory with Plaza2_DR.txt, Plaza2_TD.txt, Plaza2_GT.txt, Plaza2_TL.txt.
+    pub dir: PathBuf,
+    /// σ attached to every range, m.
+    pub range_sigma_m: f64,
+    /// Odometry noise σ of the speed, m/s, and of the heading increment per step, rad.
+    pub speed_sigma_mps: f64,
+    /// See `speed_sigma_mps`.
+    pub turn_sigma_rad: f64,
+}
+
+impl Default for Plaza2Settings {
+    fn default() -> Self {
+        Self {
+            dir: PathBuf::from("../algorithms/datasets/data/plaza2"),
+            range_sigma_m: 1.0,
+            speed_sigma_mps: 0.1,
+            turn_sigma_rad: 0.01,
+        }
+    }
+}
+
+/// Stereo replay (files VO_calibration.txt and VO_stereo_factors_large.txt).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StereoVoSettings {
+    /// Directory of the data set (read-only; it must not be committed).
+    pub dir: PathBuf,
+    /// Frame rate the frames are stamped at, Hz.
+    pub rate_hz: f64,
+    /// Pixel noise σ used for the observation covariance, px.
+    pub pixel_sigma_px: f64,
+}
+
+impl Default for StereoVoSettings {
+    fn default() -> Self {
+        Self { dir: PathBuf::from("../../shared/data/stereo_vo_large"), rate_hz: 10.0, pixel_sigma_px: 0.5 }
+    }
+}
+
+/// Point-cloud files, published in order at `rate_hz`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CloudFileSettings {
+    /// Files (`.dat`, `.dat.bz2` in OctoMap scan format, `.ply`).
+    pub files: Vec<PathBuf>,
+    /// Clouds per second.
+    pub rate_hz: f64,
+    /// Times to repeat the list (1 = once).
+    pub repeat: u32,
+}
+
+impl Default for CloudFileSettings {
+    fn default() -> Self {
+        Self { files: vec![], rate_hz: 1.0, repeat: 1 }
+    }
+}
+
+/// Depth images back-projected to clouds ([2D3D] eq 6-8).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DepthImageSettings {
+    /// Image files (16-bit PNG, or raw little-endian u16 with `raw_width`/`raw_height`).
+    pub files: Vec<PathBuf>,
+    /// Frames per second.
+    pub rate_hz: f64,
+    /// Focal lengths and principal point, px.
+    pub fx_px: f64,
+    /// See `fx_px`.
+    pub fy_px: f64,
+    /// See `fx_px`.
+    pub cx_px: f64,
+    /// See `fx_px`.
+    pub cy_px: f64,
+    /// Raw depth units per metre (1000 for millimetres).
+    pub depth_scale: f64,
+    /// Depths outside [min, max] are skipped, m.
+    pub min_depth_m: f64,
+    /// See `min_depth_m`.
+    pub max_depth_m: f64,
+    /// Use every k-th pixel in both directions.
+    pub stride: u32,
+    /// Size of raw images, px.
+    pub raw_width: u32,
+    /// See `raw_width`.
+    pub raw_height: u32,
+}
+
+impl Default for DepthImageSettings {
+    fn default() -> Self {
+        Self {
+            files: vec![],
+            rate_hz: 5.0,
+            fx_px: 525.0,
+            fy_px: 525.0,
+            cx_px: 319.5,
+            cy_px: 239.5,
+            depth_scale: 1000.0,
+            min_depth_m: 0.1,
+            max_depth_m: 10.0,
+            stride: 1,
+            raw_width: 0,
+            raw_height: 0,
+        }
+    }
+}
+
+/// Most points in one cloud.
+pub const MAX_CLOUD_POINTS: usize = 4_000_000;
+
+impl ProcessSettings for IngestSettings {
+    fn validate(&self, key: &str, issues: &mut Issues) {
+        let rtf = self.real_time_factor;
+        issues.check(
+            rtf.is_finite() && rtf >= 0.0,
+            format!("{key}.real_time_factor"),
+            "must be >= 0 (0 = as fast as possible)",
+        );
+        issues.check(
+            self.backpressure_max_wait_s.is_finite() && self.backpressure_max_wait_s > 0.0,
+            format!("{key}.backpressure_max_wait_s"),
+            "must be > 0",
+        );
+        issues.check(self.progress_interval_s >= 0.0, format!("{key}.progress_interval_s"), "must be >= 0");
+        match self.source {
+            SourceKind::Sim => {
+                for (k, m) in self.sim.validate() {
+                    issues.push(format!("{key}.sim.{k}"), m);
+                }
+            }
+            SourceKind::Plaza2 => {
+                issues.check(self.plaza2.range_sigma_m > 0.0, format!("{key}.plaza2.range_sigma_m"), "must be > 0");
+            }
+            SourceKind::StereoVo => {
+                issues.check(self.stereo_vo.rate_hz > 0.0, format!("{key}.stereo_vo.rate_hz"), "must be > 0");
+                issues.check(
+                    self.stereo_vo.pixel_sigma_px > 0.0,
+                    format!("{key}.stereo_vo.pixel_sigma_px"),
+                    "must be > 0",
+                );
+            }
+            SourceKind::Clouds => {
+                issues.check(!self.clouds.files.is_empty(), format!("{key}.clouds.files"), "no files");
+                issues.check(self.clouds.rate_hz > 0.0, format!("{key}.clouds.rate_hz"), "must be > 0");
+                issues.check(self.clouds.repeat >= 1, format!("{key}.clouds.repeat"), "must be >= 1");
+            }
+            SourceKind::DepthImages => {
+                let d = &self.depth_images;
+                issues.check(!d.files.is_empty(), format!("{key}.depth_images.files"), "no files");
+                issues.check(d.rate_hz > 0.0, format!("{key}.depth_images.rate_hz"), "must be > 0");
+                issues.check(
+                    d.fx_px > 0.0 && d.fy_px > 0.0,
+                    format!("{key}.depth_images.fx_px"),
+                    "focal lengths must be > 0",
+                );
+                issues.check(d.depth_scale > 0.0, format!("{key}.depth_images.depth_scale"), "must be > 0");
+                issues.check(
+                    d.min_depth_m < d.max_depth_m,
+                    format!("{key}.depth_images.max_depth_m"),
+                    "must exceed min_depth_m",
+                );
+                issues.check(d.stride >= 1, format!("{key}.depth_images.stride"), "must be >= 1");
+            }
+        }
+    }
+
+    fn shm_estimate_bytes(&self) -> u64 {
+        let points = match self.source {
+            SourceKind::Sim => {
+                let d = &self.sim.sensors.depth_camera;
+                if d.rate_hz > 0.0 { (d.width_px * d.height_px) as usize } else { 0 }
+            }
+            SourceKind::Clouds => 400_000,
+            SourceKind::DepthImages => 640 * 480,
+            _ => 0,
+        };
+        let qos = service_spec(CLOUD).expect("cloud service is in the contract").qos;
+        let chunk = (points.max(1) * size_of::<shared_types::CloudPoint>()).next_power_of_two() as u64;
+        chunk * qos.chunks_per_publisher() as u64 + (4 << 20)
+    }
+}
+
+/// Resolves a settings path against the config file's directory.
+pub fn resolve(config_dir: &Path, p: &Path) -> PathBuf {
+    if p.is_absolute() { p.to_path_buf() } else { config_dir.join(p) }
+}

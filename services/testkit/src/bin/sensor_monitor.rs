@@ -1,0 +1,121 @@
+//! `pipeline-sensor-monitor`: subscribes every sensor service, validates each message (NaN/inf,
+//! empty or oversized, stamps not increasing, unknown buoy ids), counts accepted and rejected
+//! messages by reason, forwards end of stream, and writes the counters to `parts/<name>.json`.
+
+use std::process::ExitCode;
+
+use clap::Parser;
+use pipeline_runtime::validate::{self, Guard};
+use pipeline_runtime::{Flow, ProcessArgs, Runtime};
+use shared_types::services::{BUOY_RANGES, CLOUD, DEPTH, END_OF_STREAM, ODOMETRY, STEREO};
+use shared_types::{
+    BuoyRange, CloudHeader, CloudPoint, DepthReading, EndOfStream, MsgHeader, OdometryInput, StereoObservation,
+    name_from32,
+};
+use testkit::SensorMonitorSettings;
+
+struct Guards {
+    odometry: Guard,
+    stereo: Guard,
+    buoys: Guard,
+    depth: Guard,
+    cloud: Guard,
+    cloud_points: u64,
+    stereo_observations: u64,
+    end_of_stream_seen: u64,
+}
+
+fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
+    let (ctx, mut rt) = Runtime::start(args)?;
+    let settings: SensorMonitorSettings = ctx.settings()?;
+    let odometry = rt.input::<OdometryInput, MsgHeader>(ODOMETRY)?;
+    let stereo = rt.input::<[StereoObservation], MsgHeader>(STEREO)?;
+    let buoys = rt.input::<[BuoyRange], MsgHeader>(BUOY_RANGES)?;
+    let depth = rt.input::<DepthReading, MsgHeader>(DEPTH)?;
+    let cloud = rt.input::<[CloudPoint], CloudHeader>(CLOUD)?;
+    let eos = rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?;
+    let mut g = Guards {
+        odometry: Guard::new(ODOMETRY),
+        stereo: Guard::new(STEREO),
+        buoys: Guard::new(BUOY_RANGES),
+        depth: Guard::new(DEPTH),
+        cloud: Guard::new(CLOUD),
+        cloud_points: 0,
+        stereo_observations: 0,
+        end_of_stream_seen: 0,
+    };
+    let known = settings.known_buoy_ids.clone();
+    let result = rt.run(&mut g, None, |rt, g, _| {
+        while let Some(s) = odometry.receive()? {
+            let r = g
+                .odometry
+                .check_stamp(s.origin().value(), s.user_header().stamp_ns)
+                .and_then(|_| validate::check_odometry(s.payload()));
+            g.odometry.admit(r);
+        }
+        while let Some(s) = stereo.receive()? {
+            let r = g
+                .stereo
+                .check_stamp(s.origin().value(), s.user_header().stamp_ns)
+                .and_then(|_| validate::check_stereo(s.payload()));
+            if g.stereo.admit(r) {
+                g.stereo_observations += s.payload().len() as u64;
+            }
+        }
+        while let Some(s) = buoys.receive()? {
+            let r = g
+                .buoys
+                .check_stamp(s.origin().value(), s.user_header().stamp_ns)
+                .and_then(|_| validate::check_buoy_ranges(s.payload(), known.as_deref()));
+            g.buoys.admit(r);
+        }
+        while let Some(s) = depth.receive()? {
+            let r = g
+                .depth
+                .check_stamp(s.origin().value(), s.user_header().stamp_ns)
+                .and_then(|_| validate::check_depth(s.payload()));
+            g.depth.admit(r);
+        }
+        while let Some(s) = cloud.receive()? {
+            let r = g
+                .cloud
+                .check_stamp(s.origin().value(), s.user_header().msg.stamp_ns)
+                .and_then(|_| validate::check_cloud(s.user_header(), s.payload(), settings.max_cloud_points));
+            if g.cloud.admit(r) {
+                g.cloud_points += s.payload().len() as u64;
+            }
+        }
+        while let Some(s) = eos.receive()? {
+            let from = name_from32(&s.payload().process);
+            if from != rt.name() {
+                g.end_of_stream_seen += 1;
+                tracing::info!(%from, "end of stream from upstream");
+                if settings.forward_end_of_stream {
+                    let total = g.odometry.accepted()
+                        + g.stereo.accepted()
+                        + g.buoys.accepted()
+                        + g.depth.accepted()
+                        + g.cloud.accepted();
+                    rt.send_end_of_stream(total.saturating_sub(1), total)?;
+                }
+            }
+        }
+        Ok(Flow::Continue)
+    });
+    let part = serde_json::json!({ "sensor_monitor": {
+        ODOMETRY: g.odometry.report(), STEREO: g.stereo.report(), BUOY_RANGES: g.buoys.report(),
+        DEPTH: g.depth.report(), CLOUD: g.cloud.report(),
+        "cloud_points": g.cloud_points, "stereo_observations": g.stereo_observations,
+        "end_of_stream_seen": g.end_of_stream_seen,
+    }});
+    let path = ctx.summary_part_path();
+    std::fs::create_dir_all(path.parent().expect("parts dir"))?;
+    std::fs::write(&path, serde_json::to_vec_pretty(&part)?)?;
+    result
+}
+
+fn main() -> ExitCode {
+    let args = ProcessArgs::parse();
+    let _log = pipeline_runtime::logging::init(&args.name, args.log_format.unwrap_or_default());
+    pipeline_runtime::exit_code(&run(&args))
+}
