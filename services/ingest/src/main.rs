@@ -36,6 +36,7 @@ struct Ingest {
     counts: [u64; 5],
     empty_clouds: u64,
     first_last_stamp: Option<(u64, u64)>,
+    publish_from: Instant,
 }
 
 fn header(stamp_ns: u64) -> MsgHeader {
@@ -116,6 +117,10 @@ impl Ingest {
 
     /// Publishes every item that is due; asks to be woken for the next one.
     fn pump(&mut self, rt: &mut Runtime) -> anyhow::Result<Flow> {
+        if Instant::now() < self.publish_from {
+            rt.wake_at(self.publish_from);
+            return Ok(Flow::Continue);
+        }
         let batch_end = Instant::now() + Duration::from_millis(20);
         while !self.done {
             let now = Instant::now();
@@ -194,6 +199,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         counts: [0; 5],
         empty_clouds: 0,
         first_last_stamp: None,
+        publish_from: Instant::now() + Duration::from_secs_f64(settings.connect_grace_s),
     };
     rt.wake_at(Instant::now());
     // After the end of stream the process stays up (its samples stay valid) until it is stopped.

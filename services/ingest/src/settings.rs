@@ -37,6 +37,10 @@ pub struct IngestSettings {
     pub backpressure_max_wait_s: f64,
     /// Period of the progress log line, s (0 = off).
     pub progress_interval_s: f64,
+    /// Wait this long after creating the publishers before the first message, s: subscribers
+    /// attach to a new publisher on their next loop iteration (at most one heartbeat interval),
+    /// and what is sent to a subscriber before that may be lost.
+    pub connect_grace_s: f64,
     /// Simulator settings.
     pub sim: sim::SimConfig,
     /// Plaza2 replay settings.
@@ -56,6 +60,7 @@ impl Default for IngestSettings {
             real_time_factor: 1.0,
             backpressure_max_wait_s: 1.0,
             progress_interval_s: 5.0,
+            connect_grace_s: 0.5,
             sim: sim::SimConfig::default(),
             plaza2: Plaza2Settings::default(),
             stereo_vo: StereoVoSettings::default(),
@@ -190,6 +195,11 @@ impl ProcessSettings for IngestSettings {
             self.backpressure_max_wait_s.is_finite() && self.backpressure_max_wait_s > 0.0,
             format!("{key}.backpressure_max_wait_s"),
             "must be > 0",
+        );
+        issues.check(
+            self.connect_grace_s.is_finite() && self.connect_grace_s >= 0.0,
+            format!("{key}.connect_grace_s"),
+            "must be >= 0",
         );
         issues.check(self.progress_interval_s >= 0.0, format!("{key}.progress_interval_s"), "must be >= 0");
         match self.source {

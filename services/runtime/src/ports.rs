@@ -176,6 +176,7 @@ pub enum Delivery {
 /// A publisher with its notifier.
 pub struct Output<P: Payload + ?Sized, H: Header> {
     service: String,
+    factory: PortFactory<ipc::Service, P, H>,
     publisher: Publisher<ipc::Service, P, H>,
     notifier: Notifier<ipc::Service>,
     stats: Rc<RefCell<PortStats>>,
@@ -198,6 +199,11 @@ impl<P: Payload + ?Sized, H: Header> Output<P, H> {
         self.seq
     }
 
+    /// Subscribers currently registered on the service (connected or not yet).
+    pub fn subscribers(&self) -> usize {
+        iceoryx2::service::port_factory::PortFactory::dynamic_config(&self.factory).number_of_subscribers()
+    }
+
     /// Stamps `seq`, `publish_ns` (and `origin_ns = publish_ns` when it is 0), sends and wakes
     /// the subscribers. Returns the number of subscribers that received the sample.
     pub fn send(&mut self, mut sample: SampleMut<ipc::Service, P, H>) -> Result<usize, PortError>
@@ -212,7 +218,11 @@ impl<P: Payload + ?Sized, H: Header> Output<P, H> {
         }
         let n = sample.send().map_err(|e| io_err(&self.service, "send", e))?;
         self.seq += 1;
-        self.stats.borrow_mut().count += 1;
+        {
+            let mut st = self.stats.borrow_mut();
+            st.count += 1;
+            st.undelivered += self.subscribers().saturating_sub(n) as u64;
+        }
         self.notifier.notify().map_err(|e| io_err(&self.service, "notify", e))?;
         Ok(n)
     }
@@ -236,7 +246,7 @@ impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<T, H> {
             .notifier_builder()
             .create()
             .map_err(|e| PortError::Create { service: format!("{name} (event)"), reason: format!("{e:?}") })?;
-        Ok(Self { service: name.to_string(), publisher, notifier, stats, seq: 0 })
+        Ok(Self { service: name.to_string(), factory, publisher, notifier, stats, seq: 0 })
     }
 
     /// Loans an uninitialised sample in shared memory (write it in place, then [`Output::send`]).
@@ -286,7 +296,7 @@ impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<[T], H> {
             .notifier_builder()
             .create()
             .map_err(|e| PortError::Create { service: format!("{name} (event)"), reason: format!("{e:?}") })?;
-        Ok(Self { service: name.to_string(), publisher, notifier, stats, seq: 0 })
+        Ok(Self { service: name.to_string(), factory, publisher, notifier, stats, seq: 0 })
     }
 
     /// Loans an uninitialised slice of `len` elements in shared memory; fill it in place with
@@ -302,7 +312,7 @@ impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<[T], H> {
 /// A subscriber with the listener of its event service.
 pub struct Input<P: Payload + ?Sized, H: Header> {
     service: String,
-    subscriber: Subscriber<ipc::Service, P, H>,
+    subscriber: Rc<Subscriber<ipc::Service, P, H>>,
     listener: Rc<Listener<ipc::Service>>,
     stats: Rc<RefCell<PortStats>>,
 }
@@ -325,12 +335,25 @@ impl<P: Payload + ?Sized, H: Header> Input<P, H> {
             .listener_builder()
             .create()
             .map_err(|e| PortError::Create { service: format!("{name} (event)"), reason: format!("{e:?}") })?;
-        Ok(Self { service: name.to_string(), subscriber, listener: Rc::new(listener), stats })
+        Ok(Self { service: name.to_string(), subscriber: Rc::new(subscriber), listener: Rc::new(listener), stats })
     }
 
     /// Service name.
     pub fn service(&self) -> &str {
         &self.service
+    }
+
+    /// A handle that attaches this subscriber to publishers that appeared since the last call.
+    /// iceoryx2 connects a subscriber only when it acts (receive, or this), and a publisher's
+    /// samples to a subscriber that has not connected yet fill a short buffer and are then lost;
+    /// the runtime therefore calls this on every loop iteration.
+    pub fn connector(&self) -> Rc<dyn Fn()> {
+        let sub = self.subscriber.clone();
+        Rc::new(move || {
+            if let Err(e) = iceoryx2::port::update_connections::UpdateConnections::update_connections(&*sub) {
+                tracing::debug!("update_connections: {e:?}");
+            }
+        })
     }
 
     /// The listener the WaitSet attaches to.

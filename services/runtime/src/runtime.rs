@@ -180,6 +180,7 @@ pub struct Runtime {
     options: RuntimeOptions,
     ports: Vec<Rc<RefCell<PortStats>>>,
     listeners: Vec<Rc<Listener<ipc::Service>>>,
+    connectors: Vec<Rc<dyn Fn()>>,
     heartbeat: Option<Output<Heartbeat, MsgHeader>>,
     stats_out: Option<Output<[u8], MsgHeader>>,
     eos_out: Option<Output<EndOfStream, MsgHeader>>,
@@ -210,6 +211,7 @@ impl Runtime {
             options,
             ports: vec![],
             listeners: vec![],
+            connectors: vec![],
             heartbeat: None,
             stats_out: None,
             eos_out: None,
@@ -324,6 +326,7 @@ impl Runtime {
         let stats = self.port_stats(service, true);
         let input = Input::create(&self.node, service, qos, stats)?;
         self.listeners.push(input.listener());
+        self.connectors.push(input.connector());
         Ok(input)
     }
 
@@ -479,6 +482,9 @@ impl Runtime {
                 self.wake_at.map_or(period, |w| w.saturating_duration_since(Instant::now()).min(period)),
             )
             .map_err(|e| RuntimeError::WaitSet(format!("wait: {e:?}")))?;
+            for connect in &self.connectors {
+                connect();
+            }
             let now = Instant::now();
             if let (Some(t), Some(due)) = (tick, next_tick)
                 && now >= due

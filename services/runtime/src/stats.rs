@@ -33,6 +33,9 @@ pub struct PortStats {
     /// Input messages whose header was implausible (publish/origin time in the future or zero);
     /// they are counted, not recorded.
     pub bad_header: u64,
+    /// Output deliveries that failed: for each send, the registered subscribers it did not reach
+    /// (not connected yet, or a full queue that did not drain in time).
+    pub undelivered: u64,
     /// Hop latency, ns.
     pub hop: Histogram<u64>,
     /// End-to-end latency, ns.
@@ -47,6 +50,7 @@ impl PortStats {
             input,
             count: 0,
             bad_header: 0,
+            undelivered: 0,
             hop: new_histogram(),
             e2e: new_histogram(),
         }
@@ -75,6 +79,8 @@ pub struct PortReport {
     pub count: u64,
     /// Messages with implausible headers.
     pub bad_header: u64,
+    /// Output messages that reached no subscriber.
+    pub undelivered: u64,
     /// Hop histogram, V2 deflate serialised (empty for outputs).
     pub hop: Vec<u8>,
     /// End-to-end histogram, V2 deflate serialised (empty for outputs).
@@ -139,6 +145,7 @@ impl StatsReport {
                     input: p.input,
                     count: p.count,
                     bad_header: p.bad_header,
+                    undelivered: p.undelivered,
                     hop: ser(&p.hop),
                     e2e: ser(&p.e2e),
                 })

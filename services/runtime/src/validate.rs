@@ -129,6 +129,8 @@ pub struct Guard {
     accepted: u64,
     rejected: BTreeMap<&'static str, u64>,
     last_stamp: HashMap<u128, u64>,
+    last_seq: HashMap<u128, u64>,
+    missed: u64,
     last_warn: HashMap<&'static str, (Instant, u64)>,
 }
 
@@ -139,6 +141,8 @@ pub struct GuardReport {
     pub accepted: u64,
     /// Messages rejected, by reason.
     pub rejected: BTreeMap<&'static str, u64>,
+    /// Messages never received: gaps in the publishers' sequence numbers.
+    pub missed: u64,
 }
 
 impl Guard {
@@ -149,6 +153,8 @@ impl Guard {
             accepted: 0,
             rejected: BTreeMap::new(),
             last_stamp: HashMap::new(),
+            last_seq: HashMap::new(),
+            missed: 0,
             last_warn: HashMap::new(),
         }
     }
@@ -164,6 +170,16 @@ impl Guard {
                 self.last_stamp.insert(publisher_id, stamp_ns);
                 Ok(())
             }
+        }
+    }
+
+    /// Notes the sequence number of a message from `publisher_id`; a gap counts as missed
+    /// messages (lost before they reached this subscriber).
+    pub fn note_seq(&mut self, publisher_id: u128, seq: u64) {
+        if let Some(last) = self.last_seq.insert(publisher_id, seq)
+            && seq > last + 1
+        {
+            self.missed += seq - last - 1;
         }
     }
 
@@ -202,7 +218,7 @@ impl Guard {
 
     /// The counters.
     pub fn report(&self) -> GuardReport {
-        GuardReport { accepted: self.accepted, rejected: self.rejected.clone() }
+        GuardReport { accepted: self.accepted, rejected: self.rejected.clone(), missed: self.missed }
     }
 }
 

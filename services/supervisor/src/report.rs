@@ -85,6 +85,7 @@ pub fn summary(plan: &Plan, rows: &[ProcessRow<'_>], end: &EndReason, exit_code:
                     "failure": r.failure,
                     "restarts": r.restarts,
                     "instances": r.reports.len(),
+                    "undelivered": r.reports.iter().flat_map(|rep| rep.ports.iter()).map(|p| p.undelivered).sum::<u64>(),
                     "last_exit": r.last_exit,
                     "messages_in": counts.0,
                     "messages_out": counts.1,

@@ -47,6 +47,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let known = settings.known_buoy_ids.clone();
     let result = rt.run(&mut g, None, |rt, g, _| {
         while let Some(s) = odometry.receive()? {
+            g.odometry.note_seq(s.origin().value(), s.user_header().seq);
             let r = g
                 .odometry
                 .check_stamp(s.origin().value(), s.user_header().stamp_ns)
@@ -54,6 +55,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             g.odometry.admit(r);
         }
         while let Some(s) = stereo.receive()? {
+            g.stereo.note_seq(s.origin().value(), s.user_header().seq);
             let r = g
                 .stereo
                 .check_stamp(s.origin().value(), s.user_header().stamp_ns)
@@ -63,6 +65,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             }
         }
         while let Some(s) = buoys.receive()? {
+            g.buoys.note_seq(s.origin().value(), s.user_header().seq);
             let r = g
                 .buoys
                 .check_stamp(s.origin().value(), s.user_header().stamp_ns)
@@ -70,6 +73,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             g.buoys.admit(r);
         }
         while let Some(s) = depth.receive()? {
+            g.depth.note_seq(s.origin().value(), s.user_header().seq);
             let r = g
                 .depth
                 .check_stamp(s.origin().value(), s.user_header().stamp_ns)
@@ -77,6 +81,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             g.depth.admit(r);
         }
         while let Some(s) = cloud.receive()? {
+            g.cloud.note_seq(s.origin().value(), s.user_header().msg.seq);
             let r = g
                 .cloud
                 .check_stamp(s.origin().value(), s.user_header().msg.stamp_ns)
