@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use clap::Parser;
 use pipeline_runtime::validate::{self, Guard};
 use pipeline_runtime::{Flow, ProcessArgs, Runtime};
+use shared_types::WireType;
 use shared_types::services::{BUOY_RANGES, CLOUD, DEPTH, END_OF_STREAM, ODOMETRY, STEREO};
 use shared_types::{
     BuoyRange, CloudHeader, CloudPoint, DepthReading, EndOfStream, MsgHeader, OdometryInput, StereoObservation,
@@ -14,7 +15,28 @@ use shared_types::{
 };
 use testkit::SensorMonitorSettings;
 
+/// FNV-1a over every accepted message's stamp and payload bytes, per service: two runs that
+/// publish identical messages give identical digests.
+#[derive(Default, Clone, Copy)]
+struct Digest(u64);
+
+impl Digest {
+    fn add(&mut self, bytes: &[u8]) {
+        let mut h = if self.0 == 0 { 0xcbf2_9ce4_8422_2325 } else { self.0 };
+        for b in bytes {
+            h ^= *b as u64;
+            h = h.wrapping_mul(0x0000_0100_0000_01b3);
+        }
+        self.0 = h;
+    }
+}
+
+fn bytes_of<T: shared_types::WireType>(items: &[T]) -> impl Iterator<Item = &[u8]> {
+    items.iter().map(|i| i.as_bytes())
+}
+
 struct Guards {
+    digests: [Digest; 5],
     odometry: Guard,
     stereo: Guard,
     buoys: Guard,
@@ -35,6 +57,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let cloud = rt.input::<[CloudPoint], CloudHeader>(CLOUD)?;
     let eos = rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?;
     let mut g = Guards {
+        digests: [Digest::default(); 5],
         odometry: Guard::new(ODOMETRY),
         stereo: Guard::new(STEREO),
         buoys: Guard::new(BUOY_RANGES),
@@ -52,7 +75,10 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 .odometry
                 .check_stamp(s.origin().value(), s.user_header().stamp_ns)
                 .and_then(|_| validate::check_odometry(s.payload()));
-            g.odometry.admit(r);
+            if g.odometry.admit(r) {
+                g.digests[0].add(&s.user_header().stamp_ns.to_le_bytes());
+                g.digests[0].add(s.payload().as_bytes());
+            }
         }
         while let Some(s) = stereo.receive()? {
             g.stereo.note_seq(s.origin().value(), s.user_header().seq);
@@ -62,6 +88,8 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 .and_then(|_| validate::check_stereo(s.payload()));
             if g.stereo.admit(r) {
                 g.stereo_observations += s.payload().len() as u64;
+                g.digests[1].add(&s.user_header().stamp_ns.to_le_bytes());
+                bytes_of(s.payload()).for_each(|b| g.digests[1].add(b));
             }
         }
         while let Some(s) = buoys.receive()? {
@@ -70,7 +98,10 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 .buoys
                 .check_stamp(s.origin().value(), s.user_header().stamp_ns)
                 .and_then(|_| validate::check_buoy_ranges(s.payload(), known.as_deref()));
-            g.buoys.admit(r);
+            if g.buoys.admit(r) {
+                g.digests[2].add(&s.user_header().stamp_ns.to_le_bytes());
+                bytes_of(s.payload()).for_each(|b| g.digests[2].add(b));
+            }
         }
         while let Some(s) = depth.receive()? {
             g.depth.note_seq(s.origin().value(), s.user_header().seq);
@@ -78,7 +109,10 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 .depth
                 .check_stamp(s.origin().value(), s.user_header().stamp_ns)
                 .and_then(|_| validate::check_depth(s.payload()));
-            g.depth.admit(r);
+            if g.depth.admit(r) {
+                g.digests[3].add(&s.user_header().stamp_ns.to_le_bytes());
+                g.digests[3].add(s.payload().as_bytes());
+            }
         }
         while let Some(s) = cloud.receive()? {
             g.cloud.note_seq(s.origin().value(), s.user_header().msg.seq);
@@ -88,6 +122,12 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 .and_then(|_| validate::check_cloud(s.user_header(), s.payload(), settings.max_cloud_points));
             if g.cloud.admit(r) {
                 g.cloud_points += s.payload().len() as u64;
+                let h = s.user_header();
+                g.digests[4].add(&h.msg.stamp_ns.to_le_bytes());
+                for v in h.sensor_origin_m.iter().chain(&h.orientation_xyzw) {
+                    g.digests[4].add(&v.to_le_bytes());
+                }
+                bytes_of(s.payload()).for_each(|b| g.digests[4].add(b));
             }
         }
         while let Some(s) = eos.receive()? {
@@ -112,6 +152,11 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         DEPTH: g.depth.report(), CLOUD: g.cloud.report(),
         "cloud_points": g.cloud_points, "stereo_observations": g.stereo_observations,
         "end_of_stream_seen": g.end_of_stream_seen,
+        "digests": {
+            ODOMETRY: format!("{:016x}", g.digests[0].0), STEREO: format!("{:016x}", g.digests[1].0),
+            BUOY_RANGES: format!("{:016x}", g.digests[2].0), DEPTH: format!("{:016x}", g.digests[3].0),
+            CLOUD: format!("{:016x}", g.digests[4].0),
+        },
     }});
     let path = ctx.summary_part_path();
     std::fs::create_dir_all(path.parent().expect("parts dir"))?;
