@@ -228,6 +228,23 @@ impl<P: Payload + ?Sized, H: Header> Output<P, H> {
     }
 }
 
+impl<P: Payload + ?Sized, H: Header> Output<P, H> {
+    fn assemble(
+        node: &Node<ipc::Service>,
+        name: &str,
+        qos: &Qos,
+        factory: PortFactory<ipc::Service, P, H>,
+        publisher: Publisher<ipc::Service, P, H>,
+        stats: Rc<RefCell<PortStats>>,
+    ) -> Result<Self, PortError> {
+        let notifier = open_event(node, name, qos)?
+            .notifier_builder()
+            .create()
+            .map_err(|e| PortError::Create { service: format!("{name} (event)"), reason: format!("{e:?}") })?;
+        Ok(Self { service: name.to_string(), factory, publisher, notifier, stats, seq: 0 })
+    }
+}
+
 impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<T, H> {
     /// Creates a publisher of fixed-size values on `name` with `qos`.
     pub fn create(
@@ -242,11 +259,7 @@ impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<T, H> {
         let publisher = with_delivery!(builder, delivery)
             .create()
             .map_err(|e| PortError::Create { service: name.to_string(), reason: format!("{e:?}") })?;
-        let notifier = open_event(node, name, qos)?
-            .notifier_builder()
-            .create()
-            .map_err(|e| PortError::Create { service: format!("{name} (event)"), reason: format!("{e:?}") })?;
-        Ok(Self { service: name.to_string(), factory, publisher, notifier, stats, seq: 0 })
+        Self::assemble(node, name, qos, factory, publisher, stats)
     }
 
     /// Loans an uninitialised sample in shared memory (write it in place, then [`Output::send`]).
@@ -292,11 +305,7 @@ impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<[T], H> {
         let publisher = with_delivery!(builder, delivery)
             .create()
             .map_err(|e| PortError::Create { service: name.to_string(), reason: format!("{e:?}") })?;
-        let notifier = open_event(node, name, qos)?
-            .notifier_builder()
-            .create()
-            .map_err(|e| PortError::Create { service: format!("{name} (event)"), reason: format!("{e:?}") })?;
-        Ok(Self { service: name.to_string(), factory, publisher, notifier, stats, seq: 0 })
+        Self::assemble(node, name, qos, factory, publisher, stats)
     }
 
     /// Loans an uninitialised slice of `len` elements in shared memory; fill it in place with

@@ -5,7 +5,7 @@
 use std::process::ExitCode;
 
 use clap::Parser;
-use pipeline_runtime::validate::{self, Guard};
+use pipeline_runtime::validate::{self, Guard, Rejection};
 use pipeline_runtime::{Flow, ProcessArgs, Runtime};
 use shared_types::WireType;
 use shared_types::services::{BUOY_RANGES, CLOUD, DEPTH, END_OF_STREAM, ODOMETRY, STEREO};
@@ -31,20 +31,52 @@ impl Digest {
     }
 }
 
-fn bytes_of<T: shared_types::WireType>(items: &[T]) -> impl Iterator<Item = &[u8]> {
-    items.iter().map(|i| i.as_bytes())
+/// One sensor stream: its guard and the digest of what it accepted.
+struct Stream {
+    guard: Guard,
+    digest: Digest,
 }
 
-struct Guards {
-    digests: [Digest; 5],
-    odometry: Guard,
-    stereo: Guard,
-    buoys: Guard,
-    depth: Guard,
-    cloud: Guard,
+impl Stream {
+    fn new(service: &str) -> Self {
+        Self { guard: Guard::new(service), digest: Digest::default() }
+    }
+
+    /// Sequence, stamp and content checks of one message; when accepted, its stamp and `bytes`
+    /// (its content, without the run-dependent publish/origin times) go into the digest.
+    fn take<'a>(
+        &mut self,
+        origin: u128,
+        header: &MsgHeader,
+        content: Result<(), Rejection>,
+        bytes: impl IntoIterator<Item = &'a [u8]>,
+    ) -> bool {
+        self.guard.note_seq(origin, header.seq);
+        let verdict = self.guard.check_stamp(origin, header.stamp_ns).and(content);
+        let accepted = self.guard.admit(verdict);
+        if accepted {
+            self.digest.add(&header.stamp_ns.to_le_bytes());
+            bytes.into_iter().for_each(|b| self.digest.add(b));
+        }
+        accepted
+    }
+}
+
+struct Monitor {
+    odometry: Stream,
+    stereo: Stream,
+    buoys: Stream,
+    depth: Stream,
+    cloud: Stream,
     cloud_points: u64,
     stereo_observations: u64,
     end_of_stream_seen: u64,
+}
+
+impl Monitor {
+    fn accepted(&self) -> u64 {
+        [&self.odometry, &self.stereo, &self.buoys, &self.depth, &self.cloud].iter().map(|s| s.guard.accepted()).sum()
+    }
 }
 
 fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
@@ -56,13 +88,12 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let depth = rt.input::<DepthReading, MsgHeader>(DEPTH)?;
     let cloud = rt.input::<[CloudPoint], CloudHeader>(CLOUD)?;
     let eos = rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?;
-    let mut g = Guards {
-        digests: [Digest::default(); 5],
-        odometry: Guard::new(ODOMETRY),
-        stereo: Guard::new(STEREO),
-        buoys: Guard::new(BUOY_RANGES),
-        depth: Guard::new(DEPTH),
-        cloud: Guard::new(CLOUD),
+    let mut g = Monitor {
+        odometry: Stream::new(ODOMETRY),
+        stereo: Stream::new(STEREO),
+        buoys: Stream::new(BUOY_RANGES),
+        depth: Stream::new(DEPTH),
+        cloud: Stream::new(CLOUD),
         cloud_points: 0,
         stereo_observations: 0,
         end_of_stream_seen: 0,
@@ -70,64 +101,31 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let known = settings.known_buoy_ids.clone();
     let result = rt.run(&mut g, None, |rt, g, _| {
         while let Some(s) = odometry.receive()? {
-            g.odometry.note_seq(s.origin().value(), s.user_header().seq);
-            let r = g
-                .odometry
-                .check_stamp(s.origin().value(), s.user_header().stamp_ns)
-                .and_then(|_| validate::check_odometry(s.payload()));
-            if g.odometry.admit(r) {
-                g.digests[0].add(&s.user_header().stamp_ns.to_le_bytes());
-                g.digests[0].add(s.payload().as_bytes());
-            }
+            let check = validate::check_odometry(s.payload());
+            g.odometry.take(s.origin().value(), s.user_header(), check, [s.payload().as_bytes()]);
         }
         while let Some(s) = stereo.receive()? {
-            g.stereo.note_seq(s.origin().value(), s.user_header().seq);
-            let r = g
-                .stereo
-                .check_stamp(s.origin().value(), s.user_header().stamp_ns)
-                .and_then(|_| validate::check_stereo(s.payload()));
-            if g.stereo.admit(r) {
+            let check = validate::check_stereo(s.payload());
+            if g.stereo.take(s.origin().value(), s.user_header(), check, s.payload().iter().map(|o| o.as_bytes())) {
                 g.stereo_observations += s.payload().len() as u64;
-                g.digests[1].add(&s.user_header().stamp_ns.to_le_bytes());
-                bytes_of(s.payload()).for_each(|b| g.digests[1].add(b));
             }
         }
         while let Some(s) = buoys.receive()? {
-            g.buoys.note_seq(s.origin().value(), s.user_header().seq);
-            let r = g
-                .buoys
-                .check_stamp(s.origin().value(), s.user_header().stamp_ns)
-                .and_then(|_| validate::check_buoy_ranges(s.payload(), known.as_deref()));
-            if g.buoys.admit(r) {
-                g.digests[2].add(&s.user_header().stamp_ns.to_le_bytes());
-                bytes_of(s.payload()).for_each(|b| g.digests[2].add(b));
-            }
+            let check = validate::check_buoy_ranges(s.payload(), known.as_deref());
+            g.buoys.take(s.origin().value(), s.user_header(), check, s.payload().iter().map(|r| r.as_bytes()));
         }
         while let Some(s) = depth.receive()? {
-            g.depth.note_seq(s.origin().value(), s.user_header().seq);
-            let r = g
-                .depth
-                .check_stamp(s.origin().value(), s.user_header().stamp_ns)
-                .and_then(|_| validate::check_depth(s.payload()));
-            if g.depth.admit(r) {
-                g.digests[3].add(&s.user_header().stamp_ns.to_le_bytes());
-                g.digests[3].add(s.payload().as_bytes());
-            }
+            let check = validate::check_depth(s.payload());
+            g.depth.take(s.origin().value(), s.user_header(), check, [s.payload().as_bytes()]);
         }
         while let Some(s) = cloud.receive()? {
-            g.cloud.note_seq(s.origin().value(), s.user_header().msg.seq);
-            let r = g
-                .cloud
-                .check_stamp(s.origin().value(), s.user_header().msg.stamp_ns)
-                .and_then(|_| validate::check_cloud(s.user_header(), s.payload(), settings.max_cloud_points));
-            if g.cloud.admit(r) {
+            let h = s.user_header();
+            let check = validate::check_cloud(h, s.payload(), settings.max_cloud_points);
+            let pose = [h.sensor_origin_m.as_slice(), h.orientation_xyzw.as_slice()].concat();
+            let pose_bytes: Vec<u8> = pose.iter().flat_map(|v| v.to_le_bytes()).collect();
+            let content = std::iter::once(pose_bytes.as_slice()).chain(s.payload().iter().map(|p| p.as_bytes()));
+            if g.cloud.take(s.origin().value(), &h.msg, check, content) {
                 g.cloud_points += s.payload().len() as u64;
-                let h = s.user_header();
-                g.digests[4].add(&h.msg.stamp_ns.to_le_bytes());
-                for v in h.sensor_origin_m.iter().chain(&h.orientation_xyzw) {
-                    g.digests[4].add(&v.to_le_bytes());
-                }
-                bytes_of(s.payload()).for_each(|b| g.digests[4].add(b));
             }
         }
         while let Some(s) = eos.receive()? {
@@ -136,11 +134,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 g.end_of_stream_seen += 1;
                 tracing::info!(%from, "end of stream from upstream");
                 if settings.forward_end_of_stream {
-                    let total = g.odometry.accepted()
-                        + g.stereo.accepted()
-                        + g.buoys.accepted()
-                        + g.depth.accepted()
-                        + g.cloud.accepted();
+                    let total = g.accepted();
                     rt.send_end_of_stream(total.saturating_sub(1), total)?;
                 }
             }
@@ -148,14 +142,14 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         Ok(Flow::Continue)
     });
     let part = serde_json::json!({ "sensor_monitor": {
-        ODOMETRY: g.odometry.report(), STEREO: g.stereo.report(), BUOY_RANGES: g.buoys.report(),
-        DEPTH: g.depth.report(), CLOUD: g.cloud.report(),
+        ODOMETRY: g.odometry.guard.report(), STEREO: g.stereo.guard.report(), BUOY_RANGES: g.buoys.guard.report(),
+        DEPTH: g.depth.guard.report(), CLOUD: g.cloud.guard.report(),
         "cloud_points": g.cloud_points, "stereo_observations": g.stereo_observations,
         "end_of_stream_seen": g.end_of_stream_seen,
         "digests": {
-            ODOMETRY: format!("{:016x}", g.digests[0].0), STEREO: format!("{:016x}", g.digests[1].0),
-            BUOY_RANGES: format!("{:016x}", g.digests[2].0), DEPTH: format!("{:016x}", g.digests[3].0),
-            CLOUD: format!("{:016x}", g.digests[4].0),
+            ODOMETRY: format!("{:016x}", g.odometry.digest.0), STEREO: format!("{:016x}", g.stereo.digest.0),
+            BUOY_RANGES: format!("{:016x}", g.buoys.digest.0), DEPTH: format!("{:016x}", g.depth.digest.0),
+            CLOUD: format!("{:016x}", g.cloud.digest.0),
         },
     }});
     let path = ctx.summary_part_path();
