@@ -350,6 +350,13 @@ def run(args: argparse.Namespace) -> int:
         f"({'until stopped' if args.frames == 0 else f'{args.frames} frames'}; prefix `{prefix}`, root `{root}`)",
     )
 
+    # A subscriber attaches to a new publisher when its loop runs; wake the subscribers
+    # (notifications without data) for a moment so none misses the first clouds.
+    for _ in range(20):
+        cloud_notifier.notify()
+        if stopper.wait(0.025):
+            break
+
     sent = 0
     next_ns = time.monotonic_ns()
     try:

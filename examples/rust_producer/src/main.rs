@@ -186,8 +186,14 @@ fn run(args: &Args) -> anyhow::Result<()> {
     let (svc, notifier) = open!(node, END_OF_STREAM, EndOfStream, MsgHeader);
     let mut eos = Port { publisher: svc.publisher_builder().create()?, notifier, seq: 0 };
 
-    // Give the pipeline's subscribers a moment to attach to the new publishers.
-    std::thread::sleep(Duration::from_millis(500));
+    // Give the pipeline's subscribers a moment to attach to the new publishers: a subscriber
+    // attaches when its loop runs, so wake them (a notification without data) meanwhile.
+    for _ in 0..40 {
+        for n in [&odo.notifier, &buoys.notifier, &cloud.notifier] {
+            n.notify()?;
+        }
+        std::thread::sleep(Duration::from_millis(25));
+    }
     let period = Duration::from_secs_f64(1.0 / args.rate_hz);
     let dt = 1.0 / args.rate_hz;
     let t0 = now_ns();

@@ -118,7 +118,14 @@ impl Ingest {
     /// Publishes every item that is due; asks to be woken for the next one.
     fn pump(&mut self, rt: &mut Runtime) -> anyhow::Result<Flow> {
         if Instant::now() < self.publish_from {
-            rt.wake_at(self.publish_from);
+            // Wake every subscriber so that it attaches to our publishers before the first message.
+            let o = &self.outputs;
+            o.odometry.nudge()?;
+            o.stereo.nudge()?;
+            o.buoys.nudge()?;
+            o.depth.nudge()?;
+            o.cloud.nudge()?;
+            rt.wake_at(self.publish_from.min(Instant::now() + Duration::from_millis(25)));
             return Ok(Flow::Continue);
         }
         let batch_end = Instant::now() + Duration::from_millis(20);

@@ -37,9 +37,9 @@ pub struct IngestSettings {
     pub backpressure_max_wait_s: f64,
     /// Period of the progress log line, s (0 = off).
     pub progress_interval_s: f64,
-    /// Wait this long after creating the publishers before the first message, s: subscribers
-    /// attach to a new publisher on their next loop iteration (at most one heartbeat interval),
-    /// and what is sent to a subscriber before that may be lost.
+    /// Wait this long after creating the publishers before the first message, s, waking the
+    /// subscribers every 25 ms meanwhile: a subscriber attaches to a new publisher when its loop
+    /// runs, and what is sent to it before that may be lost (counted as `undelivered`).
     pub connect_grace_s: f64,
     /// Simulator settings.
     pub sim: sim::SimConfig,
@@ -60,7 +60,7 @@ impl Default for IngestSettings {
             real_time_factor: 1.0,
             backpressure_max_wait_s: 1.0,
             progress_interval_s: 5.0,
-            connect_grace_s: 0.5,
+            connect_grace_s: 1.0,
             sim: sim::SimConfig::default(),
             plaza2: Plaza2Settings::default(),
             stereo_vo: StereoVoSettings::default(),

@@ -199,6 +199,12 @@ impl<P: Payload + ?Sized, H: Header> Output<P, H> {
         self.seq
     }
 
+    /// Wakes the subscribers without sending data: a woken subscriber attaches to this publisher
+    /// (a source calls this while it waits for its subscribers before the first message).
+    pub fn nudge(&self) -> Result<(), PortError> {
+        self.notifier.notify().map(|_| ()).map_err(|e| io_err(&self.service, "notify", e))
+    }
+
     /// Subscribers currently registered on the service (connected or not yet).
     pub fn subscribers(&self) -> usize {
         iceoryx2::service::port_factory::PortFactory::dynamic_config(&self.factory).number_of_subscribers()
