@@ -1,0 +1,6 @@
+//! 6-DOF stereo FastSLAM (SPEC §1-4): a Rao-Blackwellised particle filter whose particles carry a
+//! pose and a map of per-landmark EKFs. Maps are persistent tries shared between particles
+//! ([`map`]), so resampling copies pointers and an update copies O(log M) nodes.
+
+pub mod ekf;
+pub mod map;
