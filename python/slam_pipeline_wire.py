@@ -228,6 +228,30 @@ class LandmarkMapHeader(ctypes.Structure):
 assert ctypes.sizeof(LandmarkMapHeader) == 40, "LandmarkMapHeader size"
 assert ctypes.alignment(LandmarkMapHeader) == 8, "LandmarkMapHeader alignment"
 
+class SlamDiagnostics(ctypes.Structure):
+    """What one FastSLAM frame did (`pipeline/slam/diagnostics`)."""
+
+    _fields_ = [
+        ("segment_id", ctypes.c_uint32),
+        ("matched", ctypes.c_uint32),
+        ("new_landmarks", ctypes.c_uint32),
+        ("ambiguous", ctypes.c_uint32),
+        ("landmarks", ctypes.c_uint32),
+        ("new_segment_reason", ctypes.c_uint32),
+        ("particles", ctypes.c_uint32),
+        ("resampled", ctypes.c_uint32),
+        ("n_eff", ctypes.c_double),
+        ("update_ms", ctypes.c_double),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        return "slam_pipeline::v1::SlamDiagnostics"
+
+
+assert ctypes.sizeof(SlamDiagnostics) == 48, "SlamDiagnostics size"
+assert ctypes.alignment(SlamDiagnostics) == 8, "SlamDiagnostics alignment"
+
 class BuoyFix(ctypes.Structure):
     """A global position fix of the buoy EKF (`pipeline/buoy/fix`)."""
 
@@ -412,6 +436,7 @@ SERVICES = {
     "pipeline/slam/pose": {"payload": "PoseEstimate", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 4, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/slam/particles": {"payload": "[Particle]", "user_header": "ParticleSetHeader", "max_publishers": 2, "max_subscribers": 2, "max_nodes": 32, "subscriber_max_buffer_size": 4, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/slam/landmarks": {"payload": "[Landmark]", "user_header": "LandmarkMapHeader", "max_publishers": 2, "max_subscribers": 2, "max_nodes": 32, "subscriber_max_buffer_size": 4, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
+    "pipeline/slam/diagnostics": {"payload": "SlamDiagnostics", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 4, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/buoy/fix": {"payload": "BuoyFix", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 4, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/sync/pair": {"payload": "SyncedPair", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 4, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/fusion/pose": {"payload": "FusedPose", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 4, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},

@@ -33,6 +33,7 @@ pub fn all_layouts() -> Vec<TypeLayout> {
         TypeLayout::of::<ParticleSetHeader>(),
         TypeLayout::of::<Landmark>(),
         TypeLayout::of::<LandmarkMapHeader>(),
+        TypeLayout::of::<SlamDiagnostics>(),
         TypeLayout::of::<BuoyFix>(),
         TypeLayout::of::<SyncedPair>(),
         TypeLayout::of::<FusedPose>(),

@@ -85,6 +85,8 @@ pub const SLAM_POSE: &str = "pipeline/slam/pose";
 pub const SLAM_PARTICLES: &str = "pipeline/slam/particles";
 /// Best particle's landmark map, `[Landmark]` with a [`crate::LandmarkMapHeader`].
 pub const SLAM_LANDMARKS: &str = "pipeline/slam/landmarks";
+/// FastSLAM per-frame diagnostics, [`crate::SlamDiagnostics`].
+pub const SLAM_DIAGNOSTICS: &str = "pipeline/slam/diagnostics";
 /// Buoy EKF fixes, [`crate::BuoyFix`].
 pub const BUOY_FIX: &str = "pipeline/buoy/fix";
 /// Synchronised pairs, [`crate::SyncedPair`].
@@ -150,6 +152,7 @@ pub const SERVICES: &[ServiceSpec] = &[
     spec(SLAM_POSE, "PoseEstimate", "MsgHeader", Qos::stream(4, 0)),
     spec(SLAM_PARTICLES, "[Particle]", "ParticleSetHeader", Qos::stream(2, 1024)),
     spec(SLAM_LANDMARKS, "[Landmark]", "LandmarkMapHeader", Qos::stream(2, 4096)),
+    spec(SLAM_DIAGNOSTICS, "SlamDiagnostics", "MsgHeader", Qos::stream(4, 0)),
     spec(BUOY_FIX, "BuoyFix", "MsgHeader", Qos::stream(4, 0)),
     spec(SYNC_PAIR, "SyncedPair", "MsgHeader", Qos::stream(4, 0)),
     spec(FUSION_POSE, "FusedPose", "MsgHeader", Qos::stream(4, 0)),

@@ -215,6 +215,42 @@ wire_type! {
     }
 }
 
+/// `SlamDiagnostics::new_segment_reason`: no new local map in this frame.
+pub const SEGMENT_REASON_NONE: u32 = 0;
+/// `SlamDiagnostics::new_segment_reason`: too few matched landmarks for several frames.
+pub const SEGMENT_REASON_FEW_MATCHES: u32 = 1;
+/// `SlamDiagnostics::new_segment_reason`: the position uncertainty exceeded its threshold.
+pub const SEGMENT_REASON_POSE_UNCERTAINTY: u32 = 2;
+/// `SlamDiagnostics::new_segment_reason`: requested by a control command.
+pub const SEGMENT_REASON_REQUESTED: u32 = 3;
+
+wire_type! {
+    /// What one FastSLAM frame did (`pipeline/slam/diagnostics`).
+    type_name = "slam_pipeline::v1::SlamDiagnostics", size = 48;
+    pub struct SlamDiagnostics {
+        /// Local map (segment) after this frame.
+        pub segment_id: u32,
+        /// Observations matched to confirmed landmarks (best particle).
+        pub matched: u32,
+        /// Observations that created landmarks (best particle).
+        pub new_landmarks: u32,
+        /// Observations left out as possible duplicates (best particle).
+        pub ambiguous: u32,
+        /// Confirmed landmarks in the best particle's map.
+        pub landmarks: u32,
+        /// 0 none, 1 few matches, 2 pose uncertainty, 3 requested: why this frame started a new local map.
+        pub new_segment_reason: u32,
+        /// Number of particles.
+        pub particles: u32,
+        /// 1 when the particles were resampled in this frame.
+        pub resampled: u32,
+        /// Effective sample size before resampling.
+        pub n_eff: f64,
+        /// Time the filter update took, ms.
+        pub update_ms: f64,
+    }
+}
+
 wire_type! {
     /// A global position fix of the buoy EKF (`pipeline/buoy/fix`).
     type_name = "slam_pipeline::v1::BuoyFix", size = 128;

@@ -2,5 +2,11 @@
 //! pose and a map of per-landmark EKFs. Maps are persistent tries shared between particles
 //! ([`map`]), so resampling copies pointers and an update copies O(log M) nodes.
 
+pub mod config;
 pub mod ekf;
+pub mod filter;
 pub mod map;
+
+pub use config::{AssociationConfig, FastSlamConfig, Proposal, SegmentConfig};
+pub use filter::{FastSlam, FrameReport, Observation, PoseEstimate, PriorLandmark, SegmentReason};
+pub mod eval;

@@ -144,9 +144,7 @@ impl<V: Clone> PersistentMap<V> {
 
     /// Removes the entry of `id`; returns it.
     pub fn remove(&mut self, id: u32) -> Option<V> {
-        if self.get(id).is_none() {
-            return None;
-        }
+        self.get(id)?;
         let mut node = Arc::make_mut(self.root.as_mut()?);
         let mut level = self.level;
         let old = loop {

@@ -273,3 +273,56 @@ mod tests {
         assert!(down.z < -0.7 && down.x > 0.7, "{down}");
     }
 }
+
+/// Least-squares rigid transform `dst_from_src` (rotation and translation, no scale) mapping the
+/// points `src` onto `dst` with per-pair `weights` (Horn 1987 / Umeyama 1991, by SVD). `None`
+/// with fewer than 3 pairs or degenerate (collinear) geometry.
+pub fn align_rigid(src: &[Vector3<f64>], dst: &[Vector3<f64>], weights: &[f64]) -> Option<Isometry3<f64>> {
+    if src.len() < 3 || src.len() != dst.len() || weights.len() != src.len() {
+        return None;
+    }
+    let wsum: f64 = weights.iter().sum();
+    if wsum.is_nan() || wsum <= 0.0 {
+        return None;
+    }
+    let ms: Vector3<f64> = src.iter().zip(weights).map(|(p, w)| p * *w).sum::<Vector3<f64>>() / wsum;
+    let md: Vector3<f64> = dst.iter().zip(weights).map(|(p, w)| p * *w).sum::<Vector3<f64>>() / wsum;
+    let mut cov = Matrix3::zeros();
+    for ((s, d), w) in src.iter().zip(dst).zip(weights) {
+        cov += (d - md) * (s - ms).transpose() * *w;
+    }
+    let mut svd = cov.svd(true, true);
+    svd.sort_by_singular_values(); // descending: the reflection fix goes on the smallest
+    let (u, vt) = (svd.u?, svd.v_t?);
+    let sv = svd.singular_values;
+    if sv[1] < 1e-9 * sv[0].max(1e-300) {
+        return None; // collinear: the rotation about the line is unobservable
+    }
+    let mut d = Matrix3::identity();
+    if (u * vt).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    let r = Rotation3::from_matrix_unchecked(u * d * vt);
+    let t = md - r * ms;
+    Some(Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_rotation_matrix(&r)))
+}
+
+#[cfg(test)]
+mod align_tests {
+    use super::*;
+
+    #[test]
+    fn alignment_recovers_a_known_transform_and_refuses_collinear_points() {
+        let truth =
+            Isometry3::from_parts(Translation3::new(3.0, -2.0, 1.0), UnitQuaternion::from_euler_angles(0.3, -0.2, 1.1));
+        let src: Vec<Vector3<f64>> = (0..20)
+            .map(|i| Vector3::new((i as f64).sin() * 5.0, (i as f64 * 0.7).cos() * 3.0, i as f64 * 0.1))
+            .collect();
+        let dst: Vec<Vector3<f64>> = src.iter().map(|p| truth.transform_point(&(*p).into()).coords).collect();
+        let est = align_rigid(&src, &dst, &[1.0; 20]).unwrap();
+        assert!((est.translation.vector - truth.translation.vector).norm() < 1e-9, "{est} vs {truth}");
+        assert!(est.rotation.angle_to(&truth.rotation) < 1e-9);
+        let line: Vec<Vector3<f64>> = (0..10).map(|i| Vector3::new(i as f64, 2.0 * i as f64, 0.0)).collect();
+        assert!(align_rigid(&line, &line, &[1.0; 10]).is_none());
+    }
+}

@@ -91,6 +91,7 @@ impl ProcessContext {
             heartbeat_interval: Duration::from_secs_f64(self.config.run.heartbeat_interval_s),
             stats_interval: Duration::from_secs_f64(self.config.run.stats_interval_s),
             publish_control: true,
+            final_stats_dir: Some(self.out_dir.join("stats")),
         }
     }
 
@@ -112,6 +113,9 @@ pub struct RuntimeOptions {
     pub stats_interval: Duration,
     /// Publish heartbeats and statistics (false for the supervisor itself).
     pub publish_control: bool,
+    /// Where the final statistics report is written at the end of [`Runtime::run`]
+    /// (`<dir>/<process>-<pid>.bin`): a report published just before exit may never be read.
+    pub final_stats_dir: Option<PathBuf>,
 }
 
 impl Default for RuntimeOptions {
@@ -120,6 +124,7 @@ impl Default for RuntimeOptions {
             heartbeat_interval: Duration::from_millis(250),
             stats_interval: Duration::from_secs(1),
             publish_control: true,
+            final_stats_dir: None,
         }
     }
 }
@@ -505,6 +510,16 @@ impl Runtime {
         if self.options.publish_control {
             self.publish_stats();
             self.publish_heartbeat();
+        }
+        if let Some(dir) = &self.options.final_stats_dir {
+            let path = dir.join(format!("{}-{}.bin", self.name, self.pid));
+            let written = std::fs::create_dir_all(dir)
+                .map_err(|e| e.to_string())
+                .and_then(|_| self.stats_report().encode().map_err(|e| e.to_string()))
+                .and_then(|b| std::fs::write(&path, b).map_err(|e| e.to_string()));
+            if let Err(e) = written {
+                tracing::warn!("final statistics not written to {}: {e}", path.display());
+            }
         }
         tracing::info!(?reason, "stopping");
         Ok(reason)

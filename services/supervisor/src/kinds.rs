@@ -48,6 +48,10 @@ pub const KINDS: &[(&str, Kind)] = &[
         },
     ),
     ("ingest", Kind { binary: Some("ingest"), check: check::<ingest::IngestSettings>, pipeline_args: true }),
+    (
+        "fastslam",
+        Kind { binary: Some("fastslam"), check: check::<fastslam_process::FastSlamSettings>, pipeline_args: true },
+    ),
     ("external", Kind { binary: None, check: check_external, pipeline_args: false }),
 ];
 

@@ -88,9 +88,11 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
         tracing::info!("removed {removed} stale iceoryx2 file(s) of {} dead node(s) from an earlier run", census.dead);
     }
     std::fs::create_dir_all(&plan.out_dir).with_context(|| format!("creating {}", plan.out_dir.display()))?;
-    let parts = plan.out_dir.join("parts");
-    if parts.exists() {
-        std::fs::remove_dir_all(&parts).with_context(|| format!("clearing {}", parts.display()))?;
+    for sub in ["parts", "stats"] {
+        let dir = plan.out_dir.join(sub);
+        if dir.exists() {
+            std::fs::remove_dir_all(&dir).with_context(|| format!("clearing {}", dir.display()))?;
+        }
     }
     let scope = plan.scope.clone();
     let out_dir = plan.out_dir.clone();

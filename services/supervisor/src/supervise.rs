@@ -529,6 +529,27 @@ impl Supervisor {
         parts.join(" | ")
     }
 
+    /// Takes the final reports the processes wrote to `<out>/stats/` at exit: they are complete,
+    /// where the last one published may not have been read before its publisher went away.
+    fn read_final_stats(&mut self) {
+        let dir = self.plan.out_dir.join("stats");
+        let Ok(rd) = std::fs::read_dir(&dir) else { return };
+        for entry in rd.flatten() {
+            let path = entry.path();
+            match std::fs::read(&path)
+                .map_err(|e| e.to_string())
+                .and_then(|b| StatsReport::decode(&b).map_err(|e| e.to_string()))
+            {
+                Ok(r) => {
+                    if let Some(c) = self.children.iter_mut().find(|c| c.plan.name == r.process) {
+                        c.reports.insert(r.pid, r);
+                    }
+                }
+                Err(e) => tracing::warn!("{}: {e}", path.display()),
+            }
+        }
+    }
+
     /// Stops every running process in reverse start order: SIGTERM, then SIGKILL after
     /// `run.stop_timeout_s`; reaps all of them.
     fn stop_all(&mut self) {
@@ -558,6 +579,7 @@ impl Supervisor {
             }
         }
         self.drain_stats();
+        self.read_final_stats();
         // Safety net: anything still a child of ours (e.g. spawned but never tracked) is reaped.
         while let Ok(status) = waitpid(None::<Pid>, Some(WaitPidFlag::WNOHANG)) {
             if status == WaitStatus::StillAlive {

@@ -117,6 +117,7 @@ macro_rules! for_each_wire_type {
         $m!(Landmark, 10, $($arg),*);
         $m!(LandmarkMapHeader, 11, $($arg),*);
         $m!(BuoyFix, 12, $($arg),*);
+        $m!(SlamDiagnostics, 21, $($arg),*);
         $m!(SyncedPair, 13, $($arg),*);
         $m!(FusedPose, 14, $($arg),*);
         $m!(MapStats, 15, $($arg),*);
@@ -129,7 +130,7 @@ macro_rules! for_each_wire_type {
 }
 
 /// Number of fixed-size types above; a test checks it against `all_layouts()`.
-const FIXED_TYPES: usize = 21;
+const FIXED_TYPES: usize = 22;
 
 fn subscribe(rt: &mut Runtime, timeout: Duration) -> anyhow::Result<()> {
     let mut checks: Vec<Box<dyn Check>> = vec![];

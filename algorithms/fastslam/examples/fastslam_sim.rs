@@ -1,0 +1,112 @@
+//! Runs FastSLAM on the simulated mission without IPC and prints accuracy and speed:
+//! `cargo run --release -p fastslam --example fastslam_sim -- [particles] [motion|optimal] [legs]`.
+
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+use fastslam::eval::{TrajectorySample, evaluate, overall_ate};
+use fastslam::{FastSlam, FastSlamConfig, Observation, Proposal};
+use sim::{SimConfig, SimEvent, Simulator};
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let particles: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(100);
+    let proposal = match args.get(2).map(String::as_str) {
+        Some("optimal") => Proposal::Optimal,
+        _ => Proposal::Motion,
+    };
+    let mut sc = SimConfig::default();
+    sc.sensors.depth_camera.rate_hz = 0.0;
+    if let Some(legs) = args.get(3).and_then(|s| s.parse().ok()) {
+        sc.mission.legs = legs;
+    }
+    let mut sim = Simulator::new(sc).unwrap();
+    let body_from_cam = sim.body_from_stereo();
+    let cfg = FastSlamConfig { particles, proposal, ..Default::default() };
+    let mut f = FastSlam::new(cfg).unwrap();
+    let mut traj = vec![];
+    let mut origins = BTreeMap::from([(0u32, 0.0)]);
+    let (mut frames, mut update_s, mut matched, mut segs) = (0usize, 0.0, 0usize, vec![]);
+    let mut last_t = 0.0;
+    for e in sim.by_ref() {
+        match e {
+            SimEvent::Odometry(o) => {
+                f.predict(&o.input, o.variances).unwrap();
+                last_t = o.t_s;
+            }
+            SimEvent::Stereo(fr) => {
+                let obs: Vec<Observation> = fr
+                    .observations
+                    .iter()
+                    .filter_map(|o| {
+                        Observation::from_camera(
+                            &o.point_cam_m,
+                            &o.covariance_cam_m2,
+                            Some(o.descriptor),
+                            &body_from_cam,
+                        )
+                        .ok()
+                    })
+                    .collect();
+                let t0 = Instant::now();
+                let r = f.update(&obs);
+                update_s += t0.elapsed().as_secs_f64();
+                frames += 1;
+                if std::env::var("DBG").is_ok() && !obs.is_empty() && frames < 2000 {
+                    eprintln!(
+                        "frame {frames} obs {} matched {} new {} amb {} neff {:.1} lm {}",
+                        obs.len(),
+                        r.matched,
+                        r.new,
+                        r.ambiguous,
+                        r.n_eff,
+                        r.landmarks
+                    );
+                }
+                matched += r.matched;
+                if let Some(reason) = r.new_segment {
+                    segs.push(format!("t={:.1}s seg {}: {reason}", fr.t_s, f.segment()));
+                    origins.insert(f.segment(), fr.t_s);
+                    continue;
+                }
+                let e = f.estimate();
+                traj.push(TrajectorySample {
+                    t_s: fr.t_s,
+                    segment: f.segment(),
+                    map_from_body: e.map_from_body,
+                    covariance: e.covariance,
+                });
+            }
+            _ => {}
+        }
+    }
+    let _ = last_t;
+    let truth: Vec<_> = sim.truth().iter().map(|t| (t.t_s, t.world_from_body)).collect();
+    let scores = evaluate(&traj, &truth, &origins);
+    if std::env::var("DBG2").is_ok() {
+        for s in traj.iter().filter(|s| s.segment == 1).take(40).step_by(4) {
+            let o = fastslam::eval::nearest(&truth, origins[&1]).unwrap();
+            let lt = o.inverse() * fastslam::eval::nearest(&truth, s.t_s).unwrap();
+            eprintln!(
+                "t {:.2} est {:?} true {:?} sd {:.4}",
+                s.t_s,
+                s.map_from_body.translation.vector.as_slice(),
+                lt.translation.vector.as_slice(),
+                s.covariance[(0, 0)].sqrt()
+            );
+        }
+    }
+    for s in &scores {
+        println!("segment {:>2}: {:>5} poses, ATE {:.3} m, NEES {:.2}", s.segment, s.samples, s.ate_m, s.nees);
+    }
+    for s in &segs {
+        println!("{s}");
+    }
+    println!(
+        "{particles} particles, {proposal:?}: ATE {:.3} m over {} segments; {frames} frames, {:.2} ms/frame, {:.1} matched/frame",
+        overall_ate(&scores),
+        scores.len(),
+        update_s * 1e3 / frames as f64,
+        matched as f64 / frames as f64
+    );
+}

@@ -1,0 +1,753 @@
+//! The particle filter (SPEC §4, [3D] Alg 1-2): prediction through the process model with input
+//! and process noise, per-particle data association and landmark EKF updates, log-space weights,
+//! systematic resampling on low N_eff, the weighted estimate, and the multi-map mechanism.
+
+#![allow(non_snake_case)]
+
+use std::collections::HashMap;
+
+use geometry::{ProcessInput, propagate};
+use nalgebra::{Cholesky, Isometry3, Matrix3, Matrix6, Translation3, UnitQuaternion, Vector3, Vector6};
+use rand::{RngExt, SeedableRng};
+use rand_distr::{Distribution, StandardNormal};
+use rand_xoshiro::Xoshiro256PlusPlus;
+
+use crate::config::{FastSlamConfig, Proposal};
+use crate::ekf::{self, FilterError, Innovation, LandmarkEkf, hamming, init_landmark, innovation};
+use crate::map::PersistentMap;
+
+/// One observation of a frame, in the body frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Observation {
+    /// Landmark position in the body frame, m.
+    pub z_m: Vector3<f64>,
+    /// Its covariance, m² (positive definite).
+    pub Rz: Matrix3<f64>,
+    /// Descriptor, if the source provides one.
+    pub descriptor: Option<[u8; 32]>,
+}
+
+impl Observation {
+    /// An observation from a camera-frame point and covariance and the `body_from_camera`
+    /// extrinsic; NaN/inf or a covariance that is not positive definite is an error.
+    pub fn from_camera(
+        point_cam_m: &Vector3<f64>,
+        cov_cam_m2: &Matrix3<f64>,
+        descriptor: Option<[u8; 32]>,
+        body_from_camera: &Isometry3<f64>,
+    ) -> Result<Self, FilterError> {
+        if !(point_cam_m.iter().all(|v| v.is_finite()) && cov_cam_m2.iter().all(|v| v.is_finite())) {
+            return Err(FilterError::NonFinite("observation"));
+        }
+        let R = body_from_camera.rotation.to_rotation_matrix().into_inner();
+        let Rz = R * cov_cam_m2 * R.transpose();
+        let Rz = (Rz + Rz.transpose()) * 0.5;
+        if Cholesky::new(Rz).is_none() {
+            return Err(FilterError::NotPositiveDefinite("observation covariance"));
+        }
+        Ok(Self { z_m: body_from_camera.transform_point(&(*point_cam_m).into()).coords, Rz, descriptor })
+    }
+}
+
+/// Why a new local map was started.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SegmentReason {
+    /// Fewer than m_l matched landmarks for several frames.
+    FewMatches {
+        /// Matched landmarks in the last frame.
+        matched: usize,
+        /// Weak frames in a row.
+        frames: u32,
+    },
+    /// The position uncertainty grew beyond the threshold.
+    PoseUncertainty {
+        /// Largest position σ, m.
+        sigma_m: f64,
+    },
+    /// Asked for from outside (e.g. fusion: camera and buoy estimates stopped overlapping).
+    Requested,
+}
+
+impl std::fmt::Display for SegmentReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SegmentReason::FewMatches { matched, frames } => {
+                write!(f, "only {matched} matched landmarks for {frames} frames")
+            }
+            SegmentReason::PoseUncertainty { sigma_m } => write!(f, "position σ {sigma_m:.2} m over the threshold"),
+            SegmentReason::Requested => write!(f, "requested"),
+        }
+    }
+}
+
+/// What one frame did (for diagnostics).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameReport {
+    /// Observations matched to confirmed landmarks (best particle).
+    pub matched: usize,
+    /// Observations that created landmarks (best particle).
+    pub new: usize,
+    /// Observations left out as possible duplicates (best particle).
+    pub ambiguous: usize,
+    /// Effective sample size before resampling.
+    pub n_eff: f64,
+    /// Whether the particles were resampled.
+    pub resampled: bool,
+    /// Confirmed landmarks in the best particle's map.
+    pub landmarks: usize,
+    /// The best particle's landmark id per observation (`None`: new or left out).
+    pub associations: Vec<Option<u32>>,
+    /// Set when this frame started a new local map.
+    pub new_segment: Option<SegmentReason>,
+}
+
+#[derive(Clone)]
+struct Particle {
+    pose: Isometry3<f64>,
+    log_w: f64,
+    map: PersistentMap<LandmarkEkf>,
+    provisional: Vec<u32>,
+    confirmed: usize,
+}
+
+/// Outcome of one particle's frame.
+#[derive(Default)]
+struct ParticleFrame {
+    matched: usize,
+    new: usize,
+    ambiguous: usize,
+    created: Vec<(u32, Vector3<f64>)>,
+    associations: Vec<Option<u32>>,
+}
+
+/// A grid over landmark ids by their first position: the candidates for association.
+#[derive(Default)]
+struct Grid {
+    cell_m: f64,
+    cells: HashMap<[i32; 3], Vec<u32>>,
+}
+
+impl Grid {
+    fn key(&self, p: &Vector3<f64>) -> [i32; 3] {
+        [(p.x / self.cell_m).floor() as i32, (p.y / self.cell_m).floor() as i32, (p.z / self.cell_m).floor() as i32]
+    }
+
+    fn candidates(&self, p: &Vector3<f64>, out: &mut Vec<u32>) {
+        out.clear();
+        let k = self.key(p);
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                for dz in -1..=1 {
+                    if let Some(ids) = self.cells.get(&[k[0] + dx, k[1] + dy, k[2] + dz]) {
+                        out.extend_from_slice(ids);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The filter state.
+pub struct FastSlam {
+    cfg: FastSlamConfig,
+    particles: Vec<Particle>,
+    rng: Xoshiro256PlusPlus,
+    next_id: u32,
+    frame: u32,
+    segment: u32,
+    grid: Grid,
+    /// Pose covariance accumulated by the motion since the last frame (body-frame error).
+    motion_cov: Matrix6<f64>,
+    weak_frames: u32,
+    /// Body twist (linear m/s, angular rad/s) for the constant-velocity model.
+    twist: Option<(Vector3<f64>, Vector3<f64>)>,
+    last_mean: Option<Isometry3<f64>>,
+    last_cv_dt: Option<f64>,
+    /// The motion covariance of the last frame interval: a floor of the reported covariance, as
+    /// the particle spread alone collapses after resampling.
+    last_motion_cov: Matrix6<f64>,
+    threads: usize,
+}
+
+/// A weighted-mean pose with its 6×6 covariance (position, body-frame rotation error).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PoseEstimate {
+    /// Mean `map_from_body`.
+    pub map_from_body: Isometry3<f64>,
+    /// Covariance over (x, y, z, rot_x, rot_y, rot_z).
+    pub covariance: Matrix6<f64>,
+}
+
+fn normal3(rng: &mut Xoshiro256PlusPlus) -> Vector3<f64> {
+    Vector3::new(StandardNormal.sample(rng), StandardNormal.sample(rng), StandardNormal.sample(rng))
+}
+
+/// Applies a body-frame perturbation (δp, δφ) to a pose: p + δp, R·Exp(δφ).
+fn perturb(pose: &Isometry3<f64>, d: &Vector6<f64>) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::from(pose.translation.vector + d.fixed_rows::<3>(0)),
+        pose.rotation * UnitQuaternion::from_scaled_axis(d.fixed_rows::<3>(3).into_owned()),
+    )
+}
+
+impl FastSlam {
+    /// A filter with every particle at the origin of local map 0.
+    pub fn new(cfg: FastSlamConfig) -> Result<Self, Vec<(String, String)>> {
+        let problems = cfg.validate();
+        if !problems.is_empty() {
+            return Err(problems);
+        }
+        let n = cfg.particles;
+        let threads = if cfg.threads == 0 {
+            std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
+        } else {
+            cfg.threads
+        };
+        let particle = Particle {
+            pose: Isometry3::identity(),
+            log_w: -(n as f64).ln(),
+            map: PersistentMap::new(),
+            provisional: vec![],
+            confirmed: 0,
+        };
+        Ok(Self {
+            rng: Xoshiro256PlusPlus::seed_from_u64(cfg.seed),
+            particles: vec![particle; n],
+            next_id: 0,
+            frame: 0,
+            segment: 0,
+            grid: Grid { cell_m: cfg.association.search_radius_m, cells: HashMap::new() },
+            motion_cov: Matrix6::zeros(),
+            weak_frames: 0,
+            twist: None,
+            last_mean: None,
+            last_cv_dt: None,
+            last_motion_cov: Matrix6::zeros(),
+            threads,
+            cfg,
+        })
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &FastSlamConfig {
+        &self.cfg
+    }
+
+    /// The current local map (segment) id.
+    pub fn segment(&self) -> u32 {
+        self.segment
+    }
+
+    /// Frames processed.
+    pub fn frames(&self) -> u32 {
+        self.frame
+    }
+
+    /// Particles as (map_from_body, normalised log weight).
+    pub fn particles(&self) -> impl Iterator<Item = (&Isometry3<f64>, f64)> {
+        self.particles.iter().map(|p| (&p.pose, p.log_w))
+    }
+
+    fn best(&self) -> &Particle {
+        self.particles.iter().max_by(|a, b| a.log_w.total_cmp(&b.log_w)).expect("at least one particle")
+    }
+
+    /// The best particle's confirmed landmarks (id, estimate).
+    pub fn best_map(&self) -> Vec<(u32, &LandmarkEkf)> {
+        let c = self.cfg.association.confirm_after;
+        self.best().map.iter().filter(|(_, l)| l.hits >= c).collect()
+    }
+
+    /// Per-particle seeds for one parallel step, drawn in order (deterministic for any thread count).
+    fn seeds(&mut self) -> Vec<u64> {
+        (0..self.particles.len()).map(|_| self.rng.random()).collect()
+    }
+
+    fn for_each_particle<R: Send>(
+        &mut self,
+        seeds: &[u64],
+        f: impl Fn(&mut Particle, &mut Xoshiro256PlusPlus) -> R + Sync,
+    ) -> Vec<R> {
+        let chunk = self.particles.len().div_ceil(self.threads.max(1));
+        let f = &f;
+        crossbeam::thread::scope(|s| {
+            let handles: Vec<_> = self
+                .particles
+                .chunks_mut(chunk)
+                .zip(seeds.chunks(chunk))
+                .map(|(ps, ss)| {
+                    s.spawn(move |_| {
+                        ps.iter_mut()
+                            .zip(ss)
+                            .map(|(p, seed)| f(p, &mut Xoshiro256PlusPlus::seed_from_u64(*seed)))
+                            .collect::<Vec<R>>()
+                    })
+                })
+                .collect();
+            handles.into_iter().flat_map(|h| h.join().expect("particle worker panicked")).collect()
+        })
+        .expect("particle scope")
+    }
+
+    /// Prediction with an odometry input (SPEC §1): each particle propagates a sample of the input
+    /// (noise with the variances `input_variances` of v, δθx, δθy, δθz, scaled by
+    /// `input_noise_scale`), then gets the additive process noise ω.
+    pub fn predict(&mut self, u: &ProcessInput, input_variances: [f64; 4]) -> Result<(), FilterError> {
+        if !(u.v_mps.is_finite()
+            && u.dt_s.is_finite()
+            && u.dt_s > 0.0
+            && u.delta_theta_rad.iter().all(|v| v.is_finite()))
+        {
+            return Err(FilterError::NonFinite("odometry input"));
+        }
+        let scale = self.cfg.input_noise_scale;
+        let sd: Vec<f64> = input_variances.iter().map(|v| (v.max(0.0) * scale).sqrt()).collect();
+        let qp = self.cfg.process_position_sigma * u.dt_s.sqrt();
+        let qr = self.cfg.process_rotation_sigma * u.dt_s.sqrt();
+        // Body-frame pose error added by this step (for the FastSLAM 2.0 proposal).
+        let mut G = Matrix6::zeros();
+        G[(0, 0)] = (sd[0] * u.dt_s).powi(2) + qp * qp;
+        G[(1, 1)] = qp * qp;
+        G[(2, 2)] = qp * qp;
+        for k in 0..3 {
+            G[(3 + k, 3 + k)] = sd[1 + k].powi(2) + qr * qr;
+        }
+        self.motion_cov += G;
+        let seeds = self.seeds();
+        self.for_each_particle(&seeds, |p, rng| {
+            let noisy = ProcessInput {
+                v_mps: u.v_mps + sd[0] * rng.sample::<f64, _>(StandardNormal),
+                delta_theta_rad: u.delta_theta_rad + Vector3::new(sd[1], sd[2], sd[3]).component_mul(&normal3(rng)),
+                dt_s: u.dt_s,
+            };
+            let moved = propagate(&p.pose, &noisy);
+            let d =
+                Vector6::from_iterator(normal3(rng).iter().map(|x| x * qp).chain(normal3(rng).iter().map(|x| x * qr)));
+            p.pose = perturb(&moved, &d);
+        });
+        Ok(())
+    }
+
+    /// Prediction without odometry: the constant-velocity model over `dt_s`, with the body twist
+    /// estimated from the last two frames' mean poses and noise from the `cv_*` settings.
+    pub fn predict_constant_velocity(&mut self, dt_s: f64) {
+        let (v, w) = self.twist.unwrap_or((Vector3::zeros(), Vector3::zeros()));
+        self.last_cv_dt = Some(dt_s);
+        let sp = self.cfg.cv_velocity_sigma_mps * dt_s;
+        let sr = self.cfg.cv_angular_velocity_sigma_rps * dt_s;
+        let mut G = Matrix6::zeros();
+        for k in 0..3 {
+            G[(k, k)] = sp * sp;
+            G[(3 + k, 3 + k)] = sr * sr;
+        }
+        self.motion_cov += G;
+        let seeds = self.seeds();
+        self.for_each_particle(&seeds, |p, rng| {
+            let step = Isometry3::new(v * dt_s + normal3(rng) * sp, w * dt_s + normal3(rng) * sr);
+            p.pose *= step;
+        });
+    }
+
+    /// Associates one observation for one particle (SPEC §3): descriptor with ratio test when
+    /// the observation has one, else maximum likelihood, both inside the χ²₃ gate.
+    fn associate(cfg: &FastSlamConfig, grid: &Grid, p: &Particle, o: &Observation, buf: &mut Vec<u32>) -> Association {
+        let a = &cfg.association;
+        let w = p.pose.transform_point(&o.z_m.into()).coords;
+        grid.candidates(&w, buf);
+        let mut ml: Option<(f64, u32, Innovation)> = None;
+        let mut near_dup = false;
+        let mut best_d: Option<(u32, u32, Innovation)> = None; // (hamming, id, innovation)
+        let mut second_d = u32::MAX;
+        for &id in buf.iter() {
+            let Some(lm) = p.map.get(id) else { continue };
+            let Ok(inn) = innovation(&p.pose, lm, &o.z_m, &o.Rz) else { continue };
+            if inn.mahalanobis > a.duplicate_gate_chi2 {
+                continue;
+            }
+            near_dup = true;
+            if inn.mahalanobis > a.gate_chi2 {
+                continue;
+            }
+            if let (Some(od), Some(ld)) = (&o.descriptor, &lm.descriptor) {
+                let d = hamming(od, ld);
+                match &best_d {
+                    Some((bd, _, _)) if d >= *bd => second_d = second_d.min(d),
+                    _ => {
+                        if let Some((bd, _, _)) = &best_d {
+                            second_d = second_d.min(*bd);
+                        }
+                        best_d = Some((d, id, inn.clone()));
+                    }
+                }
+            }
+            if ml.as_ref().is_none_or(|(m, _, _)| inn.mahalanobis < *m) {
+                ml = Some((inn.mahalanobis, id, inn));
+            }
+        }
+        if o.descriptor.is_some() {
+            if let Some((d, id, inn)) = best_d
+                && d <= a.max_hamming
+                && (second_d == u32::MAX || (d as f64) < a.ratio * second_d as f64)
+            {
+                return Association::Matched(id, inn);
+            }
+        } else if let Some((_, id, inn)) = ml {
+            return Association::Matched(id, inn);
+        }
+        if near_dup { Association::Ambiguous } else { Association::New }
+    }
+
+    /// Updates every particle with one frame of observations, weights, resamples when N_eff is
+    /// low, and checks the multi-map triggers.
+    pub fn update(&mut self, obs: &[Observation]) -> FrameReport {
+        self.frame += 1;
+        let frame = self.frame;
+        let first_new_id = self.next_id;
+        self.next_id = self.next_id.saturating_add(obs.len() as u32);
+        let cfg = self.cfg.clone();
+        let motion_cov = self.motion_cov + Matrix6::identity() * 1e-9;
+        self.last_motion_cov = self.motion_cov;
+        self.motion_cov = Matrix6::zeros();
+        let seeds = self.seeds();
+        let grid = std::mem::take(&mut self.grid);
+        let results = {
+            let grid = &grid;
+            self.for_each_particle(&seeds, |p, rng| {
+                Self::update_particle(&cfg, grid, p, obs, first_new_id, frame, &motion_cov, rng)
+            })
+        };
+        self.grid = grid;
+        // Register the new landmarks in the association grid (first creator's position).
+        let best_idx = (0..self.particles.len())
+            .max_by(|a, b| self.particles[*a].log_w.total_cmp(&self.particles[*b].log_w))
+            .unwrap_or(0);
+        let mut seen = std::collections::HashSet::new();
+        for r in &results {
+            for (id, pos) in &r.created {
+                if seen.insert(*id) {
+                    let key = self.grid.key(pos);
+                    self.grid.cells.entry(key).or_default().push(*id);
+                }
+            }
+        }
+        let best = &results[best_idx];
+        let (matched, new, ambiguous, associations) =
+            (best.matched, best.new, best.ambiguous, best.associations.clone());
+        let n_eff = self.normalise();
+        let resampled = n_eff < cfg.resample_fraction * self.particles.len() as f64;
+        if resampled {
+            self.resample();
+        }
+        let landmarks = self.best().confirmed;
+        let estimate = self.estimate();
+        if let Some(prev) = self.last_mean {
+            // Twist for the constant-velocity model (per frame; scaled by dt at prediction).
+            let d = prev.inverse() * estimate.map_from_body;
+            if let Some(dt) = self.last_cv_dt.filter(|dt| *dt > 0.0) {
+                self.twist = Some((d.translation.vector / dt, d.rotation.scaled_axis() / dt));
+            }
+        }
+        self.last_mean = Some(estimate.map_from_body);
+        let mut new_segment = None;
+        if matched < cfg.segments.min_matched {
+            self.weak_frames += 1;
+        } else {
+            self.weak_frames = 0;
+        }
+        let sigma = estimate.covariance.fixed_view::<3, 3>(0, 0).symmetric_eigenvalues().max().max(0.0).sqrt();
+        if sigma > cfg.segments.max_position_sigma_m {
+            new_segment = Some(SegmentReason::PoseUncertainty { sigma_m: sigma });
+        } else if self.weak_frames >= cfg.segments.weak_frames && landmarks >= cfg.segments.min_matched {
+            new_segment = Some(SegmentReason::FewMatches { matched, frames: self.weak_frames });
+        }
+        if let Some(reason) = &new_segment {
+            self.start_new_segment(reason.clone());
+        }
+        FrameReport { matched, new, ambiguous, n_eff, resampled, landmarks, associations, new_segment }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn update_particle(
+        cfg: &FastSlamConfig,
+        grid: &Grid,
+        p: &mut Particle,
+        obs: &[Observation],
+        first_new_id: u32,
+        frame: u32,
+        motion_cov: &Matrix6<f64>,
+        rng: &mut Xoshiro256PlusPlus,
+    ) -> ParticleFrame {
+        let a = &cfg.association;
+        let mut out = ParticleFrame { associations: vec![None; obs.len()], ..Default::default() };
+        let mut buf = Vec::new();
+        let decisions: Vec<Association> = obs.iter().map(|o| Self::associate(cfg, grid, p, o, &mut buf)).collect();
+        if cfg.proposal == Proposal::Optimal {
+            // FastSLAM 2.0: sample the pose from the motion prior conditioned on the matches.
+            if let Some(info) = Cholesky::new(*motion_cov).map(|c| c.inverse()) {
+                let mut A = info;
+                let mut b = Vector6::zeros();
+                let mut log_w = 0.0;
+                let mut any = false;
+                for (o, d) in obs.iter().zip(&decisions) {
+                    let Association::Matched(id, inn) = d else { continue };
+                    let Some(lm) = p.map.get(*id) else { continue };
+                    let (_, Hx) = ekf::jacobians(&p.pose, &lm.mean_m);
+                    let S_inv = inn.S_inv();
+                    A += Hx.transpose() * S_inv * Hx;
+                    b += Hx.transpose() * S_inv * inn.nu;
+                    let Sx = Hx * motion_cov * Hx.transpose() + inn.S;
+                    if let Some(c) = Cholesky::new(Sx) {
+                        let m = inn.nu.dot(&c.solve(&inn.nu));
+                        let log_det: f64 = c.l().diagonal().iter().map(|d| 2.0 * d.ln()).sum();
+                        log_w += -0.5 * (m + log_det + 3.0 * (2.0 * std::f64::consts::PI).ln());
+                    }
+                    any = true;
+                    let _ = o;
+                }
+                if any && let Some(cA) = Cholesky::new(A) {
+                    let Sigma = cA.inverse();
+                    let mu = Sigma * b;
+                    if let Some(cs) = Cholesky::new(Sigma) {
+                        let n = Vector6::from_iterator((0..6).map(|_| rng.sample::<f64, _>(StandardNormal)));
+                        let delta = mu + cs.l() * n;
+                        if delta.iter().all(|v| v.is_finite()) {
+                            p.pose = perturb(&p.pose, &delta);
+                        }
+                    }
+                    p.log_w += log_w;
+                }
+            }
+        }
+        for (j, (o, d)) in obs.iter().zip(decisions).enumerate() {
+            match d {
+                Association::Matched(id, inn) => {
+                    let pose = p.pose;
+                    let Some(lm) = p.map.get_mut(id) else { continue };
+                    // With the 2.0 proposal the pose moved: recompute the innovation.
+                    let inn = if cfg.proposal == Proposal::Optimal {
+                        match innovation(&pose, lm, &o.z_m, &o.Rz) {
+                            Ok(i) => i,
+                            Err(_) => continue,
+                        }
+                    } else {
+                        if lm.hits >= a.confirm_after {
+                            p.log_w += inn.log_likelihood();
+                        }
+                        inn
+                    };
+                    if ekf::update(lm, &pose, &inn, &o.Rz).is_err() {
+                        continue;
+                    }
+                    lm.hits += 1;
+                    lm.last_seen_frame = frame;
+                    if lm.hits == a.confirm_after {
+                        p.confirmed += 1;
+                    }
+                    if lm.hits >= a.confirm_after {
+                        out.matched += 1;
+                    }
+                    out.associations[j] = Some(id);
+                }
+                Association::Ambiguous => out.ambiguous += 1,
+                Association::New => {
+                    let id = first_new_id + j as u32;
+                    let lm = init_landmark(&p.pose, &o.z_m, &o.Rz, o.descriptor, frame);
+                    out.created.push((id, lm.mean_m));
+                    p.map.insert(id, lm);
+                    if a.confirm_after <= 1 {
+                        p.confirmed += 1;
+                    } else {
+                        p.provisional.push(id);
+                    }
+                    // ln p(new): the density at the gate boundary of the observation's own noise.
+                    let log_det = o.Rz.determinant().max(1e-300).ln();
+                    p.log_w += -0.5 * (a.gate_chi2 + log_det + 3.0 * (2.0 * std::f64::consts::PI).ln());
+                    out.new += 1;
+                }
+            }
+        }
+        // Provisional landmarks: confirmed ones leave the list, stale ones are dropped.
+        let (confirm, max_age) = (a.confirm_after, a.provisional_max_age_frames);
+        let mut keep = Vec::with_capacity(p.provisional.len());
+        for id in std::mem::take(&mut p.provisional) {
+            match p.map.get(id) {
+                Some(l) if l.hits >= confirm => {}
+                Some(l) if frame - l.last_seen_frame > max_age => {
+                    p.map.remove(id);
+                }
+                Some(_) => keep.push(id),
+                None => {}
+            }
+        }
+        p.provisional = keep;
+        out
+    }
+
+    /// Normalises the weights; returns N_eff = 1/Σw².
+    fn normalise(&mut self) -> f64 {
+        let max = self.particles.iter().map(|p| p.log_w).fold(f64::NEG_INFINITY, f64::max);
+        if !max.is_finite() {
+            let u = -(self.particles.len() as f64).ln();
+            self.particles.iter_mut().for_each(|p| p.log_w = u);
+            return self.particles.len() as f64;
+        }
+        let sum: f64 = self.particles.iter().map(|p| (p.log_w - max).exp()).sum();
+        let log_sum = max + sum.ln();
+        let mut sq = 0.0;
+        for p in &mut self.particles {
+            p.log_w -= log_sum;
+            sq += (2.0 * p.log_w).exp();
+        }
+        1.0 / sq
+    }
+
+    /// Systematic (low-variance) resampling; maps are shared, not copied.
+    fn resample(&mut self) {
+        let n = self.particles.len();
+        let indices = systematic_resample(
+            &self.particles.iter().map(|p| p.log_w.exp()).collect::<Vec<_>>(),
+            self.rng.random::<f64>(),
+        );
+        let old = std::mem::take(&mut self.particles);
+        self.particles = indices.into_iter().map(|i| Particle { log_w: -(n as f64).ln(), ..old[i].clone() }).collect();
+    }
+
+    /// The weighted mean pose and its covariance (position, body-frame rotation error).
+    pub fn estimate(&self) -> PoseEstimate {
+        let weights: Vec<f64> = {
+            let max = self.particles.iter().map(|p| p.log_w).fold(f64::NEG_INFINITY, f64::max);
+            let w: Vec<f64> = self.particles.iter().map(|p| (p.log_w - max).exp()).collect();
+            let s: f64 = w.iter().sum();
+            w.into_iter().map(|x| x / s).collect()
+        };
+        let p_mean: Vector3<f64> =
+            self.particles.iter().zip(&weights).map(|(p, w)| p.pose.translation.vector * *w).sum();
+        let r0 = self.best().pose.rotation;
+        let phi: Vector3<f64> =
+            self.particles.iter().zip(&weights).map(|(p, w)| (r0.inverse() * p.pose.rotation).scaled_axis() * *w).sum();
+        let r_mean = r0 * UnitQuaternion::from_scaled_axis(phi);
+        let mut cov = Matrix6::zeros();
+        for (p, w) in self.particles.iter().zip(&weights) {
+            let mut e = Vector6::zeros();
+            e.fixed_rows_mut::<3>(0).copy_from(&(p.pose.translation.vector - p_mean));
+            e.fixed_rows_mut::<3>(3).copy_from(&(r_mean.inverse() * p.pose.rotation).scaled_axis());
+            cov += e * e.transpose() * *w;
+        }
+        PoseEstimate {
+            map_from_body: Isometry3::from_parts(Translation3::from(p_mean), r_mean),
+            covariance: cov + self.last_motion_cov,
+        }
+    }
+
+    /// Replaces every particle's map with the same prior map of confirmed landmarks (mean,
+    /// covariance, descriptor), shared by all particles (one copy in memory); returns their ids.
+    /// For a known map, and for benchmarks of large maps.
+    pub fn set_prior_map(&mut self, landmarks: &[PriorLandmark]) -> Vec<u32> {
+        let mut map = PersistentMap::new();
+        let mut ids = Vec::with_capacity(landmarks.len());
+        self.grid.cells.clear();
+        for (mean_m, cov_m2, descriptor) in landmarks {
+            let id = self.next_id;
+            self.next_id += 1;
+            map.insert(
+                id,
+                LandmarkEkf {
+                    mean_m: *mean_m,
+                    cov_m2: *cov_m2,
+                    descriptor: *descriptor,
+                    hits: self.cfg.association.confirm_after.max(1),
+                    last_seen_frame: self.frame,
+                },
+            );
+            let key = self.grid.key(mean_m);
+            self.grid.cells.entry(key).or_default().push(id);
+            ids.push(id);
+        }
+        for p in &mut self.particles {
+            p.map = map.clone();
+            p.provisional.clear();
+            p.confirmed = landmarks.len();
+        }
+        ids
+    }
+
+    /// Starts a new local map: every particle at the origin of the new map, maps empty. The new
+    /// map's frame is the body frame at this instant.
+    pub fn start_new_segment(&mut self, reason: SegmentReason) {
+        let _ = reason;
+        let n = self.particles.len();
+        for p in &mut self.particles {
+            p.pose = Isometry3::identity();
+            p.log_w = -(n as f64).ln();
+            p.map = PersistentMap::new();
+            p.provisional.clear();
+            p.confirmed = 0;
+        }
+        self.grid.cells.clear();
+        self.segment += 1;
+        self.weak_frames = 0;
+        self.last_mean = None;
+        self.motion_cov = Matrix6::zeros();
+    }
+}
+
+/// A landmark of a prior map: mean (m), covariance (m²), descriptor.
+pub type PriorLandmark = (Vector3<f64>, Matrix3<f64>, Option<[u8; 32]>);
+
+enum Association {
+    Matched(u32, Innovation),
+    Ambiguous,
+    New,
+}
+
+/// Systematic resampling of normalised `weights` with offset `u` in [0, 1): indices of the
+/// survivors, each particle i kept ⌊N·wᵢ⌋ or ⌈N·wᵢ⌉ times.
+pub fn systematic_resample(weights: &[f64], u: f64) -> Vec<usize> {
+    let n = weights.len();
+    let total: f64 = weights.iter().sum();
+    let step = total / n as f64;
+    let mut out = Vec::with_capacity(n);
+    let mut c = weights[0];
+    let mut i = 0;
+    for k in 0..n {
+        let target = (u + k as f64) * step;
+        while target > c && i + 1 < n {
+            i += 1;
+            c += weights[i];
+        }
+        out.push(i);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn systematic_resampling_keeps_the_expected_counts() {
+        let w = [0.5, 0.25, 0.125, 0.0625, 0.0625];
+        for u in [0.0, 0.3, 0.77, 0.999] {
+            let idx = systematic_resample(&w, u);
+            for (i, wi) in w.iter().enumerate() {
+                let count = idx.iter().filter(|&&j| j == i).count() as f64;
+                let expected = wi * w.len() as f64;
+                assert!((count - expected).abs() < 1.0, "particle {i}: {count} copies, expected {expected} (u = {u})");
+            }
+        }
+        // Statistical: over many offsets the mean count equals N·w exactly.
+        let w: Vec<f64> = (1..=10).map(|i| i as f64 / 55.0).collect();
+        let mut counts = [0usize; 10];
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(11);
+        let trials = 20_000;
+        for _ in 0..trials {
+            for i in systematic_resample(&w, rng.random::<f64>()) {
+                counts[i] += 1;
+            }
+        }
+        for (i, c) in counts.iter().enumerate() {
+            let mean = *c as f64 / trials as f64;
+            assert!((mean - w[i] * 10.0).abs() < 0.01, "particle {i}: mean {mean} vs {}", w[i] * 10.0);
+        }
+    }
+}

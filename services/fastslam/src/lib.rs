@@ -1,0 +1,264 @@
+//! The `fastslam` process's settings and its pure `step` logic: ordering odometry and stereo
+//! frames on the data clock, converting wire types, and the end-of-run evaluation. `main.rs` is
+//! the wiring around it.
+
+use std::collections::{BTreeMap, VecDeque};
+
+use fastslam::eval::TrajectorySample;
+use fastslam::{FastSlam, FastSlamConfig, FrameReport, Observation};
+use geometry::ProcessInput;
+use nalgebra::{Matrix3, Vector3};
+use pipeline_runtime::{Issues, ProcessSettings};
+use serde::{Deserialize, Serialize};
+use shared_types::{OdometryInput, STEREO_HAS_DESCRIPTOR, StereoObservation};
+
+/// How the particles are predicted between frames.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum MotionModel {
+    /// From the odometry/input stream (SPEC §1).
+    #[default]
+    Odometry,
+    /// Camera only: constant velocity (no odometry stream needed).
+    ConstantVelocity,
+}
+
+/// The stereo camera's mounting on the body.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraMount {
+    /// Camera position in the body frame, m.
+    pub offset_m: [f64; 3],
+    /// Pitch below body x, deg (optical z along body x when 0).
+    pub pitch_down_deg: f64,
+    /// The observations are already in the body frame (identity extrinsic).
+    pub identity: bool,
+}
+
+impl Default for CameraMount {
+    fn default() -> Self {
+        // The simulator's stereo camera.
+        Self { offset_m: [0.5, 0.0, -0.2], pitch_down_deg: 35.0, identity: false }
+    }
+}
+
+/// Settings of the `fastslam` process.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FastSlamSettings {
+    /// The filter.
+    pub filter: FastSlamConfig,
+    /// Prediction model.
+    pub motion_model: MotionModel,
+    /// The camera extrinsic.
+    pub camera: CameraMount,
+    /// Rate of the best particle's landmark map on `pipeline/slam/landmarks`, Hz (0 = only at the end).
+    pub landmarks_rate_hz: f64,
+    /// Ground truth to evaluate against at the end (TUM; relative to the output directory);
+    /// skipped when missing.
+    pub ground_truth: String,
+}
+
+impl Default for FastSlamSettings {
+    fn default() -> Self {
+        Self {
+            filter: FastSlamConfig::default(),
+            motion_model: MotionModel::Odometry,
+            camera: CameraMount::default(),
+            landmarks_rate_hz: 1.0,
+            ground_truth: "ground_truth.tum".into(),
+        }
+    }
+}
+
+impl ProcessSettings for FastSlamSettings {
+    fn validate(&self, key: &str, issues: &mut Issues) {
+        for (k, m) in self.filter.validate() {
+            issues.push(format!("{key}.filter.{k}"), m);
+        }
+        issues.check(
+            self.landmarks_rate_hz.is_finite() && self.landmarks_rate_hz >= 0.0,
+            format!("{key}.landmarks_rate_hz"),
+            "must be >= 0",
+        );
+        issues.check(
+            self.camera.offset_m.iter().all(|v| v.is_finite()),
+            format!("{key}.camera.offset_m"),
+            "must be finite",
+        );
+    }
+
+    fn shm_estimate_bytes(&self) -> u64 {
+        // pose, particles, landmarks (grows by powers of two), diagnostics.
+        let particles = (self.filter.particles * 64).next_power_of_two() as u64;
+        particles * 12 + (1 << 20) * 12 + (1 << 20)
+    }
+}
+
+impl FastSlamSettings {
+    /// `body_from_camera` of the mounting.
+    pub fn body_from_camera(&self) -> nalgebra::Isometry3<f64> {
+        if self.camera.identity {
+            nalgebra::Isometry3::identity()
+        } else {
+            geometry::body_from_camera(&Vector3::from(self.camera.offset_m), self.camera.pitch_down_deg.to_radians())
+        }
+    }
+}
+
+/// A stereo frame waiting for the odometry up to its stamp.
+#[derive(Debug, Clone)]
+pub struct PendingFrame {
+    /// Stamp, ns.
+    pub stamp_ns: u64,
+    /// Its origin time (for end-to-end latency), ns.
+    pub origin_ns: u64,
+    /// Observations (body frame); invalid ones already dropped.
+    pub observations: Vec<Observation>,
+    /// Observations dropped as invalid.
+    pub rejected: usize,
+}
+
+/// Converts a wire frame; NaN or a covariance that is not positive definite drops that
+/// observation (counted), never the frame.
+pub fn frame_from_wire(
+    stamp_ns: u64,
+    origin_ns: u64,
+    obs: &[StereoObservation],
+    body_from_camera: &nalgebra::Isometry3<f64>,
+) -> PendingFrame {
+    let mut observations = Vec::with_capacity(obs.len());
+    let mut rejected = 0;
+    for o in obs {
+        let desc = (o.flags & STEREO_HAS_DESCRIPTOR != 0).then_some(o.descriptor);
+        match Observation::from_camera(
+            &Vector3::from(o.point_cam_m),
+            &Matrix3::from_row_slice(&o.covariance_cam_m2),
+            desc,
+            body_from_camera,
+        ) {
+            Ok(ob) => observations.push(ob),
+            Err(_) => rejected += 1,
+        }
+    }
+    PendingFrame { stamp_ns, origin_ns, observations, rejected }
+}
+
+/// The process state around the filter: input ordering and the trajectory log.
+pub struct SlamState {
+    /// The filter.
+    pub filter: FastSlam,
+    /// Motion model.
+    pub motion: MotionModel,
+    /// Odometry not yet applied: (stamp, input, variances of v, δθx, δθy, δθz).
+    pub odometry: VecDeque<(u64, ProcessInput, [f64; 4])>,
+    /// Stereo frames not yet processed.
+    pub frames: VecDeque<PendingFrame>,
+    /// Newest odometry stamp received, ns.
+    pub newest_odometry_ns: Option<u64>,
+    /// Stamp of the last processed frame, ns.
+    pub last_frame_ns: Option<u64>,
+    /// The estimated trajectory (one sample per frame).
+    pub trajectory: Vec<TrajectorySample>,
+    /// Data time at which each local map's frame was the body frame, s.
+    pub segment_origins_s: BTreeMap<u32, f64>,
+    /// Observations dropped as invalid.
+    pub rejected_observations: usize,
+    /// Odometry messages dropped as invalid.
+    pub rejected_odometry: usize,
+}
+
+/// A processed frame.
+pub struct Processed {
+    /// Its stamp, ns.
+    pub stamp_ns: u64,
+    /// Its origin time, ns.
+    pub origin_ns: u64,
+    /// The filter's report.
+    pub report: FrameReport,
+}
+
+impl SlamState {
+    /// A new state around a filter.
+    pub fn new(filter: FastSlam, motion: MotionModel) -> Self {
+        Self {
+            filter,
+            motion,
+            odometry: VecDeque::new(),
+            frames: VecDeque::new(),
+            newest_odometry_ns: None,
+            last_frame_ns: None,
+            trajectory: vec![],
+            segment_origins_s: BTreeMap::new(),
+            rejected_observations: 0,
+            rejected_odometry: 0,
+        }
+    }
+
+    /// Queues an odometry message (from the wire).
+    pub fn push_odometry(&mut self, stamp_ns: u64, u: &OdometryInput) {
+        let input = ProcessInput { v_mps: u.v_mps, delta_theta_rad: Vector3::from(u.delta_theta_rad), dt_s: u.dt_s };
+        let var = [u.input_covariance[0], u.input_covariance[5], u.input_covariance[10], u.input_covariance[15]];
+        self.newest_odometry_ns = Some(self.newest_odometry_ns.map_or(stamp_ns, |s| s.max(stamp_ns)));
+        self.odometry.push_back((stamp_ns, input, var));
+    }
+
+    /// The process's `step`: applies odometry and frames in stamp order. A frame is processed
+    /// once odometry up to its stamp has arrived (or at once with the constant-velocity model,
+    /// or when `flush` is set at the end of the stream).
+    pub fn step(&mut self, flush: bool) -> Vec<Processed> {
+        let mut out = vec![];
+        while let Some(frame) = self.frames.front() {
+            let ready = flush
+                || self.motion == MotionModel::ConstantVelocity
+                || self.newest_odometry_ns.is_some_and(|s| s >= frame.stamp_ns);
+            if !ready {
+                break;
+            }
+            let frame = self.frames.pop_front().expect("front exists");
+            if self.segment_origins_s.is_empty() {
+                // The filter starts at the origin of local map 0 at its first input.
+                let first = self
+                    .odometry
+                    .front()
+                    .map(|(s, u, _)| *s as f64 / 1e9 - u.dt_s)
+                    .unwrap_or(frame.stamp_ns as f64 / 1e9);
+                self.segment_origins_s.insert(0, first);
+            }
+            match self.motion {
+                MotionModel::Odometry => {
+                    while self.odometry.front().is_some_and(|(s, _, _)| *s <= frame.stamp_ns) {
+                        let (_, u, var) = self.odometry.pop_front().expect("front exists");
+                        if self.filter.predict(&u, var).is_err() {
+                            self.rejected_odometry += 1;
+                        }
+                    }
+                }
+                MotionModel::ConstantVelocity => {
+                    if let Some(last) = self.last_frame_ns {
+                        let dt = frame.stamp_ns.saturating_sub(last) as f64 / 1e9;
+                        if dt > 0.0 {
+                            self.filter.predict_constant_velocity(dt);
+                        }
+                    }
+                }
+            }
+            self.rejected_observations += frame.rejected;
+            let report = self.filter.update(&frame.observations);
+            let t_s = frame.stamp_ns as f64 / 1e9;
+            if report.new_segment.is_some() {
+                self.segment_origins_s.insert(self.filter.segment(), t_s);
+            }
+            let e = self.filter.estimate();
+            self.trajectory.push(TrajectorySample {
+                t_s,
+                segment: self.filter.segment(),
+                map_from_body: e.map_from_body,
+                covariance: e.covariance,
+            });
+            self.last_frame_ns = Some(frame.stamp_ns);
+            out.push(Processed { stamp_ns: frame.stamp_ns, origin_ns: frame.origin_ns, report });
+        }
+        out
+    }
+}

@@ -1,0 +1,231 @@
+//! `fastslam`: subscribes odometry and stereo, runs the filter in stamp order, publishes the
+//! pose, the particle set, the best particle's landmarks and per-frame diagnostics; at the end of
+//! the stream writes the trajectory and its accuracy. See the library docs.
+
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use clap::Parser;
+use fastslam::{FastSlam, SegmentReason};
+use fastslam_process::{FastSlamSettings, SlamState, frame_from_wire};
+use pipeline_runtime::{Flow, Output, ProcessArgs, Runtime};
+use shared_types::services::{
+    COMMAND, END_OF_STREAM, ODOMETRY, SLAM_DIAGNOSTICS, SLAM_LANDMARKS, SLAM_PARTICLES, SLAM_POSE, STEREO,
+};
+use shared_types::*;
+
+struct Outputs {
+    pose: Output<PoseEstimate, MsgHeader>,
+    particles: Output<[Particle], ParticleSetHeader>,
+    landmarks: Output<[Landmark], LandmarkMapHeader>,
+    diagnostics: Output<SlamDiagnostics, MsgHeader>,
+}
+
+fn header(stamp_ns: u64, origin_ns: u64) -> MsgHeader {
+    MsgHeader { stamp_ns, origin_ns, ..Default::default() }
+}
+
+fn publish_landmarks(
+    out: &mut Output<[Landmark], LandmarkMapHeader>,
+    f: &FastSlam,
+    stamp_ns: u64,
+    origin_ns: u64,
+) -> anyhow::Result<()> {
+    let map = f.best_map();
+    let segment = f.segment();
+    let mut s = out.loan_slice_uninit(map.len())?.write_from_fn(|i| {
+        let (id, l) = map[i];
+        Landmark {
+            id: id as u64,
+            mean_m: l.mean_m.into(),
+            covariance_m2: convert::mat3_to_row_major(&l.cov_m2),
+            descriptor: l.descriptor.unwrap_or([0; 32]),
+            observation_count: l.hits,
+            segment_id: segment,
+        }
+    });
+    *s.user_header_mut() =
+        LandmarkMapHeader { msg: header(stamp_ns, origin_ns), segment_id: segment, frame: FRAME_LOCAL_MAP };
+    out.send(s)?;
+    Ok(())
+}
+
+fn reason_code(r: &Option<SegmentReason>) -> u32 {
+    match r {
+        None => SEGMENT_REASON_NONE,
+        Some(SegmentReason::FewMatches { .. }) => SEGMENT_REASON_FEW_MATCHES,
+        Some(SegmentReason::PoseUncertainty { .. }) => SEGMENT_REASON_POSE_UNCERTAINTY,
+        Some(SegmentReason::Requested) => SEGMENT_REASON_REQUESTED,
+    }
+}
+
+fn finish(
+    st: &SlamState,
+    settings: &FastSlamSettings,
+    out_dir: &std::path::Path,
+    name: &str,
+    update_ms: &[f64],
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out_dir)?;
+    let mut tum = String::new();
+    let mut seg = String::from("t_s,segment\n");
+    for s in &st.trajectory {
+        let v = s.map_from_body.translation.vector;
+        let q = convert::quat_to_xyzw(&s.map_from_body.rotation);
+        tum.push_str(&format!(
+            "{:.9} {:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}\n",
+            s.t_s, v.x, v.y, v.z, q[0], q[1], q[2], q[3]
+        ));
+        seg.push_str(&format!("{:.9},{}\n", s.t_s, s.segment));
+    }
+    std::fs::write(out_dir.join("slam_local.tum"), tum)?;
+    std::fs::write(out_dir.join("slam_segments.csv"), seg)?;
+    let mut sorted = update_ms.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let pct = |q: f64| sorted.get(((sorted.len() as f64 - 1.0) * q).round() as usize).copied().unwrap_or(f64::NAN);
+    let mut part = serde_json::json!({ "slam": {
+        "particles": settings.filter.particles,
+        "proposal": settings.filter.proposal,
+        "frames": st.trajectory.len(),
+        "segments": st.filter.segment() + 1,
+        "update_ms": { "p50": pct(0.5), "p99": pct(0.99), "max": pct(1.0) },
+        "rejected_observations": st.rejected_observations,
+        "rejected_odometry": st.rejected_odometry,
+    }});
+    let gt_path = out_dir.join(&settings.ground_truth);
+    match fastslam::eval::read_tum(&gt_path) {
+        Ok(truth) => {
+            let scores = fastslam::eval::evaluate(&st.trajectory, &truth, &st.segment_origins_s);
+            let ate = fastslam::eval::overall_ate(&scores);
+            let n: usize = scores.iter().filter(|s| s.nees.is_finite()).map(|s| s.samples).sum();
+            let nees = scores.iter().filter(|s| s.nees.is_finite()).map(|s| s.nees * s.samples as f64).sum::<f64>()
+                / n.max(1) as f64;
+            tracing::info!(
+                "ATE {ate:.3} m over {} segment(s) (aligned per segment), mean NEES {nees:.2}",
+                scores.len()
+            );
+            part["ate_m"] = serde_json::json!({ "slam": ate });
+            part["nees"] = serde_json::json!({ "slam": nees });
+            part["slam"]["per_segment"] = serde_json::to_value(&scores)?;
+        }
+        Err(e) => tracing::info!("no accuracy evaluation: {e}"),
+    }
+    let path = out_dir.join("parts").join(format!("{name}.json"));
+    std::fs::create_dir_all(path.parent().expect("parts dir"))?;
+    std::fs::write(path, serde_json::to_vec_pretty(&part)?)?;
+    Ok(())
+}
+
+fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
+    let (ctx, mut rt) = Runtime::start(args)?;
+    let settings: FastSlamSettings = ctx.settings()?;
+    let filter =
+        FastSlam::new(settings.filter.clone()).map_err(|p| anyhow::anyhow!("invalid filter settings: {p:?}"))?;
+    let body_from_camera = settings.body_from_camera();
+    let odometry = rt.input::<OdometryInput, MsgHeader>(ODOMETRY)?;
+    let stereo = rt.input::<[StereoObservation], MsgHeader>(STEREO)?;
+    let eos = rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?;
+    let commands = rt.input::<ControlCommand, MsgHeader>(COMMAND)?;
+    let mut out = Outputs {
+        pose: rt.output(SLAM_POSE)?,
+        particles: rt.output_slice(SLAM_PARTICLES, settings.filter.particles)?,
+        landmarks: rt.output_slice(SLAM_LANDMARKS, 4096)?,
+        diagnostics: rt.output(SLAM_DIAGNOSTICS)?,
+    };
+    let mut st = SlamState::new(filter, settings.motion_model);
+    let mut update_ms: Vec<f64> = vec![];
+    let mut last_landmarks = Instant::now();
+    let landmark_every =
+        (settings.landmarks_rate_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / settings.landmarks_rate_hz));
+    let mut done = false;
+    let out_dir = ctx.out_dir.clone();
+    let name = ctx.name.clone();
+    tracing::info!(particles = settings.filter.particles, proposal = ?settings.filter.proposal, motion = ?settings.motion_model, "filter ready");
+    rt.run(&mut st, None, |rt, st, _| {
+        if done {
+            return Ok(Flow::Continue);
+        }
+        while let Some(s) = odometry.receive()? {
+            st.push_odometry(s.user_header().stamp_ns, s.payload());
+        }
+        while let Some(s) = stereo.receive()? {
+            let h = s.user_header();
+            st.frames.push_back(frame_from_wire(h.stamp_ns, h.origin_ns, s.payload(), &body_from_camera));
+        }
+        while let Some(s) = commands.receive()? {
+            let c = s.payload();
+            let target = name_from32(&c.target);
+            if (target.is_empty() || target == rt.name()) && c.command == COMMAND_NEW_SEGMENT {
+                tracing::info!("new local map requested");
+                st.filter.start_new_segment(SegmentReason::Requested);
+                let t = st.last_frame_ns.unwrap_or(0) as f64 / 1e9;
+                st.segment_origins_s.insert(st.filter.segment(), t);
+            }
+        }
+        let mut upstream_ended = false;
+        while let Some(s) = eos.receive()? {
+            if name_from32(&s.payload().process) != rt.name() {
+                upstream_ended = true;
+            }
+        }
+        let t0 = Instant::now();
+        let processed = st.step(upstream_ended);
+        let per_frame =
+            if processed.is_empty() { 0.0 } else { t0.elapsed().as_secs_f64() * 1e3 / processed.len() as f64 };
+        for p in processed {
+            update_ms.push(per_frame);
+            let f = &st.filter;
+            let e = f.estimate();
+            let h = header(p.stamp_ns, p.origin_ns);
+            out.pose.send_value(
+                h,
+                PoseEstimate::from_nalgebra(&e.map_from_body, &e.covariance, f.segment(), FRAME_LOCAL_MAP),
+            )?;
+            let parts: Vec<_> = f.particles().collect();
+            let mut s = out
+                .particles
+                .loan_slice_uninit(parts.len())?
+                .write_from_fn(|i| Particle::from_nalgebra(parts[i].0, parts[i].1));
+            *s.user_header_mut() =
+                ParticleSetHeader { msg: h, segment_id: f.segment(), _reserved: 0, n_eff: p.report.n_eff };
+            out.particles.send(s)?;
+            let r = &p.report;
+            if let Some(reason) = &r.new_segment {
+                tracing::info!(segment = f.segment(), "new local map: {reason}");
+            }
+            out.diagnostics.send_value(
+                h,
+                SlamDiagnostics {
+                    segment_id: f.segment(),
+                    matched: r.matched as u32,
+                    new_landmarks: r.new as u32,
+                    ambiguous: r.ambiguous as u32,
+                    landmarks: r.landmarks as u32,
+                    new_segment_reason: reason_code(&r.new_segment),
+                    particles: settings.filter.particles as u32,
+                    resampled: r.resampled as u32,
+                    n_eff: r.n_eff,
+                    update_ms: per_frame,
+                },
+            )?;
+            if landmark_every.is_some_and(|every| last_landmarks.elapsed() >= every) {
+                last_landmarks = Instant::now();
+                publish_landmarks(&mut out.landmarks, f, p.stamp_ns, p.origin_ns)?;
+            }
+        }
+        if upstream_ended {
+            let stamp = st.last_frame_ns.unwrap_or(0);
+            publish_landmarks(&mut out.landmarks, &st.filter, stamp, 0)?;
+            finish(st, &settings, &out_dir, &name, &update_ms)?;
+            rt.send_end_of_stream(out.pose.sent().saturating_sub(1), out.pose.sent())?;
+            done = true;
+        }
+        Ok(Flow::Continue)
+    })
+}
+
+fn main() -> ExitCode {
+    let args = ProcessArgs::parse();
+    let _log = pipeline_runtime::logging::init(&args.name, args.log_format.unwrap_or_default());
+    pipeline_runtime::exit_code(&run(&args))
+}
