@@ -203,12 +203,14 @@ impl SlamState {
         self.odometry.push_back((stamp_ns, input, var));
     }
 
-    /// The process's `step`: applies odometry and frames in stamp order. A frame is processed
+    /// The process's `step`: applies odometry and at most `max_frames` frames in stamp order. A frame is processed
     /// once odometry up to its stamp has arrived (or at once with the constant-velocity model,
     /// or when `flush` is set at the end of the stream).
-    pub fn step(&mut self, flush: bool) -> Vec<Processed> {
+    pub fn step(&mut self, flush: bool, max_frames: usize) -> Vec<Processed> {
         let mut out = vec![];
-        while let Some(frame) = self.frames.front() {
+        while out.len() < max_frames
+            && let Some(frame) = self.frames.front()
+        {
             let ready = flush
                 || self.motion == MotionModel::ConstantVelocity
                 || self.newest_odometry_ns.is_some_and(|s| s >= frame.stamp_ns);

@@ -138,6 +138,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let landmark_every =
         (settings.landmarks_rate_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / settings.landmarks_rate_hz));
     let mut done = false;
+    let mut upstream_ended = false;
     let out_dir = ctx.out_dir.clone();
     let name = ctx.name.clone();
     tracing::info!(particles = settings.filter.particles, proposal = ?settings.filter.proposal, motion = ?settings.motion_model, "filter ready");
@@ -162,14 +163,18 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 st.segment_origins_s.insert(st.filter.segment(), t);
             }
         }
-        let mut upstream_ended = false;
         while let Some(s) = eos.receive()? {
             if name_from32(&s.payload().process) != rt.name() {
                 upstream_ended = true;
             }
         }
+        // One frame per loop iteration: the inputs are drained between frames, so a source
+        // waiting on our queues (back-pressure) never waits for more than one frame's work.
         let t0 = Instant::now();
-        let processed = st.step(upstream_ended);
+        let processed = st.step(upstream_ended, 1);
+        if !st.frames.is_empty() {
+            rt.wake_at(Instant::now());
+        }
         let per_frame =
             if processed.is_empty() { 0.0 } else { t0.elapsed().as_secs_f64() * 1e3 / processed.len() as f64 };
         for p in processed {
@@ -213,7 +218,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 publish_landmarks(&mut out.landmarks, f, p.stamp_ns, p.origin_ns)?;
             }
         }
-        if upstream_ended {
+        if upstream_ended && st.frames.is_empty() {
             let stamp = st.last_frame_ns.unwrap_or(0);
             publish_landmarks(&mut out.landmarks, &st.filter, stamp, 0)?;
             finish(st, &settings, &out_dir, &name, &update_ms)?;
