@@ -52,17 +52,6 @@ fn main() {
                 let r = f.update(&obs);
                 update_s += t0.elapsed().as_secs_f64();
                 frames += 1;
-                if std::env::var("DBG").is_ok() && !obs.is_empty() && frames < 2000 {
-                    eprintln!(
-                        "frame {frames} obs {} matched {} new {} amb {} neff {:.1} lm {}",
-                        obs.len(),
-                        r.matched,
-                        r.new,
-                        r.ambiguous,
-                        r.n_eff,
-                        r.landmarks
-                    );
-                }
                 matched += r.matched;
                 if let Some(reason) = r.new_segment {
                     segs.push(format!("t={:.1}s seg {}: {reason}", fr.t_s, f.segment()));
@@ -83,19 +72,6 @@ fn main() {
     let _ = last_t;
     let truth: Vec<_> = sim.truth().iter().map(|t| (t.t_s, t.world_from_body)).collect();
     let scores = evaluate(&traj, &truth, &origins);
-    if std::env::var("DBG2").is_ok() {
-        for s in traj.iter().filter(|s| s.segment == 1).take(40).step_by(4) {
-            let o = fastslam::eval::nearest(&truth, origins[&1]).unwrap();
-            let lt = o.inverse() * fastslam::eval::nearest(&truth, s.t_s).unwrap();
-            eprintln!(
-                "t {:.2} est {:?} true {:?} sd {:.4}",
-                s.t_s,
-                s.map_from_body.translation.vector.as_slice(),
-                lt.translation.vector.as_slice(),
-                s.covariance[(0, 0)].sqrt()
-            );
-        }
-    }
     for s in &scores {
         println!("segment {:>2}: {:>5} poses, ATE {:.3} m, NEES {:.2}", s.segment, s.samples, s.ate_m, s.nees);
     }
@@ -103,9 +79,14 @@ fn main() {
         println!("{s}");
     }
     println!(
-        "{particles} particles, {proposal:?}: ATE {:.3} m over {} segments; {frames} frames, {:.2} ms/frame, {:.1} matched/frame",
+        "{particles} particles, {proposal:?}: ATE {:.3} m over {} segments, mean NEES {:.1}; {frames} frames, {:.2} ms/frame, {:.1} matched/frame",
         overall_ate(&scores),
         scores.len(),
+        {
+            let ok: Vec<_> = scores.iter().filter(|s| s.nees.is_finite()).collect();
+            ok.iter().map(|s| s.nees * s.samples as f64).sum::<f64>()
+                / ok.iter().map(|s| s.samples).sum::<usize>().max(1) as f64
+        },
         update_s * 1e3 / frames as f64,
         matched as f64 / frames as f64
     );

@@ -97,6 +97,8 @@ pub struct FrameReport {
     pub landmarks: usize,
     /// The best particle's landmark id per observation (`None`: new or left out).
     pub associations: Vec<Option<u32>>,
+    /// A landmark created from observation j of this frame has id `first_new_id + j`.
+    pub first_new_id: u32,
     /// Set when this frame started a new local map.
     pub new_segment: Option<SegmentReason>,
 }
@@ -132,12 +134,14 @@ impl Grid {
         [(p.x / self.cell_m).floor() as i32, (p.y / self.cell_m).floor() as i32, (p.z / self.cell_m).floor() as i32]
     }
 
-    fn candidates(&self, p: &Vector3<f64>, out: &mut Vec<u32>) {
+    /// Ids whose cell is within `radius_m` (rounded up to whole cells, at least one) of `p`.
+    fn candidates(&self, p: &Vector3<f64>, radius_m: f64, out: &mut Vec<u32>) {
         out.clear();
         let k = self.key(p);
-        for dx in -1..=1 {
-            for dy in -1..=1 {
-                for dz in -1..=1 {
+        let n = ((radius_m / self.cell_m).ceil() as i32).clamp(1, 8);
+        for dx in -n..=n {
+            for dy in -n..=n {
+                for dz in -n..=n {
                     if let Some(ids) = self.cells.get(&[k[0] + dx, k[1] + dy, k[2] + dz]) {
                         out.extend_from_slice(ids);
                     }
@@ -353,7 +357,9 @@ impl FastSlam {
     fn associate(cfg: &FastSlamConfig, grid: &Grid, p: &Particle, o: &Observation, buf: &mut Vec<u32>) -> Association {
         let a = &cfg.association;
         let w = p.pose.transform_point(&o.z_m.into()).coords;
-        grid.candidates(&w, buf);
+        // Far stereo points are uncertain along the ray: widen the search with the noise.
+        let radius = a.search_radius_m.max(3.0 * o.Rz.trace().sqrt());
+        grid.candidates(&w, radius, buf);
         let mut ml: Option<(f64, u32, Innovation)> = None;
         let mut near_dup = false;
         let mut best_d: Option<(u32, u32, Innovation)> = None; // (hamming, id, innovation)
@@ -463,7 +469,7 @@ impl FastSlam {
         if let Some(reason) = &new_segment {
             self.start_new_segment(reason.clone());
         }
-        FrameReport { matched, new, ambiguous, n_eff, resampled, landmarks, associations, new_segment }
+        FrameReport { matched, new, ambiguous, n_eff, resampled, landmarks, associations, first_new_id, new_segment }
     }
 
     #[allow(clippy::too_many_arguments)]
