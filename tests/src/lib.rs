@@ -161,6 +161,18 @@ impl TestRun {
         v
     }
 
+    /// Runs the supervisor on a config with `run_extra` and `processes` to its end (at most
+    /// `timeout`), asserts a clean exit (code 0, nothing left in /dev/shm or the root path), and
+    /// returns summary.json.
+    pub fn run_to_end(&mut self, run_extra: &str, processes: &str, timeout: Duration) -> serde_json::Value {
+        let cfg = self.write_config(run_extra, processes);
+        self.start_supervisor(&cfg, &[]);
+        let status = self.wait_supervisor(timeout).expect("the run ends");
+        assert_eq!(status.code(), Some(0), "{}", self.log());
+        assert_eq!(self.leftovers(), Vec::<PathBuf>::new(), "iceoryx2 files left behind");
+        self.summary()
+    }
+
     /// Spawns another process that is killed on drop; stdout is piped.
     pub fn spawn(&mut self, cmd: &mut Command) -> &mut Child {
         let child = cmd.stdin(Stdio::null()).stdout(Stdio::piped()).spawn().expect("spawn");

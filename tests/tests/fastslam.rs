@@ -8,13 +8,8 @@ use pipeline_tests::TestRun;
 const LONG: Duration = Duration::from_secs(120);
 
 fn run_to_end(run: &mut TestRun, processes: &str, from: &str) -> serde_json::Value {
-    let cfg = run
-        .write_config(&format!("end = \"end_of_stream\"\nend_of_stream_from = [{from}]\nduration_s = 200"), processes);
-    run.start_supervisor(&cfg, &[]);
-    let status = run.wait_supervisor(LONG).expect("the run ends");
-    assert_eq!(status.code(), Some(0), "{}", run.log());
-    assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
-    run.summary()
+    let run_extra = format!("end = \"end_of_stream\"\nend_of_stream_from = [{from}]\nduration_s = 200");
+    run.run_to_end(&run_extra, processes, LONG)
 }
 
 #[test]

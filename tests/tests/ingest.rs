@@ -31,13 +31,8 @@ height_px = 36
 const RUN_EOS: &str = "end = \"end_of_stream\"\nend_of_stream_from = [\"monitor\"]\nduration_s = 120";
 
 fn run_to_end(run: &mut TestRun, processes: &str) -> serde_json::Value {
-    let cfg = run.write_config(RUN_EOS, processes);
-    run.start_supervisor(&cfg, &[]);
-    let status = run.wait_supervisor(LONG).expect("the run ends");
-    assert_eq!(status.code(), Some(0), "{}", run.log());
-    let s = run.summary();
+    let s = run.run_to_end(RUN_EOS, processes, LONG);
     assert_eq!(s["run"]["end_reason"], "end_of_stream", "{s:#}");
-    assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
     s
 }
 
