@@ -126,7 +126,8 @@ struct ParticleFrame {
 #[derive(Default)]
 struct Grid {
     cell_m: f64,
-    cells: HashMap<[i32; 3], Vec<u32>>,
+    /// Landmark ids with the position they were created at.
+    cells: HashMap<[i32; 3], Vec<(u32, Vector3<f64>)>>,
 }
 
 impl Grid {
@@ -143,7 +144,8 @@ impl Grid {
             for dy in -n..=n {
                 for dz in -n..=n {
                     if let Some(ids) = self.cells.get(&[k[0] + dx, k[1] + dy, k[2] + dz]) {
-                        out.extend_from_slice(ids);
+                        let r2 = radius_m * radius_m;
+                        out.extend(ids.iter().filter(|(_, q)| (q - p).norm_squared() <= r2).map(|(id, _)| *id));
                     }
                 }
             }
@@ -354,18 +356,22 @@ impl FastSlam {
 
     /// Associates one observation for one particle (SPEC §3): descriptor with ratio test when
     /// the observation has one, else maximum likelihood, both inside the χ²₃ gate.
-    fn associate(cfg: &FastSlamConfig, grid: &Grid, p: &Particle, o: &Observation, buf: &mut Vec<u32>) -> Association {
+    fn associate(cfg: &FastSlamConfig, candidates: &[u32], p: &Particle, o: &Observation) -> Association {
         let a = &cfg.association;
         let w = p.pose.transform_point(&o.z_m.into()).coords;
-        // Far stereo points are uncertain along the ray: widen the search with the noise.
-        let radius = a.search_radius_m.max(3.0 * o.Rz.trace().sqrt());
-        grid.candidates(&w, radius, buf);
         let mut ml: Option<(f64, u32, Innovation)> = None;
         let mut near_dup = false;
         let mut best_d: Option<(u32, u32, Innovation)> = None; // (hamming, id, innovation)
         let mut second_d = u32::MAX;
-        for &id in buf.iter() {
+        let tr_rz = o.Rz.trace();
+        for &id in candidates {
             let Some(lm) = p.map.get(id) else { continue };
+            // Exact pre-check without a Cholesky: |ν| = |w − L| (a rotation keeps lengths) and
+            // νᵀS⁻¹ν ≥ |ν|²/λmax(S) ≥ |ν|²/tr(S), with tr(S) = tr(Σ_L) + tr(Rz).
+            let d2 = (lm.mean_m - w).norm_squared();
+            if d2 > a.duplicate_gate_chi2 * (lm.cov_m2.trace() + tr_rz) {
+                continue;
+            }
             let Ok(inn) = innovation(&p.pose, lm, &o.z_m, &o.Rz) else { continue };
             if inn.mahalanobis > a.duplicate_gate_chi2 {
                 continue;
@@ -414,15 +420,26 @@ impl FastSlam {
         let motion_cov = self.motion_cov + Matrix6::identity() * 1e-9;
         self.last_motion_cov = self.motion_cov;
         self.motion_cov = Matrix6::zeros();
-        let seeds = self.seeds();
-        let grid = std::mem::take(&mut self.grid);
-        let results = {
-            let grid = &grid;
-            self.for_each_particle(&seeds, |p, rng| {
-                Self::update_particle(&cfg, grid, p, obs, first_new_id, frame, &motion_cov, rng)
+        // Candidates once per observation for all particles: around the mean pose, widened by
+        // the observation's noise (far stereo points are uncertain along the ray) and by the
+        // particles' spread, so every particle's own search would find no more.
+        let spread = self.particle_spread();
+        let candidates: Vec<Vec<u32>> = obs
+            .iter()
+            .map(|o| {
+                let w = spread.0.transform_point(&o.z_m.into()).coords;
+                let radius = cfg.association.search_radius_m.max(3.0 * o.Rz.trace().sqrt())
+                    + 3.0 * (spread.1 + spread.2 * o.z_m.norm())
+                    + 0.25;
+                let mut c = vec![];
+                self.grid.candidates(&w, radius, &mut c);
+                c
             })
-        };
-        self.grid = grid;
+            .collect();
+        let seeds = self.seeds();
+        let results = self.for_each_particle(&seeds, |p, rng| {
+            Self::update_particle(&cfg, &candidates, p, obs, first_new_id, frame, &motion_cov, rng)
+        });
         // Register the new landmarks in the association grid (first creator's position).
         let best_idx = (0..self.particles.len())
             .max_by(|a, b| self.particles[*a].log_w.total_cmp(&self.particles[*b].log_w))
@@ -432,7 +449,7 @@ impl FastSlam {
             for (id, pos) in &r.created {
                 if seen.insert(*id) {
                     let key = self.grid.key(pos);
-                    self.grid.cells.entry(key).or_default().push(*id);
+                    self.grid.cells.entry(key).or_default().push((*id, *pos));
                 }
             }
         }
@@ -475,7 +492,7 @@ impl FastSlam {
     #[allow(clippy::too_many_arguments)]
     fn update_particle(
         cfg: &FastSlamConfig,
-        grid: &Grid,
+        candidates: &[Vec<u32>],
         p: &mut Particle,
         obs: &[Observation],
         first_new_id: u32,
@@ -485,8 +502,8 @@ impl FastSlam {
     ) -> ParticleFrame {
         let a = &cfg.association;
         let mut out = ParticleFrame { associations: vec![None; obs.len()], ..Default::default() };
-        let mut buf = Vec::new();
-        let decisions: Vec<Association> = obs.iter().map(|o| Self::associate(cfg, grid, p, o, &mut buf)).collect();
+        let decisions: Vec<Association> =
+            obs.iter().zip(candidates).map(|(o, c)| Self::associate(cfg, c, p, o)).collect();
         if cfg.proposal == Proposal::Optimal {
             // FastSLAM 2.0: sample the pose from the motion prior conditioned on the matches.
             if let Some(info) = Cholesky::new(*motion_cov).map(|c| c.inverse()) {
@@ -589,6 +606,18 @@ impl FastSlam {
         out
     }
 
+    /// The best particle's pose and the largest distance (m) and rotation (rad) of any particle
+    /// from it.
+    fn particle_spread(&self) -> (Isometry3<f64>, f64, f64) {
+        let best = self.best().pose;
+        let (mut dp, mut dr) = (0.0f64, 0.0f64);
+        for p in &self.particles {
+            dp = dp.max((p.pose.translation.vector - best.translation.vector).norm());
+            dr = dr.max(p.pose.rotation.angle_to(&best.rotation));
+        }
+        (best, dp / 3.0, dr / 3.0)
+    }
+
     /// Normalises the weights; returns N_eff = 1/Σw².
     fn normalise(&mut self) -> f64 {
         let max = self.particles.iter().map(|p| p.log_w).fold(f64::NEG_INFINITY, f64::max);
@@ -616,6 +645,17 @@ impl FastSlam {
         );
         let old = std::mem::take(&mut self.particles);
         self.particles = indices.into_iter().map(|i| Particle { log_w: -(n as f64).ln(), ..old[i].clone() }).collect();
+        // Freeing the discarded particles' paths is real work at large N and M: spread it over
+        // the worker threads instead of serialising it here.
+        let chunk = old.len().div_ceil(self.threads.max(1)).max(1);
+        let mut old = old;
+        crossbeam::thread::scope(|s| {
+            while !old.is_empty() {
+                let tail = old.split_off(old.len().saturating_sub(chunk));
+                s.spawn(move |_| drop(tail));
+            }
+        })
+        .expect("drop scope");
     }
 
     /// The weighted mean pose and its covariance (position, body-frame rotation error).
@@ -666,7 +706,7 @@ impl FastSlam {
                 },
             );
             let key = self.grid.key(mean_m);
-            self.grid.cells.entry(key).or_default().push(id);
+            self.grid.cells.entry(key).or_default().push((id, *mean_m));
             ids.push(id);
         }
         for p in &mut self.particles {
