@@ -146,6 +146,9 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         if done {
             return Ok(Flow::Continue);
         }
+        if !rt.ended_upstream(&eos)?.is_empty() {
+            upstream_ended = true; // read before the data: see Runtime::ended_upstream
+        }
         while let Some(s) = odometry.receive()? {
             st.push_odometry(s.user_header().stamp_ns, s.payload());
         }
@@ -161,11 +164,6 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 st.filter.start_new_segment(SegmentReason::Requested);
                 let t = st.last_frame_ns.unwrap_or(0) as f64 / 1e9;
                 st.segment_origins_s.insert(st.filter.segment(), t);
-            }
-        }
-        while let Some(s) = eos.receive()? {
-            if name_from32(&s.payload().process) != rt.name() {
-                upstream_ended = true;
             }
         }
         // One frame per loop iteration: the inputs are drained between frames, so a source

@@ -355,6 +355,21 @@ impl Runtime {
         Ok(())
     }
 
+    /// Drains an end-of-stream input and returns the names of the *other* processes that ended.
+    /// Call it before draining the data inputs in the same wake-up: everything those processes
+    /// sent before their end of stream is then already queued, so the data drain that follows
+    /// misses nothing (read the other way round, a last message can slip in between).
+    pub fn ended_upstream(&self, eos: &Input<EndOfStream, MsgHeader>) -> Result<Vec<String>, PortError> {
+        let mut ended = vec![];
+        while let Some(s) = eos.receive()? {
+            let from = shared_types::name_from32(&s.payload().process);
+            if from != self.name {
+                ended.push(from);
+            }
+        }
+        Ok(ended)
+    }
+
     /// Asks for a `wake.tick` at `at` (earlier than the regular tick, if need be): for sources that
     /// publish on a data clock. The loop sleeps until then unless data or a signal arrives.
     pub fn wake_at(&mut self, at: Instant) {

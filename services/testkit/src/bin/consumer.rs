@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::Parser;
 use pipeline_runtime::{Flow, ProcessArgs, Runtime};
 use shared_types::services::{CLOUD, END_OF_STREAM};
-use shared_types::{CloudHeader, CloudPoint, EndOfStream, MsgHeader, name_from32};
+use shared_types::{CloudHeader, CloudPoint, EndOfStream, MsgHeader};
 use testkit::{ConsumerCounters, ConsumerSettings, verify_cloud};
 
 fn write_part(path: &std::path::Path, counters: &ConsumerCounters) -> anyhow::Result<()> {
@@ -23,21 +23,19 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let mut counters = ConsumerCounters::default();
     let part = ctx.summary_part_path();
     let result = rt.run(&mut counters, None, |rt, counters, _wake| {
+        let ended = rt.ended_upstream(&eos)?; // first: see Runtime::ended_upstream
         while let Some(s) = clouds.receive()? {
             let seq = s.user_header().msg.seq;
             if let Err(fault) = verify_cloud(counters, settings.expect_points, seq, s.payload()) {
                 tracing::warn!(seq, ?fault, "cloud failed verification");
             }
         }
-        while let Some(s) = eos.receive()? {
-            let from = name_from32(&s.payload().process);
-            if from != rt.name() {
-                counters.end_of_stream_seen += 1;
-                tracing::info!(%from, frames_ok = counters.frames_ok, "end of stream from upstream");
-                if settings.forward_end_of_stream {
-                    let last = counters.last_seq.unwrap_or(0);
-                    rt.send_end_of_stream(last, counters.frames_ok + counters.frames_bad)?;
-                }
+        for from in ended {
+            counters.end_of_stream_seen += 1;
+            tracing::info!(%from, frames_ok = counters.frames_ok, "end of stream from upstream");
+            if settings.forward_end_of_stream {
+                let last = counters.last_seq.unwrap_or(0);
+                rt.send_end_of_stream(last, counters.frames_ok + counters.frames_bad)?;
             }
         }
         Ok(Flow::Continue)

@@ -11,7 +11,6 @@ use shared_types::WireType;
 use shared_types::services::{BUOY_RANGES, CLOUD, DEPTH, END_OF_STREAM, ODOMETRY, STEREO};
 use shared_types::{
     BuoyRange, CloudHeader, CloudPoint, DepthReading, EndOfStream, MsgHeader, OdometryInput, StereoObservation,
-    name_from32,
 };
 use testkit::SensorMonitorSettings;
 
@@ -100,6 +99,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     };
     let known = settings.known_buoy_ids.clone();
     let result = rt.run(&mut g, None, |rt, g, _| {
+        let ended = rt.ended_upstream(&eos)?; // first: see Runtime::ended_upstream
         while let Some(s) = odometry.receive()? {
             let check = validate::check_odometry(s.payload());
             g.odometry.take(s.origin().value(), s.user_header(), check, [s.payload().as_bytes()]);
@@ -128,15 +128,12 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 g.cloud_points += s.payload().len() as u64;
             }
         }
-        while let Some(s) = eos.receive()? {
-            let from = name_from32(&s.payload().process);
-            if from != rt.name() {
-                g.end_of_stream_seen += 1;
-                tracing::info!(%from, "end of stream from upstream");
-                if settings.forward_end_of_stream {
-                    let total = g.accepted();
-                    rt.send_end_of_stream(total.saturating_sub(1), total)?;
-                }
+        for from in ended {
+            g.end_of_stream_seen += 1;
+            tracing::info!(%from, "end of stream from upstream");
+            if settings.forward_end_of_stream {
+                let total = g.accepted();
+                rt.send_end_of_stream(total.saturating_sub(1), total)?;
             }
         }
         Ok(Flow::Continue)
