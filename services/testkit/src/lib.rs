@@ -92,7 +92,7 @@ pub struct SensorMonitorSettings {
     pub known_buoy_ids: Option<Vec<u32>>,
     /// Largest accepted cloud.
     pub max_cloud_points: usize,
-    /// Send our own end of stream when an upstream one arrives.
+    /// Send our own end of stream (once) when the first upstream one arrives.
     pub forward_end_of_stream: bool,
 }
 

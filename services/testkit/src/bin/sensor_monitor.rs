@@ -131,7 +131,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         for from in ended {
             g.end_of_stream_seen += 1;
             tracing::info!(%from, "end of stream from upstream");
-            if settings.forward_end_of_stream {
+            if settings.forward_end_of_stream && g.end_of_stream_seen == 1 {
                 let total = g.accepted();
                 rt.send_end_of_stream(total.saturating_sub(1), total)?;
             }
