@@ -80,3 +80,23 @@ dir = "{dir}"
     let tum = std::fs::read_to_string(run.out_dir().join("slam_local.tum")).unwrap();
     assert_eq!(tum.lines().count(), 26);
 }
+
+#[test]
+fn invalid_fastslam_settings_name_their_keys() {
+    for (settings, key) in [
+        ("[processes.slam.settings.filter]\nparticles = 0", "processes.slam.settings.filter.particles"),
+        (
+            "[processes.slam.settings.filter.association]\nratio = 2.0",
+            "processes.slam.settings.filter.association.ratio",
+        ),
+        ("[processes.slam.settings]\nmotion_model = \"teleport\"", "processes.slam.settings.motion_model"),
+    ] {
+        let mut run = TestRun::new("badslam");
+        let procs = format!("[processes.slam]\nkind = \"fastslam\"\n{settings}\n");
+        let cfg = run.write_config("end = \"signal\"", &procs);
+        run.start_supervisor(&cfg, &[]);
+        let status = run.wait_supervisor(Duration::from_secs(20)).expect("exits");
+        assert_eq!(status.code(), Some(2), "{}", run.log());
+        assert!(run.log().contains(&format!("`{key}`")), "must name `{key}`:\n{}", run.log());
+    }
+}
