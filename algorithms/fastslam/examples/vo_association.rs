@@ -1,7 +1,7 @@
 //! Association precision and recall of FastSLAM on real KITTI stereo features (the
 //! stereo_vo_large data set, read in place; it may not be committed), against the data set's own
 //! landmark ids, camera-only (constant velocity):
-//! `cargo run --release -p fastslam --example vo_association -- ../shared/data/stereo_vo_large [particles]`.
+//! `cargo run --release -p fastslam --example vo_association -- ../shared/data/stereo_vo_large [particles] [cv_velocity_sigma_mps] [motion|optimal]`.
 //!
 //! An association of an observation (data-set id d) to a filter landmark is correct when that
 //! landmark was created from an observation of d. Precision = correct / associated; recall =
@@ -34,7 +34,11 @@ fn main() {
         height_px: 375,
     };
     let cv: f64 = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(1.0);
-    let mut f = FastSlam::new(FastSlamConfig { particles, cv_velocity_sigma_mps: cv, ..Default::default() })
+    let proposal = match args.get(4).map(String::as_str) {
+        Some("optimal") => fastslam::Proposal::Optimal,
+        _ => fastslam::Proposal::Motion,
+    };
+    let mut f = FastSlam::new(FastSlamConfig { particles, cv_velocity_sigma_mps: cv, proposal, ..Default::default() })
         .expect("valid config");
     let mut created_from: HashMap<u32, u64> = HashMap::new(); // filter id -> data-set id
     let mut known: HashMap<u64, ()> = HashMap::new(); // data-set ids the filter has mapped
