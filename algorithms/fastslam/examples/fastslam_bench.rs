@@ -539,7 +539,7 @@ fn ekf_ns(part: EkfPart) -> f64 {
                     _ => inn.log_likelihood(),
                 };
                 if part == EkfPart::Full {
-                    let _ = ekf::update(lm, pose, &inn, &rz);
+                    let _ = ekf::update(lm, &inn, &rz);
                 }
             }
         }

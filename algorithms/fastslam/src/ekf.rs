@@ -58,6 +58,8 @@ pub struct Innovation {
     pub nu: Vector3<f64>,
     /// S = H_L·Σ·H_Lᵀ + Rz, m².
     pub S: Matrix3<f64>,
+    /// H_L = Rᵀ at the pose the innovation was computed for.
+    pub HL: Matrix3<f64>,
     /// Cholesky factor of S.
     chol: Cholesky<f64, nalgebra::U3>,
     /// ε = νᵀ·S⁻¹·ν (SPEC eq 15).
@@ -85,27 +87,23 @@ pub fn innovation(
     z_m: &Vector3<f64>,
     Rz: &Matrix3<f64>,
 ) -> Result<Innovation, FilterError> {
-    let (HL, _) = jacobians(world_from_body, &lm.mean_m);
+    let HL = world_from_body.rotation.inverse().to_rotation_matrix().into_inner();
     let S = HL * lm.cov_m2 * HL.transpose() + Rz;
     let S = (S + S.transpose()) * 0.5;
     let chol = Cholesky::new(S).ok_or(FilterError::NotPositiveDefinite("innovation covariance S"))?;
-    let nu = z_m - predict_measurement(world_from_body, &lm.mean_m);
+    let nu = z_m - HL * (lm.mean_m - world_from_body.translation.vector);
     let mahalanobis = nu.dot(&chol.solve(&nu));
     if !mahalanobis.is_finite() {
         return Err(FilterError::NonFinite("innovation"));
     }
-    Ok(Innovation { nu, S, chol, mahalanobis })
+    Ok(Innovation { nu, S, HL, chol, mahalanobis })
 }
 
 /// EKF update of `lm` with the innovation `inn` (SPEC §4): K = Σ·H_Lᵀ·S⁻¹, μ += K·ν,
-/// Σ = (I − K·H_L)·Σ·(I − K·H_L)ᵀ + K·Rz·Kᵀ (Joseph form).
-pub fn update(
-    lm: &mut LandmarkEkf,
-    world_from_body: &Isometry3<f64>,
-    inn: &Innovation,
-    Rz: &Matrix3<f64>,
-) -> Result<(), FilterError> {
-    let (HL, _) = jacobians(world_from_body, &lm.mean_m);
+/// Σ = (I − K·H_L)·Σ·(I − K·H_L)ᵀ + K·Rz·Kᵀ (Joseph form). `inn` must have been computed for
+/// this landmark at the current pose.
+pub fn update(lm: &mut LandmarkEkf, inn: &Innovation, Rz: &Matrix3<f64>) -> Result<(), FilterError> {
+    let HL = inn.HL;
     let K = lm.cov_m2 * HL.transpose() * inn.S_inv();
     let mean = lm.mean_m + K * inn.nu;
     let IKH = Matrix3::identity() - K * HL;
@@ -202,7 +200,7 @@ mod tests {
             let T = pose(0.02 * k as f64, 0.01 * k as f64, 0.0, 0.0, 0.0, 0.3 * (k as f64 * 0.05).sin());
             let z = noisy(&T, &mut rng);
             let inn = innovation(&T, &lm, &z, &Rz).unwrap();
-            update(&mut lm, &T, &inn, &Rz).unwrap();
+            update(&mut lm, &inn, &Rz).unwrap();
             assert!((lm.cov_m2 - lm.cov_m2.transpose()).norm() < 1e-12, "Joseph form keeps Σ symmetric");
         }
         let err = lm.mean_m - truth;

@@ -401,10 +401,10 @@ impl FastSlam {
                 && d <= a.max_hamming
                 && (second_d == u32::MAX || (d as f64) < a.ratio * second_d as f64)
             {
-                return Association::Matched(id, inn);
+                return Association::Matched(id, Box::new(inn));
             }
         } else if let Some((_, id, inn)) = ml {
-            return Association::Matched(id, inn);
+            return Association::Matched(id, Box::new(inn));
         }
         if near_dup { Association::Ambiguous } else { Association::New }
     }
@@ -556,9 +556,9 @@ impl FastSlam {
                         if lm.hits >= a.confirm_after {
                             p.log_w += inn.log_likelihood();
                         }
-                        inn
+                        *inn
                     };
-                    if ekf::update(lm, &pose, &inn, &o.Rz).is_err() {
+                    if ekf::update(lm, &inn, &o.Rz).is_err() {
                         continue;
                     }
                     lm.hits += 1;
@@ -741,7 +741,7 @@ impl FastSlam {
 pub type PriorLandmark = (Vector3<f64>, Matrix3<f64>, Option<[u8; 32]>);
 
 enum Association {
-    Matched(u32, Innovation),
+    Matched(u32, Box<Innovation>),
     Ambiguous,
     New,
 }

@@ -97,7 +97,8 @@ impl<V: Clone> PersistentMap<V> {
     /// The entry of `id`, mutable: copies the shared nodes on its path (and the entry itself if
     /// another map shares it), mutates owned ones in place.
     pub fn get_mut(&mut self, id: u32) -> Option<&mut V> {
-        if !self.fits(id) || self.get(id).is_none() {
+        // (For an absent id this may copy shared nodes on the way down; harmless.)
+        if !self.fits(id) {
             return None;
         }
         let mut node = Arc::make_mut(self.root.as_mut()?);
