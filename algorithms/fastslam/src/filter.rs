@@ -401,10 +401,10 @@ impl FastSlam {
                 && d <= a.max_hamming
                 && (second_d == u32::MAX || (d as f64) < a.ratio * second_d as f64)
             {
-                return Association::Matched(id, Box::new(inn));
+                return Association::Matched(id, inn);
             }
         } else if let Some((_, id, inn)) = ml {
-            return Association::Matched(id, Box::new(inn));
+            return Association::Matched(id, inn);
         }
         if near_dup { Association::Ambiguous } else { Association::New }
     }
@@ -556,7 +556,7 @@ impl FastSlam {
                         if lm.hits >= a.confirm_after {
                             p.log_w += inn.log_likelihood();
                         }
-                        *inn
+                        inn
                     };
                     if ekf::update(lm, &inn, &o.Rz).is_err() {
                         continue;
@@ -740,8 +740,11 @@ impl FastSlam {
 /// A landmark of a prior map: mean (m), covariance (m²), descriptor.
 pub type PriorLandmark = (Vector3<f64>, Matrix3<f64>, Option<[u8; 32]>);
 
+// Decisions live in a short per-particle Vec; boxing the large variant would cost an allocation
+// per matched observation in the hottest loop.
+#[allow(clippy::large_enum_variant)]
 enum Association {
-    Matched(u32, Box<Innovation>),
+    Matched(u32, Innovation),
     Ambiguous,
     New,
 }
