@@ -387,7 +387,7 @@ fn run(n: usize, m: usize, field: &[(Vector3<f64>, [u8; 32])], opt: &Options) ->
     // νᵀS⁻¹ν ≥ |ν|²/λmax(S) ≥ |ν|²/(tr Σ + tr Rz): a landmark farther than this cannot pass the
     // duplicate gate (with the prior Σ; the filter's Σ only shrinks).
     let bound_m = (cfg_gate * (3.0 * PRIOR_SIGMA_M * PRIOR_SIGMA_M + 3.0 * OBS_SIGMA_M * OBS_SIGMA_M)).sqrt();
-    let (mut candidates, mut gateable) = (0usize, 0usize);
+    let (mut candidates, mut gateable) = (0.0f64, 0usize);
     let frames: Vec<Vec<Observation>> = (0..total)
         .map(|k| {
             truth = propagate(&truth, &input);
@@ -424,8 +424,7 @@ fn run(n: usize, m: usize, field: &[(Vector3<f64>, [u8; 32])], opt: &Options) ->
             if k >= opt.warmup {
                 for o in &obs {
                     let w = truth.transform_point(&o.z_m.into()).coords;
-                    let (c, g) = buckets.candidates(&lms, &w, radius, bound_m);
-                    candidates += c;
+                    let (_, g) = buckets.candidates(&lms, &w, radius, bound_m);
                     gateable += g;
                 }
             }
@@ -459,6 +458,7 @@ fn run(n: usize, m: usize, field: &[(Vector3<f64>, [u8; 32])], opt: &Options) ->
             matched += r.matched;
             unmatched += r.new + r.ambiguous;
             resampled += usize::from(r.resampled);
+            candidates += r.candidates_per_observation * obs.len() as f64;
         }
     }
     let cpu_s = cpu_start.zip(process_cpu_s()).map(|(a, b)| b - a);
@@ -481,7 +481,7 @@ fn run(n: usize, m: usize, field: &[(Vector3<f64>, [u8; 32])], opt: &Options) ->
         match_pct: 100.0 * matched as f64 / (frames * OBS_PER_FRAME) as f64,
         unmatched,
         resample_pct: 100.0 * resampled as f64 / frames as f64,
-        candidates: candidates as f64 / (frames * OBS_PER_FRAME) as f64,
+        candidates: candidates / (frames * OBS_PER_FRAME) as f64,
         gateable: gateable as f64 / (frames * OBS_PER_FRAME) as f64,
         rss_kb: proc_status_kb("VmRSS:").unwrap_or(0),
         filter_kb: proc_status_kb("VmRSS:").unwrap_or(0).saturating_sub(rss_before),

@@ -101,6 +101,8 @@ pub struct FrameReport {
     pub first_new_id: u32,
     /// Set when this frame started a new local map.
     pub new_segment: Option<SegmentReason>,
+    /// Association candidates (landmarks looked up in each particle's map) per observation.
+    pub candidates_per_observation: f64,
 }
 
 #[derive(Clone)]
@@ -126,26 +128,58 @@ struct ParticleFrame {
 #[derive(Default)]
 struct Grid {
     cell_m: f64,
-    /// Landmark ids with the position they were created at.
-    cells: HashMap<[i32; 3], Vec<(u32, Vector3<f64>)>>,
+    /// Landmark ids with the position they were created at and the trace of their initial
+    /// covariance, m² (the same in every particle: a rotation keeps the trace).
+    cells: HashMap<[i32; 3], Vec<GridEntry>>,
 }
+
+#[derive(Clone, Copy)]
+struct GridEntry {
+    id: u32,
+    created_m: Vector3<f64>,
+    /// How far (m) from its creation position a particle's version of this landmark can be and
+    /// still pass the duplicate gate for an observation with covariance trace zero: the gate
+    /// distance √(χ²_dup·tr Σ₀) (an EKF update never grows Σ) plus `MEAN_MOTION_SIGMAS`·√tr Σ₀
+    /// for the mean's motion since creation.
+    reach_m: f64,
+}
+
+/// How many initial σ a landmark's mean may move from where it was created (its initial error
+/// plus its current error, each within 3σ) before the candidate search stops finding it.
+const MEAN_MOTION_SIGMAS: f64 = 6.0;
 
 impl Grid {
     fn key(&self, p: &Vector3<f64>) -> [i32; 3] {
         [(p.x / self.cell_m).floor() as i32, (p.y / self.cell_m).floor() as i32, (p.z / self.cell_m).floor() as i32]
     }
 
-    /// Ids whose cell is within `radius_m` (rounded up to whole cells, at least one) of `p`.
-    fn candidates(&self, p: &Vector3<f64>, radius_m: f64, out: &mut Vec<u32>) {
+    fn insert(&mut self, id: u32, created_m: Vector3<f64>, cov_trace_m2: f64, duplicate_gate_chi2: f64) {
+        let t = cov_trace_m2.max(0.0);
+        let reach_m = (duplicate_gate_chi2 * t).sqrt() + MEAN_MOTION_SIGMAS * t.sqrt();
+        let key = self.key(&created_m);
+        self.cells.entry(key).or_default().push(GridEntry { id, created_m, reach_m });
+    }
+
+    /// Ids created within `radius_m` (rounded up to whole cells, at least one) of `p` whose own
+    /// reach plus `slack_m` also covers `p`.
+    fn candidates(&self, p: &Vector3<f64>, radius_m: f64, slack_m: f64, out: &mut Vec<u32>) {
         out.clear();
         let k = self.key(p);
         let n = ((radius_m / self.cell_m).ceil() as i32).clamp(1, 8);
+        let r2 = radius_m * radius_m;
         for dx in -n..=n {
             for dy in -n..=n {
                 for dz in -n..=n {
-                    if let Some(ids) = self.cells.get(&[k[0] + dx, k[1] + dy, k[2] + dz]) {
-                        let r2 = radius_m * radius_m;
-                        out.extend(ids.iter().filter(|(_, q)| (q - p).norm_squared() <= r2).map(|(id, _)| *id));
+                    if let Some(entries) = self.cells.get(&[k[0] + dx, k[1] + dy, k[2] + dz]) {
+                        out.extend(
+                            entries
+                                .iter()
+                                .filter(|e| {
+                                    let d2 = (e.created_m - p).norm_squared();
+                                    d2 <= r2 && d2 <= (e.reach_m + slack_m).powi(2)
+                                })
+                                .map(|e| e.id),
+                        );
                     }
                 }
             }
@@ -433,11 +467,13 @@ impl FastSlam {
             .iter()
             .map(|o| {
                 let w = spread.0.transform_point(&o.z_m.into()).coords;
-                let radius = cfg.association.search_radius_m.max(3.0 * o.Rz.trace().sqrt())
-                    + 3.0 * (spread.1 + spread.2 * o.z_m.norm())
-                    + 0.25;
+                let particles_m = 3.0 * (spread.1 + spread.2 * o.z_m.norm()) + 0.25;
+                let radius = cfg.association.search_radius_m.max(3.0 * o.Rz.trace().sqrt()) + particles_m;
+                // A landmark passes the duplicate gate only within √(χ²·(tr Σ_L + tr Rz)) ≤
+                // √(χ²·tr Σ₀) + √(χ²·tr Rz) of the particle's view of the observation.
+                let slack = (cfg.association.duplicate_gate_chi2 * o.Rz.trace()).sqrt() + particles_m;
                 let mut c = vec![];
-                self.grid.candidates(&w, radius, &mut c);
+                self.grid.candidates(&w, radius, slack, &mut c);
                 c
             })
             .collect();
@@ -453,8 +489,8 @@ impl FastSlam {
         for r in &results {
             for (id, pos) in &r.created {
                 if seen.insert(*id) {
-                    let key = self.grid.key(pos);
-                    self.grid.cells.entry(key).or_default().push((*id, *pos));
+                    let j = (*id - first_new_id) as usize;
+                    self.grid.insert(*id, *pos, obs[j].Rz.trace(), cfg.association.duplicate_gate_chi2);
                 }
             }
         }
@@ -491,7 +527,20 @@ impl FastSlam {
         if let Some(reason) = &new_segment {
             self.start_new_segment(reason.clone());
         }
-        FrameReport { matched, new, ambiguous, n_eff, resampled, landmarks, associations, first_new_id, new_segment }
+        let candidates_per_observation =
+            candidates.iter().map(Vec::len).sum::<usize>() as f64 / obs.len().max(1) as f64;
+        FrameReport {
+            matched,
+            new,
+            ambiguous,
+            n_eff,
+            resampled,
+            landmarks,
+            associations,
+            first_new_id,
+            new_segment,
+            candidates_per_observation,
+        }
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -710,8 +759,7 @@ impl FastSlam {
                     last_seen_frame: self.frame,
                 },
             );
-            let key = self.grid.key(mean_m);
-            self.grid.cells.entry(key).or_default().push((id, *mean_m));
+            self.grid.insert(id, *mean_m, cov_m2.trace(), self.cfg.association.duplicate_gate_chi2);
             ids.push(id);
         }
         for p in &mut self.particles {
@@ -784,6 +832,32 @@ pub fn systematic_resample(weights: &[f64], u: f64) -> Vec<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn candidates_keep_every_landmark_that_could_pass_the_duplicate_gate() {
+        let chi2 = 21.1;
+        let mut g = Grid { cell_m: 3.0, cells: HashMap::new() };
+        // Same distance (2 m) from the query, different initial covariances.
+        g.insert(1, Vector3::new(2.0, 0.0, 0.0), 0.003, chi2); // precise: reach 0.58 m
+        g.insert(2, Vector3::new(0.0, 2.0, 0.0), 0.3, chi2); // far stereo point: reach 5.8 m
+        g.insert(3, Vector3::new(0.3, 0.0, 0.0), 0.003, chi2); // precise and near
+        g.insert(4, Vector3::new(9.0, 0.0, 0.0), 10.0, chi2); // beyond the search radius
+        let mut out = vec![];
+        g.candidates(&Vector3::zeros(), 3.0, 0.2, &mut out);
+        out.sort();
+        assert_eq!(out, vec![2, 3]);
+        // The reach bounds the exact pre-check of `associate`: a landmark whose mean moved by up
+        // to 6 initial σ (here from the creation point straight towards the observation) and
+        // whose Σ did not shrink is still within √(χ²(tr Σ + tr Rz)) when it is a candidate.
+        let (tr0, tr_rz) = (0.003f64, 0.0075f64);
+        let slack = (chi2 * tr_rz).sqrt();
+        let reach = (chi2 * tr0).sqrt() + MEAN_MOTION_SIGMAS * tr0.sqrt();
+        let gate = (chi2 * (tr0 + tr_rz)).sqrt();
+        let moved = MEAN_MOTION_SIGMAS * tr0.sqrt();
+        // Created at distance d from the observation, now at d − moved: passes the gate iff
+        // d − moved ≤ gate; a candidate iff d ≤ reach + slack. gate + moved ≤ reach + slack.
+        assert!(gate + moved <= reach + slack + 1e-12);
+    }
 
     #[test]
     fn systematic_resampling_keeps_the_expected_counts() {
