@@ -477,14 +477,58 @@ impl FastSlam {
                 c
             })
             .collect();
+        // 1. Association and importance weights: read-only on the maps. The weight of FastSLAM
+        //    (1.0 and 2.0) uses the landmark estimates before this frame's update, and the update
+        //    is deterministic given pose, map and decisions; so resampling can come first and the
+        //    maps are updated once per surviving parent (its copies would make identical
+        //    updates), and never for particles about to be discarded.
         let seeds = self.seeds();
-        let results = self.for_each_particle(&seeds, |p, rng| {
-            Self::update_particle(&cfg, &candidates, p, obs, first_new_id, frame, &motion_cov, rng)
-        });
-        // Register the new landmarks in the association grid (first creator's position).
+        let decisions =
+            self.for_each_particle(&seeds, |p, rng| Self::weigh_particle(&cfg, &candidates, p, obs, &motion_cov, rng));
         let best_idx = (0..self.particles.len())
             .max_by(|a, b| self.particles[*a].log_w.total_cmp(&self.particles[*b].log_w))
             .unwrap_or(0);
+        let n_eff = self.normalise();
+        let resampled = n_eff < cfg.resample_fraction * self.particles.len() as f64;
+        let n = self.particles.len();
+        let parents: Vec<usize> = if resampled {
+            systematic_resample(
+                &self.particles.iter().map(|p| p.log_w.exp()).collect::<Vec<_>>(),
+                self.rng.random::<f64>(),
+            )
+        } else {
+            (0..n).collect()
+        };
+        // 2. Runs of equal parents (systematic resampling returns them sorted): (parent, copies).
+        let mut groups: Vec<(usize, usize)> = vec![];
+        for &i in &parents {
+            match groups.last_mut() {
+                Some((g, c)) if *g == i => *c += 1,
+                _ => groups.push((i, 1)),
+            }
+        }
+        let mut old: Vec<Option<Particle>> = std::mem::take(&mut self.particles).into_iter().map(Some).collect();
+        let mut survivors: Vec<(Particle, Vec<Decision>)> =
+            groups.iter().map(|(i, _)| (old[*i].take().expect("each parent once"), decisions[*i].clone())).collect();
+        // 3. Landmark EKF updates, once per surviving parent, in parallel.
+        let results =
+            par_map(self.threads, &mut survivors, |(p, d)| Self::apply_particle(&cfg, p, obs, d, first_new_id, frame));
+        // 4. The new particle set; the discarded particles are freed on the worker threads.
+        let uniform = -(n as f64).ln();
+        let mut next = Vec::with_capacity(n);
+        for ((mut p, _), (_, copies)) in survivors.into_iter().zip(&groups) {
+            if resampled {
+                p.log_w = uniform;
+            }
+            for _ in 1..*copies {
+                next.push(p.clone());
+            }
+            next.push(p);
+        }
+        self.particles = next;
+        let garbage: Vec<Particle> = old.into_iter().flatten().collect();
+        self.free(garbage);
+        // Register the new landmarks in the association grid (first creator's position).
         let mut seen = std::collections::HashSet::new();
         for r in &results {
             for (id, pos) in &r.created {
@@ -494,14 +538,12 @@ impl FastSlam {
                 }
             }
         }
-        let best = &results[best_idx];
+        // The best particle (largest weight) always survives systematic resampling (it has
+        // w ≥ 1/N, so at least one copy).
+        let best_group = groups.iter().position(|(i, _)| *i == best_idx).unwrap_or(0);
+        let best = &results[best_group];
         let (matched, new, ambiguous, associations) =
             (best.matched, best.new, best.ambiguous, best.associations.clone());
-        let n_eff = self.normalise();
-        let resampled = n_eff < cfg.resample_fraction * self.particles.len() as f64;
-        if resampled {
-            self.resample();
-        }
         let landmarks = self.best().confirmed;
         let estimate = self.estimate();
         if let Some(prev) = self.last_mean {
@@ -543,19 +585,17 @@ impl FastSlam {
         }
     }
 
-    #[allow(clippy::too_many_arguments)]
-    fn update_particle(
+    /// Association decisions and the importance weight of one particle for one frame (and, with
+    /// the FastSLAM 2.0 proposal, its pose sampled from the proposal); maps are only read.
+    fn weigh_particle(
         cfg: &FastSlamConfig,
         candidates: &[Vec<u32>],
         p: &mut Particle,
         obs: &[Observation],
-        first_new_id: u32,
-        frame: u32,
         motion_cov: &Matrix6<f64>,
         rng: &mut Xoshiro256PlusPlus,
-    ) -> ParticleFrame {
+    ) -> Vec<Decision> {
         let a = &cfg.association;
-        let mut out = ParticleFrame { associations: vec![None; obs.len()], ..Default::default() };
         let decisions: Vec<Association> =
             obs.iter().zip(candidates).map(|(o, c)| Self::associate(cfg, c, p, o)).collect();
         if cfg.proposal == Proposal::Optimal {
@@ -565,7 +605,7 @@ impl FastSlam {
                 let mut b = Vector6::zeros();
                 let mut log_w = 0.0;
                 let mut any = false;
-                for (o, d) in obs.iter().zip(&decisions) {
+                for d in &decisions {
                     let Association::Matched(id, inn) = d else { continue };
                     let Some(lm) = p.map.get(*id) else { continue };
                     let (_, Hx) = ekf::jacobians(&p.pose, &lm.mean_m);
@@ -579,7 +619,6 @@ impl FastSlam {
                         log_w += -0.5 * (m + log_det + 3.0 * (2.0 * std::f64::consts::PI).ln());
                     }
                     any = true;
-                    let _ = o;
                 }
                 if any && let Some(cA) = Cholesky::new(A) {
                     let Sigma = cA.inverse();
@@ -595,23 +634,44 @@ impl FastSlam {
                 }
             }
         }
-        for (j, (o, d)) in obs.iter().zip(decisions).enumerate() {
-            match d {
+        obs.iter()
+            .zip(decisions)
+            .map(|(o, d)| match d {
                 Association::Matched(id, inn) => {
+                    if cfg.proposal != Proposal::Optimal && p.map.get(id).is_some_and(|l| l.hits >= a.confirm_after) {
+                        p.log_w += inn.log_likelihood();
+                    }
+                    Decision::Matched(id)
+                }
+                Association::Ambiguous => Decision::Ambiguous,
+                Association::New => {
+                    // ln p(new): the density at the gate boundary of the observation's own noise.
+                    let log_det = o.Rz.determinant().max(1e-300).ln();
+                    p.log_w += -0.5 * (a.gate_chi2 + log_det + 3.0 * (2.0 * std::f64::consts::PI).ln());
+                    Decision::New
+                }
+            })
+            .collect()
+    }
+
+    /// Applies one particle's decisions to its map: landmark EKF updates (at the particle's
+    /// current pose), new landmarks, provisional bookkeeping.
+    fn apply_particle(
+        cfg: &FastSlamConfig,
+        p: &mut Particle,
+        obs: &[Observation],
+        decisions: &[Decision],
+        first_new_id: u32,
+        frame: u32,
+    ) -> ParticleFrame {
+        let a = &cfg.association;
+        let mut out = ParticleFrame { associations: vec![None; obs.len()], ..Default::default() };
+        for (j, (o, d)) in obs.iter().zip(decisions).enumerate() {
+            match *d {
+                Decision::Matched(id) => {
                     let pose = p.pose;
                     let Some(lm) = p.map.get_mut(id) else { continue };
-                    // With the 2.0 proposal the pose moved: recompute the innovation.
-                    let inn = if cfg.proposal == Proposal::Optimal {
-                        match innovation(&pose, lm, &o.z_m, &o.Rz) {
-                            Ok(i) => i,
-                            Err(_) => continue,
-                        }
-                    } else {
-                        if lm.hits >= a.confirm_after {
-                            p.log_w += inn.log_likelihood();
-                        }
-                        inn
-                    };
+                    let Ok(inn) = innovation(&pose, lm, &o.z_m, &o.Rz) else { continue };
                     if ekf::update(lm, &inn, &o.Rz).is_err() {
                         continue;
                     }
@@ -625,8 +685,8 @@ impl FastSlam {
                     }
                     out.associations[j] = Some(id);
                 }
-                Association::Ambiguous => out.ambiguous += 1,
-                Association::New => {
+                Decision::Ambiguous => out.ambiguous += 1,
+                Decision::New => {
                     let id = first_new_id + j as u32;
                     let lm = init_landmark(&p.pose, &o.z_m, &o.Rz, o.descriptor, frame);
                     out.created.push((id, lm.mean_m));
@@ -636,9 +696,6 @@ impl FastSlam {
                     } else {
                         p.provisional.push(id);
                     }
-                    // ln p(new): the density at the gate boundary of the observation's own noise.
-                    let log_det = o.Rz.determinant().max(1e-300).ln();
-                    p.log_w += -0.5 * (a.gate_chi2 + log_det + 3.0 * (2.0 * std::f64::consts::PI).ln());
                     out.new += 1;
                 }
             }
@@ -690,22 +747,13 @@ impl FastSlam {
         1.0 / sq
     }
 
-    /// Systematic (low-variance) resampling; maps are shared, not copied.
-    fn resample(&mut self) {
-        let n = self.particles.len();
-        let indices = systematic_resample(
-            &self.particles.iter().map(|p| p.log_w.exp()).collect::<Vec<_>>(),
-            self.rng.random::<f64>(),
-        );
-        let old = std::mem::take(&mut self.particles);
-        self.particles = indices.into_iter().map(|i| Particle { log_w: -(n as f64).ln(), ..old[i].clone() }).collect();
-        // Freeing the discarded particles' paths is real work at large N and M: spread it over
-        // the worker threads instead of serialising it here.
-        let chunk = old.len().div_ceil(self.threads.max(1)).max(1);
-        let mut old = old;
+    /// Frees discarded particles on the worker threads: dropping their maps' unshared paths is
+    /// real work at large N and M.
+    fn free(&self, mut garbage: Vec<Particle>) {
+        let chunk = garbage.len().div_ceil(self.threads.max(1)).max(1);
         crossbeam::thread::scope(|s| {
-            while !old.is_empty() {
-                let tail = old.split_off(old.len().saturating_sub(chunk));
+            while !garbage.is_empty() {
+                let tail = garbage.split_off(garbage.len().saturating_sub(chunk));
                 s.spawn(move |_| drop(tail));
             }
         })
@@ -807,6 +855,30 @@ enum Association {
     Matched(u32, Innovation),
     Ambiguous,
     New,
+}
+
+/// A particle's association decision for one observation, kept between weighing and updating.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Decision {
+    Matched(u32),
+    Ambiguous,
+    New,
+}
+
+/// Applies `f` to every item on up to `threads` scoped worker threads (contiguous chunks);
+/// results in item order.
+fn par_map<T: Send, R: Send>(threads: usize, items: &mut [T], f: impl Fn(&mut T) -> R + Sync) -> Vec<R> {
+    if items.is_empty() {
+        return vec![];
+    }
+    let chunk = items.len().div_ceil(threads.max(1));
+    let f = &f;
+    crossbeam::thread::scope(|s| {
+        let handles: Vec<_> =
+            items.chunks_mut(chunk).map(|c| s.spawn(move |_| c.iter_mut().map(f).collect::<Vec<R>>())).collect();
+        handles.into_iter().flat_map(|h| h.join().expect("particle worker panicked")).collect()
+    })
+    .expect("particle scope")
 }
 
 /// Systematic resampling of normalised `weights` with offset `u` in [0, 1): indices of the
