@@ -1,7 +1,9 @@
 //! Association precision and recall of FastSLAM on real KITTI stereo features (the
 //! stereo_vo_large data set, read in place; it may not be committed), against the data set's own
 //! landmark ids, camera-only (constant velocity):
-//! `cargo run --release -p fastslam --example vo_association -- ../shared/data/stereo_vo_large [particles] [cv_velocity_sigma_mps] [motion|optimal]`.
+//! `cargo run --release -p fastslam --example vo_association -- ../shared/data/stereo_vo_large [particles] [cv_velocity_sigma_mps] [motion|optimal] [vo-poses]`.
+//! With `vo-poses` every frame starts from the data set's own VO pose instead of the filter's
+//! tracking: a diagnostic that separates association from tracking.
 //!
 //! An association of an observation (data-set id d) to a filter landmark is correct when that
 //! landmark was created from an observation of d. Precision = correct / associated; recall =
@@ -38,6 +40,7 @@ fn main() {
         Some("optimal") => fastslam::Proposal::Optimal,
         _ => fastslam::Proposal::Motion,
     };
+    let use_vo_poses = args.get(5).is_some_and(|a| a == "vo-poses");
     let mut f = FastSlam::new(FastSlamConfig { particles, cv_velocity_sigma_mps: cv, proposal, ..Default::default() })
         .expect("valid config");
     let mut created_from: HashMap<u32, u64> = HashMap::new(); // filter id -> data-set id
@@ -54,6 +57,16 @@ fn main() {
             f.predict_constant_velocity((fr.frame_id - last) as f64 * 0.1);
         }
         last_id = Some(fr.frame_id);
+        // Diagnostic: the data set's own VO pose instead of the filter's tracking, to separate
+        // association from tracking.
+        if use_vo_poses && let Some(cp) = vo.poses.iter().find(|p| p.frame_id == fr.frame_id) {
+            let m = cp.world_from_camera;
+            let rot = nalgebra::Rotation3::from_matrix_unchecked(m.fixed_view::<3, 3>(0, 0).into_owned());
+            f.set_pose(Isometry3::from_parts(
+                nalgebra::Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]),
+                nalgebra::UnitQuaternion::from_rotation_matrix(&rot),
+            ));
+        }
         let mut obs = vec![];
         let mut ids = vec![];
         for o in &fr.observations {

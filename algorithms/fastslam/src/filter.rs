@@ -272,6 +272,14 @@ impl FastSlam {
         })
     }
 
+    /// Moves every particle to `map_from_body` (e.g. a pose from an external source); maps and
+    /// weights are kept.
+    pub fn set_pose(&mut self, map_from_body: Isometry3<f64>) {
+        for p in &mut self.particles {
+            p.pose = map_from_body;
+        }
+    }
+
     /// The settings.
     pub fn config(&self) -> &FastSlamConfig {
         &self.cfg
