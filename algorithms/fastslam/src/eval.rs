@@ -113,25 +113,4 @@ pub fn overall_ate(scores: &[SegmentScore]) -> f64 {
     (scores.iter().map(|s| s.ate_m * s.ate_m * s.samples as f64).sum::<f64>() / n as f64).sqrt()
 }
 
-/// Reads a TUM trajectory (`t tx ty tz qx qy qz qw`; `#` comments); errors name file and line.
-pub fn read_tum(path: &std::path::Path) -> Result<Vec<(f64, Isometry3<f64>)>, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let mut out = vec![];
-    for (i, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let v: Vec<f64> = line
-            .split_whitespace()
-            .map(str::parse)
-            .collect::<Result<_, _>>()
-            .map_err(|e| format!("{}:{}: {e}", path.display(), i + 1))?;
-        if v.len() != 8 || v.iter().any(|x| !x.is_finite()) {
-            return Err(format!("{}:{}: expected 8 finite numbers (t tx ty tz qx qy qz qw)", path.display(), i + 1));
-        }
-        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(v[7], v[4], v[5], v[6]));
-        out.push((v[0], Isometry3::from_parts(nalgebra::Translation3::new(v[1], v[2], v[3]), q)));
-    }
-    Ok(out)
-}
+pub use geometry::tum::read_tum;

@@ -8,6 +8,8 @@
 
 #![allow(non_snake_case)]
 
+pub mod tum;
+
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
 /// Errors of the geometric models.

@@ -1,6 +1,5 @@
 //! Data sources: each yields [`Item`]s in data-time order, already in wire types.
 
-use std::io::Write;
 use std::path::Path;
 
 use geometry::StereoPixels;
@@ -82,16 +81,7 @@ pub fn stamp_from_s(t_s: f64) -> u64 {
     (t_s * 1e9).round().max(0.0) as u64
 }
 
-/// Writes a trajectory in TUM format (`t tx ty tz qx qy qz qw`, t in s).
-pub fn write_tum<'a>(path: &Path, poses: impl Iterator<Item = (f64, &'a Isometry3<f64>)>) -> std::io::Result<()> {
-    let mut w = std::io::BufWriter::new(std::fs::File::create(path)?);
-    for (t, p) in poses {
-        let v = p.translation.vector;
-        let q = quat_to_xyzw(&p.rotation);
-        writeln!(w, "{t:.9} {:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}", v.x, v.y, v.z, q[0], q[1], q[2], q[3])?;
-    }
-    w.flush()
-}
+pub use geometry::tum::write_tum;
 
 /// The built-in simulator as a source.
 pub struct SimSource {
