@@ -52,6 +52,10 @@ pub const KINDS: &[(&str, Kind)] = &[
         "fastslam",
         Kind { binary: Some("fastslam"), check: check::<fastslam_process::FastSlamSettings>, pipeline_args: true },
     ),
+    (
+        "buoy_ekf",
+        Kind { binary: Some("buoy_ekf"), check: check::<buoy_ekf_process::BuoyEkfSettings>, pipeline_args: true },
+    ),
     ("external", Kind { binary: None, check: check_external, pipeline_args: false }),
 ];
 

@@ -1,0 +1,486 @@
+//! The `buoy_ekf` process's settings and its pure `step` logic: odometry, buoy ranges and depth
+//! readings applied to the [`buoy::BuoyEkf`] in stamp order, one [`Fix`] per ranges message, and
+//! the end-of-run evaluation (dead reckoning and the ATE of both against the ground truth).
+//! `main.rs` is the wiring around it.
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use buoy::{BuoyConfig, BuoyEkf, Estimate, Mode, RangeOutcome};
+use geometry::ProcessInput;
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use pipeline_runtime::{Issues, ProcessSettings};
+use serde::{Deserialize, Serialize};
+use shared_types::{BuoyRange, DepthReading, OdometryInput};
+
+/// Settings of the `buoy_ekf` process.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BuoyEkfSettings {
+    /// The estimator (buoy table, mode, noise, gate, biases, initialisation): every key is
+    /// documented in `algorithms/buoy/src/config.rs`.
+    pub ekf: BuoyConfig,
+    /// Predict with the odometry stream. Ranges then wait (up to `odometry_wait_s`) until
+    /// odometry up to their stamp has arrived, so that they are applied in stamp order.
+    pub use_odometry: bool,
+    /// Use pressure depth readings (spatial mode).
+    pub use_depth: bool,
+    /// Longest a range waits for odometry up to its stamp before it is applied without (wall
+    /// time), s: a stalled odometry source delays the fixes by at most this.
+    pub odometry_wait_s: f64,
+    /// Ground truth to evaluate against at the end (TUM; relative to the output directory);
+    /// skipped when missing.
+    pub ground_truth: String,
+}
+
+impl Default for BuoyEkfSettings {
+    fn default() -> Self {
+        Self {
+            ekf: BuoyConfig::default(),
+            use_odometry: true,
+            use_depth: true,
+            odometry_wait_s: 0.5,
+            ground_truth: "ground_truth.tum".into(),
+        }
+    }
+}
+
+impl ProcessSettings for BuoyEkfSettings {
+    fn validate(&self, key: &str, issues: &mut Issues) {
+        for (k, m) in self.ekf.validate() {
+            issues.push(format!("{key}.ekf.{k}"), m);
+        }
+        issues.check(
+            self.odometry_wait_s.is_finite() && self.odometry_wait_s >= 0.0,
+            format!("{key}.odometry_wait_s"),
+            "must be >= 0",
+        );
+    }
+
+    fn shm_estimate_bytes(&self) -> u64 {
+        // One BuoyFix stream.
+        1 << 20
+    }
+}
+
+/// A fix to publish: the estimate after a ranges message.
+#[derive(Debug, Clone)]
+pub struct Fix {
+    /// Stamp of the ranges message, ns.
+    pub stamp_ns: u64,
+    /// Its origin time (end-to-end latency), ns.
+    pub origin_ns: u64,
+    /// The estimate at the stamp.
+    pub estimate: Estimate,
+    /// Ranges of the message accepted.
+    pub used: u32,
+    /// Ranges of the message rejected (gate, invalid, unknown buoy).
+    pub rejected: u32,
+}
+
+struct PendingRanges {
+    stamp_ns: u64,
+    origin_ns: u64,
+    ranges: Vec<BuoyRange>,
+    received: Instant,
+}
+
+/// The process state around the estimator: input ordering, the trajectory and counters.
+pub struct BuoyState {
+    settings: BuoyEkfSettings,
+    ekf: Option<BuoyEkf>,
+    odometry: VecDeque<(u64, OdometryInput)>,
+    ranges: VecDeque<PendingRanges>,
+    depth: VecDeque<(u64, DepthReading)>,
+    newest_odometry_ns: Option<u64>,
+    /// Every odometry input applied, with its stamp (for dead reckoning).
+    pub inputs: Vec<(f64, ProcessInput)>,
+    /// One sample per fix: (t, position, heading if known).
+    pub trajectory: Vec<(f64, Vector3<f64>, Option<f64>)>,
+    /// Messages or values rejected before the filter (NaN, out of order), by reason.
+    pub invalid: std::collections::BTreeMap<String, u64>,
+    /// Errors the filter returned (unknown buoy, non-finite, not positive definite), by message.
+    pub filter_errors: std::collections::BTreeMap<String, u64>,
+    /// Ranges buffered while the filter waited for a usable trilateration.
+    pub waiting: u64,
+    /// Time of the last event applied, ns.
+    last_ns: Option<u64>,
+}
+
+fn stamp_s(ns: u64) -> f64 {
+    ns as f64 / 1e9
+}
+
+impl BuoyState {
+    /// A new state; the estimator starts at the first message's stamp.
+    pub fn new(settings: BuoyEkfSettings) -> Self {
+        Self {
+            settings,
+            ekf: None,
+            odometry: VecDeque::new(),
+            ranges: VecDeque::new(),
+            depth: VecDeque::new(),
+            newest_odometry_ns: None,
+            inputs: vec![],
+            trajectory: vec![],
+            invalid: Default::default(),
+            filter_errors: Default::default(),
+            waiting: 0,
+            last_ns: None,
+        }
+    }
+
+    /// The estimator, once the first message has started it.
+    pub fn ekf(&self) -> Option<&BuoyEkf> {
+        self.ekf.as_ref()
+    }
+
+    fn count(map: &mut std::collections::BTreeMap<String, u64>, reason: String) {
+        *map.entry(reason).or_default() += 1;
+    }
+
+    /// Queues an odometry message (ignored unless `use_odometry`).
+    pub fn push_odometry(&mut self, stamp_ns: u64, u: &OdometryInput) {
+        if !self.settings.use_odometry {
+            return;
+        }
+        self.newest_odometry_ns = Some(self.newest_odometry_ns.map_or(stamp_ns, |s| s.max(stamp_ns)));
+        self.odometry.push_back((stamp_ns, *u));
+    }
+
+    /// Queues a ranges message.
+    pub fn push_ranges(&mut self, stamp_ns: u64, origin_ns: u64, ranges: &[BuoyRange], now: Instant) {
+        self.ranges.push_back(PendingRanges { stamp_ns, origin_ns, ranges: ranges.to_vec(), received: now });
+    }
+
+    /// Queues a depth reading (ignored unless `use_depth` in spatial mode).
+    pub fn push_depth(&mut self, stamp_ns: u64, d: &DepthReading) {
+        if self.settings.use_depth && self.settings.ekf.mode == Mode::Spatial {
+            self.depth.push_back((stamp_ns, *d));
+        }
+    }
+
+    /// Messages waiting.
+    pub fn pending(&self) -> usize {
+        self.odometry.len() + self.ranges.len() + self.depth.len()
+    }
+
+    /// When the oldest waiting ranges message stops waiting for odometry (for a wake-up).
+    pub fn next_deadline(&self) -> Option<Instant> {
+        self.ranges.front().map(|r| r.received + Duration::from_secs_f64(self.settings.odometry_wait_s))
+    }
+
+    fn ekf_at(&mut self, t_s: f64) -> Result<&mut BuoyEkf, String> {
+        if self.ekf.is_none() {
+            self.ekf = Some(BuoyEkf::new(self.settings.ekf.clone(), t_s).map_err(|e| e.to_string())?);
+        }
+        Ok(self.ekf.as_mut().expect("just made"))
+    }
+
+    /// The process's `step`: applies the queued messages in stamp order and returns the fixes
+    /// to publish. A ranges message waits for odometry up to its stamp (unless `flush`, at the
+    /// end of the stream, or it has waited `odometry_wait_s`).
+    pub fn step(&mut self, flush: bool, now: Instant) -> Vec<Fix> {
+        let mut out = vec![];
+        // Everything up to the horizon is applied in stamp order: the newest odometry stamp, or
+        // the stamp of the newest ranges message that has waited long enough, or everything.
+        let wait = Duration::from_secs_f64(self.settings.odometry_wait_s);
+        let waited_out =
+            self.ranges.iter().filter(|r| now.saturating_duration_since(r.received) >= wait).map(|r| r.stamp_ns).max();
+        let horizon = if flush || !self.settings.use_odometry {
+            u64::MAX
+        } else {
+            self.newest_odometry_ns.into_iter().chain(waited_out).max().unwrap_or(0)
+        };
+        loop {
+            let t_odo = self.odometry.front().map(|(s, _)| *s);
+            let t_rng = self.ranges.front().map(|r| r.stamp_ns);
+            let t_dep = self.depth.front().map(|(s, _)| *s);
+            let Some(t) = [t_odo, t_rng, t_dep].into_iter().flatten().min() else { break };
+            if t > horizon {
+                break;
+            }
+            if t_odo == Some(t) {
+                let (stamp, u) = self.odometry.pop_front().expect("front exists");
+                self.apply_odometry(stamp, &u);
+            } else if t_rng == Some(t) {
+                let r = self.ranges.pop_front().expect("front exists");
+                if let Some(fix) = self.apply_ranges(r) {
+                    out.push(fix);
+                }
+            } else {
+                let (stamp, d) = self.depth.pop_front().expect("front exists");
+                self.apply_depth(stamp, &d);
+            }
+        }
+        out
+    }
+
+    /// Stamps must not go back: a message older than the last applied one is dropped (counted).
+    fn in_order(&mut self, stamp_ns: u64, what: &str) -> bool {
+        if self.last_ns.is_some_and(|l| stamp_ns < l) {
+            Self::count(&mut self.invalid, format!("{what} older than the last message applied"));
+            return false;
+        }
+        self.last_ns = Some(stamp_ns);
+        true
+    }
+
+    fn apply_odometry(&mut self, stamp_ns: u64, u: &OdometryInput) {
+        let ok = u.dt_s.is_finite()
+            && u.dt_s > 0.0
+            && u.v_mps.is_finite()
+            && u.delta_theta_rad.iter().all(|v| v.is_finite())
+            && u.input_covariance[0].is_finite()
+            && u.input_covariance[15].is_finite();
+        if !ok {
+            Self::count(&mut self.invalid, "odometry with NaN or dt <= 0".into());
+            return;
+        }
+        if !self.in_order(stamp_ns, "odometry") {
+            return;
+        }
+        let t = stamp_s(stamp_ns);
+        self.inputs.push((
+            t,
+            ProcessInput { v_mps: u.v_mps, delta_theta_rad: Vector3::from(u.delta_theta_rad), dt_s: u.dt_s },
+        ));
+        let input = buoy::OdometryInput {
+            dt_s: u.dt_s,
+            v_mps: u.v_mps,
+            dtheta_rad: u.delta_theta_rad[2],
+            var_v: u.input_covariance[0].max(0.0),
+            var_dtheta: u.input_covariance[15].max(0.0),
+        };
+        let result =
+            self.ekf_at(t - u.dt_s).and_then(|ekf| ekf.predict_with_input(t, &input).map_err(|e| e.to_string()));
+        if let Err(e) = result {
+            Self::count(&mut self.filter_errors, format!("odometry: {e}"));
+        }
+    }
+
+    fn apply_depth(&mut self, stamp_ns: u64, d: &DepthReading) {
+        if !(d.depth_m.is_finite() && d.sigma_m.is_finite() && d.sigma_m > 0.0) {
+            Self::count(&mut self.invalid, "depth with NaN or sigma <= 0".into());
+            return;
+        }
+        if !self.in_order(stamp_ns, "depth") {
+            return;
+        }
+        let t = stamp_s(stamp_ns);
+        let result = self.ekf_at(t).and_then(|ekf| {
+            ekf.predict_to(t).map_err(|e| e.to_string())?;
+            ekf.update_depth(d.depth_m, d.sigma_m).map_err(|e| e.to_string())
+        });
+        if let Err(e) = result {
+            Self::count(&mut self.filter_errors, format!("depth: {e}"));
+        }
+    }
+
+    fn apply_ranges(&mut self, r: PendingRanges) -> Option<Fix> {
+        if !self.in_order(r.stamp_ns, "ranges") {
+            return None;
+        }
+        let t = stamp_s(r.stamp_ns);
+        let (mut used, mut rejected) = (0u32, 0u32);
+        let ekf = match self.ekf_at(t) {
+            Ok(e) => e,
+            Err(e) => {
+                Self::count(&mut self.filter_errors, format!("start: {e}"));
+                return None;
+            }
+        };
+        if let Err(e) = ekf.predict_to(t) {
+            Self::count(&mut self.filter_errors, format!("predict: {e}"));
+            return None;
+        }
+        let mut errors = vec![];
+        let mut waiting = 0;
+        for b in &r.ranges {
+            match ekf.update_range(b.buoy_id, b.range_m, b.sigma_m) {
+                Ok(RangeOutcome::Accepted { .. } | RangeOutcome::Initialised) => used += 1,
+                Ok(RangeOutcome::Rejected { .. }) => rejected += 1,
+                Ok(RangeOutcome::Waiting(_)) => waiting += 1,
+                Err(e) => {
+                    rejected += 1;
+                    errors.push(format!("range: {e}"));
+                }
+            }
+        }
+        let estimate = ekf.is_initialised().then(|| ekf.estimate());
+        self.waiting += waiting;
+        for e in errors {
+            Self::count(&mut self.filter_errors, e);
+        }
+        match estimate? {
+            Ok(estimate) => {
+                self.trajectory.push((t, estimate.position_m, estimate.heading_rad));
+                Some(Fix { stamp_ns: r.stamp_ns, origin_ns: r.origin_ns, estimate, used, rejected })
+            }
+            Err(e) => {
+                Self::count(&mut self.filter_errors, format!("estimate: {e}"));
+                None
+            }
+        }
+    }
+}
+
+/// Dead reckoning: the inputs integrated through the process model (SPEC §1) from `start`
+/// (`world_from_body` at the start of the first input's interval).
+pub fn dead_reckoning(start: &Isometry3<f64>, inputs: &[(f64, ProcessInput)]) -> Vec<(f64, Isometry3<f64>)> {
+    let mut pose = *start;
+    inputs
+        .iter()
+        .map(|(t, u)| {
+            pose = geometry::propagate(&pose, u);
+            (*t, pose)
+        })
+        .collect()
+}
+
+/// The pose of `truth` (sorted by time) nearest to `t_s`.
+pub fn nearest<T>(samples: &[(f64, T)], t_s: f64) -> Option<&T> {
+    let i = samples.partition_point(|(t, _)| *t < t_s);
+    let before = i.checked_sub(1).map(|j| &samples[j]);
+    let after = samples.get(i);
+    match (before, after) {
+        (Some(b), Some(a)) => Some(if t_s - b.0 <= a.0 - t_s { &b.1 } else { &a.1 }),
+        (Some(b), None) => Some(&b.1),
+        (None, Some(a)) => Some(&a.1),
+        (None, None) => None,
+    }
+}
+
+/// Absolute trajectory error: the RMSE of the position (x, y only when `planar`) over every
+/// ground-truth row, each matched to the estimate with the nearest stamp; no alignment. NaN
+/// without estimates or ground truth.
+pub fn ate_nearest(estimate: &[(f64, Vector3<f64>)], truth: &[(f64, Vector3<f64>)], planar: bool) -> f64 {
+    if estimate.is_empty() || truth.is_empty() {
+        return f64::NAN;
+    }
+    let sum: f64 = truth
+        .iter()
+        .map(|(t, p)| {
+            let e = nearest(estimate, *t).expect("non-empty") - p;
+            if planar { e.x * e.x + e.y * e.y } else { e.norm_squared() }
+        })
+        .sum();
+    (sum / truth.len() as f64).sqrt()
+}
+
+/// `world_from_body` of a fix for the TUM file: the position, and the heading as a yaw when known.
+pub fn fix_pose(position: &Vector3<f64>, heading_rad: Option<f64>) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::from(*position),
+        UnitQuaternion::from_euler_angles(0.0, 0.0, heading_rad.unwrap_or(0.0)),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use buoy::BuoyEntry;
+
+    fn settings() -> BuoyEkfSettings {
+        let mut s = BuoyEkfSettings::default();
+        s.ekf.mode = Mode::Planar;
+        s.ekf.buoys = [[0.0, 0.0], [40.0, 0.0], [40.0, 40.0], [0.0, 40.0]]
+            .iter()
+            .enumerate()
+            .map(|(i, p)| BuoyEntry { id: i as u32, position_m: [p[0], p[1], 0.0] })
+            .collect();
+        s
+    }
+
+    fn ranges_at(p: Vector3<f64>, s: &BuoyEkfSettings) -> Vec<BuoyRange> {
+        s.ekf
+            .buoys
+            .iter()
+            .map(|b| BuoyRange {
+                buoy_id: b.id,
+                _reserved: 0,
+                range_m: (Vector3::from(b.position_m) - p).norm(),
+                sigma_m: 0.1,
+            })
+            .collect()
+    }
+
+    fn odo(v: f64) -> OdometryInput {
+        let mut c = [0.0; 16];
+        c[0] = 0.01;
+        c[15] = 1e-6;
+        OdometryInput { v_mps: v, delta_theta_rad: [0.0; 3], dt_s: 0.1, input_covariance: c }
+    }
+
+    #[test]
+    fn ranges_wait_for_odometry_up_to_their_stamp_and_are_applied_in_stamp_order() {
+        let s = settings();
+        let mut st = BuoyState::new(s.clone());
+        let now = Instant::now();
+        let p = Vector3::new(10.0, 12.0, 0.0);
+        st.push_ranges(1_000_000_000, 0, &ranges_at(p, &s), now);
+        assert!(st.step(false, now).is_empty(), "no odometry up to 1 s yet: the ranges wait");
+        assert_eq!(st.pending(), 1);
+        for k in 1..=10u64 {
+            st.push_odometry(k * 100_000_000, &odo(0.0));
+        }
+        let fixes = st.step(false, now);
+        assert_eq!(fixes.len(), 1, "odometry reached the stamp");
+        assert_eq!(st.inputs.len(), 10);
+        assert!((fixes[0].estimate.position_m - p).norm() < 0.5, "{}", fixes[0].estimate.position_m);
+        // A ranges message with no odometry behind it goes after odometry_wait_s.
+        st.push_ranges(2_000_000_000, 0, &ranges_at(p, &s), now);
+        assert!(st.step(false, now).is_empty());
+        assert_eq!(st.step(false, now + Duration::from_secs(1)).len(), 1);
+    }
+
+    #[test]
+    fn bad_messages_are_counted_and_lose_nothing_else() {
+        let s = settings();
+        let mut st = BuoyState::new(s.clone());
+        let now = Instant::now();
+        let p = Vector3::new(10.0, 12.0, 0.0);
+        let mut bad = odo(0.0);
+        bad.v_mps = f64::NAN;
+        st.push_odometry(100_000_000, &bad);
+        st.push_odometry(200_000_000, &odo(0.0));
+        let mut rs = ranges_at(p, &s);
+        rs.push(BuoyRange { buoy_id: 77, _reserved: 0, range_m: 5.0, sigma_m: 0.1 });
+        rs.push(BuoyRange { buoy_id: 1, _reserved: 0, range_m: f64::NAN, sigma_m: 0.1 });
+        st.push_ranges(200_000_000, 0, &rs, now);
+        let fixes = st.step(true, now);
+        assert_eq!(fixes.len(), 1);
+        assert_eq!(fixes[0].rejected, 2, "unknown buoy and NaN range");
+        assert_eq!(st.invalid.values().sum::<u64>(), 1, "{:?}", st.invalid);
+        assert_eq!(st.filter_errors.values().sum::<u64>(), 2, "{:?}", st.filter_errors);
+    }
+
+    #[test]
+    fn ate_counts_every_ground_truth_row_against_the_nearest_estimate() {
+        let est = vec![(1.0, Vector3::new(0.0, 0.0, 0.0)), (3.0, Vector3::new(2.0, 0.0, 5.0))];
+        let truth = vec![
+            (0.0, Vector3::new(1.0, 0.0, 0.0)),  // before the first estimate: error 1
+            (1.9, Vector3::new(0.0, 0.0, 0.0)),  // nearest is t = 1: error 0
+            (2.6, Vector3::new(2.0, 3.0, 0.0)),  // nearest is t = 3: error 3 (planar)
+            (10.0, Vector3::new(2.0, 0.0, 0.0)), // after the last: error 0 (planar)
+        ];
+        let ate = ate_nearest(&est, &truth, true);
+        assert!((ate - (10.0f64 / 4.0).sqrt()).abs() < 1e-12, "{ate}");
+        let ate3 = ate_nearest(&est, &truth, false);
+        assert!((ate3 - ((1.0 + 0.0 + 9.0 + 25.0 + 25.0) / 4.0f64).sqrt()).abs() < 1e-12, "{ate3}");
+        assert!(ate_nearest(&[], &truth, true).is_nan());
+    }
+
+    #[test]
+    fn dead_reckoning_integrates_the_process_model() {
+        let inputs: Vec<_> = (1..=10)
+            .map(|k| {
+                (k as f64 * 0.1, ProcessInput { v_mps: 1.0, delta_theta_rad: Vector3::new(0.0, 0.0, 0.0), dt_s: 0.1 })
+            })
+            .collect();
+        let start = fix_pose(&Vector3::new(5.0, 0.0, 0.0), Some(std::f64::consts::FRAC_PI_2));
+        let dr = dead_reckoning(&start, &inputs);
+        let end = dr.last().unwrap().1.translation.vector;
+        assert!((end - Vector3::new(5.0, 1.0, 0.0)).norm() < 1e-9, "{end}");
+    }
+}
