@@ -272,6 +272,10 @@ wire_type! {
 pub const SYNC_EXTRAPOLATED: u32 = 1;
 /// `SyncedPair::flags` bit: only two fixes were available (linear interpolation).
 pub const SYNC_LINEAR: u32 = 2;
+/// `SyncedPair::flags` bit: the fixes around the stamp were too far apart to interpolate across.
+pub const SYNC_GAP: u32 = 4;
+/// `SyncedPair::flags` bit: interpolated between fixes on both sides of the stamp.
+pub const SYNC_INTERPOLATED: u32 = 8;
 
 wire_type! {
     /// A local SLAM pose paired with the buoy position interpolated to its stamp (`pipeline/sync/pair`).
@@ -285,9 +289,9 @@ wire_type! {
         pub buoy_covariance_m2: [f64; 9],
         /// Stamp of the newest buoy fix used, ns.
         pub newest_fix_stamp_ns: u64,
-        /// Bit set: 1 extrapolated, 2 linear.
+        /// Bit set: 1 extrapolated, 2 linear, 4 gap, 8 interpolated (`SYNC_*`).
         pub flags: u32,
-        /// Number of fixes used (2 or 3).
+        /// Number of fixes used (1 when extrapolated or an exact fix, 2 linear, 3 quadratic).
         pub fixes_used: u32,
     }
 }

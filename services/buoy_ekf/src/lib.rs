@@ -95,7 +95,9 @@ pub struct BuoyState {
     newest_odometry_ns: Option<u64>,
     /// Every odometry input applied, with its stamp (for dead reckoning).
     pub inputs: Vec<(f64, ProcessInput)>,
-    /// One sample per fix: (t, position, heading if known).
+    /// The estimate after every odometry input and every ranges message once initialised:
+    /// (t, position, heading if known). Fixes are published at the buoy rate only; this is the
+    /// filter's estimate at every time it has one (the ATE and `buoy_ekf.tum`).
     pub trajectory: Vec<(f64, Vector3<f64>, Option<f64>)>,
     /// Messages or values rejected before the filter (NaN, out of order), by reason.
     pub invalid: std::collections::BTreeMap<String, u64>,
@@ -216,6 +218,13 @@ impl BuoyState {
         out
     }
 
+    /// Records the estimate at `t` (after an odometry input, once initialised) in the trajectory.
+    fn record(&mut self, t: f64) {
+        if let Some(Ok(e)) = self.ekf.as_ref().filter(|e| e.is_initialised()).map(|e| e.estimate()) {
+            self.trajectory.push((t, e.position_m, e.heading_rad));
+        }
+    }
+
     /// Stamps must not go back: a message older than the last applied one is dropped (counted).
     fn in_order(&mut self, stamp_ns: u64, what: &str) -> bool {
         if self.last_ns.is_some_and(|l| stamp_ns < l) {
@@ -254,8 +263,9 @@ impl BuoyState {
         };
         let result =
             self.ekf_at(t - u.dt_s).and_then(|ekf| ekf.predict_with_input(t, &input).map_err(|e| e.to_string()));
-        if let Err(e) = result {
-            Self::count(&mut self.filter_errors, format!("odometry: {e}"));
+        match result {
+            Err(e) => Self::count(&mut self.filter_errors, format!("odometry: {e}")),
+            Ok(()) => self.record(t),
         }
     }
 

@@ -14,7 +14,13 @@ use pipeline_runtime::{Flow, ProcessArgs, Runtime};
 use shared_types::services::{BUOY_FIX, BUOY_RANGES, DEPTH, END_OF_STREAM, ODOMETRY};
 use shared_types::*;
 
-fn finish(st: &BuoyState, settings: &BuoyEkfSettings, out_dir: &std::path::Path, name: &str) -> anyhow::Result<()> {
+fn finish(
+    st: &BuoyState,
+    settings: &BuoyEkfSettings,
+    out_dir: &std::path::Path,
+    name: &str,
+    fixes_sent: u64,
+) -> anyhow::Result<()> {
     std::fs::create_dir_all(out_dir)?;
     let planar = settings.ekf.mode == Mode::Planar;
     let poses: Vec<_> = st.trajectory.iter().map(|(t, p, h)| (*t, fix_pose(p, *h))).collect();
@@ -22,7 +28,8 @@ fn finish(st: &BuoyState, settings: &BuoyEkfSettings, out_dir: &std::path::Path,
     let counters = st.ekf().map(|e| e.counters().clone()).unwrap_or_default();
     let estimate = st.ekf().filter(|e| e.is_initialised()).and_then(|e| e.estimate().ok());
     let mut part = serde_json::json!({ "buoy_ekf": {
-        "fixes": st.trajectory.len(),
+        "fixes": fixes_sent,
+        "trajectory_samples": st.trajectory.len(),
         "ranges_accepted": counters.accepted,
         "ranges_rejected": counters.rejected,
         "recoveries": counters.recoveries,
@@ -125,7 +132,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             rt.wake_at(deadline);
         }
         if upstream_ended && st.pending() == 0 {
-            finish(st, &settings, &out_dir, &name)?;
+            finish(st, &settings, &out_dir, &name, fixes.sent())?;
             rt.send_end_of_stream(fixes.sent().saturating_sub(1), fixes.sent())?;
             done = true;
         }

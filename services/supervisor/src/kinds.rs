@@ -56,6 +56,14 @@ pub const KINDS: &[(&str, Kind)] = &[
         "buoy_ekf",
         Kind { binary: Some("buoy_ekf"), check: check::<buoy_ekf_process::BuoyEkfSettings>, pipeline_args: true },
     ),
+    (
+        "synchronizer",
+        Kind {
+            binary: Some("synchronizer"),
+            check: check::<synchronizer_process::SynchronizerSettings>,
+            pipeline_args: true,
+        },
+    ),
     ("external", Kind { binary: None, check: check_external, pipeline_args: false }),
 ];
 

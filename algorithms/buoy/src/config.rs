@@ -1,0 +1,377 @@
+//! The estimator's settings ([`BuoyConfig`]), with defaults and a validation pass that names
+//! each bad key (keys are relative to the config table, e.g. `range.gate_probability`).
+//!
+//! Every default is a physical or statistical choice, not a fit to one data set: a 99.9 %
+//! innovation gate, Huber's 95 %-efficiency constant, 5 % range scale uncertainty (sound speed
+//! or radio clock rate), 2 % wheel slip, and so on. The sensor noise itself (σ of each range, of
+//! the odometry speed and turn) comes with each measurement, not from here.
+
+use serde::{Deserialize, Serialize};
+
+/// Geometry of the estimate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Mode {
+    /// 3-D: position (x, y, z); ranges are slant ranges; depth readings constrain z.
+    #[default]
+    Spatial,
+    /// 2-D, for ground vehicles: position (x, y) with z fixed at [`BuoyConfig::planar_height_m`].
+    /// A range is the slant range sqrt(horizontal² + Δz²) with the known height difference
+    /// Δz = buoy z − `planar_height_m` (0 when the buoys are given at the vehicle's height,
+    /// which makes the ranges planar).
+    Planar,
+}
+
+/// Which range biases the filter estimates as states.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum BiasMode {
+    /// None: ranges are unbiased apart from the scale (if estimated).
+    None,
+    /// One constant bias shared by all buoys (with the scale: an affine range calibration).
+    #[default]
+    Global,
+    /// One constant bias per buoy (transponder delay calibration). With few buoys this leaves
+    /// the position of a vehicle that has not moved yet poorly determined.
+    PerBuoy,
+}
+
+/// How the filter gets its first state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum InitMethod {
+    /// Least-squares trilateration of the first ranges (a position fix, if one comes first,
+    /// initialises too); the heading follows from the ranges once the vehicle moves (see
+    /// [`InitConfig::heading_hypotheses`]).
+    #[default]
+    Trilateration,
+    /// From `init.prior_position_m` (and `init.prior_heading_rad` when given) at construction.
+    Prior,
+}
+
+/// A buoy at a known position.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BuoyEntry {
+    /// Id, as carried by each range.
+    pub id: u32,
+    /// Position (x, y, z) in the world frame, m.
+    pub position_m: [f64; 3],
+}
+
+/// Range measurement model and robustness.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RangeConfig {
+    /// Probability of the χ²₁ innovation gate: a range whose normalised innovation ν²/S
+    /// exceeds the χ²₁ quantile of this probability is rejected (0.999: ν²/S > 10.83).
+    pub gate_probability: f64,
+    /// Huber constant on the normalised innovation |ν|/√S: an accepted range beyond it is
+    /// down-weighted (its variance scaled by |ν|/(k√S)); 0 turns the down-weighting off.
+    pub huber_k: f64,
+    /// Bias states.
+    pub bias: BiasMode,
+    /// Prior σ of each bias state, m.
+    pub bias_prior_sigma_m: f64,
+    /// Random walk of each bias state, m/√s (0: constant).
+    pub bias_random_walk_m_per_sqrt_s: f64,
+    /// Estimate a range scale factor s common to all buoys, r = (1 + s)·distance + bias
+    /// (sound-speed error of acoustic ranges, clock-rate error of radio ranges).
+    pub estimate_scale: bool,
+    /// Prior σ of s (dimensionless).
+    pub scale_prior_sigma: f64,
+}
+
+impl Default for RangeConfig {
+    fn default() -> Self {
+        Self {
+            gate_probability: 0.999,
+            huber_k: 1.345,
+            bias: BiasMode::Global,
+            bias_prior_sigma_m: 1.0,
+            bias_random_walk_m_per_sqrt_s: 0.0,
+            estimate_scale: true,
+            scale_prior_sigma: 0.05,
+        }
+    }
+}
+
+/// Process noise.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MotionConfig {
+    /// Constant-velocity model (no odometry; and the vertical axis in spatial mode): σ of the
+    /// white-noise acceleration, m/s².
+    pub accel_sigma_mps2: f64,
+    /// Constant-velocity model: σ of the turn rate, rad/s (the heading variance grows by
+    /// (σ·Δt)² while no odometry turns it).
+    pub cv_turn_rate_sigma_rps: f64,
+    /// Odometry: wheel slip as a fraction of the distance travelled (σ of the position noise
+    /// added per step on each horizontal axis is this × |v|·Δt).
+    pub slip_fraction: f64,
+    /// Odometry: heading random walk on top of the input's own variance, rad/√s.
+    pub heading_random_walk_rad_per_sqrt_s: f64,
+    /// Estimate a constant bias of the odometry turn rate (gyro bias), rad/s.
+    pub estimate_turn_bias: bool,
+    /// Prior σ of the turn-rate bias, rad/s.
+    pub turn_bias_prior_sigma_rps: f64,
+    /// Random walk of the turn-rate bias, rad/s/√s.
+    pub turn_bias_random_walk_rps_per_sqrt_s: f64,
+    /// A prediction between odometry inputs (to a range's stamp) holds the last input's speed
+    /// and turn rate for up to this long after it ended; beyond, the constant-velocity model, s.
+    pub input_hold_s: f64,
+}
+
+impl Default for MotionConfig {
+    fn default() -> Self {
+        Self {
+            accel_sigma_mps2: 0.5,
+            cv_turn_rate_sigma_rps: 0.2,
+            slip_fraction: 0.02,
+            heading_random_walk_rad_per_sqrt_s: 0.005,
+            estimate_turn_bias: true,
+            turn_bias_prior_sigma_rps: 0.01,
+            turn_bias_random_walk_rps_per_sqrt_s: 1e-4,
+            input_hold_s: 1.0,
+        }
+    }
+}
+
+/// Initialisation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct InitConfig {
+    /// Trilateration or prior.
+    pub method: InitMethod,
+    /// Trilateration uses the ranges of the last `window_s` seconds (the vehicle should move
+    /// less than a range σ in it), s.
+    pub window_s: f64,
+    /// Distinct buoys a trilateration needs (at least 3; spatial mode needs 4 unless a depth
+    /// reading constrains z). The default, 4, is one more than the planar minimum, so that one
+    /// wrong range shows in the residual instead of bending an exact fit.
+    pub min_buoys: usize,
+    /// Largest condition number of the Gauss-Newton normal matrix that is accepted.
+    pub max_condition: f64,
+    /// Largest normalised RMS residual (|r − d|/σ over the inliers) of an accepted solution.
+    pub max_normalised_rms: f64,
+    /// Prior position (x, y, z), m (method `prior`).
+    pub prior_position_m: [f64; 3],
+    /// σ of the prior position on each axis, m.
+    pub prior_position_sigma_m: f64,
+    /// Prior heading, rad (method `prior`); absent: the heading follows from the ranges.
+    pub prior_heading_rad: Option<f64>,
+    /// σ of the prior heading, rad.
+    pub prior_heading_sigma_rad: f64,
+    /// σ of the initial speed on each axis, m/s.
+    pub initial_speed_sigma_mps: f64,
+    /// Unknown heading with odometry: the filter splits into this many heading hypotheses
+    /// (a Gaussian sum, evenly spaced, σ = π/n each) weighted by the ranges' likelihoods.
+    pub heading_hypotheses: usize,
+    /// The hypotheses merge into one filter once the mixture's heading σ is below this, rad.
+    pub heading_max_sigma_rad: f64,
+}
+
+impl Default for InitConfig {
+    fn default() -> Self {
+        Self {
+            method: InitMethod::Trilateration,
+            window_s: 5.0,
+            min_buoys: 4,
+            max_condition: 1e8,
+            max_normalised_rms: 3.0,
+            prior_position_m: [0.0; 3],
+            prior_position_sigma_m: 10.0,
+            prior_heading_rad: None,
+            prior_heading_sigma_rad: 0.1,
+            initial_speed_sigma_mps: 1.0,
+            heading_hypotheses: 16,
+            heading_max_sigma_rad: 0.1,
+        }
+    }
+}
+
+/// Recovery from a filter that the gate has locked out.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RecoveryConfig {
+    /// After this many ranges in a row rejected (any buoys, none accepted in between) the
+    /// filter counts as lost: its position covariance grows by the mean squared innovation of
+    /// the run, and its heading variance by `heading_sigma_rad`², so the next ranges pass.
+    pub consecutive_rejections: u32,
+    /// Heading σ added on a recovery, rad.
+    pub heading_sigma_rad: f64,
+    /// After this many ranges of one buoy in a row rejected while other buoys' ranges pass,
+    /// that buoy's bias state is reset to its prior (per-buoy biases only).
+    pub buoy_consecutive_rejections: u32,
+    /// After this many position fixes in a row rejected, the position is reset to the fix.
+    pub fix_rejections: u32,
+}
+
+impl Default for RecoveryConfig {
+    fn default() -> Self {
+        Self { consecutive_rejections: 8, heading_sigma_rad: 0.3, buoy_consecutive_rejections: 15, fix_rejections: 2 }
+    }
+}
+
+/// The buoy estimator's settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BuoyConfig {
+    /// 2-D or 3-D.
+    pub mode: Mode,
+    /// Planar mode: the vehicle's (fixed) z, m.
+    pub planar_height_m: f64,
+    /// The buoy table.
+    pub buoys: Vec<BuoyEntry>,
+    /// Range model.
+    pub range: RangeConfig,
+    /// Process noise.
+    pub motion: MotionConfig,
+    /// Initialisation.
+    pub init: InitConfig,
+    /// Recovery.
+    pub recovery: RecoveryConfig,
+}
+
+impl Default for BuoyConfig {
+    fn default() -> Self {
+        Self {
+            mode: Mode::Spatial,
+            planar_height_m: 0.0,
+            buoys: Vec::new(),
+            range: RangeConfig::default(),
+            motion: MotionConfig::default(),
+            init: InitConfig::default(),
+            recovery: RecoveryConfig::default(),
+        }
+    }
+}
+
+impl BuoyConfig {
+    /// Checks the values; each problem is (key, message).
+    pub fn validate(&self) -> Vec<(String, String)> {
+        let mut v = vec![];
+        let mut check = |ok: bool, key: &str, msg: &str| {
+            if !ok {
+                v.push((key.to_string(), msg.to_string()));
+            }
+        };
+        let pos = |x: f64| x.is_finite() && x > 0.0;
+        let nonneg = |x: f64| x.is_finite() && x >= 0.0;
+        check(self.planar_height_m.is_finite(), "planar_height_m", "must be finite");
+        check(self.buoys.len() >= 3, "buoys", "needs at least 3 buoys");
+        for (i, b) in self.buoys.iter().enumerate() {
+            check(b.position_m.iter().all(|c| c.is_finite()), &format!("buoys[{i}].position_m"), "must be finite");
+            if self.buoys[..i].iter().any(|o| o.id == b.id) {
+                check(false, &format!("buoys[{i}].id"), &format!("buoy id {} is listed twice", b.id));
+            }
+        }
+        let r = &self.range;
+        check(r.gate_probability > 0.0 && r.gate_probability < 1.0, "range.gate_probability", "must be in (0, 1)");
+        check(r.huber_k == 0.0 || (pos(r.huber_k) && r.huber_k >= 1.0), "range.huber_k", "must be 0 (off) or >= 1");
+        check(pos(r.bias_prior_sigma_m), "range.bias_prior_sigma_m", "must be > 0");
+        check(nonneg(r.bias_random_walk_m_per_sqrt_s), "range.bias_random_walk_m_per_sqrt_s", "must be >= 0");
+        check(pos(r.scale_prior_sigma) && r.scale_prior_sigma < 0.5, "range.scale_prior_sigma", "must be in (0, 0.5)");
+        let m = &self.motion;
+        check(pos(m.accel_sigma_mps2), "motion.accel_sigma_mps2", "must be > 0");
+        check(nonneg(m.cv_turn_rate_sigma_rps), "motion.cv_turn_rate_sigma_rps", "must be >= 0");
+        check(nonneg(m.slip_fraction) && m.slip_fraction < 1.0, "motion.slip_fraction", "must be in [0, 1)");
+        check(
+            nonneg(m.heading_random_walk_rad_per_sqrt_s),
+            "motion.heading_random_walk_rad_per_sqrt_s",
+            "must be >= 0",
+        );
+        check(pos(m.turn_bias_prior_sigma_rps), "motion.turn_bias_prior_sigma_rps", "must be > 0");
+        check(
+            nonneg(m.turn_bias_random_walk_rps_per_sqrt_s),
+            "motion.turn_bias_random_walk_rps_per_sqrt_s",
+            "must be >= 0",
+        );
+        check(nonneg(m.input_hold_s), "motion.input_hold_s", "must be >= 0");
+        let i = &self.init;
+        check(pos(i.window_s), "init.window_s", "must be > 0");
+        check(i.min_buoys >= 3, "init.min_buoys", "must be >= 3");
+        check(pos(i.max_condition) && i.max_condition > 1.0, "init.max_condition", "must be > 1");
+        check(pos(i.max_normalised_rms), "init.max_normalised_rms", "must be > 0");
+        check(i.prior_position_m.iter().all(|c| c.is_finite()), "init.prior_position_m", "must be finite");
+        check(pos(i.prior_position_sigma_m), "init.prior_position_sigma_m", "must be > 0");
+        check(i.prior_heading_rad.is_none_or(f64::is_finite), "init.prior_heading_rad", "must be finite");
+        check(pos(i.prior_heading_sigma_rad), "init.prior_heading_sigma_rad", "must be > 0");
+        check(pos(i.initial_speed_sigma_mps), "init.initial_speed_sigma_mps", "must be > 0");
+        check((4..=64).contains(&i.heading_hypotheses), "init.heading_hypotheses", "must be 4..=64");
+        check(
+            pos(i.heading_max_sigma_rad) && i.heading_max_sigma_rad < 1.0,
+            "init.heading_max_sigma_rad",
+            "must be in (0, 1)",
+        );
+        let c = &self.recovery;
+        check(c.consecutive_rejections >= 1, "recovery.consecutive_rejections", "must be >= 1");
+        check(nonneg(c.heading_sigma_rad), "recovery.heading_sigma_rad", "must be >= 0");
+        check(c.buoy_consecutive_rejections >= 1, "recovery.buoy_consecutive_rejections", "must be >= 1");
+        check(c.fix_rejections >= 1, "recovery.fix_rejections", "must be >= 1");
+        v
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn with_buoys() -> BuoyConfig {
+        BuoyConfig {
+            buoys: (0..4).map(|i| BuoyEntry { id: i, position_m: [i as f64, (i * i) as f64, 0.0] }).collect(),
+            ..BuoyConfig::default()
+        }
+    }
+
+    #[test]
+    fn defaults_with_a_buoy_table_are_valid() {
+        assert_eq!(with_buoys().validate(), vec![]);
+        // The default has no buoys: that is the one problem.
+        let keys: Vec<String> = BuoyConfig::default().validate().into_iter().map(|(k, _)| k).collect();
+        assert_eq!(keys, ["buoys"]);
+    }
+
+    #[test]
+    fn validation_names_the_offending_keys() {
+        let mut c = with_buoys();
+        c.buoys[2].id = 0;
+        c.buoys[1].position_m[2] = f64::NAN;
+        c.range.gate_probability = 1.0;
+        c.range.huber_k = 0.5;
+        c.motion.slip_fraction = -0.1;
+        c.init.min_buoys = 2;
+        c.init.prior_heading_rad = Some(f64::INFINITY);
+        c.recovery.fix_rejections = 0;
+        let keys: Vec<String> = c.validate().into_iter().map(|(k, _)| k).collect();
+        assert_eq!(
+            keys,
+            [
+                "buoys[1].position_m",
+                "buoys[2].id",
+                "range.gate_probability",
+                "range.huber_k",
+                "motion.slip_fraction",
+                "init.min_buoys",
+                "init.prior_heading_rad",
+                "recovery.fix_rejections"
+            ]
+        );
+    }
+
+    #[test]
+    fn toml_with_an_unknown_key_is_refused_and_a_partial_table_gets_defaults() {
+        let text = r#"
+            mode = "planar"
+            buoys = [{ id = 1, position_m = [0.0, 0.0, 0.0] }]
+            [range]
+            bias = "per_buoy"
+        "#;
+        let c: BuoyConfig = toml::from_str(text).unwrap();
+        assert_eq!(c.mode, Mode::Planar);
+        assert_eq!(c.range.bias, BiasMode::PerBuoy);
+        assert_eq!(c.range.gate_probability, 0.999);
+        let e = toml::from_str::<BuoyConfig>("[range]\ngate = 0.9\n").unwrap_err().to_string();
+        assert!(e.contains("unknown field `gate`"), "{e}");
+    }
+}

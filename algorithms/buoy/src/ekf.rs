@@ -1,0 +1,1584 @@
+//! The buoy estimator (SPEC §5): an extended Kalman filter for the global position from ranges
+//! to buoys at known positions, odometry, pressure depth and GPS fixes.
+//!
+//! # State
+//! x = (p, v, ψ, \[b_ω\], \[s\], \[β…\]), in this order (bracketed parts are optional):
+//! - p: position, (x, y) in planar mode, (x, y, z) in spatial mode, m;
+//! - v: velocity in the world frame, same dimension, m/s;
+//! - ψ: heading (yaw) of the body x axis, rad, wrapped to (−π, π];
+//! - b_ω: turn-rate bias of the odometry, rad/s (`motion.estimate_turn_bias`);
+//! - s: range scale factor, dimensionless (`range.estimate_scale`);
+//! - β: range biases, m: none, one global (the default), or one per buoy in buoy-table order
+//!   (`range.bias`). With the scale this is an affine range calibration r = (1 + s)·d + β; on
+//!   Plaza2 the ranges read ~7 % long (2-4 m at 30-60 m), which the scale state takes up.
+//!
+//! # Models
+//! - Range (SPEC §5 with scale and bias): r_j = (1 + s)·‖p − b_j‖ + β_j + n_j, so
+//!   H = ((1 + s)(p − b_j)ᵀ/‖p − b_j‖, ∂/∂s = ‖p − b_j‖, ∂/∂β_j = 1). In planar mode the distance
+//!   is sqrt(‖p_xy − b_j,xy‖² + Δz²) with the known height difference Δz = b_j,z − `planar_height_m`.
+//! - Constant velocity ([`BuoyEkf::predict_to`] without a recent odometry input): p += v·Δt,
+//!   white-noise acceleration `motion.accel_sigma_mps2`; ψ random walk `motion.cv_turn_rate_sigma_rps`·Δt.
+//! - Odometry ([`BuoyEkf::predict_with_input`], speed v and turn δθ over Δt, SPEC §1 restricted
+//!   to yaw): ψ' = ψ + δθ − b_ω·Δt, p_xy' = p_xy + v·Δt·(cos ψ_m, sin ψ_m) with the midpoint heading
+//!   ψ_m = ψ + (δθ − b_ω·Δt)/2 (second order; SPEC §1's start heading differs by O(v·Δt·δθ/2)),
+//!   v_xy' = v·(cos ψ', sin ψ'). Noise: the input's variances through the Jacobian, plus wheel slip
+//!   (σ = `motion.slip_fraction`·|v|·Δt per horizontal axis) and a heading random walk. In spatial
+//!   mode z and v_z follow the constant-velocity model (depth readings constrain them).
+//!   Between inputs (a range stamped between two odometry rows) the last input's speed and turn
+//!   rate are held for up to `motion.input_hold_s`; the next input covers the rest of its interval
+//!   pro rata.
+//! - Depth: d = −z (spatial mode only). Position fix: p directly (the planar mode uses x, y).
+//!
+//! All updates are Joseph-form. Accepted ranges beyond `range.huber_k` normalised innovations
+//! are down-weighted (Huber, R scaled by |ν|/(k√S)).
+//!
+//! # Gating and recovery
+//! A range whose normalised innovation ν²/S exceeds the χ²₁ quantile of `range.gate_probability`
+//! is rejected and counted (total and per buoy); depth uses the same χ²₁ gate and a position fix
+//! the χ²_D one. A filter that has gone wrong rejects everything, so rejections in a row trigger
+//! recovery: after `recovery.consecutive_rejections` ranges in a row rejected (no range accepted
+//! in between) the position covariance grows by the run's mean squared innovation on every axis
+//! and the heading variance by `recovery.heading_sigma_rad`², after which the ranges pass the gate
+//! and pull the estimate back. One buoy rejected `recovery.buoy_consecutive_rejections` times in a
+//! row while others pass has its bias state (per-buoy biases) reset to its prior. After
+//! `recovery.fix_rejections` position fixes in a row rejected the position is reset to the fix.
+//!
+//! # Initialisation
+//! `init.method = "trilateration"`: ranges are buffered for `init.window_s`; once they reach
+//! `init.min_buoys` distinct buoys (default 4: one spare, so a wrong range shows in the residual)
+//! in a usable geometry ([`crate::trilaterate()`]) the filter starts at the solution, with the
+//! solution's covariance plus the range bias and scale priors propagated through it (a consider
+//! covariance, with the matching cross-covariances). Until then ranges return
+//! [`RangeOutcome::Waiting`] with the reason. A position fix initialises too.
+//! `init.method = "prior"`: the filter starts at `init.prior_position_m`.
+//!
+//! Heading: without a prior heading the filter has none. Once odometry arrives it splits into
+//! `init.heading_hypotheses` filters with evenly spaced headings (a Gaussian sum), each updated
+//! as usual and weighted by its ranges' likelihoods (the normalised innovation capped at the gate,
+//! so one outlier cannot eliminate the true hypothesis); they merge (moment matching) into one
+//! filter once the mixture's heading σ falls below `init.heading_max_sigma_rad`. Meanwhile the
+//! estimate is the moment-matched mixture; while the vehicle stands still the hypotheses agree
+//! on the position, so it is already usable.
+//!
+//! # Errors
+//! Non-finite inputs, non-positive σ, unknown buoys, time going backwards and numerical failures
+//! (a covariance that is not positive definite) are [`BuoyError`]s; the filter is left as it was.
+
+#![allow(non_snake_case)]
+
+use std::collections::VecDeque;
+
+use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
+
+use crate::chi2::chi2_quantile;
+use crate::config::{BiasMode, BuoyConfig, InitMethod, Mode};
+use crate::error::{BuoyError, TrilaterationError};
+use crate::trilaterate::{Geometry, Limits, RangeObs, trilaterate, wrap_angle};
+
+/// An odometry input over the interval (t − `dt_s`, t] (SPEC §1: forward speed and yaw turn).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OdometryInput {
+    /// Interval length, s (> 0).
+    pub dt_s: f64,
+    /// Forward speed along the body x axis, m/s.
+    pub v_mps: f64,
+    /// Yaw increment over the interval (δθz), rad.
+    pub dtheta_rad: f64,
+    /// Variance of the speed, m²/s².
+    pub var_v: f64,
+    /// Variance of the yaw increment, rad².
+    pub var_dtheta: f64,
+}
+
+/// What happened to a range.
+#[derive(Debug, Clone, PartialEq)]
+pub enum RangeOutcome {
+    /// Used in the update.
+    Accepted {
+        /// Innovation r − h(x), m.
+        innovation_m: f64,
+        /// Normalised innovation ν²/S.
+        nis: f64,
+        /// Huber weight applied (1: full weight).
+        weight: f64,
+    },
+    /// Rejected by the gate (and counted).
+    Rejected {
+        /// Innovation r − h(x), m.
+        innovation_m: f64,
+        /// Normalised innovation ν²/S.
+        nis: f64,
+        /// This rejection triggered a recovery (see the module docs).
+        recovery: bool,
+    },
+    /// Buffered for initialisation, which is not possible yet for this reason.
+    Waiting(TrilaterationError),
+    /// This range completed the initialisation.
+    Initialised,
+}
+
+/// What happened to a depth reading or a position fix.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum FixOutcome {
+    /// Used in the update, with its normalised innovation.
+    Accepted {
+        /// Normalised innovation νᵀS⁻¹ν.
+        nis: f64,
+    },
+    /// Rejected by the gate.
+    Rejected {
+        /// Normalised innovation νᵀS⁻¹ν.
+        nis: f64,
+    },
+    /// Rejected too often in a row: the position was reset to the fix.
+    Reset,
+    /// Kept for initialisation (a depth reading before the first trilateration).
+    Stored,
+    /// This fix initialised the filter.
+    Initialised,
+}
+
+/// Range counters of one buoy.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BuoyCounters {
+    /// Buoy id.
+    pub id: u32,
+    /// Ranges accepted.
+    pub accepted: u64,
+    /// Ranges rejected by the gate.
+    pub rejected: u64,
+    /// Ranges rejected in a row (reset by an accepted one).
+    pub consecutive_rejected: u32,
+}
+
+/// Counters of the filter's decisions.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct Counters {
+    /// Ranges accepted.
+    pub accepted: u64,
+    /// Ranges rejected by the gate.
+    pub rejected: u64,
+    /// Ranges rejected in a row, any buoy (reset by an accepted one).
+    pub consecutive_rejected: u32,
+    /// Recoveries (covariance inflations after rejections in a row).
+    pub recoveries: u64,
+    /// Bias states reset to their prior.
+    pub bias_resets: u64,
+    /// Depth readings rejected.
+    pub depth_rejected: u64,
+    /// Position fixes rejected.
+    pub fixes_rejected: u64,
+    /// Per buoy, in buoy-table order.
+    pub per_buoy: Vec<BuoyCounters>,
+}
+
+impl Counters {
+    /// The counters of buoy `id`.
+    pub fn buoy(&self, id: u32) -> Option<&BuoyCounters> {
+        self.per_buoy.iter().find(|b| b.id == id)
+    }
+}
+
+/// A range bias estimate.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BiasEstimate {
+    /// Buoy id.
+    pub buoy_id: u32,
+    /// Bias, m (the global bias in `global` mode).
+    pub bias_m: f64,
+    /// Its σ, m.
+    pub sigma_m: f64,
+}
+
+/// The filter's estimate at its current time.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Estimate {
+    /// Time, s.
+    pub t_s: f64,
+    /// Position in the world frame, m (planar mode: z = `planar_height_m`).
+    pub position_m: Vector3<f64>,
+    /// Covariance of the position, m² (planar mode: the z row and column are 0).
+    pub covariance_m2: Matrix3<f64>,
+    /// Velocity in the world frame, m/s (planar mode: z = 0).
+    pub velocity_mps: Vector3<f64>,
+    /// Covariance of the velocity, m²/s².
+    pub velocity_covariance: Matrix3<f64>,
+    /// Heading, rad; `None` while unknown (no prior, hypotheses not merged yet).
+    pub heading_rad: Option<f64>,
+    /// σ of the heading (of the hypothesis mixture while unknown), rad.
+    pub heading_sigma_rad: f64,
+    /// Range scale factor s and its σ, when estimated.
+    pub range_scale: Option<(f64, f64)>,
+    /// Turn-rate bias and its σ, rad/s, when estimated.
+    pub turn_bias_rps: Option<(f64, f64)>,
+    /// Range biases per buoy (empty without bias states).
+    pub biases: Vec<BiasEstimate>,
+    /// Heading hypotheses alive (1 once merged).
+    pub hypotheses: usize,
+}
+
+/// Indices of the state vector (see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Layout {
+    /// Position dimension D (2 or 3); p = 0..D, v = D..2D.
+    d: usize,
+    psi: usize,
+    turn_bias: Option<usize>,
+    scale: Option<usize>,
+    bias: Option<usize>,
+    n_bias: usize,
+    n: usize,
+}
+
+impl Layout {
+    fn new(cfg: &BuoyConfig) -> Self {
+        let d = match cfg.mode {
+            Mode::Planar => 2,
+            Mode::Spatial => 3,
+        };
+        let psi = 2 * d;
+        let mut n = psi + 1;
+        let mut take = |on: bool| {
+            on.then(|| {
+                n += 1;
+                n - 1
+            })
+        };
+        let turn_bias = take(cfg.motion.estimate_turn_bias);
+        let scale = take(cfg.range.estimate_scale);
+        let n_bias = match cfg.range.bias {
+            BiasMode::None => 0,
+            BiasMode::Global => 1,
+            BiasMode::PerBuoy => cfg.buoys.len(),
+        };
+        let bias = (n_bias > 0).then_some(n);
+        n += n_bias;
+        Self { d, psi, turn_bias, scale, bias, n_bias, n }
+    }
+
+    fn bias_of(&self, buoy: usize) -> Option<usize> {
+        match self.n_bias {
+            0 => None,
+            1 => self.bias,
+            _ => self.bias.map(|b| b + buoy),
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+struct Gaussian {
+    x: DVector<f64>,
+    P: DMatrix<f64>,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+struct Hypothesis {
+    log_w: f64,
+    g: Gaussian,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+enum Phase {
+    Waiting,
+    Single(Gaussian),
+    Mixture(Vec<Hypothesis>),
+}
+
+/// The last odometry input, as rates, held between inputs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct HeldInput {
+    v_mps: f64,
+    rate_rps: f64,
+    var_v: f64,
+    /// Variance of the turn per second of interval, rad²/s.
+    var_rate: f64,
+    t_end_s: f64,
+}
+
+/// The result of one Kalman update.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct UpdateInfo {
+    nu0: f64,
+    nis: f64,
+    accepted: bool,
+    weight: f64,
+    log_lik: f64,
+}
+
+/// The models, without state.
+#[derive(Debug, Clone, PartialEq)]
+struct Model {
+    cfg: BuoyConfig,
+    lay: Layout,
+    buoys: Vec<Vector3<f64>>,
+    gate1: f64,
+    gate_fix: f64,
+}
+
+impl Model {
+    fn prior_variances(&self) -> DVector<f64> {
+        let (c, l) = (&self.cfg, &self.lay);
+        let mut v = DVector::zeros(l.n);
+        for k in 0..l.d {
+            v[l.d + k] = c.init.initial_speed_sigma_mps.powi(2);
+        }
+        v[l.psi] = std::f64::consts::PI.powi(2);
+        if let Some(i) = l.turn_bias {
+            v[i] = c.motion.turn_bias_prior_sigma_rps.powi(2);
+        }
+        if let Some(i) = l.scale {
+            v[i] = c.range.scale_prior_sigma.powi(2);
+        }
+        if let Some(b) = l.bias {
+            for k in 0..l.n_bias {
+                v[b + k] = c.range.bias_prior_sigma_m.powi(2);
+            }
+        }
+        v
+    }
+
+    /// The vehicle position as a 3-vector.
+    fn position(&self, x: &DVector<f64>) -> Vector3<f64> {
+        match self.lay.d {
+            2 => Vector3::new(x[0], x[1], self.cfg.planar_height_m),
+            _ => Vector3::new(x[0], x[1], x[2]),
+        }
+    }
+
+    /// Predicted range to buoy `j`, its Jacobian row, and the geometric distance.
+    fn range_model(&self, x: &DVector<f64>, j: usize) -> (f64, DMatrix<f64>, f64) {
+        let l = &self.lay;
+        let u = self.position(x) - self.buoys[j];
+        let d = u.norm().max(1e-6);
+        let s = l.scale.map_or(0.0, |i| x[i]);
+        let beta = l.bias_of(j).map_or(0.0, |i| x[i]);
+        let mut H = DMatrix::zeros(1, l.n);
+        for k in 0..l.d {
+            H[(0, k)] = (1.0 + s) * u[k] / d;
+        }
+        if let Some(i) = l.scale {
+            H[(0, i)] = d;
+        }
+        if let Some(i) = l.bias_of(j) {
+            H[(0, i)] = 1.0;
+        }
+        ((1.0 + s) * d + beta, H, d)
+    }
+
+    /// Random walks of the bias states over `dt`.
+    fn add_bias_random_walks(&self, Q: &mut DMatrix<f64>, dt: f64) {
+        let (c, l) = (&self.cfg, &self.lay);
+        if let Some(i) = l.turn_bias {
+            Q[(i, i)] += c.motion.turn_bias_random_walk_rps_per_sqrt_s.powi(2) * dt;
+        }
+        if let Some(b) = l.bias {
+            for k in 0..l.n_bias {
+                Q[(b + k, b + k)] += c.range.bias_random_walk_m_per_sqrt_s.powi(2) * dt;
+            }
+        }
+    }
+
+    /// Constant-velocity noise on axis `k` (position k, velocity D + k).
+    fn add_cv_noise(&self, Q: &mut DMatrix<f64>, k: usize, dt: f64) {
+        let q = self.cfg.motion.accel_sigma_mps2.powi(2);
+        let (p, v) = (k, self.lay.d + k);
+        Q[(p, p)] += q * dt.powi(3) / 3.0;
+        Q[(p, v)] += q * dt.powi(2) / 2.0;
+        Q[(v, p)] += q * dt.powi(2) / 2.0;
+        Q[(v, v)] += q * dt;
+    }
+
+    fn cv_predict(&self, g: &mut Gaussian, dt: f64) {
+        let l = &self.lay;
+        let mut F = DMatrix::identity(l.n, l.n);
+        let mut Q = DMatrix::zeros(l.n, l.n);
+        for k in 0..l.d {
+            F[(k, l.d + k)] = dt;
+            self.add_cv_noise(&mut Q, k, dt);
+        }
+        Q[(l.psi, l.psi)] += (self.cfg.motion.cv_turn_rate_sigma_rps * dt).powi(2);
+        self.add_bias_random_walks(&mut Q, dt);
+        g.x = &F * &g.x;
+        g.P = &F * &g.P * F.transpose() + Q;
+        symmetrise(&mut g.P);
+    }
+
+    /// The odometry transition over `dt` with speed `v` and turn `dtheta`: the new state, its
+    /// Jacobian F = ∂x'/∂x and the input Jacobian G = ∂x'/∂(v, δθ) (n × 2).
+    fn input_model(
+        &self,
+        x: &DVector<f64>,
+        dt: f64,
+        v: f64,
+        dtheta: f64,
+    ) -> (DVector<f64>, DMatrix<f64>, DMatrix<f64>) {
+        let l = &self.lay;
+        let (d, psi) = (l.d, l.psi);
+        let b_w = l.turn_bias.map_or(0.0, |i| x[i]);
+        let turn = dtheta - b_w * dt;
+        let psi_m = x[psi] + turn / 2.0;
+        let psi_1 = x[psi] + turn;
+        let (sm, cm) = psi_m.sin_cos();
+        let (s1, c1) = psi_1.sin_cos();
+
+        let mut F = DMatrix::identity(l.n, l.n);
+        F[(0, psi)] = -v * dt * sm;
+        F[(1, psi)] = v * dt * cm;
+        F[(d, d)] = 0.0;
+        F[(d + 1, d + 1)] = 0.0;
+        F[(d, psi)] = -v * s1;
+        F[(d + 1, psi)] = v * c1;
+        if let Some(i) = l.turn_bias {
+            F[(0, i)] = v * dt * dt * sm / 2.0;
+            F[(1, i)] = -v * dt * dt * cm / 2.0;
+            F[(d, i)] = v * s1 * dt;
+            F[(d + 1, i)] = -v * c1 * dt;
+            F[(psi, i)] = -dt;
+        }
+        if d == 3 {
+            F[(2, d + 2)] = dt;
+        }
+        let mut G = DMatrix::zeros(l.n, 2);
+        G[(0, 0)] = dt * cm;
+        G[(1, 0)] = dt * sm;
+        G[(d, 0)] = c1;
+        G[(d + 1, 0)] = s1;
+        G[(0, 1)] = -v * dt * sm / 2.0;
+        G[(1, 1)] = v * dt * cm / 2.0;
+        G[(d, 1)] = -v * s1;
+        G[(d + 1, 1)] = v * c1;
+        G[(psi, 1)] = 1.0;
+
+        let mut xn = x.clone();
+        xn[0] += v * dt * cm;
+        xn[1] += v * dt * sm;
+        if d == 3 {
+            xn[2] += x[d + 2] * dt;
+        }
+        xn[d] = v * c1;
+        xn[d + 1] = v * s1;
+        xn[psi] = wrap_angle(psi_1);
+        (xn, F, G)
+    }
+
+    /// Odometry prediction over `dt` with speed `v`, turn `dtheta` and their variances.
+    fn input_predict(&self, g: &mut Gaussian, dt: f64, v: f64, dtheta: f64, var_v: f64, var_dtheta: f64) {
+        let (c, l) = (&self.cfg, &self.lay);
+        let (x, F, G) = self.input_model(&g.x, dt, v, dtheta);
+        let U = DMatrix::from_diagonal(&DVector::from_column_slice(&[var_v, var_dtheta]));
+        let mut Q = &G * U * G.transpose();
+        let slip = (c.motion.slip_fraction * v * dt).powi(2);
+        Q[(0, 0)] += slip;
+        Q[(1, 1)] += slip;
+        Q[(l.psi, l.psi)] += c.motion.heading_random_walk_rad_per_sqrt_s.powi(2) * dt;
+        if l.d == 3 {
+            self.add_cv_noise(&mut Q, 2, dt);
+        }
+        self.add_bias_random_walks(&mut Q, dt);
+        g.x = x;
+        g.P = &F * &g.P * F.transpose() + Q;
+        symmetrise(&mut g.P);
+    }
+
+    /// Kalman update with measurement Jacobian `H` (m × n), innovation `nu`, noise `R`, gate
+    /// on νᵀS⁻¹ν and optional Huber down-weighting. Rejected or failed: `g` is unchanged.
+    fn update(
+        &self,
+        g: &mut Gaussian,
+        H: &DMatrix<f64>,
+        nu: &DVector<f64>,
+        R: &DMatrix<f64>,
+        gate: f64,
+        huber_k: f64,
+    ) -> Result<UpdateInfo, BuoyError> {
+        let info = self.gate(g, H, nu, R, gate, huber_k)?;
+        if info.accepted {
+            self.apply(g, H, nu, &(R / info.weight))?;
+        }
+        Ok(info)
+    }
+
+    /// The gate decision, likelihood and Huber weight of an innovation (no state change).
+    fn gate(
+        &self,
+        g: &Gaussian,
+        H: &DMatrix<f64>,
+        nu: &DVector<f64>,
+        R: &DMatrix<f64>,
+        gate: f64,
+        huber_k: f64,
+    ) -> Result<UpdateInfo, BuoyError> {
+        let m = nu.len() as f64;
+        let S = H * &g.P * H.transpose() + R;
+        let chol = S.cholesky().ok_or(BuoyError::NotPositiveDefinite("innovation covariance S"))?;
+        let nis = nu.dot(&chol.solve(nu));
+        if !nis.is_finite() {
+            return Err(BuoyError::NotPositiveDefinite("innovation covariance S"));
+        }
+        let ln_det = 2.0 * chol.l().diagonal().iter().map(|d| d.ln()).sum::<f64>();
+        let log_lik = -0.5 * (nis.min(gate) + ln_det + m * (2.0 * std::f64::consts::PI).ln());
+        let e = nis.sqrt();
+        let weight = if huber_k > 0.0 && e > huber_k { huber_k / e } else { 1.0 };
+        Ok(UpdateInfo { nu0: nu[0], nis, accepted: nis <= gate, weight, log_lik })
+    }
+
+    /// Joseph-form update x += K·ν, P = (I − KH)P(I − KH)ᵀ + K·R·Kᵀ; on failure `g` is unchanged.
+    fn apply(&self, g: &mut Gaussian, H: &DMatrix<f64>, nu: &DVector<f64>, R: &DMatrix<f64>) -> Result<(), BuoyError> {
+        let PHt = &g.P * H.transpose();
+        let S = H * &PHt + R;
+        let chol = S.cholesky().ok_or(BuoyError::NotPositiveDefinite("innovation covariance S"))?;
+        let K = chol.solve(&PHt.transpose()).transpose();
+        let x = &g.x + &K * nu;
+        let IKH = DMatrix::identity(self.lay.n, self.lay.n) - &K * H;
+        let mut P = &IKH * &g.P * IKH.transpose() + &K * R * K.transpose();
+        symmetrise(&mut P);
+        if !(x.iter().all(|v| v.is_finite()) && P.iter().all(|v| v.is_finite()) && P.diagonal().min() >= 0.0) {
+            return Err(BuoyError::NotPositiveDefinite("state covariance P"));
+        }
+        g.x = x;
+        g.x[self.lay.psi] = wrap_angle(g.x[self.lay.psi]);
+        g.P = P;
+        Ok(())
+    }
+
+    fn range_update(&self, g: &mut Gaussian, j: usize, r: f64, sigma: f64) -> Result<UpdateInfo, BuoyError> {
+        let (h, H, _) = self.range_model(&g.x, j);
+        let nu = DVector::from_element(1, r - h);
+        let R = DMatrix::from_element(1, 1, sigma * sigma);
+        self.update(g, &H, &nu, &R, self.gate1, self.cfg.range.huber_k)
+    }
+
+    fn depth_update(&self, g: &mut Gaussian, z: f64, sigma: f64) -> Result<UpdateInfo, BuoyError> {
+        let mut H = DMatrix::zeros(1, self.lay.n);
+        H[(0, 2)] = 1.0;
+        let nu = DVector::from_element(1, z - g.x[2]);
+        let R = DMatrix::from_element(1, 1, sigma * sigma);
+        self.update(g, &H, &nu, &R, self.gate1, 0.0)
+    }
+
+    fn fix_update(&self, g: &mut Gaussian, p: &Vector3<f64>, cov: &Matrix3<f64>) -> Result<UpdateInfo, BuoyError> {
+        let d = self.lay.d;
+        let mut H = DMatrix::zeros(d, self.lay.n);
+        for k in 0..d {
+            H[(k, k)] = 1.0;
+        }
+        let nu = DVector::from_iterator(d, (0..d).map(|k| p[k] - g.x[k]));
+        let R = DMatrix::from_fn(d, d, |a, b| cov[(a, b)]);
+        self.update(g, &H, &nu, &R, self.gate_fix, 0.0)
+    }
+
+    /// Resets the position block of `g` to (p, cov), with no cross-covariance.
+    fn reset_position(&self, g: &mut Gaussian, p: &Vector3<f64>, cov: &Matrix3<f64>) {
+        let d = self.lay.d;
+        for k in 0..d {
+            g.x[k] = p[k];
+            g.P.row_mut(k).fill(0.0);
+            g.P.column_mut(k).fill(0.0);
+        }
+        for a in 0..d {
+            for b in 0..d {
+                g.P[(a, b)] = cov[(a, b)];
+            }
+        }
+    }
+
+    /// Moment-matched single Gaussian of a mixture (headings unwrapped around the heaviest).
+    fn moment_match(&self, hyps: &[Hypothesis]) -> Gaussian {
+        let psi = self.lay.psi;
+        let best = hyps.iter().max_by(|a, b| a.log_w.total_cmp(&b.log_w)).expect("a mixture is never empty");
+        let ref_psi = best.g.x[psi];
+        let unwrapped = |h: &Hypothesis| {
+            let mut x = h.g.x.clone();
+            x[psi] = ref_psi + wrap_angle(x[psi] - ref_psi);
+            x
+        };
+        let mut mean = DVector::zeros(self.lay.n);
+        for h in hyps {
+            mean += unwrapped(h) * h.log_w.exp();
+        }
+        let mut P = DMatrix::zeros(self.lay.n, self.lay.n);
+        for h in hyps {
+            let dx = unwrapped(h) - &mean;
+            P += (&h.g.P + &dx * dx.transpose()) * h.log_w.exp();
+        }
+        symmetrise(&mut P);
+        mean[psi] = wrap_angle(mean[psi]);
+        Gaussian { x: mean, P }
+    }
+}
+
+fn symmetrise(P: &mut DMatrix<f64>) {
+    let t = P.transpose();
+    *P += t;
+    *P *= 0.5;
+}
+
+/// A range kept for initialisation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct InitRange {
+    t_s: f64,
+    buoy: usize,
+    range_m: f64,
+    sigma_m: f64,
+}
+
+/// The buoy estimator (see the module docs).
+#[derive(Debug, Clone, PartialEq)]
+pub struct BuoyEkf {
+    model: Model,
+    ids: Vec<u32>,
+    t_s: f64,
+    phase: Phase,
+    heading_known: bool,
+    held: Option<HeldInput>,
+    init_ranges: VecDeque<InitRange>,
+    /// Latest depth reading before initialisation: (t, z, σ).
+    last_depth: Option<(f64, f64, f64)>,
+    counters: Counters,
+    /// Σν² of the current run of rejected ranges.
+    rejection_run_nu2: f64,
+    fix_run: u32,
+}
+
+fn finite(x: f64, what: &'static str) -> Result<f64, BuoyError> {
+    if x.is_finite() { Ok(x) } else { Err(BuoyError::NonFinite(what)) }
+}
+
+fn positive(x: f64, what: &'static str) -> Result<f64, BuoyError> {
+    finite(x, what)?;
+    if x > 0.0 { Ok(x) } else { Err(BuoyError::NonPositiveSigma { what, value: x }) }
+}
+
+fn non_negative(x: f64, what: &'static str) -> Result<f64, BuoyError> {
+    finite(x, what)?;
+    if x >= 0.0 { Ok(x) } else { Err(BuoyError::NonPositiveSigma { what, value: x }) }
+}
+
+/// Largest log-weight difference kept between heading hypotheses (weights below e^−50 of the
+/// best are floored there, so a hypothesis can still come back after a burst of outliers).
+const MIN_LOG_WEIGHT: f64 = -50.0;
+
+impl BuoyEkf {
+    /// A filter at time `t0_s` (validates the configuration; method `prior` starts initialised).
+    pub fn new(config: BuoyConfig, t0_s: f64) -> Result<Self, BuoyError> {
+        let problems = config.validate();
+        if !problems.is_empty() {
+            return Err(BuoyError::InvalidConfig(problems));
+        }
+        finite(t0_s, "t0_s")?;
+        let lay = Layout::new(&config);
+        let q = |p: f64, k: usize| chi2_quantile(p, k).ok_or(BuoyError::NonFinite("gate probability"));
+        let model = Model {
+            gate1: q(config.range.gate_probability, 1)?,
+            gate_fix: q(config.range.gate_probability, lay.d)?,
+            buoys: config.buoys.iter().map(|b| Vector3::from(b.position_m)).collect(),
+            lay,
+            cfg: config,
+        };
+        let ids: Vec<u32> = model.cfg.buoys.iter().map(|b| b.id).collect();
+        let counters = Counters {
+            per_buoy: ids
+                .iter()
+                .map(|&id| BuoyCounters { id, accepted: 0, rejected: 0, consecutive_rejected: 0 })
+                .collect(),
+            ..Counters::default()
+        };
+        let mut f = Self {
+            model,
+            ids,
+            t_s: t0_s,
+            phase: Phase::Waiting,
+            heading_known: false,
+            held: None,
+            init_ranges: VecDeque::new(),
+            last_depth: None,
+            counters,
+            rejection_run_nu2: 0.0,
+            fix_run: 0,
+        };
+        if f.model.cfg.init.method == InitMethod::Prior {
+            let i = f.model.cfg.init.clone();
+            let cov = Matrix3::identity() * i.prior_position_sigma_m.powi(2);
+            let mut g = f.initial_gaussian(&Vector3::from(i.prior_position_m), &cov);
+            if let Some(psi) = i.prior_heading_rad {
+                let l = f.model.lay;
+                g.x[l.psi] = wrap_angle(psi);
+                g.P[(l.psi, l.psi)] = i.prior_heading_sigma_rad.powi(2);
+                f.heading_known = true;
+            }
+            f.phase = Phase::Single(g);
+        }
+        Ok(f)
+    }
+
+    /// The configuration in use.
+    pub fn config(&self) -> &BuoyConfig {
+        &self.model.cfg
+    }
+
+    /// The filter's time, s.
+    pub fn time_s(&self) -> f64 {
+        self.t_s
+    }
+
+    /// Whether the filter has a state (after trilateration, a fix or a prior).
+    pub fn is_initialised(&self) -> bool {
+        !matches!(self.phase, Phase::Waiting)
+    }
+
+    /// Whether the heading is known (a prior, or the hypotheses have merged).
+    pub fn heading_known(&self) -> bool {
+        self.heading_known
+    }
+
+    /// The counters of accepted and rejected measurements.
+    pub fn counters(&self) -> &Counters {
+        &self.counters
+    }
+
+    fn buoy_index(&self, id: u32) -> Result<usize, BuoyError> {
+        self.ids.iter().position(|&b| b == id).ok_or(BuoyError::UnknownBuoy(id))
+    }
+
+    /// A state at `p` with covariance `cov` for the position, priors elsewhere.
+    fn initial_gaussian(&self, p: &Vector3<f64>, cov: &Matrix3<f64>) -> Gaussian {
+        let l = &self.model.lay;
+        let mut x = DVector::zeros(l.n);
+        for k in 0..l.d {
+            x[k] = p[k];
+        }
+        let mut P = DMatrix::from_diagonal(&self.model.prior_variances());
+        for a in 0..l.d {
+            for b in 0..l.d {
+                P[(a, b)] = cov[(a, b)];
+            }
+        }
+        Gaussian { x, P }
+    }
+
+    /// Advances every hypothesis by `dt` with the held input (if fresh) or constant velocity.
+    fn propagate(&mut self, dt: f64) {
+        if dt <= 0.0 {
+            return;
+        }
+        let hold = self.model.cfg.motion.input_hold_s;
+        let held = self.held.filter(|h| self.t_s - h.t_end_s <= hold);
+        let use_input = held.is_some() && (self.heading_known || matches!(self.phase, Phase::Mixture(_)));
+        let model = &self.model;
+        let step = |g: &mut Gaussian| match (use_input, held) {
+            (true, Some(h)) => model.input_predict(g, dt, h.v_mps, h.rate_rps * dt, h.var_v, h.var_rate * dt),
+            _ => model.cv_predict(g, dt),
+        };
+        match &mut self.phase {
+            Phase::Waiting => {}
+            Phase::Single(g) => step(g),
+            Phase::Mixture(hyps) => hyps.iter_mut().for_each(|h| step(&mut h.g)),
+        }
+    }
+
+    /// Predicts to `t_s` (≥ the filter's time): with the last odometry input held if it ended
+    /// less than `motion.input_hold_s` ago, else with the constant-velocity model.
+    pub fn predict_to(&mut self, t_s: f64) -> Result<(), BuoyError> {
+        finite(t_s, "t_s")?;
+        if t_s < self.t_s {
+            return Err(BuoyError::TimeWentBackwards { t_s, now_s: self.t_s });
+        }
+        self.propagate(t_s - self.t_s);
+        self.t_s = t_s;
+        Ok(())
+    }
+
+    /// Applies an odometry input over (`t_s` − dt, `t_s`]. A gap before the interval is
+    /// predicted first; the part of the interval the filter has already predicted through (to a
+    /// range stamped inside it) is skipped, the rest gets the input pro rata.
+    pub fn predict_with_input(&mut self, t_s: f64, input: &OdometryInput) -> Result<(), BuoyError> {
+        finite(t_s, "t_s")?;
+        positive(input.dt_s, "odometry dt_s")?;
+        finite(input.v_mps, "odometry v_mps")?;
+        finite(input.dtheta_rad, "odometry dtheta_rad")?;
+        non_negative(input.var_v, "odometry var_v")?;
+        non_negative(input.var_dtheta, "odometry var_dtheta")?;
+        if t_s < self.t_s {
+            return Err(BuoyError::TimeWentBackwards { t_s, now_s: self.t_s });
+        }
+        let start = t_s - input.dt_s;
+        if start > self.t_s {
+            self.predict_to(start)?;
+        }
+        let held = HeldInput {
+            v_mps: input.v_mps,
+            rate_rps: input.dtheta_rad / input.dt_s,
+            var_v: input.var_v,
+            var_rate: input.var_dtheta / input.dt_s,
+            t_end_s: t_s,
+        };
+        self.held = Some(held);
+        self.split_if_heading_unknown();
+        let span = t_s - self.t_s;
+        if span > 0.0 {
+            // Apply the input (rather than whatever was held before) over the remaining span.
+            self.held = Some(HeldInput { t_end_s: self.t_s, ..held });
+            self.propagate(span);
+            self.held = Some(held);
+        }
+        self.t_s = t_s;
+        Ok(())
+    }
+
+    /// Odometry is present and the heading unknown: one filter becomes a Gaussian sum.
+    fn split_if_heading_unknown(&mut self) {
+        if self.heading_known || self.held.is_none() {
+            return;
+        }
+        let Phase::Single(g) = &self.phase else { return };
+        let n = self.model.cfg.init.heading_hypotheses;
+        let psi = self.model.lay.psi;
+        let sigma = std::f64::consts::PI / n as f64;
+        let hyps = (0..n)
+            .map(|k| {
+                let mut h = g.clone();
+                h.x[psi] = wrap_angle(2.0 * std::f64::consts::PI * k as f64 / n as f64);
+                h.P.row_mut(psi).fill(0.0);
+                h.P.column_mut(psi).fill(0.0);
+                h.P[(psi, psi)] = sigma * sigma;
+                Hypothesis { log_w: -(n as f64).ln(), g: h }
+            })
+            .collect();
+        self.phase = Phase::Mixture(hyps);
+    }
+
+    /// Re-weights a mixture by the log-likelihoods and merges it once its heading is known.
+    fn reweight(&mut self, log_liks: &[f64]) {
+        let Phase::Mixture(hyps) = &mut self.phase else { return };
+        for (h, ll) in hyps.iter_mut().zip(log_liks) {
+            h.log_w += ll;
+        }
+        let max = hyps.iter().map(|h| h.log_w).fold(f64::NEG_INFINITY, f64::max);
+        for h in hyps.iter_mut() {
+            h.log_w = (h.log_w - max).max(MIN_LOG_WEIGHT);
+        }
+        let norm = hyps.iter().map(|h| h.log_w.exp()).sum::<f64>().ln();
+        for h in hyps.iter_mut() {
+            h.log_w -= norm;
+        }
+        let merged = self.model.moment_match(hyps);
+        let psi = self.model.lay.psi;
+        if merged.P[(psi, psi)].sqrt() <= self.model.cfg.init.heading_max_sigma_rad {
+            self.phase = Phase::Single(merged);
+            self.heading_known = true;
+        }
+    }
+
+    /// Runs `f` on every hypothesis (a single filter is one); returns the heaviest hypothesis's
+    /// result. All-or-nothing: on an error no hypothesis changes.
+    fn for_each_hypothesis(
+        &mut self,
+        f: impl Fn(&Model, &mut Gaussian) -> Result<UpdateInfo, BuoyError>,
+    ) -> Result<UpdateInfo, BuoyError> {
+        match &mut self.phase {
+            Phase::Waiting => Err(BuoyError::NotInitialised),
+            Phase::Single(g) => {
+                let mut next = g.clone();
+                let info = f(&self.model, &mut next)?;
+                *g = next;
+                Ok(info)
+            }
+            Phase::Mixture(hyps) => {
+                let mut next = hyps.clone();
+                let mut infos = Vec::with_capacity(next.len());
+                for h in next.iter_mut() {
+                    infos.push(f(&self.model, &mut h.g)?);
+                }
+                let best = (0..next.len()).max_by(|&a, &b| next[a].log_w.total_cmp(&next[b].log_w)).unwrap_or(0);
+                *hyps = next;
+                let log_liks: Vec<f64> = infos.iter().map(|i| i.log_lik).collect();
+                self.reweight(&log_liks);
+                Ok(infos[best])
+            }
+        }
+    }
+
+    /// A range to buoy `buoy_id` at the filter's time (call [`Self::predict_to`] first).
+    pub fn update_range(&mut self, buoy_id: u32, range_m: f64, sigma_m: f64) -> Result<RangeOutcome, BuoyError> {
+        non_negative(range_m, "range_m")?;
+        positive(sigma_m, "range sigma_m")?;
+        let j = self.buoy_index(buoy_id)?;
+        if matches!(self.phase, Phase::Waiting) {
+            return Ok(self.try_trilaterate(InitRange { t_s: self.t_s, buoy: j, range_m, sigma_m }));
+        }
+        let single = matches!(self.phase, Phase::Single(_));
+        let info = self.for_each_hypothesis(|m, g| m.range_update(g, j, range_m, sigma_m))?;
+        let c = &mut self.counters;
+        if info.accepted {
+            c.accepted += 1;
+            c.consecutive_rejected = 0;
+            c.per_buoy[j].accepted += 1;
+            c.per_buoy[j].consecutive_rejected = 0;
+            self.rejection_run_nu2 = 0.0;
+            return Ok(RangeOutcome::Accepted { innovation_m: info.nu0, nis: info.nis, weight: info.weight });
+        }
+        c.rejected += 1;
+        c.consecutive_rejected += 1;
+        c.per_buoy[j].rejected += 1;
+        c.per_buoy[j].consecutive_rejected += 1;
+        self.rejection_run_nu2 += info.nu0 * info.nu0;
+        let mut recovery = false;
+        if single {
+            let rc = self.model.cfg.recovery.clone();
+            if self.counters.consecutive_rejected >= rc.consecutive_rejections {
+                let mean_nu2 = self.rejection_run_nu2 / f64::from(self.counters.consecutive_rejected);
+                self.inflate_after_rejections(mean_nu2, rc.heading_sigma_rad);
+                recovery = true;
+            } else if self.counters.per_buoy[j].consecutive_rejected >= rc.buoy_consecutive_rejections
+                && self.model.lay.n_bias > 1
+            {
+                self.reset_bias(j);
+            }
+        }
+        Ok(RangeOutcome::Rejected { innovation_m: info.nu0, nis: info.nis, recovery })
+    }
+
+    fn inflate_after_rejections(&mut self, mean_nu2: f64, heading_sigma: f64) {
+        let l = self.model.lay;
+        let heading_known = self.heading_known;
+        if let Phase::Single(g) = &mut self.phase {
+            for k in 0..l.d {
+                g.P[(k, k)] += mean_nu2;
+            }
+            if heading_known {
+                g.P[(l.psi, l.psi)] += heading_sigma * heading_sigma;
+            }
+        }
+        self.counters.recoveries += 1;
+        self.counters.consecutive_rejected = 0;
+        self.rejection_run_nu2 = 0.0;
+    }
+
+    fn reset_bias(&mut self, j: usize) {
+        let Some(i) = self.model.lay.bias_of(j) else { return };
+        let var = self.model.cfg.range.bias_prior_sigma_m.powi(2);
+        if let Phase::Single(g) = &mut self.phase {
+            g.P.row_mut(i).fill(0.0);
+            g.P.column_mut(i).fill(0.0);
+            g.P[(i, i)] = var;
+        }
+        self.counters.bias_resets += 1;
+        self.counters.per_buoy[j].consecutive_rejected = 0;
+    }
+
+    /// Buffers a range for initialisation and tries a trilateration.
+    fn try_trilaterate(&mut self, r: InitRange) -> RangeOutcome {
+        let window = self.model.cfg.init.window_s;
+        self.init_ranges.push_back(r);
+        while self.init_ranges.front().is_some_and(|o| o.t_s < self.t_s - window) {
+            self.init_ranges.pop_front();
+        }
+        let obs: Vec<RangeObs> = self
+            .init_ranges
+            .iter()
+            .map(|o| RangeObs {
+                buoy_id: self.ids[o.buoy],
+                buoy_m: self.model.buoys[o.buoy],
+                range_m: o.range_m,
+                sigma_m: o.sigma_m,
+            })
+            .collect();
+        let c = &self.model.cfg;
+        let geometry = match c.mode {
+            Mode::Planar => Geometry::Planar { height_m: c.planar_height_m },
+            Mode::Spatial => Geometry::Spatial {
+                z_constraint: self.last_depth.filter(|d| self.t_s - d.0 <= window).map(|d| (d.1, d.2)),
+            },
+        };
+        let limits = Limits {
+            min_buoys: c.init.min_buoys,
+            max_condition: c.init.max_condition,
+            max_normalised_rms: c.init.max_normalised_rms,
+            huber_k: c.range.huber_k,
+        };
+        match trilaterate(&obs, geometry, &limits) {
+            Err(e) => RangeOutcome::Waiting(e),
+            Ok(sol) => {
+                let mut g = self.initial_gaussian(&sol.position_m, &sol.covariance_m2);
+                self.add_consider_covariance(&mut g, &sol.sensitivity, &sol.position_m);
+                self.phase = Phase::Single(g);
+                self.init_ranges.clear();
+                self.split_if_heading_unknown();
+                RangeOutcome::Initialised
+            }
+        }
+    }
+
+    /// The trilateration assumed zero bias and unit scale; their prior uncertainty propagates
+    /// through the solution's sensitivity K: e_p = −K·G·e_β, so P_pp += K·G·P_β·Gᵀ·Kᵀ and
+    /// P_pβ = −K·G·P_β (G = ∂r/∂(s, β)).
+    fn add_consider_covariance(&self, g: &mut Gaussian, K: &DMatrix<f64>, p: &Vector3<f64>) {
+        let l = &self.model.lay;
+        let mut G = DMatrix::zeros(self.init_ranges.len(), l.n);
+        for (i, o) in self.init_ranges.iter().enumerate() {
+            if let Some(k) = l.scale {
+                G[(i, k)] = (p - self.model.buoys[o.buoy]).norm();
+            }
+            if let Some(k) = l.bias_of(o.buoy) {
+                G[(i, k)] = 1.0;
+            }
+        }
+        let P0 = DMatrix::from_diagonal(&self.model.prior_variances());
+        let M = K * G; // D × n, non-zero only in the scale and bias columns
+        let add = &M * &P0 * M.transpose();
+        let cross = -(&M * &P0);
+        for a in 0..l.d {
+            for b in 0..l.d {
+                g.P[(a, b)] += add[(a, b)];
+            }
+            for col in l.scale.into_iter().chain(l.bias.into_iter().flat_map(|b| b..b + l.n_bias)) {
+                g.P[(a, col)] = cross[(a, col)];
+                g.P[(col, a)] = cross[(a, col)];
+            }
+        }
+    }
+
+    /// A pressure depth (positive down: z = −depth) at the filter's time; spatial mode only.
+    pub fn update_depth(&mut self, depth_m: f64, sigma_m: f64) -> Result<FixOutcome, BuoyError> {
+        if self.model.lay.d == 2 {
+            return Err(BuoyError::NotInPlanarMode("a depth reading"));
+        }
+        finite(depth_m, "depth_m")?;
+        positive(sigma_m, "depth sigma_m")?;
+        if matches!(self.phase, Phase::Waiting) {
+            self.last_depth = Some((self.t_s, -depth_m, sigma_m));
+            return Ok(FixOutcome::Stored);
+        }
+        let info = self.for_each_hypothesis(|m, g| m.depth_update(g, -depth_m, sigma_m))?;
+        if info.accepted {
+            Ok(FixOutcome::Accepted { nis: info.nis })
+        } else {
+            self.counters.depth_rejected += 1;
+            Ok(FixOutcome::Rejected { nis: info.nis })
+        }
+    }
+
+    /// A position fix (GPS at the surface) with its covariance at the filter's time; in planar
+    /// mode only x, y and their 2 × 2 block are used.
+    pub fn update_position_fix(
+        &mut self,
+        position_m: &Vector3<f64>,
+        covariance_m2: &Matrix3<f64>,
+    ) -> Result<FixOutcome, BuoyError> {
+        if !position_m.iter().chain(covariance_m2.iter()).all(|v| v.is_finite()) {
+            return Err(BuoyError::NonFinite("position fix"));
+        }
+        let d = self.model.lay.d;
+        let block = covariance_m2.view((0, 0), (d, d)).into_owned();
+        if (&block - block.transpose()).amax() > 1e-9 * block.amax().max(1.0) || block.cholesky().is_none() {
+            return Err(BuoyError::NotPositiveDefinite("position fix covariance"));
+        }
+        if matches!(self.phase, Phase::Waiting) {
+            self.phase = Phase::Single(self.initial_gaussian(position_m, covariance_m2));
+            self.init_ranges.clear();
+            self.split_if_heading_unknown();
+            return Ok(FixOutcome::Initialised);
+        }
+        let info = self.for_each_hypothesis(|m, g| m.fix_update(g, position_m, covariance_m2))?;
+        if info.accepted {
+            self.fix_run = 0;
+            return Ok(FixOutcome::Accepted { nis: info.nis });
+        }
+        self.counters.fixes_rejected += 1;
+        self.fix_run += 1;
+        if self.fix_run >= self.model.cfg.recovery.fix_rejections {
+            self.fix_run = 0;
+            let model = &self.model;
+            match &mut self.phase {
+                Phase::Single(g) => model.reset_position(g, position_m, covariance_m2),
+                Phase::Mixture(hyps) => {
+                    hyps.iter_mut().for_each(|h| model.reset_position(&mut h.g, position_m, covariance_m2))
+                }
+                Phase::Waiting => {}
+            }
+            return Ok(FixOutcome::Reset);
+        }
+        Ok(FixOutcome::Rejected { nis: info.nis })
+    }
+
+    /// The estimate at the filter's time (the moment-matched mixture while the heading is
+    /// unknown).
+    pub fn estimate(&self) -> Result<Estimate, BuoyError> {
+        let (g, hypotheses) = match &self.phase {
+            Phase::Waiting => return Err(BuoyError::NotInitialised),
+            Phase::Single(g) => (g.clone(), 1),
+            Phase::Mixture(h) => (self.model.moment_match(h), h.len()),
+        };
+        let l = &self.model.lay;
+        let d = l.d;
+        let mut covariance_m2 = Matrix3::zeros();
+        let mut velocity_covariance = Matrix3::zeros();
+        let mut velocity_mps = Vector3::zeros();
+        for a in 0..d {
+            velocity_mps[a] = g.x[d + a];
+            for b in 0..d {
+                covariance_m2[(a, b)] = g.P[(a, b)];
+                velocity_covariance[(a, b)] = g.P[(d + a, d + b)];
+            }
+        }
+        let with_sigma = |i: usize| (g.x[i], g.P[(i, i)].max(0.0).sqrt());
+        let biases = match self.model.cfg.range.bias {
+            BiasMode::None => Vec::new(),
+            _ => (0..self.ids.len())
+                .filter_map(|j| {
+                    l.bias_of(j).map(|i| BiasEstimate {
+                        buoy_id: self.ids[j],
+                        bias_m: g.x[i],
+                        sigma_m: g.P[(i, i)].max(0.0).sqrt(),
+                    })
+                })
+                .collect(),
+        };
+        Ok(Estimate {
+            t_s: self.t_s,
+            position_m: self.model.position(&g.x),
+            covariance_m2,
+            velocity_mps,
+            velocity_covariance,
+            heading_rad: self.heading_known.then_some(g.x[l.psi]),
+            heading_sigma_rad: g.P[(l.psi, l.psi)].max(0.0).sqrt(),
+            range_scale: l.scale.map(with_sigma),
+            turn_bias_rps: l.turn_bias.map(with_sigma),
+            biases,
+            hypotheses,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::{BuoyEntry, InitMethod};
+    use nalgebra::Vector2;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+    use rand_xoshiro::Xoshiro256PlusPlus;
+
+    const BUOYS_XY: [[f64; 2]; 5] = [[0.0, 0.0], [60.0, 0.0], [60.0, 60.0], [0.0, 60.0], [30.0, 75.0]];
+
+    fn planar_config(bias: BiasMode) -> BuoyConfig {
+        BuoyConfig {
+            mode: Mode::Planar,
+            buoys: BUOYS_XY
+                .iter()
+                .enumerate()
+                .map(|(i, b)| BuoyEntry { id: 10 + i as u32, position_m: [b[0], b[1], 0.0] })
+                .collect(),
+            range: crate::config::RangeConfig { bias, ..Default::default() },
+            ..BuoyConfig::default()
+        }
+    }
+
+    /// A simulated drive: true speed `v` and turn rate `omega` from `start` (x, y, ψ), odometry
+    /// at 10 Hz (noisy, with a turn-rate bias), one range every 0.25 s round robin, stamped
+    /// between odometry rows.
+    struct Sim {
+        seconds: f64,
+        v: f64,
+        omega: f64,
+        start: (f64, f64, f64),
+        odometry: bool,
+        range_sigma: f64,
+        scale: f64,
+        biases: Vec<f64>,
+        turn_bias: f64,
+        seed: u64,
+    }
+
+    impl Default for Sim {
+        fn default() -> Self {
+            Self {
+                seconds: 300.0,
+                v: 2.0,
+                omega: 0.1,
+                start: (30.0, 10.0, 0.0),
+                odometry: true,
+                range_sigma: 0.3,
+                scale: 0.02,
+                biases: vec![0.5; 5],
+                turn_bias: 0.01,
+                seed: 7,
+            }
+        }
+    }
+
+    /// (t, truth, estimate) after every range.
+    type Track = Vec<(f64, Vector2<f64>, Option<Vector2<f64>>)>;
+
+    /// Runs the filter; returns it and its track.
+    fn simulate(cfg: BuoyConfig, s: &Sim) -> (BuoyEkf, Track) {
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(s.seed);
+        let n01 = Normal::new(0.0, 1.0).unwrap();
+        let (speed_sigma, turn_sigma, dt) = (0.05, 0.002, 0.1);
+        let mut ekf = BuoyEkf::new(cfg, 0.0).unwrap();
+        let (mut x, mut y, mut psi) = s.start;
+        let mut out = Vec::new();
+        let steps = (s.seconds / dt) as usize;
+        let mut next_buoy = 0;
+        for k in 0..steps {
+            let t = k as f64 * dt;
+            // A range at t + 0.05 every 0.25 s (on the steps where one falls in (t, t + 0.1]).
+            let t_range = t + 0.05;
+            if ((t_range / 0.25).round() * 0.25 - t_range).abs() < 0.05 + 1e-9 && k > 0 {
+                let j = next_buoy % 5;
+                next_buoy += 1;
+                // Truth at t_range: half a step on.
+                let hm = psi + s.omega * 0.025;
+                let (xr, yr) = (x + s.v * 0.05 * hm.cos(), y + s.v * 0.05 * hm.sin());
+                let d = (xr - BUOYS_XY[j][0]).hypot(yr - BUOYS_XY[j][1]);
+                let r = (1.0 + s.scale) * d + s.biases[j] + s.range_sigma * n01.sample(&mut rng);
+                ekf.predict_to(t_range).unwrap();
+                ekf.update_range(10 + j as u32, r, s.range_sigma).unwrap();
+                let est = ekf.estimate().ok().map(|e| e.position_m.xy());
+                out.push((t_range, Vector2::new(xr, yr), est));
+            }
+            // Truth over (t, t + dt], then the odometry row stamped t + dt.
+            let hm = psi + s.omega * dt / 2.0;
+            x += s.v * dt * hm.cos();
+            y += s.v * dt * hm.sin();
+            psi += s.omega * dt;
+            if s.odometry {
+                let input = OdometryInput {
+                    dt_s: dt,
+                    v_mps: s.v + speed_sigma * n01.sample(&mut rng),
+                    dtheta_rad: (s.omega + s.turn_bias) * dt + turn_sigma * n01.sample(&mut rng),
+                    var_v: speed_sigma * speed_sigma,
+                    var_dtheta: turn_sigma * turn_sigma,
+                };
+                ekf.predict_with_input(t + dt, &input).unwrap();
+            } else {
+                ekf.predict_to(t + dt).unwrap();
+            }
+        }
+        (ekf, out)
+    }
+
+    fn rmse_after(track: &Track, t0: f64) -> f64 {
+        let e: Vec<f64> =
+            track.iter().filter(|r| r.0 >= t0).map(|r| (r.2.expect("initialised") - r.1).norm_squared()).collect();
+        (e.iter().sum::<f64>() / e.len() as f64).sqrt()
+    }
+
+    #[test]
+    fn converges_on_a_circular_path_with_noise_scale_and_bias() {
+        let s = Sim::default();
+        let (ekf, track) = simulate(planar_config(BiasMode::Global), &s);
+        let rmse = rmse_after(&track, 100.0);
+        assert!(rmse < 0.3, "RMSE after 100 s: {rmse}");
+        let e = ekf.estimate().unwrap();
+        assert!(ekf.heading_known() && e.hypotheses == 1);
+        let true_heading = wrap_angle(s.start.2 + s.omega * s.seconds);
+        assert!(wrap_angle(e.heading_rad.unwrap() - true_heading).abs() < 0.05, "heading {:?}", e.heading_rad);
+        let (scale, scale_sigma) = e.range_scale.unwrap();
+        assert!((scale - s.scale).abs() < 3.0 * scale_sigma + 1e-3, "scale {scale} ± {scale_sigma}");
+        let b = e.biases[0];
+        assert!((b.bias_m - 0.5).abs() < 0.15 && (b.bias_m - 0.5).abs() < 3.0 * b.sigma_m, "bias {b:?}");
+        assert!(b.sigma_m < 0.1, "bias σ shrank to {}", b.sigma_m);
+        let (turn_bias, tb_sigma) = e.turn_bias_rps.unwrap();
+        assert!((turn_bias - s.turn_bias).abs() < 3.0 * tb_sigma + 1e-3, "turn bias {turn_bias} ± {tb_sigma}");
+        assert_eq!(ekf.counters().recoveries, 0);
+        // Consistency: the final error is within the covariance (NEES < χ²₂(0.999)).
+        let (t, truth, est) = *track.last().unwrap();
+        let err = est.unwrap() - truth;
+        let p2 = e.covariance_m2.fixed_view::<2, 2>(0, 0).into_owned();
+        let nees = err.dot(&(p2.try_inverse().unwrap() * err));
+        assert!(nees < 13.8, "NEES {nees} at {t} s");
+    }
+
+    #[test]
+    fn the_bias_estimate_converges_toward_the_true_bias() {
+        let biases = vec![0.3, -0.2, 0.6, 0.0, 0.9];
+        let s = Sim { seconds: 600.0, scale: 0.0, biases: biases.clone(), start: (40.0, 20.0, 1.0), ..Sim::default() };
+        let mut cfg = planar_config(BiasMode::PerBuoy);
+        cfg.range.estimate_scale = false;
+        let (ekf, track) = simulate(cfg, &s);
+        let e = ekf.estimate().unwrap();
+        for (b, truth) in e.biases.iter().zip(&biases) {
+            assert!((b.bias_m - truth).abs() < 0.2, "buoy {}: {} ± {} vs {truth}", b.buoy_id, b.bias_m, b.sigma_m);
+            assert!((b.bias_m - truth).abs() < 3.5 * b.sigma_m, "buoy {}: {} ± {}", b.buoy_id, b.bias_m, b.sigma_m);
+            assert!(b.sigma_m < 0.5 * 1.0, "σ {} did not shrink from the prior", b.sigma_m);
+        }
+        assert!(rmse_after(&track, 300.0) < 0.35);
+    }
+
+    #[test]
+    fn converges_on_a_straight_path_without_odometry() {
+        let s = Sim { odometry: false, omega: 0.0, v: 0.5, start: (10.0, 20.0, 0.3), seconds: 120.0, ..Sim::default() };
+        let mut cfg = planar_config(BiasMode::Global);
+        cfg.motion.accel_sigma_mps2 = 0.05; // a vehicle that keeps its velocity
+        let (ekf, track) = simulate(cfg, &s);
+        let rmse = rmse_after(&track, 40.0);
+        assert!(rmse < 0.5, "RMSE {rmse}");
+        let e = ekf.estimate().unwrap();
+        let v = e.velocity_mps;
+        assert!(
+            (v.xy() - Vector2::new(0.3f64.cos(), 0.3f64.sin()) * 0.5).norm() < 0.15,
+            "velocity {v} {}",
+            e.velocity_covariance
+        );
+        assert!(!ekf.heading_known(), "no odometry: the heading stays unknown");
+    }
+
+    #[test]
+    fn injected_outliers_are_gated_counted_and_leave_the_estimate_unchanged() {
+        let s = Sim { seconds: 100.0, ..Sim::default() };
+        let (mut ekf, _) = simulate(planar_config(BiasMode::Global), &s);
+        let before = ekf.estimate().unwrap();
+        let (rejected, rejected_12) = (ekf.counters().rejected, ekf.counters().buoy(12).unwrap().rejected);
+        let d = (before.position_m.xy() - Vector2::new(60.0, 60.0)).norm();
+        for k in 0..3 {
+            let outcome = ekf.update_range(12, d + 15.0 + k as f64, 0.3).unwrap();
+            assert!(matches!(outcome, RangeOutcome::Rejected { recovery: false, .. }), "{outcome:?}");
+        }
+        assert_eq!(ekf.counters().rejected, rejected + 3);
+        assert_eq!(ekf.counters().buoy(12).unwrap().rejected, rejected_12 + 3);
+        assert_eq!(ekf.counters().consecutive_rejected, 3);
+        assert_eq!(ekf.estimate().unwrap(), before, "rejected ranges do not touch the state");
+        // A good range resets the run.
+        let good = ekf.update_range(10, before.position_m.xy().norm() * 1.02 + 0.5, 0.3).unwrap();
+        assert!(matches!(good, RangeOutcome::Accepted { .. }), "{good:?}");
+        assert_eq!(ekf.counters().consecutive_rejected, 0);
+    }
+
+    #[test]
+    fn a_filter_started_far_off_recovers_through_the_rejection_counter() {
+        let s = Sim { seconds: 120.0, scale: 0.0, biases: vec![0.0; 5], ..Sim::default() };
+        let mut cfg = planar_config(BiasMode::None);
+        cfg.range.estimate_scale = false;
+        cfg.init.method = InitMethod::Prior;
+        // 25 m off with a confident 0.5 m σ; heading right.
+        cfg.init.prior_position_m = [s.start.0 + 20.0, s.start.1 + 15.0, 0.0];
+        cfg.init.prior_position_sigma_m = 0.5;
+        cfg.init.prior_heading_rad = Some(s.start.2);
+        let (ekf, track) = simulate(cfg, &s);
+        assert!(ekf.counters().recoveries >= 1);
+        assert!(ekf.counters().rejected >= 8);
+        assert!(rmse_after(&track, 60.0) < 0.5, "RMSE {}", rmse_after(&track, 60.0));
+    }
+
+    #[test]
+    fn nan_and_invalid_inputs_are_errors_and_leave_the_filter_unchanged() {
+        let s = Sim { seconds: 30.0, ..Sim::default() };
+        let (mut ekf, _) = simulate(planar_config(BiasMode::Global), &s);
+        let before = ekf.clone();
+        let u = OdometryInput { dt_s: 0.1, v_mps: 1.0, dtheta_rad: 0.0, var_v: 0.01, var_dtheta: 1e-4 };
+        let t = ekf.time_s();
+        assert_eq!(ekf.update_range(10, f64::NAN, 0.3), Err(BuoyError::NonFinite("range_m")));
+        assert!(matches!(ekf.update_range(10, 5.0, -0.3), Err(BuoyError::NonPositiveSigma { .. })));
+        assert!(matches!(ekf.update_range(10, 5.0, 0.0), Err(BuoyError::NonPositiveSigma { .. })));
+        assert!(matches!(ekf.update_range(10, -5.0, 0.3), Err(BuoyError::NonPositiveSigma { .. })));
+        assert_eq!(ekf.update_range(99, 5.0, 0.3), Err(BuoyError::UnknownBuoy(99)));
+        assert!(ekf.predict_to(f64::NAN).is_err());
+        assert!(matches!(ekf.predict_to(t - 1.0), Err(BuoyError::TimeWentBackwards { .. })));
+        assert!(ekf.predict_with_input(t + 0.1, &OdometryInput { v_mps: f64::INFINITY, ..u }).is_err());
+        assert!(ekf.predict_with_input(t + 0.1, &OdometryInput { dt_s: 0.0, ..u }).is_err());
+        assert!(ekf.predict_with_input(t + 0.1, &OdometryInput { var_v: -1.0, ..u }).is_err());
+        assert_eq!(ekf.update_depth(3.0, 0.1), Err(BuoyError::NotInPlanarMode("a depth reading")));
+        let p = Vector3::new(1.0, 2.0, 0.0);
+        assert!(ekf.update_position_fix(&Vector3::new(f64::NAN, 0.0, 0.0), &Matrix3::identity()).is_err());
+        assert_eq!(
+            ekf.update_position_fix(&p, &-Matrix3::identity()),
+            Err(BuoyError::NotPositiveDefinite("position fix covariance"))
+        );
+        assert_eq!(ekf, before, "nothing changed");
+    }
+
+    #[test]
+    fn a_non_positive_definite_covariance_is_an_error_not_a_panic() {
+        let mut cfg = planar_config(BiasMode::Global);
+        cfg.init.method = InitMethod::Prior;
+        let mut ekf = BuoyEkf::new(cfg, 0.0).unwrap();
+        if let Phase::Single(g) = &mut ekf.phase {
+            g.P *= -1.0;
+        }
+        let before = ekf.clone();
+        assert_eq!(ekf.update_range(10, 5.0, 0.3), Err(BuoyError::NotPositiveDefinite("innovation covariance S")));
+        assert_eq!(ekf, before);
+    }
+
+    #[test]
+    fn invalid_configuration_is_refused_with_the_keys() {
+        let mut cfg = planar_config(BiasMode::Global);
+        cfg.range.gate_probability = 2.0;
+        match BuoyEkf::new(cfg, 0.0) {
+            Err(BuoyError::InvalidConfig(p)) => assert_eq!(p[0].0, "range.gate_probability"),
+            other => panic!("{other:?}"),
+        }
+    }
+
+    fn central_difference(f: impl Fn(&DVector<f64>) -> DVector<f64>, x: &DVector<f64>) -> DMatrix<f64> {
+        let h = 1e-6;
+        let m = f(x).len();
+        let mut J = DMatrix::zeros(m, x.len());
+        for k in 0..x.len() {
+            let (mut a, mut b) = (x.clone(), x.clone());
+            a[k] += h;
+            b[k] -= h;
+            J.set_column(k, &((f(&a) - f(&b)) / (2.0 * h)));
+        }
+        J
+    }
+
+    fn random_state(model: &Model, seed: u64) -> DVector<f64> {
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
+        let n = Normal::new(0.0, 1.0).unwrap();
+        let mut x = DVector::from_fn(model.lay.n, |_, _| n.sample(&mut rng));
+        for k in 0..model.lay.d {
+            x[k] = 30.0 + 20.0 * n.sample(&mut rng);
+        }
+        x[model.lay.psi] = 0.7;
+        if let Some(i) = model.lay.scale {
+            x[i] = 0.03;
+        }
+        x
+    }
+
+    #[test]
+    fn the_range_jacobian_matches_finite_differences() {
+        for (mode, bias) in
+            [(Mode::Planar, BiasMode::PerBuoy), (Mode::Spatial, BiasMode::Global), (Mode::Planar, BiasMode::None)]
+        {
+            let mut cfg = planar_config(bias);
+            cfg.mode = mode;
+            cfg.planar_height_m = -3.0; // a known height difference in planar mode
+            cfg.buoys[2].position_m[2] = 1.5;
+            let ekf = BuoyEkf::new(cfg, 0.0).unwrap();
+            let m = &ekf.model;
+            for j in 0..5 {
+                let x = random_state(m, j as u64);
+                let (_, H, _) = m.range_model(&x, j);
+                let numeric = central_difference(|x| DVector::from_element(1, m.range_model(x, j).0), &x);
+                assert!((&H - &numeric).amax() < 1e-6, "{mode:?} buoy {j}:\n{H}\n{numeric}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_odometry_jacobians_match_finite_differences() {
+        for mode in [Mode::Planar, Mode::Spatial] {
+            let mut cfg = planar_config(BiasMode::Global);
+            cfg.mode = mode;
+            let ekf = BuoyEkf::new(cfg, 0.0).unwrap();
+            let m = &ekf.model;
+            let x = random_state(m, 3);
+            let (dt, v, dtheta) = (0.1, 1.7, 0.05);
+            let (_, F, G) = m.input_model(&x, dt, v, dtheta);
+            let numeric_F = central_difference(|x| m.input_model(x, dt, v, dtheta).0, &x);
+            assert!((&F - &numeric_F).amax() < 1e-6, "{mode:?} F:\n{F}\n{numeric_F}");
+            let u = DVector::from_column_slice(&[v, dtheta]);
+            let numeric_G = central_difference(|u| m.input_model(&x, dt, u[0], u[1]).0, &u);
+            assert!((&G - &numeric_G).amax() < 1e-6, "{mode:?} G:\n{G}\n{numeric_G}");
+        }
+    }
+
+    #[test]
+    fn collinear_buoys_keep_the_filter_waiting() {
+        let mut cfg = planar_config(BiasMode::Global);
+        for (i, b) in cfg.buoys.iter_mut().enumerate() {
+            b.position_m = [10.0 * i as f64, 5.0 * i as f64, 0.0];
+        }
+        let mut ekf = BuoyEkf::new(cfg, 0.0).unwrap();
+        for k in 0..10u32 {
+            let b = &ekf.config().buoys[k as usize % 5].position_m.clone();
+            let r = (b[0] - 3.0).hypot(b[1] - 20.0);
+            ekf.predict_to(f64::from(k) * 0.1).unwrap();
+            let outcome = ekf.update_range(10 + k % 5, r, 0.1).unwrap();
+            if k >= 3 {
+                assert!(
+                    matches!(outcome, RangeOutcome::Waiting(TrilaterationError::DegenerateGeometry(_))),
+                    "{outcome:?}"
+                );
+            }
+        }
+        assert!(!ekf.is_initialised());
+        assert_eq!(ekf.estimate(), Err(BuoyError::NotInitialised));
+    }
+
+    #[test]
+    fn surface_buoys_in_3d_wait_for_a_depth_reading_then_track_depth() {
+        let mut cfg = planar_config(BiasMode::Global);
+        cfg.mode = Mode::Spatial;
+        let mut ekf = BuoyEkf::new(cfg, 0.0).unwrap();
+        let truth = Vector3::new(25.0, 35.0, -12.0);
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(5);
+        let n = Normal::new(0.0, 0.2).unwrap();
+        let mut range = |ekf: &mut BuoyEkf, j: usize| {
+            let b = Vector3::new(BUOYS_XY[j][0], BUOYS_XY[j][1], 0.0);
+            let r = (truth - b).norm() + n.sample(&mut rng);
+            ekf.update_range(10 + j as u32, r, 0.2).unwrap()
+        };
+        for j in 0..5 {
+            let outcome = range(&mut ekf, j);
+            if j >= 3 {
+                assert!(
+                    matches!(outcome, RangeOutcome::Waiting(TrilaterationError::DegenerateGeometry(_))),
+                    "{outcome:?}"
+                );
+            }
+        }
+        assert_eq!(ekf.update_depth(12.0, 0.05).unwrap(), FixOutcome::Stored);
+        assert_eq!(range(&mut ekf, 0), RangeOutcome::Initialised);
+        for k in 1..200 {
+            ekf.predict_to(f64::from(k) * 0.2).unwrap();
+            range(&mut ekf, k as usize % 5);
+            if k % 5 == 0 {
+                assert!(matches!(ekf.update_depth(12.0, 0.05).unwrap(), FixOutcome::Accepted { .. }));
+            }
+        }
+        let e = ekf.estimate().unwrap();
+        assert!((e.position_m - truth).norm() < 0.5, "{} vs {truth}", e.position_m);
+        assert!((e.position_m.z - truth.z).abs() < 0.1, "below the surface: z = {}", e.position_m.z);
+    }
+
+    #[test]
+    fn a_position_fix_initialises_and_rejected_fixes_in_a_row_reset_the_position() {
+        let mut ekf = BuoyEkf::new(planar_config(BiasMode::Global), 0.0).unwrap();
+        let cov = Matrix3::identity() * 0.25;
+        assert_eq!(ekf.update_position_fix(&Vector3::new(10.0, 20.0, 0.0), &cov).unwrap(), FixOutcome::Initialised);
+        let e = ekf.estimate().unwrap();
+        assert_eq!(e.position_m, Vector3::new(10.0, 20.0, 0.0));
+        assert!((e.covariance_m2[(0, 0)] - 0.25).abs() < 1e-12 && e.covariance_m2[(2, 2)] == 0.0);
+        assert!(matches!(
+            ekf.update_position_fix(&Vector3::new(10.3, 20.0, 0.0), &cov).unwrap(),
+            FixOutcome::Accepted { .. }
+        ));
+        let far = Vector3::new(50.0, -20.0, 0.0);
+        assert!(matches!(ekf.update_position_fix(&far, &cov).unwrap(), FixOutcome::Rejected { .. }));
+        assert_eq!(ekf.update_position_fix(&far, &cov).unwrap(), FixOutcome::Reset);
+        assert_eq!(ekf.estimate().unwrap().position_m, far);
+        assert_eq!(ekf.counters().fixes_rejected, 2);
+    }
+
+    #[test]
+    fn a_range_inside_an_odometry_interval_gets_the_input_pro_rata() {
+        let mut cfg = planar_config(BiasMode::Global);
+        cfg.init.method = InitMethod::Prior;
+        cfg.init.prior_position_m = [5.0, 5.0, 0.0];
+        cfg.init.prior_heading_rad = Some(0.4);
+        let u = OdometryInput { dt_s: 0.1, v_mps: 2.0, dtheta_rad: 0.02, var_v: 0.01, var_dtheta: 1e-4 };
+        let (mut a, mut b) = (BuoyEkf::new(cfg.clone(), 0.0).unwrap(), BuoyEkf::new(cfg, 0.0).unwrap());
+        for k in 1..=20 {
+            let t = f64::from(k) * 0.1;
+            a.predict_with_input(t, &u).unwrap();
+            if k > 1 {
+                b.predict_to(t - 0.037).unwrap(); // held input up to here...
+            }
+            b.predict_with_input(t, &u).unwrap(); // ...and the rest of the interval
+        }
+        let (ea, eb) = (a.estimate().unwrap(), b.estimate().unwrap());
+        // The exact arc at constant speed and turn rate; the midpoint rule is second order.
+        let (w, psi0) = (0.2, 0.4);
+        let exact = Vector2::new(5.0, 5.0)
+            + Vector2::new((psi0 + w * 2.0f64).sin() - psi0.sin(), psi0.cos() - (psi0 + w * 2.0f64).cos()) * (2.0 / w);
+        for e in [&ea, &eb] {
+            assert!((e.position_m.xy() - exact).norm() < 1e-3, "{} vs {exact}", e.position_m);
+        }
+        assert!((ea.heading_rad.unwrap() - eb.heading_rad.unwrap()).abs() < 1e-12);
+        assert!((ea.heading_rad.unwrap() - (0.4 + 20.0 * 0.02)).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,100 @@
+//! The error types of the crate: [`BuoyError`] for the estimator, [`TrilaterationError`] for
+//! the initialisation solvers and [`SyncError`] for the synchronizer. Nothing in this crate
+//! panics on bad input; every failure is one of these.
+
+/// An error of the buoy estimator ([`crate::BuoyEkf`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum BuoyError {
+    /// The configuration failed validation; each entry is (key, problem).
+    #[error("invalid buoy configuration: {}", format_problems(.0))]
+    InvalidConfig(Vec<(String, String)>),
+    /// An input was NaN or infinite.
+    #[error("non-finite input: {0}")]
+    NonFinite(&'static str),
+    /// A standard deviation or variance was negative or zero where it must be positive.
+    #[error("{what} must be positive, got {value}")]
+    NonPositiveSigma {
+        /// Which input.
+        what: &'static str,
+        /// The value given.
+        value: f64,
+    },
+    /// A range named a buoy that is not in the configured buoy table.
+    #[error("unknown buoy id {0}")]
+    UnknownBuoy(u32),
+    /// A time went backwards (the filter only moves forward in time).
+    #[error("time {t_s} s is before the filter's time {now_s} s")]
+    TimeWentBackwards {
+        /// The time asked for, s.
+        t_s: f64,
+        /// The filter's current time, s.
+        now_s: f64,
+    },
+    /// The estimate was asked for before the filter was initialised.
+    #[error("the filter is not initialised yet")]
+    NotInitialised,
+    /// The measurement does not exist in this mode (a depth reading in planar mode).
+    #[error("{0} is not available in planar (2-D) mode")]
+    NotInPlanarMode(&'static str),
+    /// A covariance that must be positive definite is not (numerical failure); the filter's
+    /// state is left as it was before the call.
+    #[error("{0} is not positive definite")]
+    NotPositiveDefinite(&'static str),
+}
+
+/// Why a trilateration or path alignment produced no solution.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum TrilaterationError {
+    /// Fewer distinct buoys than the geometry needs.
+    #[error("ranges to {got} distinct buoys, {needed} needed")]
+    TooFewBuoys {
+        /// Distinct buoys ranged.
+        got: usize,
+        /// Distinct buoys needed.
+        needed: usize,
+    },
+    /// The buoys lie on one line (planar) or in one plane (spatial, without a depth constraint):
+    /// the position is ambiguous (mirror solutions).
+    #[error("degenerate buoy geometry: {0}")]
+    DegenerateGeometry(&'static str),
+    /// The normal matrix is too ill-conditioned to trust the solution.
+    #[error("ill-conditioned normal matrix (condition number {condition:.3e} > {max:.3e})")]
+    IllConditioned {
+        /// Its condition number.
+        condition: f64,
+        /// The configured maximum.
+        max: f64,
+    },
+    /// Gauss-Newton did not converge.
+    #[error("Gauss-Newton did not converge in {0} iterations")]
+    NotConverged(usize),
+    /// The solution fits the ranges badly (normalised RMS residual too large).
+    #[error("residuals too large: normalised RMS {rms:.2} > {max:.2}")]
+    PoorFit {
+        /// Normalised RMS residual of the inliers.
+        rms: f64,
+        /// The configured maximum.
+        max: f64,
+    },
+    /// An input was NaN or infinite, or a σ not positive.
+    #[error("invalid input: {0}")]
+    InvalidInput(&'static str),
+}
+
+/// An error of the synchronizer ([`crate::Synchronizer`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SyncError {
+    /// A stamp, position or covariance was NaN or infinite.
+    #[error("non-finite input: {0}")]
+    NonFinite(&'static str),
+    /// A covariance was not symmetric positive semi-definite.
+    #[error("covariance is not symmetric positive semi-definite")]
+    BadCovariance,
+    /// The stamps given to an interpolation are not distinct.
+    #[error("interpolation stamps must be distinct")]
+    RepeatedStamps,
+}
+
+fn format_problems(problems: &[(String, String)]) -> String {
+    problems.iter().map(|(k, m)| format!("`{k}` {m}")).collect::<Vec<_>>().join("; ")
+}

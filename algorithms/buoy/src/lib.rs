@@ -1,0 +1,41 @@
+//! The buoy estimator and the timestamp synchronizer of the pipeline (SPEC §5), as a pure
+//! library: no IPC, no clocks (time is always passed in), no panics on bad input.
+//!
+//! - [`ekf`]: [`BuoyEkf`], an EKF for the global position from ranges to buoys at known positions
+//!   (χ²₁ gate with recovery, range scale and bias states, odometry or constant-velocity
+//!   prediction, depth and GPS fixes), 2-D or 3-D.
+//! - [`trilaterate`](mod@trilaterate): its least-squares initialisation, refusing degenerate geometry.
+//! - [`sync`]: quadratic Lagrange interpolation of buoy fixes to camera stamps (SPEC eq 26-30 with
+//!   the erratum of §9) and the [`Synchronizer`] buffer policy (order, duplicates, gaps, restarts,
+//!   wait-then-extrapolate).
+//! - [`config`]: [`BuoyConfig`] (serde, `deny_unknown_fields`, defaults, `validate()`).
+//!
+//! Units are SI; angles in rad; frames as in SPEC §0 (world z up). Matrices are nalgebra's
+//! (column-major storage; indices are (row, column)).
+//!
+//! # Evaluation on real data (default parameters, planar mode)
+//! `cargo run --release -p buoy --example plaza2_eval` (CMU Plaza2, committed) and
+//! `cargo run --release -p buoy --example uwb_eval` (libRSF indoor UWB, read from
+//! `../shared/data/indoor_uwb`) print the ATE: RMSE of the 2-D position over every ground-truth
+//! row, nearest stamp, no alignment. Measured: Plaza2 0.41 m (dead reckoning 31.6 m; for
+//! reference, a plain EKF with one global bias 0.71 m and a GTSAM batch smoother 0.41 m, same
+//! metric); indoor UWB 0.08 m (dead reckoning 0.23 m). What carries Plaza2 is the range scale
+//! state: its ranges read about 7 % long. Without it (global bias only) this filter gets 1.4 m.
+
+pub mod chi2;
+pub mod config;
+pub mod ekf;
+pub mod error;
+pub mod sync;
+pub mod trilaterate;
+
+pub use config::{
+    BiasMode, BuoyConfig, BuoyEntry, InitConfig, InitMethod, Mode, MotionConfig, RangeConfig, RecoveryConfig,
+};
+pub use ekf::{BiasEstimate, BuoyCounters, BuoyEkf, Counters, Estimate, FixOutcome, OdometryInput, RangeOutcome};
+pub use error::{BuoyError, SyncError, TrilaterationError};
+pub use sync::{
+    Fix, InsertOutcome, Interpolation, SyncConfig, SyncCounters, SyncDecision, SyncFlags, SyncResult, Synchronizer,
+    Unavailable, interpolate, lagrange_weights, linear_weights,
+};
+pub use trilaterate::{Geometry, Limits, RangeObs, Trilateration, trilaterate, wrap_angle};
