@@ -44,6 +44,14 @@ impl Qos {
         }
     }
 
+    /// Estimates every sample of which a downstream stage needs (poses, fixes, pairs): newest
+    /// wins and the publisher never blocks, but 256 samples of queue (seconds at camera rate)
+    /// absorb a consumer that is briefly descheduled or slower for a while. A loss still shows as
+    /// a sequence gap (`missed` in the stats).
+    pub const fn estimates(max_subscribers: usize) -> Self {
+        Self { subscriber_buffer: 256, ..Self::stream(max_subscribers, 0) }
+    }
+
     /// Sensor data: nothing is overwritten; a full subscriber queue makes the publisher either
     /// drop the new sample for that subscriber (live sources) or wait (replay with back-pressure).
     pub const fn sensor(max_subscribers: usize, subscriber_buffer: usize, initial_slice_len: usize) -> Self {
@@ -149,13 +157,13 @@ pub const SERVICES: &[ServiceSpec] = &[
         "CloudHeader",
         Qos { subscriber_buffer: 2, subscriber_borrowed: 1, publisher_loans: 1, ..Qos::stream(2, 320 * 240) },
     ),
-    spec(SLAM_POSE, "PoseEstimate", "MsgHeader", Qos::stream(4, 0)),
+    spec(SLAM_POSE, "PoseEstimate", "MsgHeader", Qos::estimates(4)),
     spec(SLAM_PARTICLES, "[Particle]", "ParticleSetHeader", Qos::stream(2, 1024)),
     spec(SLAM_LANDMARKS, "[Landmark]", "LandmarkMapHeader", Qos::stream(2, 4096)),
     spec(SLAM_DIAGNOSTICS, "SlamDiagnostics", "MsgHeader", Qos::stream(4, 0)),
-    spec(BUOY_FIX, "BuoyFix", "MsgHeader", Qos::stream(4, 0)),
-    spec(SYNC_PAIR, "SyncedPair", "MsgHeader", Qos::stream(4, 0)),
-    spec(FUSION_POSE, "FusedPose", "MsgHeader", Qos::stream(4, 0)),
+    spec(BUOY_FIX, "BuoyFix", "MsgHeader", Qos::estimates(4)),
+    spec(SYNC_PAIR, "SyncedPair", "MsgHeader", Qos::estimates(4)),
+    spec(FUSION_POSE, "FusedPose", "MsgHeader", Qos::estimates(4)),
     spec(FUSION_MAP, "[Landmark]", "LandmarkMapHeader", Qos::stream(2, 4096)),
     spec(MAP_STATS, "MapStats", "MsgHeader", Qos::stream(4, 0)),
     spec(MAP_VOXELS, "[Voxel]", "VoxelSetHeader", Qos::stream(2, 16 * 1024)),

@@ -13,7 +13,7 @@
 //! - Duplicate stamp (within `duplicate_tolerance_s`): the later arrival replaces the earlier
 //!   one (an upstream estimator re-publishing a stamp has the better estimate); counted.
 //! - Upstream restart: a fix stamped more than `restart_backjump_s` before the newest buffered
-//!   fix, or whose `seq` is below the last seen `seq` by more than `capacity` (a sequence reset;
+//!   fix, or whose `seq` is below the last seen `seq` by more than [`REORDER_WINDOW`] (a sequence reset;
 //!   plain reordering moves it by less), clears the buffer, which then starts with this fix;
 //!   counted. Fixes from before and after a restart are never interpolated together.
 //!
@@ -40,6 +40,10 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::error::SyncError;
+
+/// How far a fix's `seq` may fall behind the last one seen by reordering alone; further back is
+/// a sequence reset (an upstream restart).
+pub const REORDER_WINDOW: u64 = 64;
 
 /// The Lagrange weights (ξ1, ξ2, ξ3) of the quadratic through stamps `ts` evaluated at `t`
 /// (SPEC §5 eq 26-29 with the §9 erratum for ξ3). They sum to 1 and reproduce any quadratic
@@ -138,7 +142,9 @@ pub fn interpolate(t: f64, fixes: &[Fix]) -> Result<Interpolation, SyncError> {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SyncConfig {
-    /// Fixes kept, at most.
+    /// Fixes kept, at most. Stages run at their own pace when a data set is replayed as fast as
+    /// possible, so poses can lag the fixes by minutes of data time: the default (4096, over an
+    /// hour at 1 Hz) keeps them pairable.
     pub capacity: usize,
     /// Largest time between two adjacent fixes that are interpolated across, s.
     pub max_gap_s: f64,
@@ -157,7 +163,7 @@ pub struct SyncConfig {
 impl Default for SyncConfig {
     fn default() -> Self {
         Self {
-            capacity: 64,
+            capacity: 4096,
             max_gap_s: 5.0,
             max_latency_s: 1.0,
             max_extrapolation_s: 5.0,
@@ -325,7 +331,7 @@ impl Synchronizer {
     pub fn insert(&mut self, fix: Fix) -> Result<InsertOutcome, SyncError> {
         fix.validate()?;
         self.counters.inserted += 1;
-        let seq_reset = self.last_seq.is_some_and(|s| fix.seq.saturating_add(self.cfg.capacity as u64) < s);
+        let seq_reset = self.last_seq.is_some_and(|s| fix.seq.saturating_add(REORDER_WINDOW) < s);
         self.last_seq = Some(fix.seq);
         let newest = self.fixes.back().map(|f| f.t_s);
         if seq_reset || newest.is_some_and(|n| fix.t_s < n - self.cfg.restart_backjump_s) {

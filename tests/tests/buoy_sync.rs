@@ -1,0 +1,122 @@
+//! The buoy EKF and the synchronizer in the pipeline: Plaza2 through ingest → buoy_ekf (the
+//! accuracy goal and the dead-reckoning reference), and the simulated mission through ingest →
+//! fastslam + buoy_ekf → synchronizer (every pose paired, the added latency within its bound).
+
+use std::time::Duration;
+
+use pipeline_tests::TestRun;
+
+const LONG: Duration = Duration::from_secs(150);
+
+fn run_to_end(run: &mut TestRun, processes: &str, from: &str) -> serde_json::Value {
+    let run_extra = format!("end = \"end_of_stream\"\nend_of_stream_from = [{from}]\nduration_s = 200");
+    run.run_to_end(&run_extra, processes, LONG)
+}
+
+#[test]
+fn the_buoy_ekf_on_plaza2_meets_the_accuracy_goal_and_beats_dead_reckoning() {
+    let mut run = TestRun::new("buoyplaza");
+    let dir = format!("{}/../algorithms/datasets/data/plaza2", env!("CARGO_MANIFEST_DIR"));
+    let procs = format!(
+        r#"
+[processes.buoy]
+kind = "buoy_ekf"
+[processes.buoy.settings.ekf]
+mode = "planar"
+buoys = [
+    {{ id = 0, position_m = [-33.620537, 26.967797, 0.0] }},
+    {{ id = 1, position_m = [-68.926537, 18.377797, 0.0] }},
+    {{ id = 5, position_m = [1.709463, -5.812203, 0.0] }},
+    {{ id = 6, position_m = [-37.580537, 69.227797, 0.0] }},
+]
+
+[processes.ingest]
+kind = "ingest"
+after = ["buoy"]
+restart = "never"
+[processes.ingest.settings]
+source = "plaza2"
+real_time_factor = 0.0
+[processes.ingest.settings.plaza2]
+dir = "{dir}"
+"#
+    );
+    let s = run_to_end(&mut run, &procs, "\"buoy\"");
+    let ate = s["ate_m"]["buoy_ekf"].as_f64().expect("ate_m.buoy_ekf");
+    let dr = s["ate_m"]["dead_reckoning"].as_f64().expect("ate_m.dead_reckoning");
+    assert!(ate <= 0.5, "buoy EKF ATE {ate} m over the 0.5 m goal: {s:#}");
+    assert!((dr - 31.6).abs() < 0.5, "dead reckoning {dr} m, the reference measured 31.6 m");
+    let b = &s["buoy_ekf"];
+    // One fix per range message once initialised (Plaza2 has 1816; the first few initialise).
+    let fixes = b["fixes"].as_u64().unwrap();
+    assert!((1800..=1816).contains(&fixes), "{b:#}");
+    assert_eq!(b["filter_errors"], serde_json::json!({}));
+    for f in ["buoy_ekf.tum", "dead_reckoning.tum"] {
+        let text = std::fs::read_to_string(run.out_dir().join(f)).unwrap();
+        assert!(text.lines().count() > 1000, "{f}");
+    }
+}
+
+#[test]
+fn the_synchronizer_pairs_every_slam_pose_within_its_latency_bound() {
+    let mut run = TestRun::new("syncsim");
+    let procs = r#"
+[processes.sync]
+kind = "synchronizer"
+[processes.sync.settings]
+end_after = ["slam", "buoy"]
+[processes.sync.settings.sync]
+max_latency_s = 0.3
+
+[processes.buoy]
+kind = "buoy_ekf"
+after = ["sync"]
+[processes.buoy.settings.ekf]
+mode = "spatial"
+buoys = [
+    { id = 0, position_m = [-10.0, -10.0, 0.0] },
+    { id = 1, position_m = [130.0, -10.0, 0.0] },
+    { id = 2, position_m = [130.0, 90.0, 0.0] },
+    { id = 3, position_m = [-10.0, 90.0, 0.0] },
+    { id = 4, position_m = [60.0, 100.0, 0.0] },
+]
+
+[processes.slam]
+kind = "fastslam"
+after = ["sync"]
+[processes.slam.settings.filter]
+particles = 20
+
+[processes.ingest]
+kind = "ingest"
+after = ["slam", "buoy"]
+restart = "never"
+[processes.ingest.settings]
+source = "sim"
+real_time_factor = 0.0
+[processes.ingest.settings.sim.mission]
+legs = 1
+leg_length_m = 40.0
+[processes.ingest.settings.sim.sensors.depth_camera]
+rate_hz = 0.0
+"#;
+    let s = run_to_end(&mut run, procs, "\"sync\"");
+    let frames = s["slam"]["frames"].as_u64().unwrap();
+    let sync = &s["synchronizer"];
+    let poses = &sync["poses"];
+    let paired = poses["interpolated"].as_u64().unwrap() + poses["extrapolated"].as_u64().unwrap();
+    let unavailable = poses["unavailable"].as_u64().unwrap();
+    assert_eq!(paired + unavailable, frames, "every SLAM pose accounted for: {sync:#}");
+    assert_eq!(sync["pairs"].as_u64().unwrap(), paired);
+    // Poses before the buoy EKF's first fix (trilateration needs a depth reading and 4 buoys)
+    // may be unavailable or extrapolated; everything after is interpolated.
+    assert!(poses["interpolated"].as_u64().unwrap() as f64 >= 0.8 * frames as f64, "{sync:#}");
+    // The added latency (pose arrival to pair publication, wall time) stays within the
+    // configured wait plus scheduling slack on a loaded 2-core machine.
+    let max_ms = sync["added_latency_ms"]["max"].as_f64().unwrap();
+    assert!(max_ms <= 300.0 + 250.0, "added latency {max_ms} ms over the 300 ms bound: {sync:#}");
+    assert!(s["processes"]["sync"]["messages_out"].as_u64().unwrap() >= paired, "{s:#}");
+    let ate = s["ate_m"]["buoy_ekf"].as_f64().unwrap();
+    let dr = s["ate_m"]["dead_reckoning"].as_f64().unwrap();
+    assert!(ate < dr, "buoy EKF {ate} m against dead reckoning {dr} m");
+}
