@@ -120,3 +120,26 @@ rate_hz = 0.0
     let dr = s["ate_m"]["dead_reckoning"].as_f64().unwrap();
     assert!(ate < dr, "buoy EKF {ate} m against dead reckoning {dr} m");
 }
+
+#[test]
+fn invalid_buoy_ekf_and_synchronizer_settings_name_their_keys() {
+    for (kind, settings, key) in [
+        (
+            "buoy_ekf",
+            "[processes.p.settings.ekf.range]\ngate_probability = 1.5",
+            "processes.p.settings.ekf.range.gate_probability",
+        ),
+        ("buoy_ekf", "[processes.p.settings.ekf]\nmode = \"flat\"", "processes.p.settings.ekf.mode"),
+        ("buoy_ekf", "[processes.p.settings]\nodometry_wait_s = -1.0", "processes.p.settings.odometry_wait_s"),
+        ("synchronizer", "[processes.p.settings.sync]\ncapacity = 2", "processes.p.settings.sync.capacity"),
+        ("synchronizer", "[processes.p.settings]\nend_aftr = [\"slam\"]", "processes.p.settings.end_aftr"),
+    ] {
+        let mut run = TestRun::new("badbuoy");
+        let procs = format!("[processes.p]\nkind = \"{kind}\"\n{settings}\n");
+        let cfg = run.write_config("end = \"signal\"", &procs);
+        run.start_supervisor(&cfg, &[]);
+        let status = run.wait_supervisor(Duration::from_secs(20)).expect("exits");
+        assert_eq!(status.code(), Some(2), "{}", run.log());
+        assert!(run.log().contains(&format!("`{key}`")), "must name `{key}`:\n{}", run.log());
+    }
+}
