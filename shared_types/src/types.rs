@@ -296,8 +296,14 @@ wire_type! {
     }
 }
 
-/// `FusedPose::flags` bit: camera and buoy estimates were fused (else camera only).
+/// `FusedPose::flags` bit: camera and buoy estimates were fused.
 pub const FUSED_WITH_BUOY: u32 = 1;
+/// `FusedPose::flags` bit: the camera estimate mapped to the world alone (the buoy estimate was
+/// outside the χ²₃ gate, or missing).
+pub const FUSED_CAMERA_ONLY: u32 = 2;
+/// `FusedPose::flags` bit: the buoy estimate alone (the local map has no transform to the world
+/// yet); the orientation is then the last known one, or identity, with a large covariance.
+pub const FUSED_BUOY_ONLY: u32 = 4;
 
 wire_type! {
     /// The globally consistent pose (`pipeline/fusion/pose`), world frame.
@@ -305,7 +311,7 @@ wire_type! {
     pub struct FusedPose {
         /// The pose, `frame` = 3 (world).
         pub pose: PoseEstimate,
-        /// Bit set: 1 fused with a buoy estimate.
+        /// Bit set: 1 fused with a buoy estimate, 2 camera only, 4 buoy only (`FUSED_*`).
         pub flags: u32,
         /// Zero.
         pub _reserved: u32,

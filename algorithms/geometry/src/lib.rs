@@ -8,6 +8,7 @@
 
 #![allow(non_snake_case)]
 
+pub mod trajectory;
 pub mod tum;
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
