@@ -101,6 +101,22 @@ class DepthReading(ctypes.Structure):
 assert ctypes.sizeof(DepthReading) == 16, "DepthReading size"
 assert ctypes.alignment(DepthReading) == 8, "DepthReading alignment"
 
+class HeadingReading(ctypes.Structure):
+    """A heading (magnetic compass, or any yaw reference): the yaw of body x in the world frame,"""
+
+    _fields_ = [
+        ("yaw_rad", ctypes.c_double),
+        ("sigma_rad", ctypes.c_double),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        return "slam_pipeline::v1::HeadingReading"
+
+
+assert ctypes.sizeof(HeadingReading) == 16, "HeadingReading size"
+assert ctypes.alignment(HeadingReading) == 8, "HeadingReading alignment"
+
 class CloudPoint(ctypes.Structure):
     """One point of a point cloud (an element of the slice on `pipeline/sensors/cloud`), in the"""
 
@@ -432,6 +448,7 @@ SERVICES = {
     "pipeline/sensors/stereo": {"payload": "[StereoObservation]", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 8, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": False},
     "pipeline/sensors/buoy_ranges": {"payload": "[BuoyRange]", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 8, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": False},
     "pipeline/sensors/depth": {"payload": "DepthReading", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 8, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": False},
+    "pipeline/sensors/heading": {"payload": "HeadingReading", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 8, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": False},
     "pipeline/sensors/cloud": {"payload": "[CloudPoint]", "user_header": "CloudHeader", "max_publishers": 2, "max_subscribers": 2, "max_nodes": 32, "subscriber_max_buffer_size": 2, "subscriber_max_borrowed_samples": 1, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/slam/pose": {"payload": "PoseEstimate", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 256, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/slam/particles": {"payload": "[Particle]", "user_header": "ParticleSetHeader", "max_publishers": 2, "max_subscribers": 2, "max_nodes": 32, "subscriber_max_buffer_size": 4, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},

@@ -26,6 +26,7 @@ pub fn all_layouts() -> Vec<TypeLayout> {
         TypeLayout::of::<StereoObservation>(),
         TypeLayout::of::<BuoyRange>(),
         TypeLayout::of::<DepthReading>(),
+        TypeLayout::of::<HeadingReading>(),
         TypeLayout::of::<CloudPoint>(),
         TypeLayout::of::<CloudHeader>(),
         TypeLayout::of::<PoseEstimate>(),

@@ -87,6 +87,8 @@ pub const BUOY_RANGES: &str = "pipeline/sensors/buoy_ranges";
 pub const DEPTH: &str = "pipeline/sensors/depth";
 /// Point clouds, `[CloudPoint]` with a [`crate::CloudHeader`].
 pub const CLOUD: &str = "pipeline/sensors/cloud";
+/// Heading (compass), [`crate::HeadingReading`].
+pub const HEADING: &str = "pipeline/sensors/heading";
 /// FastSLAM pose, [`crate::PoseEstimate`].
 pub const SLAM_POSE: &str = "pipeline/slam/pose";
 /// FastSLAM particle set, `[Particle]` with a [`crate::ParticleSetHeader`].
@@ -151,6 +153,7 @@ pub const SERVICES: &[ServiceSpec] = &[
     spec(STEREO, "[StereoObservation]", "MsgHeader", Qos::sensor(4, 8, 1024)),
     spec(BUOY_RANGES, "[BuoyRange]", "MsgHeader", Qos::sensor(4, 8, 16)),
     spec(DEPTH, "DepthReading", "MsgHeader", Qos::sensor(4, 8, 0)),
+    spec(HEADING, "HeadingReading", "MsgHeader", Qos::sensor(4, 8, 0)),
     spec(
         CLOUD,
         "[CloudPoint]",

@@ -105,6 +105,18 @@ wire_type! {
 }
 
 wire_type! {
+    /// A heading (magnetic compass, or any yaw reference): the yaw of body x in the world frame,
+    /// about world z, counter-clockwise from world x.
+    type_name = "slam_pipeline::v1::HeadingReading", size = 16;
+    pub struct HeadingReading {
+        /// Yaw, rad, in (−π, π].
+        pub yaw_rad: f64,
+        /// Standard deviation, rad (> 0).
+        pub sigma_rad: f64,
+    }
+}
+
+wire_type! {
     /// One point of a point cloud (an element of the slice on `pipeline/sensors/cloud`), in the
     /// frame named by the cloud's header.
     type_name = "slam_pipeline::v1::CloudPoint", size = 12;

@@ -30,6 +30,7 @@ fn main() {
                 points += c.points_sensor_m.len()
             }
             SimEvent::Pressure(_) => press += 1,
+            SimEvent::Compass(_) => {}
         }
     }
     let (mut rmax, mut pmax) = (0f64, 0f64);

@@ -150,6 +150,8 @@ pub struct SensorsConfig {
     pub depth_camera: DepthCameraConfig,
     /// Pressure depth.
     pub pressure: PressureConfig,
+    /// Magnetic compass (heading).
+    pub compass: CompassConfig,
 }
 
 /// Odometry: the true input plus white noise.
@@ -291,6 +293,23 @@ impl Default for PressureConfig {
     }
 }
 
+/// Magnetic compass: the body's yaw (heading of body x in the world, about world z) plus white
+/// noise.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CompassConfig {
+    /// Rate, Hz (0 = off).
+    pub rate_hz: f64,
+    /// Noise σ, deg.
+    pub sigma_deg: f64,
+}
+
+impl Default for CompassConfig {
+    fn default() -> Self {
+        Self { rate_hz: 10.0, sigma_deg: 2.0 }
+    }
+}
+
 impl SimConfig {
     /// Checks the values; each problem is (dotted key below the sim table, message).
     pub fn validate(&self) -> Vec<(String, String)> {
@@ -357,6 +376,12 @@ impl SimConfig {
         );
         check(d.hfov_deg > 1.0 && d.hfov_deg < 170.0, "sensors.depth_camera.hfov_deg", "must be in (1, 170)");
         check((1..=64).contains(&d.threads), "sensors.depth_camera.threads", "must be 1..=64");
+        check(
+            nonneg(s.compass.rate_hz) && s.compass.rate_hz <= s.odometry.rate_hz,
+            "sensors.compass.rate_hz",
+            "must be >= 0 and <= sensors.odometry.rate_hz",
+        );
+        check(nonneg(s.compass.sigma_deg), "sensors.compass.sigma_deg", "must be >= 0");
         check(
             nonneg(s.pressure.rate_hz) && s.pressure.rate_hz <= s.odometry.rate_hz,
             "sensors.pressure.rate_hz",

@@ -118,6 +118,17 @@ pub struct PressureSample {
     pub sigma_m: f64,
 }
 
+/// A compass reading: the body's yaw.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CompassSample {
+    /// Time, s.
+    pub t_s: f64,
+    /// Yaw of body x in the world (about world z, counter-clockwise from world x), rad, in (−π, π].
+    pub yaw_rad: f64,
+    /// σ, rad.
+    pub sigma_rad: f64,
+}
+
 /// One measurement, in time order.
 #[derive(Debug, Clone, PartialEq)]
 pub enum SimEvent {
@@ -131,6 +142,8 @@ pub enum SimEvent {
     Cloud(DepthCloud),
     /// Pressure depth.
     Pressure(PressureSample),
+    /// Compass heading.
+    Compass(CompassSample),
 }
 
 impl SimEvent {
@@ -142,6 +155,7 @@ impl SimEvent {
             SimEvent::Buoys(e) => e.t_s,
             SimEvent::Cloud(e) => e.t_s,
             SimEvent::Pressure(e) => e.t_s,
+            SimEvent::Compass(e) => e.t_s,
         }
     }
 }
@@ -156,6 +170,7 @@ struct Streams {
     buoys: Xoshiro256PlusPlus,
     depth: Xoshiro256PlusPlus,
     pressure: Xoshiro256PlusPlus,
+    compass: Xoshiro256PlusPlus,
 }
 
 /// The simulator: an iterator of [`SimEvent`]s.
@@ -172,6 +187,7 @@ pub struct Simulator {
     next_buoys_s: f64,
     next_cloud_s: f64,
     next_pressure_s: f64,
+    next_compass_s: f64,
     body_from_stereo: Isometry3<f64>,
     body_from_depth: Isometry3<f64>,
     rng: Streams,
@@ -225,8 +241,14 @@ impl Simulator {
             body_from_camera(&Vector3::from(s.stereo.offset_m), s.stereo.pitch_down_deg.to_radians());
         let body_from_depth =
             body_from_camera(&Vector3::new(0.6, 0.0, -0.3), s.depth_camera.pitch_down_deg.to_radians());
-        let rng =
-            Streams { odometry: stream(1), stereo: stream(2), buoys: stream(3), depth: stream(4), pressure: stream(5) };
+        let rng = Streams {
+            odometry: stream(1),
+            stereo: stream(2),
+            buoys: stream(3),
+            depth: stream(4),
+            pressure: stream(5),
+            compass: stream(6),
+        };
         Ok(Self {
             truth: vec![TruthSample { t_s: 0.0, world_from_body: pose }],
             cfg,
@@ -240,6 +262,7 @@ impl Simulator {
             next_buoys_s: 0.0,
             next_cloud_s: 0.0,
             next_pressure_s: 0.0,
+            next_compass_s: 0.0,
             body_from_stereo,
             body_from_depth,
             rng,
@@ -363,6 +386,16 @@ impl Simulator {
             let n = Normal::new(0.0, s.pressure.sigma_m.max(1e-12)).expect("valid sigma");
             let depth_m = -self.pose.translation.vector.z + n.sample(&mut self.rng.pressure);
             self.pending.push_back(SimEvent::Pressure(PressureSample { t_s: t, depth_m, sigma_m: s.pressure.sigma_m }));
+        }
+        if s.compass.rate_hz > 0.0 && t >= self.next_compass_s {
+            self.next_compass_s += 1.0 / s.compass.rate_hz;
+            let sigma_rad = s.compass.sigma_deg.to_radians();
+            let n = Normal::new(0.0, sigma_rad.max(1e-12)).expect("valid sigma");
+            // Yaw of body x projected on the horizontal plane.
+            let x = self.pose.rotation * Vector3::x();
+            let yaw = x.y.atan2(x.x) + n.sample(&mut self.rng.compass);
+            let yaw_rad = (yaw + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
+            self.pending.push_back(SimEvent::Compass(CompassSample { t_s: t, yaw_rad, sigma_rad }));
         }
         true
     }

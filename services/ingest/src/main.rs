@@ -9,10 +9,10 @@ use clap::Parser;
 use ingest::{IngestSettings, Item, Pacer, SimSource, Source, SourceKind};
 use pipeline_runtime::{Delivery, Flow, Output, ProcessArgs, Runtime};
 use shared_types::convert::quat_to_xyzw;
-use shared_types::services::{self, BUOY_RANGES, CLOUD, DEPTH, ODOMETRY, STEREO};
+use shared_types::services::{self, BUOY_RANGES, CLOUD, DEPTH, HEADING, ODOMETRY, STEREO};
 use shared_types::{
-    BuoyRange, CLOUD_HAS_POSE, CloudHeader, CloudPoint, DepthReading, FRAME_SENSOR, MsgHeader, OdometryInput,
-    StereoObservation,
+    BuoyRange, CLOUD_HAS_POSE, CloudHeader, CloudPoint, DepthReading, FRAME_SENSOR, HeadingReading, MsgHeader,
+    OdometryInput, StereoObservation,
 };
 
 struct Outputs {
@@ -20,6 +20,7 @@ struct Outputs {
     stereo: Output<[StereoObservation], MsgHeader>,
     buoys: Output<[BuoyRange], MsgHeader>,
     depth: Output<DepthReading, MsgHeader>,
+    heading: Output<HeadingReading, MsgHeader>,
     cloud: Output<[CloudPoint], CloudHeader>,
 }
 
@@ -33,7 +34,7 @@ struct Ingest {
     progress_every: Option<Duration>,
     last_progress: Instant,
     started: Instant,
-    counts: [u64; 5],
+    counts: [u64; 6],
     empty_clouds: u64,
     first_last_stamp: Option<(u64, u64)>,
     publish_from: Instant,
@@ -69,6 +70,10 @@ impl Ingest {
                 o.depth.send_value(header(stamp_ns), reading)?;
                 self.counts[3] += 1;
             }
+            Item::Heading { stamp_ns, reading } => {
+                o.heading.send_value(header(stamp_ns), reading)?;
+                self.counts[5] += 1;
+            }
             Item::Cloud { stamp_ns, world_from_sensor, points } => {
                 if points.is_empty() {
                     self.empty_clouds += 1;
@@ -103,7 +108,7 @@ impl Ingest {
         let part = serde_json::json!({ "ingest": {
             "source": self.source.describe(),
             "messages": { "odometry": self.counts[0], "stereo": self.counts[1], "buoy_ranges": self.counts[2],
-                          "depth": self.counts[3], "cloud": self.counts[4] },
+                          "depth": self.counts[3], "cloud": self.counts[4], "heading": self.counts[5] },
             "empty_clouds_skipped": self.empty_clouds,
             "data_duration_s": data_s,
             "wall_duration_s": wall_s,
@@ -124,6 +129,7 @@ impl Ingest {
             o.stereo.nudge()?;
             o.buoys.nudge()?;
             o.depth.nudge()?;
+            o.heading.nudge()?;
             o.cloud.nudge()?;
             rt.wake_at(self.publish_from.min(Instant::now() + Duration::from_millis(25)));
             return Ok(Flow::Continue);
@@ -190,6 +196,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         stereo: rt.output_slice_with_qos(STEREO, &qos(STEREO), 1024, delivery)?,
         buoys: rt.output_slice_with_qos(BUOY_RANGES, &qos(BUOY_RANGES), 16, delivery)?,
         depth: rt.output_with_qos(DEPTH, &qos(DEPTH), delivery)?,
+        heading: rt.output_with_qos(HEADING, &qos(HEADING), delivery)?,
         cloud: rt.output_slice_with_qos(CLOUD, &qos(CLOUD), cloud_len, delivery)?,
     };
     let mut state = Ingest {
@@ -203,7 +210,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             .then(|| Duration::from_secs_f64(settings.progress_interval_s)),
         last_progress: Instant::now(),
         started: Instant::now(),
-        counts: [0; 5],
+        counts: [0; 6],
         empty_clouds: 0,
         first_last_stamp: None,
         publish_from: Instant::now() + Duration::from_secs_f64(settings.connect_grace_s),

@@ -6,7 +6,7 @@ use geometry::StereoPixels;
 use nalgebra::Isometry3;
 use shared_types::convert::{mat3_to_row_major, quat_to_xyzw};
 use shared_types::{
-    BuoyRange, DepthReading, OdometryInput, STEREO_HAS_DESCRIPTOR, STEREO_HAS_PIXELS, StereoObservation,
+    BuoyRange, DepthReading, HeadingReading, OdometryInput, STEREO_HAS_DESCRIPTOR, STEREO_HAS_PIXELS, StereoObservation,
 };
 
 /// One message to publish.
@@ -40,6 +40,13 @@ pub enum Item {
         /// The reading.
         reading: DepthReading,
     },
+    /// A heading (compass).
+    Heading {
+        /// Measurement time, ns.
+        stamp_ns: u64,
+        /// The reading.
+        reading: HeadingReading,
+    },
     /// A point cloud.
     Cloud {
         /// Measurement time, ns.
@@ -59,6 +66,7 @@ impl Item {
             | Item::Stereo { stamp_ns, .. }
             | Item::BuoyRanges { stamp_ns, .. }
             | Item::Depth { stamp_ns, .. }
+            | Item::Heading { stamp_ns, .. }
             | Item::Cloud { stamp_ns, .. } => *stamp_ns,
         }
     }
@@ -155,6 +163,10 @@ impl SimSource {
                 stamp_ns: stamp_from_s(c.t_s),
                 world_from_sensor: Some(c.world_from_sensor),
                 points: c.points_sensor_m,
+            },
+            sim::SimEvent::Compass(c) => Item::Heading {
+                stamp_ns: stamp_from_s(c.t_s),
+                reading: HeadingReading { yaw_rad: c.yaw_rad, sigma_rad: c.sigma_rad },
             },
             sim::SimEvent::Pressure(p) => Item::Depth {
                 stamp_ns: stamp_from_s(p.t_s),

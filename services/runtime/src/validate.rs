@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 use shared_types::{
-    BuoyRange, CLOUD_HAS_POSE, CloudHeader, CloudPoint, DepthReading, OdometryInput, StereoObservation,
+    BuoyRange, CLOUD_HAS_POSE, CloudHeader, CloudPoint, DepthReading, HeadingReading, OdometryInput, StereoObservation,
 };
 
 /// Shortest interval between two warnings of the same reason on one input.
@@ -95,6 +95,18 @@ pub fn check_depth(d: &DepthReading) -> Result<(), Rejection> {
     finite(&[d.depth_m, d.sigma_m], "depth")?;
     if d.sigma_m <= 0.0 {
         return reject("bad_value", format!("sigma {} m", d.sigma_m));
+    }
+    Ok(())
+}
+
+/// Checks a heading: finite, yaw in [−π, π], σ > 0.
+pub fn check_heading(h: &HeadingReading) -> Result<(), Rejection> {
+    finite(&[h.yaw_rad, h.sigma_rad], "heading")?;
+    if h.sigma_rad <= 0.0 {
+        return reject("bad_value", format!("sigma {} rad", h.sigma_rad));
+    }
+    if h.yaw_rad.abs() > std::f64::consts::PI + 1e-9 {
+        return reject("bad_value", format!("yaw {} rad outside [-pi, pi]", h.yaw_rad));
     }
     Ok(())
 }

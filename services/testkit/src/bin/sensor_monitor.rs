@@ -8,9 +8,10 @@ use clap::Parser;
 use pipeline_runtime::validate::{self, Guard, Rejection};
 use pipeline_runtime::{Flow, ProcessArgs, Runtime};
 use shared_types::WireType;
-use shared_types::services::{BUOY_RANGES, CLOUD, DEPTH, END_OF_STREAM, ODOMETRY, STEREO};
+use shared_types::services::{BUOY_RANGES, CLOUD, DEPTH, END_OF_STREAM, HEADING, ODOMETRY, STEREO};
 use shared_types::{
-    BuoyRange, CloudHeader, CloudPoint, DepthReading, EndOfStream, MsgHeader, OdometryInput, StereoObservation,
+    BuoyRange, CloudHeader, CloudPoint, DepthReading, EndOfStream, HeadingReading, MsgHeader, OdometryInput,
+    StereoObservation,
 };
 use testkit::SensorMonitorSettings;
 
@@ -66,6 +67,7 @@ struct Monitor {
     stereo: Stream,
     buoys: Stream,
     depth: Stream,
+    heading: Stream,
     cloud: Stream,
     cloud_points: u64,
     stereo_observations: u64,
@@ -74,7 +76,10 @@ struct Monitor {
 
 impl Monitor {
     fn accepted(&self) -> u64 {
-        [&self.odometry, &self.stereo, &self.buoys, &self.depth, &self.cloud].iter().map(|s| s.guard.accepted()).sum()
+        [&self.odometry, &self.stereo, &self.buoys, &self.depth, &self.heading, &self.cloud]
+            .iter()
+            .map(|s| s.guard.accepted())
+            .sum()
     }
 }
 
@@ -85,6 +90,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let stereo = rt.input::<[StereoObservation], MsgHeader>(STEREO)?;
     let buoys = rt.input::<[BuoyRange], MsgHeader>(BUOY_RANGES)?;
     let depth = rt.input::<DepthReading, MsgHeader>(DEPTH)?;
+    let heading = rt.input::<HeadingReading, MsgHeader>(HEADING)?;
     let cloud = rt.input::<[CloudPoint], CloudHeader>(CLOUD)?;
     let eos = rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?;
     let mut g = Monitor {
@@ -92,6 +98,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         stereo: Stream::new(STEREO),
         buoys: Stream::new(BUOY_RANGES),
         depth: Stream::new(DEPTH),
+        heading: Stream::new(HEADING),
         cloud: Stream::new(CLOUD),
         cloud_points: 0,
         stereo_observations: 0,
@@ -118,6 +125,10 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             let check = validate::check_depth(s.payload());
             g.depth.take(s.origin().value(), s.user_header(), check, [s.payload().as_bytes()]);
         }
+        while let Some(s) = heading.receive()? {
+            let check = validate::check_heading(s.payload());
+            g.heading.take(s.origin().value(), s.user_header(), check, [s.payload().as_bytes()]);
+        }
         while let Some(s) = cloud.receive()? {
             let h = s.user_header();
             let check = validate::check_cloud(h, s.payload(), settings.max_cloud_points);
@@ -140,13 +151,13 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     });
     let part = serde_json::json!({ "sensor_monitor": {
         ODOMETRY: g.odometry.guard.report(), STEREO: g.stereo.guard.report(), BUOY_RANGES: g.buoys.guard.report(),
-        DEPTH: g.depth.guard.report(), CLOUD: g.cloud.guard.report(),
+        DEPTH: g.depth.guard.report(), HEADING: g.heading.guard.report(), CLOUD: g.cloud.guard.report(),
         "cloud_points": g.cloud_points, "stereo_observations": g.stereo_observations,
         "end_of_stream_seen": g.end_of_stream_seen,
         "digests": {
             ODOMETRY: format!("{:016x}", g.odometry.digest.0), STEREO: format!("{:016x}", g.stereo.digest.0),
             BUOY_RANGES: format!("{:016x}", g.buoys.digest.0), DEPTH: format!("{:016x}", g.depth.digest.0),
-            CLOUD: format!("{:016x}", g.cloud.digest.0),
+            HEADING: format!("{:016x}", g.heading.digest.0), CLOUD: format!("{:016x}", g.cloud.digest.0),
         },
     }});
     let path = ctx.summary_part_path();

@@ -126,11 +126,12 @@ macro_rules! for_each_wire_type {
         $m!(Heartbeat, 18, $($arg),*);
         $m!(EndOfStream, 19, $($arg),*);
         $m!(ControlCommand, 20, $($arg),*);
+        $m!(HeadingReading, 22, $($arg),*);
     };
 }
 
 /// Number of fixed-size types above; a test checks it against `all_layouts()`.
-const FIXED_TYPES: usize = 22;
+const FIXED_TYPES: usize = 23;
 
 fn subscribe(rt: &mut Runtime, timeout: Duration) -> anyhow::Result<()> {
     let mut checks: Vec<Box<dyn Check>> = vec![];
