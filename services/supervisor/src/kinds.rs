@@ -64,6 +64,7 @@ pub const KINDS: &[(&str, Kind)] = &[
             pipeline_args: true,
         },
     ),
+    ("fusion", Kind { binary: Some("fusion"), check: check::<fusion_process::FusionSettings>, pipeline_args: true }),
     ("external", Kind { binary: None, check: check_external, pipeline_args: false }),
 ];
 

@@ -1,0 +1,773 @@
+//! The fusion engine ([3D] Alg 3, SPEC §5.2 and §6): local maps (segments) of the SLAM
+//! process, each with its local path, the buoy fixes of its time span, and its transform to the
+//! world; the fused global pose per SLAM pose; the request for a new local map when camera and
+//! buoy estimates stop overlapping; and at the end the globally consistent path and map.
+//!
+//! Per segment:
+//! 1. The SLAM poses (local map frame) of the segment are its local path; a cubic B-spline
+//!    through them ([`crate::bspline`]) is evaluated at each buoy fix time inside the segment
+//!    (§6.1-6.2), giving correspondences (local position, world position) with covariances.
+//! 2. With `align.min_pairs` correspondences that are not collinear, the transform
+//!    `world_from_local` follows by weighted SVD ([`crate::align`], §6.3). It is re-estimated
+//!    whenever the number of fixes inside the segment's span changes, so it is refined as the
+//!    segment grows. Collinear or too small geometry is reported ([`SegmentStatus`]); with
+//!    heading readings (a compass, [`Fusion::push_heading`]) inside the segment it is resolved
+//!    ([`crate::align::align_with_heading`]: the local frame's yaw in the world is the compass yaw
+//!    minus the SLAM body yaw in the local frame, averaged over the segment; the local frame is
+//!    taken as level), else the segment waits.
+//! 3. Each SLAM pose is mapped to the world (position with the transform's uncertainty, §6.5)
+//!    and fused with the buoy position synchronised to its stamp (eq 31-32) when the two
+//!    overlap under the χ²₃ gate (`gate_probability`). After `no_overlap_frames` poses in a row
+//!    outside the gate the engine asks for a new local map (once per segment).
+//!
+//! At the end ([`Fusion::finish`]) every segment is aligned once more with all its fixes and its
+//! whole path mapped and fused again: the globally consistent path (the live output could only
+//! use the fixes up to each pose). The segments' landmark maps go into one global map
+//! ([`crate::global_map`], eq 38).
+
+use std::collections::BTreeMap;
+
+use nalgebra::{Isometry3, Matrix3, Matrix6, Translation3, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::FusionError;
+use crate::align::{AlignConfig, Alignment, Correspondence, align, align_with_heading};
+use crate::bspline::{LocalPathSpline, PathSample};
+use crate::fuse::{FuseOutcome, chi2_3_quantile, fuse};
+use crate::global_map::{GlobalLandmark, MapLandmark, MergeConfig, build_global_map};
+
+/// Settings of the engine.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FusionConfig {
+    /// Transform estimation.
+    pub align: AlignConfig,
+    /// Probability of the χ²₃ overlap gate between the camera and buoy estimates.
+    pub gate_probability: f64,
+    /// Poses in a row outside the gate (with a transform) before a new local map is requested;
+    /// 0 never requests one.
+    pub no_overlap_frames: u32,
+    /// Merging landmarks of different segments in the global map.
+    pub merge: MergeConfig,
+    /// Resolve collinear segments with heading readings when there are any.
+    pub use_heading: bool,
+}
+
+impl Default for FusionConfig {
+    fn default() -> Self {
+        Self {
+            align: AlignConfig::default(),
+            gate_probability: 0.99,
+            no_overlap_frames: 15,
+            merge: MergeConfig::default(),
+            use_heading: true,
+        }
+    }
+}
+
+impl FusionConfig {
+    /// Checks the values; each problem is (key, message).
+    pub fn validate(&self) -> Vec<(String, String)> {
+        let mut v: Vec<(String, String)> =
+            self.align.validate().into_iter().map(|(k, m)| (format!("align.{k}"), m)).collect();
+        v.extend(self.merge.validate().into_iter().map(|(k, m)| (format!("merge.{k}"), m)));
+        if !(self.gate_probability > 0.0 && self.gate_probability < 1.0) {
+            v.push(("gate_probability".into(), "must be in (0, 1)".into()));
+        }
+        v
+    }
+}
+
+/// A SLAM pose with the buoy position synchronised to its stamp (a `SyncedPair`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PairInput {
+    /// Stamp, s.
+    pub t_s: f64,
+    /// Local map (segment) of the pose.
+    pub segment: u32,
+    /// The SLAM pose `local_from_body`.
+    pub local_from_body: Isometry3<f64>,
+    /// Its 6×6 covariance over (position, body-frame rotation error), m², rad².
+    pub local_covariance: Matrix6<f64>,
+    /// Buoy position at the stamp, world frame, m.
+    pub buoy_m: Vector3<f64>,
+    /// Its covariance, m².
+    pub buoy_cov_m2: Matrix3<f64>,
+}
+
+/// A buoy fix (a `BuoyFix`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FixInput {
+    /// Stamp, s.
+    pub t_s: f64,
+    /// Position, world frame, m.
+    pub position_m: Vector3<f64>,
+    /// Its covariance, m².
+    pub covariance_m2: Matrix3<f64>,
+}
+
+/// A heading reading (compass): yaw of body x in the world.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HeadingInput {
+    /// Stamp, s.
+    pub t_s: f64,
+    /// Yaw, rad.
+    pub yaw_rad: f64,
+    /// σ, rad.
+    pub sigma_rad: f64,
+}
+
+/// Where a fused pose came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Source {
+    /// Camera (mapped to the world) and buoy fused.
+    Fused,
+    /// The camera alone: the buoy estimate was outside the gate.
+    CameraOnly,
+    /// The buoy alone: the segment has no transform yet.
+    BuoyOnly,
+}
+
+/// A global pose.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FusedOutput {
+    /// Stamp, s.
+    pub t_s: f64,
+    /// Segment of the SLAM pose.
+    pub segment: u32,
+    /// `world_from_body`.
+    pub world_from_body: Isometry3<f64>,
+    /// 6×6 covariance over (position, body-frame rotation error).
+    pub covariance: Matrix6<f64>,
+    /// How it was made.
+    pub source: Source,
+    /// (X_c − X_b)ᵀ(P_b + P_c)⁻¹(X_c − X_b), when a transform exists.
+    pub mahalanobis: Option<f64>,
+    /// Set once per segment: camera and buoy stopped overlapping; start a new local map.
+    pub request_new_segment: bool,
+    /// Set when the segment's transform changed with this pose (status in [`Fusion::segment`]).
+    pub realigned: bool,
+}
+
+/// The state of a segment's transform.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SegmentStatus {
+    /// Not enough fixes inside the segment yet.
+    WaitingForFixes {
+        /// Fixes inside the segment's span.
+        fixes: usize,
+    },
+    /// The correspondences are (nearly) collinear or too small: the rotation is unobservable.
+    Degenerate {
+        /// Why.
+        reason: String,
+    },
+    /// Aligned.
+    Aligned,
+    /// The correspondences were degenerate; the rotation came from the heading readings.
+    AlignedWithHeading {
+        /// Heading readings used.
+        readings: usize,
+    },
+}
+
+/// One local map.
+#[derive(Debug, Clone)]
+pub struct Segment {
+    /// Segment id.
+    pub id: u32,
+    /// The local path (SLAM positions in the local map frame).
+    pub samples: Vec<PathSample>,
+    /// Every pose of the segment, for the final path.
+    pub pairs: Vec<PairInput>,
+    /// The transform `world_from_local`, once estimated.
+    pub alignment: Option<Alignment>,
+    /// Its state.
+    pub status: SegmentStatus,
+    /// The segment's latest landmark map (local frame).
+    pub landmarks: Vec<MapLandmark>,
+    /// World-frame covariance of the local path's errors that its own covariance does not
+    /// explain (drift, an optimistic SLAM covariance), estimated from the alignment residuals
+    /// (see [`excess_covariance`]) and added to every mapped camera estimate, m².
+    pub excess_cov_m2: Matrix3<f64>,
+    fixes_used: usize,
+    no_overlap: u32,
+    requested: bool,
+}
+
+impl Segment {
+    fn new(id: u32) -> Self {
+        Self {
+            id,
+            samples: vec![],
+            pairs: vec![],
+            alignment: None,
+            status: SegmentStatus::WaitingForFixes { fixes: 0 },
+            landmarks: vec![],
+            excess_cov_m2: Matrix3::zeros(),
+            fixes_used: 0,
+            no_overlap: 0,
+            requested: false,
+        }
+    }
+}
+
+/// The engine.
+pub struct Fusion {
+    cfg: FusionConfig,
+    gate_chi2: f64,
+    segments: BTreeMap<u32, Segment>,
+    /// Buoy fixes sorted by time.
+    fixes: Vec<FixInput>,
+    /// Heading readings sorted by time.
+    headings: Vec<HeadingInput>,
+    last_orientation: Option<UnitQuaternion<f64>>,
+}
+
+/// The end-of-run result.
+#[derive(Debug, Clone)]
+pub struct FinalResult {
+    /// The globally consistent path: every pose with the final transforms.
+    pub path: Vec<FusedOutput>,
+    /// The SLAM path mapped to the world by the final transforms (camera only), where aligned.
+    pub slam_world: Vec<(f64, Isometry3<f64>)>,
+    /// The global landmark map.
+    pub global_map: Vec<GlobalLandmark>,
+}
+
+fn finite3(v: &Vector3<f64>) -> bool {
+    v.iter().all(|x| x.is_finite())
+}
+
+/// Rotation-error covariance of a world orientation `R_a·R_l` (body frame) from the transform's
+/// rotation covariance (world side, R = Exp(φ)·R̂).
+fn body_rotation_cov(world_from_body: &UnitQuaternion<f64>, transform_rot_cov: &Matrix3<f64>) -> Matrix3<f64> {
+    let r = world_from_body.to_rotation_matrix().into_inner();
+    r.transpose() * transform_rot_cov * r
+}
+
+impl Fusion {
+    /// A new engine; the configuration must validate.
+    pub fn new(cfg: FusionConfig) -> Result<Self, Vec<(String, String)>> {
+        let problems = cfg.validate();
+        if !problems.is_empty() {
+            return Err(problems);
+        }
+        let gate_chi2 = chi2_3_quantile(cfg.gate_probability)
+            .ok_or_else(|| vec![("gate_probability".to_string(), "no χ²₃ quantile for it".to_string())])?;
+        Ok(Self { cfg, gate_chi2, segments: BTreeMap::new(), fixes: vec![], headings: vec![], last_orientation: None })
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &FusionConfig {
+        &self.cfg
+    }
+
+    /// The segments seen so far.
+    pub fn segments(&self) -> impl Iterator<Item = &Segment> {
+        self.segments.values()
+    }
+
+    /// One segment.
+    pub fn segment(&self, id: u32) -> Option<&Segment> {
+        self.segments.get(&id)
+    }
+
+    /// The buoy fixes received.
+    pub fn fixes(&self) -> &[FixInput] {
+        &self.fixes
+    }
+
+    /// Adds a buoy fix (kept in time order).
+    pub fn push_fix(&mut self, fix: FixInput) -> Result<(), FusionError> {
+        if !(fix.t_s.is_finite() && finite3(&fix.position_m) && fix.covariance_m2.iter().all(|v| v.is_finite())) {
+            return Err(FusionError::NonFinite("buoy fix"));
+        }
+        let i = self.fixes.partition_point(|f| f.t_s <= fix.t_s);
+        if i > 0 && self.fixes[i - 1].t_s == fix.t_s {
+            self.fixes[i - 1] = fix; // a re-published stamp: the later estimate
+        } else {
+            self.fixes.insert(i, fix);
+        }
+        Ok(())
+    }
+
+    /// Adds a heading reading (kept in time order).
+    pub fn push_heading(&mut self, h: HeadingInput) -> Result<(), FusionError> {
+        if !(h.t_s.is_finite() && h.yaw_rad.is_finite() && h.sigma_rad.is_finite() && h.sigma_rad > 0.0) {
+            return Err(FusionError::NonFinite("heading reading"));
+        }
+        let i = self.headings.partition_point(|x| x.t_s <= h.t_s);
+        self.headings.insert(i, h);
+        Ok(())
+    }
+
+    /// Heading readings inside [from, to].
+    fn headings_between(&self, from_s: f64, to_s: f64) -> &[HeadingInput] {
+        let a = self.headings.partition_point(|h| h.t_s < from_s);
+        let b = self.headings.partition_point(|h| h.t_s <= to_s);
+        &self.headings[a..b.max(a)]
+    }
+
+    /// Replaces a segment's landmark map (local frame).
+    pub fn set_landmarks(&mut self, segment: u32, landmarks: Vec<MapLandmark>) {
+        self.segments.entry(segment).or_insert_with(|| Segment::new(segment)).landmarks = landmarks;
+    }
+
+    /// Fixes inside [from, to].
+    fn fixes_between(&self, from_s: f64, to_s: f64) -> &[FixInput] {
+        let a = self.fixes.partition_point(|f| f.t_s < from_s);
+        let b = self.fixes.partition_point(|f| f.t_s <= to_s);
+        &self.fixes[a..b.max(a)]
+    }
+
+    /// Re-estimates a segment's transform from all fixes inside its span (§6.1-6.3).
+    fn realign(cfg: &AlignConfig, seg: &mut Segment, fixes: &[FixInput], headings: &[HeadingInput]) {
+        seg.fixes_used = fixes.len();
+        if fixes.len() < cfg.min_pairs.max(1) || seg.samples.len() < 2 {
+            if seg.alignment.is_none() {
+                seg.status = SegmentStatus::WaitingForFixes { fixes: fixes.len() };
+            }
+            return;
+        }
+        let spline = match LocalPathSpline::fit(&seg.samples) {
+            Ok(s) => s,
+            Err(e) => {
+                seg.status = SegmentStatus::Degenerate { reason: format!("local path: {e}") };
+                return;
+            }
+        };
+        let pairs: Vec<Correspondence> = fixes
+            .iter()
+            .filter_map(|f| {
+                let (local_m, local_cov_m2) = spline.evaluate(f.t_s).ok()?;
+                Some(Correspondence { local_m, local_cov_m2, global_m: f.position_m, global_cov_m2: f.covariance_m2 })
+            })
+            .collect();
+        match align(&pairs, cfg) {
+            Ok(a) => {
+                seg.excess_cov_m2 = excess_covariance(&a, &pairs);
+                seg.alignment = Some(a);
+                seg.status = SegmentStatus::Aligned;
+            }
+            Err(FusionError::TooFew { got, .. }) if seg.alignment.is_none() => {
+                seg.status = SegmentStatus::WaitingForFixes { fixes: got };
+            }
+            Err(e) => {
+                // Degenerate geometry: the heading readings give the rotation, if there are any.
+                if let Some((yaw, sigma, n)) = Self::local_frame_yaw(seg, headings)
+                    && let Ok(a) = align_with_heading(&pairs, yaw, sigma)
+                {
+                    seg.excess_cov_m2 = excess_covariance(&a, &pairs);
+                    seg.alignment = Some(a);
+                    seg.status = SegmentStatus::AlignedWithHeading { readings: n };
+                } else if seg.alignment.is_none() {
+                    // Keep an earlier transform if there is one (it was estimated from a subset).
+                    seg.status = SegmentStatus::Degenerate { reason: e.to_string() };
+                }
+            }
+        }
+    }
+
+    /// The yaw of the segment's local frame in the world from heading readings: compass yaw
+    /// minus the SLAM body yaw in the local frame at the same time (nearest pose), averaged on
+    /// the circle; σ from the readings' σ and their scatter, over √n.
+    fn local_frame_yaw(seg: &Segment, headings: &[HeadingInput]) -> Option<(f64, f64, usize)> {
+        if headings.is_empty() || seg.pairs.is_empty() {
+            return None;
+        }
+        let (mut c, mut s, mut var) = (0.0, 0.0, 0.0);
+        for h in headings {
+            let i = seg.pairs.partition_point(|p| p.t_s < h.t_s).min(seg.pairs.len() - 1);
+            let j = if i > 0 && (seg.pairs[i - 1].t_s - h.t_s).abs() < (seg.pairs[i].t_s - h.t_s).abs() {
+                i - 1
+            } else {
+                i
+            };
+            let x = seg.pairs[j].local_from_body.rotation * Vector3::x();
+            let body_yaw = x.y.atan2(x.x);
+            let d = h.yaw_rad - body_yaw;
+            c += d.cos();
+            s += d.sin();
+            var += h.sigma_rad * h.sigma_rad;
+        }
+        let n = headings.len() as f64;
+        let r = (c * c + s * s).sqrt() / n; // mean resultant length
+        let scatter = (-2.0 * r.max(1e-12).ln()).max(0.0); // circular variance
+        let sigma = ((var / n).max(scatter) / n).sqrt();
+        Some((s.atan2(c), sigma.max(1e-4), headings.len()))
+    }
+
+    /// The global pose of one pair with the segment's current transform (no side effects).
+    fn pose_of(&self, p: &PairInput, alignment: Option<&Alignment>, excess_cov_m2: &Matrix3<f64>) -> FusedOutput {
+        let local_pos = p.local_from_body.translation.vector;
+        let local_cov3: Matrix3<f64> = p.local_covariance.fixed_view::<3, 3>(0, 0).into_owned();
+        let mut cov = Matrix6::zeros();
+        match alignment {
+            Some(a) => {
+                let (x_c, p_c) = a.map_point(&local_pos, &local_cov3);
+                let p_c = p_c + excess_cov_m2;
+                let rotation = a.global_from_local.rotation * p.local_from_body.rotation;
+                let rot_cov = p.local_covariance.fixed_view::<3, 3>(3, 3).into_owned()
+                    + body_rotation_cov(&rotation, &a.covariance.fixed_view::<3, 3>(3, 3).into_owned());
+                cov.fixed_view_mut::<3, 3>(3, 3).copy_from(&rot_cov);
+                let (position, pos_cov, source, m) = match fuse(&x_c, &p_c, &p.buoy_m, &p.buoy_cov_m2, self.gate_chi2) {
+                    Ok(FuseOutcome::Fused { position_m, covariance_m2, mahalanobis }) => {
+                        (position_m, covariance_m2, Source::Fused, Some(mahalanobis))
+                    }
+                    Ok(FuseOutcome::NoOverlap { mahalanobis }) => (x_c, p_c, Source::CameraOnly, Some(mahalanobis)),
+                    Err(_) => (x_c, p_c, Source::CameraOnly, None),
+                };
+                cov.fixed_view_mut::<3, 3>(0, 0).copy_from(&pos_cov);
+                FusedOutput {
+                    t_s: p.t_s,
+                    segment: p.segment,
+                    world_from_body: Isometry3::from_parts(Translation3::from(position), rotation),
+                    covariance: cov,
+                    source,
+                    mahalanobis: m,
+                    request_new_segment: false,
+                    realigned: false,
+                }
+            }
+            None => {
+                cov.fixed_view_mut::<3, 3>(0, 0).copy_from(&p.buoy_cov_m2);
+                let unknown = std::f64::consts::PI * std::f64::consts::PI;
+                cov.fixed_view_mut::<3, 3>(3, 3).copy_from(&(Matrix3::identity() * unknown));
+                FusedOutput {
+                    t_s: p.t_s,
+                    segment: p.segment,
+                    world_from_body: Isometry3::from_parts(
+                        Translation3::from(p.buoy_m),
+                        self.last_orientation.unwrap_or_else(UnitQuaternion::identity),
+                    ),
+                    covariance: cov,
+                    source: Source::BuoyOnly,
+                    mahalanobis: None,
+                    request_new_segment: false,
+                    realigned: false,
+                }
+            }
+        }
+    }
+
+    /// One SLAM pose with its synchronised buoy position: the fused global pose.
+    pub fn push_pair(&mut self, pair: PairInput) -> Result<FusedOutput, FusionError> {
+        let ok = pair.t_s.is_finite()
+            && finite3(&pair.local_from_body.translation.vector)
+            && pair.local_from_body.rotation.coords.iter().all(|v| v.is_finite())
+            && pair.local_covariance.iter().all(|v| v.is_finite())
+            && finite3(&pair.buoy_m)
+            && pair.buoy_cov_m2.iter().all(|v| v.is_finite());
+        if !ok {
+            return Err(FusionError::NonFinite("synced pair"));
+        }
+        let id = pair.segment;
+        let seg = self.segments.entry(id).or_insert_with(|| Segment::new(id));
+        if seg.samples.last().is_none_or(|s| pair.t_s > s.t_s) {
+            seg.samples.push(PathSample {
+                t_s: pair.t_s,
+                position_m: pair.local_from_body.translation.vector,
+                covariance_m2: pair.local_covariance.fixed_view::<3, 3>(0, 0).into_owned(),
+            });
+        }
+        seg.pairs.push(pair.clone());
+        let (from, to) = (seg.samples[0].t_s, seg.samples[seg.samples.len() - 1].t_s);
+        let n_fixes = self.fixes_between(from, to).len();
+        let mut realigned = false;
+        if n_fixes != self.segments[&id].fixes_used {
+            let fixes = self.fixes_between(from, to).to_vec();
+            let headings = if self.cfg.use_heading { self.headings_between(from, to).to_vec() } else { vec![] };
+            let cfg = self.cfg.align.clone();
+            let seg = self.segments.get_mut(&id).expect("inserted above");
+            let before = seg.alignment.as_ref().map(|a| a.global_from_local);
+            Self::realign(&cfg, seg, &fixes, &headings);
+            realigned = seg.alignment.as_ref().map(|a| a.global_from_local) != before;
+        }
+        let seg = &self.segments[&id];
+        let mut out = self.pose_of(&pair, seg.alignment.as_ref(), &seg.excess_cov_m2);
+        out.realigned = realigned;
+        let seg = self.segments.get_mut(&id).expect("exists");
+        match out.source {
+            Source::CameraOnly if out.mahalanobis.is_some() => seg.no_overlap += 1,
+            Source::Fused => seg.no_overlap = 0,
+            _ => {}
+        }
+        if self.cfg.no_overlap_frames > 0 && seg.no_overlap >= self.cfg.no_overlap_frames && !seg.requested {
+            seg.requested = true;
+            out.request_new_segment = true;
+        }
+        if out.source != Source::BuoyOnly {
+            self.last_orientation = Some(out.world_from_body.rotation);
+        }
+        Ok(out)
+    }
+
+    /// The end of the run: every segment aligned with all its fixes, every pose mapped and fused
+    /// again (the globally consistent path), and the global landmark map.
+    pub fn finish(&mut self) -> FinalResult {
+        let cfg = self.cfg.align.clone();
+        let ids: Vec<u32> = self.segments.keys().copied().collect();
+        for id in &ids {
+            let seg = &self.segments[id];
+            if seg.samples.is_empty() {
+                continue;
+            }
+            let (from, to) = (seg.samples[0].t_s, seg.samples[seg.samples.len() - 1].t_s);
+            let fixes = self.fixes_between(from, to).to_vec();
+            let headings = if self.cfg.use_heading { self.headings_between(from, to).to_vec() } else { vec![] };
+            let seg = self.segments.get_mut(id).expect("listed");
+            seg.fixes_used = usize::MAX; // force
+            Self::realign(&cfg, seg, &fixes, &headings);
+        }
+        self.last_orientation = None;
+        let mut path = vec![];
+        let mut slam_world = vec![];
+        for id in &ids {
+            let seg = &self.segments[id];
+            for p in &seg.pairs {
+                let out = self.pose_of(p, seg.alignment.as_ref(), &seg.excess_cov_m2);
+                if let Some(a) = &seg.alignment {
+                    slam_world.push((p.t_s, a.global_from_local * p.local_from_body));
+                }
+                path.push(out);
+            }
+            if let Some(last) = path.last().filter(|o| o.source != Source::BuoyOnly) {
+                self.last_orientation = Some(last.world_from_body.rotation);
+            }
+        }
+        path.sort_by(|a, b| a.t_s.total_cmp(&b.t_s));
+        slam_world.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let aligned: Vec<(Alignment, Vec<MapLandmark>)> = self
+            .segments
+            .values()
+            .filter_map(|s| s.alignment.map(|a| (a, s.landmarks.clone())))
+            .filter(|(_, l)| !l.is_empty())
+            .collect();
+        let global_map = build_global_map(&aligned, &self.cfg.merge);
+        FinalResult { path, slam_world, global_map }
+    }
+}
+
+/// The covariance of the alignment residuals r = X_global − T·X_local beyond what the pairs'
+/// covariances predict: E = mean(r·rᵀ) − mean(R·Σ_local·Rᵀ + Σ_global), with negative
+/// eigenvalues clamped to zero (an a-posteriori variance estimate, as in adaptive Kalman
+/// filtering). It grows when the local path drifts or its covariance is optimistic, so that the
+/// fusion then leans on the buoy. Needs more pairs than the transform has degrees of freedom
+/// (7+); zero otherwise.
+pub fn excess_covariance(a: &Alignment, pairs: &[Correspondence]) -> Matrix3<f64> {
+    if pairs.len() < 7 {
+        return Matrix3::zeros();
+    }
+    let r = a.global_from_local.rotation.to_rotation_matrix().into_inner();
+    let (mut rr, mut predicted) = (Matrix3::zeros(), Matrix3::zeros());
+    for p in pairs {
+        let e = p.global_m - a.global_from_local.transform_point(&p.local_m.into()).coords;
+        rr += e * e.transpose();
+        predicted += r * p.local_cov_m2 * r.transpose() + p.global_cov_m2;
+    }
+    // The fit removed 6 degrees of freedom from the residuals: scale for the expected shrinkage.
+    let n = pairs.len() as f64;
+    let excess = rr / (n - 2.0) - predicted / n;
+    let eig = (excess + excess.transpose()).scale(0.5).symmetric_eigen();
+    let clamped = eig.eigenvalues.map(|v| v.max(0.0));
+    eig.eigenvectors * Matrix3::from_diagonal(&clamped) * eig.eigenvectors.transpose()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+
+    fn truth_at(t: f64) -> Vector3<f64> {
+        // A lawnmower-like curve in the world, m.
+        Vector3::new(2.0 * t, 10.0 * (t / 8.0).sin(), -5.0 - 0.05 * t)
+    }
+
+    fn world_from_local() -> Isometry3<f64> {
+        Isometry3::from_parts(Translation3::new(30.0, -12.0, -4.0), UnitQuaternion::from_euler_angles(0.0, 0.0, 0.7))
+    }
+
+    fn pair(t: f64, segment: u32, buoy: Vector3<f64>, buoy_sigma: f64) -> PairInput {
+        let local = world_from_local().inverse().transform_point(&truth_at(t).into()).coords;
+        let mut c = Matrix6::identity() * 1e-4;
+        c[(0, 0)] = 0.01;
+        c[(1, 1)] = 0.01;
+        c[(2, 2)] = 0.01;
+        PairInput {
+            t_s: t,
+            segment,
+            local_from_body: Isometry3::from_parts(Translation3::from(local), UnitQuaternion::identity()),
+            local_covariance: c,
+            buoy_m: buoy,
+            buoy_cov_m2: Matrix3::identity() * buoy_sigma * buoy_sigma,
+        }
+    }
+
+    #[test]
+    fn a_segment_is_aligned_from_its_fixes_and_the_fused_path_beats_the_buoy_path() {
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(5);
+        let n = Normal::new(0.0, 0.5).unwrap();
+        let noise =
+            |rng: &mut rand_xoshiro::Xoshiro256PlusPlus| Vector3::new(n.sample(rng), n.sample(rng), n.sample(rng));
+        let mut outs = vec![];
+        for k in 0..600 {
+            let t = k as f64 * 0.1;
+            if k % 10 == 0 {
+                f.push_fix(FixInput {
+                    t_s: t,
+                    position_m: truth_at(t) + noise(&mut rng),
+                    covariance_m2: Matrix3::identity() * 0.25,
+                })
+                .unwrap();
+            }
+            let buoy = truth_at(t) + noise(&mut rng) * 0.6;
+            outs.push((t, f.push_pair(pair(t, 0, buoy, 0.3)).unwrap(), buoy));
+        }
+        let seg = f.segment(0).unwrap();
+        assert_eq!(seg.status, SegmentStatus::Aligned);
+        let a = seg.alignment.as_ref().unwrap();
+        assert!((a.global_from_local.translation.vector - world_from_local().translation.vector).norm() < 0.5);
+        assert!(a.global_from_local.rotation.angle_to(&world_from_local().rotation) < 0.02);
+        let fin = f.finish();
+        let rms = |e: &mut dyn Iterator<Item = f64>| {
+            let v: Vec<f64> = e.collect();
+            (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt()
+        };
+        let buoy_err = rms(&mut outs.iter().map(|(t, _, b)| (b - truth_at(*t)).norm()));
+        let fused_err =
+            rms(&mut fin.path.iter().map(|o| (o.world_from_body.translation.vector - truth_at(o.t_s)).norm()));
+        assert!(fused_err < 0.5 * buoy_err, "fused {fused_err} vs buoy {buoy_err}");
+        // A 99 % gate with consistent covariances leaves about 1 % of the poses camera-only.
+        let fused = fin.path.iter().filter(|o| o.source == Source::Fused).count();
+        assert!(fused >= 580, "{fused} of 600 fused");
+        assert_eq!(fin.slam_world.len(), 600);
+    }
+
+    #[test]
+    fn before_enough_fixes_the_buoy_alone_is_used() {
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        let out = f.push_pair(pair(0.0, 0, truth_at(0.0), 0.3)).unwrap();
+        assert_eq!(out.source, Source::BuoyOnly);
+        assert_eq!(out.world_from_body.translation.vector, truth_at(0.0));
+        assert_eq!(f.segment(0).unwrap().status, SegmentStatus::WaitingForFixes { fixes: 0 });
+    }
+
+    #[test]
+    fn collinear_fixes_leave_the_segment_waiting_and_say_why() {
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        // A straight line in the world: the rotation about it is unobservable.
+        let line = |t: f64| Vector3::new(2.0 * t, 0.0, -5.0);
+        for k in 0..100 {
+            let t = k as f64 * 0.1;
+            if k % 10 == 0 {
+                f.push_fix(FixInput { t_s: t, position_m: line(t), covariance_m2: Matrix3::identity() * 0.01 })
+                    .unwrap();
+            }
+            let mut p = pair(t, 0, line(t), 0.1);
+            p.local_from_body.translation.vector = Vector3::new(2.0 * t, 0.0, 0.0);
+            let out = f.push_pair(p).unwrap();
+            assert_eq!(out.source, Source::BuoyOnly);
+        }
+        assert!(
+            matches!(&f.segment(0).unwrap().status, SegmentStatus::Degenerate { reason } if reason.contains("collinear")),
+            "{:?}",
+            f.segment(0).unwrap().status
+        );
+    }
+
+    #[test]
+    fn a_compass_resolves_a_collinear_segment() {
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        // The vehicle drives straight along world y (yaw 90°); the local frame is yawed by 30°
+        // from the world, so the body moves at 60° in the local frame.
+        let yaw_local = 30f64.to_radians();
+        let world_from_local = Isometry3::from_parts(
+            Translation3::new(5.0, -3.0, -8.0),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, yaw_local),
+        );
+        let world = |t: f64| Vector3::new(0.0, 1.5 * t, -8.0);
+        for k in 0..120 {
+            let t = k as f64 * 0.1;
+            if k % 10 == 0 {
+                f.push_fix(FixInput { t_s: t, position_m: world(t), covariance_m2: Matrix3::identity() * 0.01 })
+                    .unwrap();
+                let yaw = std::f64::consts::FRAC_PI_2 + 0.01 * ((k / 10) as f64 - 5.0) / 5.0;
+                f.push_heading(HeadingInput { t_s: t, yaw_rad: yaw, sigma_rad: 0.03 }).unwrap();
+            }
+            let local_pose = world_from_local.inverse()
+                * Isometry3::from_parts(
+                    Translation3::from(world(t)),
+                    UnitQuaternion::from_euler_angles(0.0, 0.0, std::f64::consts::FRAC_PI_2),
+                );
+            let p = PairInput {
+                t_s: t,
+                segment: 0,
+                local_from_body: local_pose,
+                local_covariance: Matrix6::identity() * 1e-4,
+                buoy_m: world(t),
+                buoy_cov_m2: Matrix3::identity() * 0.01,
+            };
+            f.push_pair(p).unwrap();
+        }
+        let seg = f.segment(0).unwrap();
+        assert!(matches!(seg.status, SegmentStatus::AlignedWithHeading { .. }), "{:?}", seg.status);
+        let a = seg.alignment.as_ref().unwrap();
+        assert!(a.global_from_local.rotation.angle_to(&world_from_local.rotation) < 0.02, "{}", a.global_from_local);
+        assert!((a.global_from_local.translation.vector - world_from_local.translation.vector).norm() < 0.2);
+        // Without the compass the same segment waits.
+        let mut g = Fusion::new(FusionConfig { use_heading: false, ..Default::default() }).unwrap();
+        for p in &seg.pairs {
+            if (p.t_s * 10.0).round() as i64 % 10 == 0 {
+                g.push_fix(FixInput { t_s: p.t_s, position_m: p.buoy_m, covariance_m2: Matrix3::identity() * 0.01 })
+                    .unwrap();
+            }
+            g.push_pair(p.clone()).unwrap();
+        }
+        assert!(matches!(g.segment(0).unwrap().status, SegmentStatus::Degenerate { .. }));
+    }
+
+    #[test]
+    fn camera_and_buoy_that_stop_overlapping_request_one_new_local_map() {
+        let cfg = FusionConfig { no_overlap_frames: 5, ..Default::default() };
+        let mut f = Fusion::new(cfg).unwrap();
+        for k in 0..300 {
+            let t = k as f64 * 0.1;
+            if k % 10 == 0 {
+                f.push_fix(FixInput { t_s: t, position_m: truth_at(t), covariance_m2: Matrix3::identity() * 0.01 })
+                    .unwrap();
+            }
+            assert!(!f.push_pair(pair(t, 0, truth_at(t), 0.1)).unwrap().request_new_segment);
+        }
+        // The buoy now reads 20 m away: outside the gate.
+        let mut requests = 0;
+        for k in 300..320 {
+            let t = k as f64 * 0.1;
+            let out = f.push_pair(pair(t, 0, truth_at(t) + Vector3::new(20.0, 0.0, 0.0), 0.1)).unwrap();
+            assert_eq!(out.source, Source::CameraOnly);
+            requests += usize::from(out.request_new_segment);
+            if k < 304 {
+                assert!(!out.request_new_segment, "only after 5 in a row");
+            }
+        }
+        assert_eq!(requests, 1, "asked once per segment");
+        // A new segment starts waiting for its own fixes.
+        let out = f.push_pair(pair(32.0, 1, truth_at(32.0), 0.1)).unwrap();
+        assert_eq!(out.source, Source::BuoyOnly);
+    }
+
+    #[test]
+    fn bad_inputs_are_errors() {
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        let mut p = pair(0.0, 0, truth_at(0.0), 0.3);
+        p.buoy_m.x = f64::NAN;
+        assert!(f.push_pair(p).is_err());
+        let fix = FixInput { t_s: f64::NAN, position_m: Vector3::zeros(), covariance_m2: Matrix3::identity() };
+        assert!(f.push_fix(fix).is_err());
+        assert!(Fusion::new(FusionConfig { gate_probability: 1.5, ..Default::default() }).is_err());
+    }
+}

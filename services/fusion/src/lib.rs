@@ -1,0 +1,240 @@
+//! The `fusion` process's settings, the conversions from the wire, and the end-of-run outputs
+//! (TUM trajectories, the global map as PLY, per-segment transforms, accuracy, a top-view plot).
+//! The fusion itself is [`fusion::engine::Fusion`]; `main.rs` is the wiring around it.
+
+use std::path::Path;
+
+use fusion::engine::{FinalResult, FixInput, Fusion, FusionConfig, PairInput, Source};
+use fusion::global_map::MapLandmark;
+use nalgebra::{Isometry3, Matrix3, Vector3};
+use pipeline_runtime::{Issues, ProcessSettings};
+use serde::{Deserialize, Serialize};
+use shared_types::{BuoyFix, Landmark, MsgHeader, SyncedPair};
+
+/// Settings of the `fusion` process.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FusionSettings {
+    /// The engine: `align.{min_pairs, min_spread_ratio, min_extent_m}`, `gate_probability`,
+    /// `no_overlap_frames`, `merge.*` (documented in `algorithms/fusion/src/engine.rs`,
+    /// `align.rs`, `global_map.rs`).
+    pub fusion: FusionConfig,
+    /// The SLAM process that gets the new-local-map commands.
+    pub slam_process: String,
+    /// The processes whose end of stream ends this one's input.
+    pub end_after: Vec<String>,
+    /// Ground truth to evaluate against at the end (TUM, relative to the output directory);
+    /// skipped when missing.
+    pub ground_truth: String,
+    /// Write `trajectories.png` (top view) at the end.
+    pub plot: bool,
+}
+
+impl Default for FusionSettings {
+    fn default() -> Self {
+        Self {
+            fusion: FusionConfig::default(),
+            slam_process: "slam".into(),
+            end_after: vec!["sync".into(), "buoy".into(), "slam".into()],
+            ground_truth: "ground_truth.tum".into(),
+            plot: true,
+        }
+    }
+}
+
+impl ProcessSettings for FusionSettings {
+    fn validate(&self, key: &str, issues: &mut Issues) {
+        for (k, m) in self.fusion.validate() {
+            issues.push(format!("{key}.fusion.{k}"), m);
+        }
+        issues.check(!self.slam_process.is_empty(), format!("{key}.slam_process"), "must name the SLAM process");
+    }
+
+    fn shm_estimate_bytes(&self) -> u64 {
+        // Fused poses, the global map (grows by powers of two), commands.
+        (1 << 20) + (16 << 20)
+    }
+}
+
+/// A synced pair from the wire.
+pub fn pair_from_wire(h: &MsgHeader, p: &SyncedPair) -> PairInput {
+    PairInput {
+        t_s: h.stamp_ns as f64 / 1e9,
+        segment: p.slam.segment_id,
+        local_from_body: p.slam.frame_from_body(),
+        local_covariance: p.slam.covariance_matrix(),
+        buoy_m: Vector3::from(p.buoy_position_m),
+        buoy_cov_m2: Matrix3::from_row_slice(&p.buoy_covariance_m2),
+    }
+}
+
+/// A buoy fix from the wire.
+pub fn fix_from_wire(h: &MsgHeader, f: &BuoyFix) -> FixInput {
+    FixInput {
+        t_s: h.stamp_ns as f64 / 1e9,
+        position_m: Vector3::from(f.position_m),
+        covariance_m2: Matrix3::from_row_slice(&f.covariance_m2),
+    }
+}
+
+/// A landmark from the wire; NaN or a negative observation count drops it.
+pub fn landmark_from_wire(l: &Landmark) -> Option<MapLandmark> {
+    let mean = Vector3::from(l.mean_m);
+    let cov = Matrix3::from_row_slice(&l.covariance_m2);
+    if !(mean.iter().all(|v| v.is_finite()) && cov.iter().all(|v| v.is_finite())) {
+        return None;
+    }
+    Some(MapLandmark {
+        id: l.id,
+        segment: l.segment_id,
+        mean_m: mean,
+        cov_m2: cov,
+        descriptor: l.descriptor.iter().any(|b| *b != 0).then_some(l.descriptor),
+        observations: l.observation_count,
+    })
+}
+
+/// Counts by source.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct SourceCounts {
+    /// Fused poses.
+    pub fused: u64,
+    /// Camera only (outside the gate).
+    pub camera_only: u64,
+    /// Buoy only (no transform yet).
+    pub buoy_only: u64,
+}
+
+impl SourceCounts {
+    /// Counts one.
+    pub fn add(&mut self, s: Source) {
+        match s {
+            Source::Fused => self.fused += 1,
+            Source::CameraOnly => self.camera_only += 1,
+            Source::BuoyOnly => self.buoy_only += 1,
+        }
+    }
+}
+
+/// Everything the process logged during the run, for the end-of-run outputs.
+#[derive(Debug, Default)]
+pub struct RunLog {
+    /// The published (live) fused poses: (t, world_from_body).
+    pub live: Vec<(f64, Isometry3<f64>)>,
+    /// The buoy positions synchronised to the SLAM poses: (t, position).
+    pub buoy: Vec<(f64, Vector3<f64>)>,
+    /// Counts of the live poses.
+    pub live_sources: SourceCounts,
+    /// New local maps requested.
+    pub segment_requests: u64,
+    /// Inputs dropped as invalid, by reason.
+    pub invalid: std::collections::BTreeMap<String, u64>,
+}
+
+fn positions(p: &[(f64, Isometry3<f64>)]) -> Vec<(f64, Vector3<f64>)> {
+    p.iter().map(|(t, x)| (*t, x.translation.vector)).collect()
+}
+
+/// Writes the end-of-run outputs into `out_dir` and returns the summary part.
+pub fn write_outputs(
+    out_dir: &Path,
+    settings: &FusionSettings,
+    engine: &Fusion,
+    result: &FinalResult,
+    log: &RunLog,
+) -> anyhow::Result<serde_json::Value> {
+    use geometry::tum::write_tum;
+    std::fs::create_dir_all(out_dir)?;
+    let fused: Vec<(f64, Isometry3<f64>)> = result.path.iter().map(|o| (o.t_s, o.world_from_body)).collect();
+    write_tum(&out_dir.join("fused_global.tum"), fused.iter().map(|(t, p)| (*t, p)))?;
+    write_tum(&out_dir.join("fused_live.tum"), log.live.iter().map(|(t, p)| (*t, p)))?;
+    write_tum(&out_dir.join("slam_global.tum"), result.slam_world.iter().map(|(t, p)| (*t, p)))?;
+    let buoy_poses: Vec<(f64, Isometry3<f64>)> =
+        log.buoy.iter().map(|(t, p)| (*t, Isometry3::translation(p.x, p.y, p.z))).collect();
+    write_tum(&out_dir.join("buoy.tum"), buoy_poses.iter().map(|(t, p)| (*t, p)))?;
+    fusion::global_map::write_ply(&out_dir.join("global_map.ply"), &result.global_map)?;
+    let mut final_sources = SourceCounts::default();
+    for o in &result.path {
+        final_sources.add(o.source);
+    }
+    let segments: Vec<serde_json::Value> = engine
+        .segments()
+        .map(|s| {
+            let a = s.alignment.as_ref();
+            serde_json::json!({
+                "segment": s.id,
+                "poses": s.pairs.len(),
+                "status": s.status,
+                "landmarks": s.landmarks.len(),
+                "translation_m": a.map(|a| a.global_from_local.translation.vector.as_slice().to_vec()),
+                "rotation_xyzw": a.map(|a| shared_types::convert::quat_to_xyzw(&a.global_from_local.rotation)),
+                "pairs": a.map(|a| a.pairs),
+                "rms_residual_m": a.map(|a| a.rms_residual_m),
+                "spread_ratio": a.map(|a| a.spread_ratio),
+            })
+        })
+        .collect();
+    std::fs::write(out_dir.join("segment_transforms.json"), serde_json::to_vec_pretty(&segments)?)?;
+    let merged = result.global_map.iter().filter(|l| l.members.len() > 1).count();
+    let mut part = serde_json::json!({ "fusion": {
+        "poses": result.path.len(),
+        "live": log.live_sources,
+        "final": final_sources,
+        "segments": segments.len(),
+        "segments_aligned": engine.segments().filter(|s| s.alignment.is_some()).count(),
+        "new_local_maps_requested": log.segment_requests,
+        "global_landmarks": result.global_map.len(),
+        "global_landmarks_merged": merged,
+        "invalid_inputs": log.invalid,
+    }});
+    let truth = geometry::tum::read_tum(&out_dir.join(&settings.ground_truth));
+    let truth = match truth {
+        Ok(t) if !t.is_empty() => Some(t),
+        Ok(_) => None,
+        Err(e) => {
+            tracing::info!("no accuracy evaluation: {e}");
+            None
+        }
+    };
+    let mut series_truth = vec![];
+    if let Some(truth) = &truth {
+        let tp = positions(truth);
+        let ate = |est: &[(f64, Vector3<f64>)]| geometry::trajectory::ate_nearest(est, &tp, false);
+        let ates = serde_json::json!({
+            "fused": ate(&positions(&fused)),
+            "fused_live": ate(&positions(&log.live)),
+            "buoy": ate(&log.buoy),
+            "slam_global": ate(&positions(&result.slam_world)),
+        });
+        tracing::info!("ATE (3-D, nearest stamp, no alignment): {ates}");
+        part["ate_m"] = ates;
+        series_truth = tp.iter().map(|(_, p)| (p.x, p.y)).collect();
+    }
+    if settings.plot {
+        let xy = |v: &[(f64, Vector3<f64>)]| v.iter().map(|(_, p)| (p.x, p.y)).collect::<Vec<_>>();
+        let (buoy, slam, fused_xy) = (xy(&log.buoy), xy(&positions(&result.slam_world)), xy(&positions(&fused)));
+        let series = [
+            fusion::plot::Series { label: "ground truth", color: (0, 0, 0), points: &series_truth, thin: true },
+            fusion::plot::Series { label: "buoy", color: (230, 120, 0), points: &buoy, thin: false },
+            fusion::plot::Series {
+                label: "SLAM (mapped to the world)",
+                color: (40, 90, 220),
+                points: &slam,
+                thin: false,
+            },
+            fusion::plot::Series { label: "fused", color: (20, 160, 60), points: &fused_xy, thin: false },
+        ];
+        match fusion::plot::plot_top_view(
+            &out_dir.join("trajectories.png"),
+            "Top view: ground truth, buoy, SLAM, fused",
+            &series,
+            1200,
+            900,
+        ) {
+            Ok(r) if !r.text => tracing::warn!("trajectories.png drawn without text: no TrueType font found"),
+            Ok(_) => {}
+            Err(e) => tracing::warn!("trajectories.png not written: {e}"),
+        }
+    }
+    Ok(part)
+}

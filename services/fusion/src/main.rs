@@ -1,0 +1,168 @@
+//! `fusion`: subscribes the synced pairs, the buoy fixes and the SLAM landmark maps; publishes
+//! the fused global pose per SLAM pose on `pipeline/fusion/pose`, asks the SLAM process for a new
+//! local map when camera and buoy stop overlapping, and at the end publishes the global map on
+//! `pipeline/fusion/map` and writes the globally consistent path, the map, the transforms, the
+//! accuracy and a plot. See the library docs.
+
+use std::collections::BTreeSet;
+use std::process::ExitCode;
+use std::time::Duration;
+
+use clap::Parser;
+use fusion::engine::{Fusion, Source};
+use fusion_process::{FusionSettings, RunLog, fix_from_wire, landmark_from_wire, pair_from_wire, write_outputs};
+use pipeline_runtime::{Flow, ProcessArgs, Runtime};
+use shared_types::services::{
+    BUOY_FIX, COMMAND, END_OF_STREAM, FUSION_MAP, FUSION_POSE, HEADING, SLAM_LANDMARKS, SYNC_PAIR,
+};
+use shared_types::*;
+
+fn flags(s: Source) -> u32 {
+    match s {
+        Source::Fused => FUSED_WITH_BUOY,
+        Source::CameraOnly => FUSED_CAMERA_ONLY,
+        Source::BuoyOnly => FUSED_BUOY_ONLY,
+    }
+}
+
+fn count(log: &mut RunLog, reason: &str) {
+    *log.invalid.entry(reason.to_string()).or_default() += 1;
+}
+
+fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
+    let (ctx, mut rt) = Runtime::start(args)?;
+    let settings: FusionSettings = ctx.settings()?;
+    let mut engine =
+        Fusion::new(settings.fusion.clone()).map_err(|p| anyhow::anyhow!("invalid fusion settings: {p:?}"))?;
+    let pairs = rt.input::<SyncedPair, MsgHeader>(SYNC_PAIR)?;
+    let fixes = rt.input::<BuoyFix, MsgHeader>(BUOY_FIX)?;
+    let landmarks = rt.input::<[Landmark], LandmarkMapHeader>(SLAM_LANDMARKS)?;
+    let headings = rt.input::<HeadingReading, MsgHeader>(HEADING)?;
+    let eos = rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?;
+    let mut pose_out = rt.output::<FusedPose, MsgHeader>(FUSION_POSE)?;
+    let mut map_out = rt.output_slice::<Landmark, LandmarkMapHeader>(FUSION_MAP, 4096)?;
+    let mut commands = rt.output::<ControlCommand, MsgHeader>(COMMAND)?;
+    let out_dir = ctx.out_dir.clone();
+    let name = ctx.name.clone();
+    let mut ended: BTreeSet<String> = BTreeSet::new();
+    let mut log = RunLog::default();
+    let mut done = false;
+    let mut statuses: std::collections::BTreeMap<u32, String> = Default::default();
+    tracing::info!(slam = %settings.slam_process, end_after = ?settings.end_after, "fusion ready");
+    rt.run(&mut engine, Some(Duration::from_millis(200)), |rt, engine, _| {
+        if done {
+            return Ok(Flow::Continue);
+        }
+        ended.extend(rt.ended_upstream(&eos)?); // before the data: see Runtime::ended_upstream
+        let inputs_ended = settings.end_after.iter().all(|n| ended.contains(n));
+        // Fixes and maps first, so that a pair sees every fix that arrived with it.
+        while let Some(s) = fixes.receive()? {
+            if engine.push_fix(fix_from_wire(s.user_header(), s.payload())).is_err() {
+                count(&mut log, "buoy fix with NaN");
+            }
+        }
+        while let Some(s) = headings.receive()? {
+            let h = s.payload();
+            let reading = fusion::engine::HeadingInput {
+                t_s: s.user_header().stamp_ns as f64 / 1e9,
+                yaw_rad: h.yaw_rad,
+                sigma_rad: h.sigma_rad,
+            };
+            if engine.push_heading(reading).is_err() {
+                count(&mut log, "heading with NaN or sigma <= 0");
+            }
+        }
+        while let Some(s) = landmarks.receive()? {
+            let h = s.user_header();
+            let ls: Vec<_> = s.payload().iter().filter_map(landmark_from_wire).collect();
+            if ls.len() < s.payload().len() {
+                count(&mut log, "landmark with NaN");
+            }
+            engine.set_landmarks(h.segment_id, ls);
+        }
+        while let Some(s) = pairs.receive()? {
+            let h = *s.user_header();
+            let pair = pair_from_wire(&h, s.payload());
+            let buoy = pair.buoy_m;
+            let t_s = pair.t_s;
+            let out = match engine.push_pair(pair) {
+                Ok(o) => o,
+                Err(e) => {
+                    count(&mut log, &format!("synced pair: {e}"));
+                    continue;
+                }
+            };
+            log.buoy.push((t_s, buoy));
+            log.live.push((out.t_s, out.world_from_body));
+            log.live_sources.add(out.source);
+            pose_out.send_value(
+                MsgHeader { stamp_ns: h.stamp_ns, origin_ns: h.origin_ns, ..Default::default() },
+                FusedPose {
+                    pose: PoseEstimate::from_nalgebra(&out.world_from_body, &out.covariance, out.segment, FRAME_WORLD),
+                    flags: flags(out.source),
+                    _reserved: 0,
+                },
+            )?;
+            if let Some(seg) = engine.segment(out.segment) {
+                let status = format!("{:?}", seg.status);
+                if statuses.get(&out.segment) != Some(&status) {
+                    tracing::info!(segment = out.segment, "local map: {status}");
+                    statuses.insert(out.segment, status);
+                }
+            }
+            if out.request_new_segment {
+                log.segment_requests += 1;
+                tracing::info!(
+                    segment = out.segment,
+                    mahalanobis = out.mahalanobis,
+                    "camera and buoy estimates stopped overlapping: asking {} for a new local map",
+                    settings.slam_process
+                );
+                commands.send_value(
+                    MsgHeader { stamp_ns: h.stamp_ns, origin_ns: h.origin_ns, ..Default::default() },
+                    ControlCommand {
+                        target: name32(&settings.slam_process),
+                        command: COMMAND_NEW_SEGMENT,
+                        _reserved: 0,
+                        arg: out.segment as u64,
+                    },
+                )?;
+            }
+        }
+        if inputs_ended {
+            let result = engine.finish();
+            let map = &result.global_map;
+            let mut s = map_out.loan_slice_uninit(map.len())?.write_from_fn(|i| {
+                let l = &map[i];
+                Landmark {
+                    id: i as u64,
+                    mean_m: l.mean_m.into(),
+                    covariance_m2: convert::mat3_to_row_major(&l.cov_m2),
+                    descriptor: l.descriptor.unwrap_or([0; 32]),
+                    observation_count: l.observations,
+                    segment_id: u32::MAX,
+                }
+            });
+            let stamp = result.path.last().map_or(0, |o| (o.t_s * 1e9) as u64);
+            *s.user_header_mut() = LandmarkMapHeader {
+                msg: MsgHeader { stamp_ns: stamp, ..Default::default() },
+                segment_id: u32::MAX,
+                frame: FRAME_WORLD,
+            };
+            map_out.send(s)?;
+            let part = write_outputs(&out_dir, &settings, engine, &result, &log)?;
+            let path = out_dir.join("parts").join(format!("{name}.json"));
+            std::fs::create_dir_all(path.parent().expect("parts dir"))?;
+            std::fs::write(path, serde_json::to_vec_pretty(&part)?)?;
+            rt.send_end_of_stream(pose_out.sent().saturating_sub(1), pose_out.sent())?;
+            done = true;
+        }
+        Ok(Flow::Continue)
+    })
+}
+
+fn main() -> ExitCode {
+    let args = ProcessArgs::parse();
+    let _log = pipeline_runtime::logging::init(&args.name, args.log_format.unwrap_or_default());
+    pipeline_runtime::exit_code(&run(&args))
+}
