@@ -1,0 +1,65 @@
+//! The fusion stage end to end: the default config (config/default.toml, the processes exactly as
+//! the main job runs them) must end with a fused global path more accurate than the buoy-only path
+//! and than the SLAM path, and write every output the README lists.
+
+use std::time::Duration;
+
+use pipeline_tests::TestRun;
+
+#[test]
+fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
+    let path = format!("{}/../config/default.toml", env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(&path).expect("config/default.toml");
+    let config: toml::Table = text.parse().expect("valid TOML");
+    let run = config["run"].as_table().expect("[run]");
+    let processes = toml::to_string(&toml::Table::from_iter([("processes".to_string(), config["processes"].clone())]))
+        .expect("processes as TOML");
+    let run_extra =
+        format!("end = {}\nend_of_stream_from = {}\nduration_s = 600", run["end"], run["end_of_stream_from"]);
+    let mut t = TestRun::new("fusiondefault");
+    let s = t.run_to_end(&run_extra, &processes, Duration::from_secs(600));
+    let ate = &s["ate_m"];
+    let (fused, buoy, slam) =
+        (ate["fused"].as_f64().unwrap(), ate["buoy"].as_f64().unwrap(), ate["slam"].as_f64().unwrap());
+    assert!(fused < buoy, "fused {fused} m must beat the buoy-only path {buoy} m: {ate:#}");
+    assert!(fused < slam, "fused {fused} m must beat the SLAM path {slam} m: {ate:#}");
+    assert!(fused < ate["slam_global"].as_f64().unwrap(), "{ate:#}");
+    let f = &s["fusion"];
+    assert_eq!(f["poses"], s["slam"]["frames"], "one global pose per SLAM pose: {f:#}");
+    assert!(f["segments_aligned"].as_u64().unwrap() >= 1, "{f:#}");
+    assert!(f["global_landmarks"].as_u64().unwrap() > 100, "{f:#}");
+    let out = t.out_dir();
+    for file in [
+        "fused_global.tum",
+        "fused_live.tum",
+        "slam_global.tum",
+        "slam_local.tum",
+        "buoy.tum",
+        "ground_truth.tum",
+        "global_map.ply",
+        "segment_transforms.json",
+    ] {
+        let meta = std::fs::metadata(out.join(file)).unwrap_or_else(|e| panic!("{file}: {e}"));
+        assert!(meta.len() > 100, "{file} is nearly empty");
+    }
+    let png = std::fs::read(out.join("trajectories.png")).expect("trajectories.png");
+    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+}
+
+#[test]
+fn invalid_fusion_settings_name_their_keys() {
+    for (settings, key) in [
+        ("[processes.p.settings.fusion]\ngate_probability = 1.5", "processes.p.settings.fusion.gate_probability"),
+        ("[processes.p.settings.fusion.align]\nmin_pairs = 1", "processes.p.settings.fusion.align.min_pairs"),
+        ("[processes.p.settings]\nslam_process = \"\"", "processes.p.settings.slam_process"),
+        ("[processes.p.settings]\nplott = true", "processes.p.settings.plott"),
+    ] {
+        let mut run = TestRun::new("badfusion");
+        let procs = format!("[processes.p]\nkind = \"fusion\"\n{settings}\n");
+        let cfg = run.write_config("end = \"signal\"", &procs);
+        run.start_supervisor(&cfg, &[]);
+        let status = run.wait_supervisor(Duration::from_secs(20)).expect("exits");
+        assert_eq!(status.code(), Some(2), "{}", run.log());
+        assert!(run.log().contains(&format!("`{key}`")), "must name `{key}`:\n{}", run.log());
+    }
+}
