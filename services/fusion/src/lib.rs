@@ -212,7 +212,19 @@ pub fn write_outputs(
     }
     if settings.plot {
         let xy = |v: &[(f64, Vector3<f64>)]| v.iter().map(|(_, p)| (p.x, p.y)).collect::<Vec<_>>();
-        let (buoy, slam, fused_xy) = (xy(&log.buoy), xy(&positions(&result.slam_world)), xy(&positions(&fused)));
+        // The mapped SLAM path has holes (segments without a transform): break the line there.
+        let mut slam = vec![];
+        for w in result.slam_world.windows(2) {
+            let p = w[0].1.translation.vector;
+            slam.push((p.x, p.y));
+            if w[1].0 - w[0].0 > 0.5 {
+                slam.push((f64::NAN, f64::NAN));
+            }
+        }
+        if let Some((_, last)) = result.slam_world.last() {
+            slam.push((last.translation.vector.x, last.translation.vector.y));
+        }
+        let (buoy, fused_xy) = (xy(&log.buoy), xy(&positions(&fused)));
         let series = [
             fusion::plot::Series { label: "ground truth", color: (0, 0, 0), points: &series_truth, thin: true },
             fusion::plot::Series { label: "buoy", color: (230, 120, 0), points: &buoy, thin: false },
