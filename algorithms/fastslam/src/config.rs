@@ -59,11 +59,16 @@ pub struct SegmentConfig {
     pub weak_frames: u32,
     /// A position standard deviation (largest axis) above this starts a new local map, m.
     pub max_position_sigma_m: f64,
+    /// Frames a local map lives at least before weak frames may end it. In a feature-scarce
+    /// stretch a fresh map gets a few landmarks, loses them and would be replaced about once a
+    /// second; maps that short cannot be placed in the world (fusion needs 3 or more buoy fixes
+    /// inside a local map). The pose-uncertainty trigger and requests act at any age.
+    pub min_frames: u32,
 }
 
 impl Default for SegmentConfig {
     fn default() -> Self {
-        Self { min_matched: 3, weak_frames: 15, max_position_sigma_m: 3.0 }
+        Self { min_matched: 3, weak_frames: 15, max_position_sigma_m: 3.0, min_frames: 75 }
     }
 }
 

@@ -199,6 +199,8 @@ pub struct FastSlam {
     /// Pose covariance accumulated by the motion since the last frame (body-frame error).
     motion_cov: Matrix6<f64>,
     weak_frames: u32,
+    /// Frames since the local map started.
+    segment_frames: u32,
     /// Body twist (linear m/s, angular rad/s) for the constant-velocity model.
     twist: Option<(Vector3<f64>, Vector3<f64>)>,
     last_mean: Option<Isometry3<f64>>,
@@ -262,6 +264,7 @@ impl FastSlam {
             grid: Grid { cell_m: cfg.association.search_radius_m, cells: HashMap::new() },
             motion_cov: Matrix6::zeros(),
             weak_frames: 0,
+            segment_frames: 0,
             twist: None,
             last_mean: None,
             last_cv_dt: None,
@@ -563,6 +566,7 @@ impl FastSlam {
         }
         self.last_mean = Some(estimate.map_from_body);
         let mut new_segment = None;
+        self.segment_frames += 1;
         if matched < cfg.segments.min_matched {
             self.weak_frames += 1;
         } else {
@@ -571,7 +575,10 @@ impl FastSlam {
         let sigma = estimate.covariance.fixed_view::<3, 3>(0, 0).symmetric_eigenvalues().max().max(0.0).sqrt();
         if sigma > cfg.segments.max_position_sigma_m {
             new_segment = Some(SegmentReason::PoseUncertainty { sigma_m: sigma });
-        } else if self.weak_frames >= cfg.segments.weak_frames && landmarks >= cfg.segments.min_matched {
+        } else if self.weak_frames >= cfg.segments.weak_frames
+            && landmarks >= cfg.segments.min_matched
+            && self.segment_frames >= cfg.segments.min_frames
+        {
             new_segment = Some(SegmentReason::FewMatches { matched, frames: self.weak_frames });
         }
         if let Some(reason) = &new_segment {
@@ -842,6 +849,7 @@ impl FastSlam {
         self.segment += 1;
         self.segment_motion_cov = Matrix6::zeros();
         self.weak_frames = 0;
+        self.segment_frames = 0;
         self.last_mean = None;
         self.motion_cov = Matrix6::zeros();
     }
