@@ -1,0 +1,682 @@
+//! Navigable space discovery and obstacles ([6D] §III-VI, SPEC §7), on the occupied voxels of an
+//! occupancy map and the points that fell into them.
+//!
+//! 1. [`PointAccumulator`] keeps, per voxel (`res`-sized cells, key ⌊x/res⌋), the count, sum
+//!    and sum of outer products of the end points inserted: enough for a least-squares plane.
+//! 2. [`fit_plane`]: PCA of a voxel's points; the normal is the eigenvector of the smallest
+//!    eigenvalue of their covariance, and that eigenvalue is the MSE (mean squared distance of
+//!    the points to the plane). A voxel is planar when it has `min_points` points and MSE ≤
+//!    `max_plane_mse_m2`.
+//! 3. Navigable regions ([6D] Alg 1 NSD): planar voxels whose slope (angle between the normal
+//!    and world z) is at most `max_slope_deg` are navigable candidates; two adjacent candidates
+//!    (26-neighbourhood) join one region when their planes meet at their common boundary: both
+//!    planes, evaluated where the two voxels touch (the midpoint of their centres), agree within
+//!    `max_step_m`, and their normals differ by at most `max_normal_angle_deg`. Regions are the
+//!    connected components (union-find).
+//! 4. Obstacles: seeds are the non-planar voxels; each grows through adjacent occupied voxels that
+//!    are not navigable (non-planar, or planar but too steep: walls, box sides). Each obstacle is
+//!    a Gaussian (mean and covariance of its points), and obstacles of different scans or maps
+//!    are associated by the Bhattacharyya distance ([`associate_obstacles`]).
+//! 5. [`write_navigable_ply`] and [`write_obstacles_ply`] write the two layers (navigable voxel
+//!    patches with their region, obstacles as meshes of their voxels' outer faces).
+
+use std::collections::{BTreeMap, HashMap};
+use std::io::Write;
+use std::path::Path;
+
+use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// A voxel index, ⌊x/res⌋ per axis.
+pub type VoxelKey = [i32; 3];
+
+/// Errors.
+#[derive(Debug, thiserror::Error)]
+pub enum NavigableError {
+    /// A setting is out of range.
+    #[error("{key}: {message}")]
+    Config {
+        /// The key.
+        key: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// Writing a file failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The error.
+        source: std::io::Error,
+    },
+}
+
+/// Point statistics of one voxel.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct VoxelStats {
+    /// Points.
+    pub n: u32,
+    /// Sum of the points, m.
+    pub sum_m: Vector3<f64>,
+    /// Sum of p·pᵀ, m².
+    pub sum_sq_m2: Matrix3<f64>,
+}
+
+impl VoxelStats {
+    /// Adds a point.
+    pub fn add(&mut self, p: &Vector3<f64>) {
+        self.n += 1;
+        self.sum_m += p;
+        self.sum_sq_m2 += p * p.transpose();
+    }
+
+    /// Merges another voxel's statistics.
+    pub fn merge(&mut self, o: &VoxelStats) {
+        self.n += o.n;
+        self.sum_m += o.sum_m;
+        self.sum_sq_m2 += o.sum_sq_m2;
+    }
+
+    /// Mean and (population) covariance of the points.
+    pub fn mean_cov(&self) -> Option<(Vector3<f64>, Matrix3<f64>)> {
+        if self.n == 0 {
+            return None;
+        }
+        let n = self.n as f64;
+        let mean = self.sum_m / n;
+        let cov = self.sum_sq_m2 / n - mean * mean.transpose();
+        Some((mean, (cov + cov.transpose()) * 0.5))
+    }
+}
+
+/// The end points of the inserted scans, by voxel.
+#[derive(Debug, Clone, Default)]
+pub struct PointAccumulator {
+    res_m: f64,
+    cells: HashMap<VoxelKey, VoxelStats>,
+}
+
+impl PointAccumulator {
+    /// An empty accumulator with voxels of `res_m` (> 0).
+    pub fn new(res_m: f64) -> Self {
+        Self { res_m, cells: HashMap::new() }
+    }
+
+    /// The voxel size, m.
+    pub fn resolution_m(&self) -> f64 {
+        self.res_m
+    }
+
+    /// The voxel of a point.
+    pub fn key(&self, p: &Vector3<f64>) -> VoxelKey {
+        [(p.x / self.res_m).floor() as i32, (p.y / self.res_m).floor() as i32, (p.z / self.res_m).floor() as i32]
+    }
+
+    /// Centre of a voxel, m.
+    pub fn centre(&self, k: &VoxelKey) -> Vector3<f64> {
+        Vector3::new(k[0] as f64 + 0.5, k[1] as f64 + 0.5, k[2] as f64 + 0.5) * self.res_m
+    }
+
+    /// Adds a point (non-finite points are skipped).
+    pub fn add(&mut self, p: &Vector3<f64>) {
+        if p.iter().all(|v| v.is_finite()) {
+            let k = self.key(p);
+            self.cells.entry(k).or_default().add(p);
+        }
+    }
+
+    /// The statistics of every voxel with points.
+    pub fn cells(&self) -> &HashMap<VoxelKey, VoxelStats> {
+        &self.cells
+    }
+}
+
+/// Settings of the discovery.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct NsdConfig {
+    /// Points a voxel needs for a plane fit.
+    pub min_points: u32,
+    /// A voxel is planar when the MSE of its plane fit is at most this, m².
+    pub max_plane_mse_m2: f64,
+    /// Steepest slope a robot can climb: navigable planes have normals within this of world z, deg.
+    pub max_slope_deg: f64,
+    /// Adjacent planes join a region when they differ by at most this at their boundary, m.
+    pub max_step_m: f64,
+    /// ... and their normals by at most this, deg.
+    pub max_normal_angle_deg: f64,
+    /// Obstacles with fewer voxels are dropped (isolated noise).
+    pub min_obstacle_voxels: usize,
+}
+
+impl Default for NsdConfig {
+    fn default() -> Self {
+        Self {
+            min_points: 5,
+            max_plane_mse_m2: 1e-4, // 1 cm RMS off the plane
+            max_slope_deg: 30.0,
+            max_step_m: 0.03,
+            max_normal_angle_deg: 20.0,
+            min_obstacle_voxels: 2,
+        }
+    }
+}
+
+impl NsdConfig {
+    /// Checks the values; each problem is (key, message).
+    pub fn validate(&self) -> Vec<(String, String)> {
+        let mut v = vec![];
+        let mut check = |ok: bool, k: &str, m: &str| {
+            if !ok {
+                v.push((k.to_string(), m.to_string()));
+            }
+        };
+        check(self.min_points >= 3, "min_points", "must be >= 3");
+        check(self.max_plane_mse_m2.is_finite() && self.max_plane_mse_m2 >= 0.0, "max_plane_mse_m2", "must be >= 0");
+        check((0.0..=90.0).contains(&self.max_slope_deg), "max_slope_deg", "must be in [0, 90]");
+        check(self.max_step_m.is_finite() && self.max_step_m >= 0.0, "max_step_m", "must be >= 0");
+        check((0.0..=90.0).contains(&self.max_normal_angle_deg), "max_normal_angle_deg", "must be in [0, 90]");
+        v
+    }
+}
+
+/// A least-squares plane.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlaneFit {
+    /// Centroid of the points, m.
+    pub centroid_m: Vector3<f64>,
+    /// Unit normal, pointing up (z ≥ 0).
+    pub normal: Vector3<f64>,
+    /// Mean squared distance of the points to the plane, m².
+    pub mse_m2: f64,
+}
+
+impl PlaneFit {
+    /// Angle between the normal and world z, deg.
+    pub fn slope_deg(&self) -> f64 {
+        self.normal.z.clamp(-1.0, 1.0).acos().to_degrees()
+    }
+
+    /// The plane's point nearest to `p`.
+    pub fn project(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        p - self.normal * self.normal.dot(&(p - self.centroid_m))
+    }
+}
+
+/// PCA plane fit of a voxel's points (`None` under 3 points or with non-finite statistics).
+pub fn fit_plane(s: &VoxelStats) -> Option<PlaneFit> {
+    if s.n < 3 {
+        return None;
+    }
+    let (mean, cov) = s.mean_cov()?;
+    if !cov.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let eig = SymmetricEigen::new(cov);
+    let i = eig.eigenvalues.imin();
+    let mut normal: Vector3<f64> = eig.eigenvectors.column(i).into_owned();
+    if normal.z < 0.0 {
+        normal = -normal;
+    }
+    Some(PlaneFit { centroid_m: mean, normal: normal.normalize(), mse_m2: eig.eigenvalues[i].max(0.0) })
+}
+
+/// What a voxel is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum VoxelClass {
+    /// Planar and climbable: part of a navigable region.
+    Navigable(PlaneFit),
+    /// Planar but too steep (a wall, a box side).
+    Steep(PlaneFit),
+    /// Not planar (MSE over the threshold).
+    NonPlanar,
+    /// Too few points to tell.
+    Sparse,
+}
+
+/// A navigable region.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NavigableRegion {
+    /// Its voxels.
+    pub voxels: Vec<VoxelKey>,
+    /// Mean normal.
+    pub normal: Vector3<f64>,
+    /// Area (voxel faces), m².
+    pub area_m2: f64,
+}
+
+/// An obstacle: a Gaussian over its points ([6D] §V).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Obstacle {
+    /// Its voxels.
+    pub voxels: Vec<VoxelKey>,
+    /// Mean of its points, m.
+    pub mean_m: Vector3<f64>,
+    /// Covariance of its points, m².
+    pub cov_m2: Matrix3<f64>,
+    /// Points.
+    pub points: u32,
+}
+
+/// The result of a discovery.
+#[derive(Debug, Clone, Default)]
+pub struct Discovery {
+    /// Class per voxel considered.
+    pub classes: HashMap<VoxelKey, VoxelClass>,
+    /// Navigable regions, largest first.
+    pub regions: Vec<NavigableRegion>,
+    /// Obstacles, largest first.
+    pub obstacles: Vec<Obstacle>,
+}
+
+impl Discovery {
+    /// Counts by class: (navigable, steep, non-planar, sparse).
+    pub fn counts(&self) -> (usize, usize, usize, usize) {
+        let mut c = (0, 0, 0, 0);
+        for v in self.classes.values() {
+            match v {
+                VoxelClass::Navigable(_) => c.0 += 1,
+                VoxelClass::Steep(_) => c.1 += 1,
+                VoxelClass::NonPlanar => c.2 += 1,
+                VoxelClass::Sparse => c.3 += 1,
+            }
+        }
+        c
+    }
+}
+
+fn find(parent: &mut [usize], mut i: usize) -> usize {
+    while parent[i] != i {
+        parent[i] = parent[parent[i]];
+        i = parent[i];
+    }
+    i
+}
+
+fn neighbours(k: &VoxelKey) -> impl Iterator<Item = VoxelKey> + '_ {
+    (-1..=1).flat_map(move |dx| {
+        (-1..=1).flat_map(move |dy| {
+            (-1..=1).filter(move |dz| (dx, dy, *dz) != (0, 0, 0)).map(move |dz| [k[0] + dx, k[1] + dy, k[2] + dz])
+        })
+    })
+}
+
+/// Navigable space and obstacles over the voxels of `acc` for which `occupied` is true (the
+/// occupancy map's verdict; pass `|_| true` to use every voxel with points).
+pub fn discover(
+    acc: &PointAccumulator,
+    occupied: impl Fn(&VoxelKey) -> bool,
+    cfg: &NsdConfig,
+) -> Result<Discovery, NavigableError> {
+    if let Some((key, message)) = cfg.validate().into_iter().next() {
+        return Err(NavigableError::Config { key, message });
+    }
+    let mut keys: Vec<VoxelKey> = acc.cells.keys().filter(|k| occupied(k)).copied().collect();
+    keys.sort_unstable();
+    let index: HashMap<VoxelKey, usize> = keys.iter().enumerate().map(|(i, k)| (*k, i)).collect();
+    let classes: Vec<VoxelClass> = keys
+        .iter()
+        .map(|k| {
+            let s = &acc.cells[k];
+            if s.n < cfg.min_points {
+                return VoxelClass::Sparse;
+            }
+            match fit_plane(s) {
+                Some(p) if p.mse_m2 <= cfg.max_plane_mse_m2 => {
+                    if p.slope_deg() <= cfg.max_slope_deg {
+                        VoxelClass::Navigable(p)
+                    } else {
+                        VoxelClass::Steep(p)
+                    }
+                }
+                _ => VoxelClass::NonPlanar,
+            }
+        })
+        .collect();
+    // Navigable regions: union of adjacent navigable voxels whose planes meet.
+    let max_cos = cfg.max_normal_angle_deg.to_radians().cos();
+    let mut parent: Vec<usize> = (0..keys.len()).collect();
+    for (i, k) in keys.iter().enumerate() {
+        let VoxelClass::Navigable(a) = classes[i] else { continue };
+        for n in neighbours(k) {
+            let Some(&j) = index.get(&n) else { continue };
+            if j < i {
+                continue;
+            }
+            let VoxelClass::Navigable(b) = classes[j] else { continue };
+            if a.normal.dot(&b.normal) < max_cos {
+                continue;
+            }
+            // Where the two voxels touch: both planes must pass there within max_step_m.
+            let touch = (acc.centre(k) + acc.centre(&n)) * 0.5;
+            if (a.project(&touch) - b.project(&touch)).norm() <= cfg.max_step_m {
+                let (ri, rj) = (find(&mut parent, i), find(&mut parent, j));
+                parent[ri.max(rj)] = ri.min(rj);
+            }
+        }
+    }
+    let mut regions: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
+    for (i, c) in classes.iter().enumerate() {
+        if matches!(c, VoxelClass::Navigable(_)) {
+            let r = find(&mut parent, i);
+            regions.entry(r).or_default().push(i);
+        }
+    }
+    let res2 = acc.res_m * acc.res_m;
+    let mut regions: Vec<NavigableRegion> = regions
+        .into_values()
+        .map(|members| {
+            let normal = members
+                .iter()
+                .map(|i| if let VoxelClass::Navigable(p) = classes[*i] { p.normal } else { Vector3::zeros() })
+                .sum::<Vector3<f64>>()
+                .normalize();
+            NavigableRegion {
+                voxels: members.iter().map(|i| keys[*i]).collect(),
+                normal,
+                area_m2: members.len() as f64 * res2,
+            }
+        })
+        .collect();
+    regions.sort_by_key(|r| std::cmp::Reverse(r.voxels.len()));
+    // Obstacles: grown from non-planar seeds through adjacent non-navigable occupied voxels.
+    let blocking = |c: &VoxelClass| matches!(c, VoxelClass::NonPlanar | VoxelClass::Steep(_));
+    let mut seen = vec![false; keys.len()];
+    let mut obstacles = vec![];
+    for seed in 0..keys.len() {
+        if seen[seed] || classes[seed] != VoxelClass::NonPlanar {
+            continue;
+        }
+        let mut stack = vec![seed];
+        seen[seed] = true;
+        let mut members = vec![];
+        while let Some(i) = stack.pop() {
+            members.push(i);
+            for n in neighbours(&keys[i]) {
+                if let Some(&j) = index.get(&n)
+                    && !seen[j]
+                    && blocking(&classes[j])
+                {
+                    seen[j] = true;
+                    stack.push(j);
+                }
+            }
+        }
+        if members.len() < cfg.min_obstacle_voxels {
+            continue;
+        }
+        let mut stats = VoxelStats::default();
+        for i in &members {
+            stats.merge(&acc.cells[&keys[*i]]);
+        }
+        let Some((mean_m, cov_m2)) = stats.mean_cov() else { continue };
+        obstacles.push(Obstacle {
+            voxels: members.iter().map(|i| keys[*i]).collect(),
+            mean_m,
+            cov_m2,
+            points: stats.n,
+        });
+    }
+    obstacles.sort_by_key(|o| std::cmp::Reverse(o.voxels.len()));
+    let classes = keys.into_iter().zip(classes).collect();
+    Ok(Discovery { classes, regions, obstacles })
+}
+
+/// Associates obstacles of two scans or maps ([6D] §VI): greedy by the Bhattacharyya distance
+/// (SPEC §7), each obstacle at most once, pairs at most `max_distance` apart; returns
+/// (index in `a`, index in `b`, distance). A covariance that is not positive definite (a flat
+/// obstacle) is regularised by `regularise_m2` on the diagonal.
+pub fn associate_obstacles(
+    a: &[Obstacle],
+    b: &[Obstacle],
+    max_distance: f64,
+    regularise_m2: f64,
+) -> Vec<(usize, usize, f64)> {
+    let reg = Matrix3::identity() * regularise_m2.max(0.0);
+    let mut pairs = vec![];
+    for (i, x) in a.iter().enumerate() {
+        for (j, y) in b.iter().enumerate() {
+            if let Ok(d) = fusion::global_map::bhattacharyya(&x.mean_m, &(x.cov_m2 + reg), &y.mean_m, &(y.cov_m2 + reg))
+                && d <= max_distance
+            {
+                pairs.push((i, j, d));
+            }
+        }
+    }
+    pairs.sort_by(|p, q| p.2.total_cmp(&q.2));
+    let (mut used_a, mut used_b) = (vec![false; a.len()], vec![false; b.len()]);
+    pairs
+        .into_iter()
+        .filter(|(i, j, _)| {
+            let free = !used_a[*i] && !used_b[*j];
+            if free {
+                used_a[*i] = true;
+                used_b[*j] = true;
+            }
+            free
+        })
+        .collect()
+}
+
+fn io_err(path: &Path) -> impl Fn(std::io::Error) -> NavigableError + '_ {
+    move |source| NavigableError::Io { path: path.display().to_string(), source }
+}
+
+/// ASCII PLY of the navigable voxels: one vertex per voxel, its centre projected on its plane,
+/// with the normal and `region` (index into [`Discovery::regions`]).
+pub fn write_navigable_ply(path: &Path, acc: &PointAccumulator, d: &Discovery) -> Result<(), NavigableError> {
+    let mut rows = vec![];
+    for (r, region) in d.regions.iter().enumerate() {
+        for k in &region.voxels {
+            if let Some(VoxelClass::Navigable(p)) = d.classes.get(k) {
+                rows.push((p.project(&acc.centre(k)), p.normal, r));
+            }
+        }
+    }
+    let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(io_err(path))?);
+    let mut text = format!(
+        "ply\nformat ascii 1.0\ncomment navigable space: voxel centres on their planes\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nproperty int region\nend_header\n",
+        rows.len()
+    );
+    for (p, n, r) in rows {
+        text += &format!("{:.4} {:.4} {:.4} {:.4} {:.4} {:.4} {r}\n", p.x, p.y, p.z, n.x, n.y, n.z);
+    }
+    w.write_all(text.as_bytes()).map_err(io_err(path))?;
+    w.flush().map_err(io_err(path))
+}
+
+/// ASCII PLY of the obstacles as a mesh: the voxel faces of each obstacle that no other voxel of
+/// the same obstacle covers (its outer surface), vertices with `obstacle` (index).
+pub fn write_obstacles_ply(path: &Path, acc: &PointAccumulator, d: &Discovery) -> Result<(), NavigableError> {
+    let r = acc.res_m;
+    let mut vertices: Vec<(Vector3<f64>, usize)> = vec![];
+    let mut faces: Vec<[usize; 4]> = vec![];
+    for (o, obstacle) in d.obstacles.iter().enumerate() {
+        let set: std::collections::HashSet<VoxelKey> = obstacle.voxels.iter().copied().collect();
+        for k in &obstacle.voxels {
+            let base = Vector3::new(k[0] as f64, k[1] as f64, k[2] as f64) * r;
+            for axis in 0..3 {
+                for side in [0i32, 1] {
+                    let mut n = *k;
+                    n[axis] += if side == 0 { -1 } else { 1 };
+                    if set.contains(&n) {
+                        continue;
+                    }
+                    let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+                    let mut corner = |du: f64, dv: f64| {
+                        let mut p = base;
+                        p[axis] += side as f64 * r;
+                        p[u] += du * r;
+                        p[v] += dv * r;
+                        vertices.push((p, o));
+                        vertices.len() - 1
+                    };
+                    let q = [corner(0.0, 0.0), corner(1.0, 0.0), corner(1.0, 1.0), corner(0.0, 1.0)];
+                    faces.push(q);
+                }
+            }
+        }
+    }
+    let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(io_err(path))?);
+    let mut text = format!(
+        "ply\nformat ascii 1.0\ncomment obstacles: outer voxel faces\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty int obstacle\nelement face {}\nproperty list uchar int vertex_indices\nend_header\n",
+        vertices.len(),
+        faces.len()
+    );
+    for (p, o) in &vertices {
+        text += &format!("{:.4} {:.4} {:.4} {o}\n", p.x, p.y, p.z);
+    }
+    for f in &faces {
+        text += &format!("4 {} {} {} {}\n", f[0], f[1], f[2], f[3]);
+    }
+    w.write_all(text.as_bytes()).map_err(io_err(path))?;
+    w.flush().map_err(io_err(path))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const RES: f64 = 0.1;
+
+    /// Dense points on a surface z = f(x, y) over a rectangle (spacing 1 cm).
+    fn surface(acc: &mut PointAccumulator, x: (f64, f64), y: (f64, f64), f: impl Fn(f64, f64) -> f64) {
+        let mut xi = x.0 + 0.005;
+        while xi < x.1 {
+            let mut yi = y.0 + 0.005;
+            while yi < y.1 {
+                acc.add(&Vector3::new(xi, yi, f(xi, yi)));
+                yi += 0.01;
+            }
+            xi += 0.01;
+        }
+    }
+
+    /// A vertical face x = x0 over y, z ranges.
+    fn wall(acc: &mut PointAccumulator, x0: f64, y: (f64, f64), z: (f64, f64)) {
+        let mut yi = y.0 + 0.005;
+        while yi < y.1 {
+            let mut zi = z.0 + 0.005;
+            while zi < z.1 {
+                acc.add(&Vector3::new(x0, yi, zi));
+                zi += 0.01;
+            }
+            yi += 0.01;
+        }
+    }
+
+    fn run(acc: &PointAccumulator) -> Discovery {
+        discover(acc, |_| true, &NsdConfig::default()).unwrap()
+    }
+
+    #[test]
+    fn a_flat_floor_is_one_navigable_region() {
+        let mut acc = PointAccumulator::new(RES);
+        surface(&mut acc, (0.0, 2.0), (0.0, 1.0), |_, _| 0.033);
+        let d = run(&acc);
+        assert_eq!(d.regions.len(), 1);
+        assert_eq!(d.regions[0].voxels.len(), 200);
+        assert!((d.regions[0].area_m2 - 2.0).abs() < 1e-9);
+        assert!(d.obstacles.is_empty());
+        let plane = fit_plane(&acc.cells()[&[5, 5, 0]]).unwrap();
+        assert!(plane.mse_m2 < 1e-12 && plane.slope_deg() < 1e-6);
+    }
+
+    #[test]
+    fn a_gentle_ramp_is_navigable_and_a_steep_one_is_not() {
+        let mut gentle = PointAccumulator::new(RES);
+        surface(&mut gentle, (0.0, 2.0), (0.0, 1.0), |x, _| 0.02 + x * 20f64.to_radians().tan());
+        let d = run(&gentle);
+        assert_eq!(d.regions.len(), 1, "one ramp region");
+        assert!(d.regions[0].voxels.len() >= 200);
+        let mut steep = PointAccumulator::new(RES);
+        surface(&mut steep, (0.0, 1.0), (0.0, 1.0), |x, _| 0.02 + x * 45f64.to_radians().tan());
+        let d = run(&steep);
+        assert!(d.regions.is_empty());
+        let (nav, st, _, _) = d.counts();
+        assert_eq!(nav, 0);
+        assert!(st > 50);
+    }
+
+    #[test]
+    fn a_step_splits_the_floor_into_two_regions() {
+        let mut acc = PointAccumulator::new(RES);
+        surface(&mut acc, (0.0, 1.0), (0.0, 1.0), |_, _| 0.033);
+        surface(&mut acc, (1.0, 2.0), (0.0, 1.0), |_, _| 0.233); // 20 cm up
+        let d = run(&acc);
+        assert_eq!(d.regions.len(), 2, "a 20 cm step is no boundary to walk across");
+        assert!(d.regions.iter().all(|r| r.voxels.len() == 100));
+    }
+
+    #[test]
+    fn a_box_on_the_floor_makes_an_obstacle_and_a_top_region() {
+        let mut acc = PointAccumulator::new(RES);
+        // Floor around a 0.6 × 0.6 × 0.5 m box at x, y in [0.7, 1.3].
+        surface(&mut acc, (0.0, 2.0), (0.0, 2.0), |_, _| 0.033);
+        let inside = |p: &Vector3<f64>| (0.7..1.3).contains(&p.x) && (0.7..1.3).contains(&p.y);
+        let floor: Vec<VoxelKey> = acc.cells().keys().filter(|k| inside(&acc.centre(k))).copied().collect();
+        for k in floor {
+            acc.cells.remove(&k);
+        }
+        surface(&mut acc, (0.7, 1.3), (0.7, 1.3), |_, _| 0.533); // top
+        for x0 in [0.703, 1.297] {
+            wall(&mut acc, x0, (0.7, 1.3), (0.04, 0.53));
+        }
+        for y0 in [0.703, 1.297] {
+            let mut xi = 0.705;
+            while xi < 1.3 {
+                let mut zi = 0.045;
+                while zi < 0.53 {
+                    acc.add(&Vector3::new(xi, y0, zi));
+                    zi += 0.01;
+                }
+                xi += 0.01;
+            }
+        }
+        let d = run(&acc);
+        // The floor ring and the box top are separate regions; the box sides (steep planes and
+        // the non-planar edges) form one obstacle around the box's middle.
+        assert!(d.regions.len() >= 2, "{:?}", d.regions.iter().map(|r| r.voxels.len()).collect::<Vec<_>>());
+        assert!(d.regions.iter().any(|r| r.voxels.iter().all(|k| k[2] == 5)), "a region on top of the box");
+        assert_eq!(d.obstacles.len(), 1, "{:?}", d.obstacles.iter().map(|o| o.voxels.len()).collect::<Vec<_>>());
+        let o = &d.obstacles[0];
+        assert!((o.mean_m.x - 1.0).abs() < 0.05 && (o.mean_m.y - 1.0).abs() < 0.05, "{}", o.mean_m);
+        // Written as layers.
+        let dir = std::env::temp_dir().join(format!("nsd-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        write_navigable_ply(&dir.join("navigable.ply"), &acc, &d).unwrap();
+        write_obstacles_ply(&dir.join("obstacles.ply"), &acc, &d).unwrap();
+        let text = std::fs::read_to_string(dir.join("obstacles.ply")).unwrap();
+        assert!(text.contains("element face"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn obstacles_associate_by_bhattacharyya_distance() {
+        let ob = |x: f64, s: f64| Obstacle {
+            voxels: vec![],
+            mean_m: Vector3::new(x, 0.0, 0.0),
+            cov_m2: Matrix3::identity() * s,
+            points: 10,
+        };
+        let a = vec![ob(0.0, 0.04), ob(5.0, 0.04)];
+        let b = vec![ob(5.05, 0.04), ob(0.02, 0.05), ob(20.0, 0.04)];
+        let pairs = associate_obstacles(&a, &b, 0.5, 0.0);
+        let idx: Vec<(usize, usize)> = pairs.iter().map(|p| (p.0, p.1)).collect();
+        assert_eq!(idx.len(), 2);
+        assert!(idx.contains(&(0, 1)) && idx.contains(&(1, 0)));
+        // Identical Gaussians: distance 0. Same covariance, offset d: d²/(8σ²).
+        let d = fusion::global_map::bhattacharyya(&a[0].mean_m, &a[0].cov_m2, &a[0].mean_m, &a[0].cov_m2).unwrap();
+        assert!(d.abs() < 1e-12);
+        let p = associate_obstacles(&[ob(0.0, 0.04)], &[ob(0.4, 0.04)], 10.0, 0.0);
+        assert!((p[0].2 - 0.16 / (8.0 * 0.04)).abs() < 1e-12, "{}", p[0].2);
+    }
+
+    #[test]
+    fn invalid_settings_are_named() {
+        let acc = PointAccumulator::new(RES);
+        let cfg = NsdConfig { min_points: 1, ..Default::default() };
+        let e = discover(&acc, |_| true, &cfg).unwrap_err();
+        assert!(e.to_string().starts_with("min_points"), "{e}");
+    }
+}
