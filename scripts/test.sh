@@ -10,6 +10,31 @@ cd "$(dirname "$0")/.."
 if ! python3 -c 'import importlib.metadata as m, sys; sys.exit(m.version("iceoryx2") != "0.10.0")' >/dev/null 2>&1; then
     python3 -m pip install --quiet iceoryx2==0.10.0
 fi
+# Debian test dependency: tests/tests/octree_tools.rs runs OctoMap's convert_octree and
+# compare_octrees (package octomap-tools) on the .bt files of the octree crate. Installed only when
+# missing (as root, or through sudo); if that is impossible the test fails naming the package.
+if ! command -v convert_octree >/dev/null 2>&1 || ! command -v compare_octrees >/dev/null 2>&1; then
+    apt=()
+    if [ "$(id -u)" -eq 0 ]; then
+        apt=(env DEBIAN_FRONTEND=noninteractive apt-get)
+    elif command -v sudo >/dev/null 2>&1; then
+        if [ -t 0 ]; then sudo_=(sudo); else sudo_=(sudo -n); fi
+        apt=("${sudo_[@]}" env DEBIAN_FRONTEND=noninteractive apt-get)
+    fi
+    if [ ${#apt[@]} -eq 0 ]; then
+        echo "test.sh: octomap-tools is missing and cannot be installed (not root, no sudo):" \
+            "run 'apt-get install -y --no-install-recommends octomap-tools' as root" >&2
+    else
+        echo "test.sh: installing octomap-tools (apt-get)" >&2
+        # A fresh machine may have no package lists yet: update once and retry.
+        if ! "${apt[@]}" install -y -qq --no-install-recommends octomap-tools >/dev/null 2>&1 \
+            && ! { "${apt[@]}" update -qq >/dev/null \
+                && "${apt[@]}" install -y -qq --no-install-recommends octomap-tools >/dev/null; }; then
+            echo "test.sh: could not install octomap-tools: run 'apt-get install -y --no-install-recommends" \
+                "octomap-tools' as root (tests/tests/octree_tools.rs fails without it)" >&2
+        fi
+    fi
+fi
 cargo build --workspace --bins
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT

@@ -169,7 +169,12 @@ pub const SERVICES: &[ServiceSpec] = &[
     spec(FUSION_POSE, "FusedPose", "MsgHeader", Qos::estimates(4)),
     spec(FUSION_MAP, "[Landmark]", "LandmarkMapHeader", Qos::stream(2, 4096)),
     spec(MAP_STATS, "MapStats", "MsgHeader", Qos::stream(4, 0)),
-    spec(MAP_VOXELS, "[Voxel]", "VoxelSetHeader", Qos::stream(2, 16 * 1024)),
+    spec(
+        MAP_VOXELS,
+        "[Voxel]",
+        "VoxelSetHeader",
+        Qos { subscriber_buffer: 1, subscriber_borrowed: 1, publisher_loans: 1, ..Qos::stream(2, 16 * 1024) },
+    ),
     spec(HEARTBEAT, "Heartbeat", "MsgHeader", CONTROL_QOS),
     spec(END_OF_STREAM, "EndOfStream", "MsgHeader", CONTROL_QOS),
     spec(COMMAND, "ControlCommand", "MsgHeader", CONTROL_QOS),

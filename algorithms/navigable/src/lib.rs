@@ -485,16 +485,17 @@ pub fn write_navigable_ply(path: &Path, acc: &PointAccumulator, d: &Discovery) -
     w.flush().map_err(io_err(path))
 }
 
-/// ASCII PLY of the obstacles as a mesh: the voxel faces of each obstacle that no other voxel of
-/// the same obstacle covers (its outer surface), vertices with `obstacle` (index).
+/// Binary (little-endian) PLY of the obstacles as a mesh: the voxel faces of each obstacle that
+/// no other voxel of the same obstacle covers (its outer surface), corners shared within an
+/// obstacle; vertices carry `obstacle` (index into [`Discovery::obstacles`]).
 pub fn write_obstacles_ply(path: &Path, acc: &PointAccumulator, d: &Discovery) -> Result<(), NavigableError> {
     let r = acc.res_m;
-    let mut vertices: Vec<(Vector3<f64>, usize)> = vec![];
-    let mut faces: Vec<[usize; 4]> = vec![];
+    let mut vertices: Vec<([f32; 3], i32)> = vec![];
+    let mut faces: Vec<[u32; 4]> = vec![];
     for (o, obstacle) in d.obstacles.iter().enumerate() {
         let set: std::collections::HashSet<VoxelKey> = obstacle.voxels.iter().copied().collect();
+        let mut corners: HashMap<VoxelKey, u32> = HashMap::new();
         for k in &obstacle.voxels {
-            let base = Vector3::new(k[0] as f64, k[1] as f64, k[2] as f64) * r;
             for axis in 0..3 {
                 for side in [0i32, 1] {
                     let mut n = *k;
@@ -503,33 +504,43 @@ pub fn write_obstacles_ply(path: &Path, acc: &PointAccumulator, d: &Discovery) -
                         continue;
                     }
                     let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
-                    let mut corner = |du: f64, dv: f64| {
-                        let mut p = base;
-                        p[axis] += side as f64 * r;
-                        p[u] += du * r;
-                        p[v] += dv * r;
-                        vertices.push((p, o));
-                        vertices.len() - 1
+                    let mut corner = |du: i32, dv: i32| {
+                        let mut c = *k;
+                        c[axis] += side;
+                        c[u] += du;
+                        c[v] += dv;
+                        *corners.entry(c).or_insert_with(|| {
+                            let p = [c[0] as f64 * r, c[1] as f64 * r, c[2] as f64 * r];
+                            vertices.push(([p[0] as f32, p[1] as f32, p[2] as f32], o as i32));
+                            (vertices.len() - 1) as u32
+                        })
                     };
-                    let q = [corner(0.0, 0.0), corner(1.0, 0.0), corner(1.0, 1.0), corner(0.0, 1.0)];
-                    faces.push(q);
+                    faces.push([corner(0, 0), corner(1, 0), corner(1, 1), corner(0, 1)]);
                 }
             }
         }
     }
     let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(io_err(path))?);
-    let mut text = format!(
-        "ply\nformat ascii 1.0\ncomment obstacles: outer voxel faces\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty int obstacle\nelement face {}\nproperty list uchar int vertex_indices\nend_header\n",
+    let header = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment obstacles: outer voxel faces\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty int obstacle\nelement face {}\nproperty list uchar uint vertex_indices\nend_header\n",
         vertices.len(),
         faces.len()
     );
+    let mut bytes = header.into_bytes();
+    bytes.reserve(vertices.len() * 16 + faces.len() * 17);
     for (p, o) in &vertices {
-        text += &format!("{:.4} {:.4} {:.4} {o}\n", p.x, p.y, p.z);
+        for c in p {
+            bytes.extend_from_slice(&c.to_le_bytes());
+        }
+        bytes.extend_from_slice(&o.to_le_bytes());
     }
     for f in &faces {
-        text += &format!("4 {} {} {} {}\n", f[0], f[1], f[2], f[3]);
+        bytes.push(4);
+        for i in f {
+            bytes.extend_from_slice(&i.to_le_bytes());
+        }
     }
-    w.write_all(text.as_bytes()).map_err(io_err(path))?;
+    w.write_all(&bytes).map_err(io_err(path))?;
     w.flush().map_err(io_err(path))
 }
 
@@ -646,8 +657,9 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         write_navigable_ply(&dir.join("navigable.ply"), &acc, &d).unwrap();
         write_obstacles_ply(&dir.join("obstacles.ply"), &acc, &d).unwrap();
-        let text = std::fs::read_to_string(dir.join("obstacles.ply")).unwrap();
-        assert!(text.contains("element face"));
+        let bytes = std::fs::read(dir.join("obstacles.ply")).unwrap();
+        let text = String::from_utf8_lossy(&bytes);
+        assert!(text.contains("format binary_little_endian 1.0") && text.contains("element face"));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -21,6 +21,9 @@ struct Outputs {
     diagnostics: Output<SlamDiagnostics, MsgHeader>,
 }
 
+/// Stereo frames taken from the service into the process's own queue at most.
+const MAX_QUEUED_FRAMES: usize = 2;
+
 fn header(stamp_ns: u64, origin_ns: u64) -> MsgHeader {
     MsgHeader { stamp_ns, origin_ns, ..Default::default() }
 }
@@ -152,9 +155,16 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         while let Some(s) = odometry.receive()? {
             st.push_odometry(s.user_header().stamp_ns, s.payload());
         }
-        while let Some(s) = stereo.receive()? {
+        // Take at most a few frames into the own queue: the rest stay in the service's queue,
+        // so a source replaying as fast as possible feels the back-pressure and stays at most a
+        // few frames ahead (else it runs ahead by the whole data set and every consumer of the
+        // SLAM poses waits for minutes of data time).
+        let mut more_waiting = false;
+        while upstream_ended || st.frames.len() < MAX_QUEUED_FRAMES {
+            let Some(s) = stereo.receive()? else { break };
             let h = s.user_header();
             st.frames.push_back(frame_from_wire(h.stamp_ns, h.origin_ns, s.payload(), &body_from_camera));
+            more_waiting = st.frames.len() >= MAX_QUEUED_FRAMES;
         }
         while let Some(s) = commands.receive()? {
             let c = s.payload();
@@ -170,7 +180,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         // waiting on our queues (back-pressure) never waits for more than one frame's work.
         let t0 = Instant::now();
         let processed = st.step(upstream_ended, 1);
-        if !st.frames.is_empty() {
+        if !st.frames.is_empty() || more_waiting {
             rt.wake_at(Instant::now());
         }
         let per_frame =

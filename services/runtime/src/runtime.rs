@@ -405,6 +405,16 @@ impl Runtime {
         self.last_heartbeat = Some(Instant::now());
     }
 
+    /// Publishes a heartbeat now if one is due: for a handler that does long work in one go
+    /// (writing a large map at the end), between its steps, so that the supervisor's heartbeat
+    /// deadline does not take it for hung.
+    pub fn keep_alive(&mut self) {
+        let interval = self.options.heartbeat_interval;
+        if self.last_heartbeat.is_none_or(|t| t.elapsed() >= interval) {
+            self.publish_heartbeat();
+        }
+    }
+
     /// Builds this process's statistics report (cumulative since start).
     pub fn stats_report(&self) -> StatsReport {
         let borrowed: Vec<_> = self.ports.iter().map(|p| p.borrow()).collect();

@@ -65,6 +65,14 @@ pub const KINDS: &[(&str, Kind)] = &[
         },
     ),
     ("fusion", Kind { binary: Some("fusion"), check: check::<fusion_process::FusionSettings>, pipeline_args: true }),
+    (
+        "octree_mapper",
+        Kind {
+            binary: Some("octree_mapper"),
+            check: check::<octree_mapper_process::MapperSettings>,
+            pipeline_args: true,
+        },
+    ),
     ("external", Kind { binary: None, check: check_external, pipeline_args: false }),
 ];
 

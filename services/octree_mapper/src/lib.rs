@@ -1,0 +1,439 @@
+//! The `octree_mapper` process's settings and its pure `step` logic: clouds wait in a bounded
+//! queue (the oldest is dropped and counted when insertion falls behind) until the pose at their
+//! stamp is known (interpolated between the two poses around it), then go into the occupancy
+//! octree ([`octree::OcTree`], OctoMap semantics) and the point statistics of the navigable-space
+//! discovery ([`navigable`]). `main.rs` is the wiring around it.
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use nalgebra::{Isometry3, Translation3, Vector3};
+use navigable::{Discovery, NsdConfig, PointAccumulator};
+use octree::{OcTree, SensorModel};
+use pipeline_runtime::{Issues, ProcessSettings};
+use serde::{Deserialize, Serialize};
+
+/// Which pose places the clouds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PoseSource {
+    /// The fused global pose (`pipeline/fusion/pose`).
+    Fused,
+    /// The SLAM pose in its local map (`pipeline/slam/pose`; the map frame restarts with each
+    /// local map).
+    Slam,
+    /// The pose each cloud carries in its header (`CLOUD_HAS_POSE`; the simulator's true pose,
+    /// or a data set's).
+    Cloud,
+}
+
+/// OctoMap's inverse sensor model (probabilities).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SensorSettings {
+    /// P(occupied | hit).
+    pub prob_hit: f64,
+    /// P(occupied | miss).
+    pub prob_miss: f64,
+    /// Lower clamp.
+    pub clamp_min: f64,
+    /// Upper clamp.
+    pub clamp_max: f64,
+    /// Occupied at or above.
+    pub occupancy_threshold: f64,
+}
+
+impl Default for SensorSettings {
+    fn default() -> Self {
+        let m = SensorModel::default();
+        Self {
+            prob_hit: m.prob_hit,
+            prob_miss: m.prob_miss,
+            clamp_min: m.clamp_min,
+            clamp_max: m.clamp_max,
+            occupancy_threshold: m.occupancy_threshold,
+        }
+    }
+}
+
+impl SensorSettings {
+    /// As the octree's model.
+    pub fn model(&self) -> SensorModel {
+        SensorModel {
+            prob_hit: self.prob_hit,
+            prob_miss: self.prob_miss,
+            clamp_min: self.clamp_min,
+            clamp_max: self.clamp_max,
+            occupancy_threshold: self.occupancy_threshold,
+        }
+    }
+}
+
+/// The depth sensor's mounting on the body (for poses of the body).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SensorMount {
+    /// Sensor position in the body frame, m.
+    pub offset_m: [f64; 3],
+    /// Pitch below body x, deg (optical z along body x when 0).
+    pub pitch_down_deg: f64,
+}
+
+impl Default for SensorMount {
+    fn default() -> Self {
+        // The simulator's depth camera.
+        Self { offset_m: [0.6, 0.0, -0.3], pitch_down_deg: 40.0 }
+    }
+}
+
+/// Settings of the `octree_mapper` process.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MapperSettings {
+    /// Voxel edge, m.
+    pub resolution_m: f64,
+    /// Inverse sensor model.
+    pub sensor: SensorSettings,
+    /// Rays longer than this update free space only up to it, m (< 0: unlimited).
+    pub max_range_m: f64,
+    /// Which pose places the clouds.
+    pub pose_source: PoseSource,
+    /// The sensor on the body (not used with `pose_source = "cloud"`).
+    pub mount: SensorMount,
+    /// Clouds waiting at most; when insertion falls behind the oldest is dropped (counted).
+    pub max_pending_clouds: usize,
+    /// A cloud waits at most this long (wall time) for a pose after its stamp, s; then it is
+    /// dropped (counted).
+    pub pose_wait_s: f64,
+    /// Largest time between the two poses a cloud's pose is interpolated between, s.
+    pub max_pose_gap_s: f64,
+    /// Ray-casting threads of the octree.
+    pub ray_threads: usize,
+    /// `pipeline/map/stats` rate, Hz.
+    pub stats_rate_hz: f64,
+    /// `pipeline/map/voxels` rate (occupied leaves with their class), Hz; 0 = only at the end.
+    pub voxels_rate_hz: f64,
+    /// Navigable space and obstacles.
+    pub nsd: NsdConfig,
+    /// The processes whose end of stream ends this one's input.
+    pub end_after: Vec<String>,
+}
+
+impl Default for MapperSettings {
+    fn default() -> Self {
+        Self {
+            resolution_m: 0.1,
+            sensor: SensorSettings::default(),
+            max_range_m: 14.0,
+            pose_source: PoseSource::Fused,
+            mount: SensorMount::default(),
+            max_pending_clouds: 64,
+            pose_wait_s: 2.0,
+            max_pose_gap_s: 1.0,
+            ray_threads: 2,
+            stats_rate_hz: 1.0,
+            voxels_rate_hz: 0.2,
+            nsd: NsdConfig::default(),
+            end_after: vec!["ingest".into(), "fusion".into()],
+        }
+    }
+}
+
+impl ProcessSettings for MapperSettings {
+    fn validate(&self, key: &str, issues: &mut Issues) {
+        issues.check(
+            self.resolution_m.is_finite() && self.resolution_m >= 0.001,
+            format!("{key}.resolution_m"),
+            "must be >= 0.001",
+        );
+        if let Err(e) = OcTree::with_model(self.resolution_m.max(0.001), self.sensor.model()) {
+            issues.push(format!("{key}.sensor"), e.to_string());
+        }
+        issues.check(self.max_pending_clouds >= 1, format!("{key}.max_pending_clouds"), "must be >= 1");
+        for (k, v) in [("pose_wait_s", self.pose_wait_s), ("max_pose_gap_s", self.max_pose_gap_s)] {
+            issues.check(v.is_finite() && v >= 0.0, format!("{key}.{k}"), "must be >= 0");
+        }
+        for (k, v) in [("stats_rate_hz", self.stats_rate_hz), ("voxels_rate_hz", self.voxels_rate_hz)] {
+            issues.check(v.is_finite() && v >= 0.0, format!("{key}.{k}"), "must be >= 0");
+        }
+        issues.check(self.ray_threads >= 1, format!("{key}.ray_threads"), "must be >= 1");
+        for (k, m) in self.nsd.validate() {
+            issues.push(format!("{key}.nsd.{k}"), m);
+        }
+    }
+
+    fn shm_estimate_bytes(&self) -> u64 {
+        // Stats and the voxel slice (grows by powers of two).
+        (1 << 20) + (64 << 20)
+    }
+}
+
+/// Poses by time, interpolated.
+#[derive(Debug, Default)]
+pub struct PoseBuffer {
+    poses: VecDeque<(f64, Isometry3<f64>)>,
+}
+
+/// The answer of [`PoseBuffer::at`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum PoseLookup {
+    /// Interpolated (linear in position, slerp in rotation).
+    Ready(Isometry3<f64>),
+    /// No pose after the stamp yet.
+    Wait,
+    /// Before the buffer, or the poses around it are too far apart.
+    Unavailable,
+}
+
+impl PoseBuffer {
+    /// Adds a pose (out-of-order poses go to their place; at most 4096 kept).
+    pub fn push(&mut self, t_s: f64, pose: Isometry3<f64>) {
+        if !t_s.is_finite() {
+            return;
+        }
+        let i = self.poses.partition_point(|(t, _)| *t <= t_s);
+        self.poses.insert(i, (t_s, pose));
+        while self.poses.len() > 4096 {
+            self.poses.pop_front();
+        }
+    }
+
+    /// The pose at `t_s` between the two poses around it, at most `max_gap_s` apart.
+    pub fn at(&self, t_s: f64, max_gap_s: f64) -> PoseLookup {
+        let i = self.poses.partition_point(|(t, _)| *t < t_s);
+        let Some(&(tb, b)) = self.poses.get(i) else { return PoseLookup::Wait };
+        if tb == t_s {
+            return PoseLookup::Ready(b);
+        }
+        let Some(&(ta, a)) = i.checked_sub(1).and_then(|j| self.poses.get(j)) else {
+            return PoseLookup::Unavailable;
+        };
+        if tb - ta > max_gap_s {
+            return PoseLookup::Unavailable;
+        }
+        let s = (t_s - ta) / (tb - ta);
+        let p = a.translation.vector.lerp(&b.translation.vector, s);
+        let q = a.rotation.slerp(&b.rotation, s);
+        PoseLookup::Ready(Isometry3::from_parts(Translation3::from(p), q))
+    }
+}
+
+/// A cloud waiting for its pose.
+#[derive(Debug, Clone)]
+pub struct PendingCloud {
+    /// Stamp, ns.
+    pub stamp_ns: u64,
+    /// Points in the sensor frame, m.
+    pub points_sensor_m: Vec<[f32; 3]>,
+    /// The cloud's own `world_from_sensor`, when its header has one.
+    pub own_pose: Option<Isometry3<f64>>,
+    /// When it arrived.
+    pub received: Instant,
+}
+
+/// Counters.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct MapperCounters {
+    /// Clouds inserted.
+    pub clouds_inserted: u64,
+    /// Clouds dropped because insertion fell behind (the queue was full).
+    pub clouds_dropped_behind: u64,
+    /// Clouds dropped without a pose (none came in time, or the poses around them were too far apart).
+    pub clouds_dropped_no_pose: u64,
+    /// Points inserted.
+    pub points_inserted: u64,
+    /// Points skipped (non-finite).
+    pub points_skipped: u64,
+}
+
+/// The process state.
+pub struct MapperState {
+    settings: MapperSettings,
+    body_from_sensor: Isometry3<f64>,
+    /// The occupancy map.
+    pub tree: OcTree,
+    /// End-point statistics for the navigable-space discovery.
+    pub points: PointAccumulator,
+    /// Poses.
+    pub poses: PoseBuffer,
+    /// Clouds waiting.
+    pub pending: VecDeque<PendingCloud>,
+    /// Counters.
+    pub counters: MapperCounters,
+    /// Insertion time per cloud, ms.
+    pub insert_ms: Vec<f64>,
+}
+
+impl MapperState {
+    /// A new state (settings validated).
+    pub fn new(settings: MapperSettings) -> anyhow::Result<Self> {
+        let mut tree = OcTree::with_model(settings.resolution_m, settings.sensor.model())?;
+        tree.set_ray_threads(settings.ray_threads);
+        let m = &settings.mount;
+        let body_from_sensor = geometry::body_from_camera(&Vector3::from(m.offset_m), m.pitch_down_deg.to_radians());
+        Ok(Self {
+            points: PointAccumulator::new(settings.resolution_m),
+            body_from_sensor,
+            tree,
+            poses: PoseBuffer::default(),
+            pending: VecDeque::new(),
+            counters: MapperCounters::default(),
+            insert_ms: vec![],
+            settings,
+        })
+    }
+
+    /// The settings.
+    pub fn settings(&self) -> &MapperSettings {
+        &self.settings
+    }
+
+    /// Queues a cloud; drops the oldest waiting one when the queue is full.
+    pub fn push_cloud(&mut self, cloud: PendingCloud) {
+        while self.pending.len() >= self.settings.max_pending_clouds {
+            self.pending.pop_front();
+            self.counters.clouds_dropped_behind += 1;
+        }
+        self.pending.push_back(cloud);
+    }
+
+    /// When the oldest cloud stops waiting for its pose.
+    pub fn next_deadline(&self) -> Option<Instant> {
+        self.pending.front().map(|c| c.received + Duration::from_secs_f64(self.settings.pose_wait_s))
+    }
+
+    /// The process's `step`: inserts at most `max_clouds` clouds whose pose is known, in order;
+    /// drops clouds that can have none. `flush` (the inputs ended) ends the waits.
+    pub fn step(&mut self, now: Instant, flush: bool, max_clouds: usize) -> anyhow::Result<usize> {
+        let mut inserted = 0;
+        while inserted < max_clouds
+            && let Some(c) = self.pending.front()
+        {
+            let world_from_sensor = if self.settings.pose_source == PoseSource::Cloud {
+                c.own_pose
+            } else {
+                match self.poses.at(c.stamp_ns as f64 / 1e9, self.settings.max_pose_gap_s) {
+                    PoseLookup::Ready(p) => Some(p * self.body_from_sensor),
+                    PoseLookup::Wait
+                        if !flush
+                            && now.saturating_duration_since(c.received).as_secs_f64() < self.settings.pose_wait_s =>
+                    {
+                        break;
+                    }
+                    _ => None,
+                }
+            };
+            let c = self.pending.pop_front().expect("front exists");
+            let Some(world_from_sensor) = world_from_sensor else {
+                self.counters.clouds_dropped_no_pose += 1;
+                continue;
+            };
+            self.insert(&c, &world_from_sensor)?;
+            inserted += 1;
+        }
+        Ok(inserted)
+    }
+
+    fn insert(&mut self, c: &PendingCloud, world_from_sensor: &Isometry3<f64>) -> anyhow::Result<()> {
+        let t0 = Instant::now();
+        let origin = world_from_sensor.translation.vector;
+        let world: Vec<[f32; 3]> = c
+            .points_sensor_m
+            .iter()
+            .map(|p| {
+                let w =
+                    world_from_sensor.transform_point(&nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64));
+                [w.x as f32, w.y as f32, w.z as f32]
+            })
+            .collect();
+        let stats =
+            self.tree.insert_point_cloud(&world, [origin.x, origin.y, origin.z], self.settings.max_range_m, false)?;
+        let max_range = if self.settings.max_range_m < 0.0 { f64::INFINITY } else { self.settings.max_range_m };
+        for p in &world {
+            let v = Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+            if (v - origin).norm() <= max_range {
+                self.points.add(&v);
+            }
+        }
+        self.counters.clouds_inserted += 1;
+        self.counters.points_inserted += (stats.points - stats.skipped_points) as u64;
+        self.counters.points_skipped += stats.skipped_points as u64;
+        self.insert_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        Ok(())
+    }
+
+    /// Navigable space and obstacles over the occupied voxels of the map.
+    pub fn discover(&self) -> anyhow::Result<Discovery> {
+        let res = self.settings.resolution_m;
+        let tree = &self.tree;
+        let occupied = |k: &navigable::VoxelKey| {
+            let c = [(k[0] as f64 + 0.5) * res, (k[1] as f64 + 0.5) * res, (k[2] as f64 + 0.5) * res];
+            tree.is_occupied(c).unwrap_or(false)
+        };
+        Ok(navigable::discover(&self.points, occupied, &self.settings.nsd)?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::UnitQuaternion;
+
+    #[test]
+    fn poses_are_interpolated_between_their_neighbours_and_gaps_refused() {
+        let mut b = PoseBuffer::default();
+        b.push(1.0, Isometry3::translation(0.0, 0.0, 0.0));
+        b.push(
+            2.0,
+            Isometry3::from_parts(Translation3::new(2.0, 0.0, 0.0), UnitQuaternion::from_euler_angles(0.0, 0.0, 1.0)),
+        );
+        let PoseLookup::Ready(p) = b.at(1.5, 1.0) else { panic!() };
+        assert!((p.translation.vector.x - 1.0).abs() < 1e-12);
+        assert!((p.rotation.euler_angles().2 - 0.5).abs() < 1e-12);
+        assert_eq!(b.at(2.5, 1.0), PoseLookup::Wait);
+        assert_eq!(b.at(0.5, 1.0), PoseLookup::Unavailable);
+        assert_eq!(b.at(1.5, 0.5), PoseLookup::Unavailable, "poses 1 s apart, gap limit 0.5 s");
+    }
+
+    fn cloud(stamp_s: f64, now: Instant) -> PendingCloud {
+        // A wall 3 m in front of the sensor (optical z).
+        let pts = (0..100).map(|i| [(i % 10) as f32 * 0.05 - 0.25, (i / 10) as f32 * 0.05 - 0.25, 3.0]).collect();
+        PendingCloud { stamp_ns: (stamp_s * 1e9) as u64, points_sensor_m: pts, own_pose: None, received: now }
+    }
+
+    #[test]
+    fn clouds_wait_for_their_pose_and_the_oldest_is_dropped_when_behind() {
+        let settings = MapperSettings { max_pending_clouds: 2, ..Default::default() };
+        let mut st = MapperState::new(settings).unwrap();
+        let now = Instant::now();
+        for k in 0..3 {
+            st.push_cloud(cloud(1.0 + k as f64 * 0.2, now));
+        }
+        assert_eq!(st.counters.clouds_dropped_behind, 1);
+        assert_eq!(st.step(now, false, 10).unwrap(), 0, "no pose yet");
+        st.poses.push(1.0, Isometry3::identity());
+        st.poses.push(2.0, Isometry3::translation(1.0, 0.0, 0.0));
+        assert_eq!(st.step(now, false, 10).unwrap(), 2);
+        assert_eq!(st.counters.clouds_inserted, 2);
+        assert!(st.tree.num_leaves() > 0);
+        // A cloud whose pose never comes is dropped after pose_wait_s.
+        st.push_cloud(cloud(5.0, now));
+        assert_eq!(st.step(now, false, 10).unwrap(), 0);
+        assert_eq!(st.step(now + Duration::from_secs(3), false, 10).unwrap(), 0);
+        assert_eq!(st.counters.clouds_dropped_no_pose, 1);
+        assert!(st.pending.is_empty());
+    }
+
+    #[test]
+    fn the_wall_ends_up_occupied_in_front_of_the_sensor() {
+        let mut st = MapperState::new(MapperSettings { pose_source: PoseSource::Cloud, ..Default::default() }).unwrap();
+        let now = Instant::now();
+        let mut c = cloud(1.0, now);
+        c.own_pose = Some(Isometry3::identity()); // sensor frame = world
+        st.push_cloud(c);
+        assert_eq!(st.step(now, false, 10).unwrap(), 1);
+        assert_eq!(st.tree.is_occupied([0.0f64, 0.0, 3.0]), Some(true));
+        assert_eq!(st.tree.is_occupied([0.0f64, 0.0, 1.5]), Some(false), "free along the rays");
+        assert_eq!(st.tree.search([0.0f64, 0.0, 5.0]), None, "unknown behind the wall");
+    }
+}

@@ -1,0 +1,260 @@
+//! `octree_mapper`: subscribes the point clouds and the poses (fused by default), inserts each
+//! cloud at the pose interpolated to its stamp into an OctoMap-compatible occupancy octree,
+//! publishes `MapStats` and the occupied voxels at configured rates, writes `map.bt` at the end
+//! and on a checkpoint command, and at the end discovers navigable space and obstacles
+//! (`navigable.ply`, `obstacles.ply`, counts in summary.json). See the library docs.
+
+use std::collections::BTreeSet;
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use clap::Parser;
+use navigable::VoxelClass;
+use octree_mapper_process::{MapperSettings, MapperState, PendingCloud, PoseSource};
+use pipeline_runtime::{Flow, Output, ProcessArgs, Runtime};
+use shared_types::services::{CLOUD, COMMAND, END_OF_STREAM, FUSION_POSE, MAP_STATS, MAP_VOXELS, SLAM_POSE};
+use shared_types::*;
+
+fn percentile(v: &[f64], q: f64) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    s.get(((s.len() as f64 - 1.0) * q).round() as usize).copied().unwrap_or(f64::NAN)
+}
+
+fn stats_msg(st: &MapperState, regions: u32, obstacles: u32) -> MapStats {
+    let (occ, free) = st.tree.num_occupied_free_leaves();
+    let leaves = st.tree.num_leaves();
+    MapStats {
+        resolution_m: st.tree.resolution(),
+        leaves: leaves as u64,
+        occupied_leaves: occ as u64,
+        free_leaves: free as u64,
+        inner_nodes: st.tree.num_nodes().saturating_sub(leaves) as u64,
+        memory_bytes: st.tree.memory_usage_bytes() as u64,
+        clouds_inserted: st.counters.clouds_inserted,
+        clouds_dropped: st.counters.clouds_dropped_behind + st.counters.clouds_dropped_no_pose,
+        points_inserted: st.counters.points_inserted,
+        last_insert_ms: st.insert_ms.last().copied().unwrap_or(0.0),
+        navigable_regions: regions,
+        obstacles,
+        ..Default::default()
+    }
+}
+
+/// The occupied leaves with their class (navigable, obstacle, or just occupied).
+fn build_voxels(st: &MapperState, classes: Option<&navigable::Discovery>) -> Vec<Voxel> {
+    let res = st.tree.resolution();
+    let obstacle: std::collections::HashSet<navigable::VoxelKey> =
+        classes.map(|d| d.obstacles.iter().flat_map(|o| o.voxels.iter().copied()).collect()).unwrap_or_default();
+    st.tree
+        .leaves()
+        .filter(|l| st.tree.is_occupied_log_odds(l.log_odds))
+        .map(|l| {
+            let c = st.tree.key_to_coord(l.key);
+            let size = res * l.edge_voxels() as f64;
+            let centre = if l.depth >= 16 {
+                c
+            } else {
+                // A pruned leaf: the centre of its cube.
+                let m = st.tree.key_to_coord(l.min_key());
+                [m[0] - 0.5 * res + 0.5 * size, m[1] - 0.5 * res + 0.5 * size, m[2] - 0.5 * res + 0.5 * size]
+            };
+            let k = st.points.key(&nalgebra::Vector3::from(c));
+            let class = match classes.and_then(|d| d.classes.get(&k)) {
+                Some(VoxelClass::Navigable(_)) => 1,
+                _ if obstacle.contains(&k) => 2,
+                _ => 0,
+            };
+            Voxel {
+                center_m: [centre[0] as f32, centre[1] as f32, centre[2] as f32],
+                size_m: size as f32,
+                occupancy: octree::probability(l.log_odds as f64) as f32,
+                class,
+            }
+        })
+        .collect()
+}
+
+/// Publishes voxels on `pipeline/map/voxels`.
+fn send_voxels(
+    out: &mut Output<[Voxel], VoxelSetHeader>,
+    voxels: &[Voxel],
+    resolution_m: f64,
+    stamp_ns: u64,
+) -> anyhow::Result<()> {
+    let mut s = out.loan_slice_uninit(voxels.len())?.write_from_slice(voxels);
+    *s.user_header_mut() = VoxelSetHeader {
+        msg: MsgHeader { stamp_ns, ..Default::default() },
+        resolution_m,
+        frame: FRAME_WORLD,
+        _reserved: 0,
+    };
+    out.send(s)?;
+    Ok(())
+}
+
+/// The end-of-run work (map.bt, navigable space, PLY layers, the classified voxels) on a worker
+/// thread, while this thread keeps the heartbeats going (a large map takes seconds).
+fn finish(
+    rt: &mut Runtime,
+    st: &MapperState,
+    out_dir: &std::path::Path,
+    name: &str,
+) -> anyhow::Result<(navigable::Discovery, Vec<Voxel>)> {
+    std::fs::create_dir_all(out_dir)?;
+    let (d, voxels) = std::thread::scope(|s| {
+        let worker = s.spawn(|| -> anyhow::Result<(navigable::Discovery, Vec<Voxel>)> {
+            let t0 = Instant::now();
+            st.tree.write_binary_file(out_dir.join("map.bt"))?;
+            let t1 = Instant::now();
+            let d = st.discover()?;
+            let t2 = Instant::now();
+            navigable::write_navigable_ply(&out_dir.join("navigable.ply"), &st.points, &d)?;
+            navigable::write_obstacles_ply(&out_dir.join("obstacles.ply"), &st.points, &d)?;
+            let voxels = build_voxels(st, Some(&d));
+            tracing::info!(
+                "end of run: map.bt in {:.0} ms, navigable space in {:.0} ms, PLY layers and voxels in {:.0} ms",
+                (t1 - t0).as_secs_f64() * 1e3,
+                (t2 - t1).as_secs_f64() * 1e3,
+                t2.elapsed().as_secs_f64() * 1e3
+            );
+            Ok((d, voxels))
+        });
+        while !worker.is_finished() {
+            rt.keep_alive();
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        worker.join().map_err(|_| anyhow::anyhow!("end-of-run worker panicked"))?
+    })?;
+    let (nav, steep, nonplanar, sparse) = d.counts();
+    let (occ, free) = st.tree.num_occupied_free_leaves();
+    let part = serde_json::json!({ "octree_mapper": {
+        "resolution_m": st.tree.resolution(),
+        "pose_source": st.settings().pose_source,
+        "leaves": st.tree.num_leaves(),
+        "occupied_leaves": occ,
+        "free_leaves": free,
+        "memory_bytes": st.tree.memory_usage_bytes(),
+        "counters": st.counters,
+        "insert_ms": { "p50": percentile(&st.insert_ms, 0.5), "p99": percentile(&st.insert_ms, 0.99),
+                       "max": percentile(&st.insert_ms, 1.0) },
+        "voxels": { "navigable": nav, "steep": steep, "non_planar": nonplanar, "sparse": sparse },
+        "navigable_regions": d.regions.len(),
+        "navigable_area_m2": d.regions.iter().map(|r| r.area_m2).sum::<f64>(),
+        "obstacles": d.obstacles.len(),
+    }});
+    tracing::info!(
+        clouds = st.counters.clouds_inserted,
+        dropped = st.counters.clouds_dropped_behind + st.counters.clouds_dropped_no_pose,
+        occupied = occ,
+        regions = d.regions.len(),
+        obstacles = d.obstacles.len(),
+        "map written"
+    );
+    let path = out_dir.join("parts").join(format!("{name}.json"));
+    std::fs::create_dir_all(path.parent().expect("parts dir"))?;
+    std::fs::write(path, serde_json::to_vec_pretty(&part)?)?;
+    Ok((d, voxels))
+}
+
+fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
+    let (ctx, mut rt) = Runtime::start(args)?;
+    let settings: MapperSettings = ctx.settings()?;
+    let mut st = MapperState::new(settings.clone())?;
+    let clouds = rt.input::<[CloudPoint], CloudHeader>(CLOUD)?;
+    let fused = rt.input::<FusedPose, MsgHeader>(FUSION_POSE)?;
+    let slam = rt.input::<PoseEstimate, MsgHeader>(SLAM_POSE)?;
+    let commands = rt.input::<ControlCommand, MsgHeader>(COMMAND)?;
+    let eos = rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?;
+    let mut stats_out = rt.output::<MapStats, MsgHeader>(MAP_STATS)?;
+    let mut voxels_out = rt.output_slice::<Voxel, VoxelSetHeader>(MAP_VOXELS, 16 * 1024)?;
+    let out_dir = ctx.out_dir.clone();
+    let name = ctx.name.clone();
+    let every = |hz: f64| (hz > 0.0).then(|| Duration::from_secs_f64(1.0 / hz));
+    let (stats_every, voxels_every) = (every(settings.stats_rate_hz), every(settings.voxels_rate_hz));
+    let (mut last_stats, mut last_voxels) = (Instant::now(), Instant::now());
+    let mut ended: BTreeSet<String> = BTreeSet::new();
+    let mut done = false;
+    let mut last_stamp = 0u64;
+    tracing::info!(resolution_m = settings.resolution_m, pose = ?settings.pose_source, "octree mapper ready");
+    rt.run(&mut st, Some(Duration::from_millis(100)), |rt, st, _| {
+        if done {
+            return Ok(Flow::Continue);
+        }
+        ended.extend(rt.ended_upstream(&eos)?); // before the data: see Runtime::ended_upstream
+        let inputs_ended = if settings.end_after.is_empty() {
+            !ended.is_empty()
+        } else {
+            settings.end_after.iter().all(|n| ended.contains(n))
+        };
+        while let Some(s) = fused.receive()? {
+            if settings.pose_source == PoseSource::Fused {
+                st.poses.push(s.user_header().stamp_ns as f64 / 1e9, s.payload().pose.frame_from_body());
+            }
+        }
+        while let Some(s) = slam.receive()? {
+            if settings.pose_source == PoseSource::Slam {
+                st.poses.push(s.user_header().stamp_ns as f64 / 1e9, s.payload().frame_from_body());
+            }
+        }
+        let now = Instant::now();
+        while let Some(s) = clouds.receive()? {
+            let h = s.user_header();
+            last_stamp = last_stamp.max(h.msg.stamp_ns);
+            let own_pose = (h.flags & CLOUD_HAS_POSE != 0)
+                .then(|| convert::isometry_from_wire(&h.sensor_origin_m, &h.orientation_xyzw));
+            st.push_cloud(PendingCloud {
+                stamp_ns: h.msg.stamp_ns,
+                points_sensor_m: s.payload().iter().map(|p| [p.x_m, p.y_m, p.z_m]).collect(),
+                own_pose,
+                received: now,
+            });
+        }
+        while let Some(s) = commands.receive()? {
+            let c = s.payload();
+            let target = name_from32(&c.target);
+            if (target.is_empty() || target == rt.name()) && c.command == COMMAND_CHECKPOINT {
+                let path = out_dir.join("map.bt");
+                std::fs::create_dir_all(&out_dir)?;
+                st.tree.write_binary_file(&path)?;
+                tracing::info!(path = %path.display(), "checkpoint written");
+            }
+        }
+        // One cloud per wake-up, so the inputs are drained (and late clouds dropped) between.
+        st.step(Instant::now(), inputs_ended, 1)?;
+        if !st.pending.is_empty() {
+            match st.next_deadline() {
+                Some(d) if st.settings().pose_source != PoseSource::Cloud => {
+                    rt.wake_at(d.min(Instant::now() + Duration::from_millis(20)))
+                }
+                _ => rt.wake_at(Instant::now()),
+            }
+        }
+        if stats_every.is_some_and(|e| last_stats.elapsed() >= e) {
+            last_stats = Instant::now();
+            stats_out.send_value(MsgHeader { stamp_ns: last_stamp, ..Default::default() }, stats_msg(st, 0, 0))?;
+        }
+        if voxels_every.is_some_and(|e| last_voxels.elapsed() >= e) {
+            last_voxels = Instant::now();
+            let voxels = build_voxels(st, None);
+            send_voxels(&mut voxels_out, &voxels, st.tree.resolution(), last_stamp)?;
+        }
+        if inputs_ended && st.pending.is_empty() {
+            let (d, voxels) = finish(rt, st, &out_dir, &name)?;
+            stats_out.send_value(
+                MsgHeader { stamp_ns: last_stamp, ..Default::default() },
+                stats_msg(st, d.regions.len() as u32, d.obstacles.len() as u32),
+            )?;
+            send_voxels(&mut voxels_out, &voxels, st.tree.resolution(), last_stamp)?;
+            rt.send_end_of_stream(stats_out.sent().saturating_sub(1), stats_out.sent())?;
+            done = true;
+        }
+        Ok(Flow::Continue)
+    })
+}
+
+fn main() -> ExitCode {
+    let args = ProcessArgs::parse();
+    let _log = pipeline_runtime::logging::init(&args.name, args.log_format.unwrap_or_default());
+    pipeline_runtime::exit_code(&run(&args))
+}
