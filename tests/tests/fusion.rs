@@ -1,4 +1,4 @@
-//! The fusion stage end to end: the default config (config/default.toml, the processes exactly as
+//! The fusion and octree-mapping stages end to end: the default config (config/default.toml, the processes exactly as
 //! the main job runs them) must end with a fused global path more accurate than the buoy-only path
 //! and than the SLAM path, and write every output the README lists.
 
@@ -44,6 +44,40 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     }
     let png = std::fs::read(out.join("trajectories.png")).expect("trajectories.png");
     assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+    // The octree mapper on the fused poses: most clouds inserted, a map OctoMap-style.
+    let m = &s["octree_mapper"];
+    // How many clouds keep up depends on the load (debug build, tests in parallel): every cloud
+    // is either inserted or counted as dropped, and a good share is inserted.
+    let c = &m["counters"];
+    let inserted = c["clouds_inserted"].as_u64().unwrap();
+    let dropped = c["clouds_dropped_behind"].as_u64().unwrap() + c["clouds_dropped_no_pose"].as_u64().unwrap();
+    let sent = s["ingest"]["messages"]["cloud"].as_u64().unwrap();
+    assert!(inserted + dropped <= sent && inserted >= sent / 10, "{inserted} of {sent} clouds inserted: {m:#}");
+    assert!(m["occupied_leaves"].as_u64().unwrap() > 10_000, "{m:#}");
+    assert!(m["navigable_regions"].as_u64().unwrap() > 0 && m["obstacles"].as_u64().unwrap() > 0, "{m:#}");
+    let bt = std::fs::read(out.join("map.bt")).expect("map.bt");
+    assert!(bt.starts_with(b"# Octomap OcTree binary file"));
+    for file in ["navigable.ply", "obstacles.ply"] {
+        assert!(std::fs::read(out.join(file)).unwrap_or_default().starts_with(b"ply\n"), "{file}");
+    }
+}
+
+#[test]
+fn invalid_octree_mapper_settings_name_their_keys() {
+    for (settings, key) in [
+        ("[processes.p.settings]\nresolution_m = 0.0", "processes.p.settings.resolution_m"),
+        ("[processes.p.settings.sensor]\nprob_hit = 0.3", "processes.p.settings.sensor"),
+        ("[processes.p.settings]\npose_source = \"gps\"", "processes.p.settings.pose_source"),
+        ("[processes.p.settings.nsd]\nmin_points = 1", "processes.p.settings.nsd.min_points"),
+    ] {
+        let mut run = TestRun::new("badmapper");
+        let procs = format!("[processes.p]\nkind = \"octree_mapper\"\n{settings}\n");
+        let cfg = run.write_config("end = \"signal\"", &procs);
+        run.start_supervisor(&cfg, &[]);
+        let status = run.wait_supervisor(Duration::from_secs(20)).expect("exits");
+        assert_eq!(status.code(), Some(2), "{}", run.log());
+        assert!(run.log().contains(&format!("`{key}`")), "must name `{key}`:\n{}", run.log());
+    }
 }
 
 #[test]
