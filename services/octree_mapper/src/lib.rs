@@ -115,6 +115,10 @@ pub struct MapperSettings {
     pub voxels_rate_hz: f64,
     /// Navigable space and obstacles.
     pub nsd: NsdConfig,
+    /// Obstacles of each scan are associated with the obstacle landmarks of the earlier scans
+    /// when their Bhattacharyya distance is at most this ([6D] §VI); 0 turns the per-scan
+    /// obstacle tracking off.
+    pub obstacle_max_bhattacharyya: f64,
     /// The processes whose end of stream ends this one's input.
     pub end_after: Vec<String>,
 }
@@ -134,6 +138,7 @@ impl Default for MapperSettings {
             stats_rate_hz: 1.0,
             voxels_rate_hz: 0.2,
             nsd: NsdConfig::default(),
+            obstacle_max_bhattacharyya: 1.0,
             end_after: vec!["ingest".into(), "fusion".into()],
         }
     }
@@ -157,6 +162,11 @@ impl ProcessSettings for MapperSettings {
             issues.check(v.is_finite() && v >= 0.0, format!("{key}.{k}"), "must be >= 0");
         }
         issues.check(self.ray_threads >= 1, format!("{key}.ray_threads"), "must be >= 1");
+        issues.check(
+            self.obstacle_max_bhattacharyya.is_finite() && self.obstacle_max_bhattacharyya >= 0.0,
+            format!("{key}.obstacle_max_bhattacharyya"),
+            "must be >= 0",
+        );
         for (k, m) in self.nsd.validate() {
             issues.push(format!("{key}.nsd.{k}"), m);
         }
@@ -231,6 +241,15 @@ pub struct PendingCloud {
     pub received: Instant,
 }
 
+/// An obstacle landmark: a Gaussian over the points of the scans' obstacles associated with it.
+#[derive(Debug, Clone)]
+pub struct ObstacleLandmark {
+    /// Point statistics of every associated scan obstacle.
+    pub stats: navigable::VoxelStats,
+    /// Scans it was seen in.
+    pub scans: u32,
+}
+
 /// Counters.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct MapperCounters {
@@ -238,12 +257,19 @@ pub struct MapperCounters {
     pub clouds_inserted: u64,
     /// Clouds dropped because insertion fell behind (the queue was full).
     pub clouds_dropped_behind: u64,
+    /// Clouds overwritten in the service's queue before this process took them (sequence gaps:
+    /// the producer never waits for a slow mapper).
+    pub clouds_overwritten: u64,
     /// Clouds dropped without a pose (none came in time, or the poses around them were too far apart).
     pub clouds_dropped_no_pose: u64,
     /// Points inserted.
     pub points_inserted: u64,
     /// Points skipped (non-finite).
     pub points_skipped: u64,
+    /// Scan obstacles associated with an existing obstacle landmark.
+    pub obstacles_associated: u64,
+    /// Scan obstacles that started a new obstacle landmark.
+    pub obstacles_new: u64,
 }
 
 /// The process state.
@@ -262,6 +288,8 @@ pub struct MapperState {
     pub counters: MapperCounters,
     /// Insertion time per cloud, ms.
     pub insert_ms: Vec<f64>,
+    /// Obstacle landmarks tracked across scans.
+    pub obstacle_landmarks: Vec<ObstacleLandmark>,
 }
 
 impl MapperState {
@@ -279,6 +307,7 @@ impl MapperState {
             pending: VecDeque::new(),
             counters: MapperCounters::default(),
             insert_ms: vec![],
+            obstacle_landmarks: vec![],
             settings,
         })
     }
@@ -349,16 +378,69 @@ impl MapperState {
         let stats =
             self.tree.insert_point_cloud(&world, [origin.x, origin.y, origin.z], self.settings.max_range_m, false)?;
         let max_range = if self.settings.max_range_m < 0.0 { f64::INFINITY } else { self.settings.max_range_m };
+        let mut scan = PointAccumulator::new(self.settings.resolution_m);
         for p in &world {
             let v = Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
             if (v - origin).norm() <= max_range {
                 self.points.add(&v);
+                scan.add(&v);
             }
+        }
+        if self.settings.obstacle_max_bhattacharyya > 0.0 {
+            self.track_obstacles(&scan)?;
         }
         self.counters.clouds_inserted += 1;
         self.counters.points_inserted += (stats.points - stats.skipped_points) as u64;
         self.counters.points_skipped += stats.skipped_points as u64;
         self.insert_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        Ok(())
+    }
+
+    /// The obstacles of one scan ([`navigable::discover`] on its points alone) associated with
+    /// the obstacle landmarks by Bhattacharyya distance ([6D] §VI): an associated one adds its
+    /// points to the landmark's Gaussian, the others start new landmarks.
+    fn track_obstacles(&mut self, scan: &PointAccumulator) -> anyhow::Result<()> {
+        let found = navigable::discover(scan, |_| true, &self.settings.nsd)?;
+        if found.obstacles.is_empty() {
+            return Ok(());
+        }
+        let landmarks: Vec<navigable::Obstacle> = self
+            .obstacle_landmarks
+            .iter()
+            .filter_map(|l| {
+                let (mean_m, cov_m2) = l.stats.mean_cov()?;
+                Some(navigable::Obstacle { voxels: vec![], mean_m, cov_m2, points: l.stats.n })
+            })
+            .collect();
+        let reg = (self.settings.resolution_m * 0.5).powi(2); // a voxel's extent: flat obstacles
+        let pairs =
+            navigable::associate_obstacles(&landmarks, &found.obstacles, self.settings.obstacle_max_bhattacharyya, reg);
+        let mut matched = vec![false; found.obstacles.len()];
+        for (l, o, _) in &pairs {
+            matched[*o] = true;
+            let mut stats = navigable::VoxelStats::default();
+            for k in &found.obstacles[*o].voxels {
+                if let Some(v) = scan.cells().get(k) {
+                    stats.merge(v);
+                }
+            }
+            self.obstacle_landmarks[*l].stats.merge(&stats);
+            self.obstacle_landmarks[*l].scans += 1;
+            self.counters.obstacles_associated += 1;
+        }
+        for (o, obstacle) in found.obstacles.iter().enumerate() {
+            if matched[o] {
+                continue;
+            }
+            let mut stats = navigable::VoxelStats::default();
+            for k in &obstacle.voxels {
+                if let Some(v) = scan.cells().get(k) {
+                    stats.merge(v);
+                }
+            }
+            self.obstacle_landmarks.push(ObstacleLandmark { stats, scans: 1 });
+            self.counters.obstacles_new += 1;
+        }
         Ok(())
     }
 
@@ -422,6 +504,34 @@ mod tests {
         assert_eq!(st.step(now + Duration::from_secs(3), false, 10).unwrap(), 0);
         assert_eq!(st.counters.clouds_dropped_no_pose, 1);
         assert!(st.pending.is_empty());
+    }
+
+    #[test]
+    fn an_obstacle_seen_in_two_scans_is_one_landmark() {
+        let settings = MapperSettings { pose_source: PoseSource::Cloud, ..Default::default() };
+        let mut st = MapperState::new(settings).unwrap();
+        let now = Instant::now();
+        // A 0.3 m bush 3 m ahead (points filling a volume: non-planar in every voxel), seen
+        // twice from slightly different sensor positions.
+        let frac = |x: f32| x - x.floor();
+        let blob: Vec<[f32; 3]> = (0..3000)
+            .map(|i| {
+                let i = i as f32;
+                [0.3 * frac(i * 0.618) - 0.15, 0.3 * frac(i * 0.414) - 0.15, 3.0 + 0.3 * frac(i * 0.732) - 0.15]
+            })
+            .collect();
+        for dx in [0.0, 0.05] {
+            st.push_cloud(PendingCloud {
+                stamp_ns: 0,
+                points_sensor_m: blob.iter().map(|p| [p[0] - dx, p[1], p[2]]).collect(),
+                own_pose: Some(Isometry3::translation(dx as f64, 0.0, 0.0)),
+                received: now,
+            });
+        }
+        assert_eq!(st.step(now, false, 10).unwrap(), 2);
+        assert!(st.counters.obstacles_new >= 1, "{:?}", st.counters);
+        assert!(st.counters.obstacles_associated >= 1, "the second scan's blob matches the first: {:?}", st.counters);
+        assert_eq!(st.obstacle_landmarks.iter().filter(|l| l.scans == 2).count(), 1);
     }
 
     #[test]

@@ -32,7 +32,9 @@ fn stats_msg(st: &MapperState, regions: u32, obstacles: u32) -> MapStats {
         inner_nodes: st.tree.num_nodes().saturating_sub(leaves) as u64,
         memory_bytes: st.tree.memory_usage_bytes() as u64,
         clouds_inserted: st.counters.clouds_inserted,
-        clouds_dropped: st.counters.clouds_dropped_behind + st.counters.clouds_dropped_no_pose,
+        clouds_dropped: st.counters.clouds_dropped_behind
+            + st.counters.clouds_dropped_no_pose
+            + st.counters.clouds_overwritten,
         points_inserted: st.counters.points_inserted,
         last_insert_ms: st.insert_ms.last().copied().unwrap_or(0.0),
         navigable_regions: regions,
@@ -142,6 +144,8 @@ fn finish(
         "navigable_regions": d.regions.len(),
         "navigable_area_m2": d.regions.iter().map(|r| r.area_m2).sum::<f64>(),
         "obstacles": d.obstacles.len(),
+        "obstacle_landmarks": st.obstacle_landmarks.len(),
+        "obstacle_landmarks_seen_in_2_or_more_scans": st.obstacle_landmarks.iter().filter(|l| l.scans >= 2).count(),
     }});
     tracing::info!(
         clouds = st.counters.clouds_inserted,
@@ -176,6 +180,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let mut ended: BTreeSet<String> = BTreeSet::new();
     let mut done = false;
     let mut last_stamp = 0u64;
+    let mut last_cloud_seq: Option<u64> = None;
     tracing::info!(resolution_m = settings.resolution_m, pose = ?settings.pose_source, "octree mapper ready");
     rt.run(&mut st, Some(Duration::from_millis(100)), |rt, st, _| {
         if done {
@@ -201,6 +206,12 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         while let Some(s) = clouds.receive()? {
             let h = s.user_header();
             last_stamp = last_stamp.max(h.msg.stamp_ns);
+            if let Some(prev) = last_cloud_seq
+                && h.msg.seq > prev + 1
+            {
+                st.counters.clouds_overwritten += h.msg.seq - prev - 1;
+            }
+            last_cloud_seq = Some(h.msg.seq);
             let own_pose = (h.flags & CLOUD_HAS_POSE != 0)
                 .then(|| convert::isometry_from_wire(&h.sensor_origin_m, &h.orientation_xyzw));
             st.push_cloud(PendingCloud {
