@@ -47,7 +47,8 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let mut ended: BTreeSet<String> = BTreeSet::new();
     let mut log = RunLog::default();
     let mut done = false;
-    let mut statuses: std::collections::BTreeMap<u32, String> = Default::default();
+    let mut statuses: std::collections::BTreeMap<u32, std::mem::Discriminant<fusion::engine::SegmentStatus>> =
+        Default::default();
     tracing::info!(slam = %settings.slam_process, end_after = ?settings.end_after, "fusion ready");
     rt.run(&mut engine, Some(Duration::from_millis(200)), |rt, engine, _| {
         if done {
@@ -104,10 +105,11 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 },
             )?;
             if let Some(seg) = engine.segment(out.segment) {
-                let status = format!("{:?}", seg.status);
-                if statuses.get(&out.segment) != Some(&status) {
-                    tracing::info!(segment = out.segment, "local map: {status}");
-                    statuses.insert(out.segment, status);
+                // Log changes of kind (waiting, degenerate, aligned), not every new fix count.
+                let kind = std::mem::discriminant(&seg.status);
+                if statuses.get(&out.segment) != Some(&kind) {
+                    tracing::info!(segment = out.segment, "local map: {:?}", seg.status);
+                    statuses.insert(out.segment, kind);
                 }
             }
             if out.request_new_segment {
