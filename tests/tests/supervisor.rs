@@ -174,3 +174,31 @@ fn sigkill_of_the_supervisor_leaves_no_orphan_and_the_next_run_cleans_the_stale_
     assert_eq!(consumer_counters(&run)["frames_ok"], 5);
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
 }
+
+#[test]
+fn a_child_restarted_after_its_upstream_ended_gets_the_end_of_stream_again() {
+    // The consumer hangs (SIGSTOP) while the producer sends its clouds and its end of stream;
+    // the supervisor kills it for missing heartbeats and restarts it. The dead instance never
+    // read the end of stream, so the new one only ends the run if the supervisor replays it.
+    let mut run = TestRun::new("eosreplay");
+    let procs = PAIR.replace("rate_hz = 50.0", "rate_hz = 20.0\nframes = 30").replace(
+        "[processes.consumer]\nkind = \"test_consumer\"",
+        "[processes.consumer]\nkind = \"test_consumer\"\nrestart = \"on-failure\"\nbackoff_initial_s = 0.05",
+    );
+    let cfg = run.write_config(
+        "end = \"end_of_stream\"\nend_of_stream_from = [\"consumer\"]\nduration_s = 60\nheartbeat_timeout_s = 2.0",
+        &procs,
+    );
+    run.start_supervisor(&cfg, &[]);
+    run.wait_for_log("ready after", 2, LONG);
+    let consumer = run.started_pids("consumer")[0];
+    nix::sys::signal::kill(nix::unistd::Pid::from_raw(consumer), Signal::SIGSTOP).unwrap();
+    run.wait_for_log("process=producer last_seq", 1, LONG); // the producer's end of stream
+    let status = run.wait_supervisor(Duration::from_secs(40)).expect("the run ends");
+    assert_eq!(status.code(), Some(0), "{}", run.log());
+    assert!(run.log().contains("replaying end of stream to the restarted process"), "{}", run.log());
+    let s = run.summary();
+    assert_eq!(s["run"]["end_reason"], "end_of_stream", "{s:#}");
+    assert_eq!(s["processes"]["consumer"]["restarts"], 1, "{s:#}");
+    assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
+}

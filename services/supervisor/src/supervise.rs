@@ -147,6 +147,10 @@ pub struct Supervisor {
     heartbeats: Input<Heartbeat, MsgHeader>,
     end_of_stream: Input<EndOfStream, MsgHeader>,
     eos_seen: BTreeSet<String>,
+    /// Every end of stream seen, by process: replayed to a restarted process once it is ready,
+    /// because the instance that died had consumed them.
+    eos_messages: BTreeMap<String, EndOfStream>,
+    eos_replay: pipeline_runtime::Output<EndOfStream, MsgHeader>,
     started: Instant,
     last_status: Instant,
     end: Option<EndReason>,
@@ -169,6 +173,11 @@ impl Supervisor {
     pub fn new(plan: Plan, rt: &mut Runtime) -> anyhow::Result<Self> {
         let heartbeats = rt.input_with_qos::<Heartbeat, MsgHeader>(services::HEARTBEAT, &CONTROL_QOS)?;
         let end_of_stream = rt.input_with_qos::<EndOfStream, MsgHeader>(services::END_OF_STREAM, &CONTROL_QOS)?;
+        let eos_replay = rt.output_with_qos::<EndOfStream, MsgHeader>(
+            services::END_OF_STREAM,
+            &CONTROL_QOS,
+            pipeline_runtime::Delivery::DiscardWhenFull,
+        )?;
         let now = Instant::now();
         let mut children = vec![];
         for p in &plan.processes {
@@ -194,6 +203,8 @@ impl Supervisor {
             heartbeats,
             end_of_stream,
             eos_seen: BTreeSet::new(),
+            eos_messages: BTreeMap::new(),
+            eos_replay,
             started: now,
             last_status: now,
             end: None,
@@ -271,6 +282,7 @@ impl Supervisor {
     }
 
     fn drain_control(&mut self, now: Instant) -> anyhow::Result<()> {
+        let mut replay: Vec<String> = vec![];
         while let Some(s) = self.heartbeats.receive()? {
             let hb = *s.payload();
             let name = name_from32(&hb.process);
@@ -285,11 +297,29 @@ impl Supervisor {
             {
                 tracing::info!(process = %name, pid = hb.pid, "ready after {:.0} ms", (now - since).as_secs_f64() * 1e3);
                 c.state = ProcState::Ready;
+                if c.restarts > 0 {
+                    replay.push(name.clone());
+                }
+            }
+        }
+        // A restarted process missed the ends of stream its dead instance had consumed: send them
+        // again (from the supervisor, in the name of the processes that ended).
+        for name in replay {
+            for (from, eos) in &self.eos_messages {
+                if *from != name {
+                    tracing::info!(process = %name, from = %from, "replaying end of stream to the restarted process");
+                    let now_ns = pipeline_runtime::clock::monotonic_ns();
+                    let header = MsgHeader { stamp_ns: now_ns, origin_ns: now_ns, ..Default::default() };
+                    if let Err(e) = self.eos_replay.send_value(header, *eos) {
+                        tracing::warn!("end of stream not replayed: {e}");
+                    }
+                }
             }
         }
         while let Some(s) = self.end_of_stream.receive()? {
             let name = name_from32(&s.payload().process);
             tracing::info!(process = %name, last_seq = s.payload().last_seq, "end of stream");
+            self.eos_messages.insert(name.clone(), *s.payload());
             self.eos_seen.insert(name);
         }
         self.drain_stats();
