@@ -90,3 +90,58 @@ fn a_wrong_layout_under_a_contract_service_name_is_refused() {
     let s = run.summary();
     assert_eq!(s["processes"]["monitor"]["last_exit"]["code"], 0, "the monitor is unharmed: {s:#}");
 }
+
+#[test]
+fn a_hostile_producer_crashes_neither_the_buoy_ekf_nor_the_octree_mapper() {
+    let mut run = TestRun::new("hostilestages");
+    let procs = format!(
+        r#"
+[processes.buoy]
+kind = "buoy_ekf"
+[processes.buoy.settings.ekf]
+mode = "planar"
+buoys = [
+    {{ id = 0, position_m = [0.0, 0.0, 0.0] }},
+    {{ id = 1, position_m = [30.0, 0.0, 0.0] }},
+    {{ id = 2, position_m = [30.0, 30.0, 0.0] }},
+    {{ id = 3, position_m = [0.0, 30.0, 0.0] }},
+]
+
+[processes.map]
+kind = "octree_mapper"
+[processes.map.settings]
+pose_source = "cloud"
+end_after = ["driver"]
+
+[processes.driver]
+kind = "external"
+binary = "{}"
+args = ["--frames", "120", "--rate-hz", "300", "--points", "500", "--hostile", "--oversized-points", "20000"]
+after = ["buoy", "map"]
+heartbeat = false
+restart = "never"
+"#,
+        bin("external-producer").display()
+    );
+    let cfg =
+        run.write_config("end = \"end_of_stream\"\nend_of_stream_from = [\"buoy\", \"map\"]\nduration_s = 60", &procs);
+    run.start_supervisor(&cfg, &[]);
+    let status = run.wait_supervisor(LONG).expect("run ends");
+    assert_eq!(status.code(), Some(0), "{}", run.log());
+    let s = run.summary();
+    for p in ["buoy", "map"] {
+        assert_eq!(s["processes"][p]["restarts"], 0, "{p}: {s:#}");
+        assert_eq!(s["processes"][p]["last_exit"]["code"], 0, "{p}: {s:#}");
+    }
+    // The bad messages are counted by reason, the good ones used.
+    let b = &s["buoy_ekf"];
+    let bad: u64 = b["invalid_inputs"].as_object().unwrap().values().map(|v| v.as_u64().unwrap()).sum::<u64>()
+        + b["filter_errors"].as_object().unwrap().values().map(|v| v.as_u64().unwrap()).sum::<u64>();
+    assert!(bad > 0, "{b:#}");
+    let m = &s["octree_mapper"]["counters"];
+    let clouds = m["clouds_inserted"].as_u64().unwrap()
+        + m["clouds_dropped_no_pose"].as_u64().unwrap()
+        + m["clouds_dropped_behind"].as_u64().unwrap()
+        + m["clouds_overwritten"].as_u64().unwrap();
+    assert!(clouds >= 24, "every cloud accounted for: {m:#}");
+}
