@@ -91,7 +91,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let mut upstream_ended = false;
     tracing::info!(buoys = settings.ekf.buoys.len(), mode = ?settings.ekf.mode, odometry = settings.use_odometry, "buoy EKF ready");
     let mut was_initialised = false;
-    rt.run(&mut st, Some(Duration::from_millis(100)), |rt, st, _| {
+    let stop = rt.run(&mut st, Some(Duration::from_millis(100)), |rt, st, _| {
         if done {
             return Ok(Flow::Continue);
         }
@@ -137,7 +137,13 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             done = true;
         }
         Ok(Flow::Continue)
-    })
+    })?;
+    if !done {
+        // Stopped by a signal before the end of stream: write what there is.
+        finish(&st, &settings, &out_dir, &name, fixes.sent())?;
+        tracing::info!(fixes = fixes.sent(), "stopped early: outputs written");
+    }
+    Ok(stop)
 }
 
 fn main() -> ExitCode {

@@ -145,7 +145,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let out_dir = ctx.out_dir.clone();
     let name = ctx.name.clone();
     tracing::info!(particles = settings.filter.particles, proposal = ?settings.filter.proposal, motion = ?settings.motion_model, "filter ready");
-    rt.run(&mut st, None, |rt, st, _| {
+    let stop = rt.run(&mut st, None, |rt, st, _| {
         if done {
             return Ok(Flow::Continue);
         }
@@ -234,7 +234,13 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             done = true;
         }
         Ok(Flow::Continue)
-    })
+    })?;
+    if !done {
+        // Stopped by a signal before the end of stream: write what there is.
+        finish(&st, &settings, &out_dir, &name, &update_ms)?;
+        tracing::info!(frames = st.trajectory.len(), "stopped early: outputs written");
+    }
+    Ok(stop)
 }
 
 fn main() -> ExitCode {

@@ -50,7 +50,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let mut statuses: std::collections::BTreeMap<u32, std::mem::Discriminant<fusion::engine::SegmentStatus>> =
         Default::default();
     tracing::info!(slam = %settings.slam_process, end_after = ?settings.end_after, "fusion ready");
-    rt.run(&mut engine, Some(Duration::from_millis(200)), |rt, engine, _| {
+    let stop = rt.run(&mut engine, Some(Duration::from_millis(200)), |rt, engine, _| {
         if done {
             return Ok(Flow::Continue);
         }
@@ -160,7 +160,17 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             done = true;
         }
         Ok(Flow::Continue)
-    })
+    })?;
+    if !done {
+        // Stopped by a signal before the end of stream: the consistent path and map so far.
+        let result = engine.finish();
+        let part = write_outputs(&out_dir, &settings, &engine, &result, &log)?;
+        let path = out_dir.join("parts").join(format!("{name}.json"));
+        std::fs::create_dir_all(path.parent().expect("parts dir"))?;
+        std::fs::write(path, serde_json::to_vec_pretty(&part)?)?;
+        tracing::info!(poses = result.path.len(), "stopped early: outputs written");
+    }
+    Ok(stop)
 }
 
 fn main() -> ExitCode {

@@ -182,7 +182,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let mut last_stamp = 0u64;
     let mut last_cloud_seq: Option<u64> = None;
     tracing::info!(resolution_m = settings.resolution_m, pose = ?settings.pose_source, "octree mapper ready");
-    rt.run(&mut st, Some(Duration::from_millis(100)), |rt, st, _| {
+    let stop = rt.run(&mut st, Some(Duration::from_millis(100)), |rt, st, _| {
         if done {
             return Ok(Flow::Continue);
         }
@@ -261,7 +261,27 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             done = true;
         }
         Ok(Flow::Continue)
-    })
+    })?;
+    if !done {
+        // Stopped by a signal before the end of stream: the map so far (the navigable-space
+        // layers take seconds on a large map and are written only at the end of stream).
+        std::fs::create_dir_all(&out_dir)?;
+        st.tree.write_binary_file(out_dir.join("map.bt"))?;
+        let (occ, free) = st.tree.num_occupied_free_leaves();
+        let part = serde_json::json!({ "octree_mapper": {
+            "resolution_m": st.tree.resolution(),
+            "stopped_early": true,
+            "leaves": st.tree.num_leaves(),
+            "occupied_leaves": occ,
+            "free_leaves": free,
+            "counters": st.counters,
+        }});
+        let path = out_dir.join("parts").join(format!("{name}.json"));
+        std::fs::create_dir_all(path.parent().expect("parts dir"))?;
+        std::fs::write(path, serde_json::to_vec_pretty(&part)?)?;
+        tracing::info!(clouds = st.counters.clouds_inserted, "stopped early: map.bt written");
+    }
+    Ok(stop)
 }
 
 fn main() -> ExitCode {

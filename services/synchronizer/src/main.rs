@@ -62,7 +62,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let mut ended: BTreeSet<String> = BTreeSet::new();
     let mut done = false;
     tracing::info!(max_latency_s = settings.sync.max_latency_s, end_after = ?settings.end_after, "synchronizer ready");
-    rt.run(&mut st, Some(Duration::from_millis(100)), |rt, st, _| {
+    let stop = rt.run(&mut st, Some(Duration::from_millis(100)), |rt, st, _| {
         if done {
             return Ok(Flow::Continue);
         }
@@ -103,7 +103,12 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             done = true;
         }
         Ok(Flow::Continue)
-    })
+    })?;
+    if !done {
+        // Stopped by a signal before the end of stream: write the counts so far.
+        finish(&st, &settings, &out_dir, &name)?;
+    }
+    Ok(stop)
 }
 
 fn main() -> ExitCode {
