@@ -82,3 +82,27 @@ fn check_flag_validates_without_starting_anything() {
     assert!(!run.log().contains("started process="));
     assert!(run.scope.shm_files().is_empty());
 }
+
+#[test]
+fn doctor_reports_the_machine_against_a_config_and_fails_on_a_bad_one() {
+    let default = format!("{}/../config/default.toml", env!("CARGO_MANIFEST_DIR"));
+    let out = std::process::Command::new(pipeline_tests::bin("supervisor"))
+        .args(["doctor", "--config", &default])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(0), "{text}");
+    for topic in ["iceoryx2", "/dev/shm", "config", "shm needs", "open files", "other runs"] {
+        assert!(text.contains(topic), "{topic} missing:\n{text}");
+    }
+    let run = pipeline_tests::TestRun::new("doctorbad");
+    let cfg = run.write_config("end = \"signal\"", "[processes.p]\nkind = \"no_such_kind\"\n");
+    let out = std::process::Command::new(pipeline_tests::bin("supervisor"))
+        .args(["doctor", "--config"])
+        .arg(&cfg)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(2), "{text}");
+    assert!(text.contains("PROBLEM") && text.contains("no_such_kind"), "{text}");
+}

@@ -2,6 +2,7 @@
 //! dependency order, watches and restarts them, ends the run, stops everything in reverse order,
 //! removes the run's iceoryx2 resources and writes `summary.json`.
 
+pub mod doctor;
 pub mod kinds;
 pub mod plan;
 pub mod report;
@@ -15,10 +16,14 @@ use pipeline_runtime::{LogFormat, Runtime};
 /// Command line of `supervisor`.
 #[derive(Debug, clap::Parser)]
 #[command(version, about = "Runs the SLAM pipeline: starts, watches, restarts and stops its processes.")]
+#[command(args_conflicts_with_subcommands = true)]
 pub struct Cli {
+    /// What else to do instead of running the pipeline.
+    #[command(subcommand)]
+    pub command: Option<Command>,
     /// Pipeline config (TOML), e.g. config/default.toml.
-    #[arg(long)]
-    pub config: PathBuf,
+    #[arg(long, required = true)]
+    pub config: Option<PathBuf>,
     /// Output directory (overrides run.out_dir).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -36,6 +41,18 @@ pub struct Cli {
     pub check: bool,
 }
 
+/// Subcommands.
+#[derive(Debug, clap::Subcommand)]
+pub enum Command {
+    /// Pre-flight report of this machine (cores, iceoryx2 version, /dev/shm against a config's
+    /// needs, open-file limits, files of other runs in /dev/shm); exit code 2 on a problem.
+    Doctor {
+        /// Also check this config's processes, binaries and needs.
+        #[arg(long)]
+        config: Option<PathBuf>,
+    },
+}
+
 /// Exit code for an invalid config or a failed pre-flight check (nothing was started).
 pub const EXIT_CONFIG: u8 = 2;
 
@@ -46,13 +63,18 @@ pub struct SetupError(#[from] anyhow::Error);
 
 /// Runs the supervisor; returns the process exit code.
 pub fn run(cli: &Cli) -> anyhow::Result<u8> {
+    if let Some(Command::Doctor { config }) = &cli.command {
+        let r = doctor::report(config.as_deref());
+        print!("{}", r.render());
+        return Ok(r.exit_code());
+    }
+    let config = cli.config.as_deref().ok_or_else(|| SetupError(anyhow::anyhow!("--config is required")))?;
     let overrides = plan::Overrides {
         out_dir: cli.out.clone(),
         duration_s: cli.duration,
         iceoryx_prefix: cli.iceoryx_prefix.clone(),
     };
-    let mut plan =
-        plan::make_plan(&cli.config, &overrides, &plan::default_bin_dir()).map_err(|e| SetupError(e.into()))?;
+    let mut plan = plan::make_plan(config, &overrides, &plan::default_bin_dir()).map_err(|e| SetupError(e.into()))?;
     if let Some(f) = cli.log_format {
         plan.config.run.log_format = f;
     }

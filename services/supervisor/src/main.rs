@@ -1,4 +1,5 @@
-//! `supervisor --config <file> [--out <dir>] [--duration <s>]`: runs the pipeline.
+//! `supervisor --config <file> [--out <dir>] [--duration <s>]`: runs the pipeline;
+//! `supervisor doctor [--config <file>]`: a pre-flight report of the machine.
 //! Exit codes: 0 ok, 1 a process failed, 2 invalid config or machine (nothing started),
 //! 128+n stopped by signal n (130 SIGINT, 143 SIGTERM).
 
@@ -10,7 +11,11 @@ use supervisor::{Cli, EXIT_CONFIG, SetupError};
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let format = cli.log_format.unwrap_or_else(|| {
-        pipeline_runtime::config::load_pipeline_config(&cli.config).map(|c| c.run.log_format).unwrap_or_default()
+        cli.config
+            .as_deref()
+            .and_then(|c| pipeline_runtime::config::load_pipeline_config(c).ok())
+            .map(|c| c.run.log_format)
+            .unwrap_or_default()
     });
     let _log = pipeline_runtime::logging::init("supervisor", format);
     match supervisor::run(&cli) {
