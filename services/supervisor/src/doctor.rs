@@ -89,8 +89,8 @@ pub fn report(config: Option<&Path>) -> Report {
     let shm = nix::sys::statvfs::statvfs("/dev/shm");
     let shm_free = match &shm {
         Ok(st) => {
-            let free = st.blocks_available() as u64 * st.fragment_size() as u64;
-            let total = st.blocks() as u64 * st.fragment_size() as u64;
+            let free = st.blocks_available() * st.fragment_size();
+            let total = st.blocks() * st.fragment_size();
             r.add(Verdict::Ok, "/dev/shm", format!("{:.0} MiB free of {:.0} MiB", mib(free), mib(total)));
             Some(free)
         }
