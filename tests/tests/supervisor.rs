@@ -202,3 +202,40 @@ fn a_child_restarted_after_its_upstream_ended_gets_the_end_of_stream_again() {
     assert_eq!(s["processes"]["consumer"]["restarts"], 1, "{s:#}");
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
 }
+
+#[test]
+fn status_shows_a_running_pipeline_and_then_that_it_ended() {
+    let mut run = TestRun::new("status");
+    let cfg = run.write_config("end = \"signal\"", PAIR);
+    let status = |cfg: &std::path::Path| {
+        std::process::Command::new(pipeline_tests::bin("supervisor"))
+            .args(["status", "--config"])
+            .arg(cfg)
+            .output()
+            .unwrap()
+    };
+    run.start_supervisor(&cfg, &[]);
+    run.wait_for_log("ready after", 2, LONG);
+    run.wait_for_log("hop p50", 1, LONG); // a status line with latency: status.json follows it
+    let deadline = std::time::Instant::now() + LONG;
+    let out = loop {
+        let out = status(&cfg);
+        if out.status.code() == Some(0) || std::time::Instant::now() > deadline {
+            break out;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(0), "{text}");
+    assert!(text.contains(": running"), "{text}");
+    for name in ["consumer", "producer"] {
+        let line = text.lines().find(|l| l.starts_with(name)).unwrap_or_else(|| panic!("{name} missing:\n{text}"));
+        assert!(line.contains("ready"), "{line}");
+    }
+    run.signal_supervisor(Signal::SIGTERM);
+    run.wait_supervisor(LONG).expect("stops");
+    let out = status(&cfg);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(1), "{text}");
+    assert!(text.contains(": ended"), "{text}");
+}

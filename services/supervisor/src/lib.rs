@@ -6,6 +6,7 @@ pub mod doctor;
 pub mod kinds;
 pub mod plan;
 pub mod report;
+pub mod status;
 pub mod supervise;
 
 use std::path::PathBuf;
@@ -51,6 +52,16 @@ pub enum Command {
         #[arg(long)]
         config: Option<PathBuf>,
     },
+    /// The state of the pipeline that runs (or ran) this config: per process state, restarts,
+    /// message rate and latency; exit code 0 running, 1 not running, 2 no status.
+    Status {
+        /// The pipeline's config (its `run.out_dir` holds `status.json`).
+        #[arg(long)]
+        config: PathBuf,
+        /// Output directory, when the run overrode it with `--out`.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
 }
 
 /// Exit code for an invalid config or a failed pre-flight check (nothing was started).
@@ -67,6 +78,19 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
         let r = doctor::report(config.as_deref());
         print!("{}", r.render());
         return Ok(r.exit_code());
+    }
+    if let Some(Command::Status { config, out }) = &cli.command {
+        let out_dir = match out {
+            Some(o) => o.clone(),
+            None => {
+                let c = pipeline_runtime::config::load_pipeline_config(config).map_err(|e| SetupError(e.into()))?;
+                // As the run resolves it: relative to the current directory.
+                std::path::absolute(&c.run.out_dir).unwrap_or(c.run.out_dir)
+            }
+        };
+        let v = status::view(&out_dir);
+        print!("{}", v.text);
+        return Ok(v.exit_code);
     }
     let config = cli.config.as_deref().ok_or_else(|| SetupError(anyhow::anyhow!("--config is required")))?;
     let overrides = plan::Overrides {

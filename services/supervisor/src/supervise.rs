@@ -232,6 +232,7 @@ impl Supervisor {
         };
         tracing::info!(?end, "stopping pipeline");
         self.stop_all();
+        self.write_status(true);
         let failed = self.children.iter().any(|c| matches!(c.state, ProcState::Failed(_)));
         let exit_code = match &end {
             EndReason::Signal(s) => 128 + *s as u8,
@@ -277,6 +278,7 @@ impl Supervisor {
             self.last_status = now;
             self.update_rates(now);
             tracing::info!("{}", self.status_line());
+            self.write_status(false);
         }
         Ok(Flow::Continue)
     }
@@ -540,6 +542,50 @@ impl Supervisor {
                 c.rate = c.messages.saturating_sub(m0) as f64 / dt;
             }
             c.rate_base = (now, c.messages);
+        }
+    }
+
+    /// Writes `<out>/status.json` (atomically: a temporary file renamed) for `supervisor status`:
+    /// per process state, restarts, pid, message rate and hop latency.
+    pub fn write_status(&self, ended: bool) {
+        let processes: Vec<serde_json::Value> = self
+            .children
+            .iter()
+            .map(|c| {
+                let current = c.pid.and_then(|p| c.reports.get(&(p.as_raw() as u32)));
+                let lat = current.and_then(crate::report::hop_summary).filter(|l| l.count > 0);
+                serde_json::json!({
+                    "name": c.plan.name,
+                    "kind": c.plan.kind,
+                    "state": c.state.label(),
+                    "restarts": c.restarts,
+                    "pid": c.pid.map(|p| p.as_raw()),
+                    "messages": c.messages,
+                    "messages_per_s": c.rate,
+                    "hop_p50_ms": lat.as_ref().map(|l| l.p50),
+                    "hop_p99_ms": lat.as_ref().map(|l| l.p99),
+                })
+            })
+            .collect();
+        let status = serde_json::json!({
+            "supervisor_pid": std::process::id(),
+            "prefix": self.plan.scope.prefix,
+            "uptime_s": self.started.elapsed().as_secs_f64(),
+            "updated_unix_ms": std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_millis() as u64)
+                .unwrap_or(0),
+            "status_interval_s": self.plan.config.run.status_interval_s,
+            "ended": ended,
+            "processes": processes,
+        });
+        let dir = &self.plan.out_dir;
+        let tmp = dir.join(".status.json.tmp");
+        let write = std::fs::create_dir_all(dir)
+            .and_then(|_| std::fs::write(&tmp, serde_json::to_vec_pretty(&status).unwrap_or_default()))
+            .and_then(|_| std::fs::rename(&tmp, dir.join("status.json")));
+        if let Err(e) = write {
+            tracing::debug!("status.json not written: {e}");
         }
     }
 
