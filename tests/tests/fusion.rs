@@ -55,6 +55,11 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     assert!(inserted + dropped <= sent && inserted >= sent / 10, "{inserted} of {sent} clouds inserted: {m:#}");
     assert!(m["occupied_leaves"].as_u64().unwrap() > 10_000, "{m:#}");
     assert!(m["navigable_regions"].as_u64().unwrap() > 0 && m["obstacles"].as_u64().unwrap() > 0, "{m:#}");
+    // End-to-end latency of the whole pipeline, as measured by its last stages.
+    let lat = &s["pipeline_latency_ms"];
+    for k in ["stereo_to_fused_pose", "cloud_to_octree"] {
+        assert!(lat[k]["count"].as_u64().unwrap_or(0) > 0 && lat[k]["p50"].as_f64().unwrap() > 0.0, "{k}: {lat:#}");
+    }
     let bt = std::fs::read(out.join("map.bt")).expect("map.bt");
     assert!(bt.starts_with(b"# Octomap OcTree binary file"));
     for file in ["navigable.ply", "obstacles.ply"] {

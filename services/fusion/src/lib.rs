@@ -129,6 +129,16 @@ pub struct RunLog {
     pub segment_requests: u64,
     /// Inputs dropped as invalid, by reason.
     pub invalid: std::collections::BTreeMap<String, u64>,
+    /// Latency from the stereo frame entering the pipeline to the fused pose leaving, ms.
+    pub stereo_to_fused_ms: Vec<f64>,
+}
+
+/// p50, p99 and max of `v` (ms), as JSON.
+pub fn latency_json(v: &[f64]) -> serde_json::Value {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    let q = |q: f64| s.get(((s.len() as f64 - 1.0) * q).round() as usize).copied();
+    serde_json::json!({ "count": s.len(), "p50": q(0.5), "p99": q(0.99), "max": q(1.0) })
 }
 
 fn positions(p: &[(f64, Isometry3<f64>)]) -> Vec<(f64, Vector3<f64>)> {
@@ -187,6 +197,7 @@ pub fn write_outputs(
         "global_landmarks_merged": merged,
         "invalid_inputs": log.invalid,
     }});
+    part["pipeline_latency_ms"] = serde_json::json!({ "stereo_to_fused_pose": latency_json(&log.stereo_to_fused_ms) });
     let truth = geometry::tum::read_tum(&out_dir.join(&settings.ground_truth));
     let truth = match truth {
         Ok(t) if !t.is_empty() => Some(t),

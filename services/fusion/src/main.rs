@@ -96,6 +96,10 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             log.buoy.push((t_s, buoy));
             log.live.push((out.t_s, out.world_from_body));
             log.live_sources.add(out.source);
+            if h.origin_ns > 0 {
+                let now = pipeline_runtime::clock::monotonic_ns();
+                log.stereo_to_fused_ms.push(now.saturating_sub(h.origin_ns) as f64 / 1e6);
+            }
             pose_out.send_value(
                 MsgHeader { stamp_ns: h.stamp_ns, origin_ns: h.origin_ns, ..Default::default() },
                 FusedPose {

@@ -235,6 +235,8 @@ pub struct PendingCloud {
     pub stamp_ns: u64,
     /// Points in the sensor frame, m.
     pub points_sensor_m: Vec<[f32; 3]>,
+    /// When it entered the pipeline (CLOCK_MONOTONIC, ns; 0 unknown).
+    pub origin_ns: u64,
     /// The cloud's own `world_from_sensor`, when its header has one.
     pub own_pose: Option<Isometry3<f64>>,
     /// When it arrived.
@@ -290,6 +292,8 @@ pub struct MapperState {
     pub insert_ms: Vec<f64>,
     /// Obstacle landmarks tracked across scans.
     pub obstacle_landmarks: Vec<ObstacleLandmark>,
+    /// Latency from the cloud entering the pipeline to the octree updated with it, ms.
+    pub cloud_to_octree_ms: Vec<f64>,
 }
 
 impl MapperState {
@@ -308,6 +312,7 @@ impl MapperState {
             counters: MapperCounters::default(),
             insert_ms: vec![],
             obstacle_landmarks: vec![],
+            cloud_to_octree_ms: vec![],
             settings,
         })
     }
@@ -393,6 +398,10 @@ impl MapperState {
         self.counters.points_inserted += (stats.points - stats.skipped_points) as u64;
         self.counters.points_skipped += stats.skipped_points as u64;
         self.insert_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        if c.origin_ns > 0 {
+            let now = pipeline_runtime::clock::monotonic_ns();
+            self.cloud_to_octree_ms.push(now.saturating_sub(c.origin_ns) as f64 / 1e6);
+        }
         Ok(())
     }
 
@@ -480,7 +489,13 @@ mod tests {
     fn cloud(stamp_s: f64, now: Instant) -> PendingCloud {
         // A wall 3 m in front of the sensor (optical z).
         let pts = (0..100).map(|i| [(i % 10) as f32 * 0.05 - 0.25, (i / 10) as f32 * 0.05 - 0.25, 3.0]).collect();
-        PendingCloud { stamp_ns: (stamp_s * 1e9) as u64, points_sensor_m: pts, own_pose: None, received: now }
+        PendingCloud {
+            stamp_ns: (stamp_s * 1e9) as u64,
+            origin_ns: 0,
+            points_sensor_m: pts,
+            own_pose: None,
+            received: now,
+        }
     }
 
     #[test]
@@ -523,6 +538,7 @@ mod tests {
         for dx in [0.0, 0.05] {
             st.push_cloud(PendingCloud {
                 stamp_ns: 0,
+                origin_ns: 0,
                 points_sensor_m: blob.iter().map(|p| [p[0] - dx, p[1], p[2]]).collect(),
                 own_pose: Some(Isometry3::translation(dx as f64, 0.0, 0.0)),
                 received: now,

@@ -130,7 +130,11 @@ fn finish(
     })?;
     let (nav, steep, nonplanar, sparse) = d.counts();
     let (occ, free) = st.tree.num_occupied_free_leaves();
-    let part = serde_json::json!({ "octree_mapper": {
+    let lat = &st.cloud_to_octree_ms;
+    let part = serde_json::json!({
+      "pipeline_latency_ms": { "cloud_to_octree": { "count": lat.len(), "p50": percentile(lat, 0.5),
+                               "p99": percentile(lat, 0.99), "max": percentile(lat, 1.0) } },
+      "octree_mapper": {
         "resolution_m": st.tree.resolution(),
         "pose_source": st.settings().pose_source,
         "leaves": st.tree.num_leaves(),
@@ -145,6 +149,7 @@ fn finish(
         "navigable_area_m2": d.regions.iter().map(|r| r.area_m2).sum::<f64>(),
         "obstacles": d.obstacles.len(),
         "obstacle_landmarks": st.obstacle_landmarks.len(),
+
         "obstacle_landmarks_seen_in_2_or_more_scans": st.obstacle_landmarks.iter().filter(|l| l.scans >= 2).count(),
     }});
     tracing::info!(
@@ -216,6 +221,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 .then(|| convert::isometry_from_wire(&h.sensor_origin_m, &h.orientation_xyzw));
             st.push_cloud(PendingCloud {
                 stamp_ns: h.msg.stamp_ns,
+                origin_ns: h.msg.origin_ns,
                 points_sensor_m: s.payload().iter().map(|p| [p.x_m, p.y_m, p.z_m]).collect(),
                 own_pose,
                 received: now,

@@ -40,6 +40,16 @@ pub fn hop_summary(report: &StatsReport) -> Option<LatencySummary> {
     Some(LatencySummary::of(&h))
 }
 
+/// End-to-end latency (from the oldest sensor input to receive) over all inputs of one report:
+/// for the last stages of the pipeline, the latency of the whole chain up to them.
+pub fn e2e_summary(report: &StatsReport) -> Option<LatencySummary> {
+    let mut h = new_histogram();
+    for p in report.ports.iter().filter(|p| p.input) {
+        h.add(histogram_from_bytes(&p.e2e).ok()?).ok()?;
+    }
+    Some(LatencySummary::of(&h))
+}
+
 /// Latency tables merged over every instance: key `"<service> -> <process>"`.
 pub fn merged_latency(rows: &[ProcessRow<'_>]) -> (BTreeMap<String, LatencySummary>, BTreeMap<String, LatencySummary>) {
     let mut hop: BTreeMap<String, Histogram<u64>> = BTreeMap::new();

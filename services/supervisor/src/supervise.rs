@@ -564,6 +564,7 @@ impl Supervisor {
                     "messages_per_s": c.rate,
                     "hop_p50_ms": lat.as_ref().map(|l| l.p50),
                     "hop_p99_ms": lat.as_ref().map(|l| l.p99),
+                    "e2e_p50_ms": current.and_then(crate::report::e2e_summary).filter(|l| l.count > 0).map(|l| l.p50),
                 })
             })
             .collect();
@@ -589,7 +590,8 @@ impl Supervisor {
         }
     }
 
-    /// The one-line status: per process state, restarts, message rate, p50/p99 hop latency.
+    /// The one-line status: per process state, restarts, message rate, p50/p99 hop latency and
+    /// p50 end-to-end latency (since the sensor input) of its inputs.
     pub fn status_line(&self) -> String {
         let mut parts = vec![format!("t={:.1}s", self.started.elapsed().as_secs_f64())];
         for c in &self.children {
@@ -599,6 +601,11 @@ impl Supervisor {
                 && lat.count > 0
             {
                 s.push_str(&format!(" hop p50 {:.3} p99 {:.3} ms", lat.p50, lat.p99));
+            }
+            if let Some(e2e) = current.and_then(crate::report::e2e_summary)
+                && e2e.count > 0
+            {
+                s.push_str(&format!(" e2e p50 {:.1} ms", e2e.p50));
             }
             parts.push(s);
         }
