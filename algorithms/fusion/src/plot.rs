@@ -245,7 +245,8 @@ fn equal_aspect_extent(points: &[(f64, f64)], width_px: u32, height_px: u32) -> 
 }
 
 /// The registered font family, found and registered on first use; `None` if no usable font exists.
-fn font_family() -> Option<&'static str> {
+/// Other plots of the project (the latency benchmark's histogram) write their text with it too.
+pub fn font_family() -> Option<&'static str> {
     static FONT: OnceLock<bool> = OnceLock::new();
     let registered = *FONT
         .get_or_init(|| font_candidates().into_iter().take(MAX_FONT_ATTEMPTS).any(|path| register_font_file(&path)));

@@ -12,11 +12,12 @@ use pipeline_runtime::IoxScope;
 
 use crate::cli::Transport;
 
-/// A running consumer process; SIGKILLed and reaped on drop if it is still running.
+/// A running child process of a benchmark (a consumer, or a relay of a chain) whose stdout is read
+/// line by line; SIGKILLed and reaped on drop if it is still running.
 pub struct ConsumerProcess {
     child: Child,
     lines: Receiver<String>,
-    transport: Transport,
+    label: String,
 }
 
 impl ConsumerProcess {
@@ -42,7 +43,13 @@ impl ConsumerProcess {
             cmd.arg("--socket").arg(s);
         }
         scope.export_to(&mut cmd);
-        let mut child = cmd.spawn().with_context(|| format!("cannot start the consumer {}", exe.display()))?;
+        Self::spawn_command(cmd, format!("{} consumer", transport.name()))
+    }
+
+    /// Starts `cmd` with its stdout piped (stdin null, stderr inherited); `label` names it in errors.
+    pub fn spawn_command(mut cmd: Command, label: String) -> anyhow::Result<Self> {
+        cmd.stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::inherit());
+        let mut child = cmd.spawn().with_context(|| format!("cannot start the {label} ({:?})", cmd.get_program()))?;
         let stdout = child.stdout.take().context("consumer stdout was not captured")?;
         let (tx, lines) = channel();
         std::thread::Builder::new()
@@ -56,7 +63,7 @@ impl ConsumerProcess {
                 }
             })
             .context("cannot start the thread reading the consumer's output")?;
-        Ok(Self { child, lines, transport })
+        Ok(Self { child, lines, label })
     }
 
     /// Waits up to `timeout` for a stdout line starting with `prefix` and returns the rest of it.
@@ -74,21 +81,21 @@ impl ConsumerProcess {
             }
             let left = end.saturating_duration_since(Instant::now());
             if left.is_zero() {
-                bail!("the {} consumer did not say `{}` within {:?}", self.transport.name(), prefix.trim(), timeout);
+                bail!("the {} did not say `{}` within {:?}", self.label, prefix.trim(), timeout);
             }
             match self.lines.recv_timeout(left.min(Duration::from_millis(100))) {
                 Ok(line) => {
                     if let Some(rest) = line.strip_prefix(prefix) {
                         return Ok(rest.to_string());
                     }
-                    tracing::warn!(transport = self.transport.name(), "unexpected consumer output: {line}");
+                    tracing::warn!(child = self.label, "unexpected output: {line}");
                 }
                 Err(RecvTimeoutError::Timeout) => {}
                 Err(RecvTimeoutError::Disconnected) => {
                     let status = self.wait_exit(Duration::from_secs(5)).map(|s| s.to_string());
                     bail!(
-                        "the {} consumer exited before saying `{}` ({})",
-                        self.transport.name(),
+                        "the {} exited before saying `{}` ({})",
+                        self.label,
                         prefix.trim(),
                         status.unwrap_or_else(|e| format!("{e:#}"))
                     );
@@ -105,7 +112,7 @@ impl ConsumerProcess {
                 return Ok(status);
             }
             if Instant::now() >= end {
-                bail!("the {} consumer did not exit within {timeout:?}", self.transport.name());
+                bail!("the {} did not exit within {timeout:?}", self.label);
             }
             std::thread::sleep(Duration::from_millis(10));
         }

@@ -28,6 +28,7 @@ pub mod cli;
 pub mod consumer;
 pub mod content;
 pub mod cpu;
+pub mod latency;
 pub mod producer;
 pub mod report;
 
