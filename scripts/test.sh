@@ -10,6 +10,11 @@ cd "$(dirname "$0")/.."
 if ! python3 -c 'import importlib.metadata as m, sys; sys.exit(m.version("iceoryx2") != "0.10.0")' >/dev/null 2>&1; then
     python3 -m pip install --quiet iceoryx2==0.10.0
 fi
+# Python test dependency: tests/tests/record_replay.rs reads the recorder's MCAP file with Python's
+# `mcap` reader (the one Foxglove's tooling uses). Installed only when missing.
+if ! python3 -c 'import mcap.reader' >/dev/null 2>&1; then
+    python3 -m pip install --quiet mcap
+fi
 # Debian test dependency: tests/tests/octree_tools.rs runs OctoMap's convert_octree and
 # compare_octrees (package octomap-tools) on the .bt files of the octree crate. Installed only when
 # missing (as root, or through sudo); if that is impossible the test fails naming the package.

@@ -73,6 +73,8 @@ pub const KINDS: &[(&str, Kind)] = &[
             pipeline_args: true,
         },
     ),
+    ("recorder", Kind { binary: Some("recorder"), check: check::<recorder::RecorderSettings>, pipeline_args: true }),
+    ("replayer", Kind { binary: Some("replayer"), check: check::<recorder::ReplayerSettings>, pipeline_args: true }),
     ("external", Kind { binary: None, check: check_external, pipeline_args: false }),
 ];
 

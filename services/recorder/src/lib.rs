@@ -1,0 +1,15 @@
+//! Record and replay (issue #8): the `recorder` process writes every service of a run to an MCAP
+//! file (one channel per service, one schema per wire type, the exact header and payload bytes
+//! of every message), and the `replayer` process publishes a recording back into the pipeline
+//! in the original publish order, so that one stage can be rerun in isolation on recorded
+//! inputs. [`topics`] is the table of recordable services with their wire types, [`record`] the
+//! recorder's settings and MCAP sink, [`replay`] the replayer's settings, file checks and order.
+//! The binaries (`src/bin/`) are the wiring around them.
+
+pub mod record;
+pub mod replay;
+pub mod topics;
+
+pub use record::{Compression, McapSink, RecorderSettings, SinkOptions, SinkReport};
+pub use replay::{Replay, ReplayError, Replayed, ReplayerSettings, ScanReport, Selection, scan};
+pub use topics::{Emit, TOPICS, Tap, Topic, topic};

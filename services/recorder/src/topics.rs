@@ -1,0 +1,433 @@
+//! The services that can be recorded and replayed, with their wire types: one [`Topic`] per
+//! service of the contract (`shared_types::services::SERVICES`) except the per-process statistics.
+//!
+//! A recorded message is the exact bytes of the user header followed by the payload bytes, both
+//! `#[repr(C)]` without padding as in `docs/WIRE_FORMAT.md`: for a slice service, the elements one
+//! after another. [`Topic::check_len`] says whether a byte string can be such a message, and the
+//! [`Tap`] / [`Emit`] ports move these bytes in and out of shared memory.
+
+use std::fmt::Debug;
+
+use iceoryx2::prelude::ZeroCopySend;
+use pipeline_runtime::ports::Header;
+use pipeline_runtime::runtime::RuntimeError;
+use pipeline_runtime::{Delivery, Input, Output, Runtime};
+use shared_types::services::{self, Qos};
+use shared_types::*;
+
+/// One recordable service and its wire types.
+#[derive(Debug, Clone, Copy)]
+pub struct Topic {
+    /// iceoryx2 service name (and MCAP topic).
+    pub service: &'static str,
+    /// Layout of the user header.
+    pub header: fn() -> TypeLayout,
+    /// Layout of the payload (of one element for a slice service).
+    pub payload: fn() -> TypeLayout,
+    /// The payload is a slice `[T]`.
+    pub slice: bool,
+    /// Recorded when the recorder's `services` setting is empty.
+    pub default_recorded: bool,
+    tap: OpenTap,
+    emitter: OpenEmit,
+}
+
+/// Subscribes a [`Tap`] on a service.
+type OpenTap = fn(&mut Runtime, &'static str) -> Result<Box<dyn Tap>, RuntimeError>;
+/// Creates an [`Emit`] publisher on a service with QoS and delivery.
+type OpenEmit = fn(&mut Runtime, &'static str, &Qos, Delivery) -> Result<Box<dyn Emit>, RuntimeError>;
+
+macro_rules! fixed {
+    ($svc:expr, $t:ty, $h:ty, $default:expr) => {
+        Topic {
+            service: $svc,
+            header: TypeLayout::of::<$h>,
+            payload: TypeLayout::of::<$t>,
+            slice: false,
+            default_recorded: $default,
+            tap: fixed_tap::<$t, $h>,
+            emitter: fixed_emit::<$t, $h>,
+        }
+    };
+}
+
+macro_rules! slice {
+    ($svc:expr, $t:ty, $h:ty, $default:expr) => {
+        Topic {
+            service: $svc,
+            header: TypeLayout::of::<$h>,
+            payload: TypeLayout::of::<$t>,
+            slice: true,
+            default_recorded: $default,
+            tap: slice_tap::<$t, $h>,
+            emitter: slice_emit::<$t, $h>,
+        }
+    };
+}
+
+/// Every recordable service. Heartbeats are recordable on request but not by default (they say
+/// nothing about the data); the per-process statistics (`pipeline/stats/<process>`) are not
+/// recordable (internal bincode).
+pub const TOPICS: &[Topic] = &[
+    fixed!(services::ODOMETRY, OdometryInput, MsgHeader, true),
+    slice!(services::STEREO, StereoObservation, MsgHeader, true),
+    slice!(services::BUOY_RANGES, BuoyRange, MsgHeader, true),
+    fixed!(services::DEPTH, DepthReading, MsgHeader, true),
+    fixed!(services::HEADING, HeadingReading, MsgHeader, true),
+    slice!(services::CLOUD, CloudPoint, CloudHeader, true),
+    fixed!(services::SLAM_POSE, PoseEstimate, MsgHeader, true),
+    slice!(services::SLAM_PARTICLES, Particle, ParticleSetHeader, true),
+    slice!(services::SLAM_LANDMARKS, Landmark, LandmarkMapHeader, true),
+    fixed!(services::SLAM_DIAGNOSTICS, SlamDiagnostics, MsgHeader, true),
+    fixed!(services::BUOY_FIX, BuoyFix, MsgHeader, true),
+    fixed!(services::SYNC_PAIR, SyncedPair, MsgHeader, true),
+    fixed!(services::FUSION_POSE, FusedPose, MsgHeader, true),
+    slice!(services::FUSION_MAP, Landmark, LandmarkMapHeader, true),
+    fixed!(services::MAP_STATS, MapStats, MsgHeader, true),
+    slice!(services::MAP_VOXELS, Voxel, VoxelSetHeader, true),
+    fixed!(services::END_OF_STREAM, EndOfStream, MsgHeader, true),
+    fixed!(services::COMMAND, ControlCommand, MsgHeader, true),
+    fixed!(services::HEARTBEAT, Heartbeat, MsgHeader, false),
+];
+
+/// The topic of service `name`.
+pub fn topic(name: &str) -> Option<&'static Topic> {
+    TOPICS.iter().find(|t| t.service == name)
+}
+
+/// Why a recorded message cannot be a message of its topic.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum LenError {
+    /// Shorter than the user header.
+    #[error("{got} bytes, shorter than the {header}-byte user header")]
+    ShorterThanHeader {
+        /// Bytes in the message.
+        got: usize,
+        /// Size of the user header.
+        header: usize,
+    },
+    /// A fixed-size payload of the wrong size.
+    #[error("payload of {got} bytes, the type has {expected}")]
+    PayloadSize {
+        /// Payload bytes.
+        got: usize,
+        /// Size of the type.
+        expected: usize,
+    },
+    /// A slice payload that is not a whole number of elements.
+    #[error("slice payload of {got} bytes is not a multiple of the {element}-byte element")]
+    SliceRemainder {
+        /// Payload bytes.
+        got: usize,
+        /// Element size.
+        element: usize,
+    },
+}
+
+impl Topic {
+    /// Size of the user header in bytes.
+    pub fn header_size(&self) -> usize {
+        (self.header)().size
+    }
+
+    /// Size of the payload (of one element for a slice) in bytes.
+    pub fn payload_size(&self) -> usize {
+        (self.payload)().size
+    }
+
+    /// The pinned type name of the payload (of its element for a slice).
+    pub fn payload_type_name(&self) -> &'static str {
+        (self.payload)().type_name
+    }
+
+    /// The payload as the service contract spells it: `T` or `[T]`.
+    pub fn contract_payload(&self) -> String {
+        let rust = (self.payload)().rust_name;
+        if self.slice { format!("[{rust}]") } else { rust.to_string() }
+    }
+
+    /// Checks that `len` bytes can be one message of this topic; returns the number of slice
+    /// elements (1 for a fixed-size payload).
+    pub fn check_len(&self, len: usize) -> Result<usize, LenError> {
+        let (h, p) = (self.header_size(), self.payload_size());
+        let rest = len.checked_sub(h).ok_or(LenError::ShorterThanHeader { got: len, header: h })?;
+        if self.slice {
+            if rest % p != 0 {
+                return Err(LenError::SliceRemainder { got: rest, element: p });
+            }
+            Ok(rest / p)
+        } else if rest != p {
+            Err(LenError::PayloadSize { got: rest, expected: p })
+        } else {
+            Ok(1)
+        }
+    }
+
+    /// Subscribes to this topic with the contract's QoS.
+    pub fn tap(&self, rt: &mut Runtime) -> Result<Box<dyn Tap>, RuntimeError> {
+        (self.tap)(rt, self.service)
+    }
+
+    /// Creates a publisher on this topic with `qos` and `delivery`.
+    pub fn emitter(&self, rt: &mut Runtime, qos: &Qos, delivery: Delivery) -> Result<Box<dyn Emit>, RuntimeError> {
+        (self.emitter)(rt, self.service, qos, delivery)
+    }
+
+    /// The MCAP schema data of this topic: a JSON description of the user header and payload
+    /// layouts (every field's name, type, offset, size and meaning), as in `docs/WIRE_FORMAT.md`.
+    pub fn schema_json(&self) -> serde_json::Value {
+        fn layout(l: &TypeLayout) -> serde_json::Value {
+            serde_json::json!({
+                "type_name": l.type_name, "rust_name": l.rust_name, "size": l.size, "align": l.align,
+                "doc": l.doc.trim(),
+                "fields": l.fields.iter().map(|f| serde_json::json!({
+                    "name": f.name, "type": f.ty, "offset": f.offset, "size": f.size, "doc": f.doc.trim() }))
+                    .collect::<Vec<_>>(),
+            })
+        }
+        serde_json::json!({
+            "wire_version": WIRE_VERSION,
+            "message": "the user header's bytes followed by the payload's bytes, little-endian, #[repr(C)], no padding",
+            "user_header": layout(&(self.header)()),
+            "payload": layout(&(self.payload)()),
+            "payload_is_slice": self.slice,
+        })
+    }
+}
+
+/// The bytes of a slice of wire values, as they lie in shared memory.
+pub fn slice_bytes<T: WireType>(values: &[T]) -> &[u8] {
+    // SAFETY: WireType types are repr(C) without padding (asserted by `wire_type!`), so every byte
+    // of the slice is initialised; u8 has no alignment requirement and the length is exact.
+    unsafe { std::slice::from_raw_parts(values.as_ptr().cast::<u8>(), std::mem::size_of_val(values)) }
+}
+
+/// One received message, borrowed from shared memory.
+#[derive(Debug)]
+pub struct Received<'a> {
+    /// The publishing port (for sequence-gap counting per publisher).
+    pub publisher: u128,
+    /// The common header.
+    pub msg: MsgHeader,
+    /// The user header's bytes.
+    pub header: &'a [u8],
+    /// The payload's bytes.
+    pub payload: &'a [u8],
+}
+
+/// A subscriber that hands out received messages as bytes.
+pub trait Tap {
+    /// The service.
+    fn service(&self) -> &'static str;
+    /// Receives every queued message, calling `sink` for each; returns how many there were.
+    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> anyhow::Result<()>) -> anyhow::Result<usize>;
+}
+
+/// A publisher that sends recorded messages (header and payload bytes).
+pub trait Emit {
+    /// The service.
+    fn service(&self) -> &'static str;
+    /// Sends one recorded message (already checked with [`Topic::check_len`]): the header's
+    /// `seq`, `origin_ns` and `publish_ns` are stamped anew by the publishing runtime, everything
+    /// else is sent bit for bit. Returns (subscribers reached, subscribers registered).
+    fn emit(&mut self, data: &[u8]) -> anyhow::Result<(usize, usize)>;
+    /// Wakes the subscribers so that they attach before the first message.
+    fn nudge(&self) -> anyhow::Result<()>;
+}
+
+struct FixedTap<T: Debug + ZeroCopySend + 'static, H: Header> {
+    service: &'static str,
+    input: Input<T, H>,
+}
+
+fn fixed_tap<T: WireType + Debug + ZeroCopySend, H: Header + WireType>(
+    rt: &mut Runtime,
+    service: &'static str,
+) -> Result<Box<dyn Tap>, RuntimeError> {
+    Ok(Box::new(FixedTap { service, input: rt.input::<T, H>(service)? }))
+}
+
+impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Tap for FixedTap<T, H> {
+    fn service(&self) -> &'static str {
+        self.service
+    }
+
+    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> anyhow::Result<()>) -> anyhow::Result<usize> {
+        let mut n = 0;
+        while let Some(s) = self.input.receive()? {
+            n += 1;
+            sink(Received {
+                publisher: s.origin().value(),
+                msg: *s.user_header().msg(),
+                header: s.user_header().as_bytes(),
+                payload: s.payload().as_bytes(),
+            })?;
+        }
+        Ok(n)
+    }
+}
+
+struct SliceTap<T: Debug + ZeroCopySend + 'static, H: Header> {
+    service: &'static str,
+    input: Input<[T], H>,
+}
+
+fn slice_tap<T: WireType + Debug + ZeroCopySend, H: Header + WireType>(
+    rt: &mut Runtime,
+    service: &'static str,
+) -> Result<Box<dyn Tap>, RuntimeError> {
+    Ok(Box::new(SliceTap { service, input: rt.input::<[T], H>(service)? }))
+}
+
+impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Tap for SliceTap<T, H> {
+    fn service(&self) -> &'static str {
+        self.service
+    }
+
+    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> anyhow::Result<()>) -> anyhow::Result<usize> {
+        let mut n = 0;
+        while let Some(s) = self.input.receive()? {
+            n += 1;
+            sink(Received {
+                publisher: s.origin().value(),
+                msg: *s.user_header().msg(),
+                header: s.user_header().as_bytes(),
+                payload: slice_bytes(s.payload()),
+            })?;
+        }
+        Ok(n)
+    }
+}
+
+/// Splits a checked message into its header (with the transport fields cleared, so that the
+/// publishing runtime stamps them) and its payload bytes.
+fn split_header<'a, H: Header + WireType>(service: &str, data: &'a [u8]) -> anyhow::Result<(H, &'a [u8])> {
+    let hs = size_of::<H>();
+    let mut header = data
+        .get(..hs)
+        .and_then(H::from_bytes)
+        .ok_or_else(|| anyhow::anyhow!("`{service}`: message of {} bytes has no whole user header", data.len()))?;
+    let m = header.msg_mut();
+    m.seq = 0;
+    m.origin_ns = 0;
+    m.publish_ns = 0;
+    Ok((header, &data[hs..]))
+}
+
+struct FixedEmit<T: WireType + Debug + ZeroCopySend, H: Header> {
+    service: &'static str,
+    output: Output<T, H>,
+}
+
+fn fixed_emit<T: WireType + Debug + ZeroCopySend, H: Header + WireType>(
+    rt: &mut Runtime,
+    service: &'static str,
+    qos: &Qos,
+    delivery: Delivery,
+) -> Result<Box<dyn Emit>, RuntimeError> {
+    Ok(Box::new(FixedEmit { service, output: rt.output_with_qos::<T, H>(service, qos, delivery)? }))
+}
+
+impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for FixedEmit<T, H> {
+    fn service(&self) -> &'static str {
+        self.service
+    }
+
+    fn emit(&mut self, data: &[u8]) -> anyhow::Result<(usize, usize)> {
+        let (header, payload) = split_header::<H>(self.service, data)?;
+        let value = T::from_bytes(payload).ok_or_else(|| {
+            anyhow::anyhow!("`{}`: payload of {} bytes, the type has {}", self.service, payload.len(), size_of::<T>())
+        })?;
+        let registered = self.output.subscribers();
+        let reached = self.output.send_value(header, value)?;
+        Ok((reached, registered))
+    }
+
+    fn nudge(&self) -> anyhow::Result<()> {
+        Ok(self.output.nudge()?)
+    }
+}
+
+struct SliceEmit<T: WireType + Debug + ZeroCopySend, H: Header> {
+    service: &'static str,
+    output: Output<[T], H>,
+}
+
+fn slice_emit<T: WireType + Debug + ZeroCopySend, H: Header + WireType>(
+    rt: &mut Runtime,
+    service: &'static str,
+    qos: &Qos,
+    delivery: Delivery,
+) -> Result<Box<dyn Emit>, RuntimeError> {
+    let output = rt.output_slice_with_qos::<T, H>(service, qos, qos.initial_slice_len.max(1), delivery)?;
+    Ok(Box::new(SliceEmit { service, output }))
+}
+
+impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for SliceEmit<T, H> {
+    fn service(&self) -> &'static str {
+        self.service
+    }
+
+    fn emit(&mut self, data: &[u8]) -> anyhow::Result<(usize, usize)> {
+        let (header, payload) = split_header::<H>(self.service, data)?;
+        let size = size_of::<T>();
+        if payload.len() % size != 0 {
+            anyhow::bail!("`{}`: slice payload of {} bytes is not a multiple of {size}", self.service, payload.len());
+        }
+        let mut sample = self
+            .output
+            .loan_slice_uninit(payload.len() / size)?
+            .write_from_fn(|i| T::from_bytes(&payload[i * size..(i + 1) * size]).unwrap_or_else(T::zeroed));
+        *sample.user_header_mut() = header;
+        let registered = self.output.subscribers();
+        let reached = self.output.send(sample)?;
+        Ok((reached, registered))
+    }
+
+    fn nudge(&self) -> anyhow::Result<()> {
+        Ok(self.output.nudge()?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_service_of_the_contract_but_the_statistics_is_a_topic_with_the_contract_types() {
+        for spec in services::SERVICES {
+            if spec.name.starts_with(services::STATS_PREFIX) {
+                assert!(topic(spec.name).is_none());
+                continue;
+            }
+            let t = topic(spec.name).unwrap_or_else(|| panic!("{} has no topic", spec.name));
+            assert_eq!(t.contract_payload(), spec.payload, "{}", spec.name);
+            assert_eq!((t.header)().rust_name, spec.user_header, "{}", spec.name);
+        }
+        assert_eq!(TOPICS.len(), services::SERVICES.len() - 1);
+    }
+
+    #[test]
+    fn message_lengths_are_checked_against_header_and_payload_sizes() {
+        let odo = topic(services::ODOMETRY).unwrap();
+        assert_eq!(odo.check_len(32 + 168), Ok(1));
+        assert_eq!(odo.check_len(32 + 167), Err(LenError::PayloadSize { got: 167, expected: 168 }));
+        assert_eq!(odo.check_len(10), Err(LenError::ShorterThanHeader { got: 10, header: 32 }));
+        let cloud = topic(services::CLOUD).unwrap();
+        assert_eq!(cloud.check_len(96 + 12 * 5), Ok(5));
+        assert_eq!(cloud.check_len(96), Ok(0));
+        assert_eq!(cloud.check_len(96 + 13), Err(LenError::SliceRemainder { got: 13, element: 12 }));
+    }
+
+    #[test]
+    fn slice_bytes_are_the_elements_back_to_back() {
+        let r = [
+            BuoyRange { buoy_id: 1, _reserved: 0, range_m: 2.0, sigma_m: 0.5 },
+            BuoyRange { buoy_id: 7, _reserved: 0, range_m: 3.0, sigma_m: 0.25 },
+        ];
+        let b = slice_bytes(&r);
+        assert_eq!(b.len(), 48);
+        assert_eq!(&b[..24], r[0].as_bytes());
+        assert_eq!(BuoyRange::from_bytes(&b[24..]), Some(r[1]));
+    }
+}

@@ -1,0 +1,195 @@
+//! Record and replay: a short simulated mission through ingest → buoy_ekf with the recorder
+//! writing every service to MCAP (read back by the mcap crate and by Python's `mcap` reader,
+//! counts equal to what the stages report), then the buoy EKF rerun twice in isolation from the
+//! recording: byte-identical `buoy_ekf.tum` and fixes in both replays and in the original run.
+//! Needs `python3` with the `mcap` package (scripts/test.sh installs it).
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Duration;
+
+use pipeline_tests::TestRun;
+
+const LONG: Duration = Duration::from_secs(240);
+
+const BUOY: &str = r#"
+[processes.buoy]
+kind = "buoy_ekf"
+after = ["rec"]
+[processes.buoy.settings.ekf]
+mode = "spatial"
+buoys = [
+    { id = 0, position_m = [-10.0, -10.0, 0.0] },
+    { id = 1, position_m = [130.0, -10.0, 0.0] },
+    { id = 2, position_m = [130.0, 90.0, 0.0] },
+    { id = 3, position_m = [-10.0, 90.0, 0.0] },
+    { id = 4, position_m = [60.0, 100.0, 0.0] },
+]
+"#;
+
+/// The buoy fixes of a recording: (stamp, payload bytes).
+type Fixes = Vec<(u64, Vec<u8>)>;
+
+/// Messages per topic and the buoy fixes of an MCAP file, by the mcap crate.
+fn read_mcap(path: &Path) -> (BTreeMap<String, u64>, Fixes) {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let summary = mcap::Summary::read(&bytes).expect("readable summary").expect("a summary section");
+    assert!(!summary.chunk_indexes.is_empty(), "chunk indexes");
+    assert!(!summary.metadata_indexes.is_empty(), "metadata");
+    let mut counts = BTreeMap::new();
+    let mut fixes = vec![];
+    for m in mcap::MessageStream::new(&bytes).expect("MCAP") {
+        let m = m.expect("message");
+        *counts.entry(m.channel.topic.clone()).or_default() += 1;
+        if m.channel.topic == "pipeline/buoy/fix" {
+            let schema = m.channel.schema.as_ref().expect("schema");
+            assert_eq!(schema.name, "slam_pipeline::v1::BuoyFix");
+            assert_eq!(m.data.len(), 32 + 128, "MsgHeader + BuoyFix");
+            let stamp = u64::from_le_bytes(m.data[..8].try_into().unwrap());
+            let publish = u64::from_le_bytes(m.data[24..32].try_into().unwrap());
+            assert_eq!(m.publish_time, publish, "publish_time is the header's publish_ns");
+            assert!(m.log_time >= publish, "received after it was published");
+            fixes.push((stamp, m.data[32..].to_vec()));
+        }
+    }
+    let stats = summary.stats.expect("statistics");
+    assert_eq!(stats.message_count, counts.values().sum::<u64>());
+    (counts, fixes)
+}
+
+/// Messages per topic by Python's `mcap` reader.
+fn read_mcap_python(path: &Path) -> BTreeMap<String, u64> {
+    let script = r#"
+import collections, json, sys
+from mcap.reader import make_reader
+counts = collections.Counter()
+with open(sys.argv[1], "rb") as f:
+    reader = make_reader(f)
+    summary = reader.get_summary()
+    assert summary is not None and summary.chunk_indexes, "no summary / chunk indexes"
+    for schema, channel, message in reader.iter_messages():
+        counts[channel.topic] += 1
+print(json.dumps(counts))
+"#;
+    let out = std::process::Command::new("python3")
+        .args(["-c", script])
+        .arg(path)
+        .output()
+        .expect("python3 is needed for this test");
+    assert!(
+        out.status.success(),
+        "Python's mcap reader failed (install it with `python3 -m pip install mcap`, as scripts/test.sh does): {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).expect("JSON counts")
+}
+
+fn replay(tag: &str, recording: &Path) -> (TestRun, serde_json::Value) {
+    let mut run = TestRun::new(tag);
+    let procs = format!(
+        r#"
+[processes.rec]
+kind = "recorder"
+[processes.rec.settings]
+services = ["pipeline/buoy/fix"]
+end_after = ["buoy"]
+send_end_of_stream = true
+{BUOY}
+[processes.replay]
+kind = "replayer"
+after = ["buoy", "rec"]
+restart = "never"
+[processes.replay.settings]
+file = "{}"
+topics = ["pipeline/sensors/odometry", "pipeline/sensors/buoy_ranges", "pipeline/sensors/depth",
+          "pipeline/control/end_of_stream"]
+"#,
+        recording.display()
+    );
+    let s = run.run_to_end("end = \"end_of_stream\"\nend_of_stream_from = [\"rec\"]\nduration_s = 200", &procs, LONG);
+    (run, s)
+}
+
+#[test]
+fn a_recorded_run_replays_into_the_buoy_ekf_with_identical_outputs() {
+    let mut orig = TestRun::new("recorig");
+    let procs = format!(
+        r#"
+[processes.rec]
+kind = "recorder"
+[processes.rec.settings]
+end_after = ["ingest", "buoy"]
+send_end_of_stream = true
+exclude = ["pipeline/sensors/cloud", "pipeline/map/voxels"]
+{BUOY}
+[processes.ingest]
+kind = "ingest"
+after = ["buoy", "rec"]
+restart = "never"
+[processes.ingest.settings]
+source = "sim"
+real_time_factor = 0.0
+[processes.ingest.settings.sim.mission]
+legs = 1
+leg_length_m = 40.0
+[processes.ingest.settings.sim.sensors.depth_camera]
+rate_hz = 0.0
+"#
+    );
+    let s = orig.run_to_end("end = \"end_of_stream\"\nend_of_stream_from = [\"rec\"]\nduration_s = 200", &procs, LONG);
+    let rec = &s["recorder"];
+    eprintln!("original run: recorder {rec:#}\ningest {:#}", s["ingest"]);
+    let file = orig.out_dir().join("recording.mcap");
+    assert_eq!(rec["file"].as_str(), Some(file.to_str().unwrap()), "{rec:#}");
+    assert_eq!(rec["ended_by"], "end of stream", "{rec:#}");
+    // Every message the stages sent is in the file, none missed.
+    let ingest = &s["ingest"]["messages"];
+    for (service, key) in [
+        ("pipeline/sensors/odometry", "odometry"),
+        ("pipeline/sensors/stereo", "stereo"),
+        ("pipeline/sensors/buoy_ranges", "buoy_ranges"),
+        ("pipeline/sensors/depth", "depth"),
+    ] {
+        assert!(ingest[key].as_u64().unwrap() > 0, "{key}");
+        assert_eq!(rec["messages"][service], ingest[key], "{service}: {rec:#}");
+    }
+    let fixes_sent = s["buoy_ekf"]["fixes"].as_u64().unwrap();
+    assert!(fixes_sent > 10, "{:#}", s["buoy_ekf"]);
+    assert_eq!(rec["messages"]["pipeline/buoy/fix"].as_u64(), Some(fixes_sent), "{rec:#}");
+    assert!(rec["messages"]["pipeline/control/end_of_stream"].as_u64().unwrap() >= 2, "ingest and buoy: {rec:#}");
+    for (service, missed) in rec["missed"].as_object().unwrap() {
+        assert_eq!(missed.as_u64(), Some(0), "{service}: {rec:#}");
+    }
+    // Readable by the mcap crate and by Python's reader, with the same counts.
+    let (counts, orig_fixes) = read_mcap(&file);
+    for (service, n) in rec["messages"].as_object().unwrap() {
+        assert_eq!(counts.get(service).copied(), n.as_u64(), "{service}: {counts:?}");
+    }
+    assert_eq!(counts.get("pipeline/buoy/fix/json").copied(), Some(fixes_sent), "JSON mirror: {counts:?}");
+    assert_eq!(read_mcap_python(&file), counts, "Python's reader and the mcap crate disagree");
+    assert_eq!(rec["file_bytes"].as_u64(), Some(std::fs::metadata(&file).unwrap().len()));
+    let orig_tum = std::fs::read(orig.out_dir().join("buoy_ekf.tum")).expect("original buoy_ekf.tum");
+    assert!(orig_tum.len() > 1000);
+
+    // Rerun the buoy EKF alone from the recording, twice.
+    let mut tums = vec![];
+    for tag in ["replaya", "replayb"] {
+        let (run, s) = replay(tag, &file);
+        let r = &s["replayer"];
+        eprintln!("{tag}: replayer {r:#}");
+        assert_eq!(r["complete"], true, "{r:#}");
+        for service in ["pipeline/sensors/odometry", "pipeline/sensors/buoy_ranges", "pipeline/sensors/depth"] {
+            assert_eq!(r["sent"][service], rec["messages"][service], "{service}: {r:#}");
+        }
+        assert_eq!(r["undelivered"], serde_json::json!({}), "{r:#}");
+        // Only ingest's end of stream is replayed: buoy and rec are part of the replay config.
+        assert_eq!(r["sent"]["pipeline/control/end_of_stream"], 1, "{r:#}");
+        assert_eq!(s["buoy_ekf"]["fixes"].as_u64(), Some(fixes_sent), "{:#}", s["buoy_ekf"]);
+        let (_, fixes) = read_mcap(&run.out_dir().join("recording.mcap"));
+        assert_eq!(fixes.len(), orig_fixes.len());
+        assert!(fixes == orig_fixes, "{tag}: the replayed buoy fixes differ from the original run's");
+        tums.push(std::fs::read(run.out_dir().join("buoy_ekf.tum")).expect("buoy_ekf.tum"));
+    }
+    assert!(tums[0] == tums[1], "two replays with the same config gave different buoy_ekf.tum");
+    assert!(tums[0] == orig_tum, "the replay's buoy_ekf.tum differs from the original run's");
+}
