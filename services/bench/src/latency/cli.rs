@@ -145,7 +145,10 @@ impl LatencyArgs {
                 (MIN_SIZE..=MAX_SIZE).contains(&s),
                 "--sizes: {s} bytes is outside {MIN_SIZE}..={MAX_SIZE} (the message index takes 16 bytes)"
             );
-            ensure!(s.is_multiple_of(4), "--sizes: {s} bytes is not a multiple of 4 (the bincode baseline sends f32 values)");
+            ensure!(
+                s.is_multiple_of(4),
+                "--sizes: {s} bytes is not a multiple of 4 (the bincode baseline sends f32 values)"
+            );
         }
         ensure!(!self.chains.is_empty(), "--chains must name at least one chain length");
         for &c in &self.chains {
