@@ -40,13 +40,14 @@ pub struct BenchResult {
 }
 
 /// Removes the scope's files when dropped (also on errors, after the children are gone).
-struct ScopeCleanup {
-    scope: IoxScope,
+pub(crate) struct ScopeCleanup {
+    /// The benchmark's iceoryx2 scope.
+    pub(crate) scope: IoxScope,
 }
 
 impl ScopeCleanup {
     /// Removes every file of the scope and checks that /dev/shm holds none any more.
-    fn finish(self) -> anyhow::Result<()> {
+    pub(crate) fn finish(self) -> anyhow::Result<()> {
         self.scope.remove_all_resources().context("removing the benchmark's iceoryx2 files")?;
         let left = self.scope.shm_files();
         ensure!(left.is_empty(), "iceoryx2 files left in /dev/shm: {left:?}");
@@ -232,8 +233,8 @@ fn measure_transport(
     }
 }
 
-/// Accepts the consumer's connection (it said READY after connecting, so this does not wait long).
-fn accept_within(listener: &UnixListener, timeout: Duration) -> anyhow::Result<UnixStream> {
+/// Accepts a child's connection (it said READY after connecting, so this does not wait long).
+pub(crate) fn accept_within(listener: &UnixListener, timeout: Duration) -> anyhow::Result<UnixStream> {
     listener.set_nonblocking(true).context("listener")?;
     let end = Instant::now() + timeout;
     loop {
@@ -245,7 +246,7 @@ fn accept_within(listener: &UnixListener, timeout: Duration) -> anyhow::Result<U
             Err(e) if e.kind() == std::io::ErrorKind::WouldBlock && Instant::now() < end => {
                 std::thread::sleep(Duration::from_millis(5));
             }
-            Err(e) => return Err(e).context("accepting the consumer's connection"),
+            Err(e) => return Err(e).context("accepting a child process's connection"),
         }
     }
 }

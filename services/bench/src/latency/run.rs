@@ -22,31 +22,12 @@ use super::wire::{
     BincodeMsg, RawHeader, fill_pattern, get_index, get_index_bytes, get_index_f32, put_index, put_index_bytes,
     put_index_f32, read_bincode, read_raw, touch_bytes, write_bincode, write_raw,
 };
+use crate::bench::{ScopeCleanup, accept_within};
 use crate::child::ConsumerProcess;
 use crate::report::Summary;
 
 /// How long a relay may take to start.
 const READY_TIMEOUT: Duration = Duration::from_secs(30);
-
-/// Removes the scope's files when dropped (also on errors, after the children are gone).
-struct ScopeCleanup {
-    scope: IoxScope,
-}
-
-impl ScopeCleanup {
-    fn finish(self) -> anyhow::Result<()> {
-        self.scope.remove_all_resources().context("removing the benchmark's iceoryx2 files")?;
-        let left = self.scope.shm_files();
-        ensure!(left.is_empty(), "iceoryx2 files left in /dev/shm: {left:?}");
-        Ok(())
-    }
-}
-
-impl Drop for ScopeCleanup {
-    fn drop(&mut self) {
-        let _ = self.scope.remove_all_resources();
-    }
-}
 
 /// One case: which transport, payload and chain.
 #[derive(Debug, Clone, Copy)]
@@ -194,24 +175,6 @@ fn run_case(
         );
     }
     Ok(r)
-}
-
-/// Accepts the last relay's connection (it said READY after connecting, so this does not wait long).
-fn accept_within(listener: &UnixListener, timeout: Duration) -> anyhow::Result<UnixStream> {
-    listener.set_nonblocking(true).context("listener")?;
-    let end = Instant::now() + timeout;
-    loop {
-        match listener.accept() {
-            Ok((stream, _)) => {
-                stream.set_nonblocking(false).context("socket")?;
-                return Ok(stream);
-            }
-            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock && Instant::now() < end => {
-                std::thread::sleep(Duration::from_millis(5));
-            }
-            Err(e) => return Err(e).context("accepting the last relay's connection"),
-        }
-    }
 }
 
 /// Reads every value of a bincode payload (`--touch`).
