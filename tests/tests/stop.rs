@@ -1,5 +1,5 @@
-//! SIGTERM in the middle of a run: every stage stops cleanly within the supervisor's stop
-//! timeout and writes its outputs so far.
+//! SIGTERM in the middle of a run: every stage stops cleanly within 2 s (less than the
+//! supervisor's stop timeout) and writes its outputs so far.
 
 use std::time::{Duration, Instant};
 
@@ -74,5 +74,8 @@ height_px = 60
     assert!(s["slam"]["frames"].as_u64().unwrap() > 0 && s["fusion"]["poses"].as_u64().unwrap() > 0, "{s:#}");
     assert!(s["octree_mapper"]["stopped_early"].as_bool().unwrap_or(false), "{s:#}");
     eprintln!("stopped in {stop_s:.2} s");
+    // Issue #8: SIGTERM mid-run stops the whole pipeline, outputs flushed, within 2 s (the stop
+    // timeout above is longer, so a slow stage shows here rather than as a SIGKILL).
+    assert!(stop_s < 2.0, "the pipeline took {stop_s:.2} s to stop (bound 2 s):\n{}", run.log());
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
 }

@@ -4,6 +4,8 @@
 //! `main.rs` is the wiring around it.
 
 use std::collections::VecDeque;
+
+pub mod journal;
 use std::time::{Duration, Instant};
 
 use buoy::{BuoyConfig, BuoyEkf, Estimate, Mode, RangeOutcome};

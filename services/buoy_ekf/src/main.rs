@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 use buoy::Mode;
+use buoy_ekf_process::journal::Journal;
 use buoy_ekf_process::{BuoyEkfSettings, BuoyState, ate_nearest, dead_reckoning, fix_pose};
 use clap::Parser;
 use nalgebra::Vector3;
@@ -85,6 +86,23 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let eos = rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?;
     let mut fixes = rt.output::<BuoyFix, MsgHeader>(BUOY_FIX)?;
     let mut st = BuoyState::new(settings.clone());
+    // A restarted instance keeps the killed one's trajectory and inputs (the filter starts over);
+    // a first instance starts empty (whatever an earlier run left in the output directory).
+    let journal_path = Journal::path(&ctx.out_dir, &ctx.name);
+    let restarted = pipeline_runtime::restart::is_restart();
+    let restored = if restarted { Journal::read(&journal_path)? } else { None };
+    let mut journal = Journal::open(&journal_path, restored.as_ref())?;
+    if let Some(r) = restored {
+        tracing::info!(
+            samples = r.trajectory.len(),
+            inputs = r.inputs.len(),
+            ignored_lines = r.ignored_lines,
+            "restarted: kept the killed instance's trajectory; the filter starts over"
+        );
+        st.trajectory = r.trajectory;
+        st.inputs = r.inputs;
+    }
+    let mut journalled = (st.trajectory.len(), st.inputs.len());
     let out_dir = ctx.out_dir.clone();
     let name = ctx.name.clone();
     let mut done = false;
@@ -109,7 +127,11 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         while let Some(s) = depth.receive()? {
             st.push_depth(s.user_header().stamp_ns, s.payload());
         }
-        for f in st.step(upstream_ended, now) {
+        let out = st.step(upstream_ended, now);
+        // Journal before publishing: a restarted instance resumes from what was journalled.
+        journal.append(&st.trajectory[journalled.0..], &st.inputs[journalled.1..])?;
+        journalled = (st.trajectory.len(), st.inputs.len());
+        for f in out {
             let e = &f.estimate;
             fixes.send_value(
                 MsgHeader { stamp_ns: f.stamp_ns, origin_ns: f.origin_ns, ..Default::default() },

@@ -4,6 +4,8 @@
 
 use std::collections::{BTreeMap, VecDeque};
 
+pub mod journal;
+
 use fastslam::eval::TrajectorySample;
 use fastslam::{FastSlam, FastSlamConfig, FrameReport, Observation};
 use geometry::ProcessInput;
@@ -195,6 +197,17 @@ impl SlamState {
         }
     }
 
+    /// Takes over what a killed instance had done: its trajectory and local map origins; the
+    /// filter goes on in a new local map numbered after the last one.
+    pub fn resume(&mut self, restored: journal::Restored) {
+        let next = restored.next_segment();
+        while self.filter.segment() < next {
+            self.filter.start_new_segment(fastslam::SegmentReason::Requested);
+        }
+        self.trajectory = restored.trajectory;
+        self.segment_origins_s = restored.segment_origins_s;
+    }
+
     /// Queues an odometry message (from the wire).
     pub fn push_odometry(&mut self, stamp_ns: u64, u: &OdometryInput) {
         let input = ProcessInput { v_mps: u.v_mps, delta_theta_rad: Vector3::from(u.delta_theta_rad), dt_s: u.dt_s };
@@ -218,8 +231,9 @@ impl SlamState {
                 break;
             }
             let frame = self.frames.pop_front().expect("front exists");
-            if self.segment_origins_s.is_empty() {
-                // The filter starts at the origin of local map 0 at its first input.
+            if !self.segment_origins_s.contains_key(&self.filter.segment()) {
+                // The filter starts at the origin of its first local map (0, or the one after
+                // the last of a killed instance) at its first input.
                 let first = self
                     .odometry
                     .front()

@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 
 use clap::Parser;
 use fastslam::{FastSlam, SegmentReason};
+use fastslam_process::journal::Journal;
 use fastslam_process::{FastSlamSettings, SlamState, frame_from_wire};
 use pipeline_runtime::{Flow, Output, ProcessArgs, Runtime};
 use shared_types::services::{
@@ -136,6 +137,22 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         diagnostics: rt.output(SLAM_DIAGNOSTICS)?,
     };
     let mut st = SlamState::new(filter, settings.motion_model);
+    // A restarted instance keeps the killed one's trajectory and goes on in a new local map; a
+    // first instance starts empty (whatever an earlier run left in the output directory).
+    let journal_path = Journal::path(&ctx.out_dir, &ctx.name);
+    let restarted = pipeline_runtime::restart::is_restart();
+    let restored = if restarted { Journal::read(&journal_path)? } else { None };
+    let mut journal = Journal::open(&journal_path, restored.as_ref())?;
+    if let Some(r) = restored {
+        tracing::info!(
+            frames = r.trajectory.len(),
+            ignored_lines = r.ignored_lines,
+            segment = r.next_segment(),
+            "restarted: kept the killed instance's trajectory; its local maps are lost, a new one starts"
+        );
+        st.resume(r);
+    }
+    let mut journalled_origins: Option<u32> = st.segment_origins_s.keys().next_back().copied();
     let mut update_ms: Vec<f64> = vec![];
     let mut last_landmarks = Instant::now();
     let landmark_every =
@@ -180,6 +197,14 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         // waiting on our queues (back-pressure) never waits for more than one frame's work.
         let t0 = Instant::now();
         let processed = st.step(upstream_ended, 1);
+        // Journal before publishing: a restarted instance resumes from what was journalled.
+        for (&seg, &t) in st.segment_origins_s.range(journalled_origins.map_or(0, |s| s + 1)..) {
+            journal.origin(seg, t)?;
+            journalled_origins = Some(seg);
+        }
+        for s in &st.trajectory[st.trajectory.len() - processed.len()..] {
+            journal.sample(s)?;
+        }
         if !st.frames.is_empty() || more_waiting {
             rt.wake_at(Instant::now());
         }

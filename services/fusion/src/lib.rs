@@ -4,6 +4,8 @@
 
 use std::path::Path;
 
+pub mod journal;
+
 use fusion::engine::{FinalResult, FixInput, Fusion, FusionConfig, PairInput, Source};
 use fusion::global_map::MapLandmark;
 use nalgebra::{Isometry3, Matrix3, Vector3};

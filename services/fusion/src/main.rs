@@ -10,6 +10,7 @@ use std::time::Duration;
 
 use clap::Parser;
 use fusion::engine::{Fusion, Source};
+use fusion_process::journal::{Entry, Journal};
 use fusion_process::{FusionSettings, RunLog, fix_from_wire, landmark_from_wire, pair_from_wire, write_outputs};
 use pipeline_runtime::{Flow, ProcessArgs, Runtime};
 use shared_types::services::{
@@ -49,6 +50,38 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let mut done = false;
     let mut statuses: std::collections::BTreeMap<u32, std::mem::Discriminant<fusion::engine::SegmentStatus>> =
         Default::default();
+    // A restarted instance replays what the killed one had taken into the new engine; a first
+    // instance starts empty (whatever an earlier run left in the output directory).
+    let journal_path = Journal::path(&ctx.out_dir, &ctx.name);
+    let restarted = pipeline_runtime::restart::is_restart();
+    let restored = if restarted { Journal::read(&journal_path)? } else { None };
+    let mut journal = Journal::open(&journal_path, restored.as_ref())?;
+    if let Some(r) = restored {
+        for e in r.entries.iter().cloned() {
+            match e {
+                Entry::Fix(f) => engine.push_fix(f).map_err(|e| anyhow::anyhow!("journalled fix: {e}"))?,
+                Entry::Heading(h) => engine.push_heading(h).map_err(|e| anyhow::anyhow!("journalled heading: {e}"))?,
+                Entry::Pair(p) => {
+                    let (t_s, buoy) = (p.t_s, p.buoy_m);
+                    if let Ok(out) = engine.push_pair(*p) {
+                        log.buoy.push((t_s, buoy));
+                        log.live.push((out.t_s, out.world_from_body));
+                        log.live_sources.add(out.source);
+                        log.segment_requests += u64::from(out.request_new_segment);
+                    }
+                }
+            }
+        }
+        for (segment, ls) in r.landmarks.iter().cloned() {
+            engine.set_landmarks(segment, ls);
+        }
+        tracing::info!(
+            inputs = r.entries.len(),
+            local_maps = r.landmarks.len(),
+            ignored_lines = r.ignored_lines,
+            "restarted: replayed the killed instance's inputs"
+        );
+    }
     tracing::info!(slam = %settings.slam_process, end_after = ?settings.end_after, "fusion ready");
     let stop = rt.run(&mut engine, Some(Duration::from_millis(200)), |rt, engine, _| {
         if done {
@@ -58,8 +91,11 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         let inputs_ended = settings.end_after.iter().all(|n| ended.contains(n));
         // Fixes and maps first, so that a pair sees every fix that arrived with it.
         while let Some(s) = fixes.receive()? {
-            if engine.push_fix(fix_from_wire(s.user_header(), s.payload())).is_err() {
+            let fix = fix_from_wire(s.user_header(), s.payload());
+            if engine.push_fix(fix).is_err() {
                 count(&mut log, "buoy fix with NaN");
+            } else {
+                journal.push(&Entry::Fix(fix));
             }
         }
         while let Some(s) = headings.receive()? {
@@ -71,6 +107,8 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             };
             if engine.push_heading(reading).is_err() {
                 count(&mut log, "heading with NaN or sigma <= 0");
+            } else {
+                journal.push(&Entry::Heading(reading));
             }
         }
         while let Some(s) = landmarks.receive()? {
@@ -79,6 +117,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             if ls.len() < s.payload().len() {
                 count(&mut log, "landmark with NaN");
             }
+            journal.landmarks(h.segment_id, &ls)?;
             engine.set_landmarks(h.segment_id, ls);
         }
         while let Some(s) = pairs.receive()? {
@@ -86,6 +125,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             let pair = pair_from_wire(&h, s.payload());
             let buoy = pair.buoy_m;
             let t_s = pair.t_s;
+            journal.push(&Entry::Pair(Box::new(pair.clone())));
             let out = match engine.push_pair(pair) {
                 Ok(o) => o,
                 Err(e) => {
@@ -96,6 +136,8 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             log.buoy.push((t_s, buoy));
             log.live.push((out.t_s, out.world_from_body));
             log.live_sources.add(out.source);
+            // Journalled before publishing: a restarted instance replays what was journalled.
+            journal.flush()?;
             if h.origin_ns > 0 {
                 let now = pipeline_runtime::clock::monotonic_ns();
                 log.stereo_to_fused_ms.push(now.saturating_sub(h.origin_ns) as f64 / 1e6);
@@ -135,6 +177,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 )?;
             }
         }
+        journal.flush()?;
         if inputs_ended {
             let result = engine.finish();
             let map = &result.global_map;

@@ -7,13 +7,17 @@
 //! service, reports progress, and ends with an end-of-stream message. This library holds the pure
 //! parts (settings, sources, conversions, pacing); `main.rs` is the wiring.
 
+pub mod progress;
 pub mod settings;
 pub mod sources;
 
 use std::time::{Duration, Instant};
 
+pub use progress::{Progress, ProgressFile};
 pub use settings::*;
 pub use sources::*;
+
+pub use pipeline_runtime::restart::{ENV_RESTARTS, is_restart};
 
 /// Maps data time to wall-clock deadlines for a real-time factor.
 #[derive(Debug, Clone, Copy)]

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 use clap::Parser;
-use ingest::{IngestSettings, Item, Pacer, SimSource, Source, SourceKind};
+use ingest::{IngestSettings, Item, Pacer, Progress, ProgressFile, SimSource, Source, SourceKind};
 use pipeline_runtime::{Delivery, Flow, Output, ProcessArgs, Runtime};
 use shared_types::convert::quat_to_xyzw;
 use shared_types::services::{self, BUOY_RANGES, CLOUD, DEPTH, HEADING, ODOMETRY, STEREO};
@@ -38,6 +38,29 @@ struct Ingest {
     empty_clouds: u64,
     first_last_stamp: Option<(u64, u64)>,
     publish_from: Instant,
+    /// Items taken from the source so far (this instance and the killed ones before it).
+    items: u64,
+    /// Items still to take without publishing: what a killed instance had published already.
+    skip: u64,
+    progress: ProgressFile,
+    /// With factor 0: how long to wait for a lost subscriber to come back.
+    resubscribe_wait: Option<Duration>,
+    /// Most subscribers seen per output (odometry, stereo, buoy ranges, depth, cloud, heading).
+    subscribers: [usize; 6],
+    /// Since when publishing waits for a lost subscriber.
+    waiting: Option<Instant>,
+}
+
+/// The output (index into `counts`) an item goes to.
+fn output_index(item: &Item) -> usize {
+    match item {
+        Item::Odometry { .. } => 0,
+        Item::Stereo { .. } => 1,
+        Item::BuoyRanges { .. } => 2,
+        Item::Depth { .. } => 3,
+        Item::Cloud { .. } => 4,
+        Item::Heading { .. } => 5,
+    }
 }
 
 fn header(stamp_ns: u64) -> MsgHeader {
@@ -48,6 +71,20 @@ impl Ingest {
     fn publish(&mut self, item: Item) -> anyhow::Result<()> {
         let stamp = item.stamp_ns();
         self.first_last_stamp = Some(self.first_last_stamp.map_or((stamp, stamp), |(a, _)| (a, stamp)));
+        self.items += 1;
+        // Recorded before the send: a kill in between loses this item, never duplicates it.
+        let (counts, empty_clouds) = (self.counts, self.empty_clouds);
+        let mut p = Progress { items: self.items, counts, empty_clouds, first_last_stamp: self.first_last_stamp };
+        match &item {
+            Item::Odometry { .. } => p.counts[0] += 1,
+            Item::Stereo { .. } => p.counts[1] += 1,
+            Item::BuoyRanges { .. } => p.counts[2] += 1,
+            Item::Depth { .. } => p.counts[3] += 1,
+            Item::Cloud { points, .. } if points.is_empty() => p.empty_clouds += 1,
+            Item::Cloud { .. } => p.counts[4] += 1,
+            Item::Heading { .. } => p.counts[5] += 1,
+        }
+        self.progress.record(&p)?;
         let o = &mut self.outputs;
         match item {
             Item::Odometry { stamp_ns, input } => {
@@ -120,17 +157,106 @@ impl Ingest {
         Ok(())
     }
 
+    fn subscribers(&self, k: usize) -> usize {
+        let o = &self.outputs;
+        match k {
+            0 => o.odometry.subscribers(),
+            1 => o.stereo.subscribers(),
+            2 => o.buoys.subscribers(),
+            3 => o.depth.subscribers(),
+            4 => o.cloud.subscribers(),
+            _ => o.heading.subscribers(),
+        }
+    }
+
+    /// With factor 0: true while output `k`'s service has fewer subscribers than it had (a consumer
+    /// died and is being restarted) and `resubscribe_wait_s` has not passed since that was seen.
+    fn wait_for_lost_subscriber(&mut self, k: usize, now: Instant) -> bool {
+        let Some(wait) = self.resubscribe_wait else { return false };
+        let n = self.subscribers(k);
+        if n >= self.subscribers[k] {
+            self.subscribers[k] = n;
+            if let Some(since) = self.waiting.take() {
+                tracing::info!(
+                    "the lost subscriber is back after {:.1} s: publishing again",
+                    (now - since).as_secs_f64()
+                );
+            }
+            return false;
+        }
+        let service = match k {
+            0 => ODOMETRY,
+            1 => STEREO,
+            2 => BUOY_RANGES,
+            3 => DEPTH,
+            4 => CLOUD,
+            _ => HEADING,
+        };
+        let since = *self.waiting.get_or_insert_with(|| {
+            tracing::info!(
+                service,
+                "{} of {} subscribers left: waiting up to {:.1} s for a restarted consumer before publishing on",
+                n,
+                self.subscribers[k],
+                wait.as_secs_f64()
+            );
+            now
+        });
+        if now - since < wait {
+            return true;
+        }
+        tracing::warn!(
+            service,
+            "the lost subscriber did not come back within {:.1} s: going on without it",
+            wait.as_secs_f64()
+        );
+        self.subscribers[k] = n;
+        self.waiting = None;
+        false
+    }
+
+    fn nudge_all(&self) -> anyhow::Result<()> {
+        let o = &self.outputs;
+        o.odometry.nudge()?;
+        o.stereo.nudge()?;
+        o.buoys.nudge()?;
+        o.depth.nudge()?;
+        o.heading.nudge()?;
+        o.cloud.nudge()?;
+        Ok(())
+    }
+
     /// Publishes every item that is due; asks to be woken for the next one.
     fn pump(&mut self, rt: &mut Runtime) -> anyhow::Result<Flow> {
+        if self.skip > 0 {
+            // A restart: take what the killed instance had published from the (deterministic)
+            // source without publishing it, in batches so that heartbeats go on meanwhile.
+            let batch_end = Instant::now() + Duration::from_millis(50);
+            while self.skip > 0 && Instant::now() < batch_end {
+                if self.source.next_item()?.is_none() {
+                    anyhow::bail!(
+                        "the source ended {} items before the point the killed instance had reached: \
+                         it is not the same source (config changed?)",
+                        self.skip
+                    );
+                }
+                self.skip -= 1;
+            }
+            if self.skip == 0 {
+                tracing::info!(
+                    items = self.items,
+                    "resumed after the {} items the killed instance had published, in {:.1} s",
+                    self.items,
+                    self.started.elapsed().as_secs_f64()
+                );
+            }
+            self.nudge_all()?;
+            rt.wake_at(Instant::now());
+            return Ok(Flow::Continue);
+        }
         if Instant::now() < self.publish_from {
             // Wake every subscriber so that it attaches to our publishers before the first message.
-            let o = &self.outputs;
-            o.odometry.nudge()?;
-            o.stereo.nudge()?;
-            o.buoys.nudge()?;
-            o.depth.nudge()?;
-            o.heading.nudge()?;
-            o.cloud.nudge()?;
+            self.nudge_all()?;
             rt.wake_at(self.publish_from.min(Instant::now() + Duration::from_millis(25)));
             return Ok(Flow::Continue);
         }
@@ -158,6 +284,10 @@ impl Ingest {
                 && due > now
             {
                 rt.wake_at(due);
+                break;
+            }
+            if self.wait_for_lost_subscriber(output_index(self.pending.as_ref().expect("filled above")), now) {
+                rt.wake_at(now + Duration::from_millis(20));
                 break;
             }
             let item = self.pending.take().expect("filled above");
@@ -199,6 +329,18 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         heading: rt.output_with_qos(HEADING, &qos(HEADING), delivery)?,
         cloud: rt.output_slice_with_qos(CLOUD, &qos(CLOUD), cloud_len, delivery)?,
     };
+    // A restarted instance resumes after what the killed one had published; a first instance
+    // starts from the beginning (whatever an earlier run left in the output directory).
+    let progress_path = ProgressFile::path(&ctx.out_dir, &ctx.name);
+    let resumed = if ingest::is_restart() { ProgressFile::read(&progress_path)? } else { None };
+    let progress = ProgressFile::create(&progress_path)?;
+    let start = resumed.unwrap_or_default();
+    if resumed.is_some() {
+        tracing::info!(items = start.items, "restarted: skipping the items the killed instance had published");
+        progress.record(&start)?;
+    } else {
+        progress.record(&Progress::default())?;
+    }
     let mut state = Ingest {
         source,
         outputs,
@@ -210,10 +352,17 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             .then(|| Duration::from_secs_f64(settings.progress_interval_s)),
         last_progress: Instant::now(),
         started: Instant::now(),
-        counts: [0; 6],
-        empty_clouds: 0,
-        first_last_stamp: None,
+        counts: start.counts,
+        empty_clouds: start.empty_clouds,
+        first_last_stamp: start.first_last_stamp,
         publish_from: Instant::now() + Duration::from_secs_f64(settings.connect_grace_s),
+        items: start.items,
+        skip: start.items,
+        progress,
+        resubscribe_wait: (settings.real_time_factor <= 0.0 && settings.resubscribe_wait_s > 0.0)
+            .then(|| Duration::from_secs_f64(settings.resubscribe_wait_s)),
+        subscribers: [0; 6],
+        waiting: None,
     };
     rt.wake_at(Instant::now());
     // After the end of stream the process stays up (its samples stay valid) until it is stopped.

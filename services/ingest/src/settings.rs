@@ -35,6 +35,11 @@ pub struct IngestSettings {
     pub real_time_factor: f64,
     /// Longest wait for a full subscriber queue in as-fast-as-possible mode, s.
     pub backpressure_max_wait_s: f64,
+    /// With factor 0: when a service loses a subscriber (a consumer died and is being restarted),
+    /// wait up to this long for it to come back before publishing more on that service, s (0 =
+    /// do not wait). Replaying as fast as possible, a restart then loses only what the dead
+    /// instance had not processed, not everything published while it restarted.
+    pub resubscribe_wait_s: f64,
     /// Period of the progress log line, s (0 = off).
     pub progress_interval_s: f64,
     /// Wait this long after creating the publishers before the first message, s, waking the
@@ -59,6 +64,7 @@ impl Default for IngestSettings {
             source: SourceKind::Sim,
             real_time_factor: 1.0,
             backpressure_max_wait_s: 1.0,
+            resubscribe_wait_s: 10.0,
             progress_interval_s: 5.0,
             connect_grace_s: 1.0,
             sim: sim::SimConfig::default(),
@@ -195,6 +201,11 @@ impl ProcessSettings for IngestSettings {
             self.backpressure_max_wait_s.is_finite() && self.backpressure_max_wait_s > 0.0,
             format!("{key}.backpressure_max_wait_s"),
             "must be > 0",
+        );
+        issues.check(
+            self.resubscribe_wait_s.is_finite() && self.resubscribe_wait_s >= 0.0,
+            format!("{key}.resubscribe_wait_s"),
+            "must be >= 0 (0 = do not wait)",
         );
         issues.check(
             self.connect_grace_s.is_finite() && self.connect_grace_s >= 0.0,

@@ -121,6 +121,9 @@ pub struct MapperSettings {
     pub obstacle_max_bhattacharyya: f64,
     /// The processes whose end of stream ends this one's input.
     pub end_after: Vec<String>,
+    /// Period of the occupancy checkpoint `<out>/state/<process>.bt` a restarted mapper starts
+    /// from, s (0 = none: a restarted mapper starts with an empty map).
+    pub checkpoint_interval_s: f64,
 }
 
 impl Default for MapperSettings {
@@ -140,6 +143,7 @@ impl Default for MapperSettings {
             nsd: NsdConfig::default(),
             obstacle_max_bhattacharyya: 1.0,
             end_after: vec!["ingest".into(), "fusion".into()],
+            checkpoint_interval_s: 10.0,
         }
     }
 }
@@ -162,6 +166,11 @@ impl ProcessSettings for MapperSettings {
             issues.check(v.is_finite() && v >= 0.0, format!("{key}.{k}"), "must be >= 0");
         }
         issues.check(self.ray_threads >= 1, format!("{key}.ray_threads"), "must be >= 1");
+        issues.check(
+            self.checkpoint_interval_s.is_finite() && self.checkpoint_interval_s >= 0.0,
+            format!("{key}.checkpoint_interval_s"),
+            "must be >= 0",
+        );
         issues.check(
             self.obstacle_max_bhattacharyya.is_finite() && self.obstacle_max_bhattacharyya >= 0.0,
             format!("{key}.obstacle_max_bhattacharyya"),
@@ -317,6 +326,46 @@ impl MapperState {
         })
     }
 
+    /// `<out_dir>/state/<process>.bt`: the occupancy checkpoint of a mapper.
+    pub fn checkpoint_path(out_dir: &std::path::Path, process: &str) -> std::path::PathBuf {
+        pipeline_runtime::restart::state_path(out_dir, process, "bt")
+    }
+
+    /// Writes the occupancy checkpoint (max-likelihood `.bt`, a temporary file renamed over it).
+    pub fn write_checkpoint(&self, path: &std::path::Path) -> anyhow::Result<()> {
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir)?;
+        }
+        let tmp = path.with_extension("bt.tmp");
+        self.tree.write_binary_file(&tmp)?;
+        std::fs::rename(&tmp, path)?;
+        Ok(())
+    }
+
+    /// Starts from a checkpoint a killed instance wrote: its occupied and free voxels at the
+    /// clamping log-odds (a `.bt` keeps the max-likelihood map only). `Ok(false)` without one.
+    /// The points per voxel behind the navigable-space layers are not in it.
+    pub fn restore_checkpoint(&mut self, path: &std::path::Path) -> anyhow::Result<bool> {
+        let file = match std::fs::File::open(path) {
+            Ok(f) => f,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(false),
+            Err(e) => return Err(anyhow::anyhow!("{}: {e}", path.display())),
+        };
+        let mut tree = OcTree::read_binary_with_model(std::io::BufReader::new(file), self.settings.sensor.model())
+            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        if (tree.resolution() - self.settings.resolution_m).abs() > 1e-9 {
+            anyhow::bail!(
+                "{}: resolution {} m, the settings say {} m",
+                path.display(),
+                tree.resolution(),
+                self.settings.resolution_m
+            );
+        }
+        tree.set_ray_threads(self.settings.ray_threads);
+        self.tree = tree;
+        Ok(true)
+    }
+
     /// The settings.
     pub fn settings(&self) -> &MapperSettings {
         &self.settings
@@ -469,6 +518,26 @@ impl MapperState {
 mod tests {
     use super::*;
     use nalgebra::UnitQuaternion;
+
+    #[test]
+    fn a_checkpoint_restores_the_occupied_and_free_voxels_and_a_wrong_resolution_is_an_error() {
+        let dir = std::env::temp_dir().join(format!("mapper-checkpoint-{}", std::process::id()));
+        let path = MapperState::checkpoint_path(&dir, "map");
+        let mut st = MapperState::new(MapperSettings::default()).expect("state");
+        assert!(!st.restore_checkpoint(&path).expect("no checkpoint is not an error"));
+        let wall: Vec<[f32; 3]> = (0..400).map(|i| [3.0, (i % 20) as f32 * 0.1, (i / 20) as f32 * 0.1]).collect();
+        st.tree.insert_point_cloud(&wall, [0.0f32, 0.5, 0.5], 10.0, false).expect("insert");
+        st.write_checkpoint(&path).expect("checkpoint");
+        let (occupied, free) = st.tree.num_occupied_free_leaves();
+        assert!(occupied > 0 && free > 0);
+        let mut restored = MapperState::new(MapperSettings::default()).expect("state");
+        assert!(restored.restore_checkpoint(&path).expect("restore"));
+        assert_eq!(restored.tree.num_occupied_free_leaves(), (occupied, free));
+        let mut coarse = MapperState::new(MapperSettings { resolution_m: 0.2, ..Default::default() }).expect("state");
+        let e = coarse.restore_checkpoint(&path).unwrap_err().to_string();
+        assert!(e.contains("map.bt") && e.contains("resolution"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     #[test]
     fn poses_are_interpolated_between_their_neighbours_and_gaps_refused() {

@@ -170,6 +170,19 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let (ctx, mut rt) = Runtime::start(args)?;
     let settings: MapperSettings = ctx.settings()?;
     let mut st = MapperState::new(settings.clone())?;
+    // A restarted instance starts from the killed one's last occupancy checkpoint; a first
+    // instance starts empty (whatever an earlier run left in the output directory).
+    let checkpoint = MapperState::checkpoint_path(&ctx.out_dir, &ctx.name);
+    let restarted = pipeline_runtime::restart::is_restart();
+    if restarted && st.restore_checkpoint(&checkpoint)? {
+        let (occupied, free) = st.tree.num_occupied_free_leaves();
+        tracing::info!(occupied, free, "restarted: the map starts from the killed instance's last checkpoint");
+    } else if !restarted && checkpoint.exists() {
+        std::fs::remove_file(&checkpoint)?;
+    }
+    let checkpoint_every =
+        (settings.checkpoint_interval_s > 0.0).then(|| Duration::from_secs_f64(settings.checkpoint_interval_s));
+    let mut last_checkpoint = Instant::now();
     let clouds = rt.input::<[CloudPoint], CloudHeader>(CLOUD)?;
     let fused = rt.input::<FusedPose, MsgHeader>(FUSION_POSE)?;
     let slam = rt.input::<PoseEstimate, MsgHeader>(SLAM_POSE)?;
@@ -246,6 +259,10 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 }
                 _ => rt.wake_at(Instant::now()),
             }
+        }
+        if checkpoint_every.is_some_and(|e| last_checkpoint.elapsed() >= e) && !inputs_ended {
+            last_checkpoint = Instant::now();
+            st.write_checkpoint(&checkpoint)?;
         }
         if stats_every.is_some_and(|e| last_stats.elapsed() >= e) {
             last_stats = Instant::now();

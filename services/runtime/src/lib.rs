@@ -8,6 +8,7 @@ pub mod config;
 pub mod iox;
 pub mod logging;
 pub mod ports;
+pub mod restart;
 pub mod runtime;
 pub mod stats;
 pub mod validate;

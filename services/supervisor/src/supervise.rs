@@ -26,6 +26,11 @@ use crate::plan::{Plan, PlannedProcess};
 /// Environment variable with the process's own name, for external processes.
 pub const ENV_PROCESS_NAME: &str = "SLAM_PIPELINE_PROCESS";
 
+/// Environment variable with the number of times the process was restarted before this instance
+/// (0 for the first): a stage that keeps state under the output directory resumes from it only
+/// when this is > 0, so a new run never picks up what an earlier run left there.
+pub use pipeline_runtime::restart::ENV_RESTARTS;
+
 const TICK: Duration = Duration::from_millis(50);
 
 /// State of one supervised process.
@@ -471,7 +476,11 @@ impl Supervisor {
         let log_format = self.plan.config.run.log_format;
         let c = &mut self.children[i];
         let mut cmd = Command::new(&c.plan.binary);
-        cmd.args(&c.plan.args).stdin(Stdio::null()).env(ENV_OUT_DIR, &out_dir).env(ENV_PROCESS_NAME, &c.plan.name);
+        cmd.args(&c.plan.args)
+            .stdin(Stdio::null())
+            .env(ENV_OUT_DIR, &out_dir)
+            .env(ENV_PROCESS_NAME, &c.plan.name)
+            .env(ENV_RESTARTS, c.restarts.to_string());
         if c.plan.args.iter().any(|a| a == "--config") {
             cmd.arg("--log-format").arg(match log_format {
                 pipeline_runtime::LogFormat::Text => "text",
