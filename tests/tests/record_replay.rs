@@ -1,7 +1,8 @@
-//! Record and replay: a short simulated mission through ingest → buoy_ekf with the recorder
-//! writing every service to MCAP (read back by the mcap crate and by Python's `mcap` reader,
-//! counts equal to what the stages report), then the buoy EKF rerun twice in isolation from the
-//! recording: byte-identical `buoy_ekf.tum` and fixes in both replays and in the original run.
+//! Record and replay: a short simulated mission through ingest → buoy_ekf and fastslam with the
+//! recorder writing every service to MCAP (read back by the mcap crate and by Python's `mcap`
+//! reader, counts equal to what the stages report), then the buoy EKF and FastSLAM each rerun twice
+//! in isolation from the recording: byte-identical `buoy_ekf.tum` and fixes, and byte-identical
+//! `slam_local.tum`, in both replays and in the original run.
 //! Needs `python3` with the `mcap` package (scripts/test.sh installs it).
 
 use std::collections::BTreeMap;
@@ -25,6 +26,14 @@ buoys = [
     { id = 3, position_m = [-10.0, 90.0, 0.0] },
     { id = 4, position_m = [60.0, 100.0, 0.0] },
 ]
+"#;
+
+const SLAM: &str = r#"
+[processes.slam]
+kind = "fastslam"
+after = ["rec"]
+[processes.slam.settings.filter]
+particles = 30
 "#;
 
 /// The buoy fixes of a recording: (stamp, payload bytes).
@@ -84,25 +93,26 @@ print(json.dumps(counts))
     serde_json::from_slice(&out.stdout).expect("JSON counts")
 }
 
-fn replay(tag: &str, recording: &Path) -> (TestRun, serde_json::Value) {
+/// Reruns `stage` (a process block named `name`) alone from `recording`, fed `topics`.
+fn replay(tag: &str, recording: &Path, stage: &str, name: &str, topics: &[&str]) -> (TestRun, serde_json::Value) {
     let mut run = TestRun::new(tag);
+    let topics = topics.iter().map(|t| format!("\"{t}\"")).collect::<Vec<_>>().join(", ");
     let procs = format!(
         r#"
 [processes.rec]
 kind = "recorder"
 [processes.rec.settings]
 services = ["pipeline/buoy/fix"]
-end_after = ["buoy"]
+end_after = ["{name}"]
 send_end_of_stream = true
-{BUOY}
+{stage}
 [processes.replay]
 kind = "replayer"
-after = ["buoy", "rec"]
+after = ["{name}", "rec"]
 restart = "never"
 [processes.replay.settings]
 file = "{}"
-topics = ["pipeline/sensors/odometry", "pipeline/sensors/buoy_ranges", "pipeline/sensors/depth",
-          "pipeline/control/end_of_stream"]
+topics = [{topics}, "pipeline/control/end_of_stream"]
 "#,
         recording.display()
     );
@@ -111,20 +121,21 @@ topics = ["pipeline/sensors/odometry", "pipeline/sensors/buoy_ranges", "pipeline
 }
 
 #[test]
-fn a_recorded_run_replays_into_the_buoy_ekf_with_identical_outputs() {
+fn a_recorded_run_reruns_the_buoy_ekf_and_fastslam_alone_with_identical_outputs() {
     let mut orig = TestRun::new("recorig");
     let procs = format!(
         r#"
 [processes.rec]
 kind = "recorder"
 [processes.rec.settings]
-end_after = ["ingest", "buoy"]
+end_after = ["ingest", "buoy", "slam"]
 send_end_of_stream = true
 exclude = ["pipeline/sensors/cloud", "pipeline/map/voxels"]
 {BUOY}
+{SLAM}
 [processes.ingest]
 kind = "ingest"
-after = ["buoy", "rec"]
+after = ["buoy", "slam", "rec"]
 restart = "never"
 [processes.ingest.settings]
 source = "sim"
@@ -156,9 +167,13 @@ rate_hz = 0.0
     let fixes_sent = s["buoy_ekf"]["fixes"].as_u64().unwrap();
     assert!(fixes_sent > 10, "{:#}", s["buoy_ekf"]);
     assert_eq!(rec["messages"]["pipeline/buoy/fix"].as_u64(), Some(fixes_sent), "{rec:#}");
-    assert!(rec["messages"]["pipeline/control/end_of_stream"].as_u64().unwrap() >= 2, "ingest and buoy: {rec:#}");
+    assert!(rec["messages"]["pipeline/control/end_of_stream"].as_u64().unwrap() >= 3, "ingest, buoy, slam: {rec:#}");
+    // Sensors (back-pressure), estimates (256-sample queues) and control lose nothing; the
+    // particle sets and diagnostics are lossy streams (newest wins) and may drop under load.
     for (service, missed) in rec["missed"].as_object().unwrap() {
-        assert_eq!(missed.as_u64(), Some(0), "{service}: {rec:#}");
+        if !["pipeline/slam/particles", "pipeline/slam/diagnostics"].contains(&service.as_str()) {
+            assert_eq!(missed.as_u64(), Some(0), "{service}: {rec:#}");
+        }
     }
     // Readable by the mcap crate and by Python's reader, with the same counts.
     let (counts, orig_fixes) = read_mcap(&file);
@@ -170,11 +185,14 @@ rate_hz = 0.0
     assert_eq!(rec["file_bytes"].as_u64(), Some(std::fs::metadata(&file).unwrap().len()));
     let orig_tum = std::fs::read(orig.out_dir().join("buoy_ekf.tum")).expect("original buoy_ekf.tum");
     assert!(orig_tum.len() > 1000);
+    let orig_slam = std::fs::read(orig.out_dir().join("slam_local.tum")).expect("original slam_local.tum");
+    assert!(orig_slam.len() > 1000);
 
     // Rerun the buoy EKF alone from the recording, twice.
     let mut tums = vec![];
     for tag in ["replaya", "replayb"] {
-        let (run, s) = replay(tag, &file);
+        let topics = ["pipeline/sensors/odometry", "pipeline/sensors/buoy_ranges", "pipeline/sensors/depth"];
+        let (run, s) = replay(tag, &file, BUOY, "buoy", &topics);
         let r = &s["replayer"];
         eprintln!("{tag}: replayer {r:#}");
         assert_eq!(r["complete"], true, "{r:#}");
@@ -182,8 +200,8 @@ rate_hz = 0.0
             assert_eq!(r["sent"][service], rec["messages"][service], "{service}: {r:#}");
         }
         assert_eq!(r["undelivered"], serde_json::json!({}), "{r:#}");
-        // Only ingest's end of stream is replayed: buoy and rec are part of the replay config.
-        assert_eq!(r["sent"]["pipeline/control/end_of_stream"], 1, "{r:#}");
+        // Only ingest's and slam's ends of stream are replayed: buoy and rec are part of the replay config.
+        assert_eq!(r["sent"]["pipeline/control/end_of_stream"], 2, "{r:#}");
         assert_eq!(s["buoy_ekf"]["fixes"].as_u64(), Some(fixes_sent), "{:#}", s["buoy_ekf"]);
         let (_, fixes) = read_mcap(&run.out_dir().join("recording.mcap"));
         assert_eq!(fixes.len(), orig_fixes.len());
@@ -192,4 +210,19 @@ rate_hz = 0.0
     }
     assert!(tums[0] == tums[1], "two replays with the same config gave different buoy_ekf.tum");
     assert!(tums[0] == orig_tum, "the replay's buoy_ekf.tum differs from the original run's");
+
+    // FastSLAM rerun alone from the recorded odometry and stereo (no fusion commands in this run),
+    // twice: the same trajectory as the original run, to the byte.
+    let mut slams = vec![];
+    for tag in ["replayc", "replayd"] {
+        let stage = SLAM.replace("after = [\"rec\"]", "");
+        let (run, s) = replay(tag, &file, &stage, "slam", &["pipeline/sensors/odometry", "pipeline/sensors/stereo"]);
+        let r = &s["replayer"];
+        assert_eq!(r["complete"], true, "{r:#}");
+        assert_eq!(r["sent"]["pipeline/sensors/stereo"], rec["messages"]["pipeline/sensors/stereo"], "{r:#}");
+        assert_eq!(r["undelivered"], serde_json::json!({}), "{r:#}");
+        slams.push(std::fs::read(run.out_dir().join("slam_local.tum")).expect("slam_local.tum"));
+    }
+    assert!(slams[0] == slams[1], "two replays with the same config gave different slam_local.tum");
+    assert!(slams[0] == orig_slam, "the replay's slam_local.tum differs from the original run's");
 }
