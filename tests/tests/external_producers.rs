@@ -92,7 +92,7 @@ fn a_wrong_layout_under_a_contract_service_name_is_refused() {
 }
 
 #[test]
-fn a_hostile_producer_crashes_neither_the_buoy_ekf_nor_the_octree_mapper() {
+fn a_hostile_producer_crashes_neither_the_buoy_ekf_nor_fastslam_nor_the_octree_mapper() {
     let mut run = TestRun::new("hostilestages");
     let procs = format!(
         r#"
@@ -113,23 +113,30 @@ kind = "octree_mapper"
 pose_source = "cloud"
 end_after = ["driver"]
 
+[processes.slam]
+kind = "fastslam"
+[processes.slam.settings.filter]
+particles = 20
+
 [processes.driver]
 kind = "external"
 binary = "{}"
-args = ["--frames", "120", "--rate-hz", "300", "--points", "500", "--hostile", "--oversized-points", "20000"]
-after = ["buoy", "map"]
+args = ["--frames", "120", "--rate-hz", "300", "--points", "500", "--hostile", "--oversized-points", "20000", "--stereo"]
+after = ["buoy", "map", "slam"]
 heartbeat = false
 restart = "never"
 "#,
         bin("external-producer").display()
     );
-    let cfg =
-        run.write_config("end = \"end_of_stream\"\nend_of_stream_from = [\"buoy\", \"map\"]\nduration_s = 60", &procs);
+    let cfg = run.write_config(
+        "end = \"end_of_stream\"\nend_of_stream_from = [\"buoy\", \"map\", \"slam\"]\nduration_s = 60",
+        &procs,
+    );
     run.start_supervisor(&cfg, &[]);
     let status = run.wait_supervisor(LONG).expect("run ends");
     assert_eq!(status.code(), Some(0), "{}", run.log());
     let s = run.summary();
-    for p in ["buoy", "map"] {
+    for p in ["buoy", "map", "slam"] {
         assert_eq!(s["processes"][p]["restarts"], 0, "{p}: {s:#}");
         assert_eq!(s["processes"][p]["last_exit"]["code"], 0, "{p}: {s:#}");
     }
@@ -144,4 +151,9 @@ restart = "never"
         + m["clouds_dropped_behind"].as_u64().unwrap()
         + m["clouds_overwritten"].as_u64().unwrap();
     assert!(clouds >= 24, "every cloud accounted for: {m:#}");
+    // FastSLAM dropped the bad observations and odometry and went on with the good frames.
+    let f = &s["slam"];
+    assert!(f["rejected_observations"].as_u64().unwrap() > 0, "{f:#}");
+    assert!(f["rejected_odometry"].as_u64().unwrap() > 0, "{f:#}");
+    assert!(f["frames"].as_u64().unwrap_or(0) >= 30, "good stereo frames processed: {f:#}");
 }

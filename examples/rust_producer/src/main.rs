@@ -3,7 +3,9 @@
 //! driver would: it opens the sensor services with the contract's QoS, writes samples in place,
 //! fills the common header, sends, notifies the event service of the same name, and ends with
 //! `EndOfStream`. `--hostile` interleaves invalid messages (NaN, zero δt, stamps going back,
-//! unknown buoy ids, empty and oversized clouds) that the pipeline must reject without harm;
+//! unknown buoy ids, empty and oversized clouds; with `--stereo` also stereo observations with a
+//! NaN point, behind the camera, a negative or an infinite variance) that the pipeline must reject
+//! without harm;
 //! `--wrong-layout` tries to publish another type under a contract service name, which iceoryx2
 //! refuses.
 //!
@@ -20,8 +22,10 @@ use clap::Parser;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::prelude::*;
-use shared_types::services::{self, BUOY_RANGES, CLOUD, END_OF_STREAM, ODOMETRY, Qos};
-use shared_types::{BuoyRange, CloudHeader, CloudPoint, EndOfStream, MsgHeader, OdometryInput, name32};
+use shared_types::services::{self, BUOY_RANGES, CLOUD, END_OF_STREAM, ODOMETRY, Qos, STEREO};
+use shared_types::{
+    BuoyRange, CloudHeader, CloudPoint, EndOfStream, MsgHeader, OdometryInput, StereoObservation, name32,
+};
 
 #[derive(Debug, Parser)]
 struct Args {
@@ -40,6 +44,9 @@ struct Args {
     /// Points of the oversized cloud sent in hostile mode.
     #[arg(long, default_value_t = 20_000)]
     oversized_points: usize,
+    /// Also publish stereo frames (every 3rd odometry message; 8 landmarks in front of the camera).
+    #[arg(long)]
+    stereo: bool,
     /// Try to publish a wrong type under the odometry service name, then exit.
     #[arg(long)]
     wrong_layout: bool,
@@ -183,6 +190,19 @@ fn run(args: &Args) -> anyhow::Result<()> {
         notifier,
         seq: 0,
     };
+    let mut stereo = if args.stereo {
+        let (svc, notifier) = open!(node, STEREO, [StereoObservation], MsgHeader);
+        let publisher = svc
+            .publisher_builder()
+            .initial_max_slice_len(64)
+            .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .max_loaned_samples(1)
+            .backpressure_strategy(BackpressureStrategy::DiscardData)
+            .create()?;
+        Some(Port { publisher, notifier, seq: 0 })
+    } else {
+        None
+    };
     let (svc, notifier) = open!(node, END_OF_STREAM, EndOfStream, MsgHeader);
     let mut eos = Port { publisher: svc.publisher_builder().create()?, notifier, seq: 0 };
 
@@ -192,12 +212,15 @@ fn run(args: &Args) -> anyhow::Result<()> {
         for n in [&odo.notifier, &buoys.notifier, &cloud.notifier] {
             n.notify()?;
         }
+        if let Some(st) = &stereo {
+            st.notifier.notify()?;
+        }
         std::thread::sleep(Duration::from_millis(25));
     }
     let period = Duration::from_secs_f64(1.0 / args.rate_hz);
     let dt = 1.0 / args.rate_hz;
     let t0 = now_ns();
-    let (mut good, mut bad) = ([0u64; 3], 0u64);
+    let (mut good, mut bad) = ([0u64; 4], 0u64);
     for k in 0..args.frames {
         if stop.load(Ordering::Relaxed) {
             break;
@@ -221,6 +244,34 @@ fn run(args: &Args) -> anyhow::Result<()> {
             let h = CloudHeader { msg: header(stamp, cloud.seq), ..Default::default() };
             cloud.send_slice(h, args.points, |i| CloudPoint { x_m: i as f32 * 0.01, y_m: 1.0, z_m: 2.0 })?;
             good[2] += 1;
+        }
+        if let Some(st) = stereo.as_mut()
+            && k % 3 == 0
+        {
+            st.send_slice(header(stamp, st.seq), 8, |i| observation(i, k))?;
+            good[3] += 1;
+            if args.hostile && k % 30 == 15 {
+                let h = header(stamp + 7, st.seq);
+                match (k / 30) % 4 {
+                    0 => st.send_slice(h, 8, |i| StereoObservation {
+                        point_cam_m: [f64::NAN, 0.0, 5.0],
+                        ..observation(i, k)
+                    })?,
+                    1 => st.send_slice(h, 8, |i| StereoObservation {
+                        point_cam_m: [0.0, 0.0, -3.0],
+                        ..observation(i, k)
+                    })?,
+                    2 => st.send_slice(h, 8, |i| StereoObservation {
+                        covariance_cam_m2: [-1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                        ..observation(i, k)
+                    })?,
+                    _ => st.send_slice(h, 8, |i| StereoObservation {
+                        covariance_cam_m2: [f64::INFINITY, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                        ..observation(i, k)
+                    })?,
+                }
+                bad += 1;
+            }
         }
         if args.hostile && k % 10 == 5 {
             match (k / 10) % 6 {
@@ -257,12 +308,26 @@ fn run(args: &Args) -> anyhow::Result<()> {
             messages_sent: sent,
         },
     )?;
-    println!("SENT good odometry={} buoy_ranges={} clouds={} bad={bad}", good[0], good[1], good[2]);
+    println!("SENT good odometry={} buoy_ranges={} clouds={} stereo={} bad={bad}", good[0], good[1], good[2], good[3]);
     // Stay up until stopped, so the pipeline can still read what we sent.
     while !stop.load(Ordering::Relaxed) {
         std::thread::sleep(Duration::from_millis(50));
     }
     Ok(())
+}
+
+/// Landmark `i` of a valid stereo frame `k`: 2-6 m in front of the camera, 1 cm² variances.
+fn observation(i: usize, k: u64) -> StereoObservation {
+    let (x, y) = ((i % 4) as f64 - 1.5, (i / 4) as f64 - 0.5);
+    StereoObservation {
+        point_cam_m: [x, y, 4.0 + (k % 7) as f64 * 0.1 - (i % 3) as f64],
+        covariance_cam_m2: [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 4e-4],
+        pixels_ul_ur_v: [0.0; 3],
+        source_id: i as u64,
+        descriptor: [i as u8; 32],
+        flags: 1,
+        _reserved: 0,
+    }
 }
 
 fn main() -> std::process::ExitCode {
