@@ -1,8 +1,8 @@
 //! Record and replay: a short simulated mission through ingest → buoy_ekf and fastslam with the
 //! recorder writing every service to MCAP (read back by the mcap crate and by Python's `mcap`
-//! reader, counts equal to what the stages report), then the buoy EKF and FastSLAM each rerun twice
-//! in isolation from the recording: byte-identical `buoy_ekf.tum` and fixes, and byte-identical
-//! `slam_local.tum`, in both replays and in the original run.
+//! reader, counts equal to what the stages report), then the buoy EKF, FastSLAM and the
+//! synchronizer each rerun twice in isolation from the recording: byte-identical `buoy_ekf.tum`
+//! and fixes, `slam_local.tum`, and synced pairs in both replays and in the original run.
 //! Needs `python3` with the `mcap` package (scripts/test.sh installs it).
 
 use std::collections::BTreeMap;
@@ -36,6 +36,12 @@ after = ["rec"]
 particles = 30
 "#;
 
+const SYNC: &str = r#"
+[processes.sync]
+kind = "synchronizer"
+after = ["rec"]
+"#;
+
 /// The buoy fixes of a recording: (stamp, payload bytes).
 type Fixes = Vec<(u64, Vec<u8>)>;
 
@@ -66,6 +72,17 @@ fn read_mcap(path: &Path) -> (BTreeMap<String, u64>, Fixes) {
     (counts, fixes)
 }
 
+/// The messages of `topic` in an MCAP file: (stamp, user header after `MsgHeader` + payload).
+fn payloads(path: &Path, topic: &str) -> Fixes {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    mcap::MessageStream::new(&bytes)
+        .expect("MCAP")
+        .map(|m| m.expect("message"))
+        .filter(|m| m.channel.topic == topic)
+        .map(|m| (u64::from_le_bytes(m.data[..8].try_into().unwrap()), m.data[32..].to_vec()))
+        .collect()
+}
+
 /// Messages per topic by Python's `mcap` reader.
 fn read_mcap_python(path: &Path) -> BTreeMap<String, u64> {
     let script = r#"
@@ -93,8 +110,14 @@ print(json.dumps(counts))
     serde_json::from_slice(&out.stdout).expect("JSON counts")
 }
 
-/// Reruns `stage` (a process block named `name`) alone from `recording`, fed `topics`.
-fn replay(tag: &str, recording: &Path, stage: &str, name: &str, topics: &[&str]) -> (TestRun, serde_json::Value) {
+/// Reruns `stage` (a process block named `name`) alone from `recording`, fed `topics`; the replay's
+/// recorder records `output`.
+fn replay(
+    tag: &str,
+    recording: &Path,
+    (stage, name, output): (&str, &str, &str),
+    topics: &[&str],
+) -> (TestRun, serde_json::Value) {
     let mut run = TestRun::new(tag);
     let topics = topics.iter().map(|t| format!("\"{t}\"")).collect::<Vec<_>>().join(", ");
     let procs = format!(
@@ -102,7 +125,7 @@ fn replay(tag: &str, recording: &Path, stage: &str, name: &str, topics: &[&str])
 [processes.rec]
 kind = "recorder"
 [processes.rec.settings]
-services = ["pipeline/buoy/fix"]
+services = ["{output}"]
 end_after = ["{name}"]
 send_end_of_stream = true
 {stage}
@@ -121,21 +144,22 @@ topics = [{topics}, "pipeline/control/end_of_stream"]
 }
 
 #[test]
-fn a_recorded_run_reruns_the_buoy_ekf_and_fastslam_alone_with_identical_outputs() {
+fn a_recorded_run_reruns_the_buoy_ekf_fastslam_and_the_synchronizer_alone_with_identical_outputs() {
     let mut orig = TestRun::new("recorig");
     let procs = format!(
         r#"
 [processes.rec]
 kind = "recorder"
 [processes.rec.settings]
-end_after = ["ingest", "buoy", "slam"]
+end_after = ["ingest", "buoy", "slam", "sync"]
 send_end_of_stream = true
 exclude = ["pipeline/sensors/cloud", "pipeline/map/voxels"]
 {BUOY}
 {SLAM}
+{SYNC}
 [processes.ingest]
 kind = "ingest"
-after = ["buoy", "slam", "rec"]
+after = ["buoy", "slam", "sync", "rec"]
 restart = "never"
 [processes.ingest.settings]
 source = "sim"
@@ -167,7 +191,10 @@ rate_hz = 0.0
     let fixes_sent = s["buoy_ekf"]["fixes"].as_u64().unwrap();
     assert!(fixes_sent > 10, "{:#}", s["buoy_ekf"]);
     assert_eq!(rec["messages"]["pipeline/buoy/fix"].as_u64(), Some(fixes_sent), "{rec:#}");
-    assert!(rec["messages"]["pipeline/control/end_of_stream"].as_u64().unwrap() >= 3, "ingest, buoy, slam: {rec:#}");
+    assert!(
+        rec["messages"]["pipeline/control/end_of_stream"].as_u64().unwrap() >= 4,
+        "ingest, buoy, slam, sync: {rec:#}"
+    );
     // Sensors (back-pressure), estimates (256-sample queues) and control lose nothing; the
     // particle sets and diagnostics are lossy streams (newest wins) and may drop under load.
     for (service, missed) in rec["missed"].as_object().unwrap() {
@@ -192,7 +219,7 @@ rate_hz = 0.0
     let mut tums = vec![];
     for tag in ["replaya", "replayb"] {
         let topics = ["pipeline/sensors/odometry", "pipeline/sensors/buoy_ranges", "pipeline/sensors/depth"];
-        let (run, s) = replay(tag, &file, BUOY, "buoy", &topics);
+        let (run, s) = replay(tag, &file, (BUOY, "buoy", "pipeline/buoy/fix"), &topics);
         let r = &s["replayer"];
         eprintln!("{tag}: replayer {r:#}");
         assert_eq!(r["complete"], true, "{r:#}");
@@ -200,8 +227,9 @@ rate_hz = 0.0
             assert_eq!(r["sent"][service], rec["messages"][service], "{service}: {r:#}");
         }
         assert_eq!(r["undelivered"], serde_json::json!({}), "{r:#}");
-        // Only ingest's and slam's ends of stream are replayed: buoy and rec are part of the replay config.
-        assert_eq!(r["sent"]["pipeline/control/end_of_stream"], 2, "{r:#}");
+        // Only ingest's, slam's and sync's ends of stream are replayed: buoy and rec are part of
+        // the replay config.
+        assert_eq!(r["sent"]["pipeline/control/end_of_stream"], 3, "{r:#}");
         assert_eq!(s["buoy_ekf"]["fixes"].as_u64(), Some(fixes_sent), "{:#}", s["buoy_ekf"]);
         let (_, fixes) = read_mcap(&run.out_dir().join("recording.mcap"));
         assert_eq!(fixes.len(), orig_fixes.len());
@@ -216,7 +244,8 @@ rate_hz = 0.0
     let mut slams = vec![];
     for tag in ["replayc", "replayd"] {
         let stage = SLAM.replace("after = [\"rec\"]", "");
-        let (run, s) = replay(tag, &file, &stage, "slam", &["pipeline/sensors/odometry", "pipeline/sensors/stereo"]);
+        let topics = ["pipeline/sensors/odometry", "pipeline/sensors/stereo"];
+        let (run, s) = replay(tag, &file, (&stage, "slam", "pipeline/slam/pose"), &topics);
         let r = &s["replayer"];
         assert_eq!(r["complete"], true, "{r:#}");
         assert_eq!(r["sent"]["pipeline/sensors/stereo"], rec["messages"]["pipeline/sensors/stereo"], "{r:#}");
@@ -225,4 +254,24 @@ rate_hz = 0.0
     }
     assert!(slams[0] == slams[1], "two replays with the same config gave different slam_local.tum");
     assert!(slams[0] == orig_slam, "the replay's slam_local.tum differs from the original run's");
+
+    // The synchronizer rerun alone from the recorded SLAM poses and buoy fixes, twice: the same
+    // pairs, and the original run's.
+    let orig_pairs = payloads(&file, "pipeline/sync/pair");
+    assert!(orig_pairs.len() > 100, "{} pairs recorded", orig_pairs.len());
+    let mut pairs = vec![];
+    for tag in ["replaye", "replayf"] {
+        let stage = SYNC.replace("after = [\"rec\"]", "");
+        let topics = ["pipeline/slam/pose", "pipeline/buoy/fix"];
+        let (run, s) = replay(tag, &file, (&stage, "sync", "pipeline/sync/pair"), &topics);
+        let r = &s["replayer"];
+        assert_eq!(r["complete"], true, "{r:#}");
+        assert_eq!(r["undelivered"], serde_json::json!({}), "{r:#}");
+        pairs.push(payloads(&run.out_dir().join("recording.mcap"), "pipeline/sync/pair"));
+    }
+    let differ = |a: &Fixes, b: &Fixes| (0..a.len().min(b.len())).filter(|&i| a[i] != b[i]).count();
+    assert_eq!(pairs[0].len(), orig_pairs.len(), "one pair per SLAM pose");
+    assert_eq!(differ(&pairs[0], &pairs[1]), 0, "two replays gave different synced pairs");
+    assert_eq!(pairs[1].len(), orig_pairs.len());
+    assert_eq!(differ(&pairs[0], &orig_pairs), 0, "the replay's synced pairs differ from the original run's");
 }

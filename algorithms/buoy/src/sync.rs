@@ -20,10 +20,12 @@
 //! # Query rules ([`Synchronizer::try_sync`])
 //! - A fix within `duplicate_tolerance_s` of t_k: that fix, exactly.
 //! - Fixes on both sides of t_k, the two adjacent ones at most `max_gap_s` apart: interpolated.
-//!   Of the two candidate triples (two before + one after, one before + two after) the one
-//!   spanning less time is used (the quadratic stays local), ties to two before; a triple whose
-//!   consecutive fixes are more than `max_gap_s` apart is not used. Without a usable triple, the
-//!   two adjacent fixes interpolate linearly (flag `linear`).
+//!   The triple of two fixes before and one after is used; where it does not exist or spans a
+//!   gap (consecutive fixes more than `max_gap_s` apart), one before and two after, waiting (as
+//!   below) for the second fix after t_k if it has not arrived; without a usable triple, the two
+//!   adjacent fixes interpolate linearly (flag `linear`). So the result depends only on the fixes,
+//!   not on which of them had arrived when t_k was asked for (a replay gives the same pairs) and,
+//!   in steady state, on no fix beyond the first after t_k (no added latency).
 //! - The adjacent fixes are more than `max_gap_s` apart: no interpolation across the gap; the
 //!   nearer fix is extrapolated (flags `gap` and `extrapolated`).
 //! - No fix after t_k yet: [`SyncDecision::Wait`] until t_k + `max_latency_s` (on the caller's
@@ -405,18 +407,15 @@ impl Synchronizer {
         }
         let gap_free =
             |i: usize, j: usize, k: usize| f[j].t_s - f[i].t_s <= c.max_gap_s && f[k].t_s - f[j].t_s <= c.max_gap_s;
-        let mut triples: Vec<[usize; 3]> = Vec::new();
-        if a >= 1 && gap_free(a - 1, a, b) {
-            triples.push([a - 1, a, b]);
-        }
-        if b + 1 < f.len() && gap_free(a, b, b + 1) {
-            triples.push([a, b, b + 1]);
-        }
-        // Stable sort: ties keep "two before" first.
-        triples.sort_by(|x, y| (f[x[2]].t_s - f[x[0]].t_s).total_cmp(&(f[y[2]].t_s - f[y[0]].t_s)));
-        let used: Vec<Fix> = match triples.first() {
-            Some(&[i, j, k]) => vec![f[i], f[j], f[k]],
-            None => vec![f[a], f[b]],
+        let used: Vec<Fix> = if a >= 1 && gap_free(a - 1, a, b) {
+            vec![f[a - 1], f[a], f[b]]
+        } else if b + 1 < f.len() {
+            if gap_free(a, b, b + 1) { vec![f[a], f[b], f[b + 1]] } else { vec![f[a], f[b]] }
+        } else if waiting {
+            // One before + two after is the only triple: wait for its second fix after t_k.
+            return Ok(SyncDecision::Wait { until_s: t_s + c.max_latency_s });
+        } else {
+            vec![f[a], f[b]]
         };
         let Interpolation { position_m, covariance_m2, .. } = interpolate(t_s, &used)?;
         Ok(SyncDecision::Ready(SyncResult {
@@ -545,7 +544,7 @@ mod tests {
     }
 
     #[test]
-    fn out_of_order_fixes_are_sorted_and_interpolation_uses_the_tighter_triple() {
+    fn out_of_order_fixes_are_sorted_and_interpolation_uses_two_fixes_before_and_one_after() {
         let mut s = sync_with(&[fix(0.0, 0, 0.0), fix(2.0, 2, 2.0), fix(1.0, 1, 1.0), fix(5.0, 3, 5.0)]);
         assert_eq!(s.fixes().map(|f| f.t_s).collect::<Vec<_>>(), [0.0, 1.0, 2.0, 5.0]);
         assert_eq!(s.counters().out_of_order, 1);
@@ -554,12 +553,18 @@ mod tests {
         assert_eq!((r.fixes_used, r.flags), (3, SyncFlags { interpolated: true, ..SyncFlags::default() }));
         assert!((r.position_m.x - 1.5).abs() < 1e-12);
         assert_eq!(r.newest_fix_s, 2.0);
+        // At 4.9 (2, 5, ...) would span less than (1, 2, 5), but two before + one after is used
+        // whatever else has arrived, so the result does not depend on arrival timing.
+        s.insert(fix(5.2, 4, 5.2)).unwrap();
+        let SyncDecision::Ready(r) = s.try_sync(4.9, 4.9).unwrap() else { panic!() };
+        assert_eq!((r.fixes_used, r.newest_fix_s), (3, 5.0));
         // Between the first two fixes only one triple exists (0, 1, 2).
         let SyncDecision::Ready(r) = s.try_sync(0.5, 9.0).unwrap() else { panic!() };
         assert_eq!(r.fixes_used, 3);
-        // With two fixes only: linear.
+        // With two fixes only: wait for a second fix after t, then linear.
         s = sync_with(&[fix(0.0, 0, 0.0), fix(1.0, 1, 1.0)]);
-        let SyncDecision::Ready(r) = s.try_sync(0.25, 0.25).unwrap() else { panic!() };
+        assert!(matches!(s.try_sync(0.25, 0.25).unwrap(), SyncDecision::Wait { .. }));
+        let SyncDecision::Ready(r) = s.try_sync(0.25, 9.0).unwrap() else { panic!() };
         assert!(r.flags.linear && r.flags.interpolated && r.fixes_used == 2);
         assert_eq!(r.flags.bits(), 2 | 8);
         // Covariance of the linear case: (0.75² + 0.25²)·0.01.
@@ -587,8 +592,10 @@ mod tests {
         // Nearer the later fix: extrapolated backwards from it.
         let SyncDecision::Extrapolated(r) = s.try_sync(9.0, 9.0).unwrap() else { panic!() };
         assert_eq!(r.newest_fix_s, 10.0);
-        // At 10.5 the triple (1, 10, 11) would span the gap and there is no fix after 11: linear.
-        let SyncDecision::Ready(r) = s.try_sync(10.5, 10.5).unwrap() else { panic!() };
+        // At 10.5 the triple (1, 10, 11) would span the gap and there is no fix after 11: it waits
+        // for one, then (none came) linear.
+        assert!(matches!(s.try_sync(10.5, 10.5).unwrap(), SyncDecision::Wait { .. }));
+        let SyncDecision::Ready(r) = s.try_sync(10.5, 12.0).unwrap() else { panic!() };
         assert!(r.flags.linear && r.fixes_used == 2, "{r:?}");
         // Too far into the gap.
         let s = sync_with(&[fix(0.0, 0, 0.0), fix(20.0, 1, 1.0)]);
