@@ -239,3 +239,34 @@ fn status_shows_a_running_pipeline_and_then_that_it_ended() {
     assert_eq!(out.status.code(), Some(1), "{text}");
     assert!(text.contains(": ended"), "{text}");
 }
+
+#[test]
+fn a_closed_stdout_and_stderr_neither_kill_the_supervisor_nor_leave_shared_memory() {
+    // As in `supervisor ... 2>&1 | head -3`: the reader of the log goes away at once. A failed log
+    // write used to panic the supervisor (tracing-subscriber reported it with `eprintln!`), which
+    // left the run's shared memory behind.
+    let mut run = TestRun::new("closedpipe");
+    let procs = PAIR.replace("rate_hz = 50.0", "rate_hz = 100.0\nframes = 30");
+    let cfg = run.write_config("end = \"end_of_stream\"\nend_of_stream_from = [\"consumer\"]\nduration_s = 60", &procs);
+    let mut cmd = std::process::Command::new(pipeline_tests::bin("supervisor"));
+    cmd.arg("--config")
+        .arg(&cfg)
+        .env("RUST_LOG", "info")
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped());
+    let child = run.spawn(&mut cmd);
+    drop(child.stdout.take());
+    drop(child.stderr.take());
+    let end = std::time::Instant::now() + LONG;
+    let status = loop {
+        if let Some(s) = child.try_wait().expect("try_wait") {
+            break s;
+        }
+        assert!(std::time::Instant::now() < end, "the supervisor did not end");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(status.code(), Some(0), "exit status {status}");
+    assert_eq!(run.summary()["run"]["end_reason"], "end_of_stream");
+    assert!(run.leftovers().is_empty(), "left behind: {:?}", run.leftovers());
+}

@@ -14,7 +14,14 @@ pub fn init(name: &str, format: LogFormat) -> Option<tracing::span::EnteredSpan>
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
     iceoryx2::prelude::set_log_level(iceoryx2::prelude::LogLevel::Warn);
     let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
-    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi);
+    // A closed stderr (output piped into `head`, a pager that quit) must not kill the process: by
+    // default tracing-subscriber reports a failed write with `eprintln!`, which panics on a broken
+    // pipe, and a supervisor that dies that way leaves its run's shared memory behind.
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(ansi)
+        .log_internal_errors(false);
     let result = match format {
         LogFormat::Text => builder.with_target(false).fmt_fields(NamedFields(name.to_string())).try_init(),
         LogFormat::Json => builder.json().with_current_span(true).with_span_list(false).try_init(),

@@ -9,6 +9,7 @@ pub mod report;
 pub mod status;
 pub mod supervise;
 
+use std::io::Write as _;
 use std::path::PathBuf;
 
 use anyhow::Context as _;
@@ -156,7 +157,10 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
     }
     report::write(&out_dir, &outcome.summary)
         .with_context(|| format!("writing {}", out_dir.join("summary.json").display()))?;
-    print!("{}", report::render(&outcome.summary));
-    println!("outputs in {}", out_dir.display());
+    // The report goes to stdout; a closed stdout (piped into `head`) must not change the exit code.
+    let mut out = std::io::stdout().lock();
+    let _ = write!(out, "{}", report::render(&outcome.summary))
+        .and_then(|()| writeln!(out, "outputs in {}", out_dir.display()))
+        .and_then(|()| out.flush());
     Ok(outcome.exit_code)
 }
