@@ -418,7 +418,7 @@ fn run(n: usize, m: usize, field: &[(Vector3<f64>, [u8; 32])], opt: &Options) ->
                         }
                     };
                     let z = ekf::predict_measurement(&truth, p) + noise;
-                    Observation { z_m: z, Rz: rz, descriptor: Some(d) }
+                    Observation { z_m: z, Rz: rz, descriptor: Some(d), track_id: None }
                 })
                 .collect();
             if k >= opt.warmup {

@@ -25,6 +25,9 @@ pub struct Observation {
     pub Rz: Matrix3<f64>,
     /// Descriptor, if the source provides one.
     pub descriptor: Option<[u8; 32]>,
+    /// The front end's feature track id, if the source provides one: the same id in two frames
+    /// is the same landmark (association by attribute, [3D] §3.1).
+    pub track_id: Option<u64>,
 }
 
 impl Observation {
@@ -45,7 +48,12 @@ impl Observation {
         if Cholesky::new(Rz).is_none() {
             return Err(FilterError::NotPositiveDefinite("observation covariance"));
         }
-        Ok(Self { z_m: body_from_camera.transform_point(&(*point_cam_m).into()).coords, Rz, descriptor })
+        Ok(Self {
+            z_m: body_from_camera.transform_point(&(*point_cam_m).into()).coords,
+            Rz,
+            descriptor,
+            track_id: None,
+        })
     }
 }
 
@@ -103,6 +111,12 @@ pub struct FrameReport {
     pub new_segment: Option<SegmentReason>,
     /// Association candidates (landmarks looked up in each particle's map) per observation.
     pub candidates_per_observation: f64,
+    /// Attribute (track id) matches left out because they failed the χ² gate (best particle).
+    pub rejected: usize,
+    /// Mean normalised innovation squared νᵀS⁻¹ν of the landmark updates of confirmed
+    /// landmarks (best particle; ≈ 3 when consistent, a little less under the gate); NaN
+    /// without updates.
+    pub mean_nis: f64,
 }
 
 #[derive(Clone)]
@@ -120,6 +134,9 @@ struct ParticleFrame {
     matched: usize,
     new: usize,
     ambiguous: usize,
+    rejected: usize,
+    /// Σ of the normalised innovation squared of the matched confirmed landmarks.
+    nis_sum: f64,
     created: Vec<(u32, Vector3<f64>)>,
     associations: Vec<Option<u32>>,
 }
@@ -196,6 +213,8 @@ pub struct FastSlam {
     frame: u32,
     segment: u32,
     grid: Grid,
+    /// Landmark of each feature track (observations with a track id).
+    tracks: HashMap<u64, u32>,
     /// Pose covariance accumulated by the motion since the last frame (body-frame error).
     motion_cov: Matrix6<f64>,
     weak_frames: u32,
@@ -262,6 +281,7 @@ impl FastSlam {
             frame: 0,
             segment: 0,
             grid: Grid { cell_m: cfg.association.search_radius_m, cells: HashMap::new() },
+            tracks: HashMap::new(),
             motion_cov: Matrix6::zeros(),
             weak_frames: 0,
             segment_frames: 0,
@@ -383,6 +403,53 @@ impl FastSlam {
         Ok(())
     }
 
+    /// Prediction with a relative motion measured by a front end (e.g. stereo registration):
+    /// each particle moves by `delta` (`prev_body_from_cur_body`) perturbed on the right by a
+    /// sample of `covariance` (over (δt, δθ) in the new body frame, m² and rad²), plus the
+    /// additive process noise ω over `dt_s`. A covariance that is not positive semi-definite or
+    /// a non-finite motion is an error and changes nothing.
+    pub fn predict_relative(
+        &mut self,
+        delta: &Isometry3<f64>,
+        covariance: &Matrix6<f64>,
+        dt_s: f64,
+    ) -> Result<(), FilterError> {
+        let finite = delta.translation.vector.iter().all(|v| v.is_finite())
+            && delta.rotation.coords.iter().all(|v| v.is_finite())
+            && covariance.iter().all(|v| v.is_finite())
+            && dt_s.is_finite()
+            && dt_s >= 0.0;
+        if !finite {
+            return Err(FilterError::NonFinite("relative motion"));
+        }
+        let qp = self.cfg.process_position_sigma * dt_s.sqrt();
+        let qr = self.cfg.process_rotation_sigma * dt_s.sqrt();
+        let mut cov = (covariance + covariance.transpose()) * 0.5;
+        for k in 0..3 {
+            cov[(k, k)] += qp * qp + 1e-12;
+            cov[(3 + k, 3 + k)] += qr * qr + 1e-12;
+        }
+        let L = Cholesky::new(cov).ok_or(FilterError::NotPositiveDefinite("relative motion covariance"))?.l();
+        // In the filter's error convention (position error in the map frame, rotation error in
+        // the body frame): the right perturbation's translation turns with the new pose.
+        let R = (self.best().pose.rotation * delta.rotation).to_rotation_matrix().into_inner();
+        let mut J = Matrix6::identity();
+        J.fixed_view_mut::<3, 3>(0, 0).copy_from(&R);
+        self.motion_cov += J * cov * J.transpose();
+        self.last_cv_dt = Some(dt_s);
+        let seeds = self.seeds();
+        self.for_each_particle(&seeds, |p, rng| {
+            let n = Vector6::from_iterator((0..6).map(|_| rng.sample::<f64, _>(StandardNormal)));
+            let e = L * n;
+            let noise = Isometry3::from_parts(
+                Translation3::from(e.fixed_rows::<3>(0).into_owned()),
+                UnitQuaternion::from_scaled_axis(e.fixed_rows::<3>(3).into_owned()),
+            );
+            p.pose = p.pose * delta * noise;
+        });
+        Ok(())
+    }
+
     /// Prediction without odometry: the constant-velocity model over `dt_s`, with the body twist
     /// estimated from the last two frames' mean poses and noise from the `cv_*` settings.
     pub fn predict_constant_velocity(&mut self, dt_s: f64) {
@@ -407,6 +474,18 @@ impl FastSlam {
     /// the observation has one, else maximum likelihood, both inside the χ²₃ gate.
     fn associate(cfg: &FastSlamConfig, candidates: &[u32], p: &Particle, o: &Observation) -> Association {
         let a = &cfg.association;
+        if o.track_id.is_some() {
+            // By attribute ([3D] §3.1): the landmark of this feature track, if any, checked
+            // against the χ² gate (a tracker's wrong match is left out, not fused).
+            for &id in candidates {
+                let Some(lm) = p.map.get(id) else { continue };
+                return match innovation(&p.pose, lm, &o.z_m, &o.Rz) {
+                    Ok(inn) if inn.mahalanobis <= a.gate_chi2 => Association::Matched(id, inn),
+                    _ => Association::Rejected,
+                };
+            }
+            return Association::New;
+        }
         let w = p.pose.transform_point(&o.z_m.into()).coords;
         let mut ml: Option<(f64, u32, Innovation)> = None;
         let mut near_dup = false;
@@ -477,6 +556,10 @@ impl FastSlam {
         let candidates: Vec<Vec<u32>> = obs
             .iter()
             .map(|o| {
+                if let Some(t) = o.track_id {
+                    // By attribute: the track's landmark, or none for a new track.
+                    return self.tracks.get(&t).map(|id| vec![*id]).unwrap_or_default();
+                }
                 let w = spread.0.transform_point(&o.z_m.into()).coords;
                 let particles_m = 3.0 * (spread.1 + spread.2 * o.z_m.norm()) + 0.25;
                 let radius = cfg.association.search_radius_m.max(3.0 * o.Rz.trace().sqrt()) + particles_m;
@@ -539,13 +622,19 @@ impl FastSlam {
         self.particles = next;
         let garbage: Vec<Particle> = old.into_iter().flatten().collect();
         self.free(garbage);
-        // Register the new landmarks in the association grid (first creator's position).
+        // Register the new landmarks in the association grid (first creator's position), or
+        // under their feature track.
         let mut seen = std::collections::HashSet::new();
         for r in &results {
             for (id, pos) in &r.created {
                 if seen.insert(*id) {
                     let j = (*id - first_new_id) as usize;
-                    self.grid.insert(*id, *pos, obs[j].Rz.trace(), cfg.association.duplicate_gate_chi2);
+                    match obs[j].track_id {
+                        Some(t) => {
+                            self.tracks.insert(t, *id);
+                        }
+                        None => self.grid.insert(*id, *pos, obs[j].Rz.trace(), cfg.association.duplicate_gate_chi2),
+                    }
                 }
             }
         }
@@ -555,6 +644,8 @@ impl FastSlam {
         let best = &results[best_group];
         let (matched, new, ambiguous, associations) =
             (best.matched, best.new, best.ambiguous, best.associations.clone());
+        let (rejected, mean_nis) =
+            (best.rejected, if best.matched > 0 { best.nis_sum / best.matched as f64 } else { f64::NAN });
         let landmarks = self.best().confirmed;
         let estimate = self.estimate();
         if let Some(prev) = self.last_mean {
@@ -597,6 +688,8 @@ impl FastSlam {
             first_new_id,
             new_segment,
             candidates_per_observation,
+            rejected,
+            mean_nis,
         }
     }
 
@@ -659,6 +752,12 @@ impl FastSlam {
                     Decision::Matched(id)
                 }
                 Association::Ambiguous => Decision::Ambiguous,
+                Association::Rejected => {
+                    // Unexplained, like a new landmark: the density at the gate boundary.
+                    let log_det = o.Rz.determinant().max(1e-300).ln();
+                    p.log_w += -0.5 * (a.gate_chi2 + log_det + 3.0 * (2.0 * std::f64::consts::PI).ln());
+                    Decision::Rejected
+                }
                 Association::New => {
                     // ln p(new): the density at the gate boundary of the observation's own noise.
                     let log_det = o.Rz.determinant().max(1e-300).ln();
@@ -687,6 +786,9 @@ impl FastSlam {
                     let pose = p.pose;
                     let Some(lm) = p.map.get_mut(id) else { continue };
                     let Ok(inn) = innovation(&pose, lm, &o.z_m, &o.Rz) else { continue };
+                    if lm.hits >= a.confirm_after {
+                        out.nis_sum += inn.mahalanobis;
+                    }
                     if ekf::update(lm, &inn, &o.Rz).is_err() {
                         continue;
                     }
@@ -701,6 +803,7 @@ impl FastSlam {
                     out.associations[j] = Some(id);
                 }
                 Decision::Ambiguous => out.ambiguous += 1,
+                Decision::Rejected => out.rejected += 1,
                 Decision::New => {
                     let id = first_new_id + j as u32;
                     let lm = init_landmark(&p.pose, &o.z_m, &o.Rz, o.descriptor, frame);
@@ -846,6 +949,7 @@ impl FastSlam {
             p.confirmed = 0;
         }
         self.grid.cells.clear();
+        self.tracks.clear();
         self.segment += 1;
         self.segment_motion_cov = Matrix6::zeros();
         self.weak_frames = 0;
@@ -870,6 +974,8 @@ pub type PriorLandmark = (Vector3<f64>, Matrix3<f64>, Option<[u8; 32]>);
 enum Association {
     Matched(u32, Innovation),
     Ambiguous,
+    /// An attribute match outside the χ² gate.
+    Rejected,
     New,
 }
 
@@ -878,6 +984,7 @@ enum Association {
 enum Decision {
     Matched(u32),
     Ambiguous,
+    Rejected,
     New,
 }
 

@@ -2,11 +2,14 @@
 //! pose and a map of per-landmark EKFs. Maps are persistent tries shared between particles
 //! ([`map`]), so resampling copies pointers and an update copies O(log M) nodes.
 
+pub mod camera;
 pub mod config;
 pub mod ekf;
 pub mod filter;
+pub mod frontend;
 pub mod map;
 
+pub use camera::{CameraOnly, CameraOnlyStats, MotionReport};
 pub use config::{AssociationConfig, FastSlamConfig, Proposal, SegmentConfig};
 pub use filter::{FastSlam, FrameReport, Observation, PoseEstimate, PriorLandmark, SegmentReason};
 pub mod eval;

@@ -8,7 +8,12 @@ use nalgebra::{Isometry3, Matrix3, Vector3};
 use sim::{SimConfig, SimEvent, Simulator};
 
 fn obs(p: [f64; 3], sigma: f64, desc: Option<u8>) -> Observation {
-    Observation { z_m: Vector3::from(p), Rz: Matrix3::identity() * sigma * sigma, descriptor: desc.map(|d| [d; 32]) }
+    Observation {
+        z_m: Vector3::from(p),
+        Rz: Matrix3::identity() * sigma * sigma,
+        descriptor: desc.map(|d| [d; 32]),
+        track_id: None,
+    }
 }
 
 fn quiet(particles: usize) -> FastSlamConfig {
