@@ -418,7 +418,7 @@ fn run(n: usize, m: usize, field: &[(Vector3<f64>, [u8; 32])], opt: &Options) ->
                         }
                     };
                     let z = ekf::predict_measurement(&truth, p) + noise;
-                    Observation { z_m: z, Rz: rz, descriptor: Some(d), track_id: None }
+                    Observation { z_m: z, Rz: rz, descriptor: Some(d), track_id: None, stereo: None }
                 })
                 .collect();
             if k >= opt.warmup {
@@ -515,6 +515,7 @@ fn ekf_ns(part: EkfPart) -> f64 {
             descriptor: None,
             hits: 2,
             last_seen_frame: 0,
+            inverse_depth: None,
         })
         .collect();
     let zs: Vec<Vector3<f64>> = fresh
@@ -558,6 +559,7 @@ fn copy_map_ms(m: usize) -> f64 {
             descriptor: Some([i as u8; 32]),
             hits: 2,
             last_seen_frame: 0,
+            inverse_depth: None,
         })
         .collect();
     let reps = (2_000_000 / m).clamp(5, 200);

@@ -73,20 +73,26 @@ fn main() {
     let truth: Vec<_> = sim.truth().iter().map(|t| (t.t_s, t.world_from_body)).collect();
     let scores = evaluate(&traj, &truth, &origins);
     for s in &scores {
-        println!("segment {:>2}: {:>5} poses, ATE {:.3} m, NEES {:.2}", s.segment, s.samples, s.ate_m, s.nees);
+        println!(
+            "segment {:>2}: {:>5} poses, ATE {:.3} m, NEES {:.2}, position NEES {:.2} ({:.0}% in the 95% interval)",
+            s.segment,
+            s.samples,
+            s.ate_m,
+            s.nees,
+            s.nees_position,
+            s.nees_position_in_95 * 100.0
+        );
     }
     for s in &segs {
         println!("{s}");
     }
     println!(
-        "{particles} particles, {proposal:?}: ATE {:.3} m over {} segments, mean NEES {:.1}; {frames} frames, {:.2} ms/frame, {:.1} matched/frame",
+        "{particles} particles, {proposal:?}: ATE {:.3} m over {} segments, mean NEES {:.1}, position NEES {:.2} ({:.0}% in the 95% interval); {frames} frames, {:.2} ms/frame, {:.1} matched/frame",
         overall_ate(&scores),
         scores.len(),
-        {
-            let ok: Vec<_> = scores.iter().filter(|s| s.nees.is_finite()).collect();
-            ok.iter().map(|s| s.nees * s.samples as f64).sum::<f64>()
-                / ok.iter().map(|s| s.samples).sum::<usize>().max(1) as f64
-        },
+        fastslam::eval::weighted_mean(&scores, |s| s.nees),
+        fastslam::eval::weighted_mean(&scores, |s| s.nees_position),
+        fastslam::eval::weighted_mean(&scores, |s| s.nees_position_in_95) * 100.0,
         update_s * 1e3 / frames as f64,
         matched as f64 / frames as f64
     );

@@ -29,7 +29,15 @@ pub struct SegmentScore {
     pub ate_m: f64,
     /// Mean normalised estimation error squared of the 6-DOF pose (expected 6 when consistent).
     pub nees: f64,
+    /// Mean NEES of the position alone (expected 3 when consistent).
+    pub nees_position: f64,
+    /// Fraction of the poses whose position NEES lies in the two-sided 95 % interval of χ²₃
+    /// ([`CHI2_3_95`]; 0.95 when consistent).
+    pub nees_position_in_95: f64,
 }
+
+/// The two-sided 95 % interval of χ² with 3 degrees of freedom: [χ²₃(0.025), χ²₃(0.975)].
+pub const CHI2_3_95: (f64, f64) = (0.2158, 9.3484);
 
 /// The true pose nearest in time to `t_s` (ground truth sorted by time).
 pub fn nearest(truth: &[(f64, Isometry3<f64>)], t_s: f64) -> Option<&Isometry3<f64>> {
@@ -79,10 +87,10 @@ pub fn evaluate(
                 (se / src.len() as f64).sqrt()
             }
         };
-        let nees = match segment_origins_s.get(&segment).and_then(|t0| nearest(truth, *t0)) {
+        let errors: Vec<(f64, f64)> = match segment_origins_s.get(&segment).and_then(|t0| nearest(truth, *t0)) {
             Some(origin) => {
                 let origin_inv = origin.inverse();
-                let values: Vec<f64> = pairs
+                pairs
                     .iter()
                     .filter_map(|(s, t)| {
                         let local_true = origin_inv * t;
@@ -92,16 +100,35 @@ pub fn evaluate(
                         e.fixed_rows_mut::<3>(3)
                             .copy_from(&(s.map_from_body.rotation.inverse() * local_true.rotation).scaled_axis());
                         let c = nalgebra::Cholesky::new(s.covariance + Matrix6::identity() * 1e-12)?;
-                        Some(e.dot(&c.solve(&e)))
+                        let ep = e.fixed_rows::<3>(0).into_owned();
+                        let cp = nalgebra::Cholesky::new(
+                            s.covariance.fixed_view::<3, 3>(0, 0).into_owned() + nalgebra::Matrix3::identity() * 1e-12,
+                        )?;
+                        Some((e.dot(&c.solve(&e)), ep.dot(&cp.solve(&ep))))
                     })
-                    .collect();
-                if values.is_empty() { f64::NAN } else { values.iter().sum::<f64>() / values.len() as f64 }
+                    .collect()
             }
-            None => f64::NAN,
+            None => vec![],
         };
-        out.push(SegmentScore { segment, samples: pairs.len(), ate_m, nees });
+        let mean = |f: &dyn Fn(&(f64, f64)) -> f64| {
+            if errors.is_empty() { f64::NAN } else { errors.iter().map(f).sum::<f64>() / errors.len() as f64 }
+        };
+        let nees = mean(&|e| e.0);
+        let nees_position = mean(&|e| e.1);
+        let nees_position_in_95 = mean(&|e| (CHI2_3_95.0..=CHI2_3_95.1).contains(&e.1) as u8 as f64);
+        out.push(SegmentScore { segment, samples: pairs.len(), ate_m, nees, nees_position, nees_position_in_95 });
     }
     out
+}
+
+/// Sample-weighted mean of a per-segment value over the segments where it is finite.
+pub fn weighted_mean(scores: &[SegmentScore], f: impl Fn(&SegmentScore) -> f64) -> f64 {
+    let ok: Vec<&SegmentScore> = scores.iter().filter(|s| f(s).is_finite()).collect();
+    let n: usize = ok.iter().map(|s| s.samples).sum();
+    if n == 0 {
+        return f64::NAN;
+    }
+    ok.iter().map(|s| f(s) * s.samples as f64).sum::<f64>() / n as f64
 }
 
 /// Sample-weighted mean of the segments' ATE (RMS over all samples).

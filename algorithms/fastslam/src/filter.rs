@@ -15,6 +15,7 @@ use rand_xoshiro::Xoshiro256PlusPlus;
 use crate::config::{FastSlamConfig, Proposal};
 use crate::ekf::{self, FilterError, Innovation, LandmarkEkf, hamming, init_landmark, innovation};
 use crate::map::PersistentMap;
+use crate::sym3::Chol3;
 
 /// One observation of a frame, in the body frame.
 #[derive(Debug, Clone, PartialEq)]
@@ -28,11 +29,29 @@ pub struct Observation {
     /// The front end's feature track id, if the source provides one: the same id in two frames
     /// is the same landmark (association by attribute, [3D] §3.1).
     pub track_id: Option<u64>,
+    /// The stereo measurement (normalised stereo coordinates in the camera frame and their
+    /// covariance), when the observation comes from a stereo camera in front of it: the filter
+    /// then compares landmarks with it in that space, where pixel noise is Gaussian at every
+    /// depth (the triangulated point's depth is not, far away).
+    pub stereo: Option<StereoMeasurement>,
+}
+
+/// A stereo observation in normalised stereo coordinates s = (x/z, y/z, 1/z) of the camera
+/// frame ([`ekf::stereo_coords`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct StereoMeasurement {
+    /// s.
+    pub s: Vector3<f64>,
+    /// Its covariance (first order from the camera-frame point's covariance).
+    pub cov: Matrix3<f64>,
+    /// The camera's mounting on the body.
+    pub body_from_camera: Isometry3<f64>,
 }
 
 impl Observation {
     /// An observation from a camera-frame point and covariance and the `body_from_camera`
-    /// extrinsic; NaN/inf or a covariance that is not positive definite is an error.
+    /// extrinsic, with its stereo measurement when the point is in front of the camera; NaN/inf
+    /// or a covariance that is not positive definite is an error.
     pub fn from_camera(
         point_cam_m: &Vector3<f64>,
         cov_cam_m2: &Matrix3<f64>,
@@ -48,11 +67,24 @@ impl Observation {
         if Cholesky::new(Rz).is_none() {
             return Err(FilterError::NotPositiveDefinite("observation covariance"));
         }
+        let stereo = (point_cam_m.z > ekf::MIN_STEREO_DEPTH_M)
+            .then(|| {
+                let J = ekf::stereo_jacobian(point_cam_m);
+                let cov = J * cov_cam_m2 * J.transpose();
+                let cov = (cov + cov.transpose()) * 0.5;
+                Cholesky::new(cov).map(|_| StereoMeasurement {
+                    s: ekf::stereo_coords(point_cam_m),
+                    cov,
+                    body_from_camera: *body_from_camera,
+                })
+            })
+            .flatten();
         Ok(Self {
             z_m: body_from_camera.transform_point(&(*point_cam_m).into()).coords,
             Rz,
             descriptor,
             track_id: None,
+            stereo,
         })
     }
 }
@@ -117,6 +149,29 @@ pub struct FrameReport {
     /// landmarks (best particle; ≈ 3 when consistent, a little less under the gate); NaN
     /// without updates.
     pub mean_nis: f64,
+    /// Where the time of this update went.
+    pub timing: FrameTiming,
+}
+
+/// Wall time of the phases of one [`FastSlam::update`], ms.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct FrameTiming {
+    /// Candidate landmarks per observation (grid, camera projection).
+    pub candidates_ms: f64,
+    /// Association, proposal and weights of every particle (parallel).
+    pub weigh_ms: f64,
+    /// Normalising and resampling.
+    pub resample_ms: f64,
+    /// Landmark EKF updates and new landmarks, once per surviving parent (parallel).
+    pub update_ms: f64,
+    /// The new particle set: copies of the parents, freeing the discarded ones, bookkeeping.
+    pub copies_ms: f64,
+    /// The whole update (with the estimate and the local-map checks).
+    pub total_ms: f64,
+}
+
+fn ms(a: std::time::Instant, b: std::time::Instant) -> f64 {
+    (b - a).as_secs_f64() * 1e3
 }
 
 #[derive(Clone)]
@@ -148,7 +203,15 @@ struct Grid {
     /// Landmark ids with the position they were created at and the trace of their initial
     /// covariance, m² (the same in every particle: a rotation keeps the trace).
     cells: HashMap<[i32; 3], Vec<GridEntry>>,
+    /// Landmarks of stereo observations by [`VIEW_CELL_M`] cell of their first position: those
+    /// near the camera are projected into it to find the candidates of the stereo observations.
+    view: HashMap<[i32; 3], Vec<u32>>,
 }
+
+/// Cell of the coarse grid of stereo landmarks, m.
+const VIEW_CELL_M: f64 = 10.0;
+/// Farthest a stereo observation's candidates are looked for, m.
+const MAX_VIEW_M: f64 = 300.0;
 
 #[derive(Clone, Copy)]
 struct GridEntry {
@@ -204,6 +267,76 @@ impl Grid {
     }
 }
 
+/// A grid over the (x/z, y/z) of stereo coordinates (about two points per cell).
+struct SGrid {
+    min: [f64; 2],
+    cell: f64,
+    nx: usize,
+    ny: usize,
+    /// Points of cell k: `items[start[k]..start[k + 1]]`.
+    start: Vec<u32>,
+    items: Vec<u32>,
+}
+
+impl SGrid {
+    fn new(pts: &[(Vector3<f64>, Matrix3<f64>)]) -> Self {
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for (s, _) in pts {
+            for k in 0..2 {
+                lo[k] = lo[k].min(s[k]);
+                hi[k] = hi[k].max(s[k]);
+            }
+        }
+        if pts.is_empty() {
+            (lo, hi) = ([0.0; 2], [1.0; 2]);
+        }
+        let area = ((hi[0] - lo[0]) * (hi[1] - lo[1])).max(1e-9);
+        let cell = (area / (pts.len().max(1) as f64 / 2.0)).sqrt().max((hi[0] - lo[0]).max(hi[1] - lo[1]) / 256.0);
+        let nx = (((hi[0] - lo[0]) / cell).floor() as usize + 1).min(257);
+        let ny = (((hi[1] - lo[1]) / cell).floor() as usize + 1).min(257);
+        let key = |s: &Vector3<f64>| {
+            let ix = (((s[0] - lo[0]) / cell) as usize).min(nx - 1);
+            let iy = (((s[1] - lo[1]) / cell) as usize).min(ny - 1);
+            iy * nx + ix
+        };
+        let mut start = vec![0u32; nx * ny + 1];
+        for (s, _) in pts {
+            start[key(s) + 1] += 1;
+        }
+        for k in 1..start.len() {
+            start[k] += start[k - 1];
+        }
+        let mut fill = start.clone();
+        let mut items = vec![0u32; pts.len()];
+        for (i, (s, _)) in pts.iter().enumerate() {
+            let k = key(s);
+            items[fill[k] as usize] = i as u32;
+            fill[k] += 1;
+        }
+        Self { min: lo, cell, nx, ny, start, items }
+    }
+
+    /// Points whose (a, b) may lie within ±(ra, rb) of (a, b).
+    fn query(&self, a: f64, b: f64, ra: f64, rb: f64, mut f: impl FnMut(usize)) {
+        let lo_x = ((a - ra - self.min[0]) / self.cell).floor();
+        let hi_x = ((a + ra - self.min[0]) / self.cell).floor();
+        let lo_y = ((b - rb - self.min[1]) / self.cell).floor();
+        let hi_y = ((b + rb - self.min[1]) / self.cell).floor();
+        if !(hi_x >= 0.0 && hi_y >= 0.0 && lo_x < self.nx as f64 && lo_y < self.ny as f64) {
+            return;
+        }
+        let (x0, x1) = (lo_x.max(0.0) as usize, (hi_x as usize).min(self.nx - 1));
+        let (y0, y1) = (lo_y.max(0.0) as usize, (hi_y as usize).min(self.ny - 1));
+        for y in y0..=y1 {
+            for k in (y * self.nx + x0)..=(y * self.nx + x1) {
+                for &i in &self.items[self.start[k] as usize..self.start[k + 1] as usize] {
+                    f(i as usize);
+                }
+            }
+        }
+    }
+}
+
 /// The filter state.
 pub struct FastSlam {
     cfg: FastSlamConfig,
@@ -224,13 +357,27 @@ pub struct FastSlam {
     twist: Option<(Vector3<f64>, Vector3<f64>)>,
     last_mean: Option<Isometry3<f64>>,
     last_cv_dt: Option<f64>,
-    /// The motion covariance of the last frame interval: a floor of the reported covariance, as
-    /// the particle spread alone collapses after resampling.
-    last_motion_cov: Matrix6<f64>,
-    /// Motion noise accumulated since the local map started: the drift the particle spread
-    /// cannot show (particles and their maps drift together).
-    segment_motion_cov: Matrix6<f64>,
+    /// Uncertainty of the mean pose relative to the local map's origin, over world-frame errors
+    /// (δp, δθ): the drift that the particle spread cannot show (particles and their maps drift
+    /// together). See [`FastSlam::estimate`].
+    drift: Matrix6<f64>,
     threads: usize,
+}
+
+/// [[I, −[d]×], [0, I]]: carries world-frame pose errors (δp, δθ) over a displacement `d` (a
+/// rotation error δθ moves a point `d` away by δθ × d).
+fn lever(d: &Vector3<f64>) -> Matrix6<f64> {
+    let mut F = Matrix6::identity();
+    F.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-d.cross_matrix()));
+    F
+}
+
+/// diag(A, B).
+fn blockdiag(a: &Matrix3<f64>, b: &Matrix3<f64>) -> Matrix6<f64> {
+    let mut J = Matrix6::zeros();
+    J.fixed_view_mut::<3, 3>(0, 0).copy_from(a);
+    J.fixed_view_mut::<3, 3>(3, 3).copy_from(b);
+    J
 }
 
 /// A weighted-mean pose with its 6×6 covariance (position, body-frame rotation error).
@@ -252,6 +399,45 @@ fn perturb(pose: &Isometry3<f64>, d: &Vector6<f64>) -> Isometry3<f64> {
         Translation3::from(pose.translation.vector + d.fixed_rows::<3>(0)),
         pose.rotation * UnitQuaternion::from_scaled_axis(d.fixed_rows::<3>(3).into_owned()),
     )
+}
+
+/// Innovation of observation `o` against landmark `lm` from the body pose `pose`: in normalised
+/// stereo coordinates for a stereo observation, else in the body frame.
+fn observe(pose: &Isometry3<f64>, lm: &ekf::LandmarkEkf, o: &Observation) -> Result<Innovation, FilterError> {
+    match (&o.stereo, &lm.inverse_depth) {
+        (Some(st), Some(inv)) => ekf::innovation_inverse_depth(&(pose * st.body_from_camera), inv, &st.s, &st.cov),
+        (Some(st), None) => ekf::innovation_stereo(&(pose * st.body_from_camera), lm, &st.s, &st.cov),
+        (None, _) => innovation(pose, lm, &o.z_m, &o.Rz),
+    }
+}
+
+/// The predicted stereo coordinates of `lm` from a camera at `world_from_camera` and their
+/// covariance from the landmark's uncertainty; `None` when it is not in front of the camera.
+fn predict_stereo(lm: &ekf::LandmarkEkf, world_from_camera: &Isometry3<f64>) -> Option<(Vector3<f64>, Matrix3<f64>)> {
+    match &lm.inverse_depth {
+        Some(inv) => inv.predict(world_from_camera).map(|(s, H)| (s, H * inv.cov * H.transpose())),
+        None => {
+            let Rcw = world_from_camera.rotation.inverse().to_rotation_matrix().into_inner();
+            let p = Rcw * (lm.mean_m - world_from_camera.translation.vector);
+            (p.z > ekf::MIN_STEREO_DEPTH_M).then(|| {
+                let J = ekf::stereo_jacobian(&p) * Rcw;
+                (ekf::stereo_coords(&p), J * lm.cov_m2 * J.transpose())
+            })
+        }
+    }
+}
+
+/// ∂h/∂(δp, δφ) of observation `o` of a landmark at `l_map` from `pose` (see [`observe`]).
+fn pose_jacobian(pose: &Isometry3<f64>, l_map: &Vector3<f64>, o: &Observation) -> nalgebra::Matrix3x6<f64> {
+    match &o.stereo {
+        Some(st) => ekf::stereo_pose_jacobian(pose, &st.body_from_camera, l_map),
+        None => ekf::jacobians(pose, l_map).1,
+    }
+}
+
+/// The covariance of observation `o` in the space it is compared in.
+fn meas_cov(o: &Observation) -> &Matrix3<f64> {
+    o.stereo.as_ref().map_or(&o.Rz, |st| &st.cov)
 }
 
 impl FastSlam {
@@ -280,7 +466,7 @@ impl FastSlam {
             next_id: 0,
             frame: 0,
             segment: 0,
-            grid: Grid { cell_m: cfg.association.search_radius_m, cells: HashMap::new() },
+            grid: Grid { cell_m: cfg.association.search_radius_m, cells: HashMap::new(), view: HashMap::new() },
             tracks: HashMap::new(),
             motion_cov: Matrix6::zeros(),
             weak_frames: 0,
@@ -288,8 +474,7 @@ impl FastSlam {
             twist: None,
             last_mean: None,
             last_cv_dt: None,
-            last_motion_cov: Matrix6::zeros(),
-            segment_motion_cov: Matrix6::zeros(),
+            drift: Matrix6::zeros(),
             threads,
             cfg,
         })
@@ -364,6 +549,29 @@ impl FastSlam {
         .expect("particle scope")
     }
 
+    /// Books one motion step of the mean pose: `step_world` its displacement in the map, `G_world`
+    /// its noise over world-frame errors (δp, δθ), `R_new` the new orientation. The drift is
+    /// carried over the step (a rotation error turns into a position error along it) and grows
+    /// by the noise and by the unmodelled drift per metre (`drift_*_sigma_per_sqrt_m`); the
+    /// motion covariance of this frame (the FastSLAM 2.0 prior and the association gates,
+    /// position error in the map, rotation error in the body) grows by the noise.
+    fn account_motion(&mut self, step_world: &Vector3<f64>, G_world: &Matrix6<f64>, R_new: &Matrix3<f64>) {
+        let F = lever(step_world);
+        // What no motion model accounts for (outliers that pass the gates, landmarks placed
+        // from sampled poses, linearisation) grows like a random walk over the distance.
+        let dist = step_world.norm();
+        let mut extra = Matrix6::zeros();
+        for k in 0..3 {
+            extra[(k, k)] = self.cfg.drift_position_sigma_per_sqrt_m.powi(2) * dist;
+            extra[(3 + k, 3 + k)] = self.cfg.drift_rotation_sigma_per_sqrt_m.powi(2) * dist;
+        }
+        let d = F * self.drift * F.transpose() + G_world + extra;
+        self.drift = (d + d.transpose()) * 0.5;
+        let J = blockdiag(&Matrix3::identity(), &R_new.transpose());
+        let m = J * G_world * J.transpose();
+        self.motion_cov += (m + m.transpose()) * 0.5;
+    }
+
     /// Prediction with an odometry input (SPEC §1): each particle propagates a sample of the input
     /// (noise with the variances `input_variances` of v, δθx, δθy, δθz, scaled by
     /// `input_noise_scale`), then gets the additive process noise ω.
@@ -379,7 +587,8 @@ impl FastSlam {
         let sd: Vec<f64> = input_variances.iter().map(|v| (v.max(0.0) * scale).sqrt()).collect();
         let qp = self.cfg.process_position_sigma * u.dt_s.sqrt();
         let qr = self.cfg.process_rotation_sigma * u.dt_s.sqrt();
-        // Body-frame pose error added by this step (for the FastSLAM 2.0 proposal).
+        // Pose error added by this step, in the filter's convention (position error in the map
+        // frame, rotation error in the body frame): the speed noise acts along body x.
         let mut G = Matrix6::zeros();
         G[(0, 0)] = (sd[0] * u.dt_s).powi(2) + qp * qp;
         G[(1, 1)] = qp * qp;
@@ -387,7 +596,10 @@ impl FastSlam {
         for k in 0..3 {
             G[(3 + k, 3 + k)] = sd[1 + k].powi(2) + qr * qr;
         }
-        self.motion_cov += G;
+        let R = self.best().pose.rotation.to_rotation_matrix().into_inner();
+        let R_new = R * geometry::rotation_from_euler_zyx(&u.delta_theta_rad).into_inner();
+        let G_world = blockdiag(&R, &R_new) * G * blockdiag(&R, &R_new).transpose();
+        self.account_motion(&(R * Vector3::new(u.v_mps * u.dt_s, 0.0, 0.0)), &G_world, &R_new);
         let seeds = self.seeds();
         self.for_each_particle(&seeds, |p, rng| {
             let noisy = ProcessInput {
@@ -405,9 +617,11 @@ impl FastSlam {
 
     /// Prediction with a relative motion measured by a front end (e.g. stereo registration):
     /// each particle moves by `delta` (`prev_body_from_cur_body`) perturbed on the right by a
-    /// sample of `covariance` (over (δt, δθ) in the new body frame, m² and rad²), plus the
-    /// additive process noise ω over `dt_s`. A covariance that is not positive semi-definite or
-    /// a non-finite motion is an error and changes nothing.
+    /// sample of `covariance` (over (δt, δθ) in the new body frame, m² and rad²) scaled by
+    /// `relative_motion_noise_scale`. The covariance is the whole motion uncertainty: no
+    /// process noise is added (on top of a precise measured motion it only widens the gates and
+    /// the proposal). `dt_s` is the time since the previous frame. A covariance that is not
+    /// positive semi-definite or a non-finite motion is an error and changes nothing.
     pub fn predict_relative(
         &mut self,
         delta: &Isometry3<f64>,
@@ -422,20 +636,17 @@ impl FastSlam {
         if !finite {
             return Err(FilterError::NonFinite("relative motion"));
         }
-        let qp = self.cfg.process_position_sigma * dt_s.sqrt();
-        let qr = self.cfg.process_rotation_sigma * dt_s.sqrt();
-        let mut cov = (covariance + covariance.transpose()) * 0.5;
-        for k in 0..3 {
-            cov[(k, k)] += qp * qp + 1e-12;
-            cov[(3 + k, 3 + k)] += qr * qr + 1e-12;
+        let mut cov = (covariance + covariance.transpose()) * 0.5 * self.cfg.relative_motion_noise_scale;
+        for k in 0..6 {
+            cov[(k, k)] += 1e-12;
         }
         let L = Cholesky::new(cov).ok_or(FilterError::NotPositiveDefinite("relative motion covariance"))?.l();
         // In the filter's error convention (position error in the map frame, rotation error in
         // the body frame): the right perturbation's translation turns with the new pose.
-        let R = (self.best().pose.rotation * delta.rotation).to_rotation_matrix().into_inner();
-        let mut J = Matrix6::identity();
-        J.fixed_view_mut::<3, 3>(0, 0).copy_from(&R);
-        self.motion_cov += J * cov * J.transpose();
+        let R = self.best().pose.rotation.to_rotation_matrix().into_inner();
+        let R_new = R * delta.rotation.to_rotation_matrix().into_inner();
+        let G_world = blockdiag(&R_new, &R_new) * cov * blockdiag(&R_new, &R_new).transpose();
+        self.account_motion(&(R * delta.translation.vector), &G_world, &R_new);
         self.last_cv_dt = Some(dt_s);
         let seeds = self.seeds();
         self.for_each_particle(&seeds, |p, rng| {
@@ -462,7 +673,10 @@ impl FastSlam {
             G[(k, k)] = sp * sp;
             G[(3 + k, 3 + k)] = sr * sr;
         }
-        self.motion_cov += G;
+        let R = self.best().pose.rotation.to_rotation_matrix().into_inner();
+        let R_new = R * nalgebra::Rotation3::new(w * dt_s).into_inner();
+        let G_world = blockdiag(&R, &R_new) * G * blockdiag(&R, &R_new).transpose();
+        self.account_motion(&(R * v * dt_s), &G_world, &R_new);
         let seeds = self.seeds();
         self.for_each_particle(&seeds, |p, rng| {
             let step = Isometry3::new(v * dt_s + normal3(rng) * sp, w * dt_s + normal3(rng) * sr);
@@ -470,17 +684,32 @@ impl FastSlam {
         });
     }
 
-    /// Associates one observation for one particle (SPEC §3): descriptor with ratio test when
-    /// the observation has one, else maximum likelihood, both inside the χ²₃ gate.
-    fn associate(cfg: &FastSlamConfig, candidates: &[u32], p: &Particle, o: &Observation) -> Association {
+    /// Associates one observation for one particle (SPEC §3): by feature track id when the
+    /// observation has one, else by descriptor with a ratio test when it has one, else by
+    /// maximum likelihood; every association inside the χ²₃ gate. The gate's covariance is the
+    /// innovation covariance plus `pose_q` = H_x·P·H_xᵀ, the pose uncertainty of this frame's
+    /// motion seen in the observation: a particle's pose is one sample of it, and with a sensor
+    /// more precise than the motion a gate without it would refuse the right landmark.
+    fn associate(
+        cfg: &FastSlamConfig,
+        candidates: &[u32],
+        p: &Particle,
+        o: &Observation,
+        pose_q: &(Matrix3<f64>, Matrix3<f64>),
+    ) -> Association {
+        let (pose_q, pose_q_body) = (&pose_q.0, &pose_q.1);
         let a = &cfg.association;
+        let gated = |inn: &Innovation| -> Option<f64> {
+            let m = Chol3::new(&(inn.S + pose_q))?.mahalanobis(&inn.nu);
+            m.is_finite().then_some(m)
+        };
         if o.track_id.is_some() {
             // By attribute ([3D] §3.1): the landmark of this feature track, if any, checked
             // against the χ² gate (a tracker's wrong match is left out, not fused).
             for &id in candidates {
                 let Some(lm) = p.map.get(id) else { continue };
-                return match innovation(&p.pose, lm, &o.z_m, &o.Rz) {
-                    Ok(inn) if inn.mahalanobis <= a.gate_chi2 => Association::Matched(id, inn),
+                return match observe(&p.pose, lm, o) {
+                    Ok(inn) if gated(&inn).is_some_and(|m| m <= a.gate_chi2) => Association::Matched(id, inn),
                     _ => Association::Rejected,
                 };
             }
@@ -491,21 +720,22 @@ impl FastSlam {
         let mut near_dup = false;
         let mut best_d: Option<(u32, u32, Innovation)> = None; // (hamming, id, innovation)
         let mut second_d = u32::MAX;
-        let tr_rz = o.Rz.trace();
+        let tr_rz = o.Rz.trace() + pose_q_body.trace();
         for &id in candidates {
             let Some(lm) = p.map.get(id) else { continue };
             // Exact pre-check without a Cholesky: |ν| = |w − L| (a rotation keeps lengths) and
-            // νᵀS⁻¹ν ≥ |ν|²/λmax(S) ≥ |ν|²/tr(S), with tr(S) = tr(Σ_L) + tr(Rz).
+            // νᵀS⁻¹ν ≥ |ν|²/λmax(S) ≥ |ν|²/tr(S), with tr(S) = tr(Σ_L) + tr(Rz) + tr(pose_q).
             let d2 = (lm.mean_m - w).norm_squared();
             if d2 > a.duplicate_gate_chi2 * (lm.cov_m2.trace() + tr_rz) {
                 continue;
             }
-            let Ok(inn) = innovation(&p.pose, lm, &o.z_m, &o.Rz) else { continue };
-            if inn.mahalanobis > a.duplicate_gate_chi2 {
+            let Ok(inn) = observe(&p.pose, lm, o) else { continue };
+            let Some(m) = gated(&inn) else { continue };
+            if m > a.duplicate_gate_chi2 {
                 continue;
             }
             near_dup = true;
-            if inn.mahalanobis > a.gate_chi2 {
+            if m > a.gate_chi2 {
                 continue;
             }
             if let (Some(od), Some(ld)) = (&o.descriptor, &lm.descriptor) {
@@ -520,8 +750,8 @@ impl FastSlam {
                     }
                 }
             }
-            if ml.as_ref().is_none_or(|(m, _, _)| inn.mahalanobis < *m) {
-                ml = Some((inn.mahalanobis, id, inn));
+            if ml.as_ref().is_none_or(|(mm, _, _)| m < *mm) {
+                ml = Some((m, id, inn));
             }
         }
         if o.descriptor.is_some() {
@@ -540,25 +770,27 @@ impl FastSlam {
     /// Updates every particle with one frame of observations, weights, resamples when N_eff is
     /// low, and checks the multi-map triggers.
     pub fn update(&mut self, obs: &[Observation]) -> FrameReport {
+        let t_start = std::time::Instant::now();
         self.frame += 1;
         let frame = self.frame;
         let first_new_id = self.next_id;
         self.next_id = self.next_id.saturating_add(obs.len() as u32);
         let cfg = self.cfg.clone();
         let motion_cov = self.motion_cov + Matrix6::identity() * 1e-9;
-        self.last_motion_cov = self.motion_cov;
-        self.segment_motion_cov += self.motion_cov;
         self.motion_cov = Matrix6::zeros();
         // Candidates once per observation for all particles: around the mean pose, widened by
         // the observation's noise (far stereo points are uncertain along the ray) and by the
         // particles' spread, so every particle's own search would find no more.
         let spread = self.particle_spread();
-        let candidates: Vec<Vec<u32>> = obs
+        let mut candidates: Vec<Vec<u32>> = obs
             .iter()
             .map(|o| {
                 if let Some(t) = o.track_id {
                     // By attribute: the track's landmark, or none for a new track.
                     return self.tracks.get(&t).map(|id| vec![*id]).unwrap_or_default();
+                }
+                if o.stereo.is_some() {
+                    return vec![]; // filled below, in the camera
                 }
                 let w = spread.0.transform_point(&o.z_m.into()).coords;
                 let particles_m = 3.0 * (spread.1 + spread.2 * o.z_m.norm()) + 0.25;
@@ -576,12 +808,29 @@ impl FastSlam {
         //    is deterministic given pose, map and decisions; so resampling can come first and the
         //    maps are updated once per surviving parent (its copies would make identical
         //    updates), and never for particles about to be discarded.
+        // The pose uncertainty of this frame's motion seen in each observation: H_x·P·H_xᵀ at
+        // the best particle (the same for every particle to first order).
+        let best_pose = spread.0;
+        let pose_q: Vec<(Matrix3<f64>, Matrix3<f64>)> = obs
+            .iter()
+            .map(|o| {
+                let l = best_pose.transform_point(&o.z_m.into()).coords;
+                let sym = |q: Matrix3<f64>| (q + q.transpose()) * 0.5;
+                let (_, Hb) = ekf::jacobians(&best_pose, &l);
+                let Hx = pose_jacobian(&best_pose, &l, o);
+                (sym(Hx * motion_cov * Hx.transpose()), sym(Hb * motion_cov * Hb.transpose()))
+            })
+            .collect();
+        self.stereo_candidates(obs, &motion_cov, &spread, &mut candidates);
+        let t_candidates = std::time::Instant::now();
         let seeds = self.seeds();
-        let decisions =
-            self.for_each_particle(&seeds, |p, rng| Self::weigh_particle(&cfg, &candidates, p, obs, &motion_cov, rng));
+        let decisions = self.for_each_particle(&seeds, |p, rng| {
+            Self::weigh_particle(&cfg, &candidates, &pose_q, p, obs, &motion_cov, rng)
+        });
         let best_idx = (0..self.particles.len())
             .max_by(|a, b| self.particles[*a].log_w.total_cmp(&self.particles[*b].log_w))
             .unwrap_or(0);
+        let t_weigh = std::time::Instant::now();
         let n_eff = self.normalise();
         let resampled = n_eff < cfg.resample_fraction * self.particles.len() as f64;
         let n = self.particles.len();
@@ -604,9 +853,11 @@ impl FastSlam {
         let mut old: Vec<Option<Particle>> = std::mem::take(&mut self.particles).into_iter().map(Some).collect();
         let mut survivors: Vec<(Particle, Vec<Decision>)> =
             groups.iter().map(|(i, _)| (old[*i].take().expect("each parent once"), decisions[*i].clone())).collect();
+        let t_resample = std::time::Instant::now();
         // 3. Landmark EKF updates, once per surviving parent, in parallel.
         let results =
             par_map(self.threads, &mut survivors, |(p, d)| Self::apply_particle(&cfg, p, obs, d, first_new_id, frame));
+        let t_apply = std::time::Instant::now();
         // 4. The new particle set; the discarded particles are freed on the worker threads.
         let uniform = -(n as f64).ln();
         let mut next = Vec::with_capacity(n);
@@ -629,11 +880,17 @@ impl FastSlam {
             for (id, pos) in &r.created {
                 if seen.insert(*id) {
                     let j = (*id - first_new_id) as usize;
-                    match obs[j].track_id {
-                        Some(t) => {
+                    match (obs[j].track_id, &obs[j].stereo) {
+                        (Some(t), _) => {
                             self.tracks.insert(t, *id);
                         }
-                        None => self.grid.insert(*id, *pos, obs[j].Rz.trace(), cfg.association.duplicate_gate_chi2),
+                        (None, Some(_)) => {
+                            let k = (pos / VIEW_CELL_M).map(|v| v.floor() as i32);
+                            self.grid.view.entry([k.x, k.y, k.z]).or_default().push(*id);
+                        }
+                        (None, None) => {
+                            self.grid.insert(*id, *pos, obs[j].Rz.trace(), cfg.association.duplicate_gate_chi2)
+                        }
                     }
                 }
             }
@@ -647,6 +904,7 @@ impl FastSlam {
         let (rejected, mean_nis) =
             (best.rejected, if best.matched > 0 { best.nis_sum / best.matched as f64 } else { f64::NAN });
         let landmarks = self.best().confirmed;
+        let t_copies = std::time::Instant::now();
         let estimate = self.estimate();
         if let Some(prev) = self.last_mean {
             // Twist for the constant-velocity model (per frame; scaled by dt at prediction).
@@ -690,55 +948,100 @@ impl FastSlam {
             candidates_per_observation,
             rejected,
             mean_nis,
+            timing: FrameTiming {
+                candidates_ms: ms(t_start, t_candidates),
+                weigh_ms: ms(t_candidates, t_weigh),
+                resample_ms: ms(t_weigh, t_resample),
+                update_ms: ms(t_resample, t_apply),
+                copies_ms: ms(t_apply, t_copies),
+                total_ms: ms(t_start, std::time::Instant::now()),
+            },
         }
     }
 
     /// Association decisions and the importance weight of one particle for one frame (and, with
     /// the FastSLAM 2.0 proposal, its pose sampled from the proposal); maps are only read.
+    ///
+    /// FastSLAM 2.0 ([3D] Alg 2 with the proposal of Montemerlo et al. 2003): with the motion
+    /// prior N(0, P) on the pose perturbation and the matched confirmed landmarks' innovations
+    /// νᵢ ≈ H_{x,i}·δ + noise(Sᵢ), the proposal is N(μ, Σ) with Σ = (P⁻¹ + Σ H_xᵀS⁻¹H_x)⁻¹,
+    /// μ = Σ·Σ H_xᵀS⁻¹ν, and the weight is the joint marginal likelihood
+    /// N(ν; 0, blockdiag(S) + H_x·P·H_xᵀ), evaluated through the determinant lemma and
+    /// Woodbury: ln w = −½(Σ νᵀS⁻¹ν − bᵀΣb + Σ ln|S| + ln|P| − ln|Σ| + 3n ln 2π), b = Σ H_xᵀS⁻¹ν.
+    #[allow(clippy::too_many_arguments)]
     fn weigh_particle(
         cfg: &FastSlamConfig,
         candidates: &[Vec<u32>],
+        pose_q: &[(Matrix3<f64>, Matrix3<f64>)],
         p: &mut Particle,
         obs: &[Observation],
         motion_cov: &Matrix6<f64>,
         rng: &mut Xoshiro256PlusPlus,
     ) -> Vec<Decision> {
         let a = &cfg.association;
+        let ln2pi = (2.0 * std::f64::consts::PI).ln();
         let decisions: Vec<Association> =
-            obs.iter().zip(candidates).map(|(o, c)| Self::associate(cfg, c, p, o)).collect();
-        if cfg.proposal == Proposal::Optimal {
-            // FastSLAM 2.0: sample the pose from the motion prior conditioned on the matches.
-            if let Some(info) = Cholesky::new(*motion_cov).map(|c| c.inverse()) {
-                let mut A = info;
-                let mut b = Vector6::zeros();
-                let mut log_w = 0.0;
-                let mut any = false;
-                for d in &decisions {
-                    let Association::Matched(id, inn) = d else { continue };
-                    let Some(lm) = p.map.get(*id) else { continue };
-                    let (_, Hx) = ekf::jacobians(&p.pose, &lm.mean_m);
-                    let S_inv = inn.S_inv();
-                    A += Hx.transpose() * S_inv * Hx;
-                    b += Hx.transpose() * S_inv * inn.nu;
-                    let Sx = Hx * motion_cov * Hx.transpose() + inn.S;
-                    if let Some(c) = Cholesky::new(Sx) {
-                        let m = inn.nu.dot(&c.solve(&inn.nu));
-                        let log_det: f64 = c.l().diagonal().iter().map(|d| 2.0 * d.ln()).sum();
-                        log_w += -0.5 * (m + log_det + 3.0 * (2.0 * std::f64::consts::PI).ln());
+            obs.iter().zip(candidates).zip(pose_q).map(|((o, c), q)| Self::associate(cfg, c, p, o, q)).collect();
+        // One observation per landmark and frame: of several matched to one landmark the one
+        // with the smallest normalised innovation keeps it, the others are left out.
+        let mut decisions = decisions;
+        let mut owner: HashMap<u32, (usize, f64)> = HashMap::new();
+        let mut losers = vec![];
+        for (j, d) in decisions.iter().enumerate() {
+            if let Association::Matched(id, inn) = d {
+                match owner.get(id) {
+                    Some(&(_, m)) if m <= inn.mahalanobis => losers.push(j),
+                    Some(&(k, _)) => {
+                        losers.push(k);
+                        owner.insert(*id, (j, inn.mahalanobis));
                     }
-                    any = true;
+                    None => {
+                        owner.insert(*id, (j, inn.mahalanobis));
+                    }
                 }
-                if any && let Some(cA) = Cholesky::new(A) {
-                    let Sigma = cA.inverse();
-                    let mu = Sigma * b;
-                    if let Some(cs) = Cholesky::new(Sigma) {
-                        let n = Vector6::from_iterator((0..6).map(|_| rng.sample::<f64, _>(StandardNormal)));
-                        let delta = mu + cs.l() * n;
-                        if delta.iter().all(|v| v.is_finite()) {
-                            p.pose = perturb(&p.pose, &delta);
-                        }
-                    }
+            }
+        }
+        for j in losers {
+            decisions[j] = Association::Ambiguous;
+        }
+        let confirmed = |p: &Particle, id: u32| p.map.get(id).is_some_and(|l| l.hits >= a.confirm_after);
+        if cfg.proposal == Proposal::Optimal
+            && let Some(cP) = Cholesky::new(*motion_cov)
+        {
+            let mut A = cP.inverse();
+            let mut b = Vector6::zeros();
+            let mut quad = 0.0;
+            let mut log_det_s = 0.0;
+            let mut n = 0usize;
+            for (d, o) in decisions.iter().zip(obs) {
+                let Association::Matched(id, inn) = d else { continue };
+                let Some(lm) = p.map.get(*id).filter(|l| l.hits >= a.confirm_after) else { continue };
+                let Hx = pose_jacobian(&p.pose, &lm.mean_m, o);
+                let S_inv = inn.S_inv();
+                let HtSi = Hx.transpose() * S_inv;
+                A += HtSi * Hx;
+                b += HtSi * inn.nu;
+                quad += inn.mahalanobis;
+                log_det_s += inn.log_det();
+                n += 1;
+            }
+            if n > 0
+                && let Some(cA) = Cholesky::new(A)
+            {
+                let Sigma = cA.inverse();
+                let mu = Sigma * b;
+                let log_det_p: f64 = cP.l().diagonal().iter().map(|d| 2.0 * d.ln()).sum();
+                let log_det_a: f64 = cA.l().diagonal().iter().map(|d| 2.0 * d.ln()).sum();
+                let log_w = -0.5 * (quad - b.dot(&mu) + log_det_s + log_det_p + log_det_a + 3.0 * n as f64 * ln2pi);
+                if log_w.is_finite() {
                     p.log_w += log_w;
+                }
+                if let Some(cs) = Cholesky::new(Sigma) {
+                    let z = Vector6::from_iterator((0..6).map(|_| rng.sample::<f64, _>(StandardNormal)));
+                    let delta = mu + cs.l() * z;
+                    if delta.iter().all(|v| v.is_finite()) {
+                        p.pose = perturb(&p.pose, &delta);
+                    }
                 }
             }
         }
@@ -746,7 +1049,7 @@ impl FastSlam {
             .zip(decisions)
             .map(|(o, d)| match d {
                 Association::Matched(id, inn) => {
-                    if cfg.proposal != Proposal::Optimal && p.map.get(id).is_some_and(|l| l.hits >= a.confirm_after) {
+                    if cfg.proposal != Proposal::Optimal && confirmed(p, id) {
                         p.log_w += inn.log_likelihood();
                     }
                     Decision::Matched(id)
@@ -754,14 +1057,14 @@ impl FastSlam {
                 Association::Ambiguous => Decision::Ambiguous,
                 Association::Rejected => {
                     // Unexplained, like a new landmark: the density at the gate boundary.
-                    let log_det = o.Rz.determinant().max(1e-300).ln();
-                    p.log_w += -0.5 * (a.gate_chi2 + log_det + 3.0 * (2.0 * std::f64::consts::PI).ln());
+                    let log_det = meas_cov(o).determinant().max(1e-300).ln();
+                    p.log_w += -0.5 * (a.gate_chi2 + log_det + 3.0 * ln2pi);
                     Decision::Rejected
                 }
                 Association::New => {
                     // ln p(new): the density at the gate boundary of the observation's own noise.
-                    let log_det = o.Rz.determinant().max(1e-300).ln();
-                    p.log_w += -0.5 * (a.gate_chi2 + log_det + 3.0 * (2.0 * std::f64::consts::PI).ln());
+                    let log_det = meas_cov(o).determinant().max(1e-300).ln();
+                    p.log_w += -0.5 * (a.gate_chi2 + log_det + 3.0 * ln2pi);
                     Decision::New
                 }
             })
@@ -785,11 +1088,24 @@ impl FastSlam {
                 Decision::Matched(id) => {
                     let pose = p.pose;
                     let Some(lm) = p.map.get_mut(id) else { continue };
-                    let Ok(inn) = innovation(&pose, lm, &o.z_m, &o.Rz) else { continue };
+                    let Ok(inn) = observe(&pose, lm, o) else { continue };
                     if lm.hits >= a.confirm_after {
                         out.nis_sum += inn.mahalanobis;
                     }
-                    if ekf::update(lm, &inn, &o.Rz).is_err() {
+                    let updated = match (&o.stereo, lm.inverse_depth.is_some()) {
+                        (Some(st), true) => {
+                            ekf::update_inverse_depth(lm, &(pose * st.body_from_camera), &st.s, &st.cov, 3)
+                        }
+                        (Some(st), false) => {
+                            ekf::update_stereo_iterated(lm, &(pose * st.body_from_camera), &st.s, &st.cov, 4)
+                        }
+                        (None, _) => {
+                            // A Cartesian observation: the Cartesian view takes over.
+                            lm.inverse_depth = None;
+                            ekf::update(lm, &inn, &o.Rz)
+                        }
+                    };
+                    if updated.is_err() {
                         continue;
                     }
                     lm.hits += 1;
@@ -806,7 +1122,16 @@ impl FastSlam {
                 Decision::Rejected => out.rejected += 1,
                 Decision::New => {
                     let id = first_new_id + j as u32;
-                    let lm = init_landmark(&p.pose, &o.z_m, &o.Rz, o.descriptor, frame);
+                    let lm = match &o.stereo {
+                        Some(st) => ekf::init_landmark_inverse_depth(
+                            &(p.pose * st.body_from_camera),
+                            &st.s,
+                            &st.cov,
+                            o.descriptor,
+                            frame,
+                        ),
+                        None => init_landmark(&p.pose, &o.z_m, &o.Rz, o.descriptor, frame),
+                    };
                     out.created.push((id, lm.mean_m));
                     p.map.insert(id, lm);
                     if a.confirm_after <= 1 {
@@ -833,6 +1158,88 @@ impl FastSlam {
         }
         p.provisional = keep;
         out
+    }
+
+    /// Candidates of the stereo observations without a track id (once for all particles):
+    /// every landmark of the local map created within reach of the camera, seen from the best
+    /// particle with its estimate there, whose predicted stereo coordinates pass the duplicate
+    /// gate (with a margin) of the observation's, the covariance widened by this frame's motion
+    /// and the particles' spread; each particle then checks its own candidates exactly.
+    fn stereo_candidates(
+        &self,
+        obs: &[Observation],
+        motion_cov: &Matrix6<f64>,
+        spread: &(Isometry3<f64>, f64, f64),
+        out: &mut [Vec<u32>],
+    ) {
+        let idx: Vec<usize> =
+            (0..obs.len()).filter(|&j| obs[j].track_id.is_none() && obs[j].stereo.is_some()).collect();
+        if idx.is_empty() || self.grid.view.is_empty() {
+            return;
+        }
+        let best = self.best();
+        let pose = best.pose;
+        let mut cov = *motion_cov;
+        for k in 0..3 {
+            cov[(k, k)] += spread.1 * spread.1;
+            cov[(3 + k, 3 + k)] += spread.2 * spread.2;
+        }
+        let gate = self.cfg.association.duplicate_gate_chi2 * 1.5;
+        // Observations by camera (one camera in practice) and their pose uncertainty in s.
+        let mut by_camera: Vec<(Isometry3<f64>, Vec<usize>)> = vec![];
+        for &j in &idx {
+            let cam = obs[j].stereo.as_ref().expect("filtered").body_from_camera;
+            match by_camera.iter_mut().find(|(c, _)| c == &cam) {
+                Some((_, v)) => v.push(j),
+                None => by_camera.push((cam, vec![j])),
+            }
+        }
+        for (cam, js) in by_camera {
+            let world_from_cam = pose * cam;
+            // Observation s with their covariance plus the pose term.
+            let obs_s: Vec<(Vector3<f64>, Matrix3<f64>)> = js
+                .iter()
+                .map(|&j| {
+                    let o = &obs[j];
+                    let st = o.stereo.as_ref().expect("filtered");
+                    let l = pose.transform_point(&o.z_m.into()).coords;
+                    let Hx = pose_jacobian(&pose, &l, o);
+                    let q = Hx * cov * Hx.transpose();
+                    (st.s, st.cov + (q + q.transpose()) * 0.5)
+                })
+                .collect();
+            let reach = js
+                .iter()
+                .map(|&j| obs[j].z_m.norm() + 3.0 * obs[j].Rz.trace().sqrt())
+                .fold(0.0f64, f64::max)
+                .min(MAX_VIEW_M)
+                + VIEW_CELL_M * 3f64.sqrt();
+            let grid = SGrid::new(&obs_s);
+            let max_var = obs_s.iter().fold([0.0f64; 2], |m, (_, c)| [m[0].max(c[(0, 0)]), m[1].max(c[(1, 1)])]);
+            let centre = world_from_cam.translation.vector;
+            for (key, ids) in &self.grid.view {
+                let c = Vector3::new(key[0] as f64 + 0.5, key[1] as f64 + 0.5, key[2] as f64 + 0.5) * VIEW_CELL_M;
+                if (c - centre).norm() > reach {
+                    continue;
+                }
+                for &id in ids {
+                    let Some(lm) = best.map.get(id) else { continue };
+                    let Some((s, Sl)) = predict_stereo(lm, &world_from_cam) else { continue };
+                    let k = gate.sqrt();
+                    let ra = k * (Sl[(0, 0)] + max_var[0]).sqrt();
+                    let rb = k * (Sl[(1, 1)] + max_var[1]).sqrt();
+                    grid.query(s[0], s[1], ra, rb, |i| {
+                        let (so, co) = &obs_s[i];
+                        let nu = so - s;
+                        if let Some(ch) = Chol3::new(&(Sl + co))
+                            && ch.mahalanobis(&nu) <= gate
+                        {
+                            out[js[i]].push(id);
+                        }
+                    });
+                }
+            }
+        }
     }
 
     /// The best particle's pose and the largest distance (m) and rotation (rad) of any particle
@@ -901,7 +1308,13 @@ impl FastSlam {
         }
         PoseEstimate {
             map_from_body: Isometry3::from_parts(Translation3::from(p_mean), r_mean),
-            covariance: cov + self.last_motion_cov + self.segment_motion_cov * DRIFT_FRACTION,
+            covariance: {
+                // The drift in the reported convention (rotation error in the body frame).
+                let Rt = r_mean.inverse().to_rotation_matrix().into_inner();
+                let J = blockdiag(&Matrix3::identity(), &Rt);
+                let c = cov + J * self.drift * J.transpose();
+                (c + c.transpose()) * 0.5
+            },
         }
     }
 
@@ -923,6 +1336,7 @@ impl FastSlam {
                     descriptor: *descriptor,
                     hits: self.cfg.association.confirm_after.max(1),
                     last_seen_frame: self.frame,
+                    inverse_depth: None,
                 },
             );
             self.grid.insert(id, *mean_m, cov_m2.trace(), self.cfg.association.duplicate_gate_chi2);
@@ -949,21 +1363,16 @@ impl FastSlam {
             p.confirmed = 0;
         }
         self.grid.cells.clear();
+        self.grid.view.clear();
         self.tracks.clear();
         self.segment += 1;
-        self.segment_motion_cov = Matrix6::zeros();
+        self.drift = Matrix6::zeros();
         self.weak_frames = 0;
         self.segment_frames = 0;
         self.last_mean = None;
         self.motion_cov = Matrix6::zeros();
     }
 }
-
-/// Share of the motion noise accumulated over a local map that the reported pose covariance adds
-/// to the particle spread. The spread alone cannot show the drift that particles and their maps
-/// share, and is far too confident (mean NEES ≈ 3·10⁴ on the simulator). Adding the whole
-/// dead-reckoning amount brings it to ≈ 54, still optimistic, so the full share is used.
-pub const DRIFT_FRACTION: f64 = 1.0;
 
 /// A landmark of a prior map: mean (m), covariance (m²), descriptor.
 pub type PriorLandmark = (Vector3<f64>, Matrix3<f64>, Option<[u8; 32]>);
@@ -1031,7 +1440,7 @@ mod tests {
     #[test]
     fn candidates_keep_every_landmark_that_could_pass_the_duplicate_gate() {
         let chi2 = 21.1;
-        let mut g = Grid { cell_m: 3.0, cells: HashMap::new() };
+        let mut g = Grid { cell_m: 3.0, cells: HashMap::new(), view: HashMap::new() };
         // Same distance (2 m) from the query, different initial covariances.
         g.insert(1, Vector3::new(2.0, 0.0, 0.0), 0.003, chi2); // precise: reach 0.58 m
         g.insert(2, Vector3::new(0.0, 2.0, 0.0), 0.3, chi2); // far stereo point: reach 5.8 m

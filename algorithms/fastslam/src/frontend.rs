@@ -41,6 +41,7 @@ use rand_xoshiro::Xoshiro256PlusPlus;
 use serde::{Deserialize, Serialize};
 
 use crate::filter::Observation;
+use crate::sym3::Chol3;
 
 /// Settings of the stereo front end.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -50,7 +51,8 @@ pub struct FrontEndConfig {
     pub inlier_chi2: f64,
     /// Fewest inliers of an accepted motion.
     pub min_inliers: usize,
-    /// Fewest inliers as a fraction of the smaller frame's usable points.
+    /// Fewest inliers as a fraction of the smaller frame's usable points (and of the nearer half
+    /// of the previous frame's points).
     pub min_inlier_fraction: f64,
     /// Largest translation between two frames the prior-free search considers, m.
     pub max_translation_m: f64,
@@ -80,7 +82,7 @@ impl Default for FrontEndConfig {
         Self {
             inlier_chi2: 11.34,
             min_inliers: 12,
-            min_inlier_fraction: 0.15,
+            min_inlier_fraction: 0.25,
             max_translation_m: 2.5,
             max_rotation_deg: 15.0,
             search_max_sigma_m: 0.5,
@@ -272,7 +274,7 @@ impl Pt {
         let J = stereo_jacobian(&p);
         let Cs = J * C * J.transpose();
         let Cs = (Cs + Cs.transpose()) * 0.5;
-        Cholesky::new(Cs)?;
+        Chol3::new(&Cs)?;
         Some(Self { p, C, s: stereo_coords(&p), Cs, sigma_m: C.trace().max(0.0).sqrt(), track })
     }
 }
@@ -372,8 +374,7 @@ fn residual(T: &Isometry3<f64>, P: &Pt, Q: &Pt) -> (Vector3<f64>, Matrix3<f64>, 
 
 /// νᵀ·S⁻¹·ν, or `None` when S is not positive definite.
 fn mahalanobis(nu: &Vector3<f64>, S: &Matrix3<f64>) -> Option<f64> {
-    let c = Cholesky::new(*S)?;
-    Some(nu.dot(&c.solve(nu)))
+    Some(Chol3::new(S)?.mahalanobis(nu))
 }
 
 /// Candidate pairs (prev index, cur index) with their normalised squared residual.
@@ -426,6 +427,22 @@ impl FrontEnd {
         result
     }
 
+    /// A motion is accepted with at least `needed` inliers, of which enough come from the nearer
+    /// half of the previous frame's points: far points agree with any translation once the
+    /// rotation is right, and in a scene with many of them a wrong translation can otherwise
+    /// gather enough support.
+    fn supported(&self, prev: &Frame, inliers: &Pairs, needed: usize) -> bool {
+        if inliers.len() < needed {
+            return false;
+        }
+        let mut w: Vec<f64> = prev.pts.iter().map(|p| p.s.z).collect();
+        w.sort_by(f64::total_cmp);
+        let median = w[w.len() / 2];
+        let near = prev.pts.iter().filter(|p| p.s.z >= median).count();
+        let near_inliers = inliers.iter().filter(|(i, _, _)| prev.pts[*i as usize].s.z >= median).count();
+        near_inliers as f64 >= self.cfg.min_inlier_fraction * near as f64
+    }
+
     fn needed(&self, prev: &Frame, cur: &Frame) -> usize {
         let smaller = prev.len().min(cur.len()) as f64;
         self.cfg.min_inliers.max((self.cfg.min_inlier_fraction * smaller).ceil() as usize)
@@ -457,34 +474,47 @@ impl FrontEnd {
                 // Track ids are given: refine on them (a wrong id is an outlier of the kernel).
                 let (T, inl) = self.refine(prev, cur, &pairs, T, 12);
                 best_inliers = best_inliers.max(inl.len());
-                if inl.len() >= needed {
+                if self.supported(prev, &inl, needed) {
                     return self.finish(prev, cur, T, &inl, Method::TrackIds, cands, hypotheses);
                 }
             }
         }
-        // 2. Guided by the constant-velocity prior.
+        // 2. Guided by the constant-velocity prior; when that finds no consensus, by the same
+        //    velocity without its turn (a turn that ends) and by standing still (a stop), before
+        //    the costly prior-free search.
         if let Some((v, w)) = self.velocity {
             last_method = "guided";
             let dt = dt_s.max(0.0);
-            let motion = Isometry3::new(v * dt, w * dt); // prev_from_cur
-            let T0 = motion.inverse();
-            let mut prior = Matrix6::zeros();
             let (st, sr) = (self.cfg.prior_translation_sigma_m, self.cfg.prior_rotation_sigma_deg.to_radians());
+            let mut prior = Matrix6::zeros();
             for k in 0..3 {
                 prior[(k, k)] = st * st;
                 prior[(3 + k, 3 + k)] = sr * sr;
             }
-            // The prior is one rough hypothesis: refine it on the points it agrees with.
+            let mut priors = vec![(v, w)];
+            if (w * dt).norm() > sr {
+                priors.push((v, Vector3::zeros()));
+            }
+            if (v * dt).norm() > 2.0 * st {
+                priors.push((Vector3::zeros(), Vector3::zeros()));
+            }
             let all: Vec<u32> = (0..prev.pts.len() as u32).collect();
-            let (_, in_gate) = self.matches(prev, cur, &grid, &T0, Some(&prior), &all);
-            let cands = in_gate as f64 / prev.len().max(1) as f64;
-            hypotheses += 1;
-            if let Some((T, cov)) = self.local_optimum(prev, cur, &grid, T0, prior, &all)
-                && let Some((T, inl)) = self.polish(prev, cur, &grid, T, &cov)
-            {
-                best_inliers = best_inliers.max(inl.len());
-                if inl.len() >= needed {
-                    return self.finish(prev, cur, T, &inl, Method::Guided, cands, hypotheses);
+            let mut cands = f64::NAN;
+            for (v, w) in priors {
+                let T0 = Isometry3::new(v * dt, w * dt).inverse(); // cur_from_prev
+                if cands.is_nan() {
+                    let (_, in_gate) = self.matches(prev, cur, &grid, &T0, Some(&prior), &all);
+                    cands = in_gate as f64 / prev.len().max(1) as f64;
+                }
+                hypotheses += 1;
+                // The prior is one rough hypothesis: refine it on the points it agrees with.
+                if let Some((T, cov)) = self.local_optimum(prev, cur, &grid, T0, prior, &all)
+                    && let Some((T, inl)) = self.polish(prev, cur, &grid, T, &cov)
+                {
+                    best_inliers = best_inliers.max(inl.len());
+                    if self.supported(prev, &inl, needed) {
+                        return self.finish(prev, cur, T, &inl, Method::Guided, cands, hypotheses);
+                    }
                 }
             }
         }
@@ -496,7 +526,7 @@ impl FrontEnd {
             && let Some((T, inl)) = self.polish(prev, cur, &grid, T, &cov)
         {
             best_inliers = best_inliers.max(inl.len());
-            if inl.len() >= needed {
+            if self.supported(prev, &inl, needed) {
                 return self.finish(prev, cur, T, &inl, Method::Search, cands, hypotheses);
             }
         }
@@ -730,7 +760,7 @@ impl FrontEnd {
             let mut used = 0;
             for &(i, j, _) in pairs {
                 let (nu, S, Jx) = residual(&T, &prev.pts[i as usize], &cur.pts[j as usize]);
-                let Some(c) = Cholesky::new(S) else { continue };
+                let Some(c) = Chol3::new(&S) else { continue };
                 let Sinv_nu = c.solve(&nu);
                 let m = nu.dot(&Sinv_nu);
                 if !m.is_finite() || m > cut(it) {
@@ -862,15 +892,29 @@ impl FrontEnd {
         let mut hyps = 0;
         let mut cand_sum = 0usize;
         let mut cand_n = 0usize;
-        for _ in 0..self.cfg.search_trials {
-            // A well-spread base triple of seeds.
+        // Trials until one motion is confidently supported; a second round when the first found
+        // none with enough support (a rare unlucky draw should not cost a frame).
+        // The support a motion needs on the `full` sample, with a margin.
+        let supported = (1.5 * self.needed(prev, cur) as f64 * full.len() as f64 / prev.len().max(1) as f64) as usize;
+        for trial in 0..2 * self.cfg.search_trials {
+            if trial == self.cfg.search_trials && best.as_ref().is_some_and(|(b, _, _)| *b >= supported) {
+                break;
+            }
+            // A well-spread base triple of seeds, one that fixes a motion precisely enough for
+            // its local optimisation to start inside the right basin (a motion from three
+            // points is as good as their spread against their noise).
             let mut tri = None;
-            for _ in 0..30 {
+            for _ in 0..60 {
                 let t = [0, 1, 2].map(|_| seeds[self.rng.random_range(0..seeds.len())]);
                 let [a, b, c] = t.map(|i| prev.pts[i as usize].p);
                 let (ab, ac) = (b - a, c - a);
                 let min_side = ab.norm().min(ac.norm()).min((c - b).norm());
-                if min_side >= 1.0 && ab.cross(&ac).norm() / ab.norm().max(ac.norm()) >= 0.5 {
+                if min_side < 1.0 || ab.cross(&ac).norm() / ab.norm().max(ac.norm()) < 0.5 {
+                    continue;
+                }
+                let conditioned = hypothesis_covariance(prev, prev, &t.map(|i| (i, i)), &Isometry3::identity())
+                    .is_some_and(|c| c.fixed_view::<3, 3>(3, 3).trace() <= 3.0 * SEED_ROTATION_SIGMA_RAD.powi(2));
+                if conditioned {
                     tri = Some(t);
                     break;
                 }
@@ -981,9 +1025,9 @@ fn gn_covariance(prev: &Frame, cur: &Frame, T: &Isometry3<f64>, pairs: &Pairs) -
     let mut chi2 = 0.0;
     for &(i, j, _) in pairs {
         let (nu, S, Jx) = residual(T, &prev.pts[i as usize], &cur.pts[j as usize]);
-        let Some(c) = Cholesky::new(S) else { continue };
+        let Some(c) = Chol3::new(&S) else { continue };
         H += Jx.transpose() * c.inverse() * Jx;
-        chi2 += nu.dot(&c.solve(&nu));
+        chi2 += c.mahalanobis(&nu);
     }
     let dof = (3 * pairs.len()).saturating_sub(6).max(1) as f64;
     // The gate truncates the χ² distribution: inliers of a right model average E[m | m ≤ gate]
@@ -992,6 +1036,9 @@ fn gn_covariance(prev: &Frame, cur: &Frame, T: &Isometry3<f64>, pairs: &Pairs) -
     let cov = Cholesky::new(H)?.inverse() * chi2_per_dof.max(1.0);
     Some(((cov + cov.transpose()) * 0.5, chi2_per_dof))
 }
+
+/// Largest rotation σ of a base triple of the prior-free search (from its geometry), rad.
+const SEED_ROTATION_SIGMA_RAD: f64 = 0.025;
 
 /// A hypothesis precise enough to score: translation σ ≤ 0.5 m, rotation σ ≤ 3° (traces).
 fn plausible(cov: &Matrix6<f64>) -> bool {
@@ -1039,7 +1086,7 @@ fn hypothesis_covariance(prev: &Frame, cur: &Frame, pairs: &[(u32, u32)], T: &Is
     for &(i, j) in pairs {
         let (P, Q) = (&prev.pts[i as usize], &cur.pts[j as usize]);
         let p = R * P.p + T.translation.vector;
-        let W = Cholesky::new(Q.C + R * P.C * R.transpose())?.inverse();
+        let W = Chol3::new(&(Q.C + R * P.C * R.transpose()))?.inverse();
         let mut J = Matrix3x6::zeros();
         J.fixed_view_mut::<3, 3>(0, 0).copy_from(&Matrix3::identity());
         J.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-p.cross_matrix()));

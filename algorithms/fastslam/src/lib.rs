@@ -8,8 +8,9 @@ pub mod ekf;
 pub mod filter;
 pub mod frontend;
 pub mod map;
+pub mod sym3;
 
 pub use camera::{CameraOnly, CameraOnlyStats, MotionReport};
 pub use config::{AssociationConfig, FastSlamConfig, Proposal, SegmentConfig};
-pub use filter::{FastSlam, FrameReport, Observation, PoseEstimate, PriorLandmark, SegmentReason};
+pub use filter::{FastSlam, FrameReport, FrameTiming, Observation, PoseEstimate, PriorLandmark, SegmentReason};
 pub mod eval;

@@ -13,6 +13,7 @@ fn obs(p: [f64; 3], sigma: f64, desc: Option<u8>) -> Observation {
         Rz: Matrix3::identity() * sigma * sigma,
         descriptor: desc.map(|d| [d; 32]),
         track_id: None,
+        stereo: None,
     }
 }
 
