@@ -15,8 +15,11 @@ mod types;
 pub use layout::{FieldLayout, TypeLayout, WireType};
 pub use types::*;
 
-/// Version of the wire contract; bumped (with the `v1` in type names) on any layout change.
-pub const WIRE_VERSION: u32 = 1;
+/// Version of the wire contract, bumped on any change. A type whose layout changed carries the
+/// new version in its type name (`slam_pipeline::v2::SlamDiagnostics`); the others keep theirs.
+/// Version 2: `SlamDiagnostics` grew (motion source, registration, candidates, NIS), and the
+/// `StereoObservation` flag `STEREO_HAS_TRACK_ID` (no layout change).
+pub const WIRE_VERSION: u32 = 2;
 
 /// Layouts of every wire type, in documentation order.
 pub fn all_layouts() -> Vec<TypeLayout> {

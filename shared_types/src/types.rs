@@ -54,6 +54,9 @@ wire_type! {
 pub const STEREO_HAS_DESCRIPTOR: u32 = 1;
 /// `StereoObservation::flags` bit: `pixels_ul_ur_v` is valid.
 pub const STEREO_HAS_PIXELS: u32 = 2;
+/// `StereoObservation::flags` bit: `source_id` is the front end's feature track id (the same id
+/// in two frames is the same landmark), which FastSLAM then associates by (wire version 2).
+pub const STEREO_HAS_TRACK_ID: u32 = 4;
 
 wire_type! {
     /// One triangulated stereo landmark observation (SPEC §2), an element of the slice on
@@ -66,11 +69,13 @@ wire_type! {
         pub covariance_cam_m2: [f64; 9],
         /// Pixel triple (uL, uR, v) in the rectified pair, px; valid when flags has STEREO_HAS_PIXELS.
         pub pixels_ul_ur_v: [f64; 3],
-        /// The data source's own landmark id (for evaluation), u64::MAX when unknown.
+        /// The data source's own landmark id, u64::MAX when unknown; with flag
+        /// `STEREO_HAS_TRACK_ID` a feature track id the consumer may associate by, else for
+        /// evaluation only.
         pub source_id: u64,
         /// 32-byte binary descriptor (e.g. ORB), valid when flags has STEREO_HAS_DESCRIPTOR.
         pub descriptor: [u8; 32],
-        /// Bit set: 1 = descriptor valid, 2 = pixels valid.
+        /// Bit set: 1 = descriptor valid, 2 = pixels valid, 4 = `source_id` is a track id.
         pub flags: u32,
         /// Zero.
         pub _reserved: u32,
@@ -236,9 +241,27 @@ pub const SEGMENT_REASON_POSE_UNCERTAINTY: u32 = 2;
 /// `SlamDiagnostics::new_segment_reason`: requested by a control command.
 pub const SEGMENT_REASON_REQUESTED: u32 = 3;
 
+/// `SlamDiagnostics::motion_source`: odometry.
+pub const MOTION_ODOMETRY: u32 = 0;
+/// `SlamDiagnostics::motion_source`: the constant-velocity model (configured).
+pub const MOTION_CONSTANT_VELOCITY: u32 = 1;
+/// `SlamDiagnostics::motion_source`: the stereo front end, by feature track ids.
+pub const MOTION_REGISTRATION_TRACK_IDS: u32 = 2;
+/// `SlamDiagnostics::motion_source`: the stereo front end, around its constant-velocity prior.
+pub const MOTION_REGISTRATION_GUIDED: u32 = 3;
+/// `SlamDiagnostics::motion_source`: the stereo front end, by its prior-free search.
+pub const MOTION_REGISTRATION_SEARCH: u32 = 4;
+/// `SlamDiagnostics::motion_source`: the stereo front end found no motion; constant velocity
+/// was used instead.
+pub const MOTION_REGISTRATION_FAILED: u32 = 5;
+/// `SlamDiagnostics::motion_source`: the first frame (nothing to register against).
+pub const MOTION_FIRST_FRAME: u32 = 6;
+
 wire_type! {
-    /// What one FastSLAM frame did (`pipeline/slam/diagnostics`).
-    type_name = "slam_pipeline::v1::SlamDiagnostics", size = 48;
+    /// What one FastSLAM frame did (`pipeline/slam/diagnostics`). Version 2: the motion source,
+    /// the front end's registration, association candidates, rejected attribute matches and the
+    /// landmark updates' NIS.
+    type_name = "slam_pipeline::v2::SlamDiagnostics", size = 88;
     pub struct SlamDiagnostics {
         /// Local map (segment) after this frame.
         pub segment_id: u32,
@@ -258,8 +281,23 @@ wire_type! {
         pub resampled: u32,
         /// Effective sample size before resampling.
         pub n_eff: f64,
-        /// Time the filter update took, ms.
+        /// Time the filter update took (front end included), ms.
         pub update_ms: f64,
+        /// How the particles were moved to this frame (`MOTION_*`).
+        pub motion_source: u32,
+        /// Inliers of the front end's registration (0 without one).
+        pub registration_inliers: u32,
+        /// Feature-track matches left out because they failed the χ² gate (best particle).
+        pub rejected: u32,
+        /// Zero.
+        pub _reserved: u32,
+        /// Association candidates per observation.
+        pub candidates_per_observation: f64,
+        /// Mean normalised innovation squared of the landmark updates (≈ 3 when consistent;
+        /// NaN without updates).
+        pub mean_nis: f64,
+        /// Time of the stereo front end, ms (0 without one).
+        pub frontend_ms: f64,
     }
 }
 

@@ -117,7 +117,7 @@ impl Default for FastSlamConfig {
     fn default() -> Self {
         Self {
             particles: 100,
-            proposal: Proposal::Motion,
+            proposal: Proposal::Optimal,
             resample_fraction: 0.5,
             process_position_sigma: 0.02,
             process_rotation_sigma: 0.002,

@@ -198,7 +198,7 @@ pub fn innovation_stereo(
 ) -> Result<Innovation, FilterError> {
     let Rt = world_from_camera.rotation.inverse().to_rotation_matrix().into_inner();
     let p = Rt * (lm.mean_m - world_from_camera.translation.vector);
-    if !(p.z > MIN_STEREO_DEPTH_M) {
+    if p.z.is_nan() || p.z <= MIN_STEREO_DEPTH_M {
         return Err(FilterError::BehindCamera);
     }
     let HL = stereo_jacobian(&p) * Rt;

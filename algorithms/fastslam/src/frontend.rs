@@ -380,6 +380,10 @@ fn mahalanobis(nu: &Vector3<f64>, S: &Matrix3<f64>) -> Option<f64> {
 /// Candidate pairs (prev index, cur index) with their normalised squared residual.
 type Pairs = Vec<(u32, u32, f64)>;
 
+/// The prior-free search's best motion with its covariance, the hypotheses scored and the
+/// candidates per seed point.
+type SearchResult = (Option<(Isometry3<f64>, Matrix6<f64>)>, usize, f64);
+
 /// The stereo front end: keeps the previous frame and the last motion.
 pub struct FrontEnd {
     cfg: FrontEndConfig,
@@ -824,12 +828,7 @@ impl FrontEnd {
     }
 
     /// The prior-free search: (best motion, hypotheses scored, candidates per seed point).
-    fn search(
-        &mut self,
-        prev: &Frame,
-        cur: &Frame,
-        grid: &AbGrid,
-    ) -> (Option<(Isometry3<f64>, Matrix6<f64>)>, usize, f64) {
+    fn search(&mut self, prev: &Frame, cur: &Frame, grid: &AbGrid) -> SearchResult {
         let cfg = &self.cfg;
         // Seeds: the best-triangulated quarter of the previous points (at least 24), within
         // `search_max_sigma_m`: precise points make the rigidity test selective.

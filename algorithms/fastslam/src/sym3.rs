@@ -19,20 +19,20 @@ impl Chol3 {
     #[inline]
     pub fn new(s: &Matrix3<f64>) -> Option<Self> {
         let a00 = s[(0, 0)];
-        if !(a00 > 0.0) {
+        if a00.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
             return None;
         }
         let l00 = a00.sqrt();
         let l10 = s[(1, 0)] / l00;
         let l20 = s[(2, 0)] / l00;
         let d1 = s[(1, 1)] - l10 * l10;
-        if !(d1 > 0.0) {
+        if d1.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
             return None;
         }
         let l11 = d1.sqrt();
         let l21 = (s[(2, 1)] - l20 * l10) / l11;
         let d2 = s[(2, 2)] - l20 * l20 - l21 * l21;
-        if !(d2 > 0.0) {
+        if d2.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
             return None;
         }
         Some(Self { l: [l00, l10, l11, l20, l21, d2.sqrt()] })

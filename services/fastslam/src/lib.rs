@@ -7,12 +7,13 @@ use std::collections::{BTreeMap, VecDeque};
 pub mod journal;
 
 use fastslam::eval::TrajectorySample;
-use fastslam::{FastSlam, FastSlamConfig, FrameReport, Observation};
+use fastslam::frontend::{FrontEndConfig, Method, RegistrationError};
+use fastslam::{CameraOnly, FastSlam, FastSlamConfig, FrameReport, MotionReport, Observation};
 use geometry::ProcessInput;
 use nalgebra::{Matrix3, Vector3};
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
-use shared_types::{OdometryInput, STEREO_HAS_DESCRIPTOR, StereoObservation};
+use shared_types::{OdometryInput, STEREO_HAS_DESCRIPTOR, STEREO_HAS_TRACK_ID, StereoObservation};
 
 /// How the particles are predicted between frames.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -23,6 +24,9 @@ pub enum MotionModel {
     Odometry,
     /// Camera only: constant velocity (no odometry stream needed).
     ConstantVelocity,
+    /// Camera only: the motion between consecutive stereo frames registered by the stereo front
+    /// end (`frontend` table), constant velocity for a frame it finds no motion for.
+    Stereo,
 }
 
 /// The stereo camera's mounting on the body.
@@ -54,6 +58,8 @@ pub struct FastSlamSettings {
     pub motion_model: MotionModel,
     /// The camera extrinsic.
     pub camera: CameraMount,
+    /// The stereo front end (`motion_model = "stereo"`).
+    pub frontend: FrontEndConfig,
     /// Rate of the best particle's landmark map on `pipeline/slam/landmarks`, Hz (0 = only at the end).
     pub landmarks_rate_hz: f64,
     /// Ground truth to evaluate against at the end (TUM; relative to the output directory);
@@ -67,6 +73,7 @@ impl Default for FastSlamSettings {
             filter: FastSlamConfig::default(),
             motion_model: MotionModel::Odometry,
             camera: CameraMount::default(),
+            frontend: FrontEndConfig::default(),
             landmarks_rate_hz: 1.0,
             ground_truth: "ground_truth.tum".into(),
         }
@@ -77,6 +84,9 @@ impl ProcessSettings for FastSlamSettings {
     fn validate(&self, key: &str, issues: &mut Issues) {
         for (k, m) in self.filter.validate() {
             issues.push(format!("{key}.filter.{k}"), m);
+        }
+        for (k, m) in self.frontend.validate() {
+            issues.push(format!("{key}.frontend.{k}"), m);
         }
         issues.check(
             self.landmarks_rate_hz.is_finite() && self.landmarks_rate_hz >= 0.0,
@@ -122,7 +132,8 @@ pub struct PendingFrame {
 }
 
 /// Converts a wire frame; NaN or a covariance that is not positive definite drops that
-/// observation (counted), never the frame.
+/// observation (counted), never the frame. With the flag `STEREO_HAS_TRACK_ID` an observation's
+/// `source_id` becomes its feature track id.
 pub fn frame_from_wire(
     stamp_ns: u64,
     origin_ns: u64,
@@ -139,7 +150,10 @@ pub fn frame_from_wire(
             desc,
             body_from_camera,
         ) {
-            Ok(ob) => observations.push(ob),
+            Ok(mut ob) => {
+                ob.track_id = (o.flags & STEREO_HAS_TRACK_ID != 0).then_some(o.source_id);
+                observations.push(ob)
+            }
             Err(_) => rejected += 1,
         }
     }
@@ -168,6 +182,8 @@ pub struct SlamState {
     pub rejected_observations: usize,
     /// Odometry messages dropped as invalid.
     pub rejected_odometry: usize,
+    /// The stereo front end (`MotionModel::Stereo`).
+    pub camera_only: Option<CameraOnly>,
 }
 
 /// A processed frame.
@@ -178,12 +194,50 @@ pub struct Processed {
     pub origin_ns: u64,
     /// The filter's report.
     pub report: FrameReport,
+    /// The stereo front end's motion (`MotionModel::Stereo`).
+    pub motion: Option<MotionReport>,
+    /// Time of the front end, ms.
+    pub frontend_ms: f64,
+}
+
+impl Processed {
+    /// The `SlamDiagnostics::motion_source` code of this frame.
+    pub fn motion_source(&self, model: MotionModel) -> u32 {
+        match (&self.motion, model) {
+            (_, MotionModel::Odometry) => shared_types::MOTION_ODOMETRY,
+            (_, MotionModel::ConstantVelocity) => shared_types::MOTION_CONSTANT_VELOCITY,
+            (Some(m), MotionModel::Stereo) => match &m.registration {
+                _ if m.fallback => shared_types::MOTION_REGISTRATION_FAILED,
+                Ok(r) => match r.method {
+                    Method::TrackIds => shared_types::MOTION_REGISTRATION_TRACK_IDS,
+                    Method::Guided => shared_types::MOTION_REGISTRATION_GUIDED,
+                    Method::Search => shared_types::MOTION_REGISTRATION_SEARCH,
+                },
+                Err(RegistrationError::FirstFrame) => shared_types::MOTION_FIRST_FRAME,
+                Err(_) => shared_types::MOTION_REGISTRATION_FAILED,
+            },
+            (None, MotionModel::Stereo) => shared_types::MOTION_FIRST_FRAME,
+        }
+    }
 }
 
 impl SlamState {
-    /// A new state around a filter.
+    /// A new state around a filter; `frontend` (with the camera mounting) for
+    /// `MotionModel::Stereo`.
     pub fn new(filter: FastSlam, motion: MotionModel) -> Self {
+        Self::with_frontend(filter, motion, FrontEndConfig::default(), nalgebra::Isometry3::identity())
+    }
+
+    /// A new state around a filter, with the stereo front end's settings and the camera mounting
+    /// `body_from_camera` (used with `MotionModel::Stereo`).
+    pub fn with_frontend(
+        filter: FastSlam,
+        motion: MotionModel,
+        frontend: FrontEndConfig,
+        body_from_camera: nalgebra::Isometry3<f64>,
+    ) -> Self {
         Self {
+            camera_only: (motion == MotionModel::Stereo).then(|| CameraOnly::new(frontend, body_from_camera)),
             filter,
             motion,
             odometry: VecDeque::new(),
@@ -225,7 +279,7 @@ impl SlamState {
             && let Some(frame) = self.frames.front()
         {
             let ready = flush
-                || self.motion == MotionModel::ConstantVelocity
+                || self.motion != MotionModel::Odometry
                 || self.newest_odometry_ns.is_some_and(|s| s >= frame.stamp_ns);
             if !ready {
                 break;
@@ -241,7 +295,16 @@ impl SlamState {
                     .unwrap_or(frame.stamp_ns as f64 / 1e9);
                 self.segment_origins_s.insert(0, first);
             }
+            let mut motion = None;
+            let mut frontend_ms = 0.0;
             match self.motion {
+                MotionModel::Stereo => {
+                    let dt = self.last_frame_ns.map_or(0.0, |last| frame.stamp_ns.saturating_sub(last) as f64 / 1e9);
+                    let t0 = std::time::Instant::now();
+                    let cam = self.camera_only.as_mut().expect("stereo motion model has a front end");
+                    motion = Some(cam.predict(&mut self.filter, &frame.observations, dt));
+                    frontend_ms = t0.elapsed().as_secs_f64() * 1e3;
+                }
                 MotionModel::Odometry => {
                     while self.odometry.front().is_some_and(|(s, _, _)| *s <= frame.stamp_ns) {
                         let (_, u, var) = self.odometry.pop_front().expect("front exists");
@@ -273,7 +336,7 @@ impl SlamState {
                 covariance: e.covariance,
             });
             self.last_frame_ns = Some(frame.stamp_ns);
-            out.push(Processed { stamp_ns: frame.stamp_ns, origin_ns: frame.origin_ns, report });
+            out.push(Processed { stamp_ns: frame.stamp_ns, origin_ns: frame.origin_ns, report, motion, frontend_ms });
         }
         out
     }

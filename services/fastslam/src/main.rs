@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 use clap::Parser;
+use fastslam::frontend::RegistrationError;
 use fastslam::{FastSlam, SegmentReason};
 use fastslam_process::journal::Journal;
 use fastslam_process::{FastSlamSettings, SlamState, frame_from_wire};
@@ -63,12 +64,37 @@ fn reason_code(r: &Option<SegmentReason>) -> u32 {
     }
 }
 
+/// Sums over the run for summary.json.
+#[derive(Default)]
+struct RunStats {
+    frames: u64,
+    nis_sum: f64,
+    nis_frames: u64,
+    candidates_sum: f64,
+    rejected: u64,
+    frontend_ms_sum: f64,
+}
+
+impl RunStats {
+    fn add(&mut self, r: &fastslam::FrameReport, frontend_ms: f64) {
+        self.frames += 1;
+        if r.mean_nis.is_finite() {
+            self.nis_sum += r.mean_nis;
+            self.nis_frames += 1;
+        }
+        self.candidates_sum += r.candidates_per_observation;
+        self.rejected += r.rejected as u64;
+        self.frontend_ms_sum += frontend_ms;
+    }
+}
+
 fn finish(
     st: &SlamState,
     settings: &FastSlamSettings,
     out_dir: &std::path::Path,
     name: &str,
     update_ms: &[f64],
+    stats: &RunStats,
 ) -> anyhow::Result<()> {
     std::fs::create_dir_all(out_dir)?;
     let mut tum = String::new();
@@ -95,7 +121,32 @@ fn finish(
         "update_ms": { "p50": pct(0.5), "p99": pct(0.99), "max": pct(1.0) },
         "rejected_observations": st.rejected_observations,
         "rejected_odometry": st.rejected_odometry,
+        "motion_model": settings.motion_model,
+        "mean_nis": if stats.nis_frames > 0 { stats.nis_sum / stats.nis_frames as f64 } else { f64::NAN },
+        "candidates_per_observation": stats.candidates_sum / stats.frames.max(1) as f64,
+        "rejected_track_matches": stats.rejected,
     }});
+    if let Some(cam) = &st.camera_only {
+        let c = cam.stats();
+        part["slam"]["frontend"] = serde_json::json!({
+            "frames": c.frames,
+            "by_track_ids": c.by_track_ids,
+            "guided": c.guided,
+            "search": c.search,
+            "failed": c.failed,
+            "mean_inliers": c.inliers as f64 / (c.by_track_ids + c.guided + c.search).max(1) as f64,
+            "mean_ms": stats.frontend_ms_sum / stats.frames.max(1) as f64,
+        });
+        if c.failed > 0 {
+            tracing::warn!(
+                failed = c.failed,
+                frames = c.frames,
+                "the stereo front end found no motion for {} of {} frames (constant velocity instead)",
+                c.failed,
+                c.frames
+            );
+        }
+    }
     let gt_path = out_dir.join(&settings.ground_truth);
     match fastslam::eval::read_tum(&gt_path) {
         Ok(truth) => {
@@ -104,12 +155,16 @@ fn finish(
             let n: usize = scores.iter().filter(|s| s.nees.is_finite()).map(|s| s.samples).sum();
             let nees = scores.iter().filter(|s| s.nees.is_finite()).map(|s| s.nees * s.samples as f64).sum::<f64>()
                 / n.max(1) as f64;
+            let nees_position = fastslam::eval::weighted_mean(&scores, |s| s.nees_position);
+            let in95 = fastslam::eval::weighted_mean(&scores, |s| s.nees_position_in_95);
             tracing::info!(
-                "ATE {ate:.3} m over {} segment(s) (aligned per segment), mean NEES {nees:.2}",
-                scores.len()
+                "ATE {ate:.3} m over {} segment(s) (aligned per segment), mean NEES {nees:.2}, position NEES {nees_position:.2} ({:.0}% of poses in the 95% interval of χ²₃)",
+                scores.len(),
+                in95 * 100.0
             );
             part["ate_m"] = serde_json::json!({ "slam": ate });
-            part["nees"] = serde_json::json!({ "slam": nees });
+            part["nees"] =
+                serde_json::json!({ "slam": nees, "slam_position": nees_position, "slam_position_in_95": in95 });
             part["slam"]["per_segment"] = serde_json::to_value(&scores)?;
         }
         Err(e) => tracing::info!("no accuracy evaluation: {e}"),
@@ -136,7 +191,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         landmarks: rt.output_slice(SLAM_LANDMARKS, 4096)?,
         diagnostics: rt.output(SLAM_DIAGNOSTICS)?,
     };
-    let mut st = SlamState::new(filter, settings.motion_model);
+    let mut st = SlamState::with_frontend(filter, settings.motion_model, settings.frontend.clone(), body_from_camera);
     // A restarted instance keeps the killed one's trajectory and goes on in a new local map; a
     // first instance starts empty (whatever an earlier run left in the output directory).
     let journal_path = Journal::path(&ctx.out_dir, &ctx.name);
@@ -154,6 +209,8 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     }
     let mut journalled_origins: Option<u32> = st.segment_origins_s.keys().next_back().copied();
     let mut update_ms: Vec<f64> = vec![];
+    let mut registration_failures = 0u64;
+    let mut run_stats = RunStats::default();
     let mut last_landmarks = Instant::now();
     let landmark_every =
         (settings.landmarks_rate_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / settings.landmarks_rate_hz));
@@ -231,6 +288,22 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             if let Some(reason) = &r.new_segment {
                 tracing::info!(segment = f.segment(), "new local map: {reason}");
             }
+            if let Some(m) = &p.motion
+                && let Err(e) = &m.registration
+                && !matches!(e, RegistrationError::FirstFrame)
+            {
+                // Every failure is counted (summary.json); the log says so for the first ones
+                // and then once per 100.
+                registration_failures += 1;
+                if registration_failures <= 10 || registration_failures.is_multiple_of(100) {
+                    tracing::warn!(
+                        stamp_ns = p.stamp_ns,
+                        failures = registration_failures,
+                        "stereo front end found no motion ({e}): constant velocity for this frame"
+                    );
+                }
+            }
+            run_stats.add(r, p.frontend_ms);
             out.diagnostics.send_value(
                 h,
                 SlamDiagnostics {
@@ -244,6 +317,17 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                     resampled: r.resampled as u32,
                     n_eff: r.n_eff,
                     update_ms: per_frame,
+                    motion_source: p.motion_source(settings.motion_model),
+                    registration_inliers: p
+                        .motion
+                        .as_ref()
+                        .and_then(|m| m.registration.as_ref().ok())
+                        .map_or(0, |r| r.inliers as u32),
+                    rejected: r.rejected as u32,
+                    _reserved: 0,
+                    candidates_per_observation: r.candidates_per_observation,
+                    mean_nis: r.mean_nis,
+                    frontend_ms: p.frontend_ms,
                 },
             )?;
             if landmark_every.is_some_and(|every| last_landmarks.elapsed() >= every) {
@@ -254,7 +338,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         if upstream_ended && st.frames.is_empty() {
             let stamp = st.last_frame_ns.unwrap_or(0);
             publish_landmarks(&mut out.landmarks, &st.filter, stamp, 0)?;
-            finish(st, &settings, &out_dir, &name, &update_ms)?;
+            finish(st, &settings, &out_dir, &name, &update_ms, &run_stats)?;
             rt.send_end_of_stream(out.pose.sent().saturating_sub(1), out.pose.sent())?;
             done = true;
         }
@@ -262,7 +346,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     })?;
     if !done {
         // Stopped by a signal before the end of stream: write what there is.
-        finish(&st, &settings, &out_dir, &name, &update_ms)?;
+        finish(&st, &settings, &out_dir, &name, &update_ms, &run_stats)?;
         tracing::info!(frames = st.trajectory.len(), "stopped early: outputs written");
     }
     Ok(stop)

@@ -149,6 +149,7 @@ impl Ingest {
             "empty_clouds_skipped": self.empty_clouds,
             "data_duration_s": data_s,
             "wall_duration_s": wall_s,
+            "backpressure_wait_s": rt.backpressure_waited().as_secs_f64(),
         }});
         let path = self.out_dir.join("parts").join(format!("{}.json", rt.name()));
         std::fs::create_dir_all(path.parent().expect("parts dir"))?;
@@ -304,6 +305,7 @@ impl Ingest {
 fn make_source(settings: &IngestSettings, _config_dir: &Path, out_dir: &Path) -> anyhow::Result<Box<dyn Source>> {
     Ok(match settings.source {
         SourceKind::Sim => Box::new(SimSource::new(settings.sim.clone(), out_dir)?),
+        SourceKind::StereoSim => Box::new(ingest::StereoSimSource::new(&settings.stereo_sim, out_dir)?),
         other => ingest::file_source(other, settings, _config_dir, out_dir)?,
     })
 }
@@ -317,7 +319,10 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     let delivery = if settings.real_time_factor > 0.0 {
         Delivery::DiscardWhenFull
     } else {
-        Delivery::WaitWhenFull { max_wait: Duration::from_secs_f64(settings.backpressure_max_wait_s) }
+        Delivery::WaitWhenFull {
+            max_wait: (settings.backpressure_max_wait_s > 0.0)
+                .then(|| Duration::from_secs_f64(settings.backpressure_max_wait_s)),
+        }
     };
     let qos = |s: &str| services::service_spec(s).expect("sensor services are in the contract").qos;
     let cloud_len = ingest::initial_cloud_len(&settings);

@@ -18,6 +18,8 @@ pub enum SourceKind {
     Plaza2,
     /// Stereo landmark observations in the stereo_vo_large format (`stereo_vo` table).
     StereoVo,
+    /// The KITTI-like simulated stereo drive with ground truth (`stereo_sim` table).
+    StereoSim,
     /// Point-cloud files, scan.dat or PLY (`clouds` table).
     Clouds,
     /// Depth images, 16-bit PNG or raw (`depth_images` table).
@@ -31,9 +33,11 @@ pub struct IngestSettings {
     /// The source.
     pub source: SourceKind,
     /// 1.0 = real time, N = N× real time, 0 = as fast as possible with back-pressure (nothing is
-    /// dropped unless a subscriber stalls for longer than `backpressure_max_wait_s`).
+    /// dropped for a consumer whose process is alive; a dead one, or a hung one once the
+    /// supervisor has killed it, is skipped and what it misses is counted).
     pub real_time_factor: f64,
-    /// Longest wait for a full subscriber queue in as-fast-as-possible mode, s.
+    /// With factor 0: longest wait for a full subscriber queue, s (0 = as long as the consumer's
+    /// process is alive, the default).
     pub backpressure_max_wait_s: f64,
     /// With factor 0: when a service loses a subscriber (a consumer died and is being restarted),
     /// wait up to this long for it to come back before publishing more on that service, s (0 =
@@ -52,6 +56,8 @@ pub struct IngestSettings {
     pub plaza2: Plaza2Settings,
     /// Stereo replay settings.
     pub stereo_vo: StereoVoSettings,
+    /// Simulated stereo drive settings.
+    pub stereo_sim: StereoSimSettings,
     /// Point-cloud file settings.
     pub clouds: CloudFileSettings,
     /// Depth-image settings.
@@ -63,13 +69,14 @@ impl Default for IngestSettings {
         Self {
             source: SourceKind::Sim,
             real_time_factor: 1.0,
-            backpressure_max_wait_s: 1.0,
+            backpressure_max_wait_s: 0.0,
             resubscribe_wait_s: 10.0,
             progress_interval_s: 5.0,
             connect_grace_s: 1.0,
             sim: sim::SimConfig::default(),
             plaza2: Plaza2Settings::default(),
             stereo_vo: StereoVoSettings::default(),
+            stereo_sim: StereoSimSettings::default(),
             clouds: CloudFileSettings::default(),
             depth_images: DepthImageSettings::default(),
         }
@@ -111,12 +118,31 @@ pub struct StereoVoSettings {
     pub rate_hz: f64,
     /// Pixel noise σ used for the observation covariance, px.
     pub pixel_sigma_px: f64,
+    /// Pass the data set's landmark ids as feature track ids (flag `STEREO_HAS_TRACK_ID`): what
+    /// a feature tracker upstream would provide. Off: consumers get points only.
+    pub track_ids: bool,
 }
 
 impl Default for StereoVoSettings {
     fn default() -> Self {
-        Self { dir: PathBuf::from("../../shared/data/stereo_vo_large"), rate_hz: 10.0, pixel_sigma_px: 0.5 }
+        Self {
+            dir: PathBuf::from("../../shared/data/stereo_vo_large"),
+            rate_hz: 10.0,
+            pixel_sigma_px: 0.5,
+            track_ids: false,
+        }
     }
+}
+
+/// The KITTI-like simulated stereo drive (`sim::road`): its settings plus whether the feature
+/// track ids are passed on.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StereoSimSettings {
+    /// The drive (road, rig, noise and warts; defaults: 400 frames at 10 Hz, ~700 features).
+    pub drive: sim::road::RoadConfig,
+    /// Pass the simulated tracker's feature track ids (flag `STEREO_HAS_TRACK_ID`).
+    pub track_ids: bool,
 }
 
 /// Point-cloud files, published in order at `rate_hz`.
@@ -198,9 +224,9 @@ impl ProcessSettings for IngestSettings {
             "must be >= 0 (0 = as fast as possible)",
         );
         issues.check(
-            self.backpressure_max_wait_s.is_finite() && self.backpressure_max_wait_s > 0.0,
+            self.backpressure_max_wait_s.is_finite() && self.backpressure_max_wait_s >= 0.0,
             format!("{key}.backpressure_max_wait_s"),
-            "must be > 0",
+            "must be >= 0 (0 = as long as the consumer is alive)",
         );
         issues.check(
             self.resubscribe_wait_s.is_finite() && self.resubscribe_wait_s >= 0.0,
@@ -221,6 +247,11 @@ impl ProcessSettings for IngestSettings {
             }
             SourceKind::Plaza2 => {
                 issues.check(self.plaza2.range_sigma_m > 0.0, format!("{key}.plaza2.range_sigma_m"), "must be > 0");
+            }
+            SourceKind::StereoSim => {
+                for (k, m) in self.stereo_sim.drive.validate() {
+                    issues.push(format!("{key}.stereo_sim.drive.{k}"), m);
+                }
             }
             SourceKind::StereoVo => {
                 issues.check(self.stereo_vo.rate_hz > 0.0, format!("{key}.stereo_vo.rate_hz"), "must be > 0");

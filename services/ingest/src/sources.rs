@@ -6,7 +6,8 @@ use geometry::StereoPixels;
 use nalgebra::Isometry3;
 use shared_types::convert::{mat3_to_row_major, quat_to_xyzw};
 use shared_types::{
-    BuoyRange, DepthReading, HeadingReading, OdometryInput, STEREO_HAS_DESCRIPTOR, STEREO_HAS_PIXELS, StereoObservation,
+    BuoyRange, DepthReading, HeadingReading, OdometryInput, STEREO_HAS_DESCRIPTOR, STEREO_HAS_PIXELS,
+    STEREO_HAS_TRACK_ID, StereoObservation,
 };
 
 /// One message to publish.
@@ -211,7 +212,7 @@ pub fn file_source(
 ) -> anyhow::Result<Box<dyn Source>> {
     use crate::SourceKind::*;
     Ok(match kind {
-        Sim => anyhow::bail!("the simulator is not a file source"),
+        Sim | StereoSim => anyhow::bail!("a simulator is not a file source"),
         Plaza2 => Box::new(Plaza2Source::load(&crate::resolve(config_dir, &settings.plaza2.dir), &settings.plaza2)?),
         StereoVo => {
             Box::new(StereoVoSource::load(&crate::resolve(config_dir, &settings.stereo_vo.dir), &settings.stereo_vo)?)
@@ -375,6 +376,7 @@ pub struct StereoVoSource {
     next: usize,
     rejected: u64,
     dir: std::path::PathBuf,
+    track_ids: bool,
 }
 
 impl StereoVoSource {
@@ -399,6 +401,7 @@ impl StereoVoSource {
             next: 0,
             rejected: 0,
             dir: dir.to_path_buf(),
+            track_ids: settings.track_ids,
         })
     }
 }
@@ -417,7 +420,7 @@ impl Source for StereoVoSource {
                     pixels_ul_ur_v: [f.u_left_px, f.u_right_px, f.v_px],
                     source_id: f.landmark_id,
                     descriptor: [0; 32],
-                    flags: STEREO_HAS_PIXELS,
+                    flags: STEREO_HAS_PIXELS | if self.track_ids { STEREO_HAS_TRACK_ID } else { 0 },
                     _reserved: 0,
                 }),
                 Err(e) => {
@@ -458,6 +461,87 @@ impl Source for StereoVoSource {
             self.dir.display(),
             self.frames.len(),
             self.frames.iter().map(|f| f.observations.len()).sum::<usize>()
+        )
+    }
+}
+
+/// The KITTI-like simulated stereo drive (`sim::road`): one stereo message per published frame,
+/// stamped at the frame's time; `ground_truth.tum` (the car's body pose) and `scene.json` (the
+/// camera mounting) at the end.
+pub struct StereoSimSource {
+    sim: sim::road::RoadSim,
+    track_ids: bool,
+    features: u64,
+}
+
+impl StereoSimSource {
+    /// Builds the drive and writes `scene.json` (the camera mounting) into `out_dir`.
+    pub fn new(settings: &crate::StereoSimSettings, out_dir: &Path) -> anyhow::Result<Self> {
+        let sim = sim::road::RoadSim::new(settings.drive.clone())?;
+        std::fs::create_dir_all(out_dir)?;
+        let b = sim.body_from_camera();
+        let scene = serde_json::json!({
+            "drive": sim.config(),
+            "landmarks": sim.landmark_count(),
+            "path_length_m": sim.path_length_m(),
+            "body_from_stereo_camera": {
+                "translation_m": b.translation.vector.as_slice(),
+                "rotation_xyzw": quat_to_xyzw(&b.rotation),
+            },
+        });
+        std::fs::write(out_dir.join("scene.json"), serde_json::to_vec_pretty(&scene)?)?;
+        Ok(Self { sim, track_ids: settings.track_ids, features: 0 })
+    }
+}
+
+impl Source for StereoSimSource {
+    fn next_item(&mut self) -> anyhow::Result<Option<Item>> {
+        let Some(frame) = self.sim.next() else { return Ok(None) };
+        let flags = STEREO_HAS_PIXELS | if self.track_ids { STEREO_HAS_TRACK_ID } else { 0 };
+        self.features += frame.observations.len() as u64;
+        Ok(Some(Item::Stereo {
+            stamp_ns: stamp_from_s(frame.t_s),
+            observations: frame
+                .observations
+                .iter()
+                .map(|o| StereoObservation {
+                    point_cam_m: o.point_cam_m.into(),
+                    covariance_cam_m2: mat3_to_row_major(&o.covariance_cam_m2),
+                    pixels_ul_ur_v: [o.pixels.u_left_px, o.pixels.u_right_px, o.pixels.v_px],
+                    source_id: o.track_id,
+                    descriptor: [0; 32],
+                    flags,
+                    _reserved: 0,
+                })
+                .collect(),
+        }))
+    }
+
+    fn progress(&self) -> Option<f64> {
+        Some(self.sim.progress())
+    }
+
+    fn finish(&mut self, out_dir: &Path) -> anyhow::Result<()> {
+        let truth = self.sim.truth();
+        write_tum(&out_dir.join("ground_truth.tum"), truth.iter().map(|t| (t.t_s, &t.world_from_body)))?;
+        tracing::info!(
+            samples = truth.len(),
+            dropped_frames = self.sim.dropped(),
+            "wrote ground_truth.tum ({} frames dropped by the simulated camera, as configured)",
+            self.sim.dropped()
+        );
+        Ok(())
+    }
+
+    fn describe(&self) -> String {
+        let c = self.sim.config();
+        format!(
+            "simulated stereo drive (seed {}, {} frames, {} landmarks, {:.0} m{})",
+            c.seed,
+            c.frames,
+            self.sim.landmark_count(),
+            self.sim.path_length_m(),
+            if self.track_ids { ", with track ids" } else { "" }
         )
     }
 }

@@ -38,7 +38,7 @@ pub struct ReplayerSettings {
     /// 1 = the recorded pace (original publish times); N = N× faster.
     pub speed: f64,
     /// With speed 0: longest wait for one subscriber before a message is dropped for it
-    /// (counted as `undelivered`).
+    /// (counted as `undelivered`), s; 0 = as long as the subscriber's process is alive.
     pub backpressure_max_wait_s: f64,
     /// Wait after creating the publishers before the first message, s (subscribers attach).
     pub connect_grace_s: f64,
@@ -52,7 +52,7 @@ impl Default for ReplayerSettings {
             file: String::new(),
             topics: vec![],
             speed: 0.0,
-            backpressure_max_wait_s: 5.0,
+            backpressure_max_wait_s: 0.0,
             connect_grace_s: 1.0,
             send_end_of_stream: true,
         }

@@ -22,7 +22,7 @@ use shared_types::{EndOfStream, Heartbeat, MsgHeader, name32};
 use crate::clock::monotonic_ns;
 use crate::config::{LogFormat, PipelineConfig, ProcessSettings, load_pipeline_config, settings_for};
 use crate::iox::IoxScope;
-use crate::ports::{Delivery, Header, Input, Output, PortError};
+use crate::ports::{Backpressure, Delivery, Header, Input, Output, PortError};
 use crate::stats::{PortStats, StatsReport};
 
 /// Command line shared by every pipeline process.
@@ -190,6 +190,14 @@ pub struct Runtime {
     stats_out: Option<Output<[u8], MsgHeader>>,
     eos_out: Option<Output<EndOfStream, MsgHeader>>,
     signal: Arc<AtomicUsize>,
+    /// Shared with the outputs' back-pressure handlers.
+    backpressure: Arc<Backpressure>,
+    /// Publishes heartbeats while a send waits for a full subscriber (started with the first
+    /// waiting output).
+    keep_alive: Option<KeepAlive>,
+    scope: IoxScope,
+    /// Messages in and out at the last heartbeat, for the keep-alive's heartbeats.
+    counts: Arc<(std::sync::atomic::AtomicU64, std::sync::atomic::AtomicU64)>,
     state: u32,
     last_heartbeat: Option<Instant>,
     last_stats: Option<Instant>,
@@ -205,6 +213,8 @@ impl Runtime {
     pub fn new(name: &str, scope: &IoxScope, options: RuntimeOptions) -> Result<Self, RuntimeError> {
         let node = scope.create_node(name)?;
         let signal = Arc::new(AtomicUsize::new(0));
+        let backpressure =
+            Backpressure::new(scope.config()?, Arc::new(std::sync::atomic::AtomicBool::new(false)), signal.clone());
         for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
             signal_hook::flag::register_usize(sig, signal.clone(), sig as usize).map_err(RuntimeError::Signals)?;
         }
@@ -221,6 +231,10 @@ impl Runtime {
             stats_out: None,
             eos_out: None,
             signal,
+            backpressure,
+            keep_alive: None,
+            scope: scope.clone(),
+            counts: Arc::new(Default::default()),
             state: shared_types::STATE_STARTING,
             last_heartbeat: None,
             last_stats: None,
@@ -234,10 +248,17 @@ impl Runtime {
                 &services::CONTROL_QOS,
                 Delivery::DiscardWhenFull,
                 hb_stats,
+                rt.backpressure.clone(),
             )?);
             let st_stats = Rc::new(RefCell::new(PortStats::new("stats", false)));
             let stats_name = services::stats_service(name);
-            rt.stats_out = Some(Output::create_slice(&rt.node, &stats_name, &services::STATS_QOS, st_stats)?);
+            rt.stats_out = Some(Output::create_slice(
+                &rt.node,
+                &stats_name,
+                &services::STATS_QOS,
+                st_stats,
+                rt.backpressure.clone(),
+            )?);
             rt.publish_heartbeat();
         }
         Ok(rt)
@@ -288,7 +309,8 @@ impl Runtime {
         delivery: Delivery,
     ) -> Result<Output<T, H>, RuntimeError> {
         let stats = self.port_stats(service, false);
-        Ok(Output::create(&self.node, service, qos, delivery, stats)?)
+        self.keep_alive_for(delivery);
+        Ok(Output::create(&self.node, service, qos, delivery, stats, self.backpressure.clone())?)
     }
 
     /// Publisher of slices on a service of the contract, reserving `initial_len` elements.
@@ -310,7 +332,16 @@ impl Runtime {
         delivery: Delivery,
     ) -> Result<Output<[T], H>, RuntimeError> {
         let stats = self.port_stats(service, false);
-        Ok(Output::create_slice_with_len(&self.node, service, qos, initial_len, delivery, stats)?)
+        self.keep_alive_for(delivery);
+        Ok(Output::create_slice_with_len(
+            &self.node,
+            service,
+            qos,
+            initial_len,
+            delivery,
+            stats,
+            self.backpressure.clone(),
+        )?)
     }
 
     /// Subscriber on a service of the contract (`P` = `T` or `[T]`); the loop wakes on its events.
@@ -345,6 +376,7 @@ impl Runtime {
                 &services::CONTROL_QOS,
                 Delivery::DiscardWhenFull,
                 stats,
+                self.backpressure.clone(),
             )?);
         }
         let eos = EndOfStream { process: name32(&self.name), last_seq, messages_sent };
@@ -384,11 +416,36 @@ impl Runtime {
         }
     }
 
+    /// Starts the keep-alive thread with the first output that may wait for its subscribers.
+    fn keep_alive_for(&mut self, delivery: Delivery) {
+        if matches!(delivery, Delivery::WaitWhenFull { .. })
+            && self.keep_alive.is_none()
+            && self.options.publish_control
+        {
+            self.keep_alive = Some(KeepAlive::spawn(
+                self.scope.clone(),
+                self.name.clone(),
+                self.pid,
+                self.options.heartbeat_interval,
+                self.backpressure.clone(),
+                self.counts.clone(),
+                self.started,
+            ));
+        }
+    }
+
+    /// Total time this process's sends waited for full subscribers (back-pressure).
+    pub fn backpressure_waited(&self) -> Duration {
+        self.backpressure.waited()
+    }
+
     fn publish_heartbeat(&mut self) {
         let (messages_in, messages_out) = self.ports.iter().fold((0, 0), |(i, o), p| {
             let p = p.borrow();
             if p.input { (i + p.count, o) } else { (i, o + p.count) }
         });
+        self.counts.0.store(messages_in, Ordering::Relaxed);
+        self.counts.1.store(messages_out, Ordering::Relaxed);
         let Some(out) = self.heartbeat.as_mut() else { return };
         let hb = Heartbeat {
             process: name32(&self.name),
@@ -548,5 +605,79 @@ impl Runtime {
         }
         tracing::info!(?reason, "stopping");
         Ok(reason)
+    }
+}
+
+/// A thread that publishes the process's heartbeat while one of its sends waits for a full
+/// subscriber (the loop is blocked inside `send` then): waiting for a slow consumer is not a
+/// hang. It has its own iceoryx2 node (`<process>.keepalive`) and stops with the runtime.
+struct KeepAlive {
+    stop: Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl KeepAlive {
+    fn spawn(
+        scope: IoxScope,
+        name: String,
+        pid: u32,
+        interval: Duration,
+        bp: Arc<Backpressure>,
+        counts: Arc<(std::sync::atomic::AtomicU64, std::sync::atomic::AtomicU64)>,
+        started: Instant,
+    ) -> Self {
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let stop_t = stop.clone();
+        let thread = std::thread::Builder::new()
+            .name("keep-alive".into())
+            .spawn(move || {
+                let setup = || -> Result<_, RuntimeError> {
+                    let node = scope.create_node(&format!("{name}.keepalive"))?;
+                    let hb_stats = Rc::new(RefCell::new(PortStats::new(services::HEARTBEAT, false)));
+                    let out = Output::<Heartbeat, MsgHeader>::create(
+                        &node,
+                        services::HEARTBEAT,
+                        &services::CONTROL_QOS,
+                        Delivery::DiscardWhenFull,
+                        hb_stats,
+                        bp.clone(),
+                    )?;
+                    Ok((node, out))
+                };
+                let (_node, mut out) = match setup() {
+                    Ok(x) => x,
+                    Err(e) => {
+                        tracing::warn!("keep-alive heartbeats unavailable: {e}");
+                        return;
+                    }
+                };
+                while !stop_t.load(Ordering::Relaxed) {
+                    std::thread::sleep(interval / 2);
+                    if !bp.is_waiting() {
+                        continue;
+                    }
+                    let hb = Heartbeat {
+                        process: name32(&name),
+                        pid,
+                        state: shared_types::STATE_READY,
+                        uptime_ns: started.elapsed().as_nanos() as u64,
+                        messages_in: counts.0.load(Ordering::Relaxed),
+                        messages_out: counts.1.load(Ordering::Relaxed),
+                    };
+                    let now = monotonic_ns();
+                    let _ = out.send_value(MsgHeader { stamp_ns: now, origin_ns: now, ..Default::default() }, hb);
+                }
+            })
+            .ok();
+        Self { stop, thread }
+    }
+}
+
+impl Drop for KeepAlive {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
     }
 }

@@ -34,8 +34,11 @@ pub struct PortStats {
     /// they are counted, not recorded.
     pub bad_header: u64,
     /// Output deliveries that failed: for each send, the registered subscribers it did not reach
-    /// (not connected yet, or a full queue that did not drain in time).
+    /// (not connected yet, a full queue of a live source's subscriber, a dead subscriber).
     pub undelivered: u64,
+    /// `undelivered` by consumer (subscriber port name, i.e. process name; `(not connected
+    /// yet)` for subscribers that had not connected).
+    pub undelivered_by: std::collections::BTreeMap<String, u64>,
     /// Hop latency, ns.
     pub hop: Histogram<u64>,
     /// End-to-end latency, ns.
@@ -51,6 +54,7 @@ impl PortStats {
             count: 0,
             bad_header: 0,
             undelivered: 0,
+            undelivered_by: Default::default(),
             hop: new_histogram(),
             e2e: new_histogram(),
         }
@@ -79,8 +83,10 @@ pub struct PortReport {
     pub count: u64,
     /// Messages with implausible headers.
     pub bad_header: u64,
-    /// Output messages that reached no subscriber.
+    /// Output deliveries that reached no subscriber (summed over subscribers).
     pub undelivered: u64,
+    /// `undelivered` by consumer name.
+    pub undelivered_by: Vec<(String, u64)>,
     /// Hop histogram, V2 deflate serialised (empty for outputs).
     pub hop: Vec<u8>,
     /// End-to-end histogram, V2 deflate serialised (empty for outputs).
@@ -146,6 +152,7 @@ impl StatsReport {
                     count: p.count,
                     bad_header: p.bad_header,
                     undelivered: p.undelivered,
+                    undelivered_by: p.undelivered_by.iter().map(|(k, v)| (k.clone(), *v)).collect(),
                     hop: ser(&p.hop),
                     e2e: ser(&p.e2e),
                 })

@@ -31,6 +31,24 @@ pub struct ProcessRow<'a> {
     pub reports: Vec<&'a StatsReport>,
 }
 
+/// What each process's outputs did not deliver, summed over its instances: (publisher,
+/// service, consumer) → messages.
+pub fn undelivered(rows: &[ProcessRow<'_>]) -> BTreeMap<(String, String, String), u64> {
+    let mut out = BTreeMap::new();
+    for row in rows {
+        for report in &row.reports {
+            for port in report.ports.iter().filter(|p| !p.input) {
+                for (consumer, n) in &port.undelivered_by {
+                    if *n > 0 {
+                        *out.entry((row.name.to_string(), port.service.clone(), consumer.clone())).or_default() += *n;
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
 /// Hop latency over all inputs of one report.
 pub fn hop_summary(report: &StatsReport) -> Option<LatencySummary> {
     let mut h = new_histogram();
@@ -104,6 +122,12 @@ pub fn summary(plan: &Plan, rows: &[ProcessRow<'_>], end: &EndReason, exit_code:
         })
         .collect();
     let (hop, e2e) = merged_latency(rows);
+    let lost: Vec<Value> = undelivered(rows)
+        .into_iter()
+        .map(|((publisher, service, consumer), n)| {
+            json!({ "publisher": publisher, "service": service, "consumer": consumer, "messages": n })
+        })
+        .collect();
     let mut out = json!({
         "run": {
             "config": plan.config_path,
@@ -114,6 +138,7 @@ pub fn summary(plan: &Plan, rows: &[ProcessRow<'_>], end: &EndReason, exit_code:
             "iceoryx_root": plan.scope.root,
         },
         "processes": processes,
+        "undelivered": lost,
         "latency_ms": {
             "hops": hop.iter().map(|(k, s)| (k.clone(), lat_json(s))).collect::<serde_json::Map<_, _>>(),
             "end_to_end": e2e.iter().map(|(k, s)| (k.clone(), lat_json(s))).collect::<serde_json::Map<_, _>>(),

@@ -245,7 +245,17 @@ impl Supervisor {
             _ if failed => 1,
             _ => 0,
         };
-        let summary = crate::report::summary(&self.plan, &self.report_rows(), &end, exit_code, self.started.elapsed());
+        let rows = self.report_rows();
+        // Nothing is lost silently: a warning per service and consumer that missed messages.
+        for ((publisher, service, consumer), n) in crate::report::undelivered(&rows) {
+            tracing::warn!(
+                publisher = %publisher,
+                service = %service,
+                consumer = %consumer,
+                "{n} message(s) of `{service}` from {publisher} never reached {consumer}"
+            );
+        }
+        let summary = crate::report::summary(&self.plan, &rows, &end, exit_code, self.started.elapsed());
         Ok(RunOutcome { end, exit_code, summary })
     }
 
@@ -574,6 +584,7 @@ impl Supervisor {
                     "hop_p50_ms": lat.as_ref().map(|l| l.p50),
                     "hop_p99_ms": lat.as_ref().map(|l| l.p99),
                     "e2e_p50_ms": current.and_then(crate::report::e2e_summary).filter(|l| l.count > 0).map(|l| l.p50),
+                    "undelivered": undelivered_by(c),
                 })
             })
             .collect();
@@ -600,7 +611,8 @@ impl Supervisor {
     }
 
     /// The one-line status: per process state, restarts, message rate, p50/p99 hop latency and
-    /// p50 end-to-end latency (since the sensor input) of its inputs.
+    /// p50 end-to-end latency (since the sensor input) of its inputs, and what its outputs did
+    /// not deliver (by consumer), as soon as that happens.
     pub fn status_line(&self) -> String {
         let mut parts = vec![format!("t={:.1}s", self.started.elapsed().as_secs_f64())];
         for c in &self.children {
@@ -615,6 +627,11 @@ impl Supervisor {
                 && e2e.count > 0
             {
                 s.push_str(&format!(" e2e p50 {:.1} ms", e2e.p50));
+            }
+            let lost = undelivered_by(c);
+            if !lost.is_empty() {
+                let list: Vec<String> = lost.iter().map(|(k, n)| format!("{n} to {k}")).collect();
+                s.push_str(&format!(" UNDELIVERED {}", list.join(", ")));
             }
             parts.push(s);
         }
@@ -679,4 +696,18 @@ impl Supervisor {
             }
         }
     }
+}
+
+/// Messages a process's outputs did not deliver so far, over all its instances, by consumer.
+fn undelivered_by(c: &Child) -> BTreeMap<String, u64> {
+    let mut lost: BTreeMap<String, u64> = BTreeMap::new();
+    for r in c.reports.values() {
+        for port in r.ports.iter().filter(|p| !p.input) {
+            for (consumer, n) in &port.undelivered_by {
+                *lost.entry(consumer.clone()).or_default() += *n;
+            }
+        }
+    }
+    lost.retain(|_, n| *n > 0);
+    lost
 }

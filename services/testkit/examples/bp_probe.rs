@@ -41,7 +41,7 @@ fn main() {
             .output_with_qos::<OdometryInput, MsgHeader>(
                 "test/bp",
                 &qos,
-                Delivery::WaitWhenFull { max_wait: Duration::from_secs(2) },
+                Delivery::WaitWhenFull { max_wait: Some(Duration::from_secs(2)) },
             )
             .unwrap();
         let mut zero = 0;

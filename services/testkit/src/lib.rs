@@ -62,16 +62,20 @@ pub struct ConsumerSettings {
     pub expect_points: Option<usize>,
     /// Send our own end of stream when an upstream one arrives.
     pub forward_end_of_stream: bool,
+    /// Also take stereo frames, spending this long on each, ms (0: no stereo subscription): a
+    /// slow consumer for back-pressure tests.
+    pub stereo_delay_ms: u64,
 }
 
 impl Default for ConsumerSettings {
     fn default() -> Self {
-        Self { expect_points: None, forward_end_of_stream: true }
+        Self { expect_points: None, forward_end_of_stream: true, stereo_delay_ms: 0 }
     }
 }
 
 impl ProcessSettings for ConsumerSettings {
     fn validate(&self, key: &str, issues: &mut Issues) {
+        issues.check(self.stereo_delay_ms <= 2000, format!("{key}.stereo_delay_ms"), "must be <= 2000 (the heartbeat)");
         if let Some(n) = self.expect_points {
             issues.check(
                 (1..=MAX_POINTS).contains(&n),
@@ -136,6 +140,10 @@ pub struct ConsumerCounters {
     pub last_seq: Option<u64>,
     /// End-of-stream messages received from upstream.
     pub end_of_stream_seen: u64,
+    /// Stereo frames received (with `stereo_delay_ms`).
+    pub stereo_frames: u64,
+    /// Stereo sequence numbers skipped.
+    pub stereo_missed: u64,
 }
 
 /// Why a cloud failed verification.

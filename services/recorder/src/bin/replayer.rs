@@ -98,7 +98,10 @@ fn run(args: &ProcessArgs) -> anyhow::Result<StopReason> {
     let delivery = if settings.speed > 0.0 {
         Delivery::DiscardWhenFull
     } else {
-        Delivery::WaitWhenFull { max_wait: Duration::from_secs_f64(settings.backpressure_max_wait_s) }
+        Delivery::WaitWhenFull {
+            max_wait: (settings.backpressure_max_wait_s > 0.0)
+                .then(|| Duration::from_secs_f64(settings.backpressure_max_wait_s)),
+        }
     };
     let mut emitters = HashMap::new();
     for service in report.selected.keys() {

@@ -1,0 +1,88 @@
+//! Replay as fast as possible loses nothing for a consumer that is alive, however slow; a dead
+//! one is skipped, and what it missed is counted per service and consumer, in the status line
+//! while it happens, in a warning at the end and in summary.json.
+
+use std::time::Duration;
+
+use pipeline_tests::TestRun;
+
+/// A short simulated stereo drive with few features (the consumer does not look at them).
+fn drive(frames: usize) -> String {
+    format!(
+        r#"
+[processes.ingest]
+kind = "ingest"
+after = ["c"]
+restart = "never"
+[processes.ingest.settings]
+source = "stereo_sim"
+real_time_factor = 0.0
+progress_interval_s = 0.0
+[processes.ingest.settings.stereo_sim.drive]
+frames = {frames}
+max_features = 40
+dropped_frame_probability = 0.0
+"#
+    )
+}
+
+#[test]
+fn a_slow_consumer_loses_no_frame_however_long_it_waits() {
+    let mut run = TestRun::new("bpslow");
+    // 1.2 s per frame: the stereo queue (8) fills and the source waits longer than the second it
+    // used to wait before dropping.
+    let procs = format!(
+        "[processes.c]\nkind = \"test_consumer\"\nrestart = \"never\"\n[processes.c.settings]\nstereo_delay_ms = 1200\n{}",
+        drive(12)
+    );
+    let s = run.run_to_end(
+        "end = \"end_of_stream\"\nend_of_stream_from = [\"c\"]\nduration_s = 120",
+        &procs,
+        Duration::from_secs(90),
+    );
+    let sent = s["ingest"]["messages"]["stereo"].as_u64().unwrap();
+    assert_eq!(sent, 12, "{s:#}");
+    assert_eq!(s["test_consumer"]["stereo_frames"], sent, "every frame reached the slow consumer: {s:#}");
+    assert_eq!(s["test_consumer"]["stereo_missed"], 0);
+    assert!(s["ingest"]["backpressure_wait_s"].as_f64().unwrap() > 1.0, "the source did wait: {s:#}");
+    assert_eq!(s["undelivered"], serde_json::json!([]), "{s:#}");
+    assert_eq!(s["processes"]["ingest"]["undelivered"], 0);
+    assert_eq!(s["processes"]["ingest"]["restarts"], 0, "waiting is not a hang");
+    assert!(!run.log().contains("never reached"), "{}", run.log());
+}
+
+#[test]
+fn a_dead_consumer_is_skipped_and_what_it_missed_is_reported() {
+    let mut run = TestRun::new("bpdead");
+    let procs = format!(
+        "[processes.c]\nkind = \"test_consumer\"\nrestart = \"never\"\nrequired = false\n[processes.c.settings]\nstereo_delay_ms = 300\n{}",
+        drive(40)
+    );
+    let cfg = run.write_config("end = \"end_of_stream\"\nend_of_stream_from = [\"ingest\"]\nduration_s = 120", &procs);
+    run.start_supervisor(&cfg, &[]);
+    run.wait_for_log("process=ingest pid=", 1, Duration::from_secs(30));
+    std::thread::sleep(Duration::from_secs(3)); // the consumer is behind; the source waits for it
+    let pid = *run.started_pids("c").first().expect("consumer started");
+    nix::sys::signal::kill(nix::unistd::Pid::from_raw(pid), nix::sys::signal::Signal::SIGKILL).unwrap();
+    let status = run.wait_supervisor(Duration::from_secs(60)).expect("the run ends once the source is done");
+    let log = run.log();
+    assert!(status.code().is_some(), "{log}");
+    let s = run.summary();
+    assert_eq!(s["ingest"]["messages"]["stereo"], 40, "the source went on without the dead consumer: {s:#}");
+    let lost = s["undelivered"].as_array().expect("undelivered list");
+    let stereo = lost
+        .iter()
+        .find(|l| l["service"] == "pipeline/sensors/stereo" && l["consumer"] == "c")
+        .unwrap_or_else(|| panic!("stereo frames missed by `c` are listed: {s:#}"));
+    assert_eq!(stereo["publisher"], "ingest");
+    let missed = stereo["messages"].as_u64().unwrap();
+    let received = s["test_consumer"]["stereo_frames"].as_u64().unwrap_or(0);
+    assert!(missed > 0 && missed + received <= 40, "missed {missed}, received {received}");
+    assert!(
+        log.lines()
+            .any(|l| l.contains("WARN") && l.contains("never reached c") && l.contains("pipeline/sensors/stereo")),
+        "a warning names the service and the consumer:\n{log}"
+    );
+    assert!(log.contains("UNDELIVERED"), "the status line shows it while it happens:\n{log}");
+    assert!(run.leftovers().is_empty(), "{:?}", run.leftovers());
+}
