@@ -1,6 +1,7 @@
 //! Camera-only tracking, measured: the stereo front end alone (frame-to-frame registration, its
-//! motions chained) against FastSLAM with the front end as its motion input, each without and
-//! with feature track ids, on
+//! motions chained) against FastSLAM with the front end as its motion input: without source
+//! track ids (associating by the front end's own feature tracks, the default, and by maximum
+//! likelihood alone) and with the source's track ids, on
 //! - `stereo_vo [DIR]`: real features in the stereo_vo format (default
 //!   `../shared/data/stereo_vo_large`, KITTI, read in place: it may not be committed), against
 //!   the data set's own VO poses or `--reference FILE.tum` (stamps `frame_id / 10`);
@@ -253,7 +254,7 @@ fn main() {
         }
     };
     println!(
-        "{:<30} {:>8} {:>8} {:>7} {:>8} {:>8} {:>8} {:>7} {:>7} {:>6}",
+        "{:<36} {:>8} {:>8} {:>7} {:>8} {:>8} {:>8} {:>7} {:>7} {:>6}",
         "run", "RMSE m", "end %", "path m", "p50 ms", "p99 ms", "max ms", "failed", "NEESp", "in95"
     );
     let seeds: Vec<u64> = if args.source == "road" { (args.seed..args.seed + args.seeds).collect() } else { vec![0] };
@@ -276,9 +277,19 @@ fn main() {
                     if input.truth { "ground truth" } else { "the data set's VO poses" }
                 );
             }
-            let tag = if ids { ", ids" } else { "" };
-            let (fe, slam) = run(&input, &a);
-            for (name, row) in [(format!("front end{tag}"), fe), (format!("fastslam N={}{tag}", a.particles), slam)] {
+            // Without source ids FastSLAM runs twice: with the front end's own feature tracks
+            // (the default) and by maximum likelihood alone (`assign_tracks = false`).
+            let modes: &[(&str, bool)] =
+                if ids { &[("source ids", true)] } else { &[("front-end tracks", true), ("max. likelihood", false)] };
+            let mut rows = vec![];
+            for (k, (mode, assign)) in modes.iter().enumerate() {
+                let (fe, slam) = run(&input, &a, *assign);
+                if k == 0 {
+                    rows.push((format!("front end{}", if ids { ", source ids" } else { "" }), fe));
+                }
+                rows.push((format!("fastslam N={}, {mode}", a.particles), slam));
+            }
+            for (name, row) in rows {
                 print_row(&name, &row);
                 match all.iter_mut().find(|(n, _)| *n == name) {
                     Some((_, v)) => v.push(row),
@@ -312,7 +323,7 @@ fn main() {
 }
 
 /// The front end alone and FastSLAM on one input.
-fn run(input: &Input, args: &Args) -> (Row, Row) {
+fn run(input: &Input, args: &Args, assign_tracks: bool) -> (Row, Row) {
     let b = input.body_from_camera;
     // The front end alone, its motions chained.
     let mut fe = FrontEnd::new(FrontEndConfig::default());
@@ -359,7 +370,7 @@ fn run(input: &Input, args: &Args) -> (Row, Row) {
         cfg.process_rotation_sigma = q / 10.0;
     }
     let mut f = FastSlam::new(cfg).expect("valid settings");
-    let mut cam = CameraOnly::new(FrontEndConfig::default(), b);
+    let mut cam = CameraOnly::new(FrontEndConfig { assign_tracks, ..Default::default() }, b);
     let mut traj = vec![];
     let mut samples = vec![];
     let mut origins = BTreeMap::new();
@@ -373,7 +384,9 @@ fn run(input: &Input, args: &Args) -> (Row, Row) {
         }
         last_t = Some(*t);
         let t0 = Instant::now();
-        let m = cam.predict(&mut f, obs, dt);
+        let mut obs = obs.clone();
+        let m = cam.predict(&mut f, &mut obs, dt);
+        let obs = &obs;
         let r = f.update(obs);
         times.push(t0.elapsed().as_secs_f64() * 1e3);
         if let Err(e) = &m.registration
@@ -461,7 +474,7 @@ fn print_row(name: &str, r: &Row) {
     let (n, i) =
         r.nees.map_or(("-".to_string(), "-".to_string()), |(n, i)| (format!("{n:.2}"), format!("{:.0}%", i * 100.0)));
     println!(
-        "{name:<30} {:>8.3} {:>7.2}% {:>7.1} {:>8.1} {:>8.1} {:>8.1} {:>7} {:>7} {:>6}",
+        "{name:<36} {:>8.3} {:>7.2}% {:>7.1} {:>8.1} {:>8.1} {:>8.1} {:>7} {:>7} {:>6}",
         r.rmse_m, r.end_pct, r.path_m, p50, p99, max, r.failed, n, i
     );
 }

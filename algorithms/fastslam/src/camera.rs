@@ -1,7 +1,8 @@
 //! Camera-only prediction: the stereo front end's frame-to-frame motion ([`crate::frontend`])
 //! as FastSLAM's motion input when there is no odometry. When the front end finds no motion
-//! (too few points, no consensus, degenerate geometry) the filter falls back to its
-//! constant-velocity model for that frame, and the report says so.
+//! (too few points, no consensus, degenerate geometry) the filter falls back to constant
+//! velocity for that frame, with the wide `fallback_*` uncertainty of the front end's settings
+//! (its map then has room to pull the pose back), and the report says so.
 
 use nalgebra::Isometry3;
 use serde::Serialize;
@@ -37,25 +38,56 @@ pub struct CameraOnlyStats {
     pub candidates_per_point: f64,
 }
 
+/// Track ids the front end gives features start here (apart from any source's ids).
+pub const FRONTEND_TRACK_BASE: u64 = 1 << 62;
+
 /// The front end wired to a filter.
 pub struct CameraOnly {
     frontend: FrontEnd,
     body_from_camera: Isometry3<f64>,
     stats: CameraOnlyStats,
+    /// The front end's track id of each observation of the previous frame.
+    prev_tracks: Vec<u64>,
+    next_track: u64,
 }
 
 impl CameraOnly {
     /// A front end with `cfg` for a camera mounted at `body_from_camera`.
     pub fn new(cfg: FrontEndConfig, body_from_camera: Isometry3<f64>) -> Self {
-        Self { frontend: FrontEnd::new(cfg), body_from_camera, stats: CameraOnlyStats::default() }
+        Self {
+            frontend: FrontEnd::new(cfg),
+            body_from_camera,
+            stats: CameraOnlyStats::default(),
+            prev_tracks: vec![],
+            next_track: FRONTEND_TRACK_BASE,
+        }
     }
 
     /// Moves the filter's particles from the previous frame to this one (`obs`, body frame,
     /// `dt_s` after the previous frame) by the registered motion, or by constant velocity when
-    /// there is none. Call before [`FastSlam::update`] with the same observations.
-    pub fn predict(&mut self, filter: &mut FastSlam, obs: &[Observation], dt_s: f64) -> MotionReport {
+    /// there is none. With `assign_tracks`, observations without a track id get the front
+    /// end's (a feature matched to one of the previous frame keeps its track). Call before
+    /// [`FastSlam::update`] with the same observations.
+    pub fn predict(&mut self, filter: &mut FastSlam, obs: &mut [Observation], dt_s: f64) -> MotionReport {
         let frame = Frame::from_observations(obs, &self.body_from_camera);
         let registration = self.frontend.register(frame, dt_s);
+        if self.frontend.config().assign_tracks {
+            let mut tracks: Vec<u64> = (0..obs.len() as u64).map(|k| self.next_track + k).collect();
+            self.next_track += obs.len() as u64;
+            if let Ok(r) = &registration {
+                for &(i, j) in &r.matches {
+                    if let (Some(t), Some(slot)) = (self.prev_tracks.get(i), tracks.get_mut(j)) {
+                        *slot = *t;
+                    }
+                }
+            }
+            for (o, t) in obs.iter_mut().zip(&tracks) {
+                if o.track_id.is_none() {
+                    o.track_id = Some(*t);
+                }
+            }
+            self.prev_tracks = tracks;
+        }
         self.stats.frames += 1;
         let mut fallback = false;
         match &registration {
@@ -79,7 +111,9 @@ impl CameraOnly {
         if fallback {
             self.stats.failed += 1;
             if dt_s > 0.0 {
-                filter.predict_constant_velocity(dt_s);
+                let c = self.frontend.config();
+                let (sv, sw) = (c.fallback_velocity_sigma_mps, c.fallback_angular_velocity_sigma_rps);
+                filter.predict_constant_velocity_with(dt_s, sv, sw);
             }
         }
         MotionReport { registration, fallback }

@@ -25,6 +25,9 @@ pub struct AssociationConfig {
     /// Looser χ²₃ gate: an unmatched observation this close to a landmark creates no new one
     /// (guards against duplicates; 0.9999 quantile: 21.1).
     pub duplicate_gate_chi2: f64,
+    /// Maximum likelihood: the best landmark's normalised innovation must be at least this much
+    /// below the second best's (else the observation is left out as ambiguous).
+    pub ml_margin_chi2: f64,
     /// Largest Hamming distance of a descriptor match.
     pub max_hamming: u32,
     /// Ratio test: best distance < ratio × second best.
@@ -42,6 +45,7 @@ impl Default for AssociationConfig {
         Self {
             gate_chi2: 11.34,
             duplicate_gate_chi2: 21.1,
+            ml_margin_chi2: 2.0,
             max_hamming: 64,
             ratio: 0.8,
             confirm_after: 2,
@@ -160,6 +164,7 @@ impl FastSlamConfig {
         check(pos(a.gate_chi2), "association.gate_chi2", "must be > 0");
         check(a.duplicate_gate_chi2 >= a.gate_chi2, "association.duplicate_gate_chi2", "must be >= gate_chi2");
         check(a.ratio > 0.0 && a.ratio <= 1.0, "association.ratio", "must be in (0, 1]");
+        check(a.ml_margin_chi2.is_finite() && a.ml_margin_chi2 >= 0.0, "association.ml_margin_chi2", "must be >= 0");
         check(a.max_hamming <= 256, "association.max_hamming", "must be <= 256");
         check(a.confirm_after >= 1, "association.confirm_after", "must be >= 1");
         check(pos(a.search_radius_m), "association.search_radius_m", "must be > 0");

@@ -664,10 +664,21 @@ impl FastSlam {
     /// Prediction without odometry: the constant-velocity model over `dt_s`, with the body twist
     /// estimated from the last two frames' mean poses and noise from the `cv_*` settings.
     pub fn predict_constant_velocity(&mut self, dt_s: f64) {
+        self.predict_constant_velocity_with(
+            dt_s,
+            self.cfg.cv_velocity_sigma_mps,
+            self.cfg.cv_angular_velocity_sigma_rps,
+        );
+    }
+
+    /// [`FastSlam::predict_constant_velocity`] with explicit σ of the change of the linear (m/s)
+    /// and angular (rad/s) velocity: wider than the configured model where the motion is less
+    /// known (a frame the stereo front end found no motion for).
+    pub fn predict_constant_velocity_with(&mut self, dt_s: f64, velocity_sigma_mps: f64, angular_sigma_rps: f64) {
         let (v, w) = self.twist.unwrap_or((Vector3::zeros(), Vector3::zeros()));
         self.last_cv_dt = Some(dt_s);
-        let sp = self.cfg.cv_velocity_sigma_mps * dt_s;
-        let sr = self.cfg.cv_angular_velocity_sigma_rps * dt_s;
+        let sp = velocity_sigma_mps * dt_s;
+        let sr = angular_sigma_rps * dt_s;
         let mut G = Matrix6::zeros();
         for k in 0..3 {
             G[(k, k)] = sp * sp;
@@ -696,6 +707,7 @@ impl FastSlam {
         p: &Particle,
         o: &Observation,
         pose_q: &(Matrix3<f64>, Matrix3<f64>),
+        by_track: bool,
     ) -> Association {
         let (pose_q, pose_q_body) = (&pose_q.0, &pose_q.1);
         let a = &cfg.association;
@@ -703,7 +715,7 @@ impl FastSlam {
             let m = Chol3::new(&(inn.S + pose_q))?.mahalanobis(&inn.nu);
             m.is_finite().then_some(m)
         };
-        if o.track_id.is_some() {
+        if by_track {
             // By attribute ([3D] §3.1): the landmark of this feature track, if any, checked
             // against the χ² gate (a tracker's wrong match is left out, not fused).
             for &id in candidates {
@@ -717,6 +729,7 @@ impl FastSlam {
         }
         let w = p.pose.transform_point(&o.z_m.into()).coords;
         let mut ml: Option<(f64, u32, Innovation)> = None;
+        let mut second_ml = f64::INFINITY;
         let mut near_dup = false;
         let mut best_d: Option<(u32, u32, Innovation)> = None; // (hamming, id, innovation)
         let mut second_d = u32::MAX;
@@ -750,8 +763,14 @@ impl FastSlam {
                     }
                 }
             }
-            if ml.as_ref().is_none_or(|(mm, _, _)| m < *mm) {
-                ml = Some((m, id, inn));
+            match &ml {
+                Some((mm, _, _)) if m >= *mm => second_ml = second_ml.min(m),
+                _ => {
+                    if let Some((mm, _, _)) = &ml {
+                        second_ml = second_ml.min(*mm);
+                    }
+                    ml = Some((m, id, inn));
+                }
             }
         }
         if o.descriptor.is_some() {
@@ -761,8 +780,12 @@ impl FastSlam {
             {
                 return Association::Matched(id, inn);
             }
-        } else if let Some((_, id, inn)) = ml {
-            return Association::Matched(id, inn);
+        } else if let Some((m, id, inn)) = ml {
+            // Two landmarks about as likely: rather none than maybe the wrong one.
+            if second_ml - m >= a.ml_margin_chi2 {
+                return Association::Matched(id, inn);
+            }
+            return Association::Ambiguous;
         }
         if near_dup { Association::Ambiguous } else { Association::New }
     }
@@ -782,11 +805,13 @@ impl FastSlam {
         // the observation's noise (far stereo points are uncertain along the ray) and by the
         // particles' spread, so every particle's own search would find no more.
         let spread = self.particle_spread();
+        // Observations with a feature track id are associated by it (a new track makes a new
+        // landmark); the others by maximum likelihood.
+        let known: Vec<bool> = obs.iter().map(|o| o.track_id.is_some()).collect();
         let mut candidates: Vec<Vec<u32>> = obs
             .iter()
             .map(|o| {
                 if let Some(t) = o.track_id {
-                    // By attribute: the track's landmark, or none for a new track.
                     return self.tracks.get(&t).map(|id| vec![*id]).unwrap_or_default();
                 }
                 if o.stereo.is_some() {
@@ -821,11 +846,11 @@ impl FastSlam {
                 (sym(Hx * motion_cov * Hx.transpose()), sym(Hb * motion_cov * Hb.transpose()))
             })
             .collect();
-        self.stereo_candidates(obs, &motion_cov, &spread, &mut candidates);
+        self.stereo_candidates(obs, &known, &motion_cov, &spread, &mut candidates);
         let t_candidates = std::time::Instant::now();
         let seeds = self.seeds();
         let decisions = self.for_each_particle(&seeds, |p, rng| {
-            Self::weigh_particle(&cfg, &candidates, &pose_q, p, obs, &motion_cov, rng)
+            Self::weigh_particle(&cfg, &candidates, &known, &pose_q, p, obs, &motion_cov, rng)
         });
         let best_idx = (0..self.particles.len())
             .max_by(|a, b| self.particles[*a].log_w.total_cmp(&self.particles[*b].log_w))
@@ -880,17 +905,15 @@ impl FastSlam {
             for (id, pos) in &r.created {
                 if seen.insert(*id) {
                     let j = (*id - first_new_id) as usize;
-                    match (obs[j].track_id, &obs[j].stereo) {
-                        (Some(t), _) => {
-                            self.tracks.insert(t, *id);
-                        }
-                        (None, Some(_)) => {
+                    if let Some(t) = obs[j].track_id {
+                        self.tracks.insert(t, *id);
+                    }
+                    match &obs[j].stereo {
+                        Some(_) => {
                             let k = (pos / VIEW_CELL_M).map(|v| v.floor() as i32);
                             self.grid.view.entry([k.x, k.y, k.z]).or_default().push(*id);
                         }
-                        (None, None) => {
-                            self.grid.insert(*id, *pos, obs[j].Rz.trace(), cfg.association.duplicate_gate_chi2)
-                        }
+                        None => self.grid.insert(*id, *pos, obs[j].Rz.trace(), cfg.association.duplicate_gate_chi2),
                     }
                 }
             }
@@ -903,6 +926,7 @@ impl FastSlam {
             (best.matched, best.new, best.ambiguous, best.associations.clone());
         let (rejected, mean_nis) =
             (best.rejected, if best.matched > 0 { best.nis_sum / best.matched as f64 } else { f64::NAN });
+
         let landmarks = self.best().confirmed;
         let t_copies = std::time::Instant::now();
         let estimate = self.estimate();
@@ -972,6 +996,7 @@ impl FastSlam {
     fn weigh_particle(
         cfg: &FastSlamConfig,
         candidates: &[Vec<u32>],
+        known: &[bool],
         pose_q: &[(Matrix3<f64>, Matrix3<f64>)],
         p: &mut Particle,
         obs: &[Observation],
@@ -980,8 +1005,13 @@ impl FastSlam {
     ) -> Vec<Decision> {
         let a = &cfg.association;
         let ln2pi = (2.0 * std::f64::consts::PI).ln();
-        let decisions: Vec<Association> =
-            obs.iter().zip(candidates).zip(pose_q).map(|((o, c), q)| Self::associate(cfg, c, p, o, q)).collect();
+        let decisions: Vec<Association> = obs
+            .iter()
+            .zip(candidates)
+            .zip(pose_q)
+            .zip(known)
+            .map(|(((o, c), q), k)| Self::associate(cfg, c, p, o, q, *k))
+            .collect();
         // One observation per landmark and frame: of several matched to one landmark the one
         // with the smallest normalised innovation keeps it, the others are left out.
         let mut decisions = decisions;
@@ -1168,12 +1198,12 @@ impl FastSlam {
     fn stereo_candidates(
         &self,
         obs: &[Observation],
+        known: &[bool],
         motion_cov: &Matrix6<f64>,
         spread: &(Isometry3<f64>, f64, f64),
         out: &mut [Vec<u32>],
     ) {
-        let idx: Vec<usize> =
-            (0..obs.len()).filter(|&j| obs[j].track_id.is_none() && obs[j].stereo.is_some()).collect();
+        let idx: Vec<usize> = (0..obs.len()).filter(|&j| !known[j] && obs[j].stereo.is_some()).collect();
         if idx.is_empty() || self.grid.view.is_empty() {
             return;
         }

@@ -73,6 +73,16 @@ pub struct FrontEndConfig {
     pub huber_sigma: f64,
     /// RANSAC hypotheses at most.
     pub ransac_iterations: usize,
+    /// Give observations without a track id the front end's own: the registration's inlier
+    /// correspondences link a feature from frame to frame, so FastSLAM associates it by that
+    /// attribute ([3D] §3.1) and needs maximum likelihood only for new features. Off: every
+    /// observation without a source track id goes by maximum likelihood.
+    pub assign_tracks: bool,
+    /// When no motion is found, FastSLAM predicts by constant velocity with this σ of the
+    /// change of the linear velocity, m/s.
+    pub fallback_velocity_sigma_mps: f64,
+    /// ... and of the angular velocity, rad/s.
+    pub fallback_angular_velocity_sigma_rps: f64,
     /// Seed of the sampling.
     pub seed: u64,
 }
@@ -92,6 +102,9 @@ impl Default for FrontEndConfig {
             prior_rotation_sigma_deg: 1.5,
             huber_sigma: 2.0,
             ransac_iterations: 200,
+            assign_tracks: true,
+            fallback_velocity_sigma_mps: 2.0,
+            fallback_angular_velocity_sigma_rps: 0.4,
             seed: 7,
         }
     }
@@ -119,6 +132,8 @@ impl FrontEndConfig {
         check(pos(self.prior_rotation_sigma_deg), "prior_rotation_sigma_deg", "must be > 0");
         check(pos(self.huber_sigma), "huber_sigma", "must be > 0");
         check(self.ransac_iterations >= 1, "ransac_iterations", "must be >= 1");
+        check(pos(self.fallback_velocity_sigma_mps), "fallback_velocity_sigma_mps", "must be > 0");
+        check(pos(self.fallback_angular_velocity_sigma_rps), "fallback_angular_velocity_sigma_rps", "must be > 0");
         v
     }
 }
@@ -156,6 +171,9 @@ pub struct Registration {
     /// Mean normalised squared residual of the inliers per degree of freedom (≈ 1 when the
     /// observation covariances are right).
     pub chi2_per_dof: f64,
+    /// The inlier correspondences as (observation index in the previous frame, in this one):
+    /// the same feature in both frames (what a feature tracker would link).
+    pub matches: Vec<(usize, usize)>,
 }
 
 /// Why no motion was found; the previous frame is replaced by the current one either way.
@@ -209,6 +227,8 @@ struct Pt {
     sigma_m: f64,
     /// Front-end track id.
     track: Option<u64>,
+    /// Index of the observation it came from.
+    index: usize,
 }
 
 /// s(p) = (x/z, y/z, 1/z).
@@ -243,10 +263,10 @@ impl Frame {
         let Rcb = cam_from_body.rotation.to_rotation_matrix().into_inner();
         let mut pts = Vec::with_capacity(obs.len());
         let mut skipped = 0;
-        for o in obs {
+        for (index, o) in obs.iter().enumerate() {
             let p = cam_from_body.transform_point(&o.z_m.into()).coords;
             let C = Rcb * o.Rz * Rcb.transpose();
-            match Pt::new(p, C, o.track_id) {
+            match Pt::new(p, C, o.track_id, index) {
                 Some(pt) => pts.push(pt),
                 None => skipped += 1,
             }
@@ -266,7 +286,7 @@ impl Frame {
 }
 
 impl Pt {
-    fn new(p: Vector3<f64>, C: Matrix3<f64>, track: Option<u64>) -> Option<Self> {
+    fn new(p: Vector3<f64>, C: Matrix3<f64>, track: Option<u64>, index: usize) -> Option<Self> {
         if !(p.iter().all(|v| v.is_finite()) && C.iter().all(|v| v.is_finite())) || p.z < MIN_DEPTH_M {
             return None;
         }
@@ -275,7 +295,7 @@ impl Pt {
         let Cs = J * C * J.transpose();
         let Cs = (Cs + Cs.transpose()) * 0.5;
         Chol3::new(&Cs)?;
-        Some(Self { p, C, s: stereo_coords(&p), Cs, sigma_m: C.trace().max(0.0).sqrt(), track })
+        Some(Self { p, C, s: stereo_coords(&p), Cs, sigma_m: C.trace().max(0.0).sqrt(), track, index })
     }
 }
 
@@ -484,8 +504,8 @@ impl FrontEnd {
             }
         }
         // 2. Guided by the constant-velocity prior; when that finds no consensus, by the same
-        //    velocity without its turn (a turn that ends) and by standing still (a stop), before
-        //    the costly prior-free search.
+        //    velocity without its turn (a turn that ends), by standing still (a stop) and by the
+        //    prior three times wider (a sudden change), before the costly prior-free search.
         if let Some((v, w)) = self.velocity {
             last_method = "guided";
             let dt = dt_s.max(0.0);
@@ -495,16 +515,19 @@ impl FrontEnd {
                 prior[(k, k)] = st * st;
                 prior[(3 + k, 3 + k)] = sr * sr;
             }
-            let mut priors = vec![(v, w)];
+            let mut priors = vec![(v, w, 1.0)];
             if (w * dt).norm() > sr {
-                priors.push((v, Vector3::zeros()));
+                priors.push((v, Vector3::zeros(), 1.0));
             }
             if (v * dt).norm() > 2.0 * st {
-                priors.push((Vector3::zeros(), Vector3::zeros()));
+                priors.push((Vector3::zeros(), Vector3::zeros(), 1.0));
             }
+            // The velocity changed more than the prior allows (a sudden acceleration): wider.
+            priors.push((v, w, 3.0));
             let all: Vec<u32> = (0..prev.pts.len() as u32).collect();
             let mut cands = f64::NAN;
-            for (v, w) in priors {
+            for (v, w, widen) in priors {
+                let prior = prior * (widen * widen);
                 let T0 = Isometry3::new(v * dt, w * dt).inverse(); // cur_from_prev
                 if cands.is_nan() {
                     let (_, in_gate) = self.matches(prev, cur, &grid, &T0, Some(&prior), &all);
@@ -1013,6 +1036,7 @@ impl FrontEnd {
             method,
             hypotheses,
             chi2_per_dof,
+            matches: inliers.iter().map(|&(i, j, _)| (prev.pts[i as usize].index, cur.pts[j as usize].index)).collect(),
         })
     }
 }
@@ -1345,6 +1369,7 @@ mod tests {
             method: Method::Guided,
             hypotheses: 1,
             chi2_per_dof: 1.0,
+            matches: vec![],
         };
         let (m, c) = motion_in_body(&r, &b);
         // The body motion moves the camera by the camera motion.

@@ -209,9 +209,14 @@ impl RoadSim {
         let sharp_at = n / 2;
         let mut path = 0.0;
         let phase: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+        // The car follows the commanded speed and yaw rate with bounded accelerations: 2.5 m/s²
+        // and 0.6 rad/s² (a real car's), so no frame-to-frame motion changes abruptly.
+        let (max_accel, max_yaw_accel) = (2.5, 0.6);
+        let mut speed = cfg.speed_mps + cfg.speed_variation_mps * phase.sin();
+        let mut w = 0.0f64;
         for k in 0..n {
             let t = k as f64 * dt;
-            let mut speed = cfg.speed_mps + cfg.speed_variation_mps * (0.25 * t + phase).sin();
+            let mut speed_cmd = cfg.speed_mps + cfg.speed_variation_mps * (0.25 * t + phase).sin();
             if segment_left <= 0.0 {
                 segment_kind += 1;
                 if segment_kind % 2 == 1 {
@@ -226,12 +231,14 @@ impl RoadSim {
             // The intersection: slow down and turn 90° at 1.5× the largest curve rate.
             let sharp_rate = 1.5 * cfg.max_yaw_rate_rps;
             let turn_s = if sharp_rate > 0.0 { std::f64::consts::FRAC_PI_2 / sharp_rate } else { 0.0 };
-            let w = if k >= sharp_at && ((k - sharp_at) as f64 * dt) < turn_s {
-                speed *= 0.6;
-                sharp_rate
+            let w_cmd = if k + 10 >= sharp_at && ((k + 10).saturating_sub(sharp_at) as f64 * dt) < turn_s + 1.0 {
+                speed_cmd *= 0.6; // brake a second before the turn and accelerate after it
+                if k >= sharp_at && ((k - sharp_at) as f64 * dt) < turn_s { sharp_rate } else { 0.0 }
             } else {
                 yaw_rate
             };
+            speed += (speed_cmd - speed).clamp(-max_accel * dt, max_accel * dt);
+            w += (w_cmd - w).clamp(-max_yaw_accel * dt, max_yaw_accel * dt);
             let roll = 0.6f64.to_radians() * (1.7 * t).sin();
             let pitch = 0.4f64.to_radians() * (2.3 * t + 1.0).sin();
             let bump = 0.02 * (3.1 * t).sin();

@@ -284,7 +284,7 @@ impl SlamState {
             if !ready {
                 break;
             }
-            let frame = self.frames.pop_front().expect("front exists");
+            let mut frame = self.frames.pop_front().expect("front exists");
             if !self.segment_origins_s.contains_key(&self.filter.segment()) {
                 // The filter starts at the origin of its first local map (0, or the one after
                 // the last of a killed instance) at its first input.
@@ -302,7 +302,7 @@ impl SlamState {
                     let dt = self.last_frame_ns.map_or(0.0, |last| frame.stamp_ns.saturating_sub(last) as f64 / 1e9);
                     let t0 = std::time::Instant::now();
                     let cam = self.camera_only.as_mut().expect("stereo motion model has a front end");
-                    motion = Some(cam.predict(&mut self.filter, &frame.observations, dt));
+                    motion = Some(cam.predict(&mut self.filter, &mut frame.observations, dt));
                     frontend_ms = t0.elapsed().as_secs_f64() * 1e3;
                 }
                 MotionModel::Odometry => {
