@@ -24,7 +24,19 @@ fn every_type_has_a_unique_versioned_name_and_contiguous_fields() {
     names.dedup();
     assert_eq!(names.len(), layouts.len(), "type names must be unique");
     for l in &layouts {
-        assert_eq!(l.type_name, format!("slam_pipeline::v1::{}", l.rust_name));
+        // `slam_pipeline::v<N>::<Type>`: N is the wire version of the type's last layout change.
+        let version = (1..=shared_types::WIRE_VERSION)
+            .find(|v| l.type_name == format!("slam_pipeline::v{v}::{}", l.rust_name))
+            .unwrap_or_else(|| {
+                panic!(
+                    "{}: type name `{}` is not slam_pipeline::v<1..={}>::{}",
+                    l.rust_name,
+                    l.type_name,
+                    shared_types::WIRE_VERSION,
+                    l.rust_name
+                )
+            });
+        assert!(version >= 1);
         let mut next = 0;
         for f in &l.fields {
             assert_eq!(f.offset, next, "{}.{} does not follow the previous field", l.rust_name, f.name);

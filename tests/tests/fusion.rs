@@ -1,6 +1,7 @@
 //! The fusion and octree-mapping stages end to end: the default config (config/default.toml, the processes exactly as
-//! the main job runs them) must end with a fused global path more accurate than the buoy-only path
-//! and than the SLAM path, and write every output the README lists.
+//! the main job runs them) must end with a fused global path at most 0.8 of the buoy-only path's
+//! error and better than the SLAM path, with an honest SLAM covariance, and write every output the
+//! README lists.
 
 use std::time::Duration;
 
@@ -21,9 +22,17 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     let ate = &s["ate_m"];
     let (fused, buoy, slam) =
         (ate["fused"].as_f64().unwrap(), ate["buoy"].as_f64().unwrap(), ate["slam"].as_f64().unwrap());
-    assert!(fused < buoy, "fused {fused} m must beat the buoy-only path {buoy} m: {ate:#}");
+    // Fusion gains from SLAM: at most 0.8 of the buoy-only path's error (the goal), better than
+    // the SLAM path per local map (ATE after an alignment to the truth), and no worse than the
+    // SLAM path placed in the world by the same local alignments (the fused path leans on it).
+    assert!(fused <= 0.8 * buoy, "fused {fused} m must be <= 0.8 x the buoy-only path {buoy} m: {ate:#}");
     assert!(fused < slam, "fused {fused} m must beat the SLAM path {slam} m: {ate:#}");
-    assert!(fused < ate["slam_global"].as_f64().unwrap(), "{ate:#}");
+    assert!(fused <= 1.02 * ate["slam_global"].as_f64().unwrap(), "{ate:#}");
+    assert!(
+        s["nees"]["slam_position"].as_f64().is_some_and(|n| (0.2158..=9.3484).contains(&n)),
+        "honest SLAM covariance: {:#}",
+        s["nees"]
+    );
     let f = &s["fusion"];
     assert_eq!(f["poses"], s["slam"]["frames"], "one global pose per SLAM pose: {f:#}");
     assert!(f["segments_aligned"].as_u64().unwrap() >= 1, "{f:#}");

@@ -51,6 +51,12 @@ pub struct FusionConfig {
     pub merge: MergeConfig,
     /// Resolve collinear segments with heading readings when there are any.
     pub use_heading: bool,
+    /// The final path aligns each pose with the fixes within this many seconds of it (in its
+    /// segment; at least 7) instead of with all of the segment's: the local path drifts, and a
+    /// transform fitted where the pose is removes that drift (0 = the segment's transform only).
+    /// A window whose path is too straight for a rotation keeps the segment's rotation and
+    /// re-estimates the translation alone.
+    pub local_window_s: f64,
 }
 
 impl Default for FusionConfig {
@@ -61,6 +67,7 @@ impl Default for FusionConfig {
             no_overlap_frames: 15,
             merge: MergeConfig::default(),
             use_heading: true,
+            local_window_s: 10.0,
         }
     }
 }
@@ -73,6 +80,9 @@ impl FusionConfig {
         v.extend(self.merge.validate().into_iter().map(|(k, m)| (format!("merge.{k}"), m)));
         if !(self.gate_probability > 0.0 && self.gate_probability < 1.0) {
             v.push(("gate_probability".into(), "must be in (0, 1)".into()));
+        }
+        if !(self.local_window_s.is_finite() && self.local_window_s >= 0.0) {
+            v.push(("local_window_s".into(), "must be >= 0 (0 = off)".into()));
         }
         v
     }
@@ -231,7 +241,8 @@ pub struct Fusion {
 pub struct FinalResult {
     /// The globally consistent path: every pose with the final transforms.
     pub path: Vec<FusedOutput>,
-    /// The SLAM path mapped to the world by the final transforms (camera only), where aligned.
+    /// The SLAM path mapped to the world by the final transforms (camera only, the local ones
+    /// where there are), where aligned.
     pub slam_world: Vec<(f64, Isometry3<f64>)>,
     /// The global landmark map.
     pub global_map: Vec<GlobalLandmark>,
@@ -343,7 +354,12 @@ impl Fusion {
             .iter()
             .filter_map(|f| {
                 let (local_m, local_cov_m2) = spline.evaluate(f.t_s).ok()?;
-                Some(Correspondence { local_m, local_cov_m2, global_m: f.position_m, global_cov_m2: f.covariance_m2 })
+                Some(Correspondence {
+                    local_m,
+                    local_cov_m2: drift_free(&local_cov_m2),
+                    global_m: f.position_m,
+                    global_cov_m2: f.covariance_m2,
+                })
             })
             .collect();
         match align(&pairs, cfg) {
@@ -402,8 +418,22 @@ impl Fusion {
 
     /// The global pose of one pair with the segment's current transform (no side effects).
     fn pose_of(&self, p: &PairInput, alignment: Option<&Alignment>, excess_cov_m2: &Matrix3<f64>) -> FusedOutput {
+        self.pose_of_with(p, alignment, excess_cov_m2, None, &Matrix3::zeros())
+    }
+
+    /// [`Fusion::pose_of`] with the local position's covariance replaced (a local alignment
+    /// removes the drift before the window: only the drift within it is left).
+    fn pose_of_with(
+        &self,
+        p: &PairInput,
+        alignment: Option<&Alignment>,
+        excess_cov_m2: &Matrix3<f64>,
+        local_cov_override: Option<Matrix3<f64>>,
+        buoy_extra_cov_m2: &Matrix3<f64>,
+    ) -> FusedOutput {
         let local_pos = p.local_from_body.translation.vector;
-        let local_cov3: Matrix3<f64> = p.local_covariance.fixed_view::<3, 3>(0, 0).into_owned();
+        let local_cov3: Matrix3<f64> =
+            local_cov_override.unwrap_or_else(|| p.local_covariance.fixed_view::<3, 3>(0, 0).into_owned());
         let mut cov = Matrix6::zeros();
         match alignment {
             Some(a) => {
@@ -413,7 +443,8 @@ impl Fusion {
                 let rot_cov = p.local_covariance.fixed_view::<3, 3>(3, 3).into_owned()
                     + body_rotation_cov(&rotation, &a.covariance.fixed_view::<3, 3>(3, 3).into_owned());
                 cov.fixed_view_mut::<3, 3>(3, 3).copy_from(&rot_cov);
-                let (position, pos_cov, source, m) = match fuse(&x_c, &p_c, &p.buoy_m, &p.buoy_cov_m2, self.gate_chi2) {
+                let buoy_cov = p.buoy_cov_m2 + buoy_extra_cov_m2;
+                let (position, pos_cov, source, m) = match fuse(&x_c, &p_c, &p.buoy_m, &buoy_cov, self.gate_chi2) {
                     Ok(FuseOutcome::Fused { position_m, covariance_m2, mahalanobis }) => {
                         (position_m, covariance_m2, Source::Fused, Some(mahalanobis))
                     }
@@ -505,6 +536,32 @@ impl Fusion {
         Ok(out)
     }
 
+    /// The local aligner of a segment (`None` without a transform or with the window off).
+    fn local_aligner<'a>(&'a self, seg: &'a Segment) -> Option<LocalAligner<'a>> {
+        if self.cfg.local_window_s <= 0.0 || seg.alignment.is_none() || seg.samples.len() < 2 {
+            return None;
+        }
+        let spline = LocalPathSpline::fit(&seg.samples).ok()?;
+        let (from, to) = (seg.samples[0].t_s, seg.samples[seg.samples.len() - 1].t_s);
+        let pairs = self
+            .fixes_between(from, to)
+            .iter()
+            .filter_map(|f| {
+                let (local_m, local_cov_m2) = spline.evaluate(f.t_s).ok()?;
+                Some((
+                    f.t_s,
+                    Correspondence {
+                        local_m,
+                        local_cov_m2: drift_free(&local_cov_m2),
+                        global_m: f.position_m,
+                        global_cov_m2: f.covariance_m2,
+                    },
+                ))
+            })
+            .collect();
+        Some(LocalAligner { seg, pairs, window_s: self.cfg.local_window_s })
+    }
+
     /// The end of the run: every segment aligned with all its fixes, every pose mapped and fused
     /// again (the globally consistent path), and the global landmark map.
     pub fn finish(&mut self) -> FinalResult {
@@ -527,9 +584,15 @@ impl Fusion {
         let mut slam_world = vec![];
         for id in &ids {
             let seg = &self.segments[id];
+            let local = self.local_aligner(seg);
             for p in &seg.pairs {
-                let out = self.pose_of(p, seg.alignment.as_ref(), &seg.excess_cov_m2);
-                if let Some(a) = &seg.alignment {
+                let (out, a) = match local.as_ref().and_then(|l| l.at(p, &self.cfg.align)) {
+                    Some((a, buoy_extra, local_cov)) => {
+                        (self.pose_of_with(p, Some(&a), &Matrix3::zeros(), Some(local_cov), &buoy_extra), Some(a))
+                    }
+                    None => (self.pose_of(p, seg.alignment.as_ref(), &seg.excess_cov_m2), seg.alignment),
+                };
+                if let Some(a) = a {
                     slam_world.push((p.t_s, a.global_from_local * p.local_from_body));
                 }
                 path.push(out);
@@ -549,6 +612,96 @@ impl Fusion {
         let global_map = build_global_map(&aligned, &self.cfg.merge);
         FinalResult { path, slam_world, global_map }
     }
+}
+
+/// The covariance a local path position brings into an alignment. The SLAM covariance grows
+/// with the drift since the local map's origin, most of which the rigid transform absorbs;
+/// weighted by it, a transform would rest on the poses near the origin. The pairs are weighted by
+/// the fixes alone (this returns a floor); what the local path's errors add to the residuals is
+/// measured afterwards ([`excess_covariance`]) and carried into the mapped poses.
+fn drift_free(_local_cov_m2: &Matrix3<f64>) -> Matrix3<f64> {
+    Matrix3::identity() * 1e-6
+}
+
+/// Local alignments of one aligned segment for the final path ([`FusionConfig::local_window_s`]).
+struct LocalAligner<'a> {
+    seg: &'a Segment,
+    /// (fix time, correspondence) of every fix inside the segment's span.
+    pairs: Vec<(f64, Correspondence)>,
+    window_s: f64,
+}
+
+impl LocalAligner<'_> {
+    /// The transform, the fixes' extra covariance and the local-position covariance for pose
+    /// `p`: fitted to
+    /// the fixes within the window around it; a window too straight for a rotation keeps the
+    /// segment's rotation and fits the translation; `None` (the segment's transform then) with
+    /// fewer than 7 fixes in the window.
+    fn at(&self, p: &PairInput, cfg: &AlignConfig) -> Option<(Alignment, Matrix3<f64>, Matrix3<f64>)> {
+        let seg_a = self.seg.alignment.as_ref()?;
+        let w = self.window_s;
+        let a = self.pairs.partition_point(|(t, _)| *t < p.t_s - w);
+        let b = self.pairs.partition_point(|(t, _)| *t <= p.t_s + w);
+        let window: Vec<Correspondence> = self.pairs[a..b].iter().map(|(_, c)| c.clone()).collect();
+        if window.len() < 7 {
+            return None;
+        }
+        let local = match align(&window, cfg) {
+            Ok(l) => l,
+            Err(_) => translation_only(seg_a, &window)?,
+        };
+        // Within the window the local path's own error is not modelled but measured: the
+        // reported SLAM covariance is its drift since the local map's origin (a dead-reckoning
+        // bound, far more than what a window of a few seconds adds), so the camera estimate
+        // carries the transform's uncertainty, scaled by the residuals below.
+        let rel = Matrix3::identity() * 1e-6;
+        // What the residuals show beyond the fixes' covariance is taken as the fixes' own error
+        // (a buoy EKF's errors are correlated in time and larger than it reports: on the
+        // simulated mission the locally aligned camera path is closer to the truth than the buoy
+        // path), so it widens the fixes, and the transform's covariance grows with the
+        // residuals' χ² per degree of freedom.
+        let excess = excess_covariance(&local, &window);
+        let (mut chi2, mut dof) = (0.0f64, 0.0f64);
+        let r = local.global_from_local.rotation.to_rotation_matrix().into_inner();
+        for c in &window {
+            let e = c.global_m - local.global_from_local.transform_point(&c.local_m.into()).coords;
+            if let Some(si) = (r * c.local_cov_m2 * r.transpose() + c.global_cov_m2 + excess).try_inverse() {
+                chi2 += e.dot(&(si * e));
+                dof += 3.0;
+            }
+        }
+        let mut local = local;
+        let scale = (chi2 / (dof - 6.0).max(1.0)).max(1.0);
+        local.covariance *= scale;
+        Some((local, excess, rel))
+    }
+}
+
+/// The transform with `seg`'s rotation and the translation that best fits `pairs`
+/// (inverse-covariance weighted), with its covariance: for a window whose local path is too
+/// straight to fix a rotation.
+fn translation_only(seg: &Alignment, pairs: &[Correspondence]) -> Option<Alignment> {
+    let r = seg.global_from_local.rotation.to_rotation_matrix().into_inner();
+    let (mut info, mut b) = (Matrix3::zeros(), Vector3::zeros());
+    for c in pairs {
+        let s = r * c.local_cov_m2 * r.transpose() + c.global_cov_m2;
+        let w = s.try_inverse()?;
+        info += w;
+        b += w * (c.global_m - r * c.local_m);
+    }
+    let cov_t = info.try_inverse()?;
+    let t = cov_t * b;
+    let mut cov = Matrix6::zeros();
+    cov.fixed_view_mut::<3, 3>(0, 0).copy_from(&cov_t);
+    cov.fixed_view_mut::<3, 3>(3, 3).copy_from(&seg.covariance.fixed_view::<3, 3>(3, 3));
+    let global_from_local = Isometry3::from_parts(Translation3::from(t), seg.global_from_local.rotation);
+    let rms = (pairs
+        .iter()
+        .map(|c| (c.global_m - global_from_local.transform_point(&c.local_m.into()).coords).norm_squared())
+        .sum::<f64>()
+        / pairs.len() as f64)
+        .sqrt();
+    Some(Alignment { global_from_local, covariance: cov, pairs: pairs.len(), rms_residual_m: rms, spread_ratio: 0.0 })
 }
 
 /// The covariance of the alignment residuals r = X_global − T·X_local beyond what the pairs'
