@@ -10,7 +10,9 @@
 //!
 //! `cargo run --release -p fastslam --example camera_only_eval -- stereo_vo [DIR] [--reference F] [--particles N] [--frames]`
 //! `cargo run --release -p fastslam --example camera_only_eval -- road [--seed S] [--seeds K] [--length FRAMES] [--particles N] [--frames]`
-//! (both also `--proposal motion|optimal`, FastSLAM 1.0 or 2.0).
+//! (both also `--proposal motion|optimal`, FastSLAM 1.0 or 2.0; `road` also takes the drive's
+//! warts: `--pixel-sigma PX`, `--wrong-matches FRACTION`, `--wrong-tracks FRACTION`,
+//! `--dropped-frames PROBABILITY`, or `--clean` for none; the simulator checks the values).
 //!
 //! Per run: RMSE of the positions after the best rigid alignment (Horn/Umeyama), the end-point
 //! difference after aligning the first poses (% of the reference path length), time per frame
@@ -38,6 +40,13 @@ struct Args {
     seeds: u64,
     length: usize,
     proposal: fastslam::Proposal,
+    /// Overrides of the simulated drive's warts (`--pixel-sigma`, `--wrong-matches`,
+    /// `--wrong-tracks`, `--dropped-frames`, `--clean`).
+    pixel_sigma_px: Option<f64>,
+    wrong_match_fraction: Option<f64>,
+    wrong_track_fraction: Option<f64>,
+    dropped_frame_probability: Option<f64>,
+    clean: bool,
 }
 
 fn parse() -> Result<Args, String> {
@@ -51,9 +60,16 @@ fn parse() -> Result<Args, String> {
         seeds: 1,
         length: 400,
         proposal: fastslam::Proposal::default(),
+        pixel_sigma_px: None,
+        wrong_match_fraction: None,
+        wrong_track_fraction: None,
+        dropped_frame_probability: None,
+        clean: false,
     };
     let mut it = std::env::args().skip(1);
     let num = |v: Option<String>, what: &str| v.and_then(|v| v.parse().ok()).ok_or(format!("{what} needs a number"));
+    let real =
+        |v: Option<String>, what: &str| v.and_then(|v| v.parse::<f64>().ok()).ok_or(format!("{what} needs a number"));
     while let Some(x) = it.next() {
         match x.as_str() {
             "--particles" => a.particles = num(it.next(), "--particles")?,
@@ -62,6 +78,11 @@ fn parse() -> Result<Args, String> {
             "--length" => a.length = num(it.next(), "--length")?,
             "--reference" => a.reference = Some(it.next().ok_or("--reference needs a file")?),
             "--frames" => a.frames = true,
+            "--pixel-sigma" => a.pixel_sigma_px = Some(real(it.next(), "--pixel-sigma")?),
+            "--wrong-matches" => a.wrong_match_fraction = Some(real(it.next(), "--wrong-matches")?),
+            "--wrong-tracks" => a.wrong_track_fraction = Some(real(it.next(), "--wrong-tracks")?),
+            "--dropped-frames" => a.dropped_frame_probability = Some(real(it.next(), "--dropped-frames")?),
+            "--clean" => a.clean = true,
             "--proposal" => {
                 a.proposal = match it.next().as_deref() {
                     Some("motion") => fastslam::Proposal::Motion,
@@ -150,24 +171,23 @@ fn stereo_vo(args: &Args, ids: bool) -> Result<Input, String> {
 
 fn road(args: &Args, ids: bool) -> Result<Input, String> {
     let mut cfg = sim::road::RoadConfig { seed: args.seed, frames: args.length, ..Default::default() };
-    if let Some(p) = std::env::var("PIX").ok().and_then(|v| v.parse().ok()) {
-        cfg.pixel_sigma_px = p;
-    }
-    if std::env::var("CLEAN").is_ok() {
+    if args.clean {
         cfg.wrong_match_fraction = 0.0;
         cfg.spurious_fraction = 0.0;
         cfg.wrong_track_fraction = 0.0;
         cfg.dropped_frame_probability = 0.0;
     }
-    let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
-    if let Some(v) = env("WRONG") {
+    if let Some(v) = args.pixel_sigma_px {
+        cfg.pixel_sigma_px = v;
+    }
+    if let Some(v) = args.wrong_match_fraction {
         cfg.wrong_match_fraction = v;
     }
-    if let Some(v) = env("DROP") {
-        cfg.dropped_frame_probability = v;
-    }
-    if let Some(v) = env("WTRACK") {
+    if let Some(v) = args.wrong_track_fraction {
         cfg.wrong_track_fraction = v;
+    }
+    if let Some(v) = args.dropped_frame_probability {
+        cfg.dropped_frame_probability = v;
     }
     let mut sim = sim::road::RoadSim::new(cfg).map_err(|e| e.to_string())?;
     let b = sim.body_from_camera();
@@ -364,11 +384,7 @@ fn run(input: &Input, args: &Args, assign_tracks: bool) -> (Row, Row) {
     }
     let fe_row = row(&traj, &input.reference, times, failed, None);
     // FastSLAM with the front end as its motion input.
-    let mut cfg = FastSlamConfig { particles: args.particles, proposal: args.proposal, ..Default::default() };
-    if let Some(q) = std::env::var("QP").ok().and_then(|v| v.parse().ok()) {
-        cfg.process_position_sigma = q;
-        cfg.process_rotation_sigma = q / 10.0;
-    }
+    let cfg = FastSlamConfig { particles: args.particles, proposal: args.proposal, ..Default::default() };
     let mut f = FastSlam::new(cfg).expect("valid settings");
     let mut cam = CameraOnly::new(FrontEndConfig { assign_tracks, ..Default::default() }, b);
     let mut traj = vec![];

@@ -774,8 +774,12 @@ mod tests {
                 let t = k as f64 * 0.1;
                 if k % 10 == 0 {
                     let noise = Vector3::new(n.sample(&mut rng), n.sample(&mut rng), n.sample(&mut rng));
-                    f.push_fix(FixInput { t_s: t, position_m: truth_at(t) + noise, covariance_m2: Matrix3::identity() * 0.09 })
-                        .unwrap();
+                    f.push_fix(FixInput {
+                        t_s: t,
+                        position_m: truth_at(t) + noise,
+                        covariance_m2: Matrix3::identity() * 0.09,
+                    })
+                    .unwrap();
                 }
                 let mut p = pair(t, 0, truth_at(t), 0.3);
                 let local = world_from_local().inverse().transform_point(&(truth_at(t) + drift(t)).into()).coords;
@@ -783,7 +787,8 @@ mod tests {
                 f.push_pair(p).unwrap();
             }
             let fin = f.finish();
-            let se: f64 = fin.slam_world.iter().map(|(t, p)| (p.translation.vector - truth_at(*t)).norm_squared()).sum();
+            let se: f64 =
+                fin.slam_world.iter().map(|(t, p)| (p.translation.vector - truth_at(*t)).norm_squared()).sum();
             (se / fin.slam_world.len() as f64).sqrt()
         };
         let (global, local) = (run(0.0), run(10.0));
