@@ -83,7 +83,10 @@ fn run(
     }
 }
 
-fn drive(ids: bool, frames: usize) -> (Vec<(f64, Vec<Observation>)>, Isometry3<f64>, Vec<(f64, Isometry3<f64>)>) {
+/// Frames of observations (stamp s, body frame), the camera extrinsic, the true path.
+type Drive = (Vec<(f64, Vec<Observation>)>, Isometry3<f64>, Vec<(f64, Isometry3<f64>)>);
+
+fn drive(ids: bool, frames: usize) -> Drive {
     let mut sim = sim::road::RoadSim::new(sim::road::RoadConfig { frames, ..Default::default() }).unwrap();
     let b = sim.body_from_camera();
     let mut out = vec![];

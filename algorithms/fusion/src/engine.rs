@@ -642,7 +642,7 @@ impl LocalAligner<'_> {
         let w = self.window_s;
         let a = self.pairs.partition_point(|(t, _)| *t < p.t_s - w);
         let b = self.pairs.partition_point(|(t, _)| *t <= p.t_s + w);
-        let window: Vec<Correspondence> = self.pairs[a..b].iter().map(|(_, c)| c.clone()).collect();
+        let window: Vec<Correspondence> = self.pairs[a..b].iter().map(|(_, c)| *c).collect();
         if window.len() < 7 {
             return None;
         }
