@@ -327,8 +327,8 @@ def run(args: argparse.Namespace) -> int:
         .initial_max_slice_len(args.points)
         .allocation_strategy(iox.AllocationStrategy.PowerOfTwo)
         .max_loaned_samples(1)
-        # Only applies to services without safe overflow (the cloud service overflows): a
-        # live source never blocks on a slow subscriber.
+        # A live source never blocks on a slow subscriber: a full queue drops the sample for
+        # it (the cloud service does not overflow; the subscriber sees a sequence gap).
         .backpressure_strategy(iox.BackpressureStrategy.DiscardData),
     )
     cloud_notifier = create_port("notifier", CLOUD, open_event(node, CLOUD).notifier_builder())

@@ -158,7 +158,8 @@ pub const SERVICES: &[ServiceSpec] = &[
         CLOUD,
         "[CloudPoint]",
         "CloudHeader",
-        Qos { subscriber_buffer: 2, subscriber_borrowed: 1, publisher_loans: 1, ..Qos::stream(2, 320 * 240) },
+        // Sensor data: a replay waits for a slow mapper, a live source drops (counted).
+        Qos { subscriber_borrowed: 1, publisher_loans: 1, ..Qos::sensor(2, 2, 320 * 240) },
     ),
     spec(SLAM_POSE, "PoseEstimate", "MsgHeader", Qos::estimates(4)),
     spec(SLAM_PARTICLES, "[Particle]", "ParticleSetHeader", Qos::stream(2, 1024)),

@@ -86,3 +86,66 @@ fn a_dead_consumer_is_skipped_and_what_it_missed_is_reported() {
     assert!(log.contains("UNDELIVERED"), "the status line shows it while it happens:\n{log}");
     assert!(run.leftovers().is_empty(), "{:?}", run.leftovers());
 }
+
+#[test]
+fn what_a_stage_drops_by_its_own_policy_is_counted_warned_and_listed() {
+    let mut run = TestRun::new("bpdropped");
+    // Clouds on the SLAM pose, but no SLAM in the run: every cloud waits `pose_wait_s` for a
+    // pose that never comes and is dropped; the ingest's replay still delivers every one.
+    let procs = r#"
+[processes.map]
+kind = "octree_mapper"
+restart = "never"
+[processes.map.settings]
+pose_source = "slam"
+pose_wait_s = 0.05
+end_after = ["ingest"]
+
+[processes.ingest]
+kind = "ingest"
+after = ["map"]
+restart = "never"
+[processes.ingest.settings]
+source = "sim"
+real_time_factor = 0.0
+progress_interval_s = 0.0
+[processes.ingest.settings.sim.mission]
+legs = 1
+leg_length_m = 10.0
+[processes.ingest.settings.sim.sensors.depth_camera]
+width_px = 48
+height_px = 36
+"#;
+    let s = run.run_to_end(
+        "end = \"end_of_stream\"\nend_of_stream_from = [\"map\"]\nduration_s = 120",
+        procs,
+        Duration::from_secs(90),
+    );
+    let sent = s["ingest"]["messages"]["cloud"].as_u64().unwrap();
+    assert!(sent >= 3, "{s:#}");
+    let c = &s["octree_mapper"]["counters"];
+    assert_eq!(c["clouds_dropped_no_pose"], sent, "every cloud arrived and was dropped without a pose: {c:#}");
+    assert_eq!(s["undelivered"], serde_json::json!([]), "{s:#}");
+    let dropped = s["dropped"].as_array().expect("dropped list");
+    assert_eq!(dropped.len(), 1, "{dropped:#?}");
+    assert_eq!(dropped[0]["process"], "map");
+    assert_eq!(dropped[0]["service"], "pipeline/sensors/cloud");
+    assert_eq!(dropped[0]["reason"], "no pose within pose_wait_s");
+    assert_eq!(dropped[0]["messages"], sent);
+    assert_eq!(s["processes"]["map"]["dropped"], sent);
+    let log = run.log();
+    assert!(
+        log.lines().any(|l| l.contains("WARN")
+            && l.contains(&format!("map dropped {sent} message(s) of `pipeline/sensors/cloud`: no pose"))),
+        "a warning names the process, service, reason and count:\n{log}"
+    );
+    assert!(
+        log.contains("DROPPED") && log.contains("pipeline/sensors/cloud (no pose within pose_wait_s)"),
+        "the status line shows it while it happens:\n{log}"
+    );
+    let status: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.out_dir().join("status.json")).expect("status.json")).unwrap();
+    let map = status["processes"].as_array().unwrap().iter().find(|p| p["name"] == "map").expect("map in status.json");
+    assert_eq!(map["dropped"]["pipeline/sensors/cloud (no pose within pose_wait_s)"], sent, "{status:#}");
+    assert!(run.leftovers().is_empty(), "{:?}", run.leftovers());
+}

@@ -149,7 +149,7 @@ restart = "never"
     let clouds = m["clouds_inserted"].as_u64().unwrap()
         + m["clouds_dropped_no_pose"].as_u64().unwrap()
         + m["clouds_dropped_behind"].as_u64().unwrap()
-        + m["clouds_overwritten"].as_u64().unwrap();
+        + m["clouds_missed"].as_u64().unwrap();
     assert!(clouds >= 24, "every cloud accounted for: {m:#}");
     // FastSLAM dropped the bad observations and odometry and went on with the good frames.
     let f = &s["slam"];

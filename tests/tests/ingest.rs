@@ -156,7 +156,7 @@ fn depth_images_are_back_projected_into_clouds() {
         files.join(", ")
     );
     let s = run_to_end(&mut run, &procs);
-    assert_eq!(monitor(&s, "pipeline/sensors/cloud"), (3, 0, 0));
+    assert_eq!(monitor(&s, "pipeline/sensors/cloud"), (3, 0, 0), "{s:#}");
     assert_eq!(s["sensor_monitor"]["cloud_points"], 3 * 56 * 48);
 }
 

@@ -175,6 +175,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
             .publisher_builder()
             .initial_max_slice_len(8)
             .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .backpressure_strategy(BackpressureStrategy::DiscardData)
             .create()?,
         notifier,
         seq: 0,
@@ -186,6 +187,8 @@ fn run(args: &Args) -> anyhow::Result<()> {
             .initial_max_slice_len(args.points.max(1))
             .allocation_strategy(AllocationStrategy::PowerOfTwo)
             .max_loaned_samples(1)
+            // A live source: a full subscriber queue drops the sample for that subscriber.
+            .backpressure_strategy(BackpressureStrategy::DiscardData)
             .create()?,
         notifier,
         seq: 0,

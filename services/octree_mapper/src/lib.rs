@@ -27,6 +27,20 @@ pub enum PoseSource {
     Cloud,
 }
 
+/// What the mapper does while insertion is behind the clouds coming in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WhenBehind {
+    /// Take no more clouds while `max_pending_clouds` wait: they stay in the service's queue, so
+    /// a replay as fast as possible (back-pressure) slows down to the mapper and every cloud is
+    /// inserted; a live source drops them for this consumer (counted by the source as
+    /// undelivered). The default: a complete map, the same on every run.
+    Wait,
+    /// Keep taking clouds and drop the oldest waiting one (counted): the newest clouds are
+    /// mapped with the least delay, for live operation where the map must keep up.
+    DropOldest,
+}
+
 /// OctoMap's inverse sensor model (probabilities).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -100,9 +114,12 @@ pub struct MapperSettings {
     pub pose_source: PoseSource,
     /// The sensor on the body (not used with `pose_source = "cloud"`).
     pub mount: SensorMount,
-    /// Clouds waiting at most; when insertion falls behind the oldest is dropped (counted).
+    /// Clouds waiting at most (for their pose, or for insertion).
     pub max_pending_clouds: usize,
-    /// A cloud waits at most this long (wall time) for a pose after its stamp, s; then it is
+    /// What happens when `max_pending_clouds` wait: take no more (`"wait"`, default: back-pressure
+    /// in a replay, nothing dropped by the mapper) or drop the oldest (`"drop_oldest"`, counted).
+    pub when_behind: WhenBehind,
+    /// The oldest waiting cloud waits at most this long (wall time) for a pose, s; then it is
     /// dropped (counted).
     pub pose_wait_s: f64,
     /// Largest time between the two poses a cloud's pose is interpolated between, s.
@@ -135,6 +152,7 @@ impl Default for MapperSettings {
             pose_source: PoseSource::Fused,
             mount: SensorMount::default(),
             max_pending_clouds: 64,
+            when_behind: WhenBehind::Wait,
             pose_wait_s: 2.0,
             max_pose_gap_s: 1.0,
             ray_threads: 2,
@@ -266,11 +284,12 @@ pub struct ObstacleLandmark {
 pub struct MapperCounters {
     /// Clouds inserted.
     pub clouds_inserted: u64,
-    /// Clouds dropped because insertion fell behind (the queue was full).
+    /// Clouds dropped because insertion fell behind (`when_behind = "drop_oldest"` and the
+    /// queue was full).
     pub clouds_dropped_behind: u64,
-    /// Clouds overwritten in the service's queue before this process took them (sequence gaps:
-    /// the producer never waits for a slow mapper).
-    pub clouds_overwritten: u64,
+    /// Clouds that never reached this process (gaps in the publisher's sequence numbers: a live
+    /// source's sample dropped for a full queue, or a producer that overwrites).
+    pub clouds_missed: u64,
     /// Clouds dropped without a pose (none came in time, or the poses around them were too far apart).
     pub clouds_dropped_no_pose: u64,
     /// Points inserted.
@@ -295,6 +314,9 @@ pub struct MapperState {
     pub poses: PoseBuffer,
     /// Clouds waiting.
     pub pending: VecDeque<PendingCloud>,
+    /// Since when the oldest waiting cloud waits for its pose (the `pose_wait_s` clock starts
+    /// when a cloud is next to insert, not while it queues behind others).
+    front_waiting_since: Option<Instant>,
     /// Counters.
     pub counters: MapperCounters,
     /// Insertion time per cloud, ms.
@@ -318,6 +340,7 @@ impl MapperState {
             tree,
             poses: PoseBuffer::default(),
             pending: VecDeque::new(),
+            front_waiting_since: None,
             counters: MapperCounters::default(),
             insert_ms: vec![],
             obstacle_landmarks: vec![],
@@ -371,18 +394,25 @@ impl MapperState {
         &self.settings
     }
 
-    /// Queues a cloud; drops the oldest waiting one when the queue is full.
+    /// True while the mapper takes more clouds: always with `when_behind = "drop_oldest"`, else
+    /// while fewer than `max_pending_clouds` wait.
+    pub fn takes_clouds(&self) -> bool {
+        self.settings.when_behind == WhenBehind::DropOldest || self.pending.len() < self.settings.max_pending_clouds
+    }
+
+    /// Queues a cloud; when `max_pending_clouds` already wait, drops the oldest (counted).
     pub fn push_cloud(&mut self, cloud: PendingCloud) {
         while self.pending.len() >= self.settings.max_pending_clouds {
             self.pending.pop_front();
+            self.front_waiting_since = None;
             self.counters.clouds_dropped_behind += 1;
         }
         self.pending.push_back(cloud);
     }
 
-    /// When the oldest cloud stops waiting for its pose.
+    /// When the oldest cloud stops waiting for its pose (`None`: it is not waiting for one).
     pub fn next_deadline(&self) -> Option<Instant> {
-        self.pending.front().map(|c| c.received + Duration::from_secs_f64(self.settings.pose_wait_s))
+        self.front_waiting_since.map(|t| t + Duration::from_secs_f64(self.settings.pose_wait_s))
     }
 
     /// The process's `step`: inserts at most `max_clouds` clouds whose pose is known, in order;
@@ -399,7 +429,10 @@ impl MapperState {
                     PoseLookup::Ready(p) => Some(p * self.body_from_sensor),
                     PoseLookup::Wait
                         if !flush
-                            && now.saturating_duration_since(c.received).as_secs_f64() < self.settings.pose_wait_s =>
+                            && now
+                                .saturating_duration_since(*self.front_waiting_since.get_or_insert(now))
+                                .as_secs_f64()
+                                < self.settings.pose_wait_s =>
                     {
                         break;
                     }
@@ -407,6 +440,7 @@ impl MapperState {
                 }
             };
             let c = self.pending.pop_front().expect("front exists");
+            self.front_waiting_since = None;
             let Some(world_from_sensor) = world_from_sensor else {
                 self.counters.clouds_dropped_no_pose += 1;
                 continue;
@@ -569,10 +603,12 @@ mod tests {
 
     #[test]
     fn clouds_wait_for_their_pose_and_the_oldest_is_dropped_when_behind() {
-        let settings = MapperSettings { max_pending_clouds: 2, ..Default::default() };
+        let settings =
+            MapperSettings { max_pending_clouds: 2, when_behind: WhenBehind::DropOldest, ..Default::default() };
         let mut st = MapperState::new(settings).unwrap();
         let now = Instant::now();
         for k in 0..3 {
+            assert!(st.takes_clouds());
             st.push_cloud(cloud(1.0 + k as f64 * 0.2, now));
         }
         assert_eq!(st.counters.clouds_dropped_behind, 1);
@@ -582,12 +618,32 @@ mod tests {
         assert_eq!(st.step(now, false, 10).unwrap(), 2);
         assert_eq!(st.counters.clouds_inserted, 2);
         assert!(st.tree.num_leaves() > 0);
-        // A cloud whose pose never comes is dropped after pose_wait_s.
+        // A cloud whose pose never comes is dropped pose_wait_s after it is next to insert.
         st.push_cloud(cloud(5.0, now));
-        assert_eq!(st.step(now, false, 10).unwrap(), 0);
-        assert_eq!(st.step(now + Duration::from_secs(3), false, 10).unwrap(), 0);
+        assert_eq!(st.next_deadline(), None, "not waiting yet");
+        assert_eq!(st.step(now + Duration::from_secs(10), false, 10).unwrap(), 0);
+        assert_eq!(st.counters.clouds_dropped_no_pose, 0, "the wait starts when it is next, not when it came");
+        assert_eq!(st.next_deadline(), Some(now + Duration::from_secs(12)));
+        assert_eq!(st.step(now + Duration::from_secs(13), false, 10).unwrap(), 0);
         assert_eq!(st.counters.clouds_dropped_no_pose, 1);
         assert!(st.pending.is_empty());
+        assert_eq!(st.next_deadline(), None);
+    }
+
+    #[test]
+    fn by_default_a_full_queue_takes_no_more_clouds_and_drops_none() {
+        let settings = MapperSettings { max_pending_clouds: 2, ..Default::default() };
+        let mut st = MapperState::new(settings).unwrap();
+        let now = Instant::now();
+        st.push_cloud(cloud(1.0, now));
+        assert!(st.takes_clouds());
+        st.push_cloud(cloud(1.2, now));
+        assert!(!st.takes_clouds(), "two wait: the rest stays in the service's queue");
+        st.poses.push(1.0, Isometry3::identity());
+        st.poses.push(2.0, Isometry3::translation(1.0, 0.0, 0.0));
+        assert_eq!(st.step(now, false, 1).unwrap(), 1);
+        assert!(st.takes_clouds());
+        assert_eq!(st.counters.clouds_dropped_behind, 0);
     }
 
     #[test]

@@ -34,7 +34,7 @@ fn stats_msg(st: &MapperState, regions: u32, obstacles: u32) -> MapStats {
         clouds_inserted: st.counters.clouds_inserted,
         clouds_dropped: st.counters.clouds_dropped_behind
             + st.counters.clouds_dropped_no_pose
-            + st.counters.clouds_overwritten,
+            + st.counters.clouds_missed,
         points_inserted: st.counters.points_inserted,
         last_insert_ms: st.insert_ms.last().copied().unwrap_or(0.0),
         navigable_regions: regions,
@@ -221,13 +221,21 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             }
         }
         let now = Instant::now();
-        while let Some(s) = clouds.receive()? {
+        // With `when_behind = "wait"` no more clouds are taken while max_pending_clouds wait:
+        // the rest stays in the service's queue and a replay waits for the mapper.
+        let mut queue_empty = false;
+        while st.takes_clouds() {
+            let Some(s) = clouds.receive()? else {
+                queue_empty = true;
+                break;
+            };
             let h = s.user_header();
             last_stamp = last_stamp.max(h.msg.stamp_ns);
             if let Some(prev) = last_cloud_seq
                 && h.msg.seq > prev + 1
             {
-                st.counters.clouds_overwritten += h.msg.seq - prev - 1;
+                st.counters.clouds_missed += h.msg.seq - prev - 1;
+                clouds.count_dropped("missed: sequence gap", h.msg.seq - prev - 1);
             }
             last_cloud_seq = Some(h.msg.seq);
             let own_pose = (h.flags & CLOUD_HAS_POSE != 0)
@@ -240,6 +248,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 received: now,
             });
         }
+        let held_back = !queue_empty;
         while let Some(s) = commands.receive()? {
             let c = s.payload();
             let target = name_from32(&c.target);
@@ -251,7 +260,13 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             }
         }
         // One cloud per wake-up, so the inputs are drained (and late clouds dropped) between.
+        let before = (st.counters.clouds_dropped_behind, st.counters.clouds_dropped_no_pose);
         st.step(Instant::now(), inputs_ended, 1)?;
+        clouds.count_dropped(
+            "insertion behind (when_behind = drop_oldest)",
+            st.counters.clouds_dropped_behind - before.0,
+        );
+        clouds.count_dropped("no pose within pose_wait_s", st.counters.clouds_dropped_no_pose - before.1);
         if !st.pending.is_empty() {
             match st.next_deadline() {
                 Some(d) if st.settings().pose_source != PoseSource::Cloud => {
@@ -259,6 +274,8 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
                 }
                 _ => rt.wake_at(Instant::now()),
             }
+        } else if held_back {
+            rt.wake_at(Instant::now()); // clouds left in the service's queue: take them now
         }
         if checkpoint_every.is_some_and(|e| last_checkpoint.elapsed() >= e) && !inputs_ended {
             last_checkpoint = Instant::now();
@@ -273,7 +290,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             let voxels = build_voxels(st, None);
             send_voxels(&mut voxels_out, &voxels, st.tree.resolution(), last_stamp)?;
         }
-        if inputs_ended && st.pending.is_empty() {
+        if inputs_ended && queue_empty && st.pending.is_empty() {
             let (d, voxels) = finish(rt, st, &out_dir, &name)?;
             stats_out.send_value(
                 MsgHeader { stamp_ns: last_stamp, ..Default::default() },

@@ -583,6 +583,21 @@ impl<P: Payload + ?Sized, H: Header> Input<P, H> {
         self.stats.borrow().count
     }
 
+    /// Counts `n` messages of this input that the stage dropped (or missed: a gap in the
+    /// publisher's sequence numbers) for `reason`. Nothing is lost silently: the supervisor shows
+    /// them in the status line (`DROPPED`), warns once per process, service and reason at the end
+    /// of the run and lists them in summary.json (`dropped`).
+    pub fn count_dropped(&self, reason: &str, n: u64) {
+        if n > 0 {
+            *self.stats.borrow_mut().dropped_by.entry(reason.to_string()).or_default() += n;
+        }
+    }
+
+    /// Messages dropped so far, over all reasons.
+    pub fn dropped(&self) -> u64 {
+        self.stats.borrow().dropped_by.values().sum()
+    }
+
     fn record(&self, sample: &Sample<ipc::Service, P, H>) {
         let h = sample.user_header().msg();
         self.stats.borrow_mut().record_receive(monotonic_ns(), h.publish_ns, h.origin_ns);

@@ -39,6 +39,9 @@ pub struct PortStats {
     /// `undelivered` by consumer (subscriber port name, i.e. process name; `(not connected
     /// yet)` for subscribers that had not connected).
     pub undelivered_by: std::collections::BTreeMap<String, u64>,
+    /// Input messages the consuming stage received (or knows it missed) and dropped, by reason
+    /// (e.g. "no pose within pose_wait_s"): counted by the stage with [`crate::Input::count_dropped`].
+    pub dropped_by: std::collections::BTreeMap<String, u64>,
     /// Hop latency, ns.
     pub hop: Histogram<u64>,
     /// End-to-end latency, ns.
@@ -55,6 +58,7 @@ impl PortStats {
             bad_header: 0,
             undelivered: 0,
             undelivered_by: Default::default(),
+            dropped_by: Default::default(),
             hop: new_histogram(),
             e2e: new_histogram(),
         }
@@ -87,6 +91,8 @@ pub struct PortReport {
     pub undelivered: u64,
     /// `undelivered` by consumer name.
     pub undelivered_by: Vec<(String, u64)>,
+    /// Input messages the stage dropped, by reason (empty for outputs).
+    pub dropped_by: Vec<(String, u64)>,
     /// Hop histogram, V2 deflate serialised (empty for outputs).
     pub hop: Vec<u8>,
     /// End-to-end histogram, V2 deflate serialised (empty for outputs).
@@ -153,6 +159,7 @@ impl StatsReport {
                     bad_header: p.bad_header,
                     undelivered: p.undelivered,
                     undelivered_by: p.undelivered_by.iter().map(|(k, v)| (k.clone(), *v)).collect(),
+                    dropped_by: p.dropped_by.iter().map(|(k, v)| (k.clone(), *v)).collect(),
                     hop: ser(&p.hop),
                     e2e: ser(&p.e2e),
                 })

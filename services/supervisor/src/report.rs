@@ -49,6 +49,24 @@ pub fn undelivered(rows: &[ProcessRow<'_>]) -> BTreeMap<(String, String, String)
     out
 }
 
+/// What each process's stages dropped of their inputs, summed over its instances: (process,
+/// service, reason) → messages.
+pub fn dropped(rows: &[ProcessRow<'_>]) -> BTreeMap<(String, String, String), u64> {
+    let mut out = BTreeMap::new();
+    for row in rows {
+        for report in &row.reports {
+            for port in report.ports.iter().filter(|p| p.input) {
+                for (reason, n) in &port.dropped_by {
+                    if *n > 0 {
+                        *out.entry((row.name.to_string(), port.service.clone(), reason.clone())).or_default() += *n;
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
 /// Hop latency over all inputs of one report.
 pub fn hop_summary(report: &StatsReport) -> Option<LatencySummary> {
     let mut h = new_histogram();
@@ -114,6 +132,8 @@ pub fn summary(plan: &Plan, rows: &[ProcessRow<'_>], end: &EndReason, exit_code:
                     "restarts": r.restarts,
                     "instances": r.reports.len(),
                     "undelivered": r.reports.iter().flat_map(|rep| rep.ports.iter()).map(|p| p.undelivered).sum::<u64>(),
+                    "dropped": r.reports.iter().flat_map(|rep| rep.ports.iter())
+                        .flat_map(|p| p.dropped_by.iter()).map(|(_, n)| n).sum::<u64>(),
                     "last_exit": r.last_exit,
                     "messages_in": counts.0,
                     "messages_out": counts.1,
@@ -128,6 +148,12 @@ pub fn summary(plan: &Plan, rows: &[ProcessRow<'_>], end: &EndReason, exit_code:
             json!({ "publisher": publisher, "service": service, "consumer": consumer, "messages": n })
         })
         .collect();
+    let dropped: Vec<Value> = dropped(rows)
+        .into_iter()
+        .map(|((process, service, reason), n)| {
+            json!({ "process": process, "service": service, "reason": reason, "messages": n })
+        })
+        .collect();
     let mut out = json!({
         "run": {
             "config": plan.config_path,
@@ -139,6 +165,7 @@ pub fn summary(plan: &Plan, rows: &[ProcessRow<'_>], end: &EndReason, exit_code:
         },
         "processes": processes,
         "undelivered": lost,
+        "dropped": dropped,
         "latency_ms": {
             "hops": hop.iter().map(|(k, s)| (k.clone(), lat_json(s))).collect::<serde_json::Map<_, _>>(),
             "end_to_end": e2e.iter().map(|(k, s)| (k.clone(), lat_json(s))).collect::<serde_json::Map<_, _>>(),

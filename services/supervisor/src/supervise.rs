@@ -255,6 +255,14 @@ impl Supervisor {
                 "{n} message(s) of `{service}` from {publisher} never reached {consumer}"
             );
         }
+        for ((process, service, reason), n) in crate::report::dropped(&rows) {
+            tracing::warn!(
+                process = %process,
+                service = %service,
+                reason = %reason,
+                "{process} dropped {n} message(s) of `{service}`: {reason}"
+            );
+        }
         let summary = crate::report::summary(&self.plan, &rows, &end, exit_code, self.started.elapsed());
         Ok(RunOutcome { end, exit_code, summary })
     }
@@ -585,6 +593,7 @@ impl Supervisor {
                     "hop_p99_ms": lat.as_ref().map(|l| l.p99),
                     "e2e_p50_ms": current.and_then(crate::report::e2e_summary).filter(|l| l.count > 0).map(|l| l.p50),
                     "undelivered": undelivered_by(c),
+                    "dropped": dropped_by(c),
                 })
             })
             .collect();
@@ -632,6 +641,11 @@ impl Supervisor {
             if !lost.is_empty() {
                 let list: Vec<String> = lost.iter().map(|(k, n)| format!("{n} to {k}")).collect();
                 s.push_str(&format!(" UNDELIVERED {}", list.join(", ")));
+            }
+            let dropped = dropped_by(c);
+            if !dropped.is_empty() {
+                let list: Vec<String> = dropped.iter().map(|(k, n)| format!("{n} {k}")).collect();
+                s.push_str(&format!(" DROPPED {}", list.join(", ")));
             }
             parts.push(s);
         }
@@ -696,6 +710,21 @@ impl Supervisor {
             }
         }
     }
+}
+
+/// Input messages a process's stage dropped so far, over all its instances, by "service
+/// (reason)".
+fn dropped_by(c: &Child) -> BTreeMap<String, u64> {
+    let mut out: BTreeMap<String, u64> = BTreeMap::new();
+    for r in c.reports.values() {
+        for port in r.ports.iter().filter(|p| p.input) {
+            for (reason, n) in &port.dropped_by {
+                *out.entry(format!("{} ({reason})", port.service)).or_default() += *n;
+            }
+        }
+    }
+    out.retain(|_, n| *n > 0);
+    out
 }
 
 /// Messages a process's outputs did not deliver so far, over all its instances, by consumer.
