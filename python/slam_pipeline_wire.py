@@ -415,20 +415,22 @@ assert ctypes.sizeof(Heartbeat) == 64, "Heartbeat size"
 assert ctypes.alignment(Heartbeat) == 8, "Heartbeat alignment"
 
 class EndOfStream(ctypes.Structure):
-    """End of stream (`pipeline/control/end_of_stream`): the sender has sent its last message."""
+    """End of stream (`pipeline/control/end_of_stream`): the process named has sent its last"""
 
     _fields_ = [
         ("process", (ctypes.c_uint8) * 32),
         ("last_seq", ctypes.c_uint64),
         ("messages_sent", ctypes.c_uint64),
+        ("status", ctypes.c_uint32),
+        ("_reserved", ctypes.c_uint32),
     ]
 
     @staticmethod
     def type_name() -> str:
-        return "slam_pipeline::v1::EndOfStream"
+        return "slam_pipeline::v2::EndOfStream"
 
 
-assert ctypes.sizeof(EndOfStream) == 48, "EndOfStream size"
+assert ctypes.sizeof(EndOfStream) == 56, "EndOfStream size"
 assert ctypes.alignment(EndOfStream) == 8, "EndOfStream alignment"
 
 class ControlCommand(ctypes.Structure):

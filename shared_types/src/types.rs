@@ -464,16 +464,28 @@ wire_type! {
     }
 }
 
+/// `EndOfStream::status`: the process sent its last message itself.
+pub const EOS_COMPLETE: u32 = 0;
+/// `EndOfStream::status`: the process failed for good (the supervisor gave up restarting it) and
+/// the supervisor ends its stream in its name; what it would have sent next never comes, and
+/// `last_seq` / `messages_sent` are what the supervisor last saw of it.
+pub const EOS_FAILED: u32 = 1;
+
 wire_type! {
-    /// End of stream (`pipeline/control/end_of_stream`): the sender has sent its last message.
-    type_name = "slam_pipeline::v1::EndOfStream", size = 48;
+    /// End of stream (`pipeline/control/end_of_stream`): the process named has sent its last
+    /// message, or failed for good (`status`, `EOS_*`).
+    type_name = "slam_pipeline::v2::EndOfStream", size = 56;
     pub struct EndOfStream {
-        /// Sending process name, UTF-8, NUL-padded.
+        /// The process whose stream ends, UTF-8, NUL-padded.
         pub process: [u8; 32],
         /// Sequence number of the sender's last data message.
         pub last_seq: u64,
         /// Messages the sender published in all.
         pub messages_sent: u64,
+        /// `EOS_COMPLETE` (0) or `EOS_FAILED`.
+        pub status: u32,
+        /// Zero.
+        pub _reserved: u32,
     }
 }
 

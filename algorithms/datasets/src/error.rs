@@ -121,14 +121,6 @@ pub enum LineErrorKind {
         /// The field.
         text: String,
     },
-    /// A timestamp is smaller than the one on the previous data line.
-    #[error("time {t_s} s is before the previous line's time {previous_t_s} s")]
-    TimeWentBackwards {
-        /// This line's time, s.
-        t_s: f64,
-        /// The previous data line's time, s.
-        previous_t_s: f64,
-    },
     /// A range names a beacon that is not in the beacon list.
     #[error("beacon id {beacon_id} is not listed in {}", beacon_file.display())]
     UnknownBeacon {
@@ -232,6 +224,18 @@ pub enum FileErrorKind {
     /// The file has no data lines where at least one is required.
     #[error("no data lines")]
     NoData,
+    /// A directory holds no run of a data set.
+    #[error("no data set run here: expected {expected}")]
+    NoRun {
+        /// The file looked for.
+        expected: String,
+    },
+    /// A directory holds several runs of a data set and none was chosen.
+    #[error("several data set runs here (prefixes {prefixes}): choose one with the `prefix` setting")]
+    SeveralRuns {
+        /// The prefixes found, comma separated.
+        prefixes: String,
+    },
     /// The PLY header ends before `end_header`.
     #[error("PLY header has no `end_header` line")]
     PlyHeaderUnterminated,

@@ -9,7 +9,13 @@
 //! - `Plaza2_TL.txt`: `beacon_id x_m y_m` surveyed beacon positions, same frame as the ground truth;
 //! - `Plaza2_DRp.txt`: `t_s x_m y_m heading_rad` the dead-reckoned path as shipped (optional).
 //!
-//! Times must not decrease from one data line to the next.
+//! Other runs of the same data set ship the same files under their own prefix (`Plaza1_TD.txt`, ...):
+//! [`Plaza2::load`] finds the prefix, [`Plaza2::load_with_prefix`] takes it.
+//!
+//! Real files have small warts: a line whose time is before an earlier line's (2 of 3,529 in one
+//! Plaza range file) is not an error. The readers put such lines into time order (a stable sort,
+//! so equal times keep their file order) and report them ([`OutOfOrder`]: how many, the first
+//! file:line) so that a replay can count them and warn; only unreadable lines are errors.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -27,6 +33,42 @@ pub const GROUND_TRUTH_FILE: &str = "Plaza2_GT.txt";
 pub const BEACONS_FILE: &str = "Plaza2_TL.txt";
 /// File name of the dead-reckoned path.
 pub const DEAD_RECKONING_FILE: &str = "Plaza2_DRp.txt";
+/// The prefix of the Plaza 2 run's files; other runs have their own (`Plaza1_`).
+pub const DEFAULT_PREFIX: &str = "Plaza2_";
+/// Suffixes of the files after the run's prefix.
+const ODOMETRY_SUFFIX: &str = "DR.txt";
+const RANGES_SUFFIX: &str = "TD.txt";
+const GROUND_TRUTH_SUFFIX: &str = "GT.txt";
+const BEACONS_SUFFIX: &str = "TL.txt";
+
+/// Lines of a file whose time was before an earlier line's; the reader sorted them into place.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OutOfOrder {
+    /// The file.
+    pub path: PathBuf,
+    /// How many data lines had a time before the latest time read above them.
+    pub lines: usize,
+    /// 1-based number of the first such line.
+    pub first_line: usize,
+    /// Its time, s.
+    pub first_t_s: f64,
+    /// The latest time above it, s.
+    pub previous_t_s: f64,
+}
+
+impl std::fmt::Display for OutOfOrder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{}:{}: time {} s is before an earlier line's {} s ({} line(s) out of time order in this file, sorted into place)",
+            self.path.display(),
+            self.first_line,
+            self.first_t_s,
+            self.previous_t_s,
+            self.lines
+        )
+    }
+}
 
 /// One odometry increment (a line of `Plaza2_DR.txt`).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -87,22 +129,35 @@ pub struct Plaza2 {
     pub ground_truth: Vec<PoseRow>,
     /// Surveyed beacons, in file order, ids unique.
     pub beacons: Vec<Beacon>,
+    /// Files that had lines out of time order (sorted into place), at most one entry per file.
+    pub out_of_order: Vec<OutOfOrder>,
 }
 
 impl Plaza2 {
-    /// Loads `Plaza2_DR.txt`, `Plaza2_TD.txt`, `Plaza2_GT.txt` and `Plaza2_TL.txt` from `dir`,
-    /// checking that every range's beacon id is listed in `Plaza2_TL.txt`.
+    /// Loads a run from `dir`: `Plaza2_DR.txt`, `Plaza2_TD.txt`, `Plaza2_GT.txt` and
+    /// `Plaza2_TL.txt`, or the same files of another run under the one prefix found in `dir`
+    /// (see [`find_prefix`]).
     pub fn load(dir: impl AsRef<Path>) -> Result<Self> {
         let dir = dir.as_ref();
-        let beacons_path = dir.join(BEACONS_FILE);
+        Self::load_with_prefix(dir, &find_prefix(dir)?)
+    }
+
+    /// Loads `<prefix>DR.txt`, `<prefix>TD.txt`, `<prefix>GT.txt` and `<prefix>TL.txt` from `dir`,
+    /// checking that every range's beacon id is listed in `<prefix>TL.txt`. Lines out of time
+    /// order are sorted into place and listed in [`Plaza2::out_of_order`].
+    pub fn load_with_prefix(dir: impl AsRef<Path>, prefix: &str) -> Result<Self> {
+        let dir = dir.as_ref();
+        let file = |suffix: &str| dir.join(format!("{prefix}{suffix}"));
+        let beacons_path = file(BEACONS_SUFFIX);
         let beacons = read_beacons(&beacons_path)?;
-        let ranges = parse_ranges(&dir.join(RANGES_FILE), Some((&beacons, &beacons_path)))?;
-        Ok(Self {
-            odometry: read_odometry(dir.join(ODOMETRY_FILE))?,
-            ranges,
-            ground_truth: read_ground_truth(dir.join(GROUND_TRUTH_FILE))?,
-            beacons,
-        })
+        let mut out_of_order = vec![];
+        let (ranges, o) = parse_ranges(&file(RANGES_SUFFIX), Some((&beacons, &beacons_path)))?;
+        out_of_order.extend(o);
+        let (odometry, o) = read_timed(&file(ODOMETRY_SUFFIX), odometry_row)?;
+        out_of_order.extend(o);
+        let (ground_truth, o) = read_timed(&file(GROUND_TRUTH_SUFFIX), pose_row)?;
+        out_of_order.extend(o);
+        Ok(Self { odometry, ranges, ground_truth, beacons, out_of_order })
     }
 
     /// The beacon with id `beacon_id`.
@@ -111,46 +166,112 @@ impl Plaza2 {
     }
 }
 
-/// Checks that times do not decrease.
-struct TimeOrder(Option<f64>);
-
-impl TimeOrder {
-    fn check(&mut self, line: &Line<'_>, t_s: f64) -> Result<()> {
-        if let Some(previous_t_s) = self.0
-            && t_s < previous_t_s
-        {
-            return Err(line.error(LineErrorKind::TimeWentBackwards { t_s, previous_t_s }));
-        }
-        self.0 = Some(t_s);
-        Ok(())
+/// The prefix of the run's files in `dir`: `Plaza2_` when `Plaza2_TD.txt` is there, else the
+/// prefix of the one `*TD.txt` file in `dir` (`Plaza1_TD.txt` → `Plaza1_`). No such file, or
+/// several, is an error naming the directory.
+pub fn find_prefix(dir: impl AsRef<Path>) -> Result<String> {
+    let dir = dir.as_ref();
+    if dir.join(RANGES_FILE).is_file() {
+        return Ok(DEFAULT_PREFIX.to_string());
+    }
+    let entries = std::fs::read_dir(dir).map_err(|e| crate::lines::io_error(dir, e))?;
+    let mut prefixes: Vec<String> = entries
+        .filter_map(|e| e.ok())
+        .filter_map(|e| e.file_name().to_str().and_then(|n| n.strip_suffix(RANGES_SUFFIX)).map(str::to_string))
+        .collect();
+    prefixes.sort();
+    match prefixes.len() {
+        1 => Ok(prefixes.remove(0)),
+        0 => Err(crate::DatasetError::File {
+            path: dir.to_path_buf(),
+            kind: FileErrorKind::NoRun {
+                expected: format!("{RANGES_FILE} (or another run's <prefix>{RANGES_SUFFIX})"),
+            },
+        }),
+        _ => Err(crate::DatasetError::File {
+            path: dir.to_path_buf(),
+            kind: FileErrorKind::SeveralRuns { prefixes: prefixes.join(", ") },
+        }),
     }
 }
 
-/// Reads rows of `N` numbers with the time in the first column.
-fn read_timed<const N: usize, T>(path: &Path, mut make: impl FnMut([f64; N]) -> T) -> Result<Vec<T>> {
+/// Counts the lines whose time is before the latest time above them.
+#[derive(Default)]
+struct TimeOrder {
+    latest_t_s: Option<f64>,
+    lines: usize,
+    first: Option<(usize, f64, f64)>,
+}
+
+impl TimeOrder {
+    fn note(&mut self, line: &Line<'_>, t_s: f64) {
+        match self.latest_t_s {
+            Some(latest) if t_s < latest => {
+                self.lines += 1;
+                self.first.get_or_insert((line.no, t_s, latest));
+            }
+            _ => self.latest_t_s = Some(t_s),
+        }
+    }
+
+    /// Sorts `rows` by time (stable) when lines were out of order, and says so.
+    fn finish<T>(self, path: &Path, rows: &mut [T], time: impl Fn(&T) -> f64) -> Option<OutOfOrder> {
+        let (first_line, first_t_s, previous_t_s) = self.first?;
+        rows.sort_by(|a, b| time(a).total_cmp(&time(b)));
+        Some(OutOfOrder { path: path.to_path_buf(), lines: self.lines, first_line, first_t_s, previous_t_s })
+    }
+}
+
+/// A timed row type: the time is the first column.
+trait Timed {
+    fn t_s(&self) -> f64;
+}
+
+impl Timed for OdometryRow {
+    fn t_s(&self) -> f64 {
+        self.t_s
+    }
+}
+
+impl Timed for PoseRow {
+    fn t_s(&self) -> f64 {
+        self.t_s
+    }
+}
+
+fn odometry_row([t_s, delta_dist_m, delta_heading_rad]: [f64; 3]) -> OdometryRow {
+    OdometryRow { t_s, delta_dist_m, delta_heading_rad }
+}
+
+fn pose_row([t_s, x_m, y_m, heading_rad]: [f64; 4]) -> PoseRow {
+    PoseRow { t_s, x_m, y_m, heading_rad }
+}
+
+/// Reads rows of `N` numbers with the time in the first column, in time order.
+fn read_timed<const N: usize, T: Timed>(
+    path: &Path,
+    make: impl Fn([f64; N]) -> T,
+) -> Result<(Vec<T>, Option<OutOfOrder>)> {
     let mut reader = LineReader::open(path, true)?;
-    let mut order = TimeOrder(None);
+    let mut order = TimeOrder::default();
     let mut rows = Vec::new();
     while let Some(line) = reader.next_line()? {
         let v = line.numbers::<f64, N>()?;
-        order.check(&line, v[0])?;
+        order.note(&line, v[0]);
         rows.push(make(v));
     }
-    Ok(rows)
+    let out_of_order = order.finish(path, &mut rows, T::t_s);
+    Ok((rows, out_of_order))
 }
 
-/// Reads `Plaza2_DR.txt` (odometry increments).
+/// Reads `Plaza2_DR.txt` (odometry increments), in time order (see [`OutOfOrder`]).
 pub fn read_odometry(path: impl AsRef<Path>) -> Result<Vec<OdometryRow>> {
-    read_timed(path.as_ref(), |[t_s, delta_dist_m, delta_heading_rad]| OdometryRow {
-        t_s,
-        delta_dist_m,
-        delta_heading_rad,
-    })
+    read_timed(path.as_ref(), odometry_row).map(|(rows, _)| rows)
 }
 
-/// Reads `Plaza2_GT.txt` (ground truth).
+/// Reads `Plaza2_GT.txt` (ground truth), in time order (see [`OutOfOrder`]).
 pub fn read_ground_truth(path: impl AsRef<Path>) -> Result<Vec<PoseRow>> {
-    read_timed(path.as_ref(), |[t_s, x_m, y_m, heading_rad]| PoseRow { t_s, x_m, y_m, heading_rad })
+    read_timed(path.as_ref(), pose_row).map(|(rows, _)| rows)
 }
 
 /// Reads `Plaza2_DRp.txt` (the dead-reckoned path as shipped; same format as the ground truth).
@@ -160,7 +281,7 @@ pub fn read_dead_reckoning(path: impl AsRef<Path>) -> Result<Vec<PoseRow>> {
 
 /// Reads `Plaza2_TD.txt` (ranges) without checking beacon ids; see [`read_ranges_checked`].
 pub fn read_ranges(path: impl AsRef<Path>) -> Result<Vec<RangeRow>> {
-    parse_ranges(path.as_ref(), None)
+    parse_ranges(path.as_ref(), None).map(|(rows, _)| rows)
 }
 
 /// Reads `Plaza2_TD.txt` (ranges); a beacon id not in `beacons` (read from `beacons_path`) is an
@@ -170,12 +291,12 @@ pub fn read_ranges_checked(
     beacons: &[Beacon],
     beacons_path: impl AsRef<Path>,
 ) -> Result<Vec<RangeRow>> {
-    parse_ranges(path.as_ref(), Some((beacons, beacons_path.as_ref())))
+    parse_ranges(path.as_ref(), Some((beacons, beacons_path.as_ref()))).map(|(rows, _)| rows)
 }
 
-fn parse_ranges(path: &Path, beacons: Option<(&[Beacon], &Path)>) -> Result<Vec<RangeRow>> {
+fn parse_ranges(path: &Path, beacons: Option<(&[Beacon], &Path)>) -> Result<(Vec<RangeRow>, Option<OutOfOrder>)> {
     let mut reader = LineReader::open(path, true)?;
-    let mut order = TimeOrder(None);
+    let mut order = TimeOrder::default();
     let mut rows = Vec::new();
     while let Some(line) = reader.next_line()? {
         let [t, sender, beacon, range] = line.fields_exact::<4>()?;
@@ -185,7 +306,7 @@ fn parse_ranges(path: &Path, beacons: Option<(&[Beacon], &Path)>) -> Result<Vec<
             beacon_id: line.id(3, beacon)?,
             range_m: line.number(4, range)?,
         };
-        order.check(&line, row.t_s)?;
+        order.note(&line, row.t_s);
         if let Some((beacons, beacons_path)) = beacons
             && !beacons.iter().any(|b| b.beacon_id == row.beacon_id)
         {
@@ -196,7 +317,8 @@ fn parse_ranges(path: &Path, beacons: Option<(&[Beacon], &Path)>) -> Result<Vec<
         }
         rows.push(row);
     }
-    Ok(rows)
+    let out_of_order = order.finish(path, &mut rows, |r| r.t_s);
+    Ok((rows, out_of_order))
 }
 
 /// Reads `Plaza2_TL.txt` (beacon survey); ids must be unique and at least one beacon present.
@@ -299,7 +421,6 @@ mod tests {
             (RANGES_FILE, "1 2 1 NaN\n", "1: column 4: `NaN` is not a finite number"),
             (RANGES_FILE, "1 2 1.5 4\n", "1: column 3: `1.5` is not a valid non-negative integer id"),
             (ODOMETRY_FILE, "1 0 0\n2 inf 0\n", "2: column 2: `inf` is not a finite number"),
-            (ODOMETRY_FILE, "1 0 0\n0.5 0 0\n", "2: time 0.5 s is before the previous line's time 1 s"),
             (GROUND_TRUTH_FILE, "# c\n1 2 3 4 5\n", "2: expected 4 numbers, got 5"),
             (BEACONS_FILE, "1 0 0\n# c\n1 2 2\n", "3: beacon id 1 is listed twice (first on line 1)"),
         ];
@@ -307,6 +428,51 @@ mod tests {
             let (full, rest) = load_err(file, contents);
             assert_eq!(rest, expected, "{full}");
         }
+    }
+
+    #[test]
+    fn lines_out_of_time_order_are_sorted_into_place_and_reported() {
+        let dir = dir_with(RANGES_FILE, "1 2 1 10\n3 2 1 30\n2 2 0 20\n# c\n4 2 1 40\n2.5 2 1 25\n");
+        let p = Plaza2::load(dir.path()).unwrap();
+        let t: Vec<f64> = p.ranges.iter().map(|r| r.t_s).collect();
+        assert_eq!(t, [1.0, 2.0, 2.5, 3.0, 4.0]);
+        assert_eq!(p.ranges[1].range_m, 20.0, "rows move with their time");
+        let [o] = &p.out_of_order[..] else { panic!("{:?}", p.out_of_order) };
+        assert_eq!((o.lines, o.first_line, o.first_t_s, o.previous_t_s), (2, 3, 2.0, 3.0));
+        assert_eq!(o.path, dir.path().join(RANGES_FILE));
+        let text = o.to_string();
+        assert!(
+            text.starts_with(&format!("{}:3: time 2 s is before", dir.path().join(RANGES_FILE).display())),
+            "{text}"
+        );
+        assert!(text.contains("2 line(s) out of time order"), "{text}");
+        // Equal times keep their file order; a file in order reports nothing.
+        let dir = dir_with(ODOMETRY_FILE, "1 0.1 0\n1 0.2 0\n0.5 0.3 0\n");
+        let p = Plaza2::load(dir.path()).unwrap();
+        let d: Vec<f64> = p.odometry.iter().map(|r| r.delta_dist_m).collect();
+        assert_eq!(d, [0.3, 0.1, 0.2]);
+        assert_eq!(p.out_of_order.len(), 1);
+        assert!(Plaza2::load(dir_with("", "").path()).unwrap().out_of_order.is_empty());
+    }
+
+    #[test]
+    fn another_runs_prefix_is_found_or_chosen() {
+        let plaza2 = dir_with("", "");
+        let dir = tempfile::tempdir().unwrap();
+        for f in [ODOMETRY_FILE, RANGES_FILE, GROUND_TRUTH_FILE, BEACONS_FILE] {
+            let renamed = f.replace("Plaza2_", "Plaza1_");
+            fs::copy(plaza2.path().join(f), dir.path().join(renamed)).unwrap();
+        }
+        assert_eq!(find_prefix(dir.path()).unwrap(), "Plaza1_");
+        assert_eq!(Plaza2::load(dir.path()).unwrap().ranges.len(), 1);
+        // Two runs side by side: Plaza2_ wins by name, another pair must be chosen.
+        fs::copy(plaza2.path().join(RANGES_FILE), dir.path().join("Other_TD.txt")).unwrap();
+        let e = Plaza2::load(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("prefixes Other_, Plaza1_") && e.contains("`prefix` setting"), "{e}");
+        assert_eq!(Plaza2::load_with_prefix(dir.path(), "Plaza1_").unwrap().beacons.len(), 2);
+        let empty = tempfile::tempdir().unwrap();
+        let e = Plaza2::load(empty.path()).unwrap_err().to_string();
+        assert!(e.contains("no data set run here: expected Plaza2_TD.txt"), "{e}");
     }
 
     #[test]

@@ -6,20 +6,37 @@ use std::path::Path;
 
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
+/// Appends one pose as a TUM line (with its newline) to `out`.
+pub fn push_tum_line(out: &mut String, t_s: f64, world_from_body: &Isometry3<f64>) {
+    use std::fmt::Write as _;
+    let v = world_from_body.translation.vector;
+    let q = world_from_body.rotation.quaternion().coords; // (x, y, z, w)
+    let _ = writeln!(out, "{t_s:.9} {:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}", v.x, v.y, v.z, q[0], q[1], q[2], q[3]);
+}
+
 /// Writes a trajectory.
 pub fn write_tum<'a>(path: &Path, poses: impl Iterator<Item = (f64, &'a Isometry3<f64>)>) -> std::io::Result<()> {
     let mut w = std::io::BufWriter::new(std::fs::File::create(path)?);
+    let mut line = String::with_capacity(128);
     for (t, p) in poses {
-        let v = p.translation.vector;
-        let q = p.rotation.quaternion().coords; // (x, y, z, w)
-        writeln!(w, "{t:.9} {:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}", v.x, v.y, v.z, q[0], q[1], q[2], q[3])?;
+        line.clear();
+        push_tum_line(&mut line, t, p);
+        w.write_all(line.as_bytes())?;
     }
     w.flush()
 }
 
-/// Reads a trajectory; errors name the file and line.
+/// Reads a trajectory; errors name the file and line. A last line without its newline that is
+/// not a whole pose is a line still being appended (ground truth grows while a run goes on) and
+/// is left out.
 pub fn read_tum(path: &Path) -> Result<Vec<(f64, Isometry3<f64>)>, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    if !text.ends_with('\n')
+        && let Some(cut) = text.rfind('\n').map(|i| i + 1).or(Some(0))
+        && text[cut..].split_whitespace().count() < 8
+    {
+        text.truncate(cut);
+    }
     let mut out = vec![];
     for (i, line) in text.lines().enumerate() {
         let line = line.trim();
@@ -64,6 +81,12 @@ mod tests {
         std::fs::write(&p, "# c\n1 2 3\n").unwrap();
         let e = read_tum(&p).unwrap_err();
         assert!(e.contains("t.tum:2"), "{e}");
+        // A last line still being appended (no newline, not a whole pose) is left out; a whole
+        // last pose without its newline is read.
+        std::fs::write(&p, "1 0 0 0 0 0 0 1\n2 0.5 0").unwrap();
+        assert_eq!(read_tum(&p).unwrap().len(), 1);
+        std::fs::write(&p, "1 0 0 0 0 0 0 1\n2 0.5 0 0 0 0 0 1").unwrap();
+        assert_eq!(read_tum(&p).unwrap().len(), 2);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -309,6 +309,8 @@ fn run(args: &Args) -> anyhow::Result<()> {
             process: name32(&std::env::var("SLAM_PIPELINE_PROCESS").unwrap_or_else(|_| "external_producer".into())),
             last_seq: odo.seq.saturating_sub(1),
             messages_sent: sent,
+            status: shared_types::EOS_COMPLETE,
+            _reserved: 0,
         },
     )?;
     println!("SENT good odometry={} buoy_ranges={} clouds={} stereo={} bad={bad}", good[0], good[1], good[2], good[3]);

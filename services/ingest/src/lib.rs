@@ -58,4 +58,36 @@ mod tests {
         let mut afap = Pacer::new(0.0);
         assert_eq!(afap.due(5, t0), None);
     }
+
+    #[test]
+    fn ground_truth_is_on_disk_as_soon_as_the_source_knows_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut config = sim::SimConfig::default();
+        config.mission.max_duration_s = 20.0;
+        let mut source = SimSource::new(config, dir.path()).unwrap();
+        let mut truth = TruthFile::create(dir.path()).unwrap();
+        let mut items = 0;
+        while items < 50 {
+            source.next_item().unwrap().unwrap();
+            truth.update(&source).unwrap();
+            items += 1;
+        }
+        // Mid-run: the file holds exactly what the simulator has produced, every line whole.
+        let mut known = vec![];
+        source.truth(0, &mut known);
+        assert!(!known.is_empty());
+        let on_disk = geometry::tum::read_tum(truth.path()).unwrap();
+        assert_eq!(on_disk.len(), known.len());
+        assert_eq!(truth.written(), known.len());
+        assert!((on_disk.last().unwrap().0 - known.last().unwrap().0).abs() < 1e-9);
+        while source.next_item().unwrap().is_some() {
+            truth.update(&source).unwrap();
+        }
+        truth.update(&source).unwrap();
+        let mut all = vec![];
+        source.truth(0, &mut all);
+        assert!(all.len() > known.len());
+        assert_eq!(geometry::tum::read_tum(truth.path()).unwrap().len(), all.len());
+        assert_eq!(truth.update(&source).unwrap(), 0, "nothing new, nothing written");
+    }
 }

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 use clap::Parser;
-use ingest::{IngestSettings, Item, Pacer, Progress, ProgressFile, SimSource, Source, SourceKind};
+use ingest::{IngestSettings, Item, Pacer, Progress, ProgressFile, SimSource, Source, SourceKind, TruthFile};
 use pipeline_runtime::{Delivery, Flow, Output, ProcessArgs, Runtime};
 use shared_types::convert::quat_to_xyzw;
 use shared_types::services::{self, BUOY_RANGES, CLOUD, DEPTH, HEADING, ODOMETRY, STEREO};
@@ -26,6 +26,8 @@ struct Outputs {
 
 struct Ingest {
     source: Box<dyn Source>,
+    /// `ground_truth.tum`, written as the source learns it (before the items it belongs to go out).
+    truth: TruthFile,
     outputs: Outputs,
     pacer: Pacer,
     pending: Option<Item>,
@@ -135,26 +137,46 @@ impl Ingest {
         Ok(())
     }
 
+    /// The next item of the source, its ground truth written first.
+    fn next_item(&mut self) -> anyhow::Result<Option<Item>> {
+        let item = self.source.next_item()?;
+        self.truth.update(&*self.source)?;
+        Ok(item)
+    }
+
     fn finish(&mut self, rt: &mut Runtime) -> anyhow::Result<()> {
         self.source.finish(&self.out_dir)?;
+        self.truth.update(&*self.source)?;
         let sent: u64 = self.counts.iter().sum();
         rt.send_end_of_stream(sent.saturating_sub(1), sent)?;
         let data_s = self.first_last_stamp.map_or(0.0, |(a, b)| (b - a) as f64 / 1e9);
         let wall_s = self.started.elapsed().as_secs_f64();
         tracing::info!("source exhausted: {sent} messages, {data_s:.1} s of data in {wall_s:.1} s");
+        self.write_part(rt, true)?;
+        self.done = true;
+        Ok(())
+    }
+
+    /// Writes this process's part of summary.json: at the end of the source, or what was
+    /// published so far when the run is stopped first (`completed: false`).
+    fn write_part(&self, rt: &Runtime, completed: bool) -> anyhow::Result<()> {
+        let data_s = self.first_last_stamp.map_or(0.0, |(a, b)| (b - a) as f64 / 1e9);
         let part = serde_json::json!({ "ingest": {
             "source": self.source.describe(),
+            "completed": completed,
+            "progress": self.source.progress(),
             "messages": { "odometry": self.counts[0], "stereo": self.counts[1], "buoy_ranges": self.counts[2],
                           "depth": self.counts[3], "cloud": self.counts[4], "heading": self.counts[5] },
             "empty_clouds_skipped": self.empty_clouds,
+            "data_warts": self.source.warts(),
+            "ground_truth_samples": self.truth.written(),
             "data_duration_s": data_s,
-            "wall_duration_s": wall_s,
+            "wall_duration_s": self.started.elapsed().as_secs_f64(),
             "backpressure_wait_s": rt.backpressure_waited().as_secs_f64(),
         }});
         let path = self.out_dir.join("parts").join(format!("{}.json", rt.name()));
         std::fs::create_dir_all(path.parent().expect("parts dir"))?;
         std::fs::write(path, serde_json::to_vec_pretty(&part)?)?;
-        self.done = true;
         Ok(())
     }
 
@@ -234,7 +256,7 @@ impl Ingest {
             // source without publishing it, in batches so that heartbeats go on meanwhile.
             let batch_end = Instant::now() + Duration::from_millis(50);
             while self.skip > 0 && Instant::now() < batch_end {
-                if self.source.next_item()?.is_none() {
+                if self.next_item()?.is_none() {
                     anyhow::bail!(
                         "the source ended {} items before the point the killed instance had reached: \
                          it is not the same source (config changed?)",
@@ -272,7 +294,7 @@ impl Ingest {
                 tracing::info!("progress {pct}: {} messages", self.counts.iter().sum::<u64>());
             }
             if self.pending.is_none() {
-                match self.source.next_item()? {
+                match self.next_item()? {
                     Some(item) => self.pending = Some(item),
                     None => {
                         self.finish(rt)?;
@@ -346,8 +368,11 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     } else {
         progress.record(&Progress::default())?;
     }
+    let mut truth = TruthFile::create(&ctx.out_dir)?;
+    truth.update(&*source)?;
     let mut state = Ingest {
         source,
+        truth,
         outputs,
         pacer: Pacer::new(settings.real_time_factor),
         pending: None,
@@ -371,11 +396,22 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
     };
     rt.wake_at(Instant::now());
     // After the end of stream the process stays up (its samples stay valid) until it is stopped.
-    rt.run(
-        &mut state,
-        Some(Duration::from_millis(500)),
-        |rt, st, _| if st.done { Ok(Flow::Continue) } else { st.pump(rt) },
-    )
+    let stop =
+        rt.run(
+            &mut state,
+            Some(Duration::from_millis(500)),
+            |rt, st, _| if st.done { Ok(Flow::Continue) } else { st.pump(rt) },
+        )?;
+    if !state.done {
+        // Stopped before the end of the source: the ground truth so far is on disk already.
+        tracing::info!(
+            ground_truth_samples = state.truth.written(),
+            "stopped before the end of the source: {} messages published",
+            state.counts.iter().sum::<u64>()
+        );
+        state.write_part(&rt, false)?;
+    }
+    Ok(stop)
 }
 
 fn main() -> ExitCode {

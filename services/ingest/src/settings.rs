@@ -87,8 +87,11 @@ impl Default for IngestSettings {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Plaza2Settings {
-    /// Directory with Plaza2_DR.txt, Plaza2_TD.txt, Plaza2_GT.txt, Plaza2_TL.txt.
+    /// Directory with Plaza2_DR.txt, Plaza2_TD.txt, Plaza2_GT.txt, Plaza2_TL.txt (or another
+    /// run's files under its own prefix, e.g. Plaza1_DR.txt).
     pub dir: PathBuf,
+    /// The run's file prefix (`Plaza1_`); default: `Plaza2_`, else the one `*TD.txt` in `dir`.
+    pub prefix: Option<String>,
     /// σ attached to every range, m.
     pub range_sigma_m: f64,
     /// Odometry noise σ of the speed, m/s, and of the heading increment per step, rad.
@@ -101,6 +104,7 @@ impl Default for Plaza2Settings {
     fn default() -> Self {
         Self {
             dir: PathBuf::from("../algorithms/datasets/data/plaza2"),
+            prefix: None,
             range_sigma_m: 1.0,
             speed_sigma_mps: 0.1,
             turn_sigma_rad: 0.01,

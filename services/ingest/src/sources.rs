@@ -79,10 +79,68 @@ pub trait Source {
     fn next_item(&mut self) -> anyhow::Result<Option<Item>>;
     /// Fraction done in [0, 1], when known.
     fn progress(&self) -> Option<f64>;
-    /// Called once after the last item: writes ground truth or other outputs to `out_dir`.
+    /// Called once after the last item: writes other outputs to `out_dir` (the ground truth is
+    /// written as it becomes known: see [`Source::truth`]).
     fn finish(&mut self, out_dir: &Path) -> anyhow::Result<()>;
     /// One line describing the source, for the log.
     fn describe(&self) -> String;
+    /// Appends to `out` the ground truth known so far from sample `from` on (`world_from_body` at
+    /// `t_s`, in time order). A simulator's grows as it advances; a replay knows all of it at
+    /// once. The default is a source without ground truth.
+    fn truth(&self, _from: usize, _out: &mut Vec<(f64, Isometry3<f64>)>) {}
+    /// The warts of the data met so far, counted by kind (lines out of order, rows skipped...),
+    /// for summary.json. Each kind is also warned about in the log when first met.
+    fn warts(&self) -> std::collections::BTreeMap<&'static str, u64> {
+        Default::default()
+    }
+}
+
+/// `ground_truth.tum`, written while the source advances: a run stopped early (or a crash) leaves
+/// the ground truth of everything published, so that the stages can still score themselves.
+/// Each batch of samples goes out in one write of whole lines.
+pub struct TruthFile {
+    file: std::fs::File,
+    path: std::path::PathBuf,
+    written: usize,
+    pending: Vec<(f64, Isometry3<f64>)>,
+    text: String,
+}
+
+impl TruthFile {
+    /// Creates (truncates) `<out_dir>/ground_truth.tum`.
+    pub fn create(out_dir: &Path) -> std::io::Result<Self> {
+        std::fs::create_dir_all(out_dir)?;
+        let path = out_dir.join("ground_truth.tum");
+        let file = std::fs::File::create(&path)?;
+        Ok(Self { file, path, written: 0, pending: vec![], text: String::new() })
+    }
+
+    /// Writes the samples `source` has learnt since the last call; returns how many.
+    pub fn update(&mut self, source: &dyn Source) -> std::io::Result<usize> {
+        use std::io::Write as _;
+        self.pending.clear();
+        source.truth(self.written, &mut self.pending);
+        if self.pending.is_empty() {
+            return Ok(0);
+        }
+        self.text.clear();
+        for (t, p) in &self.pending {
+            geometry::tum::push_tum_line(&mut self.text, *t, p);
+        }
+        self.file.write_all(self.text.as_bytes())?;
+        self.written += self.pending.len();
+        Ok(self.pending.len())
+    }
+
+    /// Samples written so far.
+    pub fn written(&self) -> usize {
+        self.written
+    }
+
+    /// The file's path.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
 }
 
 /// Seconds to the pipeline's nanosecond stamps.
@@ -186,11 +244,12 @@ impl Source for SimSource {
         Some((self.sim.time_s() / self.expected_s).min(1.0))
     }
 
-    fn finish(&mut self, out_dir: &Path) -> anyhow::Result<()> {
-        let truth = self.sim.truth();
-        write_tum(&out_dir.join("ground_truth.tum"), truth.iter().map(|t| (t.t_s, &t.world_from_body)))?;
-        tracing::info!(samples = truth.len(), "wrote ground_truth.tum");
+    fn finish(&mut self, _out_dir: &Path) -> anyhow::Result<()> {
         Ok(())
+    }
+
+    fn truth(&self, from: usize, out: &mut Vec<(f64, Isometry3<f64>)>) {
+        out.extend(self.sim.truth().iter().skip(from).map(|t| (t.t_s, t.world_from_body)));
     }
 
     fn describe(&self) -> String {
@@ -247,12 +306,31 @@ pub struct Plaza2Source {
     t_now_s: f64,
     skipped_odometry: u64,
     dir: std::path::PathBuf,
+    /// The ground truth as body poses (Plaza2's heading is offset by π from the direction of travel).
+    truth: Vec<(f64, Isometry3<f64>)>,
+    /// The last item has been taken.
+    exhausted: bool,
 }
 
 impl Plaza2Source {
-    /// Loads the four files of `dir`.
+    /// Loads the four files of `dir` (the run's prefix from the settings, else found in `dir`).
+    /// Lines out of time order are sorted into place, counted and warned about once per file.
     pub fn load(dir: &Path, settings: &crate::Plaza2Settings) -> anyhow::Result<Self> {
-        let data = datasets::Plaza2::load(dir)?;
+        let data = match &settings.prefix {
+            Some(prefix) => datasets::Plaza2::load_with_prefix(dir, prefix)?,
+            None => datasets::Plaza2::load(dir)?,
+        };
+        for o in &data.out_of_order {
+            tracing::warn!(file = %o.path.display(), lines = o.lines, "{o}");
+        }
+        let truth = data
+            .ground_truth
+            .iter()
+            .map(|g| {
+                let rot = nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, g.heading_rad + std::f64::consts::PI);
+                (g.t_s, Isometry3::from_parts(nalgebra::Translation3::new(g.x_m, g.y_m, 0.0), rot))
+            })
+            .collect();
         let t_first_s = data
             .odometry
             .first()
@@ -271,6 +349,8 @@ impl Plaza2Source {
             t_now_s: t_first_s,
             skipped_odometry: 0,
             dir: dir.to_path_buf(),
+            truth,
+            exhausted: false,
         })
     }
 
@@ -305,7 +385,10 @@ impl Source for Plaza2Source {
             let t_odo = self.data.odometry.get(self.next_odo).map(|r| r.t_s);
             let t_rng = self.data.ranges.get(self.next_range).map(|r| r.t_s);
             match (t_odo, t_rng) {
-                (None, None) => return Ok(None),
+                (None, None) => {
+                    self.exhausted = true;
+                    return Ok(None);
+                }
                 (Some(to), tr) if tr.is_none_or(|tr| to <= tr) => {
                     let i = self.next_odo;
                     self.next_odo += 1;
@@ -335,18 +418,23 @@ impl Source for Plaza2Source {
         Some(((self.t_now_s - self.t_first_s) / (self.t_last_s - self.t_first_s).max(1e-9)).clamp(0.0, 1.0))
     }
 
-    fn finish(&mut self, out_dir: &Path) -> anyhow::Result<()> {
-        // Plaza2's ground-truth heading is offset by π from the direction of travel.
-        let poses: Vec<(f64, Isometry3<f64>)> = self
-            .data
-            .ground_truth
-            .iter()
-            .map(|g| {
-                let rot = nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, g.heading_rad + std::f64::consts::PI);
-                (g.t_s, Isometry3::from_parts(nalgebra::Translation3::new(g.x_m, g.y_m, 0.0), rot))
-            })
-            .collect();
-        write_tum(&out_dir.join("ground_truth.tum"), poses.iter().map(|(t, p)| (*t, p)))?;
+    /// The ground-truth rows up to the data time reached (all of them at the end), so that a run
+    /// stopped early is scored on the part it replayed.
+    fn truth(&self, from: usize, out: &mut Vec<(f64, Isometry3<f64>)>) {
+        let known =
+            if self.exhausted { self.truth.len() } else { self.truth.partition_point(|(t, _)| *t <= self.t_now_s) };
+        out.extend(self.truth.iter().take(known).skip(from).copied());
+    }
+
+    fn warts(&self) -> std::collections::BTreeMap<&'static str, u64> {
+        let out_of_order: usize = self.data.out_of_order.iter().map(|o| o.lines).sum();
+        [("lines_out_of_time_order", out_of_order as u64), ("odometry_rows_skipped", self.skipped_odometry)]
+            .into_iter()
+            .filter(|(_, n)| *n > 0)
+            .collect()
+    }
+
+    fn finish(&mut self, _out_dir: &Path) -> anyhow::Result<()> {
         if self.skipped_odometry > 0 {
             tracing::warn!(rows = self.skipped_odometry, "Plaza2 odometry rows skipped (time not advancing)");
         }
@@ -455,6 +543,10 @@ impl Source for StereoVoSource {
         Ok(())
     }
 
+    fn warts(&self) -> std::collections::BTreeMap<&'static str, u64> {
+        [("observations_rejected", self.rejected)].into_iter().filter(|(_, n)| *n > 0).collect()
+    }
+
     fn describe(&self) -> String {
         format!(
             "stereo replay from {} ({} frames, {} observations)",
@@ -521,16 +613,24 @@ impl Source for StereoSimSource {
         Some(self.sim.progress())
     }
 
-    fn finish(&mut self, out_dir: &Path) -> anyhow::Result<()> {
-        let truth = self.sim.truth();
-        write_tum(&out_dir.join("ground_truth.tum"), truth.iter().map(|t| (t.t_s, &t.world_from_body)))?;
+    fn finish(&mut self, _out_dir: &Path) -> anyhow::Result<()> {
         tracing::info!(
-            samples = truth.len(),
             dropped_frames = self.sim.dropped(),
-            "wrote ground_truth.tum ({} frames dropped by the simulated camera, as configured)",
+            "{} frames dropped by the simulated camera, as configured",
             self.sim.dropped()
         );
         Ok(())
+    }
+
+    fn truth(&self, from: usize, out: &mut Vec<(f64, Isometry3<f64>)>) {
+        out.extend(self.sim.truth().iter().skip(from).map(|t| (t.t_s, t.world_from_body)));
+    }
+
+    fn warts(&self) -> std::collections::BTreeMap<&'static str, u64> {
+        [("frames_dropped_by_the_simulated_camera", self.sim.dropped() as u64)]
+            .into_iter()
+            .filter(|(_, n)| *n > 0)
+            .collect()
     }
 
     fn describe(&self) -> String {

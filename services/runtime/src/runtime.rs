@@ -199,6 +199,8 @@ pub struct Runtime {
     /// Messages in and out at the last heartbeat, for the keep-alive's heartbeats.
     counts: Arc<(std::sync::atomic::AtomicU64, std::sync::atomic::AtomicU64)>,
     state: u32,
+    /// Upstream processes whose stream ended with `EOS_FAILED`.
+    failed_upstream: RefCell<std::collections::BTreeSet<String>>,
     last_heartbeat: Option<Instant>,
     last_stats: Option<Instant>,
     wake_at: Option<Instant>,
@@ -236,6 +238,7 @@ impl Runtime {
             scope: scope.clone(),
             counts: Arc::new(Default::default()),
             state: shared_types::STATE_STARTING,
+            failed_upstream: RefCell::default(),
             last_heartbeat: None,
             last_stats: None,
             wake_at: None,
@@ -379,7 +382,13 @@ impl Runtime {
                 self.backpressure.clone(),
             )?);
         }
-        let eos = EndOfStream { process: name32(&self.name), last_seq, messages_sent };
+        let eos = EndOfStream {
+            process: name32(&self.name),
+            last_seq,
+            messages_sent,
+            status: shared_types::EOS_COMPLETE,
+            _reserved: 0,
+        };
         let now = monotonic_ns();
         let header = MsgHeader { stamp_ns: now, origin_ns: now, ..Default::default() };
         self.eos_out.as_mut().expect("created above").send_value(header, eos)?;
@@ -391,15 +400,34 @@ impl Runtime {
     /// Call it before draining the data inputs in the same wake-up: everything those processes
     /// sent before their end of stream is then already queued, so the data drain that follows
     /// misses nothing (read the other way round, a last message can slip in between).
+    ///
+    /// A process the supervisor gave up on ends too (`EOS_FAILED`, sent in its name): it is
+    /// returned like the others, so that its consumers finish with what they have, and is warned
+    /// about and listed in [`Runtime::failed_upstream`].
     pub fn ended_upstream(&self, eos: &Input<EndOfStream, MsgHeader>) -> Result<Vec<String>, PortError> {
         let mut ended = vec![];
         while let Some(s) = eos.receive()? {
             let from = shared_types::name_from32(&s.payload().process);
             if from != self.name {
+                if s.payload().status == shared_types::EOS_FAILED
+                    && self.failed_upstream.borrow_mut().insert(from.clone())
+                {
+                    tracing::warn!(
+                        upstream = %from,
+                        "`{from}` failed for good: its stream ends here (the supervisor says so); \
+                         finishing with what it sent"
+                    );
+                }
                 ended.push(from);
             }
         }
         Ok(ended)
+    }
+
+    /// The processes whose stream ended because they failed for good (`EOS_FAILED`), as seen by
+    /// [`Runtime::ended_upstream`].
+    pub fn failed_upstream(&self) -> Vec<String> {
+        self.failed_upstream.borrow().iter().cloned().collect()
     }
 
     /// Asks for a `wake.tick` at `at` (earlier than the regular tick, if need be): for sources that

@@ -232,6 +232,13 @@ pub fn render(summary: &Value) -> String {
         run["duration_s"].as_f64().unwrap_or(0.0),
         run["exit_code"]
     ));
+    if let Some(Value::Array(failed)) = run.get("failed_processes")
+        && !failed.is_empty()
+    {
+        for f in failed {
+            s.push_str(&format!("FAILED: {}\n", f.as_str().unwrap_or("?")));
+        }
+    }
     s.push_str(&format!(
         "{:<20} {:<9} {:>8} {:>10} {:>10}  last exit\n",
         "process", "state", "restarts", "msgs in", "msgs out"

@@ -156,6 +156,8 @@ pub struct Supervisor {
     /// because the instance that died had consumed them.
     eos_messages: BTreeMap<String, EndOfStream>,
     eos_replay: pipeline_runtime::Output<EndOfStream, MsgHeader>,
+    /// Processes whose stream the supervisor ended because they failed for good.
+    failed_streams: BTreeSet<String>,
     started: Instant,
     last_status: Instant,
     end: Option<EndReason>,
@@ -210,6 +212,7 @@ impl Supervisor {
             eos_seen: BTreeSet::new(),
             eos_messages: BTreeMap::new(),
             eos_replay,
+            failed_streams: BTreeSet::new(),
             started: now,
             last_status: now,
             end: None,
@@ -263,7 +266,14 @@ impl Supervisor {
                 "{process} dropped {n} message(s) of `{service}`: {reason}"
             );
         }
-        let summary = crate::report::summary(&self.plan, &rows, &end, exit_code, self.started.elapsed());
+        let mut summary = crate::report::summary(&self.plan, &rows, &end, exit_code, self.started.elapsed());
+        let failed: Vec<String> =
+            rows.iter().filter_map(|r| r.failure.map(|why| format!("{} ({why})", r.name))).collect();
+        if !failed.is_empty() {
+            tracing::error!("the run ended with failed process(es): {}", failed.join("; "));
+        }
+        summary["run"]["failed_processes"] = serde_json::json!(failed);
+        summary["run"]["streams_ended_for_failure"] = serde_json::json!(self.failed_streams);
         Ok(RunOutcome { end, exit_code, summary })
     }
 
@@ -322,16 +332,18 @@ impl Supervisor {
             {
                 tracing::info!(process = %name, pid = hb.pid, "ready after {:.0} ms", (now - since).as_secs_f64() * 1e3);
                 c.state = ProcState::Ready;
-                if c.restarts > 0 {
+                if c.restarts > 0 || !self.failed_streams.is_empty() {
                     replay.push(name.clone());
                 }
             }
         }
         // A restarted process missed the ends of stream its dead instance had consumed: send them
         // again (from the supervisor, in the name of the processes that ended).
+        // A process started after an upstream failed for good missed that end of stream too.
         for name in replay {
+            let restarted = self.children.iter().any(|c| c.plan.name == name && c.restarts > 0);
             for (from, eos) in &self.eos_messages {
-                if *from != name {
+                if *from != name && (restarted || self.failed_streams.contains(from)) {
                     tracing::info!(process = %name, from = %from, "replaying end of stream to the restarted process");
                     let now_ns = pipeline_runtime::clock::monotonic_ns();
                     let header = MsgHeader { stamp_ns: now_ns, origin_ns: now_ns, ..Default::default() };
@@ -435,6 +447,42 @@ impl Supervisor {
             c.state = ProcState::Backoff { until: Instant::now() + Duration::from_secs_f64(delay) };
         }
         c.last_exit = Some(info);
+        if matches!(c.state, ProcState::Failed(_)) {
+            self.end_stream_of_failed(i);
+        }
+    }
+
+    /// A process given up on will never send its end of stream: send it in its name, marked
+    /// `EOS_FAILED`, so that its consumers finish with what they have and the run ends.
+    fn end_stream_of_failed(&mut self, i: usize) {
+        let name = self.children[i].plan.name.clone();
+        if self.eos_seen.contains(&name) {
+            return; // it had ended its stream before it failed
+        }
+        let (last_seq, messages_sent) = self.children[i]
+            .reports
+            .values()
+            .flat_map(|r| r.ports.iter().filter(|p| !p.input))
+            .fold((0, 0), |(seq, n), p| (seq.max(p.count.saturating_sub(1)), n + p.count));
+        let eos = EndOfStream {
+            process: shared_types::name32(&name),
+            last_seq,
+            messages_sent,
+            status: shared_types::EOS_FAILED,
+            _reserved: 0,
+        };
+        tracing::error!(
+            process = %name,
+            "{name} failed for good: ending its stream in its name, so that its consumers finish with what it sent"
+        );
+        let now_ns = pipeline_runtime::clock::monotonic_ns();
+        let header = MsgHeader { stamp_ns: now_ns, origin_ns: now_ns, ..Default::default() };
+        if let Err(e) = self.eos_replay.send_value(header, eos) {
+            tracing::warn!("end of stream of {name} not sent: {e}");
+        }
+        self.eos_messages.insert(name.clone(), eos);
+        self.eos_seen.insert(name.clone());
+        self.failed_streams.insert(name);
     }
 
     fn kill_child(c: &mut Child, reason: String) {
