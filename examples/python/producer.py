@@ -2,7 +2,7 @@
 """External point-cloud producer for the SLAM pipeline, in Python (iceoryx2 0.10 + ctypes).
 
 Publishes deterministic point clouds on ``pipeline/sensors/cloud`` exactly like the Rust
-``pipeline-test-producer`` (point ``i`` of cloud ``seq`` equals ``testkit::cloud_point(seq, i)``
+``test_producer`` (point ``i`` of cloud ``seq`` equals ``testkit::cloud_point(seq, i)``
 bit for bit), so the ``test_consumer`` process verifies every point it receives. It is also a
 template for writing your own producer in Python.
 

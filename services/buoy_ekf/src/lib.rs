@@ -1,11 +1,12 @@
 //! The `buoy_ekf` process's settings and its pure `step` logic: odometry, buoy ranges and depth
 //! readings applied to the [`buoy::BuoyEkf`] in stamp order, one [`Fix`] per ranges message, and
 //! the end-of-run evaluation (dead reckoning and the ATE of both against the ground truth).
-//! `main.rs` is the wiring around it.
+//! [`stage::BuoyEkfStage`] is the stage around it; `main.rs` one line.
 
 use std::collections::VecDeque;
 
 pub mod journal;
+pub mod stage;
 use std::time::{Duration, Instant};
 
 use buoy::{BuoyConfig, BuoyEkf, Estimate, Mode, RangeOutcome};

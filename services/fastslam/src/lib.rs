@@ -1,10 +1,11 @@
 //! The `fastslam` process's settings and its pure `step` logic: ordering odometry and stereo
-//! frames on the data clock, converting wire types, and the end-of-run evaluation. `main.rs` is
-//! the wiring around it.
+//! frames on the data clock, converting wire types, and the end-of-run evaluation.
+//! [`stage::FastSlamStage`] is the stage around it; `main.rs` one line.
 
 use std::collections::{BTreeMap, VecDeque};
 
 pub mod journal;
+pub mod stage;
 
 use fastslam::eval::TrajectorySample;
 use fastslam::frontend::{FrontEndConfig, Method, RegistrationError};

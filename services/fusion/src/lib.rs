@@ -1,10 +1,11 @@
 //! The `fusion` process's settings, the conversions from the wire, and the end-of-run outputs
 //! (TUM trajectories, the global map as PLY, per-segment transforms, accuracy, a top-view plot).
-//! The fusion itself is [`fusion::engine::Fusion`]; `main.rs` is the wiring around it.
+//! The fusion itself is [`fusion::engine::Fusion`]; [`stage::FusionStage`] is the stage around it; `main.rs` one line.
 
 use std::path::Path;
 
 pub mod journal;
+pub mod stage;
 
 use fusion::engine::{FinalResult, FixInput, Fusion, FusionConfig, PairInput, Source};
 use fusion::global_map::MapLandmark;
@@ -23,7 +24,8 @@ pub struct FusionSettings {
     pub fusion: FusionConfig,
     /// The SLAM process that gets the new-local-map commands.
     pub slam_process: String,
-    /// The processes whose end of stream ends this one's input.
+    /// The processes whose end of stream ends this one's input: all of them; empty: the first
+    /// upstream end of stream.
     pub end_after: Vec<String>,
     /// Ground truth to evaluate against at the end (TUM, relative to the output directory);
     /// skipped when missing.

@@ -5,7 +5,6 @@ use std::path::Path;
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
-use clap::Parser;
 use ingest::{IngestSettings, Item, Pacer, Progress, ProgressFile, SimSource, Source, SourceKind, TruthFile};
 use pipeline_runtime::{Delivery, Flow, Output, ProcessArgs, Runtime};
 use shared_types::convert::quat_to_xyzw;
@@ -415,7 +414,5 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
 }
 
 fn main() -> ExitCode {
-    let args = ProcessArgs::parse();
-    let _log = pipeline_runtime::logging::init(&args.name, args.log_format.unwrap_or_default());
-    pipeline_runtime::exit_code(&run(&args))
+    pipeline_runtime::process_main::<ingest::IngestSettings>(run)
 }

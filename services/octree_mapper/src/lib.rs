@@ -2,7 +2,10 @@
 //! queue (the oldest is dropped and counted when insertion falls behind) until the pose at their
 //! stamp is known (interpolated between the two poses around it), then go into the occupancy
 //! octree ([`octree::OcTree`], OctoMap semantics) and the point statistics of the navigable-space
-//! discovery ([`navigable`]). `main.rs` is the wiring around it.
+//! discovery ([`navigable`]). [`stage::OctreeMapperStage`] is the stage around it; `main.rs` one
+//! line.
+
+pub mod stage;
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};

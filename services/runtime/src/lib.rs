@@ -8,8 +8,10 @@ pub mod config;
 pub mod iox;
 pub mod logging;
 pub mod ports;
+pub mod protocol;
 pub mod restart;
 pub mod runtime;
+pub mod stage;
 pub mod stats;
 pub mod validate;
 
@@ -17,7 +19,9 @@ pub use clock::monotonic_ns;
 pub use config::{ConfigError, ConfigIssue, Issues, LogFormat, PipelineConfig, ProcessSettings};
 pub use iox::IoxScope;
 pub use ports::{Delivery, Input, Output, PortError};
+pub use protocol::{CheckReport, process_main};
 pub use runtime::{Flow, ProcessArgs, ProcessContext, Runtime, RuntimeOptions, StopReason, Wake};
+pub use stage::{Ending, Stage, Step, stage_main};
 pub use stats::{LatencySummary, StatsReport};
 
 /// Maps the end of a process's `run` to an exit code: 0 for a finished run or a SIGTERM/SIGINT

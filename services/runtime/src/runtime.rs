@@ -37,6 +37,10 @@ pub struct ProcessArgs {
     /// Log format (default: the config's `run.log_format`).
     #[arg(long, value_enum)]
     pub log_format: Option<LogFormat>,
+    /// Validate this process's settings and print the verdict as JSON on stdout (see
+    /// [`crate::protocol`]), then exit without starting.
+    #[arg(long)]
+    pub check: bool,
 }
 
 /// Everything a process knows about its run before it opens any port.

@@ -1,6 +1,6 @@
 //! From a config file to a checked plan: every key validated, every binary found, every
-//! process's settings parsed, and the machine checked (shared memory, file descriptors) before a
-//! single process starts.
+//! process's settings checked by its own binary (`--check`, see [`crate::kinds`]), and the
+//! machine checked (shared memory, file descriptors) before a single process starts.
 
 use std::path::{Path, PathBuf};
 
@@ -88,15 +88,16 @@ pub fn make_plan(config_path: &Path, overrides: &Overrides, bin_dir: &Path) -> R
         let p = &config.processes[name];
         let kind_name = p.kind_or(name).to_string();
         let key = format!("processes.{name}");
-        let Some(kind) = kinds::kind(&kind_name) else {
+        let external = kind_name == kinds::EXTERNAL;
+        if !external && !kinds::is_valid_kind_name(&kind_name) {
             issues.push(
                 format!("{key}.kind"),
-                format!("unknown kind `{kind_name}`; known kinds: {}", kinds::kind_names().join(", ")),
+                format!("`{kind_name}` cannot name a binary: use letters, digits, `_` and `-`"),
             );
             continue;
-        };
-        let binary = match (&p.binary, kind.binary) {
-            (Some(b), _) => {
+        }
+        let binary = match &p.binary {
+            Some(b) => {
                 let config_dir = config_abs.parent().unwrap_or(Path::new("."));
                 let b = if b.is_absolute() {
                     b.clone()
@@ -107,36 +108,49 @@ pub fn make_plan(config_path: &Path, overrides: &Overrides, bin_dir: &Path) -> R
                 };
                 if !is_executable(&b) {
                     issues.push(format!("{key}.binary"), format!("`{}` is not an executable file", b.display()));
+                    continue;
                 }
                 b
             }
-            (None, Some(default)) => {
-                let b = bin_dir.join(default);
+            None if external => {
+                issues.push(format!("{key}.binary"), format!("kind `{kind_name}` needs `binary`"));
+                continue;
+            }
+            None => {
+                let b = kinds::conventional_binary(bin_dir, &kind_name);
                 if !is_executable(&b) {
                     issues.push(
                         format!("{key}.kind"),
                         format!(
-                            "binary `{}` of kind `{kind_name}` not found; build it (cargo build --release --workspace) or set {key}.binary",
+                            "unknown kind `{kind_name}`: no executable `{}` (the binary of a kind is named after it \
+                             and sits next to the supervisor); build it (cargo build --release --workspace), set \
+                             {key}.binary, or use kind = \"external\" for a program not built on the runtime",
                             b.display()
                         ),
                     );
+                    continue;
                 }
                 b
             }
-            (None, None) => {
-                issues.push(format!("{key}.binary"), format!("kind `{kind_name}` needs `binary`"));
-                continue;
-            }
         };
-        let shm_bytes = match (kind.check)(name, &p.settings) {
-            Ok(b) => b,
-            Err(errs) => {
-                issues.0.extend(errs);
-                0
+        let shm_bytes = if external {
+            issues.0.extend(kinds::check_external(name, &p.settings));
+            0
+        } else {
+            match kinds::run_check(&binary, &config_abs, name, kinds::CHECK_TIMEOUT) {
+                Ok(report) => {
+                    issues.0.extend(report.issues);
+                    report.shm_estimate_bytes
+                }
+                Err(e) => {
+                    let at = if p.binary.is_some() { "binary" } else { "kind" };
+                    issues.push(format!("{key}.{at}"), format!("`{}`: {e}", binary.display()));
+                    0
+                }
             }
         };
         let mut args = vec![];
-        if kind.pipeline_args {
+        if !external {
             args.extend(["--config".into(), config_abs.to_string_lossy().into_owned(), "--name".into(), name.clone()]);
         }
         args.extend(p.args.iter().cloned());

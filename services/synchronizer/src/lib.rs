@@ -2,7 +2,9 @@
 //! [`buoy::Synchronizer`]; each SLAM pose waits (up to `sync.max_latency_s` of wall time since it
 //! arrived) for a fix after its stamp, then is paired with the buoy position interpolated to its
 //! stamp (SPEC §5.1: 3-point Lagrange, eq 30 covariance), or extrapolated and flagged.
-//! `main.rs` is the wiring around it.
+//! [`stage::SynchronizerStage`] is the stage around it; `main.rs` one line.
+
+pub mod stage;
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};

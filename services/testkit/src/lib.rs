@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 use shared_types::CloudPoint;
 use shared_types::services::{CLOUD, service_spec};
 
-/// Settings of `pipeline-test-producer` (`kind = "test_producer"`).
+/// Settings of `test_producer` (`kind = "test_producer"`).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct ProducerSettings {
@@ -54,7 +54,7 @@ impl ProcessSettings for ProducerSettings {
     }
 }
 
-/// Settings of `pipeline-test-consumer` (`kind = "test_consumer"`).
+/// Settings of `test_consumer` (`kind = "test_consumer"`).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct ConsumerSettings {
@@ -86,7 +86,7 @@ impl ProcessSettings for ConsumerSettings {
     }
 }
 
-/// Settings of `pipeline-sensor-monitor` (`kind = "sensor_monitor"`): a sink for every sensor
+/// Settings of `sensor_monitor` (`kind = "sensor_monitor"`): a sink for every sensor
 /// service that validates each message, counts accepted and rejected ones by reason, and forwards
 /// end of stream. It stands in for the stages while they do not exist and checks producers.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]

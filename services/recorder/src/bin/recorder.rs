@@ -8,7 +8,6 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
-use clap::Parser;
 use pipeline_runtime::{Flow, ProcessArgs, Runtime, StopReason, monotonic_ns};
 use recorder::{McapSink, RecorderSettings, SinkOptions, Tap, Topic};
 use shared_types::services::END_OF_STREAM;
@@ -214,7 +213,5 @@ fn run(args: &ProcessArgs) -> anyhow::Result<StopReason> {
 }
 
 fn main() -> ExitCode {
-    let args = ProcessArgs::parse();
-    let _log = pipeline_runtime::logging::init(&args.name, args.log_format.unwrap_or_default());
-    pipeline_runtime::exit_code(&run(&args))
+    pipeline_runtime::process_main::<recorder::RecorderSettings>(run)
 }

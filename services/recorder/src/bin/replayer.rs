@@ -9,7 +9,6 @@ use std::path::Path;
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
-use clap::Parser;
 use pipeline_runtime::{Delivery, Flow, ProcessArgs, Runtime, StopReason};
 use recorder::{Emit, Replay, Replayed, ReplayerSettings, Selection, scan, topic};
 use shared_types::services::service_spec;
@@ -151,7 +150,5 @@ fn run(args: &ProcessArgs) -> anyhow::Result<StopReason> {
 }
 
 fn main() -> ExitCode {
-    let args = ProcessArgs::parse();
-    let _log = pipeline_runtime::logging::init(&args.name, args.log_format.unwrap_or_default());
-    pipeline_runtime::exit_code(&run(&args))
+    pipeline_runtime::process_main::<recorder::ReplayerSettings>(run)
 }

@@ -1,9 +1,8 @@
-//! `pipeline-test-consumer`: receives clouds, verifies every point against the producer's formula,
+//! `test_consumer`: receives clouds, verifies every point against the producer's formula,
 //! records latency, forwards end of stream, and writes its counters to `parts/<name>.json`.
 
 use std::process::ExitCode;
 
-use clap::Parser;
 use pipeline_runtime::{Flow, ProcessArgs, Runtime};
 use shared_types::services::{CLOUD, END_OF_STREAM, STEREO};
 use shared_types::{CloudHeader, CloudPoint, EndOfStream, MsgHeader, StereoObservation};
@@ -64,7 +63,5 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
 }
 
 fn main() -> ExitCode {
-    let args = ProcessArgs::parse();
-    let _log = pipeline_runtime::logging::init(&args.name, args.log_format.unwrap_or_default());
-    pipeline_runtime::exit_code(&run(&args))
+    pipeline_runtime::process_main::<testkit::ConsumerSettings>(run)
 }

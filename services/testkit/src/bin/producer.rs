@@ -1,11 +1,10 @@
-//! `pipeline-test-producer`: publishes deterministic point clouds of a configured size and rate on
+//! `test_producer`: publishes deterministic point clouds of a configured size and rate on
 //! `pipeline/sensors/cloud`, written in place into loaned shared memory; end of stream after
 //! `frames` clouds; optionally crashes or stalls on purpose (see `testkit::ProducerSettings`).
 
 use std::process::ExitCode;
 use std::time::Duration;
 
-use clap::Parser;
 use pipeline_runtime::{Flow, ProcessArgs, Runtime, monotonic_ns};
 use shared_types::services::CLOUD;
 use shared_types::{CloudHeader, CloudPoint, FRAME_SENSOR};
@@ -49,7 +48,5 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
 }
 
 fn main() -> ExitCode {
-    let args = ProcessArgs::parse();
-    let _log = pipeline_runtime::logging::init(&args.name, args.log_format.unwrap_or_default());
-    pipeline_runtime::exit_code(&run(&args))
+    pipeline_runtime::process_main::<testkit::ProducerSettings>(run)
 }

@@ -1,10 +1,9 @@
-//! `pipeline-sensor-monitor`: subscribes every sensor service, validates each message (NaN/inf,
+//! `sensor_monitor`: subscribes every sensor service, validates each message (NaN/inf,
 //! empty or oversized, stamps not increasing, unknown buoy ids), counts accepted and rejected
 //! messages by reason, forwards end of stream, and writes the counters to `parts/<name>.json`.
 
 use std::process::ExitCode;
 
-use clap::Parser;
 use pipeline_runtime::validate::{self, Guard, Rejection};
 use pipeline_runtime::{Flow, ProcessArgs, Runtime};
 use shared_types::WireType;
@@ -167,7 +166,5 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
 }
 
 fn main() -> ExitCode {
-    let args = ProcessArgs::parse();
-    let _log = pipeline_runtime::logging::init(&args.name, args.log_format.unwrap_or_default());
-    pipeline_runtime::exit_code(&run(&args))
+    pipeline_runtime::process_main::<testkit::SensorMonitorSettings>(run)
 }

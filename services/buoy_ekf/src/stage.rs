@@ -1,0 +1,189 @@
+//! The buoy EKF as a [`Stage`]: its ports and journal around [`BuoyState`]. It ends after the
+//! first upstream end of stream (its inputs come from one source), once no ranges wait.
+
+use std::time::{Duration, Instant};
+
+use buoy::Mode;
+use nalgebra::Vector3;
+use pipeline_runtime::stage::{Ending, Stage, Step};
+use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
+use shared_types::services::{BUOY_FIX, BUOY_RANGES, DEPTH, ODOMETRY};
+use shared_types::*;
+
+use crate::journal::Journal;
+use crate::{BuoyEkfSettings, BuoyState, ate_nearest, dead_reckoning, fix_pose};
+
+/// The `buoy_ekf` stage.
+pub struct BuoyEkfStage {
+    settings: BuoyEkfSettings,
+    st: BuoyState,
+    odometry: Input<OdometryInput, MsgHeader>,
+    ranges: Input<[BuoyRange], MsgHeader>,
+    depth: Input<DepthReading, MsgHeader>,
+    fixes: Output<BuoyFix, MsgHeader>,
+    journal: Journal,
+    /// Trajectory samples and inputs journalled so far.
+    journalled: (usize, usize),
+    was_initialised: bool,
+    out_dir: std::path::PathBuf,
+}
+
+impl Stage for BuoyEkfStage {
+    type Settings = BuoyEkfSettings;
+
+    fn open(ctx: &ProcessContext, settings: BuoyEkfSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+        let odometry = rt.input(ODOMETRY)?;
+        let ranges = rt.input(BUOY_RANGES)?;
+        let depth = rt.input(DEPTH)?;
+        let fixes = rt.output(BUOY_FIX)?;
+        let mut st = BuoyState::new(settings.clone());
+        // A restarted instance keeps the killed one's trajectory and inputs (the filter starts
+        // over); a first instance starts empty (whatever an earlier run left in the output directory).
+        let journal_path = Journal::path(&ctx.out_dir, &ctx.name);
+        let restored = if pipeline_runtime::restart::is_restart() { Journal::read(&journal_path)? } else { None };
+        let journal = Journal::open(&journal_path, restored.as_ref())?;
+        if let Some(r) = restored {
+            tracing::info!(
+                samples = r.trajectory.len(),
+                inputs = r.inputs.len(),
+                ignored_lines = r.ignored_lines,
+                "restarted: kept the killed instance's trajectory; the filter starts over"
+            );
+            st.trajectory = r.trajectory;
+            st.inputs = r.inputs;
+        }
+        let journalled = (st.trajectory.len(), st.inputs.len());
+        tracing::info!(buoys = settings.ekf.buoys.len(), mode = ?settings.ekf.mode, odometry = settings.use_odometry, "buoy EKF ready");
+        Ok(Self {
+            settings,
+            st,
+            odometry,
+            ranges,
+            depth,
+            fixes,
+            journal,
+            journalled,
+            was_initialised: false,
+            out_dir: ctx.out_dir.clone(),
+        })
+    }
+
+    fn end_after(&self) -> Vec<String> {
+        vec![]
+    }
+
+    fn tick(&self) -> Option<Duration> {
+        Some(Duration::from_millis(100))
+    }
+
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> anyhow::Result<Step> {
+        let st = &mut self.st;
+        let now = Instant::now();
+        while let Some(s) = self.odometry.receive()? {
+            st.push_odometry(s.user_header().stamp_ns, s.payload());
+        }
+        while let Some(s) = self.ranges.receive()? {
+            let h = s.user_header();
+            st.push_ranges(h.stamp_ns, h.origin_ns, s.payload(), now);
+        }
+        while let Some(s) = self.depth.receive()? {
+            st.push_depth(s.user_header().stamp_ns, s.payload());
+        }
+        let out = st.step(inputs_ended, now);
+        // Journal before publishing: a restarted instance resumes from what was journalled.
+        self.journal.append(&st.trajectory[self.journalled.0..], &st.inputs[self.journalled.1..])?;
+        self.journalled = (st.trajectory.len(), st.inputs.len());
+        for f in out {
+            let e = &f.estimate;
+            self.fixes.send_value(
+                MsgHeader { stamp_ns: f.stamp_ns, origin_ns: f.origin_ns, ..Default::default() },
+                BuoyFix {
+                    position_m: e.position_m.into(),
+                    covariance_m2: convert::mat3_to_row_major(&e.covariance_m2),
+                    velocity_mps: e.velocity_mps.into(),
+                    ranges_used: f.used,
+                    ranges_rejected: f.rejected,
+                },
+            )?;
+        }
+        if !self.was_initialised && st.ekf().is_some_and(|e| e.is_initialised()) {
+            self.was_initialised = true;
+            if let Some(Ok(e)) = st.ekf().map(|e| e.estimate()) {
+                tracing::info!(position_m = ?e.position_m.as_slice(), "initialised");
+            }
+        }
+        if let Some(deadline) = st.next_deadline() {
+            rt.wake_at(deadline);
+        }
+        Ok(if st.pending() == 0 { Step::Idle } else { Step::Pending })
+    }
+
+    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> anyhow::Result<serde_json::Value> {
+        if ending == Ending::Stopped {
+            tracing::info!(fixes = self.fixes.sent(), "stopped early: writing the outputs so far");
+        }
+        summary(&self.st, &self.settings, &self.out_dir, self.fixes.sent())
+    }
+
+    fn end_of_stream(&self) -> (u64, u64) {
+        (self.fixes.sent().saturating_sub(1), self.fixes.sent())
+    }
+}
+
+fn summary(
+    st: &BuoyState,
+    settings: &BuoyEkfSettings,
+    out_dir: &std::path::Path,
+    fixes_sent: u64,
+) -> anyhow::Result<serde_json::Value> {
+    std::fs::create_dir_all(out_dir)?;
+    let planar = settings.ekf.mode == Mode::Planar;
+    let poses: Vec<_> = st.trajectory.iter().map(|(t, p, h)| (*t, fix_pose(p, *h))).collect();
+    geometry::tum::write_tum(&out_dir.join("buoy_ekf.tum"), poses.iter().map(|(t, p)| (*t, p)))?;
+    let counters = st.ekf().map(|e| e.counters().clone()).unwrap_or_default();
+    let estimate = st.ekf().filter(|e| e.is_initialised()).and_then(|e| e.estimate().ok());
+    let mut part = serde_json::json!({ "buoy_ekf": {
+        "fixes": fixes_sent,
+        "trajectory_samples": st.trajectory.len(),
+        "ranges_accepted": counters.accepted,
+        "ranges_rejected": counters.rejected,
+        "recoveries": counters.recoveries,
+        "depth_rejected": counters.depth_rejected,
+        "ranges_waiting_for_initialisation": st.waiting,
+        "per_buoy": counters.per_buoy.iter().map(|b| serde_json::json!({
+            "id": b.id, "accepted": b.accepted, "rejected": b.rejected })).collect::<Vec<_>>(),
+        "range_biases_m": estimate.as_ref().map(|e| e.biases.iter().map(|b| serde_json::json!({
+            "buoy_id": b.buoy_id, "bias_m": b.bias_m, "sigma_m": b.sigma_m })).collect::<Vec<_>>()),
+        "range_scale": estimate.as_ref().and_then(|e| e.range_scale).map(|s| s.0),
+        "invalid_inputs": st.invalid,
+        "filter_errors": st.filter_errors,
+    }});
+    let gt_path = out_dir.join(&settings.ground_truth);
+    match geometry::tum::read_tum(&gt_path) {
+        Ok(truth) if !truth.is_empty() => {
+            let truth_p: Vec<(f64, Vector3<f64>)> = truth.iter().map(|(t, p)| (*t, p.translation.vector)).collect();
+            let est: Vec<(f64, Vector3<f64>)> = st.trajectory.iter().map(|(t, p, _)| (*t, *p)).collect();
+            let ate = ate_nearest(&est, &truth_p, planar);
+            let mut ates = serde_json::json!({ "buoy_ekf": ate });
+            if let Some((t0, u0)) = st.inputs.first() {
+                // Dead reckoning from the ground-truth pose at the start of the first input.
+                let start = crate::nearest(&truth, t0 - u0.dt_s).copied().unwrap_or(truth[0].1);
+                let dr = dead_reckoning(&start, &st.inputs);
+                geometry::tum::write_tum(&out_dir.join("dead_reckoning.tum"), dr.iter().map(|(t, p)| (*t, p)))?;
+                let dr_p: Vec<_> = dr.iter().map(|(t, p)| (*t, p.translation.vector)).collect();
+                let dr_ate = ate_nearest(&dr_p, &truth_p, planar);
+                ates["dead_reckoning"] = serde_json::json!(dr_ate);
+                tracing::info!(
+                    "ATE ({}, nearest stamp, every ground-truth row): buoy EKF {ate:.3} m, dead reckoning {dr_ate:.3} m",
+                    if planar { "2-D" } else { "3-D" }
+                );
+            } else {
+                tracing::info!("ATE (nearest stamp, every ground-truth row): buoy EKF {ate:.3} m");
+            }
+            part["ate_m"] = ates;
+        }
+        Ok(_) => tracing::info!("no accuracy evaluation: {} is empty", gt_path.display()),
+        Err(e) => tracing::info!("no accuracy evaluation: {e}"),
+    }
+    Ok(part)
+}

@@ -1,0 +1,259 @@
+//! Fusion as a [`Stage`]: its ports and journal around the [`Fusion`] engine. It ends after
+//! every process in `end_after` has ended (default: the synchronizer, the buoy EKF and SLAM).
+
+use std::time::Duration;
+
+use fusion::engine::{Fusion, Source};
+use pipeline_runtime::stage::{Ending, Stage, Step};
+use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
+use shared_types::services::{BUOY_FIX, COMMAND, FUSION_MAP, FUSION_POSE, HEADING, SLAM_LANDMARKS, SYNC_PAIR};
+use shared_types::*;
+
+use crate::journal::{Entry, Journal};
+use crate::{FusionSettings, RunLog, fix_from_wire, landmark_from_wire, pair_from_wire, write_outputs};
+
+fn flags(s: Source) -> u32 {
+    match s {
+        Source::Fused => FUSED_WITH_BUOY,
+        Source::CameraOnly => FUSED_CAMERA_ONLY,
+        Source::BuoyOnly => FUSED_BUOY_ONLY,
+    }
+}
+
+fn count(log: &mut RunLog, reason: &str) {
+    *log.invalid.entry(reason.to_string()).or_default() += 1;
+}
+
+/// The `fusion` stage.
+pub struct FusionStage {
+    settings: FusionSettings,
+    engine: Fusion,
+    pairs: Input<SyncedPair, MsgHeader>,
+    fixes: Input<BuoyFix, MsgHeader>,
+    landmarks: Input<[Landmark], LandmarkMapHeader>,
+    headings: Input<HeadingReading, MsgHeader>,
+    pose_out: Output<FusedPose, MsgHeader>,
+    map_out: Output<[Landmark], LandmarkMapHeader>,
+    commands: Output<ControlCommand, MsgHeader>,
+    log: RunLog,
+    journal: Journal,
+    statuses: std::collections::BTreeMap<u32, std::mem::Discriminant<fusion::engine::SegmentStatus>>,
+    out_dir: std::path::PathBuf,
+}
+
+impl Stage for FusionStage {
+    type Settings = FusionSettings;
+
+    fn open(ctx: &ProcessContext, settings: FusionSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+        let mut engine =
+            Fusion::new(settings.fusion.clone()).map_err(|p| anyhow::anyhow!("invalid fusion settings: {p:?}"))?;
+        let pairs = rt.input::<SyncedPair, MsgHeader>(SYNC_PAIR)?;
+        let fixes = rt.input::<BuoyFix, MsgHeader>(BUOY_FIX)?;
+        let landmarks = rt.input::<[Landmark], LandmarkMapHeader>(SLAM_LANDMARKS)?;
+        let headings = rt.input::<HeadingReading, MsgHeader>(HEADING)?;
+        let pose_out = rt.output::<FusedPose, MsgHeader>(FUSION_POSE)?;
+        let map_out = rt.output_slice::<Landmark, LandmarkMapHeader>(FUSION_MAP, 4096)?;
+        let commands = rt.output::<ControlCommand, MsgHeader>(COMMAND)?;
+        let mut log = RunLog::default();
+        let statuses: std::collections::BTreeMap<u32, std::mem::Discriminant<fusion::engine::SegmentStatus>> =
+            Default::default();
+        // A restarted instance replays what the killed one had taken into the new engine; a first
+        // instance starts empty (whatever an earlier run left in the output directory).
+        let journal_path = Journal::path(&ctx.out_dir, &ctx.name);
+        let restarted = pipeline_runtime::restart::is_restart();
+        let restored = if restarted { Journal::read(&journal_path)? } else { None };
+        let journal = Journal::open(&journal_path, restored.as_ref())?;
+        if let Some(r) = restored {
+            for e in r.entries.iter().cloned() {
+                match e {
+                    Entry::Fix(f) => engine.push_fix(f).map_err(|e| anyhow::anyhow!("journalled fix: {e}"))?,
+                    Entry::Heading(h) => {
+                        engine.push_heading(h).map_err(|e| anyhow::anyhow!("journalled heading: {e}"))?
+                    }
+                    Entry::Pair(p) => {
+                        let (t_s, buoy) = (p.t_s, p.buoy_m);
+                        if let Ok(out) = engine.push_pair(*p) {
+                            log.buoy.push((t_s, buoy));
+                            log.live.push((out.t_s, out.world_from_body));
+                            log.live_sources.add(out.source);
+                            log.segment_requests += u64::from(out.request_new_segment);
+                        }
+                    }
+                }
+            }
+            for (segment, ls) in r.landmarks.iter().cloned() {
+                engine.set_landmarks(segment, ls);
+            }
+            tracing::info!(
+                inputs = r.entries.len(),
+                local_maps = r.landmarks.len(),
+                ignored_lines = r.ignored_lines,
+                "restarted: replayed the killed instance's inputs"
+            );
+        }
+        tracing::info!(slam = %settings.slam_process, end_after = ?settings.end_after, "fusion ready");
+        Ok(Self {
+            settings,
+            engine,
+            pairs,
+            fixes,
+            landmarks,
+            headings,
+            pose_out,
+            map_out,
+            commands,
+            log,
+            journal,
+            statuses,
+            out_dir: ctx.out_dir.clone(),
+        })
+    }
+
+    fn end_after(&self) -> Vec<String> {
+        self.settings.end_after.clone()
+    }
+
+    fn tick(&self) -> Option<Duration> {
+        Some(Duration::from_millis(200))
+    }
+
+    fn step(&mut self, _rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> anyhow::Result<Step> {
+        let Self {
+            settings,
+            engine,
+            pairs,
+            fixes,
+            landmarks,
+            headings,
+            pose_out,
+            commands,
+            log,
+            journal,
+            statuses,
+            ..
+        } = self;
+        // Fixes and maps first, so that a pair sees every fix that arrived with it.
+        while let Some(s) = fixes.receive()? {
+            let fix = fix_from_wire(s.user_header(), s.payload());
+            if engine.push_fix(fix).is_err() {
+                count(log, "buoy fix with NaN");
+            } else {
+                journal.push(&Entry::Fix(fix));
+            }
+        }
+        while let Some(s) = headings.receive()? {
+            let h = s.payload();
+            let reading = fusion::engine::HeadingInput {
+                t_s: s.user_header().stamp_ns as f64 / 1e9,
+                yaw_rad: h.yaw_rad,
+                sigma_rad: h.sigma_rad,
+            };
+            if engine.push_heading(reading).is_err() {
+                count(log, "heading with NaN or sigma <= 0");
+            } else {
+                journal.push(&Entry::Heading(reading));
+            }
+        }
+        while let Some(s) = landmarks.receive()? {
+            let h = s.user_header();
+            let ls: Vec<_> = s.payload().iter().filter_map(landmark_from_wire).collect();
+            if ls.len() < s.payload().len() {
+                count(log, "landmark with NaN");
+            }
+            journal.landmarks(h.segment_id, &ls)?;
+            engine.set_landmarks(h.segment_id, ls);
+        }
+        while let Some(s) = pairs.receive()? {
+            let h = *s.user_header();
+            let pair = pair_from_wire(&h, s.payload());
+            let buoy = pair.buoy_m;
+            let t_s = pair.t_s;
+            journal.push(&Entry::Pair(Box::new(pair.clone())));
+            let out = match engine.push_pair(pair) {
+                Ok(o) => o,
+                Err(e) => {
+                    count(log, &format!("synced pair: {e}"));
+                    continue;
+                }
+            };
+            log.buoy.push((t_s, buoy));
+            log.live.push((out.t_s, out.world_from_body));
+            log.live_sources.add(out.source);
+            // Journalled before publishing: a restarted instance replays what was journalled.
+            journal.flush()?;
+            if h.origin_ns > 0 {
+                let now = pipeline_runtime::clock::monotonic_ns();
+                log.stereo_to_fused_ms.push(now.saturating_sub(h.origin_ns) as f64 / 1e6);
+            }
+            pose_out.send_value(
+                MsgHeader { stamp_ns: h.stamp_ns, origin_ns: h.origin_ns, ..Default::default() },
+                FusedPose {
+                    pose: PoseEstimate::from_nalgebra(&out.world_from_body, &out.covariance, out.segment, FRAME_WORLD),
+                    flags: flags(out.source),
+                    _reserved: 0,
+                },
+            )?;
+            if let Some(seg) = engine.segment(out.segment) {
+                // Log changes of kind (waiting, degenerate, aligned), not every new fix count.
+                let kind = std::mem::discriminant(&seg.status);
+                if statuses.get(&out.segment) != Some(&kind) {
+                    tracing::info!(segment = out.segment, "local map: {:?}", seg.status);
+                    statuses.insert(out.segment, kind);
+                }
+            }
+            if out.request_new_segment {
+                log.segment_requests += 1;
+                tracing::info!(
+                    segment = out.segment,
+                    mahalanobis = out.mahalanobis,
+                    "camera and buoy estimates stopped overlapping: asking {} for a new local map",
+                    settings.slam_process
+                );
+                commands.send_value(
+                    MsgHeader { stamp_ns: h.stamp_ns, origin_ns: h.origin_ns, ..Default::default() },
+                    ControlCommand {
+                        target: name32(&settings.slam_process),
+                        command: COMMAND_NEW_SEGMENT,
+                        _reserved: 0,
+                        arg: out.segment as u64,
+                    },
+                )?;
+            }
+        }
+        journal.flush()?;
+        Ok(Step::Idle)
+    }
+
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> anyhow::Result<serde_json::Value> {
+        let result = self.engine.finish();
+        rt.keep_alive();
+        if ending == Ending::EndOfStream {
+            let map = &result.global_map;
+            let mut s = self.map_out.loan_slice_uninit(map.len())?.write_from_fn(|i| {
+                let l = &map[i];
+                Landmark {
+                    id: i as u64,
+                    mean_m: l.mean_m.into(),
+                    covariance_m2: convert::mat3_to_row_major(&l.cov_m2),
+                    descriptor: l.descriptor.unwrap_or([0; 32]),
+                    observation_count: l.observations,
+                    segment_id: u32::MAX,
+                }
+            });
+            let stamp = result.path.last().map_or(0, |o| (o.t_s * 1e9) as u64);
+            *s.user_header_mut() = LandmarkMapHeader {
+                msg: MsgHeader { stamp_ns: stamp, ..Default::default() },
+                segment_id: u32::MAX,
+                frame: FRAME_WORLD,
+            };
+            self.map_out.send(s)?;
+        } else {
+            tracing::info!(poses = result.path.len(), "stopped early: the consistent path and map so far");
+        }
+        write_outputs(&self.out_dir, &self.settings, &self.engine, &result, &self.log)
+    }
+
+    fn end_of_stream(&self) -> (u64, u64) {
+        (self.pose_out.sent().saturating_sub(1), self.pose_out.sent())
+    }
+}

@@ -1,0 +1,365 @@
+//! The octree mapper as a [`Stage`]: its ports, checkpoints and map publishing around
+//! [`MapperState`]. It ends after every process in `end_after` has ended (empty: the first),
+//! once the cloud service's queue and its own are empty.
+
+use std::time::{Duration, Instant};
+
+use navigable::VoxelClass;
+use pipeline_runtime::stage::{Ending, Stage, Step};
+use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
+use shared_types::services::{CLOUD, COMMAND, FUSION_POSE, MAP_STATS, MAP_VOXELS, SLAM_POSE};
+use shared_types::*;
+
+use crate::{MapperSettings, MapperState, PendingCloud, PoseSource};
+
+fn percentile(v: &[f64], q: f64) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    geometry::stats::percentile_sorted(&s, q).unwrap_or(f64::NAN)
+}
+
+fn stats_msg(st: &MapperState, regions: u32, obstacles: u32) -> MapStats {
+    let (occ, free) = st.tree.num_occupied_free_leaves();
+    let leaves = st.tree.num_leaves();
+    MapStats {
+        resolution_m: st.tree.resolution(),
+        leaves: leaves as u64,
+        occupied_leaves: occ as u64,
+        free_leaves: free as u64,
+        inner_nodes: st.tree.num_nodes().saturating_sub(leaves) as u64,
+        memory_bytes: st.tree.memory_usage_bytes() as u64,
+        clouds_inserted: st.counters.clouds_inserted,
+        clouds_dropped: st.counters.clouds_dropped_behind
+            + st.counters.clouds_dropped_no_pose
+            + st.counters.clouds_missed,
+        points_inserted: st.counters.points_inserted,
+        last_insert_ms: st.insert_ms.last().copied().unwrap_or(0.0),
+        navigable_regions: regions,
+        obstacles,
+        ..Default::default()
+    }
+}
+
+/// The occupied leaves with their class (navigable, obstacle, or just occupied).
+fn build_voxels(st: &MapperState, classes: Option<&navigable::Discovery>) -> Vec<Voxel> {
+    let res = st.tree.resolution();
+    let obstacle: std::collections::HashSet<navigable::VoxelKey> =
+        classes.map(|d| d.obstacles.iter().flat_map(|o| o.voxels.iter().copied()).collect()).unwrap_or_default();
+    st.tree
+        .leaves()
+        .filter(|l| st.tree.is_occupied_log_odds(l.log_odds))
+        .map(|l| {
+            let c = st.tree.key_to_coord(l.key);
+            let size = res * l.edge_voxels() as f64;
+            let centre = if l.depth >= 16 {
+                c
+            } else {
+                // A pruned leaf: the centre of its cube.
+                let m = st.tree.key_to_coord(l.min_key());
+                [m[0] - 0.5 * res + 0.5 * size, m[1] - 0.5 * res + 0.5 * size, m[2] - 0.5 * res + 0.5 * size]
+            };
+            let k = st.points.key(&nalgebra::Vector3::from(c));
+            let class = match classes.and_then(|d| d.classes.get(&k)) {
+                Some(VoxelClass::Navigable(_)) => 1,
+                _ if obstacle.contains(&k) => 2,
+                _ => 0,
+            };
+            Voxel {
+                center_m: [centre[0] as f32, centre[1] as f32, centre[2] as f32],
+                size_m: size as f32,
+                occupancy: octree::probability(l.log_odds as f64) as f32,
+                class,
+            }
+        })
+        .collect()
+}
+
+/// Publishes voxels on `pipeline/map/voxels`.
+fn send_voxels(
+    out: &mut Output<[Voxel], VoxelSetHeader>,
+    voxels: &[Voxel],
+    resolution_m: f64,
+    stamp_ns: u64,
+) -> anyhow::Result<()> {
+    let mut s = out.loan_slice_uninit(voxels.len())?.write_from_slice(voxels);
+    *s.user_header_mut() = VoxelSetHeader {
+        msg: MsgHeader { stamp_ns, ..Default::default() },
+        resolution_m,
+        frame: FRAME_WORLD,
+        _reserved: 0,
+    };
+    out.send(s)?;
+    Ok(())
+}
+
+/// The end-of-run work (map.bt, navigable space, PLY layers, the classified voxels) on a worker
+/// thread, while this thread keeps the heartbeats going (a large map takes seconds).
+fn end_of_run(
+    rt: &mut Runtime,
+    st: &MapperState,
+    out_dir: &std::path::Path,
+) -> anyhow::Result<(navigable::Discovery, Vec<Voxel>, serde_json::Value)> {
+    std::fs::create_dir_all(out_dir)?;
+    let (d, voxels) = std::thread::scope(|s| {
+        let worker = s.spawn(|| -> anyhow::Result<(navigable::Discovery, Vec<Voxel>)> {
+            let t0 = Instant::now();
+            st.tree.write_binary_file(out_dir.join("map.bt"))?;
+            let t1 = Instant::now();
+            let d = st.discover()?;
+            let t2 = Instant::now();
+            navigable::write_navigable_ply(&out_dir.join("navigable.ply"), &st.points, &d)?;
+            navigable::write_obstacles_ply(&out_dir.join("obstacles.ply"), &st.points, &d)?;
+            let voxels = build_voxels(st, Some(&d));
+            tracing::info!(
+                "end of run: map.bt in {:.0} ms, navigable space in {:.0} ms, PLY layers and voxels in {:.0} ms",
+                (t1 - t0).as_secs_f64() * 1e3,
+                (t2 - t1).as_secs_f64() * 1e3,
+                t2.elapsed().as_secs_f64() * 1e3
+            );
+            Ok((d, voxels))
+        });
+        while !worker.is_finished() {
+            rt.keep_alive();
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        worker.join().map_err(|_| anyhow::anyhow!("end-of-run worker panicked"))?
+    })?;
+    let (nav, steep, nonplanar, sparse) = d.counts();
+    let (occ, free) = st.tree.num_occupied_free_leaves();
+    let lat = &st.cloud_to_octree_ms;
+    let part = serde_json::json!({
+      "pipeline_latency_ms": { "cloud_to_octree": { "count": lat.len(), "p50": percentile(lat, 0.5),
+                               "p99": percentile(lat, 0.99), "max": percentile(lat, 1.0) } },
+      "octree_mapper": {
+        "resolution_m": st.tree.resolution(),
+        "pose_source": st.settings().pose_source,
+        "leaves": st.tree.num_leaves(),
+        "occupied_leaves": occ,
+        "free_leaves": free,
+        "memory_bytes": st.tree.memory_usage_bytes(),
+        "counters": st.counters,
+        "insert_ms": { "p50": percentile(&st.insert_ms, 0.5), "p99": percentile(&st.insert_ms, 0.99),
+                       "max": percentile(&st.insert_ms, 1.0) },
+        "voxels": { "navigable": nav, "steep": steep, "non_planar": nonplanar, "sparse": sparse },
+        "navigable_regions": d.regions.len(),
+        "navigable_area_m2": d.regions.iter().map(|r| r.area_m2).sum::<f64>(),
+        "obstacles": d.obstacles.len(),
+        "obstacle_landmarks": st.obstacle_landmarks.len(),
+
+        "obstacle_landmarks_seen_in_2_or_more_scans": st.obstacle_landmarks.iter().filter(|l| l.scans >= 2).count(),
+    }});
+    tracing::info!(
+        clouds = st.counters.clouds_inserted,
+        dropped = st.counters.clouds_dropped_behind + st.counters.clouds_dropped_no_pose,
+        occupied = occ,
+        regions = d.regions.len(),
+        obstacles = d.obstacles.len(),
+        "map written"
+    );
+    Ok((d, voxels, part))
+}
+
+/// The `octree_mapper` stage.
+pub struct OctreeMapperStage {
+    settings: MapperSettings,
+    st: MapperState,
+    checkpoint: std::path::PathBuf,
+    checkpoint_every: Option<Duration>,
+    last_checkpoint: Instant,
+    clouds: Input<[CloudPoint], CloudHeader>,
+    fused: Input<FusedPose, MsgHeader>,
+    slam: Input<PoseEstimate, MsgHeader>,
+    commands: Input<ControlCommand, MsgHeader>,
+    stats_out: Output<MapStats, MsgHeader>,
+    voxels_out: Output<[Voxel], VoxelSetHeader>,
+    stats_every: Option<Duration>,
+    voxels_every: Option<Duration>,
+    last_stats: Instant,
+    last_voxels: Instant,
+    last_stamp: u64,
+    last_cloud_seq: Option<u64>,
+    out_dir: std::path::PathBuf,
+}
+
+impl Stage for OctreeMapperStage {
+    type Settings = MapperSettings;
+
+    fn open(ctx: &ProcessContext, settings: MapperSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+        let mut st = MapperState::new(settings.clone())?;
+        // A restarted instance starts from the killed one's last occupancy checkpoint; a first
+        // instance starts empty (whatever an earlier run left in the output directory).
+        let checkpoint = MapperState::checkpoint_path(&ctx.out_dir, &ctx.name);
+        let restarted = pipeline_runtime::restart::is_restart();
+        if restarted && st.restore_checkpoint(&checkpoint)? {
+            let (occupied, free) = st.tree.num_occupied_free_leaves();
+            tracing::info!(occupied, free, "restarted: the map starts from the killed instance's last checkpoint");
+        } else if !restarted && checkpoint.exists() {
+            std::fs::remove_file(&checkpoint)?;
+        }
+        let checkpoint_every =
+            (settings.checkpoint_interval_s > 0.0).then(|| Duration::from_secs_f64(settings.checkpoint_interval_s));
+        let every = |hz: f64| (hz > 0.0).then(|| Duration::from_secs_f64(1.0 / hz));
+        tracing::info!(resolution_m = settings.resolution_m, pose = ?settings.pose_source, "octree mapper ready");
+        Ok(Self {
+            st,
+            checkpoint,
+            checkpoint_every,
+            last_checkpoint: Instant::now(),
+            clouds: rt.input(CLOUD)?,
+            fused: rt.input(FUSION_POSE)?,
+            slam: rt.input(SLAM_POSE)?,
+            commands: rt.input(COMMAND)?,
+            stats_out: rt.output(MAP_STATS)?,
+            voxels_out: rt.output_slice(MAP_VOXELS, 16 * 1024)?,
+            stats_every: every(settings.stats_rate_hz),
+            voxels_every: every(settings.voxels_rate_hz),
+            last_stats: Instant::now(),
+            last_voxels: Instant::now(),
+            last_stamp: 0,
+            last_cloud_seq: None,
+            out_dir: ctx.out_dir.clone(),
+            settings,
+        })
+    }
+
+    fn end_after(&self) -> Vec<String> {
+        self.settings.end_after.clone()
+    }
+
+    fn tick(&self) -> Option<Duration> {
+        Some(Duration::from_millis(100))
+    }
+
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> anyhow::Result<Step> {
+        let Self {
+            settings,
+            st,
+            checkpoint,
+            checkpoint_every,
+            last_checkpoint,
+            clouds,
+            fused,
+            slam,
+            commands,
+            stats_out,
+            voxels_out,
+            stats_every,
+            voxels_every,
+            last_stats,
+            last_voxels,
+            last_stamp,
+            last_cloud_seq,
+            out_dir,
+        } = self;
+        while let Some(s) = fused.receive()? {
+            if settings.pose_source == PoseSource::Fused {
+                st.poses.push(s.user_header().stamp_ns as f64 / 1e9, s.payload().pose.frame_from_body());
+            }
+        }
+        while let Some(s) = slam.receive()? {
+            if settings.pose_source == PoseSource::Slam {
+                st.poses.push(s.user_header().stamp_ns as f64 / 1e9, s.payload().frame_from_body());
+            }
+        }
+        let now = Instant::now();
+        // With `when_behind = "wait"` no more clouds are taken while max_pending_clouds wait:
+        // the rest stays in the service's queue and a replay waits for the mapper.
+        let mut queue_empty = false;
+        while st.takes_clouds() {
+            let Some(s) = clouds.receive()? else {
+                queue_empty = true;
+                break;
+            };
+            let h = s.user_header();
+            *last_stamp = (*last_stamp).max(h.msg.stamp_ns);
+            if let Some(prev) = *last_cloud_seq
+                && h.msg.seq > prev + 1
+            {
+                st.counters.clouds_missed += h.msg.seq - prev - 1;
+                clouds.count_dropped("missed: sequence gap", h.msg.seq - prev - 1);
+            }
+            *last_cloud_seq = Some(h.msg.seq);
+            let own_pose = (h.flags & CLOUD_HAS_POSE != 0)
+                .then(|| convert::isometry_from_wire(&h.sensor_origin_m, &h.orientation_xyzw));
+            st.push_cloud(PendingCloud {
+                stamp_ns: h.msg.stamp_ns,
+                origin_ns: h.msg.origin_ns,
+                points_sensor_m: s.payload().iter().map(|p| [p.x_m, p.y_m, p.z_m]).collect(),
+                own_pose,
+                received: now,
+            });
+        }
+        let held_back = !queue_empty;
+        while let Some(s) = commands.receive()? {
+            let c = s.payload();
+            let target = name_from32(&c.target);
+            if (target.is_empty() || target == rt.name()) && c.command == COMMAND_CHECKPOINT {
+                let path = out_dir.join("map.bt");
+                std::fs::create_dir_all(&*out_dir)?;
+                st.tree.write_binary_file(&path)?;
+                tracing::info!(path = %path.display(), "checkpoint written");
+            }
+        }
+        // One cloud per wake-up, so the inputs are drained (and late clouds dropped) between.
+        let before = (st.counters.clouds_dropped_behind, st.counters.clouds_dropped_no_pose);
+        st.step(Instant::now(), inputs_ended, 1)?;
+        clouds.count_dropped(
+            "insertion behind (when_behind = drop_oldest)",
+            st.counters.clouds_dropped_behind - before.0,
+        );
+        clouds.count_dropped("no pose within pose_wait_s", st.counters.clouds_dropped_no_pose - before.1);
+        if !st.pending.is_empty() {
+            match st.next_deadline() {
+                Some(d) if st.settings().pose_source != PoseSource::Cloud => {
+                    rt.wake_at(d.min(Instant::now() + Duration::from_millis(20)))
+                }
+                _ => rt.wake_at(Instant::now()),
+            }
+        } else if held_back {
+            rt.wake_at(Instant::now()); // clouds left in the service's queue: take them now
+        }
+        if checkpoint_every.is_some_and(|e| last_checkpoint.elapsed() >= e) && !inputs_ended {
+            *last_checkpoint = Instant::now();
+            st.write_checkpoint(checkpoint)?;
+        }
+        if stats_every.is_some_and(|e| last_stats.elapsed() >= e) {
+            *last_stats = Instant::now();
+            stats_out.send_value(MsgHeader { stamp_ns: *last_stamp, ..Default::default() }, stats_msg(st, 0, 0))?;
+        }
+        if voxels_every.is_some_and(|e| last_voxels.elapsed() >= e) {
+            *last_voxels = Instant::now();
+            let voxels = build_voxels(st, None);
+            send_voxels(voxels_out, &voxels, st.tree.resolution(), *last_stamp)?;
+        }
+        Ok(if queue_empty && st.pending.is_empty() { Step::Idle } else { Step::Pending })
+    }
+
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> anyhow::Result<serde_json::Value> {
+        let st = &self.st;
+        if ending == Ending::EndOfStream {
+            let (d, voxels, part) = end_of_run(rt, st, &self.out_dir)?;
+            let header = MsgHeader { stamp_ns: self.last_stamp, ..Default::default() };
+            self.stats_out.send_value(header, stats_msg(st, d.regions.len() as u32, d.obstacles.len() as u32))?;
+            send_voxels(&mut self.voxels_out, &voxels, st.tree.resolution(), self.last_stamp)?;
+            return Ok(part);
+        }
+        // Stopped before the end of stream: the map so far (the navigable-space layers take
+        // seconds on a large map and are written only at the end of stream).
+        std::fs::create_dir_all(&self.out_dir)?;
+        st.tree.write_binary_file(self.out_dir.join("map.bt"))?;
+        let (occ, free) = st.tree.num_occupied_free_leaves();
+        tracing::info!(clouds = st.counters.clouds_inserted, "stopped early: map.bt written");
+        Ok(serde_json::json!({ "octree_mapper": {
+            "resolution_m": st.tree.resolution(),
+            "stopped_early": true,
+            "leaves": st.tree.num_leaves(),
+            "occupied_leaves": occ,
+            "free_leaves": free,
+            "counters": st.counters,
+        }}))
+    }
+
+    fn end_of_stream(&self) -> (u64, u64) {
+        (self.stats_out.sent().saturating_sub(1), self.stats_out.sent())
+    }
+}

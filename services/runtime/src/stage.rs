@@ -1,0 +1,170 @@
+//! One shape for every stage: a [`Stage`] is its state plus what it does on a wake-up, and the
+//! runtime owns everything around it ([`run_stage`]):
+//!
+//! - the loop (a WaitSet that never spins), heartbeats and statistics (see [`Runtime::run`]);
+//! - the end of stream: it reads the ends of stream before the data in each wake-up (so nothing
+//!   sent before an end is missed), tracks which upstream processes ended, and decides when the
+//!   stage's inputs are over by one rule, [`Stage::end_after`]: every process named there has
+//!   ended, or, with an empty list, the first upstream process has. Then, once the stage says it
+//!   is idle, it calls [`Stage::finish`], writes the summary part, and sends the stage's own end
+//!   of stream. A stage that is a source ends itself ([`Step::Done`]);
+//! - a stop (SIGTERM/SIGINT) before that: [`Stage::finish`] with [`Ending::Stopped`], so that
+//!   whatever the stage has is written and scored;
+//! - the summary part: `<out>/parts/<process>.json`, the object `finish` returns, plus
+//!   `processes.<name>.upstream_failed` when an upstream process failed for good;
+//! - after its end the process stays up (its last samples stay valid for slow readers) until
+//!   the supervisor stops it.
+//!
+//! A stage's `main` is [`stage_main`]: `fn main() -> ExitCode { pipeline_runtime::stage_main::<MyStage>() }`.
+
+use std::collections::BTreeSet;
+use std::path::Path;
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use shared_types::services::END_OF_STREAM;
+use shared_types::{EndOfStream, MsgHeader};
+
+use crate::config::ProcessSettings;
+use crate::runtime::{Flow, ProcessContext, Runtime, StopReason, Wake};
+
+/// What a wake-up left.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Step {
+    /// Nothing left to do until more data arrives (or the next tick).
+    Idle,
+    /// Work is pending on something to come (data, or a deadline the stage set with
+    /// [`Runtime::wake_at`]): not finished even when the inputs have ended.
+    Pending,
+    /// Work left in the stage's own queue: wake again at once (the inputs are drained between
+    /// steps, so a source waiting on this stage never waits for more than one step).
+    Busy,
+    /// The stage has ended its stream by itself (a source at the end of its data): finish now.
+    Done,
+}
+
+/// How a stage's run ends.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Ending {
+    /// Its inputs ended and everything was processed (or a source reached its end).
+    EndOfStream,
+    /// Stopped by a signal before that: write what there is.
+    Stopped,
+}
+
+/// A pipeline stage. See the module docs for what the runtime does around it.
+pub trait Stage: Sized {
+    /// Its settings (`[processes.<name>.settings]`), validated before [`Stage::open`] (and by
+    /// `--check`).
+    type Settings: ProcessSettings;
+
+    /// Builds the stage: opens its inputs and outputs on `rt`, restores a killed instance's state
+    /// if it keeps one.
+    fn open(ctx: &ProcessContext, settings: Self::Settings, rt: &mut Runtime) -> anyhow::Result<Self>;
+
+    /// The upstream processes whose end of stream ends this stage's inputs: all of them; empty:
+    /// the first upstream process to end. Sources, which have no inputs, return an empty list
+    /// and end themselves with [`Step::Done`].
+    fn end_after(&self) -> Vec<String>;
+
+    /// Interval of the stage's own tick (`wake.tick`), if it wants one.
+    fn tick(&self) -> Option<Duration> {
+        None
+    }
+
+    /// One wake-up: drain the inputs, do the work, publish. `inputs_ended`: every upstream
+    /// process the stage waits for has ended, and everything they sent is already queued.
+    fn step(&mut self, rt: &mut Runtime, wake: Wake, inputs_ended: bool) -> anyhow::Result<Step>;
+
+    /// The end ([`Ending`]): write the final outputs and return this stage's part of summary.json
+    /// (a JSON object, merged into the summary). Long work should call [`Runtime::keep_alive`]
+    /// between its parts.
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> anyhow::Result<serde_json::Value>;
+
+    /// `(last_seq, messages_sent)` of the stage's main output, for its end of stream.
+    fn end_of_stream(&self) -> (u64, u64);
+}
+
+/// Writes a summary part (`<out>/parts/<process>.json`).
+pub fn write_summary_part(out_dir: &Path, name: &str, part: &serde_json::Value) -> anyhow::Result<()> {
+    let dir = out_dir.join("parts");
+    std::fs::create_dir_all(&dir)?;
+    std::fs::write(dir.join(format!("{name}.json")), serde_json::to_vec_pretty(part)?)?;
+    Ok(())
+}
+
+/// True when the inputs of a stage waiting for `end_after` are over, given the upstream
+/// processes that `ended`.
+pub fn inputs_ended(end_after: &[String], ended: &BTreeSet<String>) -> bool {
+    if end_after.is_empty() { !ended.is_empty() } else { end_after.iter().all(|n| ended.contains(n)) }
+}
+
+/// Runs `stage` to its end and until the process is stopped (see the module docs).
+pub fn run_stage<S: Stage>(ctx: &ProcessContext, rt: &mut Runtime, mut stage: S) -> anyhow::Result<StopReason> {
+    let eos = rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?;
+    let end_after = stage.end_after();
+    let mut ended: BTreeSet<String> = BTreeSet::new();
+    let mut done = false;
+    let out_dir = ctx.out_dir.clone();
+    let name = ctx.name.clone();
+    let with_failures = |rt: &Runtime, mut part: serde_json::Value| {
+        let failed = rt.failed_upstream();
+        if !failed.is_empty() && part.is_object() {
+            part["processes"][&name]["upstream_failed"] = serde_json::json!(failed);
+        }
+        part
+    };
+    let tick = stage.tick();
+    let stop = rt.run(&mut stage, tick, |rt, stage, wake| {
+        if done {
+            return Ok(Flow::Continue);
+        }
+        ended.extend(rt.ended_upstream(&eos)?); // before the data: see Runtime::ended_upstream
+        let over = inputs_ended(&end_after, &ended);
+        let step = stage.step(rt, wake, over)?;
+        if step == Step::Busy {
+            rt.wake_at(Instant::now());
+        }
+        if step == Step::Done || (over && step == Step::Idle) {
+            let part = stage.finish(rt, Ending::EndOfStream)?;
+            write_summary_part(&out_dir, &name, &with_failures(rt, part))?;
+            let (last_seq, sent) = stage.end_of_stream();
+            rt.send_end_of_stream(last_seq, sent)?;
+            done = true;
+        }
+        Ok(Flow::Continue)
+    })?;
+    if !done {
+        tracing::info!("stopped before the end of its inputs: writing what there is");
+        let part = stage.finish(rt, Ending::Stopped)?;
+        write_summary_part(&ctx.out_dir, &ctx.name, &with_failures(rt, part))?;
+    }
+    Ok(stop)
+}
+
+/// The whole `main` of a stage: `--check` (see [`crate::protocol`]), logging, the context and
+/// runtime, [`Stage::open`] with its validated settings, and [`run_stage`].
+pub fn stage_main<S: Stage>() -> ExitCode {
+    crate::protocol::process_main::<S::Settings>(|args| {
+        let (ctx, mut rt) = Runtime::start(args)?;
+        let settings: S::Settings = ctx.settings()?;
+        let stage = S::open(&ctx, settings, &mut rt)?;
+        run_stage(&ctx, &mut rt, stage)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_rule_for_the_end_of_the_inputs() {
+        let ended = |names: &[&str]| names.iter().map(|s| s.to_string()).collect::<BTreeSet<_>>();
+        let list = vec!["slam".to_string(), "buoy".to_string()];
+        assert!(!inputs_ended(&list, &ended(&[])));
+        assert!(!inputs_ended(&list, &ended(&["slam"])));
+        assert!(inputs_ended(&list, &ended(&["buoy", "slam", "other"])));
+        assert!(!inputs_ended(&[], &ended(&[])), "an empty list waits for the first upstream end");
+        assert!(inputs_ended(&[], &ended(&["ingest"])));
+    }
+}

@@ -1,0 +1,101 @@
+//! The synchronizer as a [`Stage`]: its ports around [`SyncState`]. Fixes are taken before poses
+//! in each wake-up, so that a pose and the fix that brackets it in one wake-up are paired.
+
+use std::time::Instant;
+
+use pipeline_runtime::stage::{Ending, Stage, Step};
+use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
+use shared_types::services::{BUOY_FIX, SLAM_POSE, SYNC_PAIR};
+use shared_types::{BuoyFix, MsgHeader, PoseEstimate, SyncedPair, convert};
+
+use crate::{SyncState, SynchronizerSettings};
+
+/// The `synchronizer` stage.
+pub struct SynchronizerStage {
+    settings: SynchronizerSettings,
+    st: SyncState,
+    poses: Input<PoseEstimate, MsgHeader>,
+    fixes: Input<BuoyFix, MsgHeader>,
+    pairs: Output<SyncedPair, MsgHeader>,
+}
+
+fn percentile(sorted: &[f64], q: f64) -> f64 {
+    geometry::stats::percentile_sorted(sorted, q).unwrap_or(f64::NAN)
+}
+
+impl Stage for SynchronizerStage {
+    type Settings = SynchronizerSettings;
+
+    fn open(_ctx: &ProcessContext, settings: SynchronizerSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+        let st = SyncState::new(&settings).map_err(|p| anyhow::anyhow!("invalid synchronizer settings: {p:?}"))?;
+        let poses = rt.input(SLAM_POSE)?;
+        let fixes = rt.input(BUOY_FIX)?;
+        let pairs = rt.output(SYNC_PAIR)?;
+        tracing::info!(max_latency_s = settings.sync.max_latency_s, end_after = ?settings.end_after, "synchronizer ready");
+        Ok(Self { settings, st, poses, fixes, pairs })
+    }
+
+    fn end_after(&self) -> Vec<String> {
+        self.settings.end_after.clone()
+    }
+
+    fn tick(&self) -> Option<std::time::Duration> {
+        Some(std::time::Duration::from_millis(100))
+    }
+
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> anyhow::Result<Step> {
+        while let Some(s) = self.fixes.receive()? {
+            self.st.push_fix(s.user_header(), s.payload());
+        }
+        let now = Instant::now();
+        while let Some(s) = self.poses.receive()? {
+            self.st.push_pose(*s.user_header(), *s.payload(), now);
+        }
+        for p in self.st.step(Instant::now(), inputs_ended) {
+            let b = &p.buoy;
+            self.pairs.send_value(
+                MsgHeader { stamp_ns: p.header.stamp_ns, origin_ns: p.header.origin_ns, ..Default::default() },
+                SyncedPair {
+                    slam: p.pose,
+                    buoy_position_m: b.position_m.into(),
+                    buoy_covariance_m2: convert::mat3_to_row_major(&b.covariance_m2),
+                    newest_fix_stamp_ns: (b.newest_fix_s * 1e9).round().max(0.0) as u64,
+                    flags: b.flags.bits(),
+                    fixes_used: b.fixes_used as u32,
+                },
+            )?;
+        }
+        if let Some(deadline) = self.st.next_deadline() {
+            rt.wake_at(deadline);
+        }
+        Ok(if self.st.pending.is_empty() { Step::Idle } else { Step::Pending })
+    }
+
+    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> anyhow::Result<serde_json::Value> {
+        let st = &self.st;
+        let mut ms: Vec<f64> = st.added_latency_s.iter().map(|s| s * 1e3).collect();
+        ms.sort_by(f64::total_cmp);
+        let c = st.synchronizer().counters();
+        let max_latency_ms = self.settings.sync.max_latency_s * 1e3;
+        tracing::info!(
+            pairs = ms.len(),
+            extrapolated = st.stats.extrapolated,
+            unavailable = st.stats.unavailable,
+            "added latency p50 {:.2} ms, max {:.2} ms (bound {max_latency_ms:.0} ms)",
+            percentile(&ms, 0.5),
+            percentile(&ms, 1.0),
+        );
+        Ok(serde_json::json!({ "synchronizer": {
+            "pairs": ms.len(),
+            "poses": st.stats,
+            "fixes": { "inserted": c.inserted, "out_of_order": c.out_of_order, "duplicates": c.duplicates,
+                       "restarts": c.restarts, "dropped": c.dropped },
+            "max_latency_ms": max_latency_ms,
+            "added_latency_ms": { "p50": percentile(&ms, 0.5), "p99": percentile(&ms, 0.99), "max": percentile(&ms, 1.0) },
+        }}))
+    }
+
+    fn end_of_stream(&self) -> (u64, u64) {
+        (self.pairs.sent().saturating_sub(1), self.pairs.sent())
+    }
+}

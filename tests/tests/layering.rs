@@ -1,0 +1,88 @@
+//! The layering rules of the README ("What may depend on what"), checked on `cargo metadata`:
+//! - an algorithm crate (algorithms/) depends on no iceoryx2, shared_types or anything under
+//!   services/ (the maths stays pure and testable without IPC);
+//! - a stage crate (services/ minus the runtime, the supervisor, the test kit and the bench)
+//!   depends on no other stage;
+//! - the supervisor depends on the runtime and shared_types only among the workspace's crates
+//!   (kinds are plug-ins it finds by name).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+struct Package {
+    name: String,
+    dir: PathBuf,
+    /// (dependency name, kind: "normal", "dev" or "build").
+    deps: Vec<(String, String)>,
+}
+
+fn workspace() -> (PathBuf, Vec<Package>) {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf();
+    let out = std::process::Command::new(cargo)
+        .args(["metadata", "--format-version", "1", "--no-deps", "--offline"])
+        .current_dir(&root)
+        .output()
+        .expect("cargo metadata runs");
+    assert!(out.status.success(), "cargo metadata: {}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let packages = v["packages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| Package {
+            name: p["name"].as_str().unwrap().to_string(),
+            dir: Path::new(p["manifest_path"].as_str().unwrap()).parent().unwrap().to_path_buf(),
+            deps: p["dependencies"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|d| (d["name"].as_str().unwrap().to_string(), d["kind"].as_str().unwrap_or("normal").to_string()))
+                .collect(),
+        })
+        .collect();
+    (root, packages)
+}
+
+#[test]
+fn algorithms_stages_and_the_supervisor_depend_only_on_what_the_readme_allows() {
+    let (root, packages) = workspace();
+    let under = |p: &Package, dir: &str| p.dir.starts_with(root.join(dir));
+    let by_name: BTreeMap<&str, &Package> = packages.iter().map(|p| (p.name.as_str(), p)).collect();
+    let not_stages = ["pipeline_runtime", "supervisor", "testkit", "pipeline_bench"];
+    let is_stage =
+        |name: &str| by_name.get(name).is_some_and(|p| under(p, "services") && !not_stages.contains(&p.name.as_str()));
+    let is_service = |name: &str| by_name.get(name).is_some_and(|p| under(p, "services"));
+    let mut violations = vec![];
+    let stages: Vec<&str> = packages.iter().filter(|p| is_stage(&p.name)).map(|p| p.name.as_str()).collect();
+    assert!(stages.len() >= 6, "stage crates not recognised: {stages:?}");
+    let algorithms: Vec<&Package> = packages.iter().filter(|p| under(p, "algorithms")).collect();
+    assert!(algorithms.len() >= 6, "algorithm crates not found under {}", root.join("algorithms").display());
+    for p in &algorithms {
+        for (d, kind) in &p.deps {
+            if d == "iceoryx2" || d.starts_with("iceoryx2-") || d == "shared_types" || is_service(d) {
+                violations.push(format!("algorithm crate {} depends on {d} ({kind})", p.name));
+            }
+        }
+    }
+    for s in &stages {
+        for (d, kind) in &by_name[s].deps {
+            if is_stage(d) {
+                violations.push(format!("stage {s} depends on stage {d} ({kind})"));
+            }
+        }
+    }
+    let supervisor = by_name.get("supervisor").expect("the supervisor crate");
+    for (d, kind) in &supervisor.deps {
+        let workspace_crate = by_name.contains_key(d.as_str());
+        if kind == "normal" && workspace_crate && d != "pipeline_runtime" && d != "shared_types" {
+            violations
+                .push(format!("the supervisor depends on {d}: it may use only pipeline_runtime and shared_types"));
+        }
+    }
+    assert!(
+        violations.is_empty(),
+        "layering rules broken (README, What may depend on what):\n{}",
+        violations.join("\n")
+    );
+}
