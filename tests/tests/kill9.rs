@@ -67,29 +67,19 @@ fn ended(run: &TestRun, name: &str) -> bool {
     run.log().lines().any(|l| l.contains("[supervisor]") && l.contains("end of stream") && l.contains(&needle))
 }
 
-/// A TUM trajectory: rows of `t x y z qx qy qz qw`, all finite, stamps never going back (and
-/// strictly increasing when `strict`; `buoy_ekf.tum` has an estimate after an odometry input and
-/// after a range message of the same stamp).
-fn read_tum(path: &Path, strict: bool) -> Vec<[f64; 8]> {
-    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let mut rows: Vec<[f64; 8]> = vec![];
-    for (i, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty() && !l.starts_with('#')) {
-        let v: Vec<f64> = line.split_whitespace().map(|x| x.parse().expect("a number")).collect();
-        assert_eq!(v.len(), 8, "{}:{}: {line}", path.display(), i + 1);
-        assert!(v.iter().all(|x| x.is_finite()), "{}:{}: {line}", path.display(), i + 1);
-        let q: f64 = v[4..].iter().map(|x| x * x).sum::<f64>().sqrt();
-        assert!((q - 1.0).abs() < 1e-3, "{}:{}: quaternion norm {q}", path.display(), i + 1);
-        if let Some(prev) = rows.last() {
-            assert!(
-                v[0] > prev[0] || (!strict && v[0] == prev[0]),
-                "{}:{}: stamp {} after {} (replayed data?)",
-                path.display(),
-                i + 1,
-                v[0],
-                prev[0]
-            );
-        }
-        rows.push(v.try_into().expect("8 values"));
+/// A TUM trajectory (read by the one reader, `geometry::tum::read_tum`) whose stamps never go
+/// back (and strictly increase when `strict`; `buoy_ekf.tum` has an estimate after an odometry
+/// input and after a range message of the same stamp).
+fn read_tum(path: &Path, strict: bool) -> Vec<(f64, nalgebra::Isometry3<f64>)> {
+    let rows = geometry::tum::read_tum(path).unwrap_or_else(|e| panic!("{e}"));
+    for (i, w) in rows.windows(2).enumerate() {
+        let (prev, t) = (w[0].0, w[1].0);
+        assert!(
+            t > prev || (!strict && t == prev),
+            "{}: pose {}: stamp {t} after {prev} (replayed data?)",
+            path.display(),
+            i + 2
+        );
     }
     rows
 }
@@ -183,7 +173,7 @@ fn kill_9_of_each_stage_once_is_survived_with_complete_outputs() {
     // Outputs: every file exists and parses.
     let out = run.out_dir();
     let truth = read_tum(&out.join("ground_truth.tum"), true);
-    let (t_first, t_last) = (truth[0][0], truth[truth.len() - 1][0]);
+    let (t_first, t_last) = (truth[0].0, truth[truth.len() - 1].0);
     assert!(t_last - t_first > 300.0, "ground truth covers {:.0} s of the mission", t_last - t_first);
     for f in [
         "slam_local.tum",
@@ -198,7 +188,7 @@ fn kill_9_of_each_stage_once_is_survived_with_complete_outputs() {
         assert!(!rows.is_empty(), "{f} is empty");
         // The restarted stages kept what their killed instances had done: the trajectories
         // cover the mission, not only the part after a restart.
-        let (a, b) = (rows[0][0], rows[rows.len() - 1][0]);
+        let (a, b) = (rows[0].0, rows[rows.len() - 1].0);
         assert!(
             a - t_first < 0.05 * (t_last - t_first) && t_last - b < 0.05 * (t_last - t_first),
             "{f} covers {a:.1}..{b:.1} s of the mission's {t_first:.1}..{t_last:.1} s"

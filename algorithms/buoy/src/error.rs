@@ -1,6 +1,6 @@
-//! The error types of the crate: [`BuoyError`] for the estimator, [`TrilaterationError`] for
-//! the initialisation solvers and [`SyncError`] for the synchronizer. Nothing in this crate
-//! panics on bad input; every failure is one of these.
+//! The error types of the crate: [`BuoyError`] for the estimator and [`TrilaterationError`] for
+//! the initialisation solvers. Nothing in this crate panics on bad input; every failure is one
+//! of these.
 
 /// An error of the buoy estimator ([`crate::BuoyEkf`]).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -79,20 +79,6 @@ pub enum TrilaterationError {
     /// An input was NaN or infinite, or a σ not positive.
     #[error("invalid input: {0}")]
     InvalidInput(&'static str),
-}
-
-/// An error of the synchronizer ([`crate::Synchronizer`]).
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum SyncError {
-    /// A stamp, position or covariance was NaN or infinite.
-    #[error("non-finite input: {0}")]
-    NonFinite(&'static str),
-    /// A covariance was not symmetric positive semi-definite.
-    #[error("covariance is not symmetric positive semi-definite")]
-    BadCovariance,
-    /// The stamps given to an interpolation are not distinct.
-    #[error("interpolation stamps must be distinct")]
-    RepeatedStamps,
 }
 
 fn format_problems(problems: &[(String, String)]) -> String {

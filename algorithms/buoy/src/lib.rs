@@ -1,13 +1,10 @@
-//! The buoy estimator and the timestamp synchronizer of the pipeline (SPEC §5), as a pure
-//! library: no IPC, no clocks (time is always passed in), no panics on bad input.
+//! The buoy estimator of the pipeline ([3D] §5), as a pure library: no IPC, no clocks (time is
+//! always passed in), no panics on bad input. The timestamp synchronizer is the `timesync` crate.
 //!
 //! - [`ekf`]: [`BuoyEkf`], an EKF for the global position from ranges to buoys at known positions
 //!   (χ²₁ gate with recovery, range scale and bias states, odometry or constant-velocity
 //!   prediction, depth and GPS fixes), 2-D or 3-D.
 //! - [`trilaterate`](mod@trilaterate): its least-squares initialisation, refusing degenerate geometry.
-//! - [`sync`]: quadratic Lagrange interpolation of buoy fixes to camera stamps (SPEC eq 26-30 with
-//!   the erratum of §9) and the [`Synchronizer`] buffer policy (order, duplicates, gaps, restarts,
-//!   wait-then-extrapolate).
 //! - [`config`]: [`BuoyConfig`] (serde, `deny_unknown_fields`, defaults, `validate()`).
 //!
 //! Units are SI; angles in rad; frames as in SPEC §0 (world z up). Matrices are nalgebra's
@@ -26,16 +23,11 @@ pub mod chi2;
 pub mod config;
 pub mod ekf;
 pub mod error;
-pub mod sync;
 pub mod trilaterate;
 
 pub use config::{
     BiasMode, BuoyConfig, BuoyEntry, InitConfig, InitMethod, Mode, MotionConfig, RangeConfig, RecoveryConfig,
 };
 pub use ekf::{BiasEstimate, BuoyCounters, BuoyEkf, Counters, Estimate, FixOutcome, OdometryInput, RangeOutcome};
-pub use error::{BuoyError, SyncError, TrilaterationError};
-pub use sync::{
-    Fix, InsertOutcome, Interpolation, SyncConfig, SyncCounters, SyncDecision, SyncFlags, SyncResult, Synchronizer,
-    Unavailable, interpolate, lagrange_weights, linear_weights,
-};
+pub use error::{BuoyError, TrilaterationError};
 pub use trilaterate::{Geometry, Limits, RangeObs, Trilateration, trilaterate, wrap_angle};

@@ -74,3 +74,12 @@ impl FusionError {
         matches!(self, Self::Collinear { .. } | Self::TooSmall { .. })
     }
 }
+
+impl From<geometry::gaussian::GaussianError> for FusionError {
+    fn from(e: geometry::gaussian::GaussianError) -> Self {
+        match e {
+            geometry::gaussian::GaussianError::NonFinite(what) => FusionError::NonFinite(what),
+            geometry::gaussian::GaussianError::NotPositiveDefinite(what) => FusionError::NotPositiveDefinite(what),
+        }
+    }
+}

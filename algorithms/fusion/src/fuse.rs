@@ -6,7 +6,7 @@
 //! fused only when the squared Mahalanobis distance d² = (X_c − X_b)ᵀ·S⁻¹·(X_c − X_b) is within the gate.
 //! This is the product of the two Gaussians (the two estimates treated as independent).
 
-use nalgebra::{Cholesky, Matrix3, SymmetricEigen, Vector3};
+use nalgebra::{Cholesky, Matrix3, Vector3};
 
 use crate::FusionError;
 
@@ -92,22 +92,7 @@ pub(crate) fn symmetrise(p: &Matrix3<f64>) -> Matrix3<f64> {
 /// Checks that `p` is finite, symmetric (to 1e-9 relative) and positive semi-definite (smallest
 /// eigenvalue ≥ −1e-9 of the largest); returns it symmetrised.
 pub(crate) fn check_covariance(what: &'static str, p: &Matrix3<f64>) -> Result<Matrix3<f64>, FusionError> {
-    if !p.iter().all(|v| v.is_finite()) {
-        return Err(FusionError::NonFinite(what));
-    }
-    let scale = p.amax();
-    if (p - p.transpose()).amax() > 1e-9 * scale {
-        return Err(FusionError::NotPositiveDefinite(what));
-    }
-    let s = symmetrise(p);
-    if scale == 0.0 {
-        return Ok(s);
-    }
-    let eig = SymmetricEigen::new(s).eigenvalues;
-    if eig.min() < -1e-9 * eig.amax() {
-        return Err(FusionError::NotPositiveDefinite(what));
-    }
-    Ok(s)
+    Ok(geometry::gaussian::check_covariance(what, p)?)
 }
 
 /// The quantile x with P(X ≤ x) = `p` for X ~ χ²₃ (0.95 → 7.815, 0.99 → 11.345, 0.999 → 16.266);
@@ -198,6 +183,7 @@ pub fn chi2_3_cdf(x: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::SymmetricEigen;
 
     fn fused(o: FuseOutcome) -> (Vector3<f64>, Matrix3<f64>, f64) {
         match o {

@@ -400,33 +400,15 @@ fn build(
     (map, stats)
 }
 
-/// Bhattacharyya distance of two Gaussians:
-/// D_B = ⅛·Δᵀ·P⁻¹·Δ + ½·ln(det P / √(det P₁·det P₂)), P = (P₁ + P₂)/2, Δ = m₁ − m₂.
-/// Errors: non-finite input; a covariance that is not symmetric positive definite.
+/// Bhattacharyya distance of two Gaussians ([`geometry::gaussian::bhattacharyya`]), with the
+/// fusion crate's error type.
 pub fn bhattacharyya(
     m1: &Vector3<f64>,
     p1: &Matrix3<f64>,
     m2: &Vector3<f64>,
     p2: &Matrix3<f64>,
 ) -> Result<f64, FusionError> {
-    if !m1.iter().chain(m2.iter()).all(|v| v.is_finite()) {
-        return Err(FusionError::NonFinite("mean"));
-    }
-    let p1 = check_covariance("first covariance", p1)?;
-    let p2 = check_covariance("second covariance", p2)?;
-    let log_det = |p: &Matrix3<f64>, what: &'static str| -> Result<(f64, Cholesky<f64, nalgebra::U3>), FusionError> {
-        let chol = Cholesky::new(*p).ok_or(FusionError::NotPositiveDefinite(what))?;
-        let ld = 2.0 * chol.l_dirty().diagonal().iter().map(|d| d.ln()).sum::<f64>();
-        if !ld.is_finite() {
-            return Err(FusionError::NotPositiveDefinite(what));
-        }
-        Ok((ld, chol))
-    };
-    let (ld1, _) = log_det(&p1, "first covariance")?;
-    let (ld2, _) = log_det(&p2, "second covariance")?;
-    let (ld, chol) = log_det(&((p1 + p2) * 0.5), "mean covariance")?;
-    let diff = m1 - m2;
-    Ok(diff.dot(&chol.solve(&diff)) / 8.0 + 0.5 * (ld - 0.5 * (ld1 + ld2)))
+    Ok(geometry::gaussian::bhattacharyya(m1, p1, m2, p2)?)
 }
 
 /// ASCII PLY of the global landmarks: one vertex each with `x y z` (m), `cov_trace_m2` (trace of the

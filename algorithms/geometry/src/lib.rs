@@ -8,6 +8,7 @@
 
 #![allow(non_snake_case)]
 
+pub mod gaussian;
 pub mod stats;
 pub mod trajectory;
 pub mod tum;

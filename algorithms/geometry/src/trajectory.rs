@@ -1,7 +1,75 @@
-//! Trajectory comparison without alignment: nearest-stamp matching and the absolute trajectory
-//! error used for the global estimates (buoy EKF, dead reckoning, fused path).
+//! Trajectories: a time-indexed pose buffer with interpolation ([`PoseBuffer`], where a sensor
+//! sample finds the pose at its stamp), and comparison without alignment: nearest-stamp matching
+//! and the absolute trajectory error used for the global estimates (buoy EKF, dead reckoning,
+//! fused path).
 
-use nalgebra::Vector3;
+use std::collections::VecDeque;
+
+use nalgebra::{Isometry3, Translation3, Vector3};
+
+/// Poses by time, interpolated.
+#[derive(Debug, Default)]
+pub struct PoseBuffer {
+    poses: VecDeque<(f64, Isometry3<f64>)>,
+}
+
+/// The answer of [`PoseBuffer::at`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum PoseLookup {
+    /// Interpolated (linear in position, slerp in rotation).
+    Ready(Isometry3<f64>),
+    /// No pose after the stamp yet.
+    Wait,
+    /// Before the buffer, or the poses around it are too far apart.
+    Unavailable,
+}
+
+impl PoseBuffer {
+    /// Adds a pose (out-of-order poses go to their place; at most 4096 kept).
+    pub fn push(&mut self, t_s: f64, pose: Isometry3<f64>) {
+        if !t_s.is_finite() {
+            return;
+        }
+        let i = self.poses.partition_point(|(t, _)| *t <= t_s);
+        self.poses.insert(i, (t_s, pose));
+        while self.poses.len() > 4096 {
+            self.poses.pop_front();
+        }
+    }
+
+    /// The pose at `t_s` between the two poses around it, at most `max_gap_s` apart.
+    pub fn at(&self, t_s: f64, max_gap_s: f64) -> PoseLookup {
+        let i = self.poses.partition_point(|(t, _)| *t < t_s);
+        let Some(&(tb, b)) = self.poses.get(i) else { return PoseLookup::Wait };
+        if tb == t_s {
+            return PoseLookup::Ready(b);
+        }
+        let Some(&(ta, a)) = i.checked_sub(1).and_then(|j| self.poses.get(j)) else {
+            return PoseLookup::Unavailable;
+        };
+        if tb - ta > max_gap_s {
+            return PoseLookup::Unavailable;
+        }
+        let s = (t_s - ta) / (tb - ta);
+        let p = a.translation.vector.lerp(&b.translation.vector, s);
+        let q = a.rotation.slerp(&b.rotation, s);
+        PoseLookup::Ready(Isometry3::from_parts(Translation3::from(p), q))
+    }
+}
+
+/// Dead reckoning: `inputs` (each stamped at the end of its interval) integrated through the
+/// process model ([`crate::propagate`]) from `start` (`world_from_body` at the start of the first
+/// input's interval).
+pub fn dead_reckoning(start: &Isometry3<f64>, inputs: &[(f64, crate::ProcessInput)]) -> Vec<(f64, Isometry3<f64>)> {
+    let mut pose = *start;
+    inputs
+        .iter()
+        .map(|(t, u)| {
+            pose = crate::propagate(&pose, u);
+            (*t, pose)
+        })
+        .collect()
+}
 
 /// The sample of `samples` (sorted by time) nearest to `t_s`.
 pub fn nearest<T>(samples: &[(f64, T)], t_s: f64) -> Option<&T> {
@@ -36,6 +104,23 @@ pub fn ate_nearest(estimate: &[(f64, Vector3<f64>)], truth: &[(f64, Vector3<f64>
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::UnitQuaternion;
+
+    #[test]
+    fn poses_are_interpolated_between_their_neighbours_and_gaps_refused() {
+        let mut b = PoseBuffer::default();
+        b.push(1.0, Isometry3::translation(0.0, 0.0, 0.0));
+        b.push(
+            2.0,
+            Isometry3::from_parts(Translation3::new(2.0, 0.0, 0.0), UnitQuaternion::from_euler_angles(0.0, 0.0, 1.0)),
+        );
+        let PoseLookup::Ready(p) = b.at(1.5, 1.0) else { panic!() };
+        assert!((p.translation.vector.x - 1.0).abs() < 1e-12);
+        assert!((p.rotation.euler_angles().2 - 0.5).abs() < 1e-12);
+        assert_eq!(b.at(2.5, 1.0), PoseLookup::Wait);
+        assert_eq!(b.at(0.5, 1.0), PoseLookup::Unavailable);
+        assert_eq!(b.at(1.5, 0.5), PoseLookup::Unavailable, "poses 1 s apart, gap limit 0.5 s");
+    }
 
     #[test]
     fn ate_counts_every_ground_truth_row_against_the_nearest_estimate() {

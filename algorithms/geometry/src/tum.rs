@@ -26,11 +26,36 @@ pub fn write_tum<'a>(path: &Path, poses: impl Iterator<Item = (f64, &'a Isometry
     w.flush()
 }
 
+/// An error reading a TUM file: it names the file, and the line where there is one.
+#[derive(Debug, thiserror::Error)]
+pub enum TumError {
+    /// The file could not be read.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A line is not `t tx ty tz qx qy qz qw` in finite numbers.
+    #[error("{}:{line}: {what}", path.display())]
+    Line {
+        /// The file.
+        path: std::path::PathBuf,
+        /// 1-based line number.
+        line: usize,
+        /// What is wrong.
+        what: String,
+    },
+}
+
 /// Reads a trajectory; errors name the file and line. A last line without its newline that is
 /// not a whole pose is a line still being appended (ground truth grows while a run goes on) and
 /// is left out.
-pub fn read_tum(path: &Path) -> Result<Vec<(f64, Isometry3<f64>)>, String> {
-    let mut text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+pub fn read_tum(path: &Path) -> Result<Vec<(f64, Isometry3<f64>)>, TumError> {
+    let mut text = std::fs::read_to_string(path).map_err(|source| TumError::Io { path: path.to_path_buf(), source })?;
+    let line_error = |line: usize, what: String| TumError::Line { path: path.to_path_buf(), line, what };
     if !text.ends_with('\n')
         && let Some(cut) = text.rfind('\n').map(|i| i + 1).or(Some(0))
         && text[cut..].split_whitespace().count() < 8
@@ -47,9 +72,9 @@ pub fn read_tum(path: &Path) -> Result<Vec<(f64, Isometry3<f64>)>, String> {
             .split_whitespace()
             .map(str::parse)
             .collect::<Result<_, _>>()
-            .map_err(|e| format!("{}:{}: {e}", path.display(), i + 1))?;
+            .map_err(|e: std::num::ParseFloatError| line_error(i + 1, e.to_string()))?;
         if v.len() != 8 || v.iter().any(|x| !x.is_finite()) {
-            return Err(format!("{}:{}: expected 8 finite numbers (t tx ty tz qx qy qz qw)", path.display(), i + 1));
+            return Err(line_error(i + 1, "expected 8 finite numbers (t tx ty tz qx qy qz qw)".into()));
         }
         let q = UnitQuaternion::from_quaternion(Quaternion::new(v[7], v[4], v[5], v[6]));
         out.push((v[0], Isometry3::from_parts(Translation3::new(v[1], v[2], v[3]), q)));
@@ -80,7 +105,8 @@ mod tests {
         }
         std::fs::write(&p, "# c\n1 2 3\n").unwrap();
         let e = read_tum(&p).unwrap_err();
-        assert!(e.contains("t.tum:2"), "{e}");
+        assert!(matches!(e, TumError::Line { line: 2, .. }), "{e}");
+        assert!(e.to_string().contains("t.tum:2: expected 8 finite numbers"), "{e}");
         // A last line still being appended (no newline, not a whole pose) is left out; a whole
         // last pose without its newline is read.
         std::fs::write(&p, "1 0 0 0 0 0 0 1\n2 0.5 0").unwrap();

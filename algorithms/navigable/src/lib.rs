@@ -422,6 +422,139 @@ pub fn discover(
     Ok(Discovery { classes, regions, obstacles })
 }
 
+/// What an occupied voxel of the map is, for a viewer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MapVoxelClass {
+    /// Occupied, neither navigable nor part of an obstacle (or not classified yet).
+    Occupied,
+    /// Part of a navigable region.
+    Navigable,
+    /// Part of an obstacle.
+    Obstacle,
+}
+
+/// One occupied leaf of the occupancy map with its class.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MapVoxel {
+    /// Centre of the leaf's cube, world frame, m.
+    pub center_m: [f64; 3],
+    /// Edge length of the cube, m (larger than the resolution for a pruned leaf).
+    pub size_m: f64,
+    /// Occupancy probability.
+    pub occupancy: f64,
+    /// Its class (by the point-statistics voxel at its centre).
+    pub class: MapVoxelClass,
+}
+
+/// The occupied leaves of `tree`, each classified by the navigable-space discovery `classes`
+/// over `points` (the voxel of `points` at the leaf's centre); without `classes` all are
+/// [`MapVoxelClass::Occupied`].
+pub fn occupied_voxels(tree: &octree::OcTree, points: &PointAccumulator, classes: Option<&Discovery>) -> Vec<MapVoxel> {
+    let res = tree.resolution();
+    let obstacle: std::collections::HashSet<VoxelKey> =
+        classes.map(|d| d.obstacles.iter().flat_map(|o| o.voxels.iter().copied()).collect()).unwrap_or_default();
+    tree.leaves()
+        .filter(|l| tree.is_occupied_log_odds(l.log_odds))
+        .map(|l| {
+            let c = tree.key_to_coord(l.key);
+            let size = res * l.edge_voxels() as f64;
+            let center_m = if l.depth >= 16 {
+                c
+            } else {
+                // A pruned leaf: the centre of its cube.
+                let m = tree.key_to_coord(l.min_key());
+                [m[0] - 0.5 * res + 0.5 * size, m[1] - 0.5 * res + 0.5 * size, m[2] - 0.5 * res + 0.5 * size]
+            };
+            let k = points.key(&Vector3::from(c));
+            let class = match classes.and_then(|d| d.classes.get(&k)) {
+                Some(VoxelClass::Navigable(_)) => MapVoxelClass::Navigable,
+                _ if obstacle.contains(&k) => MapVoxelClass::Obstacle,
+                _ => MapVoxelClass::Occupied,
+            };
+            MapVoxel { center_m, size_m: size, occupancy: octree::probability(l.log_odds as f64), class }
+        })
+        .collect()
+}
+
+/// An obstacle landmark: a Gaussian over the points of the scans' obstacles associated with it.
+#[derive(Debug, Clone, Default)]
+pub struct ObstacleLandmark {
+    /// Point statistics of every associated scan obstacle.
+    pub stats: VoxelStats,
+    /// Scans it was seen in.
+    pub scans: u32,
+}
+
+/// What one scan did to the tracked obstacles.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct TrackUpdate {
+    /// Scan obstacles associated with an existing landmark.
+    pub associated: u64,
+    /// Scan obstacles that started a new landmark.
+    pub new: u64,
+}
+
+/// Obstacles tracked across scans ([6D] §VI): the obstacles of each scan ([`discover`] on its
+/// points alone) are associated with the landmarks by Bhattacharyya distance
+/// ([`associate_obstacles`]); an associated one adds its points to the landmark's Gaussian, the
+/// others start new landmarks.
+#[derive(Debug, Clone, Default)]
+pub struct ObstacleTracker {
+    /// The landmarks so far.
+    pub landmarks: Vec<ObstacleLandmark>,
+}
+
+impl ObstacleTracker {
+    /// Takes one scan's points. `max_bhattacharyya` gates the association; `regularise_m2` is
+    /// added to the covariances' diagonal (a voxel's extent, for flat obstacles).
+    pub fn update(
+        &mut self,
+        scan: &PointAccumulator,
+        cfg: &NsdConfig,
+        max_bhattacharyya: f64,
+        regularise_m2: f64,
+    ) -> Result<TrackUpdate, NavigableError> {
+        let found = discover(scan, |_| true, cfg)?;
+        let mut update = TrackUpdate::default();
+        if found.obstacles.is_empty() {
+            return Ok(update);
+        }
+        let landmarks: Vec<Obstacle> = self
+            .landmarks
+            .iter()
+            .filter_map(|l| {
+                let (mean_m, cov_m2) = l.stats.mean_cov()?;
+                Some(Obstacle { voxels: vec![], mean_m, cov_m2, points: l.stats.n })
+            })
+            .collect();
+        let pairs = associate_obstacles(&landmarks, &found.obstacles, max_bhattacharyya, regularise_m2);
+        let stats_of = |o: &Obstacle| {
+            let mut stats = VoxelStats::default();
+            for k in &o.voxels {
+                if let Some(v) = scan.cells().get(k) {
+                    stats.merge(v);
+                }
+            }
+            stats
+        };
+        let mut matched = vec![false; found.obstacles.len()];
+        for (l, o, _) in &pairs {
+            matched[*o] = true;
+            let stats = stats_of(&found.obstacles[*o]);
+            self.landmarks[*l].stats.merge(&stats);
+            self.landmarks[*l].scans += 1;
+            update.associated += 1;
+        }
+        for (o, obstacle) in found.obstacles.iter().enumerate() {
+            if !matched[o] {
+                self.landmarks.push(ObstacleLandmark { stats: stats_of(obstacle), scans: 1 });
+                update.new += 1;
+            }
+        }
+        Ok(update)
+    }
+}
+
 /// Associates obstacles of two scans or maps ([6D] §VI): greedy by the Bhattacharyya distance
 /// (SPEC §7), each obstacle at most once, pairs at most `max_distance` apart; returns
 /// (index in `a`, index in `b`, distance). A covariance that is not positive definite (a flat
@@ -436,7 +569,7 @@ pub fn associate_obstacles(
     let mut pairs = vec![];
     for (i, x) in a.iter().enumerate() {
         for (j, y) in b.iter().enumerate() {
-            if let Ok(d) = fusion::global_map::bhattacharyya(&x.mean_m, &(x.cov_m2 + reg), &y.mean_m, &(y.cov_m2 + reg))
+            if let Ok(d) = geometry::gaussian::bhattacharyya(&x.mean_m, &(x.cov_m2 + reg), &y.mean_m, &(y.cov_m2 + reg))
                 && d <= max_distance
             {
                 pairs.push((i, j, d));
@@ -678,7 +811,7 @@ mod tests {
         assert_eq!(idx.len(), 2);
         assert!(idx.contains(&(0, 1)) && idx.contains(&(1, 0)));
         // Identical Gaussians: distance 0. Same covariance, offset d: d²/(8σ²).
-        let d = fusion::global_map::bhattacharyya(&a[0].mean_m, &a[0].cov_m2, &a[0].mean_m, &a[0].cov_m2).unwrap();
+        let d = geometry::gaussian::bhattacharyya(&a[0].mean_m, &a[0].cov_m2, &a[0].mean_m, &a[0].cov_m2).unwrap();
         assert!(d.abs() < 1e-12);
         let p = associate_obstacles(&[ob(0.0, 0.04)], &[ob(0.4, 0.04)], 10.0, 0.0);
         assert!((p[0].2 - 0.16 / (8.0 * 0.04)).abs() < 1e-12, "{}", p[0].2);

@@ -1,44 +1,50 @@
-//! `odometer`: the wiring of the example stage (see the library docs). Its odometry input, the
-//! end of stream of whoever feeds it, and its summary part at the end (or on a stop).
-
-use std::process::ExitCode;
+//! `odometer`: the wiring of the example stage (see the library docs): its odometry input, and
+//! what it does with each message. The runtime owns the rest (end of stream, summary part, stop).
 
 use odometer::{Odometer, OdometerSettings};
-use pipeline_runtime::{Flow, ProcessArgs, Runtime};
-use shared_types::services::{END_OF_STREAM, ODOMETRY};
-use shared_types::{EndOfStream, MsgHeader, OdometryInput};
+use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
+use pipeline_runtime::{Input, ProcessContext, Runtime, Wake};
+use shared_types::services::ODOMETRY;
+use shared_types::{MsgHeader, OdometryInput};
 
-fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
-    let (ctx, mut rt) = Runtime::start(args)?;
-    let settings: OdometerSettings = ctx.settings()?;
-    let odometry = rt.input::<OdometryInput, MsgHeader>(ODOMETRY)?;
-    let eos = rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?;
-    let mut odo = Odometer::default();
-    let mut ended = false;
-    let stop = rt.run(&mut odo, None, |rt, odo, _| {
-        if ended {
-            return Ok(Flow::Continue);
-        }
-        let upstream_ended = !rt.ended_upstream(&eos)?.is_empty(); // first: see Runtime::ended_upstream
-        while let Some(s) = odometry.receive()? {
-            let u = s.payload();
-            if let Err(why) = odo.on_odometry(u.v_mps, u.dt_s, &settings) {
-                tracing::warn!(seq = s.user_header().seq, "odometry dropped: {why}");
-                odometry.count_dropped("implausible", 1);
-            }
-        }
-        if upstream_ended {
-            tracing::info!(distance_m = odo.distance_m, messages = odo.messages, "upstream ended");
-            rt.send_end_of_stream(0, 0)?;
-            ended = true;
-        }
-        Ok(Flow::Continue)
-    })?;
-    std::fs::create_dir_all(ctx.out_dir.join("parts"))?;
-    std::fs::write(ctx.summary_part_path(), serde_json::to_vec_pretty(&odo.summary_part())?)?;
-    Ok(stop)
+struct OdometerStage {
+    settings: OdometerSettings,
+    odometer: Odometer,
+    odometry: Input<OdometryInput, MsgHeader>,
 }
 
-fn main() -> ExitCode {
-    pipeline_runtime::process_main::<OdometerSettings>(run)
+impl Stage for OdometerStage {
+    type Settings = OdometerSettings;
+
+    fn open(_ctx: &ProcessContext, settings: OdometerSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+        Ok(Self { settings, odometer: Odometer::default(), odometry: rt.input(ODOMETRY)? })
+    }
+
+    fn end_after(&self) -> EndAfter {
+        EndAfter::FirstUpstream
+    }
+
+    fn step(&mut self, _rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> anyhow::Result<Step> {
+        while let Some(s) = self.odometry.receive()? {
+            let u = s.payload();
+            if let Err(why) = self.odometer.on_odometry(u.v_mps, u.dt_s, &self.settings) {
+                tracing::warn!(seq = s.user_header().seq, "odometry dropped: {why}");
+                self.odometry.count_dropped("implausible", 1);
+            }
+        }
+        Ok(Step::Idle)
+    }
+
+    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> anyhow::Result<serde_json::Value> {
+        tracing::info!(distance_m = self.odometer.distance_m, messages = self.odometer.messages, "done");
+        Ok(self.odometer.summary_part())
+    }
+
+    fn end_of_stream(&self) -> (u64, u64) {
+        (0, 0) // it publishes nothing
+    }
+}
+
+fn main() -> std::process::ExitCode {
+    pipeline_runtime::stage_main::<OdometerStage>()
 }

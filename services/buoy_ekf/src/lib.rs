@@ -338,21 +338,6 @@ impl BuoyState {
     }
 }
 
-/// Dead reckoning: the inputs integrated through the process model (SPEC §1) from `start`
-/// (`world_from_body` at the start of the first input's interval).
-pub fn dead_reckoning(start: &Isometry3<f64>, inputs: &[(f64, ProcessInput)]) -> Vec<(f64, Isometry3<f64>)> {
-    let mut pose = *start;
-    inputs
-        .iter()
-        .map(|(t, u)| {
-            pose = geometry::propagate(&pose, u);
-            (*t, pose)
-        })
-        .collect()
-}
-
-pub use geometry::trajectory::{ate_nearest, nearest};
-
 /// `world_from_body` of a fix for the TUM file: the position, and the heading as a yaw when known.
 pub fn fix_pose(position: &Vector3<f64>, heading_rad: Option<f64>) -> Isometry3<f64> {
     Isometry3::from_parts(
@@ -365,6 +350,7 @@ pub fn fix_pose(position: &Vector3<f64>, heading_rad: Option<f64>) -> Isometry3<
 mod tests {
     use super::*;
     use buoy::BuoyEntry;
+    use geometry::trajectory::dead_reckoning;
 
     fn settings() -> BuoyEkfSettings {
         let mut s = BuoyEkfSettings::default();

@@ -5,13 +5,14 @@ use std::time::{Duration, Instant};
 
 use buoy::Mode;
 use nalgebra::Vector3;
-use pipeline_runtime::stage::{Ending, Stage, Step};
+use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
 use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
 use shared_types::services::{BUOY_FIX, BUOY_RANGES, DEPTH, ODOMETRY};
 use shared_types::*;
 
 use crate::journal::Journal;
-use crate::{BuoyEkfSettings, BuoyState, ate_nearest, dead_reckoning, fix_pose};
+use crate::{BuoyEkfSettings, BuoyState, fix_pose};
+use geometry::trajectory::{ate_nearest, dead_reckoning};
 
 /// The `buoy_ekf` stage.
 pub struct BuoyEkfStage {
@@ -68,8 +69,8 @@ impl Stage for BuoyEkfStage {
         })
     }
 
-    fn end_after(&self) -> Vec<String> {
-        vec![]
+    fn end_after(&self) -> EndAfter {
+        EndAfter::FirstUpstream
     }
 
     fn tick(&self) -> Option<Duration> {
@@ -167,7 +168,7 @@ fn summary(
             let mut ates = serde_json::json!({ "buoy_ekf": ate });
             if let Some((t0, u0)) = st.inputs.first() {
                 // Dead reckoning from the ground-truth pose at the start of the first input.
-                let start = crate::nearest(&truth, t0 - u0.dt_s).copied().unwrap_or(truth[0].1);
+                let start = geometry::trajectory::nearest(&truth, t0 - u0.dt_s).copied().unwrap_or(truth[0].1);
                 let dr = dead_reckoning(&start, &st.inputs);
                 geometry::tum::write_tum(&out_dir.join("dead_reckoning.tum"), dr.iter().map(|(t, p)| (*t, p)))?;
                 let dr_p: Vec<_> = dr.iter().map(|(t, p)| (*t, p.translation.vector)).collect();

@@ -5,7 +5,7 @@ use std::time::{Duration, Instant};
 
 use fastslam::frontend::RegistrationError;
 use fastslam::{FastSlam, SegmentReason};
-use pipeline_runtime::stage::{Ending, Stage, Step};
+use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
 use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
 use shared_types::services::{COMMAND, ODOMETRY, SLAM_DIAGNOSTICS, SLAM_LANDMARKS, SLAM_PARTICLES, SLAM_POSE, STEREO};
 use shared_types::*;
@@ -159,8 +159,8 @@ impl Stage for FastSlamStage {
         })
     }
 
-    fn end_after(&self) -> Vec<String> {
-        vec![]
+    fn end_after(&self) -> EndAfter {
+        EndAfter::FirstUpstream
     }
 
     fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> anyhow::Result<Step> {

@@ -141,7 +141,7 @@ pub struct RunLog {
 pub fn latency_json(v: &[f64]) -> serde_json::Value {
     let mut s = v.to_vec();
     s.sort_by(f64::total_cmp);
-    let q = |q: f64| s.get(((s.len() as f64 - 1.0) * q).round() as usize).copied();
+    let q = |q: f64| geometry::stats::percentile_sorted(&s, q);
     serde_json::json!({ "count": s.len(), "p50": q(0.5), "p99": q(0.99), "max": q(1.0) })
 }
 

@@ -4,7 +4,7 @@
 use std::time::Duration;
 
 use fusion::engine::{Fusion, Source};
-use pipeline_runtime::stage::{Ending, Stage, Step};
+use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
 use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
 use shared_types::services::{BUOY_FIX, COMMAND, FUSION_MAP, FUSION_POSE, HEADING, SLAM_LANDMARKS, SYNC_PAIR};
 use shared_types::*;
@@ -109,8 +109,8 @@ impl Stage for FusionStage {
         })
     }
 
-    fn end_after(&self) -> Vec<String> {
-        self.settings.end_after.clone()
+    fn end_after(&self) -> EndAfter {
+        EndAfter::from_list(&self.settings.end_after)
     }
 
     fn tick(&self) -> Option<Duration> {

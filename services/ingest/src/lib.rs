@@ -5,11 +5,13 @@
 //! `stereo_vo_large` format, point-cloud files, depth images). The process paces them on the data
 //! clock ([`Pacer`]: real time, N× or as fast as possible with back-pressure), publishes each on its
 //! service, reports progress, and ends with an end-of-stream message. This library holds the pure
-//! parts (settings, sources, conversions, pacing); `main.rs` is the wiring.
+//! parts (settings, sources, conversions, pacing); [`stage::IngestStage`] is the stage around
+//! them; `main.rs` one line.
 
 pub mod progress;
 pub mod settings;
 pub mod sources;
+pub mod stage;
 
 use std::time::{Duration, Instant};
 

@@ -10,7 +10,7 @@ pub mod stage;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
-use nalgebra::{Isometry3, Translation3, Vector3};
+use nalgebra::{Isometry3, Vector3};
 use navigable::{Discovery, NsdConfig, PointAccumulator};
 use octree::{OcTree, SensorModel};
 use pipeline_runtime::{Issues, ProcessSettings};
@@ -208,55 +208,7 @@ impl ProcessSettings for MapperSettings {
     }
 }
 
-/// Poses by time, interpolated.
-#[derive(Debug, Default)]
-pub struct PoseBuffer {
-    poses: VecDeque<(f64, Isometry3<f64>)>,
-}
-
-/// The answer of [`PoseBuffer::at`].
-#[derive(Debug, Clone, PartialEq)]
-pub enum PoseLookup {
-    /// Interpolated (linear in position, slerp in rotation).
-    Ready(Isometry3<f64>),
-    /// No pose after the stamp yet.
-    Wait,
-    /// Before the buffer, or the poses around it are too far apart.
-    Unavailable,
-}
-
-impl PoseBuffer {
-    /// Adds a pose (out-of-order poses go to their place; at most 4096 kept).
-    pub fn push(&mut self, t_s: f64, pose: Isometry3<f64>) {
-        if !t_s.is_finite() {
-            return;
-        }
-        let i = self.poses.partition_point(|(t, _)| *t <= t_s);
-        self.poses.insert(i, (t_s, pose));
-        while self.poses.len() > 4096 {
-            self.poses.pop_front();
-        }
-    }
-
-    /// The pose at `t_s` between the two poses around it, at most `max_gap_s` apart.
-    pub fn at(&self, t_s: f64, max_gap_s: f64) -> PoseLookup {
-        let i = self.poses.partition_point(|(t, _)| *t < t_s);
-        let Some(&(tb, b)) = self.poses.get(i) else { return PoseLookup::Wait };
-        if tb == t_s {
-            return PoseLookup::Ready(b);
-        }
-        let Some(&(ta, a)) = i.checked_sub(1).and_then(|j| self.poses.get(j)) else {
-            return PoseLookup::Unavailable;
-        };
-        if tb - ta > max_gap_s {
-            return PoseLookup::Unavailable;
-        }
-        let s = (t_s - ta) / (tb - ta);
-        let p = a.translation.vector.lerp(&b.translation.vector, s);
-        let q = a.rotation.slerp(&b.rotation, s);
-        PoseLookup::Ready(Isometry3::from_parts(Translation3::from(p), q))
-    }
-}
+pub use geometry::trajectory::{PoseBuffer, PoseLookup};
 
 /// A cloud waiting for its pose.
 #[derive(Debug, Clone)]
@@ -271,15 +223,6 @@ pub struct PendingCloud {
     pub own_pose: Option<Isometry3<f64>>,
     /// When it arrived.
     pub received: Instant,
-}
-
-/// An obstacle landmark: a Gaussian over the points of the scans' obstacles associated with it.
-#[derive(Debug, Clone)]
-pub struct ObstacleLandmark {
-    /// Point statistics of every associated scan obstacle.
-    pub stats: navigable::VoxelStats,
-    /// Scans it was seen in.
-    pub scans: u32,
 }
 
 /// Counters.
@@ -325,7 +268,7 @@ pub struct MapperState {
     /// Insertion time per cloud, ms.
     pub insert_ms: Vec<f64>,
     /// Obstacle landmarks tracked across scans.
-    pub obstacle_landmarks: Vec<ObstacleLandmark>,
+    pub obstacles: navigable::ObstacleTracker,
     /// Latency from the cloud entering the pipeline to the octree updated with it, ms.
     pub cloud_to_octree_ms: Vec<f64>,
 }
@@ -346,7 +289,7 @@ impl MapperState {
             front_waiting_since: None,
             counters: MapperCounters::default(),
             insert_ms: vec![],
-            obstacle_landmarks: vec![],
+            obstacles: navigable::ObstacleTracker::default(),
             cloud_to_octree_ms: vec![],
             settings,
         })
@@ -478,7 +421,10 @@ impl MapperState {
             }
         }
         if self.settings.obstacle_max_bhattacharyya > 0.0 {
-            self.track_obstacles(&scan)?;
+            let reg = (self.settings.resolution_m * 0.5).powi(2); // a voxel's extent: flat obstacles
+            let u = self.obstacles.update(&scan, &self.settings.nsd, self.settings.obstacle_max_bhattacharyya, reg)?;
+            self.counters.obstacles_associated += u.associated;
+            self.counters.obstacles_new += u.new;
         }
         self.counters.clouds_inserted += 1;
         self.counters.points_inserted += (stats.points - stats.skipped_points) as u64;
@@ -487,54 +433,6 @@ impl MapperState {
         if c.origin_ns > 0 {
             let now = pipeline_runtime::clock::monotonic_ns();
             self.cloud_to_octree_ms.push(now.saturating_sub(c.origin_ns) as f64 / 1e6);
-        }
-        Ok(())
-    }
-
-    /// The obstacles of one scan ([`navigable::discover`] on its points alone) associated with
-    /// the obstacle landmarks by Bhattacharyya distance ([6D] §VI): an associated one adds its
-    /// points to the landmark's Gaussian, the others start new landmarks.
-    fn track_obstacles(&mut self, scan: &PointAccumulator) -> anyhow::Result<()> {
-        let found = navigable::discover(scan, |_| true, &self.settings.nsd)?;
-        if found.obstacles.is_empty() {
-            return Ok(());
-        }
-        let landmarks: Vec<navigable::Obstacle> = self
-            .obstacle_landmarks
-            .iter()
-            .filter_map(|l| {
-                let (mean_m, cov_m2) = l.stats.mean_cov()?;
-                Some(navigable::Obstacle { voxels: vec![], mean_m, cov_m2, points: l.stats.n })
-            })
-            .collect();
-        let reg = (self.settings.resolution_m * 0.5).powi(2); // a voxel's extent: flat obstacles
-        let pairs =
-            navigable::associate_obstacles(&landmarks, &found.obstacles, self.settings.obstacle_max_bhattacharyya, reg);
-        let mut matched = vec![false; found.obstacles.len()];
-        for (l, o, _) in &pairs {
-            matched[*o] = true;
-            let mut stats = navigable::VoxelStats::default();
-            for k in &found.obstacles[*o].voxels {
-                if let Some(v) = scan.cells().get(k) {
-                    stats.merge(v);
-                }
-            }
-            self.obstacle_landmarks[*l].stats.merge(&stats);
-            self.obstacle_landmarks[*l].scans += 1;
-            self.counters.obstacles_associated += 1;
-        }
-        for (o, obstacle) in found.obstacles.iter().enumerate() {
-            if matched[o] {
-                continue;
-            }
-            let mut stats = navigable::VoxelStats::default();
-            for k in &obstacle.voxels {
-                if let Some(v) = scan.cells().get(k) {
-                    stats.merge(v);
-                }
-            }
-            self.obstacle_landmarks.push(ObstacleLandmark { stats, scans: 1 });
-            self.counters.obstacles_new += 1;
         }
         Ok(())
     }
@@ -554,7 +452,6 @@ impl MapperState {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::UnitQuaternion;
 
     #[test]
     fn a_checkpoint_restores_the_occupied_and_free_voxels_and_a_wrong_resolution_is_an_error() {
@@ -574,22 +471,6 @@ mod tests {
         let e = coarse.restore_checkpoint(&path).unwrap_err().to_string();
         assert!(e.contains("map.bt") && e.contains("resolution"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
-    }
-
-    #[test]
-    fn poses_are_interpolated_between_their_neighbours_and_gaps_refused() {
-        let mut b = PoseBuffer::default();
-        b.push(1.0, Isometry3::translation(0.0, 0.0, 0.0));
-        b.push(
-            2.0,
-            Isometry3::from_parts(Translation3::new(2.0, 0.0, 0.0), UnitQuaternion::from_euler_angles(0.0, 0.0, 1.0)),
-        );
-        let PoseLookup::Ready(p) = b.at(1.5, 1.0) else { panic!() };
-        assert!((p.translation.vector.x - 1.0).abs() < 1e-12);
-        assert!((p.rotation.euler_angles().2 - 0.5).abs() < 1e-12);
-        assert_eq!(b.at(2.5, 1.0), PoseLookup::Wait);
-        assert_eq!(b.at(0.5, 1.0), PoseLookup::Unavailable);
-        assert_eq!(b.at(1.5, 0.5), PoseLookup::Unavailable, "poses 1 s apart, gap limit 0.5 s");
     }
 
     fn cloud(stamp_s: f64, now: Instant) -> PendingCloud {
@@ -675,7 +556,7 @@ mod tests {
         assert_eq!(st.step(now, false, 10).unwrap(), 2);
         assert!(st.counters.obstacles_new >= 1, "{:?}", st.counters);
         assert!(st.counters.obstacles_associated >= 1, "the second scan's blob matches the first: {:?}", st.counters);
-        assert_eq!(st.obstacle_landmarks.iter().filter(|l| l.scans == 2).count(), 1);
+        assert_eq!(st.obstacles.landmarks.iter().filter(|l| l.scans == 2).count(), 1);
     }
 
     #[test]

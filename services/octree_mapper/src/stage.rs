@@ -4,8 +4,7 @@
 
 use std::time::{Duration, Instant};
 
-use navigable::VoxelClass;
-use pipeline_runtime::stage::{Ending, Stage, Step};
+use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
 use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
 use shared_types::services::{CLOUD, COMMAND, FUSION_POSE, MAP_STATS, MAP_VOXELS, SLAM_POSE};
 use shared_types::*;
@@ -40,36 +39,19 @@ fn stats_msg(st: &MapperState, regions: u32, obstacles: u32) -> MapStats {
     }
 }
 
-/// The occupied leaves with their class (navigable, obstacle, or just occupied).
+/// The occupied leaves with their class (navigable, obstacle, or just occupied), in wire form.
 fn build_voxels(st: &MapperState, classes: Option<&navigable::Discovery>) -> Vec<Voxel> {
-    let res = st.tree.resolution();
-    let obstacle: std::collections::HashSet<navigable::VoxelKey> =
-        classes.map(|d| d.obstacles.iter().flat_map(|o| o.voxels.iter().copied()).collect()).unwrap_or_default();
-    st.tree
-        .leaves()
-        .filter(|l| st.tree.is_occupied_log_odds(l.log_odds))
-        .map(|l| {
-            let c = st.tree.key_to_coord(l.key);
-            let size = res * l.edge_voxels() as f64;
-            let centre = if l.depth >= 16 {
-                c
-            } else {
-                // A pruned leaf: the centre of its cube.
-                let m = st.tree.key_to_coord(l.min_key());
-                [m[0] - 0.5 * res + 0.5 * size, m[1] - 0.5 * res + 0.5 * size, m[2] - 0.5 * res + 0.5 * size]
-            };
-            let k = st.points.key(&nalgebra::Vector3::from(c));
-            let class = match classes.and_then(|d| d.classes.get(&k)) {
-                Some(VoxelClass::Navigable(_)) => 1,
-                _ if obstacle.contains(&k) => 2,
-                _ => 0,
-            };
-            Voxel {
-                center_m: [centre[0] as f32, centre[1] as f32, centre[2] as f32],
-                size_m: size as f32,
-                occupancy: octree::probability(l.log_odds as f64) as f32,
-                class,
-            }
+    navigable::occupied_voxels(&st.tree, &st.points, classes)
+        .into_iter()
+        .map(|v| Voxel {
+            center_m: v.center_m.map(|x| x as f32),
+            size_m: v.size_m as f32,
+            occupancy: v.occupancy as f32,
+            class: match v.class {
+                navigable::MapVoxelClass::Occupied => 0,
+                navigable::MapVoxelClass::Navigable => 1,
+                navigable::MapVoxelClass::Obstacle => 2,
+            },
         })
         .collect()
 }
@@ -144,9 +126,9 @@ fn end_of_run(
         "navigable_regions": d.regions.len(),
         "navigable_area_m2": d.regions.iter().map(|r| r.area_m2).sum::<f64>(),
         "obstacles": d.obstacles.len(),
-        "obstacle_landmarks": st.obstacle_landmarks.len(),
+        "obstacle_landmarks": st.obstacles.landmarks.len(),
 
-        "obstacle_landmarks_seen_in_2_or_more_scans": st.obstacle_landmarks.iter().filter(|l| l.scans >= 2).count(),
+        "obstacle_landmarks_seen_in_2_or_more_scans": st.obstacles.landmarks.iter().filter(|l| l.scans >= 2).count(),
     }});
     tracing::info!(
         clouds = st.counters.clouds_inserted,
@@ -222,8 +204,8 @@ impl Stage for OctreeMapperStage {
         })
     }
 
-    fn end_after(&self) -> Vec<String> {
-        self.settings.end_after.clone()
+    fn end_after(&self) -> EndAfter {
+        EndAfter::from_list(&self.settings.end_after)
     }
 
     fn tick(&self) -> Option<Duration> {

@@ -21,7 +21,7 @@ pub use iox::IoxScope;
 pub use ports::{Delivery, Input, Output, PortError};
 pub use protocol::{CheckReport, process_main};
 pub use runtime::{Flow, ProcessArgs, ProcessContext, Runtime, RuntimeOptions, StopReason, Wake};
-pub use stage::{Ending, Stage, Step, stage_main};
+pub use stage::{EndAfter, Ending, Stage, Step, stage_main};
 pub use stats::{LatencySummary, StatsReport};
 
 /// Maps the end of a process's `run` to an exit code: 0 for a finished run or a SIGTERM/SIGINT

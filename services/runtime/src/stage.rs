@@ -4,10 +4,11 @@
 //! - the loop (a WaitSet that never spins), heartbeats and statistics (see [`Runtime::run`]);
 //! - the end of stream: it reads the ends of stream before the data in each wake-up (so nothing
 //!   sent before an end is missed), tracks which upstream processes ended, and decides when the
-//!   stage's inputs are over by one rule, [`Stage::end_after`]: every process named there has
-//!   ended, or, with an empty list, the first upstream process has. Then, once the stage says it
-//!   is idle, it calls [`Stage::finish`], writes the summary part, and sends the stage's own end
-//!   of stream. A stage that is a source ends itself ([`Step::Done`]);
+//!   stage's inputs are over by one rule, [`Stage::end_after`] ([`EndAfter`]): every process
+//!   named in the stage's `end_after` setting has ended, or, with an empty list, the first
+//!   upstream process has. Then, once the stage says it is idle, it calls [`Stage::finish`],
+//!   writes the summary part, and sends the stage's own end of stream. A source ends itself
+//!   ([`EndAfter::Itself`], [`Step::Done`]);
 //! - a stop (SIGTERM/SIGINT) before that: [`Stage::finish`] with [`Ending::Stopped`], so that
 //!   whatever the stage has is written and scored;
 //! - the summary part: `<out>/parts/<process>.json`, the object `finish` returns, plus
@@ -52,6 +53,33 @@ pub enum Ending {
     Stopped,
 }
 
+/// When a stage's inputs are over.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum EndAfter {
+    /// When the first upstream process ends.
+    FirstUpstream,
+    /// When every process named has ended.
+    All(Vec<String>),
+    /// Never by its inputs: the stage ends itself with [`Step::Done`] (a source).
+    Itself,
+}
+
+impl EndAfter {
+    /// The rule of an `end_after` setting: every process listed; empty, the first upstream one.
+    pub fn from_list(list: &[String]) -> Self {
+        if list.is_empty() { EndAfter::FirstUpstream } else { EndAfter::All(list.to_vec()) }
+    }
+
+    /// True when the inputs are over, given the upstream processes that `ended`.
+    pub fn inputs_ended(&self, ended: &BTreeSet<String>) -> bool {
+        match self {
+            EndAfter::FirstUpstream => !ended.is_empty(),
+            EndAfter::All(names) => names.iter().all(|n| ended.contains(n)),
+            EndAfter::Itself => false,
+        }
+    }
+}
+
 /// A pipeline stage. See the module docs for what the runtime does around it.
 pub trait Stage: Sized {
     /// Its settings (`[processes.<name>.settings]`), validated before [`Stage::open`] (and by
@@ -62,10 +90,8 @@ pub trait Stage: Sized {
     /// if it keeps one.
     fn open(ctx: &ProcessContext, settings: Self::Settings, rt: &mut Runtime) -> anyhow::Result<Self>;
 
-    /// The upstream processes whose end of stream ends this stage's inputs: all of them; empty:
-    /// the first upstream process to end. Sources, which have no inputs, return an empty list
-    /// and end themselves with [`Step::Done`].
-    fn end_after(&self) -> Vec<String>;
+    /// When this stage's inputs are over (usually `EndAfter::from_list(&settings.end_after)`).
+    fn end_after(&self) -> EndAfter;
 
     /// Interval of the stage's own tick (`wake.tick`), if it wants one.
     fn tick(&self) -> Option<Duration> {
@@ -93,12 +119,6 @@ pub fn write_summary_part(out_dir: &Path, name: &str, part: &serde_json::Value) 
     Ok(())
 }
 
-/// True when the inputs of a stage waiting for `end_after` are over, given the upstream
-/// processes that `ended`.
-pub fn inputs_ended(end_after: &[String], ended: &BTreeSet<String>) -> bool {
-    if end_after.is_empty() { !ended.is_empty() } else { end_after.iter().all(|n| ended.contains(n)) }
-}
-
 /// Runs `stage` to its end and until the process is stopped (see the module docs).
 pub fn run_stage<S: Stage>(ctx: &ProcessContext, rt: &mut Runtime, mut stage: S) -> anyhow::Result<StopReason> {
     let eos = rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?;
@@ -120,7 +140,7 @@ pub fn run_stage<S: Stage>(ctx: &ProcessContext, rt: &mut Runtime, mut stage: S)
             return Ok(Flow::Continue);
         }
         ended.extend(rt.ended_upstream(&eos)?); // before the data: see Runtime::ended_upstream
-        let over = inputs_ended(&end_after, &ended);
+        let over = end_after.inputs_ended(&ended);
         let step = stage.step(rt, wake, over)?;
         if step == Step::Busy {
             rt.wake_at(Instant::now());
@@ -160,11 +180,14 @@ mod tests {
     #[test]
     fn one_rule_for_the_end_of_the_inputs() {
         let ended = |names: &[&str]| names.iter().map(|s| s.to_string()).collect::<BTreeSet<_>>();
-        let list = vec!["slam".to_string(), "buoy".to_string()];
-        assert!(!inputs_ended(&list, &ended(&[])));
-        assert!(!inputs_ended(&list, &ended(&["slam"])));
-        assert!(inputs_ended(&list, &ended(&["buoy", "slam", "other"])));
-        assert!(!inputs_ended(&[], &ended(&[])), "an empty list waits for the first upstream end");
-        assert!(inputs_ended(&[], &ended(&["ingest"])));
+        let all = EndAfter::from_list(&["slam".to_string(), "buoy".to_string()]);
+        assert!(!all.inputs_ended(&ended(&[])));
+        assert!(!all.inputs_ended(&ended(&["slam"])));
+        assert!(all.inputs_ended(&ended(&["buoy", "slam", "other"])));
+        let first = EndAfter::from_list(&[]);
+        assert_eq!(first, EndAfter::FirstUpstream, "an empty list waits for the first upstream end");
+        assert!(!first.inputs_ended(&ended(&[])));
+        assert!(first.inputs_ended(&ended(&["ingest"])));
+        assert!(!EndAfter::Itself.inputs_ended(&ended(&["ingest", "slam"])), "a source ends itself");
     }
 }

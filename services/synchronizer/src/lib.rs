@@ -1,5 +1,5 @@
 //! The `synchronizer` process's settings and its pure `step` logic: buoy fixes go into a
-//! [`buoy::Synchronizer`]; each SLAM pose waits (up to `sync.max_latency_s` of wall time since it
+//! [`timesync::Synchronizer`]; each SLAM pose waits (up to `sync.max_latency_s` of wall time since it
 //! arrived) for a fix after its stamp, then is paired with the buoy position interpolated to its
 //! stamp (SPEC §5.1: 3-point Lagrange, eq 30 covariance), or extrapolated and flagged.
 //! [`stage::SynchronizerStage`] is the stage around it; `main.rs` one line.
@@ -9,11 +9,11 @@ pub mod stage;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
-use buoy::{Fix, SyncConfig, SyncDecision, SyncResult, Synchronizer};
 use nalgebra::{Matrix3, Vector3};
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 use shared_types::{BuoyFix, MsgHeader, PoseEstimate};
+use timesync::{Fix, SyncConfig, SyncDecision, SyncResult, Synchronizer};
 
 /// Settings of the `synchronizer` process.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -21,7 +21,7 @@ use shared_types::{BuoyFix, MsgHeader, PoseEstimate};
 pub struct SynchronizerSettings {
     /// The buffer and waiting policy (`capacity`, `max_gap_s`, `max_latency_s`,
     /// `max_extrapolation_s`, `extrapolation_velocity_sigma_mps`, `duplicate_tolerance_s`,
-    /// `restart_backjump_s`): documented in `algorithms/buoy/src/sync.rs`. `max_latency_s` is
+    /// `restart_backjump_s`): documented in the `timesync` crate (algorithms/timesync). `max_latency_s` is
     /// the longest a pose waits, in wall time since it arrived, for a fix after its stamp.
     pub sync: SyncConfig,
     /// The processes whose end of stream ends this one's input (the SLAM and buoy stages): it

@@ -3,7 +3,7 @@
 
 use std::time::Instant;
 
-use pipeline_runtime::stage::{Ending, Stage, Step};
+use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
 use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
 use shared_types::services::{BUOY_FIX, SLAM_POSE, SYNC_PAIR};
 use shared_types::{BuoyFix, MsgHeader, PoseEstimate, SyncedPair, convert};
@@ -35,8 +35,8 @@ impl Stage for SynchronizerStage {
         Ok(Self { settings, st, poses, fixes, pairs })
     }
 
-    fn end_after(&self) -> Vec<String> {
-        self.settings.end_after.clone()
+    fn end_after(&self) -> EndAfter {
+        EndAfter::from_list(&self.settings.end_after)
     }
 
     fn tick(&self) -> Option<std::time::Duration> {

@@ -1,4 +1,5 @@
-//! Timestamp synchronisation of buoy fixes to camera stamps (SPEC §5.1, \[3D\] eq 26-30).
+//! Timestamp synchronisation of buoy fixes to camera stamps ([3D] eq 26-30), a pure library: no
+//! IPC, no clocks (every time is passed in), no panics on bad input.
 //!
 //! The buoy estimate at a camera stamp t_k is the quadratic Lagrange interpolation of three buoy
 //! fixes, X(t_k) = ξ1·X1 + ξ2·X2 + ξ3·X3, with ξ3 as corrected in SPEC §9 (ξ1 + ξ2 + ξ3 = 1), and
@@ -41,7 +42,19 @@ use std::collections::VecDeque;
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::error::SyncError;
+/// An error of the synchronizer ([`Synchronizer`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SyncError {
+    /// A stamp, position or covariance was NaN or infinite.
+    #[error("non-finite input: {0}")]
+    NonFinite(&'static str),
+    /// A covariance was not symmetric positive semi-definite.
+    #[error("covariance is not symmetric positive semi-definite")]
+    BadCovariance,
+    /// The stamps given to an interpolation are not distinct.
+    #[error("interpolation stamps must be distinct")]
+    RepeatedStamps,
+}
 
 /// How far a fix's `seq` may fall behind the last one seen by reordering alone; further back is
 /// a sequence reset (an upstream restart).
