@@ -29,7 +29,7 @@ assert ctypes.sizeof(MsgHeader) == 32, "MsgHeader size"
 assert ctypes.alignment(MsgHeader) == 8, "MsgHeader alignment"
 
 class OdometryInput(ctypes.Structure):
-    """Odometry / control input U = (v, δθx, δθy, δθz) over δt (SPEC §1). The rotation increment"""
+    """Odometry / control input U = (v, δθx, δθy, δθz) over δt (EQUATIONS §1). The rotation increment"""
 
     _fields_ = [
         ("v_mps", ctypes.c_double),
@@ -47,7 +47,7 @@ assert ctypes.sizeof(OdometryInput) == 168, "OdometryInput size"
 assert ctypes.alignment(OdometryInput) == 8, "OdometryInput alignment"
 
 class StereoObservation(ctypes.Structure):
-    """One triangulated stereo landmark observation (SPEC §2), an element of the slice on"""
+    """One triangulated stereo landmark observation (EQUATIONS §2), an element of the slice on"""
 
     _fields_ = [
         ("point_cam_m", (ctypes.c_double) * 3),
@@ -68,7 +68,7 @@ assert ctypes.sizeof(StereoObservation) == 168, "StereoObservation size"
 assert ctypes.alignment(StereoObservation) == 8, "StereoObservation alignment"
 
 class BuoyRange(ctypes.Structure):
-    """One acoustic range to a buoy at a known position (SPEC §5), an element of the slice on"""
+    """One acoustic range to a buoy at a known position (EQUATIONS §5), an element of the slice on"""
 
     _fields_ = [
         ("buoy_id", ctypes.c_uint32),
@@ -86,7 +86,7 @@ assert ctypes.sizeof(BuoyRange) == 24, "BuoyRange size"
 assert ctypes.alignment(BuoyRange) == 8, "BuoyRange alignment"
 
 class DepthReading(ctypes.Structure):
-    """Pressure depth (SPEC §5): a direct measurement of −z in the world frame."""
+    """Pressure depth (EQUATIONS §5): a direct measurement of −z in the world frame."""
 
     _fields_ = [
         ("depth_m", ctypes.c_double),

@@ -1,6 +1,6 @@
 //! The wire types: one per edge of the process graph (DESIGN.md), plus control messages.
 //!
-//! Conventions (SPEC §0): frames are right-handed, world z up, body x forward / y left / z up,
+//! Conventions (EQUATIONS §0): frames are right-handed, world z up, body x forward / y left / z up,
 //! camera optical x right / y down / z forward. Quaternions are stored (x, y, z, w). Matrices are
 //! row-major, full and symmetric for covariances. Units are SI. A 6×6 pose covariance is ordered
 //! (x, y, z, rot_x, rot_y, rot_z), where the rotation part is a small-angle error vector δ in the
@@ -35,7 +35,7 @@ wire_type! {
 }
 
 wire_type! {
-    /// Odometry / control input U = (v, δθx, δθy, δθz) over δt (SPEC §1). The rotation increment
+    /// Odometry / control input U = (v, δθx, δθy, δθz) over δt (EQUATIONS §1). The rotation increment
     /// is in the body frame: R(k+1) = R(k)·R(δθ).
     type_name = "slam_pipeline::v1::OdometryInput", size = 168;
     pub struct OdometryInput {
@@ -59,7 +59,7 @@ pub const STEREO_HAS_PIXELS: u32 = 2;
 pub const STEREO_HAS_TRACK_ID: u32 = 4;
 
 wire_type! {
-    /// One triangulated stereo landmark observation (SPEC §2), an element of the slice on
+    /// One triangulated stereo landmark observation (EQUATIONS §2), an element of the slice on
     /// `pipeline/sensors/stereo`; one message is one camera frame.
     type_name = "slam_pipeline::v1::StereoObservation", size = 168;
     pub struct StereoObservation {
@@ -83,7 +83,7 @@ wire_type! {
 }
 
 wire_type! {
-    /// One acoustic range to a buoy at a known position (SPEC §5), an element of the slice on
+    /// One acoustic range to a buoy at a known position (EQUATIONS §5), an element of the slice on
     /// `pipeline/sensors/buoy_ranges`.
     type_name = "slam_pipeline::v1::BuoyRange", size = 24;
     pub struct BuoyRange {
@@ -99,7 +99,7 @@ wire_type! {
 }
 
 wire_type! {
-    /// Pressure depth (SPEC §5): a direct measurement of −z in the world frame.
+    /// Pressure depth (EQUATIONS §5): a direct measurement of −z in the world frame.
     type_name = "slam_pipeline::v1::DepthReading", size = 16;
     pub struct DepthReading {
         /// Depth below the surface, m (positive down).
@@ -335,7 +335,7 @@ wire_type! {
         pub slam: PoseEstimate,
         /// Buoy position interpolated to the stamp, world frame, m.
         pub buoy_position_m: [f64; 3],
-        /// Its covariance (SPEC eq 30), 3×3 row-major, m².
+        /// Its covariance ([3D] eq 30), 3×3 row-major, m².
         pub buoy_covariance_m2: [f64; 9],
         /// Stamp of the newest buoy fix used, ns.
         pub newest_fix_stamp_ns: u64,

@@ -13,7 +13,7 @@ fn pipeline(run: &TestRun, producer_args: &[&str]) -> std::path::PathBuf {
     let procs = format!(
         "[processes.monitor]\nkind = \"sensor_monitor\"\n[processes.monitor.settings]\nknown_buoy_ids = [0, 1, 2, 3]\nmax_cloud_points = 5000\n\n\
          [processes.driver]\nkind = \"external\"\nbinary = \"{}\"\nargs = [{args}]\nafter = [\"monitor\"]\nheartbeat = false\nrestart = \"never\"\n",
-        bin("external-producer").display()
+        bin("external_producer").display()
     );
     run.write_config("end = \"end_of_stream\"\nend_of_stream_from = [\"monitor\"]\nduration_s = 60", &procs)
 }
@@ -77,7 +77,7 @@ fn a_wrong_layout_under_a_contract_service_name_is_refused() {
     let cfg = run.write_config("end = \"signal\"", procs);
     run.start_supervisor(&cfg, &[]);
     run.wait_for_log("ready after", 1, LONG);
-    let mut cmd = Command::new(bin("external-producer"));
+    let mut cmd = Command::new(bin("external_producer"));
     cmd.arg("--wrong-layout")
         .env("SLAM_PIPELINE_IOX_PREFIX", &run.scope.prefix)
         .env("SLAM_PIPELINE_IOX_ROOT", &run.scope.root);
@@ -126,7 +126,7 @@ after = ["buoy", "map", "slam"]
 heartbeat = false
 restart = "never"
 "#,
-        bin("external-producer").display()
+        bin("external_producer").display()
     );
     let cfg = run.write_config(
         "end = \"end_of_stream\"\nend_of_stream_from = [\"buoy\", \"map\", \"slam\"]\nduration_s = 60",

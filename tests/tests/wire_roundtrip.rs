@@ -9,7 +9,7 @@ use pipeline_tests::{TestRun, bin, wait_for_line};
 fn every_wire_type_round_trips_between_two_processes() {
     let mut run = TestRun::new("wire");
     let args = |role: &str| {
-        let mut c = Command::new(bin("wire-roundtrip"));
+        let mut c = Command::new(bin("wire_roundtrip"));
         c.args(["--role", role, "--prefix", &run.scope.prefix, "--root"])
             .arg(&run.scope.root)
             .args(["--timeout-s", "20"]);

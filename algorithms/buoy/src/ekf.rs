@@ -1,4 +1,4 @@
-//! The buoy estimator (SPEC §5): an extended Kalman filter for the global position from ranges
+//! The buoy estimator (EQUATIONS §5): an extended Kalman filter for the global position from ranges
 //! to buoys at known positions, odometry, pressure depth and GPS fixes.
 //!
 //! # State
@@ -13,14 +13,14 @@
 //!   Plaza2 the ranges read ~7 % long (2-4 m at 30-60 m), which the scale state takes up.
 //!
 //! # Models
-//! - Range (SPEC §5 with scale and bias): r_j = (1 + s)·‖p − b_j‖ + β_j + n_j, so
+//! - Range (EQUATIONS §5 with scale and bias): r_j = (1 + s)·‖p − b_j‖ + β_j + n_j, so
 //!   H = ((1 + s)(p − b_j)ᵀ/‖p − b_j‖, ∂/∂s = ‖p − b_j‖, ∂/∂β_j = 1). In planar mode the distance
 //!   is sqrt(‖p_xy − b_j,xy‖² + Δz²) with the known height difference Δz = b_j,z − `planar_height_m`.
 //! - Constant velocity ([`BuoyEkf::predict_to`] without a recent odometry input): p += v·Δt,
 //!   white-noise acceleration `motion.accel_sigma_mps2`; ψ random walk `motion.cv_turn_rate_sigma_rps`·Δt.
-//! - Odometry ([`BuoyEkf::predict_with_input`], speed v and turn δθ over Δt, SPEC §1 restricted
+//! - Odometry ([`BuoyEkf::predict_with_input`], speed v and turn δθ over Δt, EQUATIONS §1 restricted
 //!   to yaw): ψ' = ψ + δθ − b_ω·Δt, p_xy' = p_xy + v·Δt·(cos ψ_m, sin ψ_m) with the midpoint heading
-//!   ψ_m = ψ + (δθ − b_ω·Δt)/2 (second order; SPEC §1's start heading differs by O(v·Δt·δθ/2)),
+//!   ψ_m = ψ + (δθ − b_ω·Δt)/2 (second order; EQUATIONS §1's start heading differs by O(v·Δt·δθ/2)),
 //!   v_xy' = v·(cos ψ', sin ψ'). Noise: the input's variances through the Jacobian, plus wheel slip
 //!   (σ = `motion.slip_fraction`·|v|·Δt per horizontal axis) and a heading random walk. In spatial
 //!   mode z and v_z follow the constant-velocity model (depth readings constrain them).
@@ -75,7 +75,7 @@ use crate::config::{BiasMode, BuoyConfig, InitMethod, Mode};
 use crate::error::{BuoyError, TrilaterationError};
 use crate::trilaterate::{Geometry, Limits, RangeObs, trilaterate, wrap_angle};
 
-/// An odometry input over the interval (t − `dt_s`, t] (SPEC §1: forward speed and yaw turn).
+/// An odometry input over the interval (t − `dt_s`, t] (EQUATIONS §1: forward speed and yaw turn).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct OdometryInput {
     /// Interval length, s (> 0).

@@ -7,7 +7,7 @@
 //! - [`trilaterate`](mod@trilaterate): its least-squares initialisation, refusing degenerate geometry.
 //! - [`config`]: [`BuoyConfig`] (serde, `deny_unknown_fields`, defaults, `validate()`).
 //!
-//! Units are SI; angles in rad; frames as in SPEC §0 (world z up). Matrices are nalgebra's
+//! Units are SI; angles in rad; frames as in EQUATIONS §0 (world z up). Matrices are nalgebra's
 //! (column-major storage; indices are (row, column)).
 //!
 //! # Evaluation on real data (default parameters, planar mode)

@@ -1,4 +1,4 @@
-//! Least-squares initialisation of the buoy estimator (SPEC §5: "initialise by least-squares
+//! Least-squares initialisation of the buoy estimator (EQUATIONS §5: "initialise by least-squares
 //! trilateration from the first ranges").
 //!
 //! - [`trilaterate`]: position from ranges to known buoys, 2-D (with a known height difference)

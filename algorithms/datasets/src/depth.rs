@@ -1,4 +1,4 @@
-//! Depth images and their back-projection to points (\[2D3D\] eq 6-8, SPEC §7).
+//! Depth images and their back-projection to points (\[2D3D\] eq 6-8, EQUATIONS §7).
 //!
 //! Images are 16-bit: a 16-bit grayscale PNG (as RGB-D cameras and the TUM/ICL data sets store
 //! depth) or raw little-endian u16 of a given width and height, row-major. A sample is in raw

@@ -16,7 +16,7 @@ pub enum Proposal {
     Optimal,
 }
 
-/// Data association settings (SPEC §3).
+/// Data association settings (EQUATIONS §3).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct AssociationConfig {
@@ -55,7 +55,7 @@ impl Default for AssociationConfig {
     }
 }
 
-/// When to start a new local map (SPEC §5, multi-map mechanism).
+/// When to start a new local map (EQUATIONS §5, multi-map mechanism).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SegmentConfig {

@@ -1,6 +1,6 @@
-//! The per-landmark EKF of FastSLAM (SPEC §2-4), in the literature's names.
+//! The per-landmark EKF of FastSLAM (EQUATIONS §2-4), in the literature's names.
 //!
-//! Measurement of landmark L from a body pose (p, R), in the body frame (SPEC §2, [3D] eq 11 with
+//! Measurement of landmark L from a body pose (p, R), in the body frame (EQUATIONS §2, [3D] eq 11 with
 //! erratum §9): z = h(p, R, L) = Rᵀ·(L − p) + η, η ~ N(0, Rz). Jacobians: H_L = ∂h/∂L = Rᵀ, and
 //! for the body-frame pose perturbation (p = p̂ + δp, R = R̂·Exp(δφ)) H_x = ∂h/∂(δp, δφ) =
 //! [−R̂ᵀ, [ẑ]×]. Updates use the Joseph form; a covariance that is not positive definite is an
@@ -131,7 +131,7 @@ pub struct Innovation {
     pub HL: Matrix3<f64>,
     /// Cholesky factor of S.
     chol: Chol3,
-    /// ε = νᵀ·S⁻¹·ν (SPEC eq 15).
+    /// ε = νᵀ·S⁻¹·ν ([3D] eq 15).
     pub mahalanobis: f64,
 }
 
@@ -153,7 +153,7 @@ impl Innovation {
 }
 
 /// Innovation of measurement `z_m` (body frame, covariance `Rz`) against landmark `lm` seen from
-/// `world_from_body` (SPEC eq 14-16).
+/// `world_from_body` ([3D] eq 14-16).
 pub fn innovation(
     world_from_body: &Isometry3<f64>,
     lm: &LandmarkEkf,
@@ -331,7 +331,7 @@ pub fn stereo_pose_jacobian(
     stereo_jacobian(&p_c) * Rcb * Hb
 }
 
-/// EKF update of `lm` with the innovation `inn` (SPEC §4): K = Σ·H_Lᵀ·S⁻¹, μ += K·ν,
+/// EKF update of `lm` with the innovation `inn` (EQUATIONS §4): K = Σ·H_Lᵀ·S⁻¹, μ += K·ν,
 /// Σ = (I − K·H_L)·Σ·(I − K·H_L)ᵀ + K·Rz·Kᵀ (Joseph form). `inn` must have been computed for
 /// this landmark at the current pose.
 pub fn update(lm: &mut LandmarkEkf, inn: &Innovation, Rz: &Matrix3<f64>) -> Result<(), FilterError> {
@@ -431,7 +431,7 @@ pub fn update_stereo_iterated(
     Ok(())
 }
 
-/// A new landmark from an observation (SPEC §4): μ = p + R·z, Σ = R·Rz·Rᵀ.
+/// A new landmark from an observation (EQUATIONS §4): μ = p + R·z, Σ = R·Rz·Rᵀ.
 pub fn init_landmark(
     world_from_body: &Isometry3<f64>,
     z_m: &Vector3<f64>,

@@ -1,4 +1,4 @@
-//! The particle filter (SPEC §4, [3D] Alg 1-2): prediction through the process model with input
+//! The particle filter (EQUATIONS §4, [3D] Alg 1-2): prediction through the process model with input
 //! and process noise, per-particle data association and landmark EKF updates, log-space weights,
 //! systematic resampling on low N_eff, the weighted estimate, and the multi-map mechanism.
 
@@ -572,7 +572,7 @@ impl FastSlam {
         self.motion_cov += (m + m.transpose()) * 0.5;
     }
 
-    /// Prediction with an odometry input (SPEC §1): each particle propagates a sample of the input
+    /// Prediction with an odometry input (EQUATIONS §1): each particle propagates a sample of the input
     /// (noise with the variances `input_variances` of v, δθx, δθy, δθz, scaled by
     /// `input_noise_scale`), then gets the additive process noise ω.
     pub fn predict(&mut self, u: &ProcessInput, input_variances: [f64; 4]) -> Result<(), FilterError> {
@@ -695,7 +695,7 @@ impl FastSlam {
         });
     }
 
-    /// Associates one observation for one particle (SPEC §3): by feature track id when the
+    /// Associates one observation for one particle (EQUATIONS §3): by feature track id when the
     /// observation has one, else by descriptor with a ratio test when it has one, else by
     /// maximum likelihood; every association inside the χ²₃ gate. The gate's covariance is the
     /// innovation covariance plus `pose_q` = H_x·P·H_xᵀ, the pose uncertainty of this frame's

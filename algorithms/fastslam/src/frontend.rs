@@ -2,7 +2,7 @@
 //! prior when there is no odometry.
 //!
 //! Each frame is a set of triangulated points in the camera (optical) frame with their
-//! first-order covariance (SPEC §2). The front end finds the rigid motion `cur_from_prev` of the
+//! first-order covariance (EQUATIONS §2). The front end finds the rigid motion `cur_from_prev` of the
 //! camera that maps the previous frame's points onto the current frame's, with its covariance:
 //!
 //! 1. **Correspondences.** By the front end's attribute when both frames carry it (a feature

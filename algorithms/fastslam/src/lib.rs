@@ -1,4 +1,4 @@
-//! 6-DOF stereo FastSLAM (SPEC §1-4): a Rao-Blackwellised particle filter whose particles carry a
+//! 6-DOF stereo FastSLAM (EQUATIONS §1-4): a Rao-Blackwellised particle filter whose particles carry a
 //! pose and a map of per-landmark EKFs. Maps are persistent tries shared between particles
 //! ([`map`]), so resampling copies pointers and an update copies O(log M) nodes.
 

@@ -1,4 +1,4 @@
-//! The local-to-global rigid transform of a segment (SPEC §6.3) from pairs (local path point,
+//! The local-to-global rigid transform of a segment (EQUATIONS §6.3) from pairs (local path point,
 //! global buoy fix), with its covariance and degeneracy detection.
 //!
 //! [`align`]: a scalar-weighted SVD (Horn 1987 / Umeyama 1991, [`geometry::align_rigid`]) with weights

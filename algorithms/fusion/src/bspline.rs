@@ -1,4 +1,4 @@
-//! The local path of a segment as a cubic B-spline over time, with covariance (SPEC §6.1,
+//! The local path of a segment as a cubic B-spline over time, with covariance (EQUATIONS §6.1,
 //! \[3D\] eq 33-37, erratum §9).
 //!
 //! - Parameter: u = (t − t₀)/(tₙ − t₀) (eq 34); the data parameters ū_k are the samples' u.

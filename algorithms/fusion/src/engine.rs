@@ -1,4 +1,4 @@
-//! The fusion engine ([3D] Alg 3, SPEC §5.2 and §6): local maps (segments) of the SLAM
+//! The fusion engine ([3D] Alg 3, EQUATIONS §5.2 and §6): local maps (segments) of the SLAM
 //! process, each with its local path, the buoy fixes of its time span, and its transform to the
 //! world; the fused global pose per SLAM pose; the request for a new local map when camera and
 //! buoy estimates stop overlapping; and at the end the globally consistent path and map.

@@ -1,4 +1,4 @@
-//! Covariance-weighted fusion of the camera and buoy position estimates (SPEC §5.2, \[3D\] eq 31-32 in
+//! Covariance-weighted fusion of the camera and buoy position estimates (EQUATIONS §5.2, \[3D\] eq 31-32 in
 //! matrix form) under a χ²₃ overlap gate, and the χ²₃ quantile for that gate.
 //!
 //! With S = P_b + P_c (both in the global frame):

@@ -1,4 +1,4 @@
-//! The global landmark map (SPEC §6.4, \[3D\] eq 38): every segment's landmarks mapped into the global
+//! The global landmark map (EQUATIONS §6.4, \[3D\] eq 38): every segment's landmarks mapped into the global
 //! frame, L^g = R·L^l + T with Σ^g = R·Σ^l·Rᵀ plus the transform's own uncertainty
 //! ([`Alignment::map_point`]), and landmarks of DIFFERENT segments that are the same point merged.
 //!

@@ -1,4 +1,4 @@
-//! Multi-sensor fusion and globally consistent 3-D SLAM (SPEC §5.2 and §6, \[3D\] eq 31-38, Alg 3),
+//! Multi-sensor fusion and globally consistent 3-D SLAM (EQUATIONS §5.2 and §6, \[3D\] eq 31-38, Alg 3),
 //! as pure functions and state machines with no IPC:
 //! - [`bspline`]: the cubic B-spline of a local path over time, with covariance (eq 33-37);
 //! - [`align`]: the local-to-global rigid transform by weighted SVD, with degeneracy detection;

@@ -1,4 +1,4 @@
-//! Geometry shared by the pipeline's estimators and sensor models (SPEC §0-2, §7):
+//! Geometry shared by the pipeline's estimators and sensor models (EQUATIONS §0-2, §7):
 //! Euler-angle rotations in the project's convention, the robot process model, the stereo
 //! camera model with first-order triangulation covariance, and camera extrinsics.
 //!
@@ -29,7 +29,7 @@ pub enum GeometryError {
     NonFinite(&'static str),
 }
 
-/// R = Rz(θz)·Ry(θy)·Rx(θx) (SPEC §0, [3D] eq 3): body to world.
+/// R = Rz(θz)·Ry(θy)·Rx(θx) (EQUATIONS §0, [3D] eq 3): body to world.
 pub fn rotation_from_euler_zyx(theta_rad: &Vector3<f64>) -> Rotation3<f64> {
     Rotation3::from_axis_angle(&Vector3::z_axis(), theta_rad.z)
         * Rotation3::from_axis_angle(&Vector3::y_axis(), theta_rad.y)
@@ -42,7 +42,7 @@ pub fn euler_zyx_from_rotation(r: &Rotation3<f64>) -> Vector3<f64> {
     Vector3::new(roll, pitch, yaw)
 }
 
-/// Input U = (v, δθx, δθy, δθz) over δt (SPEC §1).
+/// Input U = (v, δθx, δθy, δθz) over δt (EQUATIONS §1).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ProcessInput {
     /// Forward speed along body x, m/s.
@@ -53,7 +53,7 @@ pub struct ProcessInput {
     pub dt_s: f64,
 }
 
-/// The process model (SPEC §1, [3D] eq 1-7 with erratum §9): position moves along the body's
+/// The process model (EQUATIONS §1, [3D] eq 1-7 with erratum §9): position moves along the body's
 /// forward axis at the *current* orientation, p(k+1) = p(k) + R(k)·e_x·v·δt, then the orientation
 /// turns by the body-frame increment, R(k+1) = R(k)·R(δθ).
 pub fn propagate(world_from_body: &Isometry3<f64>, u: &ProcessInput) -> Isometry3<f64> {
@@ -74,7 +74,7 @@ pub struct StereoPixels {
     pub v_px: f64,
 }
 
-/// A rectified stereo pair (SPEC §2): square pixels with focal length `f_px`, principal point
+/// A rectified stereo pair (EQUATIONS §2): square pixels with focal length `f_px`, principal point
 /// (`cx_px`, `cy_px`), baseline `baseline_m`; the left camera's optical frame is the camera frame.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -112,7 +112,7 @@ impl StereoRig {
         })
     }
 
-    /// Triangulates (SPEC §2): d = uL − uR, Z = f·b/d, X = (uL − cx)·Z/f, Y = (v − cy)·Z/f.
+    /// Triangulates (EQUATIONS §2): d = uL − uR, Z = f·b/d, X = (uL − cx)·Z/f, Y = (v − cy)·Z/f.
     pub fn triangulate(&self, px: &StereoPixels) -> Result<Vector3<f64>, GeometryError> {
         if !(px.u_left_px.is_finite() && px.u_right_px.is_finite() && px.v_px.is_finite()) {
             return Err(GeometryError::NonFinite("stereo pixels"));

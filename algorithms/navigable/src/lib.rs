@@ -1,4 +1,4 @@
-//! Navigable space discovery and obstacles ([6D] §III-VI, SPEC §7), on the occupied voxels of an
+//! Navigable space discovery and obstacles ([6D] §III-VI, EQUATIONS §7), on the occupied voxels of an
 //! occupancy map and the points that fell into them.
 //!
 //! 1. [`PointAccumulator`] keeps, per voxel (`res`-sized cells, key ⌊x/res⌋), the count, sum
@@ -556,7 +556,7 @@ impl ObstacleTracker {
 }
 
 /// Associates obstacles of two scans or maps ([6D] §VI): greedy by the Bhattacharyya distance
-/// (SPEC §7), each obstacle at most once, pairs at most `max_distance` apart; returns
+/// (EQUATIONS §7), each obstacle at most once, pairs at most `max_distance` apart; returns
 /// (index in `a`, index in `b`, distance). A covariance that is not positive definite (a flat
 /// obstacle) is regularised by `regularise_m2` on the diagonal.
 pub fn associate_obstacles(

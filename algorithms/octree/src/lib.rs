@@ -1,4 +1,4 @@
-//! Occupancy octree with the semantics of OctoMap 1.9.7 (SPEC §7; Hornung et al. 2013).
+//! Occupancy octree with the semantics of OctoMap 1.9.7 (EQUATIONS §7; Hornung et al. 2013).
 //!
 //! The map is a depth-16 octree over integer voxel keys (`key = floor(coord / res) + 32768`, see
 //! [`OcTreeKey`]). Each node stores an occupancy log-odds value as `f32`, exactly like OctoMap, so

@@ -1,6 +1,6 @@
-//! A deterministic simulated underwater mission with ground truth (SPEC §1, §2, §5, §7).
+//! A deterministic simulated underwater mission with ground truth (EQUATIONS §1, §2, §5, §7).
 //!
-//! A vehicle driven by the process model of SPEC §1 (inputs v, δθ) flies a survey — a descent, a
+//! A vehicle driven by the process model of EQUATIONS §1 (inputs v, δθ) flies a survey — a descent, a
 //! lawnmower over seabed terrain, rocks and a wreck at alternating depths (passing a barren sand
 //! band), then a shallow transit in open water out of stereo range — while its sensors sample the
 //! scene, each at its own rate and with configurable noise: odometry/input, stereo landmark

@@ -2,7 +2,7 @@
 //! IPC, no clocks (every time is passed in), no panics on bad input.
 //!
 //! The buoy estimate at a camera stamp t_k is the quadratic Lagrange interpolation of three buoy
-//! fixes, X(t_k) = ξ1·X1 + ξ2·X2 + ξ3·X3, with ξ3 as corrected in SPEC §9 (ξ1 + ξ2 + ξ3 = 1), and
+//! fixes, X(t_k) = ξ1·X1 + ξ2·X2 + ξ3·X3, with ξ3 as corrected in EQUATIONS §9 (ξ1 + ξ2 + ξ3 = 1), and
 //! the covariance P(t_k) = ξ1²·P1 + ξ2²·P2 + ξ3²·P3 (eq 30, which treats the three fixes as
 //! independent). With only two fixes: linear interpolation (flagged). [`lagrange_weights`] and
 //! [`interpolate`] are the formulas; [`Synchronizer`] is the buffer and the waiting policy. It is
@@ -61,7 +61,7 @@ pub enum SyncError {
 pub const REORDER_WINDOW: u64 = 64;
 
 /// The Lagrange weights (ξ1, ξ2, ξ3) of the quadratic through stamps `ts` evaluated at `t`
-/// (SPEC §5 eq 26-29 with the §9 erratum for ξ3). They sum to 1 and reproduce any quadratic
+/// ([3D] eq 26-29 with the erratum of EQUATIONS §9 for ξ3). They sum to 1 and reproduce any quadratic
 /// exactly. The stamps must be distinct.
 pub fn lagrange_weights(t: f64, ts: [f64; 3]) -> Result<[f64; 3], SyncError> {
     if !(t.is_finite() && ts.iter().all(|x| x.is_finite())) {

@@ -1,4 +1,4 @@
-//! `external-producer`: an example of a sensor driver outside the pipeline. It uses only the wire
+//! `external_producer`: an example of a sensor driver outside the pipeline. It uses only the wire
 //! contract (`shared_types`) and iceoryx2 — not the pipeline's runtime — the way a user's own
 //! driver would: it opens the sensor services with the contract's QoS, writes samples in place,
 //! fills the common header, sends, notifies the event service of the same name, and ends with
@@ -339,7 +339,7 @@ fn main() -> std::process::ExitCode {
     match run(&Args::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("external-producer: {e:#}");
+            eprintln!("external_producer: {e:#}");
             std::process::ExitCode::FAILURE
         }
     }

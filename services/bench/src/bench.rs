@@ -65,7 +65,7 @@ impl Drop for ScopeCleanup {
 pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchResult> {
     args.validate()?;
     let dir =
-        tempfile::Builder::new().prefix("ingest-bench-").tempdir().context("cannot create a temporary directory")?;
+        tempfile::Builder::new().prefix("ingest_bench-").tempdir().context("cannot create a temporary directory")?;
     let scope =
         IoxScope { prefix: format!("bench{}_", std::process::id()), root: dir.path().join("iox"), base_config: None };
     let cleanup = ScopeCleanup { scope: scope.clone() };
@@ -85,7 +85,7 @@ fn pacing(args: &BenchArgs) -> Pacing {
 
 fn announce(args: &BenchArgs, name: &str) {
     let secs = args.total_frames() as f64 / args.rate_hz;
-    eprintln!("ingest-bench: {name}: {} clouds at {} Hz (~{secs:.1} s)", args.total_frames(), args.rate_hz);
+    eprintln!("ingest_bench: {name}: {} clouds at {} Hz (~{secs:.1} s)", args.total_frames(), args.rate_hz);
 }
 
 fn measure_all(
@@ -265,7 +265,7 @@ pub fn run_and_print(args: &BenchArgs) -> anyhow::Result<()> {
     let mib = (args.points * size_of::<CloudPoint>()) as f64 / (1024.0 * 1024.0);
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
     println!(
-        "ingest-bench: {} points ({mib:.2} MiB) per cloud at {} Hz, {} measured clouds after {} warm-up per transport, \
+        "ingest_bench: {} points ({mib:.2} MiB) per cloud at {} Hz, {} measured clouds after {} warm-up per transport, \
          {cpus} CPUs; iceoryx2 prefix {} (removed)",
         args.points, args.rate_hz, args.frames, args.warmup, result.prefix
     );
@@ -286,7 +286,7 @@ pub fn run_and_print(args: &BenchArgs) -> anyhow::Result<()> {
     }
     if let Some(path) = &args.csv {
         crate::report::write_csv(path, &result.rows)?;
-        eprintln!("ingest-bench: wrote {}", path.display());
+        eprintln!("ingest_bench: wrote {}", path.display());
     }
     Ok(())
 }

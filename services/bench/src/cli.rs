@@ -5,10 +5,10 @@ use std::path::PathBuf;
 
 use anyhow::ensure;
 
-/// `ingest-bench` command line.
+/// `ingest_bench` command line.
 #[derive(Debug, Clone, clap::Parser)]
 #[command(
-    name = "ingest-bench",
+    name = "ingest_bench",
     about = "300k-point clouds from a producer to a consumer process: producer CPU per frame and hop latency, \
              iceoryx2 (our runtime) side by side with copy-based Unix-socket baselines",
     args_conflicts_with_subcommands = true

@@ -128,7 +128,7 @@ pub fn run_consumer(args: &ConsumerArgs) -> anyhow::Result<()> {
 }
 
 fn consume_iox(rec: &mut Recorder) -> anyhow::Result<()> {
-    let scope = IoxScope::from_env().context("the iceoryx2 scope is not in the environment (run by ingest-bench)")?;
+    let scope = IoxScope::from_env().context("the iceoryx2 scope is not in the environment (run by ingest_bench)")?;
     let options = RuntimeOptions { publish_control: false, ..Default::default() };
     let mut rt = Runtime::new("bench_consumer", &scope, options).context("creating the consumer's runtime")?;
     let clouds = rt.input::<[CloudPoint], CloudHeader>(CLOUD).context("opening the cloud input")?;

@@ -1,4 +1,4 @@
-//! `ingest-bench`: what does moving a 300k-point cloud from ingest to a consumer process cost, over
+//! `ingest_bench`: what does moving a 300k-point cloud from ingest to a consumer process cost, over
 //! iceoryx2 through our runtime versus copy-based baselines (Unix stream socket with bincode, and
 //! with raw bytes), measured side by side in one run?
 //!

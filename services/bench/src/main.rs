@@ -1,4 +1,4 @@
-//! `ingest-bench`: 300k-point clouds at 30 Hz from a producer to a consumer process; producer CPU
+//! `ingest_bench`: 300k-point clouds at 30 Hz from a producer to a consumer process; producer CPU
 //! per frame and hop latency of iceoryx2 (our runtime) side by side with Unix-socket copy
 //! baselines. See the library docs of `pipeline_bench`.
 
@@ -14,7 +14,7 @@ fn main() -> ExitCode {
         // read the environment concurrently. The consumer child inherits the setting.
         unsafe { std::env::set_var("RUST_LOG", "warn") };
     }
-    let name = if cli.role.is_some() { "bench_consumer" } else { "ingest-bench" };
+    let name = if cli.role.is_some() { "bench_consumer" } else { "ingest_bench" };
     let _log = pipeline_runtime::logging::init(name, pipeline_runtime::LogFormat::Text);
     let result = match &cli.role {
         Some(Role::Consumer(args)) => pipeline_bench::consumer::run_consumer(args),
@@ -23,7 +23,7 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("ingest-bench ({name}): error: {e:#}");
+            eprintln!("ingest_bench ({name}): error: {e:#}");
             ExitCode::FAILURE
         }
     }

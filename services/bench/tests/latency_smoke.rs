@@ -1,4 +1,4 @@
-//! Smoke test of `pipeline-bench latency` through the real binary with a tiny configuration: every
+//! Smoke test of `pipeline_bench latency` through the real binary with a tiny configuration: every
 //! transport and chain produces per-hop and end-to-end CSV rows with samples, the PNG is written,
 //! nothing is left in /dev/shm, and a bad option is refused with a message naming it. No timing is
 //! asserted (the machine is shared and noisy; speed is read from the table).
@@ -20,7 +20,7 @@ fn shm_left(prefix: &str) -> Vec<String> {
 fn tiny_sweep_reports_every_hop_of_every_transport_and_chain() {
     let dir = tempfile::tempdir().expect("temp dir");
     let (csv, png) = (dir.path().join("lat.csv"), dir.path().join("lat.png"));
-    let child = Command::new(env!("CARGO_BIN_EXE_pipeline-bench"))
+    let child = Command::new(env!("CARGO_BIN_EXE_pipeline_bench"))
         .args(["latency", "--sizes", "64,64KiB", "--chains", "1,2", "--samples", "20", "--warmup", "5"])
         .args(["--rate-hz", "500", "--touch"])
         .arg("--csv")
@@ -30,12 +30,12 @@ fn tiny_sweep_reports_every_hop_of_every_transport_and_chain() {
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
-        .expect("start pipeline-bench");
+        .expect("start pipeline_bench");
     let pid = child.id();
-    let out = child.wait_with_output().expect("wait for pipeline-bench");
+    let out = child.wait_with_output().expect("wait for pipeline_bench");
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "pipeline-bench failed: {}\nstdout:\n{stdout}\nstderr:\n{stderr}", out.status);
+    assert!(out.status.success(), "pipeline_bench failed: {}\nstdout:\n{stdout}\nstderr:\n{stderr}", out.status);
 
     let text = std::fs::read_to_string(&csv).expect("the CSV was written");
     let mut lines = text.lines();
@@ -76,17 +76,17 @@ fn tiny_sweep_reports_every_hop_of_every_transport_and_chain() {
 
 #[test]
 fn a_bad_option_is_refused_with_its_name() {
-    let out = Command::new(env!("CARGO_BIN_EXE_pipeline-bench"))
+    let out = Command::new(env!("CARGO_BIN_EXE_pipeline_bench"))
         .args(["latency", "--sizes", "8"])
         .output()
-        .expect("run pipeline-bench");
+        .expect("run pipeline_bench");
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("--sizes") && stderr.contains("8 bytes"), "{stderr}");
-    let out = Command::new(env!("CARGO_BIN_EXE_pipeline-bench"))
+    let out = Command::new(env!("CARGO_BIN_EXE_pipeline_bench"))
         .args(["latency", "--chains", "0"])
         .output()
-        .expect("run pipeline-bench");
+        .expect("run pipeline_bench");
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--chains"));
 }

@@ -1,4 +1,4 @@
-//! Smoke test of `ingest-bench` through the real binary with a tiny configuration: every transport
+//! Smoke test of `ingest_bench` through the real binary with a tiny configuration: every transport
 //! produces a table row and a CSV row with latency samples, and nothing is left in /dev/shm.
 //! No timing is asserted (the machine is shared and noisy; speed is read from the table).
 
@@ -8,7 +8,7 @@ use std::process::Command;
 fn tiny_run_reports_every_transport_with_latency_samples_and_leaves_no_shared_memory() {
     let dir = tempfile::tempdir().expect("temp dir");
     let csv = dir.path().join("bench.csv");
-    let child = Command::new(env!("CARGO_BIN_EXE_ingest-bench"))
+    let child = Command::new(env!("CARGO_BIN_EXE_ingest_bench"))
         .args(["--points", "1000", "--frames", "20", "--warmup", "5", "--rate-hz", "200"])
         .args(["--transports", "iox,socket-bincode,socket-raw"])
         .arg("--csv")
@@ -16,12 +16,12 @@ fn tiny_run_reports_every_transport_with_latency_samples_and_leaves_no_shared_me
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
-        .expect("start ingest-bench");
+        .expect("start ingest_bench");
     let pid = child.id();
-    let out = child.wait_with_output().expect("wait for ingest-bench");
+    let out = child.wait_with_output().expect("wait for ingest_bench");
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "ingest-bench failed: {}\nstdout:\n{stdout}\nstderr:\n{stderr}", out.status);
+    assert!(out.status.success(), "ingest_bench failed: {}\nstdout:\n{stdout}\nstderr:\n{stderr}", out.status);
 
     let text = std::fs::read_to_string(&csv).expect("the CSV was written");
     let mut lines = text.lines();

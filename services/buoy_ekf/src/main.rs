@@ -4,5 +4,5 @@
 //! and `ate_m.dead_reckoning` into summary.json. See the library docs.
 
 fn main() -> std::process::ExitCode {
-    pipeline_runtime::stage_main::<buoy_ekf_process::stage::BuoyEkfStage>()
+    pipeline_runtime::stage_main::<buoy_ekf_stage::stage::BuoyEkfStage>()
 }

@@ -20,7 +20,7 @@ use shared_types::{OdometryInput, STEREO_HAS_DESCRIPTOR, STEREO_HAS_TRACK_ID, St
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum MotionModel {
-    /// From the odometry/input stream (SPEC §1).
+    /// From the odometry/input stream (EQUATIONS §1).
     #[default]
     Odometry,
     /// Camera only: constant velocity (no odometry stream needed).

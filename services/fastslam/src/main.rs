@@ -3,5 +3,5 @@
 //! the stream writes the trajectory and its accuracy. See the library docs.
 
 fn main() -> std::process::ExitCode {
-    pipeline_runtime::stage_main::<fastslam_process::stage::FastSlamStage>()
+    pipeline_runtime::stage_main::<fastslam_stage::stage::FastSlamStage>()
 }

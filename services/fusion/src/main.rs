@@ -5,5 +5,5 @@
 //! accuracy and a plot. See the library docs.
 
 fn main() -> std::process::ExitCode {
-    pipeline_runtime::stage_main::<fusion_process::stage::FusionStage>()
+    pipeline_runtime::stage_main::<fusion_stage::stage::FusionStage>()
 }

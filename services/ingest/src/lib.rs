@@ -1,4 +1,4 @@
-//! Ingest: turns sensor data into pipeline messages (SPEC §1, §2, §5, §7).
+//! Ingest: turns sensor data into pipeline messages (EQUATIONS §1, §2, §5, §7).
 //!
 //! A [`Source`] yields [`Item`]s in data-time order: the built-in simulator ([`sim`]), or replays
 //! of real data (Plaza2 odometry and beacon ranges, stereo landmark observations in the

@@ -2,5 +2,5 @@
 //! clock, then sends end of stream. See the library docs.
 
 fn main() -> std::process::ExitCode {
-    pipeline_runtime::stage_main::<ingest::stage::IngestStage>()
+    pipeline_runtime::stage_main::<ingest_stage::stage::IngestStage>()
 }

@@ -5,5 +5,5 @@
 //! (`navigable.ply`, `obstacles.ply`, counts in summary.json). See the library docs.
 
 fn main() -> std::process::ExitCode {
-    pipeline_runtime::stage_main::<octree_mapper_process::stage::OctreeMapperStage>()
+    pipeline_runtime::stage_main::<octree_mapper_stage::stage::OctreeMapperStage>()
 }

@@ -1,7 +1,7 @@
 //! The `synchronizer` process's settings and its pure `step` logic: buoy fixes go into a
 //! [`timesync::Synchronizer`]; each SLAM pose waits (up to `sync.max_latency_s` of wall time since it
 //! arrived) for a fix after its stamp, then is paired with the buoy position interpolated to its
-//! stamp (SPEC §5.1: 3-point Lagrange, eq 30 covariance), or extrapolated and flagged.
+//! stamp (EQUATIONS §5.1: 3-point Lagrange, eq 30 covariance), or extrapolated and flagged.
 //! [`stage::SynchronizerStage`] is the stage around it; `main.rs` one line.
 
 pub mod stage;

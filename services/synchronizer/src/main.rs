@@ -4,5 +4,5 @@
 //! summary.json.
 
 fn main() -> std::process::ExitCode {
-    pipeline_runtime::stage_main::<synchronizer_process::stage::SynchronizerStage>()
+    pipeline_runtime::stage_main::<synchronizer_stage::stage::SynchronizerStage>()
 }

@@ -1,12 +1,12 @@
-//! `octree-bench`: the `octree` crate's map insertion next to the OctoMap 1.9.7 C++ reference
+//! `octree_bench`: the `octree` crate's map insertion next to the OctoMap 1.9.7 C++ reference
 //! (`shared/bench/octomap`), on the same 20 depth-camera scans (1.22 M points), in the same run.
 //!
 //! ```sh
-//! cargo run --release -p pipeline_bench --bin octree-bench -- [--quick] [--res 0.10,0.05]
+//! cargo run --release -p pipeline_bench --bin octree_bench -- [--quick] [--res 0.10,0.05]
 //!     [--threads 2] [--reps 3] [--octomap-bench DIR] [--work-dir DIR]
 //! ```
 //!
-//! Steps: copy the bench folder to the work dir (default `target/octree-bench/`), generate the
+//! Steps: copy the bench folder to the work dir (default `target/octree_bench/`), generate the
 //! scans there with `/usr/bin/python3 gen_scene.py --out data` if missing and check their sha256
 //! against the folder's README, build `bench_octomap` with the folder's `build.sh` (g++ and
 //! liboctomap-dev), then for each repetition (outer loop) and resolution run `bench_octomap
@@ -47,14 +47,14 @@ const SYSTEM_PYTHON: &str = "/usr/bin/python3";
 
 #[derive(Parser, Debug)]
 #[command(
-    name = "octree-bench",
+    name = "octree_bench",
     about = "Insertion speed, memory and point queries of the octree crate next to OctoMap's C++ (same scans, same run)"
 )]
 struct Args {
     /// OctoMap benchmark folder [default: ../shared/bench/octomap from the workspace root].
     #[arg(long, value_name = "DIR")]
     octomap_bench: Option<PathBuf>,
-    /// Work dir (bench copy, data, C++ binaries, maps) [default: target/octree-bench].
+    /// Work dir (bench copy, data, C++ binaries, maps) [default: target/octree_bench].
     #[arg(long, value_name = "DIR")]
     work_dir: Option<PathBuf>,
     /// Resolutions (m), comma-separated; passed to bench_octomap as written.
@@ -92,7 +92,7 @@ fn main() -> ExitCode {
     match run(args) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("octree-bench: error: {e:#}");
+            eprintln!("octree_bench: error: {e:#}");
             if e.downcast_ref::<Missing>().is_some() { ExitCode::from(2) } else { ExitCode::FAILURE }
         }
     }
@@ -134,10 +134,10 @@ fn run(mut args: Args) -> anyhow::Result<()> {
 
     let root = workspace_root();
     let bench_dir = args.octomap_bench.clone().unwrap_or_else(|| root.join("../shared/bench/octomap"));
-    let work = args.work_dir.clone().unwrap_or_else(|| root.join("target/octree-bench"));
+    let work = args.work_dir.clone().unwrap_or_else(|| root.join("target/octree_bench"));
     let load_before = load_average();
-    eprintln!("octree-bench: OctoMap bench folder {}", bench_dir.display());
-    eprintln!("octree-bench: work dir {}", work.display());
+    eprintln!("octree_bench: OctoMap bench folder {}", bench_dir.display());
+    eprintln!("octree_bench: work dir {}", work.display());
 
     let cpp_changed = prepare_work_dir(&bench_dir, &work)?;
     let scans_path = ensure_scans(&work)?;
@@ -146,7 +146,7 @@ fn run(mut args: Args) -> anyhow::Result<()> {
     let maps_dir = work.join("maps");
     std::fs::create_dir_all(&maps_dir).with_context(|| format!("creating {}", maps_dir.display()))?;
 
-    eprintln!("octree-bench: loading {}", scans_path.display());
+    eprintln!("octree_bench: loading {}", scans_path.display());
     let scans = bench_data::read_scans(&scans_path).with_context(|| format!("reading {}", scans_path.display()))?;
     let points = scans.num_points();
     let queries = query_points();
@@ -195,7 +195,7 @@ fn run(mut args: Args) -> anyhow::Result<()> {
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
     println!();
     println!(
-        "octree-bench: {} frames, {points} points, max range {MAX_RANGE} m, eager insertion; best of {} interleaved \
+        "octree_bench: {} frames, {points} points, max range {MAX_RANGE} m, eager insertion; best of {} interleaved \
          run(s) each; {cpus} CPUs",
         scans.frames.len(),
         args.reps
@@ -274,7 +274,7 @@ fn prepare_work_dir(bench: &Path, work: &Path) -> anyhow::Result<bool> {
         let exec = std::fs::metadata(&src)?.permissions().mode() & 0o111 != 0;
         std::fs::set_permissions(&dst, std::fs::Permissions::from_mode(if exec { 0o755 } else { 0o644 }))?;
     }
-    eprintln!("octree-bench: bench files copied to {}", work.display());
+    eprintln!("octree_bench: bench files copied to {}", work.display());
     Ok(changed)
 }
 
@@ -302,7 +302,7 @@ fn ensure_scans(work: &Path) -> anyhow::Result<PathBuf> {
             )));
         }
         eprintln!(
-            "octree-bench: generating the scans: {SYSTEM_PYTHON} gen_scene.py --out data (in {})",
+            "octree_bench: generating the scans: {SYSTEM_PYTHON} gen_scene.py --out data (in {})",
             work.display()
         );
         let out = Command::new(SYSTEM_PYTHON)
@@ -334,7 +334,7 @@ fn ensure_scans(work: &Path) -> anyhow::Result<PathBuf> {
         scans.display(),
         work.join("data").display()
     );
-    eprintln!("octree-bench: {} sha256 {got} (matches the README)", scans.display());
+    eprintln!("octree_bench: {} sha256 {got} (matches the README)", scans.display());
     Ok(scans)
 }
 
@@ -342,7 +342,7 @@ fn ensure_scans(work: &Path) -> anyhow::Result<PathBuf> {
 fn build_cpp(work: &Path, changed: bool) -> anyhow::Result<PathBuf> {
     let bin = work.join("bench_octomap");
     if !changed && bin.is_file() {
-        eprintln!("octree-bench: using the built {}", bin.display());
+        eprintln!("octree_bench: using the built {}", bin.display());
         return Ok(bin);
     }
     if Command::new("g++").arg("--version").output().map(|o| !o.status.success()).unwrap_or(true) {
@@ -355,7 +355,7 @@ fn build_cpp(work: &Path, changed: bool) -> anyhow::Result<PathBuf> {
             "liboctomap-dev is not installed (OctoMap 1.9.7 headers and library): apt-get install -y liboctomap-dev",
         ));
     }
-    eprintln!("octree-bench: building the C++ bench: sh build.sh (in {}; about a minute) ...", work.display());
+    eprintln!("octree_bench: building the C++ bench: sh build.sh (in {}; about a minute) ...", work.display());
     let out = Command::new("sh").arg("build.sh").current_dir(work).output().context("running build.sh")?;
     if !out.status.success() {
         bail!(

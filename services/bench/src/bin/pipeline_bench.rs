@@ -1,4 +1,4 @@
-//! `pipeline-bench`: multi-process benchmarks of the pipeline's transports. `pipeline-bench
+//! `pipeline_bench`: multi-process benchmarks of the pipeline's transports. `pipeline_bench
 //! latency` measures per-hop and end-to-end latency from an external producer through chains of
 //! relay processes, iceoryx2 against copy-based socket baselines; see `pipeline_bench::latency`.
 
@@ -15,7 +15,7 @@ fn main() -> ExitCode {
         unsafe { std::env::set_var("RUST_LOG", "warn") };
     }
     let name = match &cli.command {
-        Command::Latency(_) => "pipeline-bench".to_string(),
+        Command::Latency(_) => "pipeline_bench".to_string(),
         Command::Relay(r) => format!("bench_relay{}", r.index),
     };
     let _log = pipeline_runtime::logging::init(&name, pipeline_runtime::LogFormat::Text);
@@ -26,7 +26,7 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("pipeline-bench ({name}): error: {e:#}");
+            eprintln!("pipeline_bench ({name}): error: {e:#}");
             ExitCode::FAILURE
         }
     }

@@ -1,13 +1,13 @@
-//! Command line of `pipeline-bench`: the `latency` subcommand and the hidden `relay` role the
+//! Command line of `pipeline_bench`: the `latency` subcommand and the hidden `relay` role the
 //! benchmark starts for each process of a chain.
 
 use std::path::PathBuf;
 
 use anyhow::ensure;
 
-/// `pipeline-bench` command line.
+/// `pipeline_bench` command line.
 #[derive(Debug, Clone, clap::Parser)]
-#[command(name = "pipeline-bench", about = "Multi-process benchmarks of the pipeline's transports")]
+#[command(name = "pipeline_bench", about = "Multi-process benchmarks of the pipeline's transports")]
 pub struct Cli {
     /// What to run.
     #[command(subcommand)]
@@ -67,7 +67,7 @@ pub const MAX_SIZE: usize = 64 << 20;
 /// Longest chain of relay processes.
 pub const MAX_CHAIN: usize = 16;
 
-/// Options of `pipeline-bench latency`.
+/// Options of `pipeline_bench latency`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct LatencyArgs {
     /// Payload sizes in bytes (suffixes K/KiB and M/MiB accepted: 64,64K,1M,8M).

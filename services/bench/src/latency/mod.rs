@@ -1,4 +1,4 @@
-//! `pipeline-bench latency`: how long does a message take from an external producer through a
+//! `pipeline_bench latency`: how long does a message take from an external producer through a
 //! chain of real processes, per hop and end to end, over iceoryx2 (through our runtime, and bare)
 //! and over copy-based Unix-socket baselines, for payloads from 64 B to 8 MiB, in one run?
 //!
@@ -38,7 +38,7 @@ pub fn run_and_print(args: &LatencyArgs) -> anyhow::Result<()> {
     let result = run_latency(args)?;
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
     println!(
-        "pipeline-bench latency: {} measured messages after {} warm-up per case at {} Hz, {cpus} CPUs, {:.0} s; \
+        "pipeline_bench latency: {} measured messages after {} warm-up per case at {} Hz, {cpus} CPUs, {:.0} s; \
          iceoryx2 prefix {} (removed)",
         args.samples,
         args.warmup,
@@ -76,11 +76,11 @@ pub fn run_and_print(args: &LatencyArgs) -> anyhow::Result<()> {
     }
     if let Some(path) = &args.csv {
         report::write_csv(path, &result.cases)?;
-        eprintln!("pipeline-bench: wrote {}", path.display());
+        eprintln!("pipeline_bench: wrote {}", path.display());
     }
     if let Some(path) = &args.png {
         plot::write_png(path, &result.cases).context("writing the histogram PNG")?;
-        eprintln!("pipeline-bench: wrote {}", path.display());
+        eprintln!("pipeline_bench: wrote {}", path.display());
     }
     Ok(())
 }

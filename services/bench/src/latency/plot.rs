@@ -1,4 +1,4 @@
-//! The PNG of `pipeline-bench latency`: end-to-end latency histograms, one panel per payload size
+//! The PNG of `pipeline_bench latency`: end-to-end latency histograms, one panel per payload size
 //! (for the shortest chain measured), one line per transport, on a logarithmic latency axis.
 
 use std::path::Path;

@@ -102,7 +102,7 @@ pub fn run_relay(args: &RelayArgs) -> anyhow::Result<()> {
 }
 
 fn scope() -> anyhow::Result<IoxScope> {
-    IoxScope::from_env().context("the iceoryx2 scope is not in the environment (started by pipeline-bench)")
+    IoxScope::from_env().context("the iceoryx2 scope is not in the environment (started by pipeline_bench)")
 }
 
 fn relay_iox(args: &RelayArgs, rec: &mut HopRecorder) -> anyhow::Result<()> {

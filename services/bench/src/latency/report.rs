@@ -1,4 +1,4 @@
-//! Results of `pipeline-bench latency`: one [`CaseResult`] per transport × size × chain, the table
+//! Results of `pipeline_bench latency`: one [`CaseResult`] per transport × size × chain, the table
 //! (end to end and per hop), the ratio lines against the goals, and the CSV.
 
 use std::fmt::Write as _;

@@ -46,7 +46,7 @@ impl Case {
 /// Runs every case of `args`; progress goes to stderr.
 pub fn run_latency(args: &LatencyArgs) -> anyhow::Result<LatencyResult> {
     args.validate()?;
-    let dir = tempfile::Builder::new().prefix("pipeline-bench-").tempdir().context("creating a temporary directory")?;
+    let dir = tempfile::Builder::new().prefix("pipeline_bench-").tempdir().context("creating a temporary directory")?;
     let scope =
         IoxScope { prefix: format!("lat{}_", std::process::id()), root: dir.path().join("iox"), base_config: None };
     let cleanup = ScopeCleanup { scope: scope.clone() };
@@ -63,7 +63,7 @@ pub fn run_latency(args: &LatencyArgs) -> anyhow::Result<LatencyResult> {
                 done += 1;
                 let case = Case { transport, size, chain };
                 eprintln!(
-                    "pipeline-bench: [{done}/{total}] {} {} through {chain} relay(s): {} + {} messages at {} Hz",
+                    "pipeline_bench: [{done}/{total}] {} {} through {chain} relay(s): {} + {} messages at {} Hz",
                     transport.name(),
                     size_label(size),
                     args.warmup,
@@ -168,7 +168,7 @@ fn run_case(
     };
     if let Some(e) = r.e2e {
         eprintln!(
-            "pipeline-bench:   end to end p50 {:.1} µs, p99 {:.1} µs ({} samples)",
+            "pipeline_bench:   end to end p50 {:.1} µs, p99 {:.1} µs ({} samples)",
             e.p50 as f64 / 1e3,
             e.p99 as f64 / 1e3,
             e.count

@@ -9,7 +9,7 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 use pipeline_runtime::{Flow, ProcessArgs, Runtime, StopReason, monotonic_ns};
-use recorder::{McapSink, RecorderSettings, SinkOptions, Tap, Topic};
+use recorder_stage::{McapSink, RecorderSettings, SinkOptions, Tap, Topic};
 use shared_types::services::END_OF_STREAM;
 use shared_types::{EndOfStream, WireType, name_from32};
 
@@ -213,5 +213,5 @@ fn run(args: &ProcessArgs) -> anyhow::Result<StopReason> {
 }
 
 fn main() -> ExitCode {
-    pipeline_runtime::process_main::<recorder::RecorderSettings>(run)
+    pipeline_runtime::process_main::<recorder_stage::RecorderSettings>(run)
 }

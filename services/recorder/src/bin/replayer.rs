@@ -10,7 +10,7 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 use pipeline_runtime::{Delivery, Flow, ProcessArgs, Runtime, StopReason};
-use recorder::{Emit, Replay, Replayed, ReplayerSettings, Selection, scan, topic};
+use recorder_stage::{Emit, Replay, Replayed, ReplayerSettings, Selection, scan, topic};
 use shared_types::services::service_spec;
 
 struct Replayer {
@@ -150,5 +150,5 @@ fn run(args: &ProcessArgs) -> anyhow::Result<StopReason> {
 }
 
 fn main() -> ExitCode {
-    pipeline_runtime::process_main::<recorder::ReplayerSettings>(run)
+    pipeline_runtime::process_main::<recorder_stage::ReplayerSettings>(run)
 }

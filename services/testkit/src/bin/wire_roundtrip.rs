@@ -1,4 +1,4 @@
-//! `wire-roundtrip`: sends every wire type through iceoryx2 from one process to another and checks
+//! `wire_roundtrip`: sends every wire type through iceoryx2 from one process to another and checks
 //! the bytes. `--role sub` opens a subscriber per type, prints `READY`, and exits 0 once every type
 //! arrived byte-identical (1 on a mismatch or timeout); `--role pub` sends one value of every type
 //! (and a 1000-element cloud slice) filled with a per-type byte pattern, then lingers until stopped.
@@ -215,7 +215,7 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("wire-roundtrip: {e:#}");
+            eprintln!("wire_roundtrip: {e:#}");
             ExitCode::FAILURE
         }
     }
