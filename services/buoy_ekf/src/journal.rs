@@ -8,6 +8,7 @@
 //! Lines are `t <t_s> <x> <y> <z> <heading or NaN>` and `u <t_s> <v> <δθx> <δθy> <δθz> <δt>`, numbers
 //! in Rust's shortest round-trip form. A line cut short by the kill is ignored with all after it.
 
+use pipeline_runtime::restart::StateError;
 use std::fmt::Write as _;
 use std::fs::File;
 use std::io::Write as _;
@@ -48,7 +49,7 @@ impl Journal {
     }
 
     /// Reads what a killed instance journalled (`Ok(None)` without a journal).
-    pub fn read(path: &Path) -> anyhow::Result<Option<Restored>> {
+    pub fn read(path: &Path) -> Result<Option<Restored>, StateError> {
         let Some(text) = pipeline_runtime::restart::read_state_text(path)? else { return Ok(None) };
         let mut r = Restored::default();
         r.ignored_lines = pipeline_runtime::restart::parse_lines(&text, |line| {
@@ -75,7 +76,7 @@ impl Journal {
     }
 
     /// Opens the journal: rewritten with what `restored` holds (a restart), or empty.
-    pub fn open(path: &Path, restored: Option<&Restored>) -> anyhow::Result<Self> {
+    pub fn open(path: &Path, restored: Option<&Restored>) -> Result<Self, StateError> {
         let file = pipeline_runtime::restart::create_state_file(path)?;
         let mut j = Self { path: path.into(), file };
         if let Some(r) = restored {
@@ -89,7 +90,7 @@ impl Journal {
         &mut self,
         trajectory: &[(f64, Vector3<f64>, Option<f64>)],
         inputs: &[(f64, ProcessInput)],
-    ) -> anyhow::Result<()> {
+    ) -> Result<(), StateError> {
         if trajectory.is_empty() && inputs.is_empty() {
             return Ok(());
         }
@@ -101,7 +102,7 @@ impl Journal {
             let d = u.delta_theta_rad;
             let _ = writeln!(text, "u {t} {} {} {} {} {}", u.v_mps, d.x, d.y, d.z, u.dt_s);
         }
-        self.file.write_all(text.as_bytes()).map_err(|e| anyhow::anyhow!("{}: {e}", self.path.display()))
+        self.file.write_all(text.as_bytes()).map_err(StateError::io("writing", &self.path))
     }
 }
 

@@ -9,6 +9,7 @@
 //! `o <segment> <t_s>`; numbers in Rust's shortest round-trip form. A line cut short by the kill
 //! does not parse and is ignored, as is everything after it.
 
+use pipeline_runtime::restart::StateError;
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::fs::File;
@@ -70,7 +71,7 @@ impl Journal {
     }
 
     /// Reads what a killed instance journalled (`Ok(None)` without a journal).
-    pub fn read(path: &Path) -> anyhow::Result<Option<Restored>> {
+    pub fn read(path: &Path) -> Result<Option<Restored>, StateError> {
         let Some(text) = pipeline_runtime::restart::read_state_text(path)? else { return Ok(None) };
         let mut r = Restored::default();
         r.ignored_lines = pipeline_runtime::restart::parse_lines(&text, |line| {
@@ -92,7 +93,7 @@ impl Journal {
     }
 
     /// Opens the journal: appending after what `restored` holds (a restart), or empty.
-    pub fn open(path: &Path, restored: Option<&Restored>) -> anyhow::Result<Self> {
+    pub fn open(path: &Path, restored: Option<&Restored>) -> Result<Self, StateError> {
         let file = pipeline_runtime::restart::create_state_file(path)?;
         let mut j = Self { path: path.into(), file };
         // Rewritten from what was read, so a line cut by the kill is gone.
@@ -125,19 +126,19 @@ impl Journal {
         out.push('\n');
     }
 
-    fn append(&mut self, text: &str) -> anyhow::Result<()> {
-        self.file.write_all(text.as_bytes()).map_err(|e| anyhow::anyhow!("{}: {e}", self.path.display()))
+    fn append(&mut self, text: &str) -> Result<(), StateError> {
+        self.file.write_all(text.as_bytes()).map_err(StateError::io("writing", &self.path))
     }
 
     /// Appends a trajectory sample.
-    pub fn sample(&mut self, s: &TrajectorySample) -> anyhow::Result<()> {
+    pub fn sample(&mut self, s: &TrajectorySample) -> Result<(), StateError> {
         let mut text = String::with_capacity(1024);
         Self::sample_line(&mut text, s);
         self.append(&text)
     }
 
     /// Appends a local map's origin.
-    pub fn origin(&mut self, segment: u32, t_s: f64) -> anyhow::Result<()> {
+    pub fn origin(&mut self, segment: u32, t_s: f64) -> Result<(), StateError> {
         let mut text = String::new();
         Self::origin_line(&mut text, segment, t_s);
         self.append(&text)

@@ -12,6 +12,7 @@
 //! <descriptor hex or -> <observations>` per line, replaced atomically (rename). Numbers in Rust's
 //! shortest round-trip form; a journal line cut short by the kill is ignored with all after it.
 
+use pipeline_runtime::restart::StateError;
 use std::fmt::Write as _;
 use std::fs::File;
 use std::io::Write as _;
@@ -139,7 +140,7 @@ impl Journal {
     }
 
     /// Reads what a killed instance journalled (`Ok(None)` without a journal).
-    pub fn read(path: &Path) -> anyhow::Result<Option<Restored>> {
+    pub fn read(path: &Path) -> Result<Option<Restored>, StateError> {
         let Some(text) = pipeline_runtime::restart::read_state_text(path)? else { return Ok(None) };
         let mut r = Restored::default();
         r.ignored_lines = pipeline_runtime::restart::parse_lines(&text, |line| {
@@ -149,10 +150,13 @@ impl Journal {
         if let Ok(rd) = std::fs::read_dir(&dir) {
             for entry in rd.flatten() {
                 let Some(segment) = entry.file_name().to_str().and_then(|n| n.parse::<u32>().ok()) else { continue };
-                let text = std::fs::read_to_string(entry.path())
-                    .map_err(|e| anyhow::anyhow!("{}: {e}", entry.path().display()))?;
+                let file = entry.path();
+                let text = std::fs::read_to_string(&file).map_err(StateError::io("reading", &file))?;
                 let ls: Option<Vec<MapLandmark>> = text.lines().map(parse_landmark).collect();
-                let ls = ls.ok_or_else(|| anyhow::anyhow!("{}: malformed landmark line", entry.path().display()))?;
+                let ls = ls.ok_or_else(|| StateError::Malformed {
+                    path: file.clone(),
+                    what: "a malformed landmark line".into(),
+                })?;
                 r.landmarks.push((segment, ls));
             }
         }
@@ -162,14 +166,13 @@ impl Journal {
 
     /// Opens the journal: rewritten with what `restored` holds (a restart), or empty (and the
     /// landmark files of an earlier run removed).
-    pub fn open(path: &Path, restored: Option<&Restored>) -> anyhow::Result<Self> {
-        let io = |p: &Path, e: std::io::Error| anyhow::anyhow!("{}: {e}", p.display());
+    pub fn open(path: &Path, restored: Option<&Restored>) -> Result<Self, StateError> {
         let landmarks_dir = Self::landmarks_dir(path);
         if restored.is_none() && landmarks_dir.exists() {
-            std::fs::remove_dir_all(&landmarks_dir).map_err(|e| io(&landmarks_dir, e))?;
+            std::fs::remove_dir_all(&landmarks_dir).map_err(StateError::io("removing", &landmarks_dir))?;
         }
-        std::fs::create_dir_all(&landmarks_dir).map_err(|e| io(&landmarks_dir, e))?;
-        let file = File::create(path).map_err(|e| io(path, e))?;
+        std::fs::create_dir_all(&landmarks_dir).map_err(StateError::io("creating", &landmarks_dir))?;
+        let file = File::create(path).map_err(StateError::io("creating", path))?;
         let mut j = Self { path: path.into(), landmarks_dir, file, buffer: String::new() };
         if let Some(r) = restored {
             for e in &r.entries {
@@ -204,16 +207,16 @@ impl Journal {
     }
 
     /// Writes the queued entries (one write).
-    pub fn flush(&mut self) -> anyhow::Result<()> {
+    pub fn flush(&mut self) -> Result<(), StateError> {
         if !self.buffer.is_empty() {
-            self.file.write_all(self.buffer.as_bytes()).map_err(|e| anyhow::anyhow!("{}: {e}", self.path.display()))?;
+            self.file.write_all(self.buffer.as_bytes()).map_err(StateError::io("writing", &self.path))?;
             self.buffer.clear();
         }
         Ok(())
     }
 
     /// Replaces the kept landmark map of `segment` (a temporary file renamed over it).
-    pub fn landmarks(&self, segment: u32, landmarks: &[MapLandmark]) -> anyhow::Result<()> {
+    pub fn landmarks(&self, segment: u32, landmarks: &[MapLandmark]) -> Result<(), StateError> {
         let mut text = String::with_capacity(landmarks.len() * 300);
         for l in landmarks {
             let _ = write!(text, "{} {}", l.id, l.segment);
@@ -231,9 +234,7 @@ impl Journal {
         }
         let tmp = self.landmarks_dir.join(format!(".{segment}.tmp"));
         let dest = self.landmarks_dir.join(segment.to_string());
-        std::fs::write(&tmp, text)
-            .and_then(|_| std::fs::rename(&tmp, &dest))
-            .map_err(|e| anyhow::anyhow!("{}: {e}", dest.display()))
+        std::fs::write(&tmp, text).and_then(|_| std::fs::rename(&tmp, &dest)).map_err(StateError::io("writing", &dest))
     }
 }
 

@@ -273,9 +273,38 @@ pub struct MapperState {
     pub cloud_to_octree_ms: Vec<f64>,
 }
 
+/// An error of the mapper's state: the octree, the navigable-space discovery, or a checkpoint
+/// file (named).
+#[derive(Debug, thiserror::Error)]
+pub enum MapperError {
+    /// The occupancy octree refused an operation.
+    #[error(transparent)]
+    Octree(#[from] octree::OctreeError),
+    /// The navigable-space discovery failed (invalid settings).
+    #[error(transparent)]
+    Navigable(#[from] navigable::NavigableError),
+    /// A checkpoint file could not be written or read.
+    #[error("{}: {source}", path.display())]
+    CheckpointIo {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A checkpoint file is not a map this mapper can start from.
+    #[error("{}: {what}", path.display())]
+    BadCheckpoint {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What is wrong.
+        what: String,
+    },
+}
+
 impl MapperState {
     /// A new state (settings validated).
-    pub fn new(settings: MapperSettings) -> anyhow::Result<Self> {
+    pub fn new(settings: MapperSettings) -> Result<Self, MapperError> {
         let mut tree = OcTree::with_model(settings.resolution_m, settings.sensor.model())?;
         tree.set_ray_threads(settings.ray_threads);
         let m = &settings.mount;
@@ -301,34 +330,33 @@ impl MapperState {
     }
 
     /// Writes the occupancy checkpoint (max-likelihood `.bt`, a temporary file renamed over it).
-    pub fn write_checkpoint(&self, path: &std::path::Path) -> anyhow::Result<()> {
+    pub fn write_checkpoint(&self, path: &std::path::Path) -> Result<(), MapperError> {
+        let io = |source| MapperError::CheckpointIo { path: path.to_path_buf(), source };
         if let Some(dir) = path.parent() {
-            std::fs::create_dir_all(dir)?;
+            std::fs::create_dir_all(dir).map_err(io)?;
         }
         let tmp = path.with_extension("bt.tmp");
         self.tree.write_binary_file(&tmp)?;
-        std::fs::rename(&tmp, path)?;
+        std::fs::rename(&tmp, path).map_err(io)?;
         Ok(())
     }
 
     /// Starts from a checkpoint a killed instance wrote: its occupied and free voxels at the
     /// clamping log-odds (a `.bt` keeps the max-likelihood map only). `Ok(false)` without one.
     /// The points per voxel behind the navigable-space layers are not in it.
-    pub fn restore_checkpoint(&mut self, path: &std::path::Path) -> anyhow::Result<bool> {
+    pub fn restore_checkpoint(&mut self, path: &std::path::Path) -> Result<bool, MapperError> {
         let file = match std::fs::File::open(path) {
             Ok(f) => f,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(false),
-            Err(e) => return Err(anyhow::anyhow!("{}: {e}", path.display())),
+            Err(source) => return Err(MapperError::CheckpointIo { path: path.to_path_buf(), source }),
         };
         let mut tree = OcTree::read_binary_with_model(std::io::BufReader::new(file), self.settings.sensor.model())
-            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            .map_err(|e| MapperError::BadCheckpoint { path: path.to_path_buf(), what: e.to_string() })?;
         if (tree.resolution() - self.settings.resolution_m).abs() > 1e-9 {
-            anyhow::bail!(
-                "{}: resolution {} m, the settings say {} m",
-                path.display(),
-                tree.resolution(),
-                self.settings.resolution_m
-            );
+            return Err(MapperError::BadCheckpoint {
+                path: path.to_path_buf(),
+                what: format!("resolution {} m, the settings say {} m", tree.resolution(), self.settings.resolution_m),
+            });
         }
         tree.set_ray_threads(self.settings.ray_threads);
         self.tree = tree;
@@ -363,7 +391,7 @@ impl MapperState {
 
     /// The process's `step`: inserts at most `max_clouds` clouds whose pose is known, in order;
     /// drops clouds that can have none. `flush` (the inputs ended) ends the waits.
-    pub fn step(&mut self, now: Instant, flush: bool, max_clouds: usize) -> anyhow::Result<usize> {
+    pub fn step(&mut self, now: Instant, flush: bool, max_clouds: usize) -> Result<usize, MapperError> {
         let mut inserted = 0;
         while inserted < max_clouds
             && let Some(c) = self.pending.front()
@@ -397,7 +425,7 @@ impl MapperState {
         Ok(inserted)
     }
 
-    fn insert(&mut self, c: &PendingCloud, world_from_sensor: &Isometry3<f64>) -> anyhow::Result<()> {
+    fn insert(&mut self, c: &PendingCloud, world_from_sensor: &Isometry3<f64>) -> Result<(), MapperError> {
         let t0 = Instant::now();
         let origin = world_from_sensor.translation.vector;
         let world: Vec<[f32; 3]> = c
@@ -438,7 +466,7 @@ impl MapperState {
     }
 
     /// Navigable space and obstacles over the occupied voxels of the map.
-    pub fn discover(&self) -> anyhow::Result<Discovery> {
+    pub fn discover(&self) -> Result<Discovery, MapperError> {
         let res = self.settings.resolution_m;
         let tree = &self.tree;
         let occupied = |k: &navigable::VoxelKey| {

@@ -9,7 +9,37 @@
 use std::fs::File;
 use std::path::{Path, PathBuf};
 
-use anyhow::Context as _;
+/// An error with a process's restart state: the file and what was being done are named.
+#[derive(Debug, thiserror::Error)]
+pub enum StateError {
+    /// Reading, creating or writing a state file failed.
+    #[error("{action} the restart state {}: {source}", path.display())]
+    Io {
+        /// What was being done ("reading", "creating", "writing").
+        action: &'static str,
+        /// The file (or its directory).
+        path: PathBuf,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A state file holds something that cannot be restored.
+    #[error("the restart state {}: {what}", path.display())]
+    Malformed {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        what: String,
+    },
+}
+
+impl StateError {
+    /// An I/O error while `action` on `path`.
+    pub fn io(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> StateError + use<> {
+        let path = path.to_path_buf();
+        move |source| StateError::Io { action, path, source }
+    }
+}
 
 /// Environment variable in which the supervisor gives the number of restarts before this instance.
 pub const ENV_RESTARTS: &str = "SLAM_PIPELINE_RESTARTS";
@@ -30,20 +60,20 @@ pub fn state_path(out_dir: &Path, process: &str, extension: &str) -> PathBuf {
 }
 
 /// The text of a state file, `None` if there is none.
-pub fn read_state_text(path: &Path) -> anyhow::Result<Option<String>> {
+pub fn read_state_text(path: &Path) -> Result<Option<String>, StateError> {
     match std::fs::read_to_string(path) {
         Ok(t) => Ok(Some(t)),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
-        Err(e) => Err(e).with_context(|| format!("reading the restart state {}", path.display())),
+        Err(e) => Err(StateError::io("reading", path)(e)),
     }
 }
 
 /// Creates (truncating) a state file and its directory.
-pub fn create_state_file(path: &Path) -> anyhow::Result<File> {
+pub fn create_state_file(path: &Path) -> Result<File, StateError> {
     if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        std::fs::create_dir_all(dir).map_err(StateError::io("creating the directory of", path))?;
     }
-    File::create(path).with_context(|| format!("creating the restart state {}", path.display()))
+    File::create(path).map_err(StateError::io("creating", path))
 }
 
 /// Feeds the lines of a journal to `parse` until one does not parse (returns false): that line,
