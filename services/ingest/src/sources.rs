@@ -73,15 +73,56 @@ impl Item {
     }
 }
 
+/// An error of a source: the data set or file (named), the simulator's settings, or writing the
+/// source's outputs.
+#[derive(Debug, thiserror::Error)]
+pub enum SourceError {
+    /// A data file is unreadable (named with its line where there is one).
+    #[error(transparent)]
+    Data(#[from] datasets::DatasetError),
+    /// A depth image or its intrinsics are invalid.
+    #[error(transparent)]
+    Depth(#[from] datasets::DepthError),
+    /// The simulator refused its settings.
+    #[error(transparent)]
+    Sim(#[from] sim::SimError),
+    /// Writing an output of the source (scene.json, a trajectory) failed.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file or directory.
+        path: std::path::PathBuf,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The source's settings name something that is not there or cannot be used.
+    #[error("{0}")]
+    Settings(String),
+}
+
+fn io_at(path: &Path) -> impl FnOnce(std::io::Error) -> SourceError + use<> {
+    let path = path.to_path_buf();
+    move |source| SourceError::Io { path, source }
+}
+
+/// Writes `scene.json` (pretty JSON) into `out_dir`.
+fn write_scene(out_dir: &Path, scene: &serde_json::Value) -> Result<(), SourceError> {
+    std::fs::create_dir_all(out_dir).map_err(io_at(out_dir))?;
+    let path = out_dir.join("scene.json");
+    let text =
+        serde_json::to_vec_pretty(scene).map_err(|e| SourceError::Io { path: path.clone(), source: e.into() })?;
+    std::fs::write(&path, text).map_err(io_at(&path))
+}
+
 /// A source of items.
 pub trait Source {
     /// The next item, `None` at the end.
-    fn next_item(&mut self) -> anyhow::Result<Option<Item>>;
+    fn next_item(&mut self) -> Result<Option<Item>, SourceError>;
     /// Fraction done in [0, 1], when known.
     fn progress(&self) -> Option<f64>;
     /// Called once after the last item: writes other outputs to `out_dir` (the ground truth is
     /// written as it becomes known: see [`Source::truth`]).
-    fn finish(&mut self, out_dir: &Path) -> anyhow::Result<()>;
+    fn finish(&mut self, out_dir: &Path) -> Result<(), SourceError>;
     /// One line describing the source, for the log.
     fn describe(&self) -> String;
     /// Appends to `out` the ground truth known so far from sample `from` on (`world_from_body` at
@@ -158,9 +199,8 @@ pub struct SimSource {
 
 impl SimSource {
     /// Builds the simulator and writes `scene.json` into `out_dir`.
-    pub fn new(config: sim::SimConfig, out_dir: &Path) -> anyhow::Result<Self> {
+    pub fn new(config: sim::SimConfig, out_dir: &Path) -> Result<Self, SourceError> {
         let sim = sim::Simulator::new(config)?;
-        std::fs::create_dir_all(out_dir)?;
         let scene = serde_json::json!({
             "scene": sim.scene(),
             "mission": sim.config().mission,
@@ -171,7 +211,7 @@ impl SimSource {
                 "rotation_xyzw": quat_to_xyzw(&sim.body_from_stereo().rotation),
             },
         });
-        std::fs::write(out_dir.join("scene.json"), serde_json::to_vec_pretty(&scene)?)?;
+        write_scene(out_dir, &scene)?;
         let expected_s = sim.expected_duration_s();
         Ok(Self { sim, expected_s })
     }
@@ -236,7 +276,7 @@ impl SimSource {
 }
 
 impl Source for SimSource {
-    fn next_item(&mut self) -> anyhow::Result<Option<Item>> {
+    fn next_item(&mut self) -> Result<Option<Item>, SourceError> {
         Ok(self.sim.next().map(Self::to_item))
     }
 
@@ -244,7 +284,7 @@ impl Source for SimSource {
         Some((self.sim.time_s() / self.expected_s).min(1.0))
     }
 
-    fn finish(&mut self, _out_dir: &Path) -> anyhow::Result<()> {
+    fn finish(&mut self, _out_dir: &Path) -> Result<(), SourceError> {
         Ok(())
     }
 
@@ -268,10 +308,10 @@ pub fn file_source(
     settings: &crate::IngestSettings,
     config_dir: &Path,
     _out_dir: &Path,
-) -> anyhow::Result<Box<dyn Source>> {
+) -> Result<Box<dyn Source>, SourceError> {
     use crate::SourceKind::*;
     Ok(match kind {
-        Sim | StereoSim => anyhow::bail!("a simulator is not a file source"),
+        Sim | StereoSim => return Err(SourceError::Settings("a simulator is not a file source".into())),
         Plaza2 => Box::new(Plaza2Source::load(&crate::resolve(config_dir, &settings.plaza2.dir), &settings.plaza2)?),
         StereoVo => {
             Box::new(StereoVoSource::load(&crate::resolve(config_dir, &settings.stereo_vo.dir), &settings.stereo_vo)?)
@@ -315,7 +355,7 @@ pub struct Plaza2Source {
 impl Plaza2Source {
     /// Loads the four files of `dir` (the run's prefix from the settings, else found in `dir`).
     /// Lines out of time order are sorted into place, counted and warned about once per file.
-    pub fn load(dir: &Path, settings: &crate::Plaza2Settings) -> anyhow::Result<Self> {
+    pub fn load(dir: &Path, settings: &crate::Plaza2Settings) -> Result<Self, SourceError> {
         let data = match &settings.prefix {
             Some(prefix) => datasets::Plaza2::load_with_prefix(dir, prefix)?,
             None => datasets::Plaza2::load(dir)?,
@@ -380,7 +420,7 @@ impl Plaza2Source {
 }
 
 impl Source for Plaza2Source {
-    fn next_item(&mut self) -> anyhow::Result<Option<Item>> {
+    fn next_item(&mut self) -> Result<Option<Item>, SourceError> {
         loop {
             let t_odo = self.data.odometry.get(self.next_odo).map(|r| r.t_s);
             let t_rng = self.data.ranges.get(self.next_range).map(|r| r.t_s);
@@ -434,7 +474,7 @@ impl Source for Plaza2Source {
             .collect()
     }
 
-    fn finish(&mut self, _out_dir: &Path) -> anyhow::Result<()> {
+    fn finish(&mut self, _out_dir: &Path) -> Result<(), SourceError> {
         if self.skipped_odometry > 0 {
             tracing::warn!(rows = self.skipped_odometry, "Plaza2 odometry rows skipped (time not advancing)");
         }
@@ -469,7 +509,7 @@ pub struct StereoVoSource {
 
 impl StereoVoSource {
     /// Loads the data set in `dir`.
-    pub fn load(dir: &Path, settings: &crate::StereoVoSettings) -> anyhow::Result<Self> {
+    pub fn load(dir: &Path, settings: &crate::StereoVoSettings) -> Result<Self, SourceError> {
         let vo = datasets::StereoVo::load(dir)?;
         let c = vo.calibration;
         let rig = geometry::StereoRig {
@@ -495,7 +535,7 @@ impl StereoVoSource {
 }
 
 impl Source for StereoVoSource {
-    fn next_item(&mut self) -> anyhow::Result<Option<Item>> {
+    fn next_item(&mut self) -> Result<Option<Item>, SourceError> {
         let Some(frame) = self.frames.get(self.next) else { return Ok(None) };
         self.next += 1;
         let mut observations = Vec::with_capacity(frame.observations.len());
@@ -524,7 +564,7 @@ impl Source for StereoVoSource {
         Some(self.next as f64 / self.frames.len().max(1) as f64)
     }
 
-    fn finish(&mut self, out_dir: &Path) -> anyhow::Result<()> {
+    fn finish(&mut self, out_dir: &Path) -> Result<(), SourceError> {
         // The data set's own VO poses, for comparison with the SLAM trajectory (e.g. with evo).
         let poses: Vec<(f64, Isometry3<f64>)> = self
             .poses
@@ -539,7 +579,8 @@ impl Source for StereoVoSource {
                 (p.frame_id as f64 / self.rate_hz, iso)
             })
             .collect();
-        write_tum(&out_dir.join("vo_camera_poses.tum"), poses.iter().map(|(t, p)| (*t, p)))?;
+        let path = out_dir.join("vo_camera_poses.tum");
+        write_tum(&path, poses.iter().map(|(t, p)| (*t, p))).map_err(io_at(&path))?;
         Ok(())
     }
 
@@ -568,9 +609,8 @@ pub struct StereoSimSource {
 
 impl StereoSimSource {
     /// Builds the drive and writes `scene.json` (the camera mounting) into `out_dir`.
-    pub fn new(settings: &crate::StereoSimSettings, out_dir: &Path) -> anyhow::Result<Self> {
+    pub fn new(settings: &crate::StereoSimSettings, out_dir: &Path) -> Result<Self, SourceError> {
         let sim = sim::road::RoadSim::new(settings.drive.clone())?;
-        std::fs::create_dir_all(out_dir)?;
         let b = sim.body_from_camera();
         let scene = serde_json::json!({
             "drive": sim.config(),
@@ -581,13 +621,13 @@ impl StereoSimSource {
                 "rotation_xyzw": quat_to_xyzw(&b.rotation),
             },
         });
-        std::fs::write(out_dir.join("scene.json"), serde_json::to_vec_pretty(&scene)?)?;
+        write_scene(out_dir, &scene)?;
         Ok(Self { sim, track_ids: settings.track_ids, features: 0 })
     }
 }
 
 impl Source for StereoSimSource {
-    fn next_item(&mut self) -> anyhow::Result<Option<Item>> {
+    fn next_item(&mut self) -> Result<Option<Item>, SourceError> {
         let Some(frame) = self.sim.next() else { return Ok(None) };
         let flags = STEREO_HAS_PIXELS | if self.track_ids { STEREO_HAS_TRACK_ID } else { 0 };
         self.features += frame.observations.len() as u64;
@@ -613,7 +653,7 @@ impl Source for StereoSimSource {
         Some(self.sim.progress())
     }
 
-    fn finish(&mut self, _out_dir: &Path) -> anyhow::Result<()> {
+    fn finish(&mut self, _out_dir: &Path) -> Result<(), SourceError> {
         tracing::info!(
             dropped_frames = self.sim.dropped(),
             "{} frames dropped by the simulated camera, as configured",
@@ -664,10 +704,12 @@ type PosedCloud = (Option<Isometry3<f64>>, Vec<[f32; 3]>);
 
 impl CloudFileSource {
     /// Checks that every file exists.
-    pub fn new(config_dir: &Path, settings: &crate::CloudFileSettings) -> anyhow::Result<Self> {
+    pub fn new(config_dir: &Path, settings: &crate::CloudFileSettings) -> Result<Self, SourceError> {
         let files: Vec<_> = settings.files.iter().map(|f| crate::resolve(config_dir, f)).collect();
         for f in &files {
-            anyhow::ensure!(f.is_file(), "cloud file {} does not exist", f.display());
+            if !f.is_file() {
+                return Err(SourceError::Settings(format!("cloud file {} does not exist", f.display())));
+            }
         }
         Ok(Self {
             files,
@@ -679,7 +721,7 @@ impl CloudFileSource {
         })
     }
 
-    fn load(path: &Path) -> anyhow::Result<Vec<PosedCloud>> {
+    fn load(path: &Path) -> Result<Vec<PosedCloud>, SourceError> {
         let name = path.to_string_lossy().to_lowercase();
         if name.ends_with(".ply") {
             Ok(vec![(None, datasets::read_ply(path)?)])
@@ -691,7 +733,7 @@ impl CloudFileSource {
 }
 
 impl Source for CloudFileSource {
-    fn next_item(&mut self) -> anyhow::Result<Option<Item>> {
+    fn next_item(&mut self) -> Result<Option<Item>, SourceError> {
         while self.queued.is_empty() {
             if self.next_file >= self.files.len() * self.repeat as usize {
                 return Ok(None);
@@ -713,7 +755,7 @@ impl Source for CloudFileSource {
         Some(self.next_file as f64 / (self.files.len() * self.repeat as usize).max(1) as f64)
     }
 
-    fn finish(&mut self, _out_dir: &Path) -> anyhow::Result<()> {
+    fn finish(&mut self, _out_dir: &Path) -> Result<(), SourceError> {
         Ok(())
     }
 
@@ -732,10 +774,12 @@ pub struct DepthImageSource {
 
 impl DepthImageSource {
     /// Checks the files and intrinsics.
-    pub fn new(config_dir: &Path, settings: &crate::DepthImageSettings) -> anyhow::Result<Self> {
+    pub fn new(config_dir: &Path, settings: &crate::DepthImageSettings) -> Result<Self, SourceError> {
         let files: Vec<_> = settings.files.iter().map(|f| crate::resolve(config_dir, f)).collect();
         for f in &files {
-            anyhow::ensure!(f.is_file(), "depth image {} does not exist", f.display());
+            if !f.is_file() {
+                return Err(SourceError::Settings(format!("depth image {} does not exist", f.display())));
+            }
         }
         let intrinsics = datasets::DepthIntrinsics {
             fx: settings.fx_px,
@@ -752,18 +796,19 @@ impl DepthImageSource {
 }
 
 impl Source for DepthImageSource {
-    fn next_item(&mut self) -> anyhow::Result<Option<Item>> {
+    fn next_item(&mut self) -> Result<Option<Item>, SourceError> {
         let Some(path) = self.files.get(self.next) else { return Ok(None) };
         self.next += 1;
         let is_png = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("png"));
         let image = if is_png {
             datasets::read_depth_png(path)?
         } else {
-            anyhow::ensure!(
-                self.settings.raw_width > 0 && self.settings.raw_height > 0,
-                "{}: raw depth images need depth_images.raw_width and raw_height",
-                path.display()
-            );
+            if self.settings.raw_width == 0 || self.settings.raw_height == 0 {
+                return Err(SourceError::Settings(format!(
+                    "{}: raw depth images need depth_images.raw_width and raw_height",
+                    path.display()
+                )));
+            }
             datasets::read_depth_raw(path, self.settings.raw_width, self.settings.raw_height)?
         };
         let points = datasets::back_project(&image, &self.intrinsics, self.settings.stride)?;
@@ -778,7 +823,7 @@ impl Source for DepthImageSource {
         Some(self.next as f64 / self.files.len().max(1) as f64)
     }
 
-    fn finish(&mut self, _out_dir: &Path) -> anyhow::Result<()> {
+    fn finish(&mut self, _out_dir: &Path) -> Result<(), SourceError> {
         Ok(())
     }
 
