@@ -109,6 +109,12 @@ pub trait Stage: Sized {
 
     /// `(last_seq, messages_sent)` of the stage's main output, for its end of stream.
     fn end_of_stream(&self) -> (u64, u64);
+
+    /// Whether the runtime sends this stage's end of stream after [`Stage::finish`] (a replayer
+    /// told not to, because the recording carries the ends of stream of the processes it replays).
+    fn sends_end_of_stream(&self) -> bool {
+        true
+    }
 }
 
 /// Writes a summary part (`<out>/parts/<process>.json`).
@@ -148,8 +154,10 @@ pub fn run_stage<S: Stage>(ctx: &ProcessContext, rt: &mut Runtime, mut stage: S)
         if step == Step::Done || (over && step == Step::Idle) {
             let part = stage.finish(rt, Ending::EndOfStream)?;
             write_summary_part(&out_dir, &name, &with_failures(rt, part))?;
-            let (last_seq, sent) = stage.end_of_stream();
-            rt.send_end_of_stream(last_seq, sent)?;
+            if stage.sends_end_of_stream() {
+                let (last_seq, sent) = stage.end_of_stream();
+                rt.send_end_of_stream(last_seq, sent)?;
+            }
             done = true;
         }
         Ok(Flow::Continue)

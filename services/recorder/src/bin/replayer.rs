@@ -6,11 +6,11 @@
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::path::Path;
-use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
-use pipeline_runtime::{Delivery, Flow, ProcessArgs, Runtime, StopReason};
-use recorder_stage::{Emit, Replay, Replayed, ReplayerSettings, Selection, scan, topic};
+use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
+use pipeline_runtime::{Delivery, ProcessContext, Runtime, Wake};
+use recorder_stage::{Emit, Replay, Replayed, ReplayerSettings, ScanReport, Selection, scan, topic};
 use shared_types::services::service_spec;
 
 struct Replayer {
@@ -24,11 +24,14 @@ struct Replayer {
     undelivered: BTreeMap<&'static str, u64>,
     done: bool,
     started: Instant,
+    settings: ReplayerSettings,
+    path: std::path::PathBuf,
+    report: ScanReport,
 }
 
 impl Replayer {
     /// Publishes every message that is due; asks to be woken for the next one.
-    fn pump(&mut self, rt: &mut Runtime, send_eos: bool) -> anyhow::Result<()> {
+    fn pump(&mut self, rt: &mut Runtime) -> anyhow::Result<()> {
         if Instant::now() < self.publish_from {
             for e in self.emitters.values() {
                 e.nudge()?;
@@ -43,9 +46,6 @@ impl Replayer {
             }
             let Some(m) = self.pending.take() else {
                 let total: u64 = self.sent.values().sum();
-                if send_eos {
-                    rt.send_end_of_stream(total.saturating_sub(1), total)?;
-                }
                 tracing::info!(
                     messages = total,
                     "replay finished in {:.1} s (held back at most {} messages to restore the publish order)",
@@ -84,71 +84,88 @@ impl Replayer {
     }
 }
 
-fn run(args: &ProcessArgs) -> anyhow::Result<StopReason> {
-    let (ctx, mut rt) = Runtime::start(args)?;
-    let settings: ReplayerSettings = ctx.settings()?;
-    let config_dir = ctx.config.source.parent().unwrap_or(Path::new(".")).to_path_buf();
-    let path = settings.path(&config_dir);
-    // Ends of stream recorded from processes of this config are theirs to send again.
-    let own: BTreeSet<String> = ctx.config.processes.keys().cloned().collect();
-    let selection = Selection::new(&settings.topics, own);
-    let (rank, report) = scan(&path, &selection)?;
-    tracing::info!(file = %path.display(), messages = rank.len(), topics = ?report.selected, "recording checked");
-    let delivery = if settings.speed > 0.0 {
-        Delivery::DiscardWhenFull
-    } else {
-        Delivery::WaitWhenFull {
-            max_wait: (settings.backpressure_max_wait_s > 0.0)
-                .then(|| Duration::from_secs_f64(settings.backpressure_max_wait_s)),
+impl Stage for Replayer {
+    type Settings = ReplayerSettings;
+
+    fn open(ctx: &ProcessContext, settings: ReplayerSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+        let config_dir = ctx.config.source.parent().unwrap_or(Path::new(".")).to_path_buf();
+        let path = settings.path(&config_dir);
+        // Ends of stream recorded from processes of this config are theirs to send again.
+        let own: BTreeSet<String> = ctx.config.processes.keys().cloned().collect();
+        let selection = Selection::new(&settings.topics, own);
+        let (rank, report) = scan(&path, &selection)?;
+        tracing::info!(file = %path.display(), messages = rank.len(), topics = ?report.selected, "recording checked");
+        let delivery = if settings.speed > 0.0 {
+            Delivery::DiscardWhenFull
+        } else {
+            Delivery::WaitWhenFull {
+                max_wait: (settings.backpressure_max_wait_s > 0.0)
+                    .then(|| Duration::from_secs_f64(settings.backpressure_max_wait_s)),
+            }
+        };
+        let mut emitters = HashMap::new();
+        for service in report.selected.keys() {
+            let (Some(t), Some(spec)) = (topic(service), service_spec(service)) else { continue };
+            emitters.insert(t.service, t.emitter(rt, &spec.qos, delivery)?);
         }
-    };
-    let mut emitters = HashMap::new();
-    for service in report.selected.keys() {
-        let (Some(t), Some(spec)) = (topic(service), service_spec(service)) else { continue };
-        emitters.insert(t.service, t.emitter(&mut rt, &spec.qos, delivery)?);
+        let replay = Replay::new(&path, selection, rank)?;
+        let st = Replayer {
+            replay,
+            emitters,
+            pending: None,
+            speed: settings.speed,
+            anchor: None,
+            publish_from: Instant::now() + Duration::from_secs_f64(settings.connect_grace_s),
+            sent: BTreeMap::new(),
+            undelivered: BTreeMap::new(),
+            done: false,
+            started: Instant::now(),
+            settings,
+            path,
+            report,
+        };
+        rt.wake_at(Instant::now());
+        Ok(st)
     }
-    let replay = Replay::new(&path, selection, rank)?;
-    let mut st = Replayer {
-        replay,
-        emitters,
-        pending: None,
-        speed: settings.speed,
-        anchor: None,
-        publish_from: Instant::now() + Duration::from_secs_f64(settings.connect_grace_s),
-        sent: BTreeMap::new(),
-        undelivered: BTreeMap::new(),
-        done: false,
-        started: Instant::now(),
-    };
-    rt.wake_at(Instant::now());
-    let send_eos = settings.send_end_of_stream;
-    // After the end of stream the process stays up (its samples stay valid) until it is stopped.
-    let stop = rt.run(&mut st, Some(Duration::from_millis(500)), |rt, st, _| {
-        if !st.done {
-            st.pump(rt, send_eos)?;
-        }
-        Ok(Flow::Continue)
-    });
-    let part = serde_json::json!({ "replayer": {
-        "file": path.display().to_string(),
-        "speed": settings.speed,
-        "in_file": report.in_file,
-        "selected": report.selected,
-        "sent": st.sent,
-        "undelivered": st.undelivered,
-        "skipped_end_of_stream": report.skipped_end_of_stream,
-        "received_out_of_publish_order": report.reordered,
-        "max_held": st.replay.max_held,
-        "complete": st.done,
-    }});
-    let part_path = ctx.summary_part_path();
-    if let Some(dir) = part_path.parent() {
-        std::fs::create_dir_all(dir)?;
+
+    fn end_after(&self) -> EndAfter {
+        EndAfter::Itself
     }
-    std::fs::write(part_path, serde_json::to_vec_pretty(&part)?)?;
-    stop
+
+    fn tick(&self) -> Option<Duration> {
+        Some(Duration::from_millis(500))
+    }
+
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> anyhow::Result<Step> {
+        self.pump(rt)?;
+        Ok(if self.done { Step::Done } else { Step::Idle })
+    }
+
+    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> anyhow::Result<serde_json::Value> {
+        Ok(serde_json::json!({ "replayer": {
+            "file": self.path.display().to_string(),
+            "speed": self.settings.speed,
+            "in_file": self.report.in_file,
+            "selected": self.report.selected,
+            "sent": self.sent,
+            "undelivered": self.undelivered,
+            "skipped_end_of_stream": self.report.skipped_end_of_stream,
+            "received_out_of_publish_order": self.report.reordered,
+            "max_held": self.replay.max_held,
+            "complete": self.done,
+        }}))
+    }
+
+    fn end_of_stream(&self) -> (u64, u64) {
+        let total: u64 = self.sent.values().sum();
+        (total.saturating_sub(1), total)
+    }
+
+    fn sends_end_of_stream(&self) -> bool {
+        self.settings.send_end_of_stream
+    }
 }
 
-fn main() -> ExitCode {
-    pipeline_runtime::process_main::<recorder_stage::ReplayerSettings>(run)
+fn main() -> std::process::ExitCode {
+    pipeline_runtime::stage_main::<Replayer>()
 }
