@@ -257,7 +257,7 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Tap for FixedTap<
         while let Some(s) = self.input.receive()? {
             n += 1;
             sink(Received {
-                publisher: s.origin().value(),
+                publisher: s.publisher_id(),
                 msg: *s.user_header().msg(),
                 header: s.user_header().as_bytes(),
                 payload: s.payload().as_bytes(),
@@ -289,7 +289,7 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Tap for SliceTap<
         while let Some(s) = self.input.receive()? {
             n += 1;
             sink(Received {
-                publisher: s.origin().value(),
+                publisher: s.publisher_id(),
                 msg: *s.user_header().msg(),
                 header: s.user_header().as_bytes(),
                 payload: slice_bytes(s.payload()),

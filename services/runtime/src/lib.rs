@@ -13,6 +13,7 @@ pub mod restart;
 pub mod runtime;
 pub mod stage;
 pub mod stats;
+pub mod testing;
 pub mod validate;
 
 pub use clock::monotonic_ns;

@@ -6,10 +6,12 @@
 //! left it 0, i.e. for sensor sources), sends and notifies. [`Input`] receives and records hop and
 //! end-to-end latency into the port's histograms before handing the sample to the caller.
 
+use std::any::Any;
 use std::cell::RefCell;
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::fmt::Debug;
 use std::mem::MaybeUninit;
+use std::ops::Deref;
 use std::rc::Rc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
@@ -86,6 +88,21 @@ pub trait Payload: Debug + IceoryxSend + 'static {
         name: &str,
         qos: &Qos,
     ) -> Result<PortFactory<ipc::Service, Self, H>, PortError>;
+
+    /// Receives from an iceoryx2 subscriber of this payload.
+    fn receive_shm<H: Header>(
+        subscriber: &Subscriber<ipc::Service, Self, H>,
+        service: &str,
+    ) -> Result<Option<Sample<ipc::Service, Self, H>>, PortError>;
+
+    /// The payload of a received sample.
+    fn sample_payload<H: Header>(sample: &Sample<ipc::Service, Self, H>) -> &Self;
+
+    /// The payload of a loaned sample.
+    fn loaned_payload<H: Header>(sample: &SampleMut<ipc::Service, Self, H>) -> &Self;
+
+    /// The payload of a loaned sample, to write.
+    fn loaned_payload_mut<H: Header>(sample: &mut SampleMut<ipc::Service, Self, H>) -> &mut Self;
 }
 
 macro_rules! open_with_qos {
@@ -132,6 +149,25 @@ impl<T: Debug + ZeroCopySend + 'static> Payload for T {
             qos
         )
     }
+
+    fn receive_shm<H: Header>(
+        subscriber: &Subscriber<ipc::Service, Self, H>,
+        service: &str,
+    ) -> Result<Option<Sample<ipc::Service, Self, H>>, PortError> {
+        subscriber.receive().map_err(|e| io_err(service, "receive", e))
+    }
+
+    fn sample_payload<H: Header>(sample: &Sample<ipc::Service, Self, H>) -> &Self {
+        sample.payload()
+    }
+
+    fn loaned_payload<H: Header>(sample: &SampleMut<ipc::Service, Self, H>) -> &Self {
+        sample.payload()
+    }
+
+    fn loaned_payload_mut<H: Header>(sample: &mut SampleMut<ipc::Service, Self, H>) -> &mut Self {
+        sample.payload_mut()
+    }
 }
 
 impl<T: Debug + ZeroCopySend + 'static> Payload for [T] {
@@ -145,6 +181,25 @@ impl<T: Debug + ZeroCopySend + 'static> Payload for [T] {
             name,
             qos
         )
+    }
+
+    fn receive_shm<H: Header>(
+        subscriber: &Subscriber<ipc::Service, Self, H>,
+        service: &str,
+    ) -> Result<Option<Sample<ipc::Service, Self, H>>, PortError> {
+        subscriber.receive().map_err(|e| io_err(service, "receive", e))
+    }
+
+    fn sample_payload<H: Header>(sample: &Sample<ipc::Service, Self, H>) -> &Self {
+        sample.payload()
+    }
+
+    fn loaned_payload<H: Header>(sample: &SampleMut<ipc::Service, Self, H>) -> &Self {
+        sample.payload()
+    }
+
+    fn loaned_payload_mut<H: Header>(sample: &mut SampleMut<ipc::Service, Self, H>) -> &mut Self {
+        sample.payload_mut()
     }
 }
 
@@ -295,14 +350,24 @@ impl PortBackpressure {
     }
 }
 
-/// A publisher with its notifier.
+/// A publisher with its notifier, or (under [`crate::testing`]) an in-process queue.
 pub struct Output<P: Payload + ?Sized, H: Header> {
     service: String,
+    stats: Rc<RefCell<PortStats>>,
+    seq: u64,
+    link: OutLink<P, H>,
+}
+
+enum OutLink<P: Payload + ?Sized, H: Header> {
+    Shm(Box<ShmOutput<P, H>>),
+    Local(Rc<LocalQueue<P, H>>),
+}
+
+/// The iceoryx2 side of an [`Output`].
+struct ShmOutput<P: Payload + ?Sized, H: Header> {
     factory: PortFactory<ipc::Service, P, H>,
     publisher: Publisher<ipc::Service, P, H>,
     notifier: Notifier<ipc::Service>,
-    stats: Rc<RefCell<PortStats>>,
-    seq: u64,
     bp: Arc<PortBackpressure>,
     /// Subscriber count when the receivers' names were last read.
     known_subscribers: Option<usize>,
@@ -330,9 +395,51 @@ impl<P: Payload + ?Sized, H: Header> Output<P, H> {
     /// Wakes the subscribers without sending data: a woken subscriber attaches to this publisher
     /// (a source calls this while it waits for its subscribers before the first message).
     pub fn nudge(&self) -> Result<(), PortError> {
-        self.notifier.notify().map(|_| ()).map_err(|e| io_err(&self.service, "notify", e))
+        match &self.link {
+            OutLink::Shm(o) => o.notifier.notify().map(|_| ()).map_err(|e| io_err(&self.service, "notify", e)),
+            OutLink::Local(_) => Ok(()),
+        }
     }
 
+    /// Subscribers currently registered on the service (connected or not yet); an in-process
+    /// output has one, its test.
+    pub fn subscribers(&self) -> usize {
+        match &self.link {
+            OutLink::Shm(o) => o.subscribers(),
+            OutLink::Local(_) => 1,
+        }
+    }
+
+    /// Stamps `seq`, `publish_ns` (and `origin_ns = publish_ns` when it is 0), sends and wakes
+    /// the subscribers. Returns the number of subscribers that received the sample.
+    pub fn send(&mut self, mut sample: Loaned<P, H>) -> Result<usize, PortError> {
+        let h = sample.user_header_mut().msg_mut();
+        h.seq = self.seq;
+        h.publish_ns = monotonic_ns();
+        if h.origin_ns == 0 {
+            h.origin_ns = h.publish_ns;
+        }
+        let n = match (&mut self.link, sample) {
+            (OutLink::Shm(o), Loaned::Shm(sample)) => o.send(sample, &self.service, &self.stats)?,
+            (OutLink::Local(q), Loaned::Local(header, payload)) => {
+                q.borrow_mut().push_back((header, payload));
+                self.stats.borrow_mut().count += 1;
+                1
+            }
+            _ => {
+                return Err(PortError::Io {
+                    service: self.service.clone(),
+                    op: "send",
+                    reason: "the sample was loaned from another kind of port".into(),
+                });
+            }
+        };
+        self.seq += 1;
+        Ok(n)
+    }
+}
+
+impl<P: Payload + ?Sized, H: Header> ShmOutput<P, H> {
     /// Reads the subscribers' port ids, nodes and names (the consumer a dropped sample is
     /// counted for).
     fn refresh_receivers(&self) {
@@ -348,23 +455,17 @@ impl<P: Payload + ?Sized, H: Header> Output<P, H> {
         }
     }
 
-    /// Subscribers currently registered on the service (connected or not yet).
-    pub fn subscribers(&self) -> usize {
+    fn subscribers(&self) -> usize {
         iceoryx2::service::port_factory::PortFactory::dynamic_config(&self.factory).number_of_subscribers()
     }
 
-    /// Stamps `seq`, `publish_ns` (and `origin_ns = publish_ns` when it is 0), sends and wakes
-    /// the subscribers. Returns the number of subscribers that received the sample.
-    pub fn send(&mut self, mut sample: SampleMut<ipc::Service, P, H>) -> Result<usize, PortError>
-    where
-        P: IceoryxSend,
-    {
-        let h = sample.user_header_mut().msg_mut();
-        h.seq = self.seq;
-        h.publish_ns = monotonic_ns();
-        if h.origin_ns == 0 {
-            h.origin_ns = h.publish_ns;
-        }
+    /// Sends a stamped sample and wakes the subscribers; counts what did not reach whom.
+    fn send(
+        &mut self,
+        sample: SampleMut<ipc::Service, P, H>,
+        service: &str,
+        stats: &RefCell<PortStats>,
+    ) -> Result<usize, PortError> {
         let subscribers = self.subscribers();
         if self.known_subscribers != Some(subscribers) {
             self.refresh_receivers();
@@ -373,8 +474,7 @@ impl<P: Payload + ?Sized, H: Header> Output<P, H> {
         let before: HashMap<u128, (u128, String)> = self.bp.receivers.lock().map(|r| r.clone()).unwrap_or_default();
         let sent = sample.send();
         self.bp.process.waiting.store(false, Ordering::Relaxed);
-        let n = sent.map_err(|e| io_err(&self.service, "send", e))?;
-        self.seq += 1;
+        let n = sent.map_err(|e| io_err(service, "send", e))?;
         let dropped: Vec<u128> = self.bp.dropped.lock().map(|mut d| std::mem::take(&mut *d)).unwrap_or_default();
         // Subscribers that went away during the send (a consumer died while we waited for it).
         let after = self.subscribers();
@@ -385,7 +485,7 @@ impl<P: Payload + ?Sized, H: Header> Output<P, H> {
         let now: std::collections::HashSet<String> =
             self.bp.receivers.lock().map(|r| r.values().map(|(_, n)| n.clone()).collect()).unwrap_or_default();
         {
-            let mut st = self.stats.borrow_mut();
+            let mut st = stats.borrow_mut();
             st.count += 1;
             let mut missed: Vec<String> = dropped
                 .iter()
@@ -412,7 +512,7 @@ impl<P: Payload + ?Sized, H: Header> Output<P, H> {
             }
         }
         self.expected.extend(now);
-        self.notifier.notify().map_err(|e| io_err(&self.service, "notify", e))?;
+        self.notifier.notify().map_err(|e| io_err(service, "notify", e))?;
         Ok(n)
     }
 }
@@ -433,15 +533,22 @@ impl<P: Payload + ?Sized, H: Header> Output<P, H> {
             .map_err(|e| PortError::Create { service: format!("{name} (event)"), reason: format!("{e:?}") })?;
         Ok(Self {
             service: name.to_string(),
-            factory,
-            publisher,
-            notifier,
             stats,
             seq: 0,
-            bp,
-            known_subscribers: None,
-            expected: Default::default(),
+            link: OutLink::Shm(Box::new(ShmOutput {
+                factory,
+                publisher,
+                notifier,
+                bp,
+                known_subscribers: None,
+                expected: Default::default(),
+            })),
         })
+    }
+
+    /// An in-process output: what is sent is queued on `queue` (see [`crate::testing`]).
+    pub(crate) fn local(service: &str, queue: Rc<LocalQueue<P, H>>, stats: Rc<RefCell<PortStats>>) -> Self {
+        Self { service: service.to_string(), stats, seq: 0, link: OutLink::Local(queue) }
     }
 }
 
@@ -465,8 +572,11 @@ impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<T, H> {
     }
 
     /// Loans an uninitialised sample in shared memory (write it in place, then [`Output::send`]).
-    pub fn loan_uninit(&self) -> Result<SampleMutUninit<ipc::Service, MaybeUninit<T>, H>, PortError> {
-        self.publisher.loan_uninit().map_err(|e| io_err(&self.service, "loan", e))
+    pub fn loan_uninit(&self) -> Result<Loan<T, H>, PortError> {
+        match &self.link {
+            OutLink::Shm(o) => o.publisher.loan_uninit().map(Loan::Shm).map_err(|e| io_err(&self.service, "loan", e)),
+            OutLink::Local(_) => Ok(Loan::Local(H::default())),
+        }
     }
 
     /// Sends `value` with `header` (its `seq`/`publish_ns` are overwritten).
@@ -516,20 +626,27 @@ impl<T: Debug + ZeroCopySend + Copy + 'static, H: Header> Output<[T], H> {
 
     /// Loans an uninitialised slice of `len` elements in shared memory; fill it in place with
     /// `write_from_fn` (or through `payload_mut`), set the header, then [`Output::send`].
-    pub fn loan_slice_uninit(
-        &self,
-        len: usize,
-    ) -> Result<SampleMutUninit<ipc::Service, [MaybeUninit<T>], H>, PortError> {
-        self.publisher.loan_slice_uninit(len).map_err(|e| io_err(&self.service, "loan", e))
+    pub fn loan_slice_uninit(&self, len: usize) -> Result<SliceLoan<T, H>, PortError> {
+        match &self.link {
+            OutLink::Shm(o) => {
+                o.publisher.loan_slice_uninit(len).map(SliceLoan::Shm).map_err(|e| io_err(&self.service, "loan", e))
+            }
+            OutLink::Local(_) => Ok(SliceLoan::Local(H::default(), Box::new_uninit_slice(len))),
+        }
     }
 }
 
-/// A subscriber with the listener of its event service.
+/// A subscriber with the listener of its event service, or (under [`crate::testing`]) an
+/// in-process queue.
 pub struct Input<P: Payload + ?Sized, H: Header> {
     service: String,
-    subscriber: Rc<Subscriber<ipc::Service, P, H>>,
-    listener: Rc<Listener<ipc::Service>>,
+    link: InLink<P, H>,
     stats: Rc<RefCell<PortStats>>,
+}
+
+enum InLink<P: Payload + ?Sized, H: Header> {
+    Shm { subscriber: Rc<Subscriber<ipc::Service, P, H>>, listener: Rc<Listener<ipc::Service>> },
+    Local(Rc<LocalQueue<P, H>>),
 }
 
 impl<P: Payload + ?Sized, H: Header> Input<P, H> {
@@ -552,7 +669,16 @@ impl<P: Payload + ?Sized, H: Header> Input<P, H> {
             .listener_builder()
             .create()
             .map_err(|e| PortError::Create { service: format!("{name} (event)"), reason: format!("{e:?}") })?;
-        Ok(Self { service: name.to_string(), subscriber: Rc::new(subscriber), listener: Rc::new(listener), stats })
+        Ok(Self {
+            service: name.to_string(),
+            link: InLink::Shm { subscriber: Rc::new(subscriber), listener: Rc::new(listener) },
+            stats,
+        })
+    }
+
+    /// An in-process input: it receives what is queued on `queue` (see [`crate::testing`]).
+    pub(crate) fn local(service: &str, queue: Rc<LocalQueue<P, H>>, stats: Rc<RefCell<PortStats>>) -> Self {
+        Self { service: service.to_string(), link: InLink::Local(queue), stats }
     }
 
     /// Service name.
@@ -563,19 +689,23 @@ impl<P: Payload + ?Sized, H: Header> Input<P, H> {
     /// A handle that attaches this subscriber to publishers that appeared since the last call.
     /// iceoryx2 connects a subscriber only when it acts (receive, or this), and a publisher's
     /// samples to a subscriber that has not connected yet fill a short buffer and are then lost;
-    /// the runtime therefore calls this on every loop iteration.
-    pub fn connector(&self) -> Rc<dyn Fn()> {
-        let sub = self.subscriber.clone();
-        Rc::new(move || {
+    /// the runtime therefore calls this on every loop iteration. `None` for an in-process input.
+    pub fn connector(&self) -> Option<Rc<dyn Fn()>> {
+        let InLink::Shm { subscriber, .. } = &self.link else { return None };
+        let sub = subscriber.clone();
+        Some(Rc::new(move || {
             if let Err(e) = iceoryx2::port::update_connections::UpdateConnections::update_connections(&*sub) {
                 tracing::debug!("update_connections: {e:?}");
             }
-        })
+        }))
     }
 
-    /// The listener the WaitSet attaches to.
-    pub fn listener(&self) -> Rc<Listener<ipc::Service>> {
-        self.listener.clone()
+    /// The listener the WaitSet attaches to (`None` for an in-process input).
+    pub fn listener(&self) -> Option<Rc<Listener<ipc::Service>>> {
+        match &self.link {
+            InLink::Shm { listener, .. } => Some(listener.clone()),
+            InLink::Local(_) => None,
+        }
     }
 
     /// Messages received so far.
@@ -598,30 +728,231 @@ impl<P: Payload + ?Sized, H: Header> Input<P, H> {
         self.stats.borrow().dropped_by.values().sum()
     }
 
-    fn record(&self, sample: &Sample<ipc::Service, P, H>) {
-        let h = sample.user_header().msg();
-        self.stats.borrow_mut().record_receive(monotonic_ns(), h.publish_ns, h.origin_ns);
-    }
-}
-
-impl<T: Debug + ZeroCopySend + 'static, H: Header> Input<T, H> {
     /// Receives the next sample (recording its latency), or `None` when the queue is empty.
-    pub fn receive(&self) -> Result<Option<Sample<ipc::Service, T, H>>, PortError> {
-        let s = self.subscriber.receive().map_err(|e| io_err(&self.service, "receive", e))?;
+    pub fn receive(&self) -> Result<Option<Received<P, H>>, PortError> {
+        let s = match &self.link {
+            InLink::Shm { subscriber, .. } => P::receive_shm(subscriber, &self.service)?.map(Received::Shm),
+            InLink::Local(q) => q.borrow_mut().pop_front().map(|(h, p)| Received::Local(h, p)),
+        };
         if let Some(s) = &s {
-            self.record(s);
+            let h = s.user_header().msg();
+            self.stats.borrow_mut().record_receive(monotonic_ns(), h.publish_ns, h.origin_ns);
         }
         Ok(s)
     }
 }
 
-impl<T: Debug + ZeroCopySend + 'static, H: Header> Input<[T], H> {
-    /// Receives the next slice sample (recording its latency), or `None` when the queue is empty.
-    pub fn receive(&self) -> Result<Option<Sample<ipc::Service, [T], H>>, PortError> {
-        let s = self.subscriber.receive().map_err(|e| io_err(&self.service, "receive", e))?;
-        if let Some(s) = &s {
-            self.record(s);
+/// Queued messages of one in-process service: header and owned payload.
+pub(crate) type LocalQueue<P, H> = RefCell<VecDeque<(H, Box<P>)>>;
+
+/// Which side of an in-process service a queue is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub(crate) enum Side {
+    /// What the stage's inputs read (fed by the test).
+    Input,
+    /// What the stage's outputs send (taken by the test).
+    Output,
+}
+
+/// In-process queues that stand in for iceoryx2 services when a stage runs under
+/// [`crate::testing::StageHarness`]: one queue per service and side, typed by its first user.
+#[derive(Default)]
+pub(crate) struct LocalBus {
+    queues: RefCell<HashMap<(String, Side), Rc<dyn Any>>>,
+}
+
+impl LocalBus {
+    /// The queue of `service` on `side`, created on first use; an error when it was first used
+    /// with another payload or header type (as iceoryx2 refuses a service opened with another type).
+    pub(crate) fn queue<P: ?Sized + 'static, H: 'static>(
+        &self,
+        service: &str,
+        side: Side,
+    ) -> Result<Rc<LocalQueue<P, H>>, PortError> {
+        let any = self
+            .queues
+            .borrow_mut()
+            .entry((service.to_string(), side))
+            .or_insert_with(|| Rc::new(LocalQueue::<P, H>::default()) as Rc<dyn Any>)
+            .clone();
+        any.downcast::<LocalQueue<P, H>>().map_err(|_| PortError::Open {
+            service: service.to_string(),
+            reason: format!(
+                "opened before with another payload or header type than {} / {}",
+                std::any::type_name::<P>(),
+                std::any::type_name::<H>()
+            ),
+        })
+    }
+}
+
+/// A received sample: in shared memory (read in place), or an in-process message.
+pub enum Received<P: Payload + ?Sized, H: Header> {
+    /// A sample in shared memory.
+    Shm(Sample<ipc::Service, P, H>),
+    /// An in-process message (see [`crate::testing`]).
+    Local(H, Box<P>),
+}
+
+impl<P: Payload + ?Sized, H: Header> Received<P, H> {
+    /// The user header.
+    pub fn user_header(&self) -> &H {
+        match self {
+            Received::Shm(s) => s.user_header(),
+            Received::Local(h, _) => h,
         }
-        Ok(s)
+    }
+
+    /// The payload.
+    pub fn payload(&self) -> &P {
+        match self {
+            Received::Shm(s) => P::sample_payload(s),
+            Received::Local(_, p) => p,
+        }
+    }
+
+    /// The id of the publisher that sent it (0 for an in-process message).
+    pub fn publisher_id(&self) -> u128 {
+        match self {
+            Received::Shm(s) => s.origin().value(),
+            Received::Local(..) => 0,
+        }
+    }
+}
+
+impl<P: Payload + ?Sized, H: Header> Deref for Received<P, H> {
+    type Target = P;
+    fn deref(&self) -> &P {
+        self.payload()
+    }
+}
+
+/// A written sample ready for [`Output::send`].
+pub enum Loaned<P: Payload + ?Sized, H: Header> {
+    /// Loaned in shared memory.
+    Shm(SampleMut<ipc::Service, P, H>),
+    /// An in-process message.
+    Local(H, Box<P>),
+}
+
+impl<P: Payload + ?Sized, H: Header> Loaned<P, H> {
+    /// The user header.
+    pub fn user_header(&self) -> &H {
+        match self {
+            Loaned::Shm(s) => s.user_header(),
+            Loaned::Local(h, _) => h,
+        }
+    }
+
+    /// The user header, to write.
+    pub fn user_header_mut(&mut self) -> &mut H {
+        match self {
+            Loaned::Shm(s) => s.user_header_mut(),
+            Loaned::Local(h, _) => h,
+        }
+    }
+
+    /// The payload.
+    pub fn payload(&self) -> &P {
+        match self {
+            Loaned::Shm(s) => P::loaned_payload(s),
+            Loaned::Local(_, p) => p,
+        }
+    }
+
+    /// The payload, to write in place.
+    pub fn payload_mut(&mut self) -> &mut P {
+        match self {
+            Loaned::Shm(s) => P::loaned_payload_mut(s),
+            Loaned::Local(_, p) => p,
+        }
+    }
+}
+
+/// An uninitialised fixed-size sample ([`Output::loan_uninit`]).
+pub enum Loan<T: Debug + ZeroCopySend + 'static, H: Header> {
+    /// Loaned in shared memory.
+    Shm(SampleMutUninit<ipc::Service, MaybeUninit<T>, H>),
+    /// An in-process message.
+    Local(H),
+}
+
+impl<T: Debug + ZeroCopySend + 'static, H: Header> Loan<T, H> {
+    /// The user header, to write.
+    pub fn user_header_mut(&mut self) -> &mut H {
+        match self {
+            Loan::Shm(s) => s.user_header_mut(),
+            Loan::Local(h) => h,
+        }
+    }
+
+    /// Writes the payload in place.
+    pub fn write_payload(self, value: T) -> Loaned<T, H> {
+        match self {
+            Loan::Shm(s) => Loaned::Shm(s.write_payload(value)),
+            Loan::Local(h) => Loaned::Local(h, Box::new(value)),
+        }
+    }
+}
+
+/// An uninitialised slice sample ([`Output::loan_slice_uninit`]).
+pub enum SliceLoan<T: Debug + ZeroCopySend + 'static, H: Header> {
+    /// Loaned in shared memory.
+    Shm(SampleMutUninit<ipc::Service, [MaybeUninit<T>], H>),
+    /// An in-process message.
+    Local(H, Box<[MaybeUninit<T>]>),
+}
+
+impl<T: Debug + ZeroCopySend + 'static, H: Header> SliceLoan<T, H> {
+    /// The user header, to write.
+    pub fn user_header_mut(&mut self) -> &mut H {
+        match self {
+            SliceLoan::Shm(s) => s.user_header_mut(),
+            SliceLoan::Local(h, _) => h,
+        }
+    }
+
+    /// The uninitialised elements, to write in place before [`SliceLoan::assume_init`].
+    pub fn payload_mut(&mut self) -> &mut [MaybeUninit<T>] {
+        match self {
+            SliceLoan::Shm(s) => s.payload_mut(),
+            SliceLoan::Local(_, p) => p,
+        }
+    }
+
+    /// Writes element `i` as `f(i)`, in place.
+    pub fn write_from_fn(self, mut f: impl FnMut(usize) -> T) -> Loaned<[T], H> {
+        match self {
+            SliceLoan::Shm(s) => Loaned::Shm(s.write_from_fn(f)),
+            SliceLoan::Local(h, p) => Loaned::Local(h, (0..p.len()).map(&mut f).collect()),
+        }
+    }
+
+    /// Copies `values` (of the loaned length) in place.
+    pub fn write_from_slice(self, values: &[T]) -> Loaned<[T], H>
+    where
+        T: Copy,
+    {
+        match self {
+            SliceLoan::Shm(s) => Loaned::Shm(s.write_from_slice(values)),
+            SliceLoan::Local(h, p) => {
+                debug_assert_eq!(p.len(), values.len(), "write_from_slice: length of the loan");
+                Loaned::Local(h, values.into())
+            }
+        }
+    }
+
+    /// Takes the elements as written.
+    ///
+    /// # Safety
+    /// Every element must have been written (through [`SliceLoan::payload_mut`]), or `T` must
+    /// be valid for any bytes (e.g. `MaybeUninit<u8>`).
+    pub unsafe fn assume_init(self) -> Loaned<[T], H> {
+        match self {
+            // SAFETY: the caller's promise.
+            SliceLoan::Shm(s) => Loaned::Shm(unsafe { s.assume_init() }),
+            // SAFETY: the caller's promise.
+            SliceLoan::Local(h, p) => Loaned::Local(h, unsafe { p.assume_init() }),
+        }
     }
 }

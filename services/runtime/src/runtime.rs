@@ -22,7 +22,7 @@ use shared_types::{EndOfStream, Heartbeat, MsgHeader, name32};
 use crate::clock::monotonic_ns;
 use crate::config::{LogFormat, PipelineConfig, ProcessSettings, load_pipeline_config, settings_for};
 use crate::iox::IoxScope;
-use crate::ports::{Backpressure, Delivery, Header, Input, Output, PortError};
+use crate::ports::{Backpressure, Delivery, Header, Input, LocalBus, Output, PortError, Side};
 use crate::stats::{PortStats, StatsReport};
 
 /// Command line shared by every pipeline process.
@@ -178,13 +178,19 @@ pub enum RuntimeError {
     /// Installing the signal handlers failed.
     #[error("cannot install SIGINT/SIGTERM handlers: {0}")]
     Signals(std::io::Error),
+    /// An in-process runtime has no loop (drive its stage with [`crate::testing::StageHarness`]).
+    #[error("an in-process runtime has no loop: drive the stage with pipeline_runtime::testing::StageHarness")]
+    Local,
 }
 
 /// One process's node, ports and loop.
 pub struct Runtime {
     name: String,
     pid: u32,
-    node: Node<ipc::Service>,
+    /// The iceoryx2 node (`None` for an in-process runtime).
+    node: Option<Node<ipc::Service>>,
+    /// The in-process services of a runtime under test (see [`crate::testing`]).
+    bus: Option<Rc<LocalBus>>,
     started: Instant,
     options: RuntimeOptions,
     ports: Vec<Rc<RefCell<PortStats>>>,
@@ -199,7 +205,7 @@ pub struct Runtime {
     /// Publishes heartbeats while a send waits for a full subscriber (started with the first
     /// waiting output).
     keep_alive: Option<KeepAlive>,
-    scope: IoxScope,
+    scope: Option<IoxScope>,
     /// Messages in and out at the last heartbeat, for the keep-alive's heartbeats.
     counts: Arc<(std::sync::atomic::AtomicU64, std::sync::atomic::AtomicU64)>,
     state: u32,
@@ -227,7 +233,8 @@ impl Runtime {
         let mut rt = Self {
             name: name.to_string(),
             pid: std::process::id(),
-            node,
+            node: Some(node),
+            bus: None,
             started: Instant::now(),
             options,
             ports: vec![],
@@ -239,7 +246,7 @@ impl Runtime {
             signal,
             backpressure,
             keep_alive: None,
-            scope: scope.clone(),
+            scope: Some(scope.clone()),
             counts: Arc::new(Default::default()),
             state: shared_types::STATE_STARTING,
             failed_upstream: RefCell::default(),
@@ -249,8 +256,9 @@ impl Runtime {
         };
         if rt.options.publish_control {
             let hb_stats = Rc::new(RefCell::new(PortStats::new(services::HEARTBEAT, false)));
+            let node = rt.node.as_ref().expect("created above");
             rt.heartbeat = Some(Output::create(
-                &rt.node,
+                node,
                 services::HEARTBEAT,
                 &services::CONTROL_QOS,
                 Delivery::DiscardWhenFull,
@@ -259,16 +267,59 @@ impl Runtime {
             )?);
             let st_stats = Rc::new(RefCell::new(PortStats::new("stats", false)));
             let stats_name = services::stats_service(name);
-            rt.stats_out = Some(Output::create_slice(
-                &rt.node,
-                &stats_name,
-                &services::STATS_QOS,
-                st_stats,
-                rt.backpressure.clone(),
-            )?);
+            rt.stats_out =
+                Some(Output::create_slice(node, &stats_name, &services::STATS_QOS, st_stats, rt.backpressure.clone())?);
             rt.publish_heartbeat();
         }
         Ok(rt)
+    }
+
+    /// An in-process runtime for a stage under test: its ports are in-process queues (no
+    /// iceoryx2, no shared memory, no signal handlers, no heartbeats); see [`crate::testing`].
+    pub(crate) fn local(name: &str, bus: Rc<LocalBus>) -> Self {
+        let signal = Arc::new(AtomicUsize::new(0));
+        let backpressure = Backpressure::new(
+            iceoryx2::config::Config::default(),
+            Arc::new(std::sync::atomic::AtomicBool::new(false)),
+            signal.clone(),
+        );
+        Self {
+            name: name.to_string(),
+            pid: std::process::id(),
+            node: None,
+            bus: Some(bus),
+            started: Instant::now(),
+            options: RuntimeOptions { publish_control: false, final_stats_dir: None, ..Default::default() },
+            ports: vec![],
+            listeners: vec![],
+            connectors: vec![],
+            heartbeat: None,
+            stats_out: None,
+            eos_out: None,
+            signal,
+            backpressure,
+            keep_alive: None,
+            scope: None,
+            counts: Arc::new(Default::default()),
+            state: shared_types::STATE_READY,
+            failed_upstream: RefCell::default(),
+            last_heartbeat: None,
+            last_stats: None,
+            wake_at: None,
+        }
+    }
+
+    /// Takes the deadline set with [`Runtime::wake_at`] (for a test driving a stage).
+    pub(crate) fn take_wake_at(&mut self) -> Option<Instant> {
+        self.wake_at.take()
+    }
+
+    fn node_or_local(&self, service: &str) -> Result<&Node<ipc::Service>, Rc<LocalBus>> {
+        match (&self.node, &self.bus) {
+            (Some(node), _) => Ok(node),
+            (None, Some(bus)) => Err(bus.clone()),
+            (None, None) => unreachable!("a runtime has a node or an in-process bus ({service})"),
+        }
     }
 
     /// For a process started by the supervisor: context, logging guard and runtime in one call.
@@ -283,9 +334,9 @@ impl Runtime {
         &self.name
     }
 
-    /// The iceoryx2 node.
-    pub fn node(&self) -> &Node<ipc::Service> {
-        &self.node
+    /// The iceoryx2 node (`None` for an in-process runtime under test).
+    pub fn node(&self) -> Option<&Node<ipc::Service>> {
+        self.node.as_ref()
     }
 
     /// Time since the runtime started.
@@ -317,7 +368,10 @@ impl Runtime {
     ) -> Result<Output<T, H>, RuntimeError> {
         let stats = self.port_stats(service, false);
         self.keep_alive_for(delivery);
-        Ok(Output::create(&self.node, service, qos, delivery, stats, self.backpressure.clone())?)
+        match self.node_or_local(service) {
+            Ok(node) => Ok(Output::create(node, service, qos, delivery, stats, self.backpressure.clone())?),
+            Err(bus) => Ok(Output::local(service, bus.queue(service, Side::Output)?, stats)),
+        }
     }
 
     /// Publisher of slices on a service of the contract, reserving `initial_len` elements.
@@ -340,15 +394,18 @@ impl Runtime {
     ) -> Result<Output<[T], H>, RuntimeError> {
         let stats = self.port_stats(service, false);
         self.keep_alive_for(delivery);
-        Ok(Output::create_slice_with_len(
-            &self.node,
-            service,
-            qos,
-            initial_len,
-            delivery,
-            stats,
-            self.backpressure.clone(),
-        )?)
+        match self.node_or_local(service) {
+            Ok(node) => Ok(Output::create_slice_with_len(
+                node,
+                service,
+                qos,
+                initial_len,
+                delivery,
+                stats,
+                self.backpressure.clone(),
+            )?),
+            Err(bus) => Ok(Output::local(service, bus.queue(service, Side::Output)?, stats)),
+        }
     }
 
     /// Subscriber on a service of the contract (`P` = `T` or `[T]`); the loop wakes on its events.
@@ -367,23 +424,22 @@ impl Runtime {
         qos: &Qos,
     ) -> Result<Input<P, H>, RuntimeError> {
         let stats = self.port_stats(service, true);
-        let input = Input::create(&self.node, service, qos, stats)?;
-        self.listeners.push(input.listener());
-        self.connectors.push(input.connector());
+        let input = match self.node_or_local(service) {
+            Ok(node) => Input::create(node, service, qos, stats)?,
+            Err(bus) => Input::local(service, bus.queue(service, Side::Input)?, stats),
+        };
+        self.listeners.extend(input.listener());
+        self.connectors.extend(input.connector());
         Ok(input)
     }
 
     /// Announces that this process has sent its last data message (`last_seq`, `messages_sent`).
     pub fn send_end_of_stream(&mut self, last_seq: u64, messages_sent: u64) -> Result<(), RuntimeError> {
         if self.eos_out.is_none() {
-            let stats = self.port_stats(services::END_OF_STREAM, false);
-            self.eos_out = Some(Output::create(
-                &self.node,
+            self.eos_out = Some(self.output_with_qos(
                 services::END_OF_STREAM,
                 &services::CONTROL_QOS,
                 Delivery::DiscardWhenFull,
-                stats,
-                self.backpressure.clone(),
             )?);
         }
         let eos = EndOfStream {
@@ -453,9 +509,10 @@ impl Runtime {
         if matches!(delivery, Delivery::WaitWhenFull { .. })
             && self.keep_alive.is_none()
             && self.options.publish_control
+            && let Some(scope) = &self.scope
         {
             self.keep_alive = Some(KeepAlive::spawn(
-                self.scope.clone(),
+                scope.clone(),
                 self.name.clone(),
                 self.pid,
                 self.options.heartbeat_interval,
@@ -561,6 +618,9 @@ impl Runtime {
         tick: Option<Duration>,
         mut handler: impl FnMut(&mut Runtime, &mut S, Wake) -> anyhow::Result<Flow>,
     ) -> anyhow::Result<StopReason> {
+        if self.node.is_none() {
+            return Err(RuntimeError::Local.into());
+        }
         let listeners = self.listeners.clone();
         let ws = WaitSetBuilder::new()
             .signal_handling_mode(SignalHandlingMode::Disabled)

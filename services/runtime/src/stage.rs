@@ -27,6 +27,7 @@ use shared_types::services::END_OF_STREAM;
 use shared_types::{EndOfStream, MsgHeader};
 
 use crate::config::ProcessSettings;
+use crate::ports::Input;
 use crate::runtime::{Flow, ProcessContext, Runtime, StopReason, Wake};
 
 /// What a wake-up left.
@@ -125,48 +126,100 @@ pub fn write_summary_part(out_dir: &Path, name: &str, part: &serde_json::Value) 
     Ok(())
 }
 
-/// Runs `stage` to its end and until the process is stopped (see the module docs).
-pub fn run_stage<S: Stage>(ctx: &ProcessContext, rt: &mut Runtime, mut stage: S) -> anyhow::Result<StopReason> {
-    let eos = rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?;
-    let end_after = stage.end_after();
-    let mut ended: BTreeSet<String> = BTreeSet::new();
-    let mut done = false;
-    let out_dir = ctx.out_dir.clone();
-    let name = ctx.name.clone();
-    let with_failures = |rt: &Runtime, mut part: serde_json::Value| {
+/// The runtime's bookkeeping around a [`Stage`]: the end-of-stream input, which upstream
+/// processes ended, and whether the stage has finished. [`run_stage`] calls [`Driver::wake`]
+/// on every wake-up of the loop; [`crate::testing::StageHarness`] calls it directly.
+pub(crate) struct Driver {
+    eos: Input<EndOfStream, MsgHeader>,
+    end_after: EndAfter,
+    ended: BTreeSet<String>,
+    /// The summary part, once the stage has finished.
+    pub(crate) part: Option<serde_json::Value>,
+    out_dir: std::path::PathBuf,
+    name: String,
+}
+
+impl Driver {
+    /// Opens the end-of-stream input on `rt` for `stage`.
+    pub(crate) fn new<S: Stage>(ctx: &ProcessContext, rt: &mut Runtime, stage: &S) -> anyhow::Result<Self> {
+        Ok(Self {
+            eos: rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?,
+            end_after: stage.end_after(),
+            ended: BTreeSet::new(),
+            part: None,
+            out_dir: ctx.out_dir.clone(),
+            name: ctx.name.clone(),
+        })
+    }
+
+    /// True once the stage has finished.
+    pub(crate) fn done(&self) -> bool {
+        self.part.is_some()
+    }
+
+    fn with_failures(&self, rt: &Runtime, mut part: serde_json::Value) -> serde_json::Value {
         let failed = rt.failed_upstream();
         if !failed.is_empty() && part.is_object() {
-            part["processes"][&name]["upstream_failed"] = serde_json::json!(failed);
+            part["processes"][&self.name]["upstream_failed"] = serde_json::json!(failed);
         }
         part
-    };
-    let tick = stage.tick();
-    let stop = rt.run(&mut stage, tick, |rt, stage, wake| {
-        if done {
-            return Ok(Flow::Continue);
+    }
+
+    /// One wake-up: the ends of stream, then the stage's step; at the end of its inputs (or
+    /// when it is done by itself) its finish, the summary part and its end of stream. Returns
+    /// the step (`None` once finished).
+    pub(crate) fn wake<S: Stage>(
+        &mut self,
+        rt: &mut Runtime,
+        stage: &mut S,
+        wake: Wake,
+    ) -> anyhow::Result<Option<Step>> {
+        if self.done() {
+            return Ok(None);
         }
-        ended.extend(rt.ended_upstream(&eos)?); // before the data: see Runtime::ended_upstream
-        let over = end_after.inputs_ended(&ended);
+        self.ended.extend(rt.ended_upstream(&self.eos)?); // before the data: see Runtime::ended_upstream
+        let over = self.end_after.inputs_ended(&self.ended);
         let step = stage.step(rt, wake, over)?;
         if step == Step::Busy {
             rt.wake_at(Instant::now());
         }
         if step == Step::Done || (over && step == Step::Idle) {
             let part = stage.finish(rt, Ending::EndOfStream)?;
-            write_summary_part(&out_dir, &name, &with_failures(rt, part))?;
+            let part = self.with_failures(rt, part);
+            write_summary_part(&self.out_dir, &self.name, &part)?;
+            self.part = Some(part);
             if stage.sends_end_of_stream() {
                 let (last_seq, sent) = stage.end_of_stream();
                 rt.send_end_of_stream(last_seq, sent)?;
             }
-            done = true;
         }
-        Ok(Flow::Continue)
-    })?;
-    if !done {
+        Ok(Some(step))
+    }
+
+    /// A stop before the end of the inputs: the stage's finish with [`Ending::Stopped`] and the
+    /// summary part (nothing when it has finished already).
+    pub(crate) fn stop<S: Stage>(&mut self, rt: &mut Runtime, stage: &mut S) -> anyhow::Result<()> {
+        if self.done() {
+            return Ok(());
+        }
         tracing::info!("stopped before the end of its inputs: writing what there is");
         let part = stage.finish(rt, Ending::Stopped)?;
-        write_summary_part(&ctx.out_dir, &ctx.name, &with_failures(rt, part))?;
+        let part = self.with_failures(rt, part);
+        write_summary_part(&self.out_dir, &self.name, &part)?;
+        self.part = Some(part);
+        Ok(())
     }
+}
+
+/// Runs `stage` to its end and until the process is stopped (see the module docs).
+pub fn run_stage<S: Stage>(ctx: &ProcessContext, rt: &mut Runtime, mut stage: S) -> anyhow::Result<StopReason> {
+    let mut driver = Driver::new(ctx, rt, &stage)?;
+    let tick = stage.tick();
+    let stop = rt.run(&mut stage, tick, |rt, stage, wake| {
+        driver.wake(rt, stage, wake)?;
+        Ok(Flow::Continue)
+    })?;
+    driver.stop(rt, &mut stage)?;
     Ok(stop)
 }
 

@@ -108,25 +108,25 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
         let ended = rt.ended_upstream(&eos)?; // first: see Runtime::ended_upstream
         while let Some(s) = odometry.receive()? {
             let check = validate::check_odometry(s.payload());
-            g.odometry.take(s.origin().value(), s.user_header(), check, [s.payload().as_bytes()]);
+            g.odometry.take(s.publisher_id(), s.user_header(), check, [s.payload().as_bytes()]);
         }
         while let Some(s) = stereo.receive()? {
             let check = validate::check_stereo(s.payload());
-            if g.stereo.take(s.origin().value(), s.user_header(), check, s.payload().iter().map(|o| o.as_bytes())) {
+            if g.stereo.take(s.publisher_id(), s.user_header(), check, s.payload().iter().map(|o| o.as_bytes())) {
                 g.stereo_observations += s.payload().len() as u64;
             }
         }
         while let Some(s) = buoys.receive()? {
             let check = validate::check_buoy_ranges(s.payload(), known.as_deref());
-            g.buoys.take(s.origin().value(), s.user_header(), check, s.payload().iter().map(|r| r.as_bytes()));
+            g.buoys.take(s.publisher_id(), s.user_header(), check, s.payload().iter().map(|r| r.as_bytes()));
         }
         while let Some(s) = depth.receive()? {
             let check = validate::check_depth(s.payload());
-            g.depth.take(s.origin().value(), s.user_header(), check, [s.payload().as_bytes()]);
+            g.depth.take(s.publisher_id(), s.user_header(), check, [s.payload().as_bytes()]);
         }
         while let Some(s) = heading.receive()? {
             let check = validate::check_heading(s.payload());
-            g.heading.take(s.origin().value(), s.user_header(), check, [s.payload().as_bytes()]);
+            g.heading.take(s.publisher_id(), s.user_header(), check, [s.payload().as_bytes()]);
         }
         while let Some(s) = cloud.receive()? {
             let h = s.user_header();
@@ -134,7 +134,7 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             let pose = [h.sensor_origin_m.as_slice(), h.orientation_xyzw.as_slice()].concat();
             let pose_bytes: Vec<u8> = pose.iter().flat_map(|v| v.to_le_bytes()).collect();
             let content = std::iter::once(pose_bytes.as_slice()).chain(s.payload().iter().map(|p| p.as_bytes()));
-            if g.cloud.take(s.origin().value(), &h.msg, check, content) {
+            if g.cloud.take(s.publisher_id(), &h.msg, check, content) {
                 g.cloud_points += s.payload().len() as u64;
             }
         }

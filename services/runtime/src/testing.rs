@@ -1,0 +1,225 @@
+//! Unit tests of a [`Stage`] without iceoryx2: [`StageHarness`] opens the stage on an in-process
+//! runtime whose ports are queues, feeds its inputs, wakes it the way the loop would, and hands
+//! back what it published, its end of stream and its summary part. The stage's code is the
+//! same as in the process (its `open`, `step` and `finish`, and the runtime's end-of-stream
+//! bookkeeping, [`EndAfter`](crate::stage::EndAfter)); only the transport differs.
+//!
+//! ```no_run
+//! # use pipeline_runtime::testing::StageHarness;
+//! # use pipeline_runtime::Stage;
+//! # fn demo<S: Stage>() -> anyhow::Result<()> {
+//! let out = tempfile_dir();
+//! let mut h = StageHarness::<S>::from_config_file("config/default.toml".as_ref(), "synchronizer", &out)?;
+//! // h.feed(SLAM_POSE, MsgHeader { stamp_ns, ..Default::default() }, pose);
+//! h.end_upstream("fastslam");
+//! let part = h.run_to_end(std::time::Duration::from_secs(5))?; // the summary part
+//! // let pairs = h.take::<SyncedPair, MsgHeader>(SYNC_PAIR);
+//! # Ok(()) }
+//! # fn tempfile_dir() -> std::path::PathBuf { unimplemented!() }
+//! ```
+
+use std::cell::RefCell;
+use std::fmt::Debug;
+use std::path::{Path, PathBuf};
+use std::rc::Rc;
+use std::time::{Duration, Instant};
+
+use iceoryx2::prelude::ZeroCopySend;
+use shared_types::services::END_OF_STREAM;
+use shared_types::{EOS_COMPLETE, EOS_FAILED, EndOfStream, MsgHeader, name32};
+
+use crate::clock::monotonic_ns;
+use crate::config::{LogFormat, PipelineConfig, parse_toml_str};
+use crate::iox::IoxScope;
+use crate::ports::{Header, LocalBus, Side};
+use crate::runtime::{ProcessContext, Runtime, Wake};
+use crate::stage::{Driver, Stage, Step};
+
+/// A stage opened on in-process queues (see the module docs).
+pub struct StageHarness<S: Stage> {
+    ctx: ProcessContext,
+    bus: Rc<LocalBus>,
+    rt: Runtime,
+    stage: S,
+    driver: Driver,
+    /// Sequence numbers of the fed services.
+    seqs: RefCell<std::collections::HashMap<String, u64>>,
+}
+
+impl<S: Stage> StageHarness<S> {
+    /// Opens process `name` of the pipeline config in `path` (its settings validated as the
+    /// process would), writing its outputs to `out_dir`.
+    pub fn from_config_file(path: &Path, name: &str, out_dir: &Path) -> anyhow::Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        Self::from_config_str(&text, path, name, out_dir)
+    }
+
+    /// As [`StageHarness::from_config_file`] with the config's text (`source` names it in
+    /// errors and resolves its relative paths as the file would).
+    pub fn from_config_str(text: &str, source: &Path, name: &str, out_dir: &Path) -> anyhow::Result<Self> {
+        let mut config: PipelineConfig = parse_toml_str(text, source)?;
+        config.source = source.to_path_buf();
+        anyhow::ensure!(
+            config.processes.contains_key(name),
+            "{}: no table [processes.{name}] in this config",
+            source.display()
+        );
+        let ctx = ProcessContext {
+            name: name.to_string(),
+            config,
+            scope: IoxScope { prefix: "local".into(), root: PathBuf::new(), base_config: None },
+            out_dir: out_dir.to_path_buf(),
+            log_format: LogFormat::Text,
+        };
+        let settings: S::Settings = ctx.settings()?;
+        Self::open(ctx, settings)
+    }
+
+    /// Opens the stage with explicit settings.
+    pub fn open(ctx: ProcessContext, settings: S::Settings) -> anyhow::Result<Self> {
+        let bus = Rc::new(LocalBus::default());
+        let mut rt = Runtime::local(&ctx.name, bus.clone());
+        let stage = S::open(&ctx, settings, &mut rt)?;
+        let driver = Driver::new(&ctx, &mut rt, &stage)?;
+        Ok(Self { ctx, bus, rt, stage, driver, seqs: Default::default() })
+    }
+
+    /// The process context the stage was opened with.
+    pub fn context(&self) -> &ProcessContext {
+        &self.ctx
+    }
+
+    /// The stage (to look at its state).
+    pub fn stage(&self) -> &S {
+        &self.stage
+    }
+
+    /// The in-process runtime (e.g. for its statistics report).
+    pub fn runtime(&self) -> &Runtime {
+        &self.rt
+    }
+
+    fn stamp<H: Header>(&self, service: &str, mut header: H) -> H {
+        let mut seqs = self.seqs.borrow_mut();
+        let seq = seqs.entry(service.to_string()).or_default();
+        let h = header.msg_mut();
+        h.seq = *seq;
+        *seq += 1;
+        h.publish_ns = monotonic_ns();
+        if h.origin_ns == 0 {
+            h.origin_ns = h.publish_ns;
+        }
+        header
+    }
+
+    /// Queues a fixed-size message for the stage's input on `service` (`seq`, `publish_ns` and
+    /// a zero `origin_ns` are stamped as a publisher would).
+    pub fn feed<T: Debug + ZeroCopySend + 'static, H: Header>(
+        &self,
+        service: &str,
+        header: H,
+        value: T,
+    ) -> anyhow::Result<()> {
+        let header = self.stamp(service, header);
+        self.bus.queue::<T, H>(service, Side::Input)?.borrow_mut().push_back((header, Box::new(value)));
+        Ok(())
+    }
+
+    /// Queues a slice message for the stage's input on `service`.
+    pub fn feed_slice<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(
+        &self,
+        service: &str,
+        header: H,
+        values: &[T],
+    ) -> anyhow::Result<()> {
+        let header = self.stamp(service, header);
+        self.bus.queue::<[T], H>(service, Side::Input)?.borrow_mut().push_back((header, values.into()));
+        Ok(())
+    }
+
+    fn end_of(&self, process: &str, status: u32) -> anyhow::Result<()> {
+        let eos = EndOfStream { process: name32(process), last_seq: 0, messages_sent: 0, status, _reserved: 0 };
+        self.feed(END_OF_STREAM, MsgHeader::default(), eos)
+    }
+
+    /// Queues the end of stream of upstream process `process` (it completed).
+    pub fn end_upstream(&self, process: &str) -> anyhow::Result<()> {
+        self.end_of(process, EOS_COMPLETE)
+    }
+
+    /// Queues the end of stream the supervisor sends for `process` when it gave up on it.
+    pub fn fail_upstream(&self, process: &str) -> anyhow::Result<()> {
+        self.end_of(process, EOS_FAILED)
+    }
+
+    /// One wake-up with data (as when an input was notified); `None` once the stage finished.
+    pub fn wake(&mut self) -> anyhow::Result<Option<Step>> {
+        self.driver.wake(&mut self.rt, &mut self.stage, Wake { data: true, tick: false })
+    }
+
+    /// One wake-up of the stage's tick.
+    pub fn tick(&mut self) -> anyhow::Result<Option<Step>> {
+        self.driver.wake(&mut self.rt, &mut self.stage, Wake { data: false, tick: true })
+    }
+
+    /// Wakes the stage until it has finished (its inputs ended, or a source's `Done`), sleeping
+    /// until the deadlines it sets ([`Runtime::wake_at`]) as the loop would; returns its summary
+    /// part. An error when it has not finished within `limit`.
+    pub fn run_to_end(&mut self, limit: Duration) -> anyhow::Result<serde_json::Value> {
+        let started = Instant::now();
+        let mut data = true;
+        while !self.driver.done() {
+            anyhow::ensure!(started.elapsed() < limit, "`{}` has not finished within {limit:?}", self.ctx.name);
+            let wake = Wake { data, tick: !data };
+            data = false;
+            match self.driver.wake(&mut self.rt, &mut self.stage, wake)? {
+                None | Some(Step::Done) => {}
+                Some(Step::Busy) | Some(Step::Idle) => {
+                    self.rt.take_wake_at();
+                }
+                Some(Step::Pending) => {
+                    let until = self.rt.take_wake_at().unwrap_or_else(|| Instant::now() + Duration::from_millis(10));
+                    std::thread::sleep(until.saturating_duration_since(Instant::now()).min(limit));
+                }
+            }
+        }
+        Ok(self.summary().cloned().unwrap_or_default())
+    }
+
+    /// Stops the stage as a SIGTERM would (its finish with `Ending::Stopped`, unless it has
+    /// finished already); returns its summary part.
+    pub fn stop(&mut self) -> anyhow::Result<serde_json::Value> {
+        self.driver.stop(&mut self.rt, &mut self.stage)?;
+        Ok(self.summary().cloned().unwrap_or_default())
+    }
+
+    /// The summary part, once the stage has finished (also written to `<out>/parts/<name>.json`).
+    pub fn summary(&self) -> Option<&serde_json::Value> {
+        self.driver.part.as_ref()
+    }
+
+    /// Takes what the stage has published on `service` (fixed-size messages) so far.
+    pub fn take<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(
+        &self,
+        service: &str,
+    ) -> anyhow::Result<Vec<(H, T)>> {
+        let q = self.bus.queue::<T, H>(service, Side::Output)?;
+        let taken = q.borrow_mut().drain(..).map(|(h, p)| (h, *p)).collect();
+        Ok(taken)
+    }
+
+    /// Takes what the stage has published on `service` (slice messages) so far.
+    pub fn take_slices<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(
+        &self,
+        service: &str,
+    ) -> anyhow::Result<Vec<(H, Vec<T>)>> {
+        let q = self.bus.queue::<[T], H>(service, Side::Output)?;
+        let taken = q.borrow_mut().drain(..).map(|(h, p)| (h, p.into_vec())).collect();
+        Ok(taken)
+    }
+
+    /// The stage's own end of stream, once it has sent it.
+    pub fn end_of_stream(&self) -> anyhow::Result<Option<EndOfStream>> {
+        Ok(self.take::<EndOfStream, MsgHeader>(END_OF_STREAM)?.pop().map(|(_, e)| e))
+    }
+}
