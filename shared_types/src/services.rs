@@ -121,10 +121,11 @@ pub const STATS_PREFIX: &str = "pipeline/stats/";
 /// Largest number of processes one pipeline may run (sizes the control services).
 pub const MAX_PROCESSES: usize = 48;
 
-/// Control-plane QoS: many publishers (one per process), few subscribers.
+/// Control-plane QoS: many publishers (one per process); subscribers: the supervisor, the end-of-stream
+/// input of every stage of a pipeline, and room for a recorder and a viewer.
 pub const CONTROL_QOS: Qos = Qos {
     max_publishers: MAX_PROCESSES,
-    max_subscribers: 8,
+    max_subscribers: 16,
     max_nodes: MAX_PROCESSES + 8,
     subscriber_buffer: 8,
     subscriber_borrowed: 2,

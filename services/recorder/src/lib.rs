@@ -8,6 +8,7 @@
 
 pub mod record;
 pub mod replay;
+pub mod stage;
 pub mod topics;
 
 pub use record::{Compression, McapSink, RecorderSettings, SinkOptions, SinkReport};

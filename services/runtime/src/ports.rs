@@ -748,41 +748,74 @@ pub(crate) type LocalQueue<P, H> = RefCell<VecDeque<(H, Box<P>)>>;
 /// Which side of an in-process service a queue is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub(crate) enum Side {
-    /// What the stage's inputs read (fed by the test).
+    /// What one of the stage's inputs reads (fed by the test): every input has its own queue,
+    /// as every iceoryx2 subscriber receives its own copy.
     Input,
-    /// What the stage's outputs send (taken by the test).
+    /// What the stage's outputs send (taken by the test): one queue per service.
     Output,
 }
 
 /// In-process queues that stand in for iceoryx2 services when a stage runs under
-/// [`crate::testing::StageHarness`]: one queue per service and side, typed by its first user.
+/// [`crate::testing::StageHarness`], typed by the service's first user.
 #[derive(Default)]
 pub(crate) struct LocalBus {
-    queues: RefCell<HashMap<(String, Side), Rc<dyn Any>>>,
+    inputs: RefCell<HashMap<String, Vec<Rc<dyn Any>>>>,
+    outputs: RefCell<HashMap<String, Rc<dyn Any>>>,
+}
+
+fn downcast<P: ?Sized + 'static, H: 'static>(
+    service: &str,
+    any: Rc<dyn Any>,
+) -> Result<Rc<LocalQueue<P, H>>, PortError> {
+    any.downcast::<LocalQueue<P, H>>().map_err(|_| PortError::Open {
+        service: service.to_string(),
+        reason: format!(
+            "opened before with another payload or header type than {} / {}",
+            std::any::type_name::<P>(),
+            std::any::type_name::<H>()
+        ),
+    })
 }
 
 impl LocalBus {
-    /// The queue of `service` on `side`, created on first use; an error when it was first used
-    /// with another payload or header type (as iceoryx2 refuses a service opened with another type).
+    /// A queue of `service`: a new one for an input (`Side::Input`), the service's one for an
+    /// output; an error when the service was first used with another payload or header type
+    /// (as iceoryx2 refuses a service opened with another type).
     pub(crate) fn queue<P: ?Sized + 'static, H: 'static>(
         &self,
         service: &str,
         side: Side,
     ) -> Result<Rc<LocalQueue<P, H>>, PortError> {
-        let any = self
-            .queues
-            .borrow_mut()
-            .entry((service.to_string(), side))
-            .or_insert_with(|| Rc::new(LocalQueue::<P, H>::default()) as Rc<dyn Any>)
-            .clone();
-        any.downcast::<LocalQueue<P, H>>().map_err(|_| PortError::Open {
-            service: service.to_string(),
-            reason: format!(
-                "opened before with another payload or header type than {} / {}",
-                std::any::type_name::<P>(),
-                std::any::type_name::<H>()
-            ),
-        })
+        match side {
+            Side::Input => {
+                let mut inputs = self.inputs.borrow_mut();
+                let list = inputs.entry(service.to_string()).or_default();
+                if let Some(first) = list.first() {
+                    downcast::<P, H>(service, first.clone())?;
+                }
+                let q = Rc::new(LocalQueue::<P, H>::default());
+                list.push(q.clone() as Rc<dyn Any>);
+                Ok(q)
+            }
+            Side::Output => {
+                let any = self
+                    .outputs
+                    .borrow_mut()
+                    .entry(service.to_string())
+                    .or_insert_with(|| Rc::new(LocalQueue::<P, H>::default()) as Rc<dyn Any>)
+                    .clone();
+                downcast(service, any)
+            }
+        }
+    }
+
+    /// The queues of every input on `service` (empty when the stage has none).
+    pub(crate) fn inputs<P: ?Sized + 'static, H: 'static>(
+        &self,
+        service: &str,
+    ) -> Result<Vec<Rc<LocalQueue<P, H>>>, PortError> {
+        let inputs = self.inputs.borrow();
+        inputs.get(service).into_iter().flatten().map(|q| downcast(service, q.clone())).collect()
     }
 }
 

@@ -32,6 +32,7 @@ use crate::clock::monotonic_ns;
 use crate::config::{LogFormat, PipelineConfig, parse_toml_str};
 use crate::iox::IoxScope;
 use crate::ports::{Header, LocalBus, Side};
+
 use crate::runtime::{ProcessContext, Runtime, Wake};
 use crate::stage::{Driver, Stage, Step};
 
@@ -112,28 +113,37 @@ impl<S: Stage> StageHarness<S> {
         header
     }
 
-    /// Queues a fixed-size message for the stage's input on `service` (`seq`, `publish_ns` and
-    /// a zero `origin_ns` are stamped as a publisher would).
-    pub fn feed<T: Debug + ZeroCopySend + 'static, H: Header>(
+    /// Queues a fixed-size message for every input of the stage on `service` (`seq`,
+    /// `publish_ns` and a zero `origin_ns` are stamped as a publisher would). An error when the
+    /// stage has no input on `service`, or one of another type.
+    pub fn feed<T: Debug + ZeroCopySend + Copy + 'static, H: Header + Copy>(
         &self,
         service: &str,
         header: H,
         value: T,
     ) -> anyhow::Result<()> {
         let header = self.stamp(service, header);
-        self.bus.queue::<T, H>(service, Side::Input)?.borrow_mut().push_back((header, Box::new(value)));
+        let queues = self.bus.inputs::<T, H>(service)?;
+        anyhow::ensure!(!queues.is_empty(), "`{}` has no input on `{service}`", self.ctx.name);
+        for q in queues {
+            q.borrow_mut().push_back((header, Box::new(value)));
+        }
         Ok(())
     }
 
-    /// Queues a slice message for the stage's input on `service`.
-    pub fn feed_slice<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(
+    /// Queues a slice message for every input of the stage on `service`.
+    pub fn feed_slice<T: Debug + ZeroCopySend + Copy + 'static, H: Header + Copy>(
         &self,
         service: &str,
         header: H,
         values: &[T],
     ) -> anyhow::Result<()> {
         let header = self.stamp(service, header);
-        self.bus.queue::<[T], H>(service, Side::Input)?.borrow_mut().push_back((header, values.into()));
+        let queues = self.bus.inputs::<[T], H>(service)?;
+        anyhow::ensure!(!queues.is_empty(), "`{}` has no input on `{service}`", self.ctx.name);
+        for q in queues {
+            q.borrow_mut().push_back((header, values.into()));
+        }
         Ok(())
     }
 
