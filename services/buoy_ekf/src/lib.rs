@@ -28,9 +28,15 @@ pub struct BuoyEkfSettings {
     pub use_odometry: bool,
     /// Use pressure depth readings (spatial mode).
     pub use_depth: bool,
-    /// Longest a range waits for odometry up to its stamp before it is applied without (wall
-    /// time), s: a stalled odometry source delays the fixes by at most this.
+    /// Longest a range waits for odometry up to its stamp before it is applied without, in
+    /// data time, s: once another input (depth, later ranges) is this far past the range's stamp
+    /// and odometry is not, the odometry source has stalled and the range goes. Data time, so
+    /// that a replay gives the same fixes however loaded the machine is.
     pub odometry_wait_s: f64,
+    /// The same in wall time, s, for when every input stalls (a live source that stops): a range
+    /// waits at most this long after it arrived (0 = no limit: only data time and the end of
+    /// the stream release it).
+    pub odometry_stall_s: f64,
     /// Ground truth to evaluate against at the end (TUM; relative to the output directory);
     /// skipped when missing.
     pub ground_truth: String,
@@ -43,6 +49,7 @@ impl Default for BuoyEkfSettings {
             use_odometry: true,
             use_depth: true,
             odometry_wait_s: 0.5,
+            odometry_stall_s: 5.0,
             ground_truth: "ground_truth.tum".into(),
         }
     }
@@ -57,6 +64,11 @@ impl ProcessSettings for BuoyEkfSettings {
             self.odometry_wait_s.is_finite() && self.odometry_wait_s >= 0.0,
             format!("{key}.odometry_wait_s"),
             "must be >= 0",
+        );
+        issues.check(
+            self.odometry_stall_s.is_finite() && self.odometry_stall_s >= 0.0,
+            format!("{key}.odometry_stall_s"),
+            "must be >= 0 (0: no wall-time limit)",
         );
     }
 
@@ -96,6 +108,8 @@ pub struct BuoyState {
     ranges: VecDeque<PendingRanges>,
     depth: VecDeque<(u64, DepthReading)>,
     newest_odometry_ns: Option<u64>,
+    /// Newest stamp of any input, ns.
+    newest_stamp_ns: Option<u64>,
     /// Every odometry input applied, with its stamp (for dead reckoning).
     pub inputs: Vec<(f64, ProcessInput)>,
     /// The estimate after every odometry input and every ranges message once initialised:
@@ -126,6 +140,7 @@ impl BuoyState {
             ranges: VecDeque::new(),
             depth: VecDeque::new(),
             newest_odometry_ns: None,
+            newest_stamp_ns: None,
             inputs: vec![],
             trajectory: vec![],
             invalid: Default::default(),
@@ -149,20 +164,27 @@ impl BuoyState {
         if !self.settings.use_odometry {
             return;
         }
+        self.saw(stamp_ns);
         self.newest_odometry_ns = Some(self.newest_odometry_ns.map_or(stamp_ns, |s| s.max(stamp_ns)));
         self.odometry.push_back((stamp_ns, *u));
     }
 
     /// Queues a ranges message.
     pub fn push_ranges(&mut self, stamp_ns: u64, origin_ns: u64, ranges: &[BuoyRange], now: Instant) {
+        self.saw(stamp_ns);
         self.ranges.push_back(PendingRanges { stamp_ns, origin_ns, ranges: ranges.to_vec(), received: now });
     }
 
     /// Queues a depth reading (ignored unless `use_depth` in spatial mode).
     pub fn push_depth(&mut self, stamp_ns: u64, d: &DepthReading) {
+        self.saw(stamp_ns);
         if self.settings.use_depth && self.settings.ekf.mode == Mode::Spatial {
             self.depth.push_back((stamp_ns, *d));
         }
+    }
+
+    fn saw(&mut self, stamp_ns: u64) {
+        self.newest_stamp_ns = Some(self.newest_stamp_ns.map_or(stamp_ns, |s| s.max(stamp_ns)));
     }
 
     /// Messages waiting.
@@ -170,9 +192,11 @@ impl BuoyState {
         self.odometry.len() + self.ranges.len() + self.depth.len()
     }
 
-    /// When the oldest waiting ranges message stops waiting for odometry (for a wake-up).
+    /// When the oldest waiting ranges message stops waiting for odometry in wall time (for a
+    /// wake-up; `None` without a wall-time limit).
     pub fn next_deadline(&self) -> Option<Instant> {
-        self.ranges.front().map(|r| r.received + Duration::from_secs_f64(self.settings.odometry_wait_s))
+        let stall = self.settings.odometry_stall_s;
+        (stall > 0.0).then(|| self.ranges.front().map(|r| r.received + Duration::from_secs_f64(stall))).flatten()
     }
 
     fn ekf_at(&mut self, t_s: f64) -> Result<&mut BuoyEkf, String> {
@@ -189,9 +213,20 @@ impl BuoyState {
         let mut out = vec![];
         // Everything up to the horizon is applied in stamp order: the newest odometry stamp, or
         // the stamp of the newest ranges message that has waited long enough, or everything.
-        let wait = Duration::from_secs_f64(self.settings.odometry_wait_s);
-        let waited_out =
-            self.ranges.iter().filter(|r| now.saturating_duration_since(r.received) >= wait).map(|r| r.stamp_ns).max();
+        // Data time: ranges that other inputs have left `odometry_wait_s` behind. Wall time:
+        // ranges that have waited `odometry_stall_s` (every input stalled).
+        let wait_ns = (self.settings.odometry_wait_s * 1e9) as u64;
+        let newest = self.newest_stamp_ns.unwrap_or(0);
+        let stall = Duration::from_secs_f64(self.settings.odometry_stall_s);
+        let waited_out = self
+            .ranges
+            .iter()
+            .filter(|r| {
+                r.stamp_ns.saturating_add(wait_ns) <= newest
+                    || (stall > Duration::ZERO && now.saturating_duration_since(r.received) >= stall)
+            })
+            .map(|r| r.stamp_ns)
+            .max();
         let horizon = if flush || !self.settings.use_odometry {
             u64::MAX
         } else {
@@ -399,10 +434,18 @@ mod tests {
         assert_eq!(fixes.len(), 1, "odometry reached the stamp");
         assert_eq!(st.inputs.len(), 10);
         assert!((fixes[0].estimate.position_m - p).norm() < 0.5, "{}", fixes[0].estimate.position_m);
-        // A ranges message with no odometry behind it goes after odometry_wait_s.
+        // A ranges message with no odometry behind it goes once other inputs are odometry_wait_s
+        // (data time) past it ...
         st.push_ranges(2_000_000_000, 0, &ranges_at(p, &s), now);
-        assert!(st.step(false, now).is_empty());
-        assert_eq!(st.step(false, now + Duration::from_secs(1)).len(), 1);
+        assert!(st.step(false, now + Duration::from_secs(1)).is_empty(), "wall time alone does not release it");
+        st.push_ranges(2_400_000_000, 0, &ranges_at(p, &s), now);
+        assert!(st.step(false, now).is_empty(), "0.4 s of data time is not enough");
+        st.push_ranges(2_500_000_000, 0, &ranges_at(p, &s), now);
+        assert_eq!(st.step(false, now).len(), 1, "0.5 s of data time past the first ranges");
+        // ... or once it has waited odometry_stall_s of wall time (every input stalled).
+        assert_eq!(st.next_deadline(), Some(now + Duration::from_secs(5)));
+        assert!(st.step(false, now + Duration::from_secs(4)).is_empty());
+        assert_eq!(st.step(false, now + Duration::from_secs(5)).len(), 2);
     }
 
     #[test]
