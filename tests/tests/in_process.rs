@@ -51,13 +51,31 @@ fn ended<S: Stage>(h: &StageHarness<S>) -> bool {
     h.summary().is_some()
 }
 
-#[test]
-fn the_main_job_runs_stage_by_stage_in_one_process() -> anyhow::Result<()> {
+/// Messages carried between the stages.
+#[derive(Debug, Default)]
+struct Flow {
+    clouds: u64,
+    stereo: u64,
+    fixes: u64,
+    poses: u64,
+    pairs: u64,
+    fused: u64,
+    /// The stages restarted.
+    restarted: Vec<&'static str>,
+}
+
+/// Runs the main job's stages on a 30 s mission into `out`; with `restart_at`, every stage is
+/// killed and restarted (as the supervisor would) once that many stereo frames were published,
+/// the source then replaying at 10x real time (so that the kill comes mid-stream, not after a
+/// source that has published everything at once).
+fn run_chain(out: &Path, restart_at: Option<u64>) -> anyhow::Result<Flow> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let mut config = std::fs::read_to_string(root.join("config/default.toml"))?;
     config.push_str("\n[processes.ingest.settings.sim.mission]\nmax_duration_s = 30.0\n");
-    let dir = tempfile::tempdir()?;
-    let out = dir.path();
+    if restart_at.is_some() {
+        anyhow::ensure!(config.contains("real_time_factor = 0.0"), "config/default.toml: no real_time_factor");
+        config = config.replace("real_time_factor = 0.0", "real_time_factor = 10.0");
+    }
 
     let mut ingest = open::<IngestStage>(&config, "ingest", out)?;
     let mut slam = open::<FastSlamStage>(&config, "slam", out)?;
@@ -69,19 +87,60 @@ fn the_main_job_runs_stage_by_stage_in_one_process() -> anyhow::Result<()> {
     let (mut clouds, mut stereo, mut fixes, mut poses, mut pairs, mut fused) = (0, 0, 0, 0, 0, 0);
     let mut source_done = false;
     let mut rounds = 0;
+    let mut restart_at = restart_at;
+    let mut eos_seen: Vec<&str> = vec![];
+    let mut restarted: Vec<&str> = vec![];
     // Data flows downstream each round; a stage's end of stream goes to its consumers once it
     // has finished, after its last data.
     while !ended(&map) {
         rounds += 1;
-        anyhow::ensure!(rounds < 200_000, "the pipeline has not ended after {rounds} rounds");
+        anyhow::ensure!(
+            rounds < 200_000,
+            "the pipeline has not ended after {rounds} rounds: ended ingest {} slam {} buoy {} sync {} fusion {} map {}",
+            ended(&ingest),
+            ended(&slam),
+            ended(&buoy),
+            ended(&sync),
+            ended(&fusion),
+            ended(&map)
+        );
         if !source_done {
             // A source publishes one item per wake (Busy) until Done.
             for _ in 0..20 {
+                if restart_at.is_some() || restarted.contains(&"ingest") {
+                    std::thread::sleep(Duration::from_micros(200)); // wall time for the paced source
+                }
                 if matches!(ingest.wake()?, Some(Step::Done) | None) {
                     source_done = true;
                     break;
                 }
             }
+        }
+        if restart_at.is_some_and(|n| stereo >= n) {
+            // Kill -9 and restart of every stage still running: what sits in their queues is
+            // lost, what they kept through the runtime (journals, snapshots) is restored, and
+            // the ends of stream they had seen are sent again (as the supervisor does).
+            restart_at = None;
+            macro_rules! restart {
+                ($h:ident, $name:expr) => {
+                    if !ended(&$h) {
+                        $h = $h.restart()?;
+                        for from in &eos_seen {
+                            $h.end_upstream(from)?;
+                        }
+                        restarted.push($name);
+                    }
+                };
+            }
+            restart!(ingest, "ingest");
+            if restarted.contains(&"ingest") {
+                source_done = false;
+            }
+            restart!(slam, "slam");
+            restart!(buoy, "buoy");
+            restart!(sync, "sync");
+            restart!(fusion, "fusion");
+            restart!(map, "map");
         }
         pipe!(ingest, ODOMETRY, OdometryInput, MsgHeader => slam, buoy);
         stereo += pipe_slices!(ingest, STEREO, StereoObservation, MsgHeader => slam);
@@ -90,6 +149,7 @@ fn the_main_job_runs_stage_by_stage_in_one_process() -> anyhow::Result<()> {
         pipe!(ingest, HEADING, HeadingReading, MsgHeader => fusion);
         clouds += pipe_slices!(ingest, CLOUD, CloudPoint, CloudHeader => map);
         if ingest.end_of_stream()?.is_some() {
+            eos_seen.push("ingest");
             slam.end_upstream("ingest")?;
             buoy.end_upstream("ingest")?;
             map.end_upstream("ingest")?;
@@ -104,6 +164,7 @@ fn the_main_job_runs_stage_by_stage_in_one_process() -> anyhow::Result<()> {
         slam.take::<SlamDiagnostics, MsgHeader>(SLAM_DIAGNOSTICS)?;
         for (h, name) in [(buoy.end_of_stream()?, "buoy"), (slam.end_of_stream()?, "slam")] {
             if h.is_some() {
+                eos_seen.push(name);
                 sync.end_upstream(name)?;
                 fusion.end_upstream(name)?;
             }
@@ -112,6 +173,7 @@ fn the_main_job_runs_stage_by_stage_in_one_process() -> anyhow::Result<()> {
         sync.wake()?;
         pairs += pipe!(sync, SYNC_PAIR, SyncedPair, MsgHeader => fusion);
         if sync.end_of_stream()?.is_some() {
+            eos_seen.push("sync");
             fusion.end_upstream("sync")?;
         }
         fusion.wake()?;
@@ -119,6 +181,7 @@ fn the_main_job_runs_stage_by_stage_in_one_process() -> anyhow::Result<()> {
         pipe!(fusion, COMMAND, ControlCommand, MsgHeader => slam, map);
         fusion.take_slices::<Landmark, LandmarkMapHeader>(FUSION_MAP)?;
         if fusion.end_of_stream()?.is_some() {
+            eos_seen.push("fusion");
             map.end_upstream("fusion")?;
         }
         map.wake()?;
@@ -129,6 +192,22 @@ fn the_main_job_runs_stage_by_stage_in_one_process() -> anyhow::Result<()> {
             map.run_to_end(Duration::from_secs(300))?;
         }
     }
+    Ok(Flow { clouds, stereo, fixes, poses, pairs, fused, restarted })
+}
+
+fn part(out: &Path, name: &str) -> anyhow::Result<serde_json::Value> {
+    Ok(serde_json::from_slice(&std::fs::read(out.join("parts").join(format!("{name}.json")))?)?)
+}
+
+fn ate(p: &serde_json::Value, k: &str) -> f64 {
+    p["ate_m"][k].as_f64().unwrap_or(f64::NAN)
+}
+
+#[test]
+fn the_main_job_runs_stage_by_stage_in_one_process() -> anyhow::Result<()> {
+    let dir = tempfile::tempdir()?;
+    let out = dir.path();
+    let Flow { clouds, stereo, fixes, poses, pairs, fused, .. } = run_chain(out, None)?;
 
     // What flowed: every stage published, nothing was left behind.
     assert!(clouds >= 10 && stereo >= 300, "ingest published {clouds} clouds and {stereo} stereo frames");
@@ -138,9 +217,7 @@ fn the_main_job_runs_stage_by_stage_in_one_process() -> anyhow::Result<()> {
     assert_eq!(fused, pairs, "fusion publishes a pose per pair");
 
     // Each stage's summary part, as the process writes it for the supervisor.
-    let part = |name: &str| -> anyhow::Result<serde_json::Value> {
-        Ok(serde_json::from_slice(&std::fs::read(out.join("parts").join(format!("{name}.json")))?)?)
-    };
+    let part = |name: &str| part(out, name);
     let ingest_part = part("ingest")?;
     assert_eq!(ingest_part["ingest"]["completed"], true, "{ingest_part}");
     let map_part = part("map")?;
@@ -150,7 +227,6 @@ fn the_main_job_runs_stage_by_stage_in_one_process() -> anyhow::Result<()> {
 
     // Scores against the ground truth the ingest stage wrote (30 s of the mission: a short
     // drive, so the bounds are loose; the full mission's numbers are in the README).
-    let ate = |p: &serde_json::Value, k: &str| p["ate_m"][k].as_f64().unwrap_or(f64::NAN);
     let buoy_ate = ate(&part("buoy")?, "buoy_ekf");
     let slam_ate = ate(&part("slam")?, "slam");
     let fused_ate = ate(&part("fusion")?, "fused");
@@ -159,5 +235,45 @@ fn the_main_job_runs_stage_by_stage_in_one_process() -> anyhow::Result<()> {
     assert!(slam_ate < 1.0, "SLAM ATE {slam_ate}");
     assert!(fused_ate < 1.0, "fused ATE {fused_ate}");
     assert!(out.join("map.bt").is_file(), "the mapper wrote map.bt");
+    Ok(())
+}
+
+#[test]
+fn every_stage_killed_and_restarted_mid_run_keeps_what_it_had() -> anyhow::Result<()> {
+    let dir = tempfile::tempdir()?;
+    let out = dir.path();
+    let flow = run_chain(out, Some(200))?;
+    println!("restarted after 200 stereo frames: {flow:?}");
+    for name in ["slam", "buoy", "sync", "fusion", "map"] {
+        assert!(flow.restarted.contains(&name), "{name} was not running any more at the restart: {flow:?}");
+    }
+    let slam = part(out, "slam")?;
+    assert_eq!(slam["slam"]["segments"], 2, "the restarted fastslam went on in a new local map: {slam}");
+    // The restarted ingest went on after what it had published: nothing twice.
+    let ingest = part(out, "ingest")?;
+    assert_eq!(ingest["ingest"]["completed"], true, "{ingest}");
+    assert!(flow.stereo >= 300, "{flow:?}");
+    // The trajectories cover the whole mission, not only the part after the restart: the
+    // restarted stages kept what the killed ones had (journals), and the mapper its map.
+    let truth = geometry::tum::read_tum(&out.join("ground_truth.tum"))?;
+    let (t0, t1) = (truth[0].0, truth[truth.len() - 1].0);
+    for f in ["slam_local.tum", "buoy_ekf.tum", "fused_live.tum"] {
+        let rows = geometry::tum::read_tum(&out.join(f))?;
+        let (a, b) = (rows[0].0, rows[rows.len() - 1].0);
+        assert!(a - t0 < 2.0 && t1 - b < 2.0, "{f} covers {a:.1}..{b:.1} s of {t0:.1}..{t1:.1} s");
+    }
+    for (name, key) in [("buoy", "buoy_ekf"), ("slam", "slam"), ("fusion", "fused")] {
+        let v = ate(&part(out, name)?, key);
+        println!("after a restart of every stage: ATE {key} {v:.3} m");
+        assert!(v < 1.5, "{key}: ATE {v} m");
+    }
+    let map = part(out, "map")?;
+    let inserted = map["octree_mapper"]["counters"]["clouds_inserted"].as_u64().unwrap_or(0);
+    assert!(
+        inserted + 3 >= flow.clouds && inserted > 0,
+        "{inserted} of {} clouds after the restart: {map}",
+        flow.clouds
+    );
+    assert!(out.join("state/map/map.bt").is_file() || inserted > 0);
     Ok(())
 }

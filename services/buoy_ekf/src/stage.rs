@@ -6,11 +6,10 @@ use std::time::{Duration, Instant};
 use buoy::Mode;
 use nalgebra::Vector3;
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
-use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
+use pipeline_runtime::{Input, Output, ProcessContext, Restart, Runtime, Wake};
 use shared_types::services::{BUOY_FIX, BUOY_RANGES, DEPTH, ODOMETRY};
 use shared_types::*;
 
-use crate::journal::Journal;
 use crate::{BuoyEkfSettings, BuoyState, fix_pose};
 use geometry::trajectory::{ate_nearest, dead_reckoning};
 
@@ -22,7 +21,6 @@ pub struct BuoyEkfStage {
     ranges: Input<[BuoyRange], MsgHeader>,
     depth: Input<DepthReading, MsgHeader>,
     fixes: Output<BuoyFix, MsgHeader>,
-    journal: Journal,
     /// Trajectory samples and inputs journalled so far.
     journalled: (usize, usize),
     was_initialised: bool,
@@ -37,23 +35,7 @@ impl Stage for BuoyEkfStage {
         let ranges = rt.input(BUOY_RANGES)?;
         let depth = rt.input(DEPTH)?;
         let fixes = rt.output(BUOY_FIX)?;
-        let mut st = BuoyState::new(settings.clone());
-        // A restarted instance keeps the killed one's trajectory and inputs (the filter starts
-        // over); a first instance starts empty (whatever an earlier run left in the output directory).
-        let journal_path = Journal::path(&ctx.out_dir, &ctx.name);
-        let restored = if pipeline_runtime::restart::is_restart() { Journal::read(&journal_path)? } else { None };
-        let journal = Journal::open(&journal_path, restored.as_ref())?;
-        if let Some(r) = restored {
-            tracing::info!(
-                samples = r.trajectory.len(),
-                inputs = r.inputs.len(),
-                ignored_lines = r.ignored_lines,
-                "restarted: kept the killed instance's trajectory; the filter starts over"
-            );
-            st.trajectory = r.trajectory;
-            st.inputs = r.inputs;
-        }
-        let journalled = (st.trajectory.len(), st.inputs.len());
+        let st = BuoyState::new(settings.clone());
         tracing::info!(buoys = settings.ekf.buoys.len(), mode = ?settings.ekf.mode, odometry = settings.use_odometry, "buoy EKF ready");
         Ok(Self {
             settings,
@@ -62,8 +44,7 @@ impl Stage for BuoyEkfStage {
             ranges,
             depth,
             fixes,
-            journal,
-            journalled,
+            journalled: (0, 0),
             was_initialised: false,
             out_dir: ctx.out_dir.clone(),
         })
@@ -75,6 +56,20 @@ impl Stage for BuoyEkfStage {
 
     fn tick(&self) -> Option<Duration> {
         Some(Duration::from_millis(100))
+    }
+
+    /// A restarted instance keeps the killed one's trajectory and inputs (the filter starts over).
+    fn restore(&mut self, restart: Restart) -> anyhow::Result<usize> {
+        let (r, lines) = crate::journal::parse(&restart.journal);
+        tracing::info!(
+            samples = r.trajectory.len(),
+            inputs = r.inputs.len(),
+            "restarted: kept the killed instance's trajectory; the filter starts over"
+        );
+        self.st.trajectory = r.trajectory;
+        self.st.inputs = r.inputs;
+        self.journalled = (self.st.trajectory.len(), self.st.inputs.len());
+        Ok(lines)
     }
 
     fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> anyhow::Result<Step> {
@@ -92,7 +87,8 @@ impl Stage for BuoyEkfStage {
         }
         let out = st.step(inputs_ended, now);
         // Journal before publishing: a restarted instance resumes from what was journalled.
-        self.journal.append(&st.trajectory[self.journalled.0..], &st.inputs[self.journalled.1..])?;
+        crate::journal::record(rt.state(), &st.trajectory[self.journalled.0..], &st.inputs[self.journalled.1..]);
+        rt.state().flush()?;
         self.journalled = (st.trajectory.len(), st.inputs.len());
         for f in out {
             let e = &f.estimate;

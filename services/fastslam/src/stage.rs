@@ -6,11 +6,10 @@ use std::time::{Duration, Instant};
 use fastslam::frontend::RegistrationError;
 use fastslam::{FastSlam, SegmentReason};
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
-use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
+use pipeline_runtime::{Input, Output, ProcessContext, Restart, Runtime, Wake};
 use shared_types::services::{COMMAND, ODOMETRY, SLAM_DIAGNOSTICS, SLAM_LANDMARKS, SLAM_PARTICLES, SLAM_POSE, STEREO};
 use shared_types::*;
 
-use crate::journal::Journal;
 use crate::{FastSlamSettings, SlamState, frame_from_wire};
 
 struct Outputs {
@@ -94,7 +93,6 @@ pub struct FastSlamStage {
     stereo: Input<[StereoObservation], MsgHeader>,
     commands: Input<ControlCommand, MsgHeader>,
     out: Outputs,
-    journal: Journal,
     journalled_origins: Option<u32>,
     update_ms: Vec<f64>,
     registration_failures: u64,
@@ -120,23 +118,7 @@ impl Stage for FastSlamStage {
             landmarks: rt.output_slice(SLAM_LANDMARKS, 4096)?,
             diagnostics: rt.output(SLAM_DIAGNOSTICS)?,
         };
-        let mut st =
-            SlamState::with_frontend(filter, settings.motion_model, settings.frontend.clone(), body_from_camera);
-        // A restarted instance keeps the killed one's trajectory and goes on in a new local map; a
-        // first instance starts empty (whatever an earlier run left in the output directory).
-        let journal_path = Journal::path(&ctx.out_dir, &ctx.name);
-        let restored = if pipeline_runtime::restart::is_restart() { Journal::read(&journal_path)? } else { None };
-        let journal = Journal::open(&journal_path, restored.as_ref())?;
-        if let Some(r) = restored {
-            tracing::info!(
-                frames = r.trajectory.len(),
-                ignored_lines = r.ignored_lines,
-                segment = r.next_segment(),
-                "restarted: kept the killed instance's trajectory; its local maps are lost, a new one starts"
-            );
-            st.resume(r);
-        }
-        let journalled_origins: Option<u32> = st.segment_origins_s.keys().next_back().copied();
+        let st = SlamState::with_frontend(filter, settings.motion_model, settings.frontend.clone(), body_from_camera);
         let landmark_every =
             (settings.landmarks_rate_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / settings.landmarks_rate_hz));
         tracing::info!(particles = settings.filter.particles, proposal = ?settings.filter.proposal, motion = ?settings.motion_model, "filter ready");
@@ -148,8 +130,7 @@ impl Stage for FastSlamStage {
             stereo,
             commands,
             out,
-            journal,
-            journalled_origins,
+            journalled_origins: None,
             update_ms: vec![],
             registration_failures: 0,
             run_stats: RunStats::default(),
@@ -163,6 +144,20 @@ impl Stage for FastSlamStage {
         EndAfter::FirstUpstream
     }
 
+    /// A restarted instance keeps the killed one's trajectory and goes on in a new local map.
+    fn restore(&mut self, restart: Restart) -> anyhow::Result<usize> {
+        let (r, lines) = crate::journal::parse(&restart.journal);
+        tracing::info!(
+            frames = r.trajectory.len(),
+            segment = r.next_segment(),
+            "restarted: kept the killed instance's trajectory; its local maps are lost, a new one starts"
+        );
+        self.st.resume(r);
+        // Every origin restored is in the journal already.
+        self.journalled_origins = self.st.segment_origins_s.keys().next_back().copied();
+        Ok(lines)
+    }
+
     fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> anyhow::Result<Step> {
         let Self {
             settings,
@@ -172,7 +167,6 @@ impl Stage for FastSlamStage {
             stereo,
             commands,
             out,
-            journal,
             journalled_origins,
             update_ms,
             registration_failures,
@@ -212,12 +206,13 @@ impl Stage for FastSlamStage {
         let processed = st.step(inputs_ended, 1);
         // Journal before publishing: a restarted instance resumes from what was journalled.
         for (&seg, &t) in st.segment_origins_s.range(journalled_origins.map_or(0, |s| s + 1)..) {
-            journal.origin(seg, t)?;
+            crate::journal::record_origin(rt.state(), seg, t);
             *journalled_origins = Some(seg);
         }
         for s in &st.trajectory[st.trajectory.len() - processed.len()..] {
-            journal.sample(s)?;
+            crate::journal::record_sample(rt.state(), s);
         }
+        rt.state().flush()?;
         let busy = !st.frames.is_empty() || more_waiting;
         let per_frame =
             if processed.is_empty() { 0.0 } else { t0.elapsed().as_secs_f64() * 1e3 / processed.len() as f64 };

@@ -1,6 +1,7 @@
-//! What a restarted `fusion` keeps: the process appends every input the engine took (buoy fixes,
-//! compass headings, synced pairs, in the order taken) to `<out>/state/<process>.journal`, and keeps
-//! the newest landmark map of each SLAM local map in `<out>/state/<process>.landmarks/<segment>`.
+//! What a restarted `fusion` keeps: the stage records every input the engine took (buoy fixes,
+//! compass headings, synced pairs, in the order taken) in the runtime's journal, and keeps the
+//! newest landmark map of each SLAM local map as the snapshot `landmarks.<segment>`
+//! ([`pipeline_runtime::Runtime::state`]).
 //! A restarted instance (the supervisor sets `SLAM_PIPELINE_RESTARTS` > 0) replays them into a new
 //! engine: the engine is deterministic, so it is back in the state the killed one had (segments,
 //! transforms, the live path so far) and the globally consistent path and map at the end cover the
@@ -8,15 +9,13 @@
 //! while no instance ran is lost.
 //!
 //! Journal lines: `f <t> <x y z> <cov 9>`, `h <t> <yaw> <σ>`, `p <t> <segment> <x y z> <qx qy qz qw>
-//! <cov 36> <buoy x y z> <buoy cov 9>`; landmark files: `<id> <segment> <x y z> <cov 9>
-//! <descriptor hex or -> <observations>` per line, replaced atomically (rename). Numbers in Rust's
-//! shortest round-trip form; a journal line cut short by the kill is ignored with all after it.
+//! <cov 36> <buoy x y z> <buoy cov 9>`; landmark snapshots: `<id> <segment> <x y z> <cov 9>
+//! <descriptor hex or -> <observations>` per line. Numbers in Rust's shortest round-trip form.
 
-use pipeline_runtime::restart::StateError;
 use std::fmt::Write as _;
-use std::fs::File;
-use std::io::Write as _;
-use std::path::{Path, PathBuf};
+
+use pipeline_runtime::StateStore;
+use pipeline_runtime::restart::{Restart, StateError};
 
 use fusion::engine::{FixInput, HeadingInput, PairInput};
 use fusion::global_map::MapLandmark;
@@ -40,17 +39,8 @@ pub struct Restored {
     pub entries: Vec<Entry>,
     /// The newest landmark map of each local map.
     pub landmarks: Vec<(u32, Vec<MapLandmark>)>,
-    /// Journal lines that did not parse (the one cut by the kill, at most).
-    pub ignored_lines: usize,
-}
-
-/// The journal of one `fusion` process.
-#[derive(Debug)]
-pub struct Journal {
-    path: PathBuf,
-    landmarks_dir: PathBuf,
-    file: File,
-    buffer: String,
+    /// Journal lines read (the runtime keeps those).
+    pub lines: usize,
 }
 
 fn nums(fields: &[&str]) -> Option<Vec<f64>> {
@@ -129,113 +119,73 @@ fn parse_landmark(line: &str) -> Option<MapLandmark> {
     })
 }
 
-impl Journal {
-    /// `<out_dir>/state/<process>.journal`.
-    pub fn path(out_dir: &Path, process: &str) -> PathBuf {
-        pipeline_runtime::restart::state_path(out_dir, process, "journal")
-    }
+/// Snapshot key of the landmark map of `segment`.
+fn landmarks_key(segment: u32) -> String {
+    format!("landmarks.{segment}")
+}
 
-    fn landmarks_dir(path: &Path) -> PathBuf {
-        path.with_extension("landmarks")
+/// Reads what a killed instance kept: its journal lines in order up to the first that does not
+/// parse, and its landmark snapshots (a malformed one is an error naming the file).
+pub fn read(restart: &Restart) -> Result<Restored, StateError> {
+    let mut r = Restored::default();
+    for line in &restart.journal {
+        let Some(e) = parse_entry(line) else { break };
+        r.entries.push(e);
+        r.lines += 1;
     }
+    for (key, path) in &restart.snapshots {
+        let Some(segment) = key.strip_prefix("landmarks.").and_then(|s| s.parse::<u32>().ok()) else { continue };
+        let text = std::fs::read_to_string(path).map_err(StateError::io("reading", path))?;
+        let ls: Option<Vec<MapLandmark>> = text.lines().map(parse_landmark).collect();
+        let ls =
+            ls.ok_or_else(|| StateError::Malformed { path: path.clone(), what: "a malformed landmark line".into() })?;
+        r.landmarks.push((segment, ls));
+    }
+    r.landmarks.sort_by_key(|(s, _)| *s);
+    Ok(r)
+}
 
-    /// Reads what a killed instance journalled (`Ok(None)` without a journal).
-    pub fn read(path: &Path) -> Result<Option<Restored>, StateError> {
-        let Some(text) = pipeline_runtime::restart::read_state_text(path)? else { return Ok(None) };
-        let mut r = Restored::default();
-        r.ignored_lines = pipeline_runtime::restart::parse_lines(&text, |line| {
-            parse_entry(line).map(|e| r.entries.push(e)).is_some()
-        });
-        let dir = Self::landmarks_dir(path);
-        if let Ok(rd) = std::fs::read_dir(&dir) {
-            for entry in rd.flatten() {
-                let Some(segment) = entry.file_name().to_str().and_then(|n| n.parse::<u32>().ok()) else { continue };
-                let file = entry.path();
-                let text = std::fs::read_to_string(&file).map_err(StateError::io("reading", &file))?;
-                let ls: Option<Vec<MapLandmark>> = text.lines().map(parse_landmark).collect();
-                let ls = ls.ok_or_else(|| StateError::Malformed {
-                    path: file.clone(),
-                    what: "a malformed landmark line".into(),
-                })?;
-                r.landmarks.push((segment, ls));
-            }
+/// Records an entry in the journal (written at the next flush).
+pub fn record(state: &mut StateStore, e: &Entry) {
+    let mut out = String::with_capacity(1024);
+    match e {
+        Entry::Fix(f) => {
+            let _ = write!(out, "f {}", f.t_s);
+            write_nums(&mut out, f.position_m.iter().copied().chain(row_major3(&f.covariance_m2)));
         }
-        r.landmarks.sort_by_key(|(s, _)| *s);
-        Ok(Some(r))
-    }
-
-    /// Opens the journal: rewritten with what `restored` holds (a restart), or empty (and the
-    /// landmark files of an earlier run removed).
-    pub fn open(path: &Path, restored: Option<&Restored>) -> Result<Self, StateError> {
-        let landmarks_dir = Self::landmarks_dir(path);
-        if restored.is_none() && landmarks_dir.exists() {
-            std::fs::remove_dir_all(&landmarks_dir).map_err(StateError::io("removing", &landmarks_dir))?;
+        Entry::Heading(h) => {
+            let _ = write!(out, "h {} {} {}", h.t_s, h.yaw_rad, h.sigma_rad);
         }
-        std::fs::create_dir_all(&landmarks_dir).map_err(StateError::io("creating", &landmarks_dir))?;
-        let file = File::create(path).map_err(StateError::io("creating", path))?;
-        let mut j = Self { path: path.into(), landmarks_dir, file, buffer: String::new() };
-        if let Some(r) = restored {
-            for e in &r.entries {
-                j.push(e);
-            }
-            j.flush()?;
+        Entry::Pair(p) => {
+            let _ = write!(out, "p {} {}", p.t_s, p.segment);
+            let t = p.local_from_body.translation.vector;
+            let q = p.local_from_body.rotation.coords; // x, y, z, w
+            write_nums(&mut out, t.iter().copied().chain(q.iter().copied()));
+            write_nums(&mut out, (0..36).map(|i| p.local_covariance[(i / 6, i % 6)]));
+            write_nums(&mut out, p.buoy_m.iter().copied().chain(row_major3(&p.buoy_cov_m2)));
         }
-        Ok(j)
     }
+    state.record(&out);
+}
 
-    /// Queues an entry (written by [`Journal::flush`]).
-    pub fn push(&mut self, e: &Entry) {
-        let out = &mut self.buffer;
-        match e {
-            Entry::Fix(f) => {
-                let _ = write!(out, "f {}", f.t_s);
-                write_nums(out, f.position_m.iter().copied().chain(row_major3(&f.covariance_m2)));
-            }
-            Entry::Heading(h) => {
-                let _ = write!(out, "h {} {} {}", h.t_s, h.yaw_rad, h.sigma_rad);
-            }
-            Entry::Pair(p) => {
-                let _ = write!(out, "p {} {}", p.t_s, p.segment);
-                let t = p.local_from_body.translation.vector;
-                let q = p.local_from_body.rotation.coords; // x, y, z, w
-                write_nums(out, t.iter().copied().chain(q.iter().copied()));
-                write_nums(out, (0..36).map(|i| p.local_covariance[(i / 6, i % 6)]));
-                write_nums(out, p.buoy_m.iter().copied().chain(row_major3(&p.buoy_cov_m2)));
-            }
-        }
-        out.push('\n');
-    }
-
-    /// Writes the queued entries (one write).
-    pub fn flush(&mut self) -> Result<(), StateError> {
-        if !self.buffer.is_empty() {
-            self.file.write_all(self.buffer.as_bytes()).map_err(StateError::io("writing", &self.path))?;
-            self.buffer.clear();
-        }
-        Ok(())
-    }
-
-    /// Replaces the kept landmark map of `segment` (a temporary file renamed over it).
-    pub fn landmarks(&self, segment: u32, landmarks: &[MapLandmark]) -> Result<(), StateError> {
-        let mut text = String::with_capacity(landmarks.len() * 300);
-        for l in landmarks {
-            let _ = write!(text, "{} {}", l.id, l.segment);
-            write_nums(&mut text, l.mean_m.iter().copied().chain(row_major3(&l.cov_m2)));
-            match l.descriptor {
-                Some(d) => {
-                    text.push(' ');
-                    for b in d {
-                        let _ = write!(text, "{b:02x}");
-                    }
+/// Replaces the kept landmark map of `segment` (a snapshot).
+pub fn landmarks(state: &StateStore, segment: u32, landmarks: &[MapLandmark]) -> Result<(), StateError> {
+    let mut text = String::with_capacity(landmarks.len() * 300);
+    for l in landmarks {
+        let _ = write!(text, "{} {}", l.id, l.segment);
+        write_nums(&mut text, l.mean_m.iter().copied().chain(row_major3(&l.cov_m2)));
+        match l.descriptor {
+            Some(d) => {
+                text.push(' ');
+                for b in d {
+                    let _ = write!(text, "{b:02x}");
                 }
-                None => text.push_str(" -"),
             }
-            let _ = writeln!(text, " {}", l.observations);
+            None => text.push_str(" -"),
         }
-        let tmp = self.landmarks_dir.join(format!(".{segment}.tmp"));
-        let dest = self.landmarks_dir.join(segment.to_string());
-        std::fs::write(&tmp, text).and_then(|_| std::fs::rename(&tmp, &dest)).map_err(StateError::io("writing", &dest))
+        let _ = writeln!(text, " {}", l.observations);
     }
+    state.snapshot(&landmarks_key(segment), text.as_bytes())
 }
 
 #[cfg(test)]
@@ -256,8 +206,7 @@ mod tests {
     #[test]
     fn journal_and_landmarks_read_back_exactly() {
         let dir = tempfile::tempdir().expect("temp dir");
-        let path = Journal::path(dir.path(), "fusion");
-        assert!(Journal::read(&path).expect("read").is_none());
+        let (mut store, _) = StateStore::open(dir.path(), "fusion", false).expect("store");
         let entries = vec![
             Entry::Fix(FixInput {
                 t_s: 1.0,
@@ -267,11 +216,10 @@ mod tests {
             Entry::Heading(HeadingInput { t_s: 1.5, yaw_rad: -0.25, sigma_rad: 0.01 }),
             Entry::Pair(Box::new(pair(2.0))),
         ];
-        let mut j = Journal::open(&path, None).expect("open");
         for e in &entries {
-            j.push(e);
+            record(&mut store, e);
         }
-        j.flush().expect("flush");
+        store.flush().expect("flush");
         let lm = MapLandmark {
             id: 9,
             segment: 3,
@@ -280,14 +228,13 @@ mod tests {
             descriptor: Some([0xab; 32]),
             observations: 4,
         };
-        j.landmarks(3, &[lm.clone(), MapLandmark { descriptor: None, id: 10, ..lm.clone() }]).expect("landmarks");
-        drop(j);
-        let mut text = std::fs::read_to_string(&path).expect("journal");
-        text.push_str("p 3.0 3 1.0");
-        std::fs::write(&path, text).expect("write");
-        let r = Journal::read(&path).expect("read").expect("journal");
-        assert_eq!(r.ignored_lines, 1);
-        assert_eq!(r.entries.len(), 3);
+        landmarks(&store, 3, &[lm.clone(), MapLandmark { descriptor: None, id: 10, ..lm.clone() }]).expect("landmarks");
+        drop(store);
+        let (_, restart) = StateStore::open(dir.path(), "fusion", true).expect("reopen");
+        let mut restart = restart.expect("a restart");
+        restart.journal.push("p 3.0 3 1.0".into());
+        let r = read(&restart).expect("read");
+        assert_eq!(r.lines, 3, "the line that does not parse ends the journal");
         assert_eq!(r.entries[..2], entries[..2]);
         let (Entry::Pair(a), Entry::Pair(b)) = (&r.entries[2], &entries[2]) else { panic!("a pair") };
         assert_eq!(
@@ -297,9 +244,5 @@ mod tests {
         assert!((a.local_from_body.rotation.coords - b.local_from_body.rotation.coords).norm() < 1e-12);
         assert_eq!(r.landmarks.len(), 1);
         assert_eq!(r.landmarks[0].1, vec![lm.clone(), MapLandmark { descriptor: None, id: 10, ..lm }]);
-        // A first instance of a new run starts empty.
-        Journal::open(&path, None).expect("open");
-        let fresh = Journal::read(&path).expect("read").expect("journal");
-        assert!(fresh.entries.is_empty() && fresh.landmarks.is_empty());
     }
 }

@@ -5,11 +5,11 @@ use std::time::Duration;
 
 use fusion::engine::{Fusion, Source};
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
-use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
+use pipeline_runtime::{Input, Output, ProcessContext, Restart, Runtime, Wake};
 use shared_types::services::{BUOY_FIX, COMMAND, FUSION_MAP, FUSION_POSE, HEADING, SLAM_LANDMARKS, SYNC_PAIR};
 use shared_types::*;
 
-use crate::journal::{Entry, Journal};
+use crate::journal::Entry;
 use crate::{FusionSettings, RunLog, fix_from_wire, landmark_from_wire, pair_from_wire, write_outputs};
 
 fn flags(s: Source) -> u32 {
@@ -36,7 +36,6 @@ pub struct FusionStage {
     map_out: Output<[Landmark], LandmarkMapHeader>,
     commands: Output<ControlCommand, MsgHeader>,
     log: RunLog,
-    journal: Journal,
     statuses: std::collections::BTreeMap<u32, std::mem::Discriminant<fusion::engine::SegmentStatus>>,
     out_dir: std::path::PathBuf,
 }
@@ -45,7 +44,7 @@ impl Stage for FusionStage {
     type Settings = FusionSettings;
 
     fn open(ctx: &ProcessContext, settings: FusionSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
-        let mut engine =
+        let engine =
             Fusion::new(settings.fusion.clone()).map_err(|p| anyhow::anyhow!("invalid fusion settings: {p:?}"))?;
         let pairs = rt.input::<SyncedPair, MsgHeader>(SYNC_PAIR)?;
         let fixes = rt.input::<BuoyFix, MsgHeader>(BUOY_FIX)?;
@@ -54,43 +53,6 @@ impl Stage for FusionStage {
         let pose_out = rt.output::<FusedPose, MsgHeader>(FUSION_POSE)?;
         let map_out = rt.output_slice::<Landmark, LandmarkMapHeader>(FUSION_MAP, 4096)?;
         let commands = rt.output::<ControlCommand, MsgHeader>(COMMAND)?;
-        let mut log = RunLog::default();
-        let statuses: std::collections::BTreeMap<u32, std::mem::Discriminant<fusion::engine::SegmentStatus>> =
-            Default::default();
-        // A restarted instance replays what the killed one had taken into the new engine; a first
-        // instance starts empty (whatever an earlier run left in the output directory).
-        let journal_path = Journal::path(&ctx.out_dir, &ctx.name);
-        let restarted = pipeline_runtime::restart::is_restart();
-        let restored = if restarted { Journal::read(&journal_path)? } else { None };
-        let journal = Journal::open(&journal_path, restored.as_ref())?;
-        if let Some(r) = restored {
-            for e in r.entries.iter().cloned() {
-                match e {
-                    Entry::Fix(f) => engine.push_fix(f).map_err(|e| anyhow::anyhow!("journalled fix: {e}"))?,
-                    Entry::Heading(h) => {
-                        engine.push_heading(h).map_err(|e| anyhow::anyhow!("journalled heading: {e}"))?
-                    }
-                    Entry::Pair(p) => {
-                        let (t_s, buoy) = (p.t_s, p.buoy_m);
-                        if let Ok(out) = engine.push_pair(*p) {
-                            log.buoy.push((t_s, buoy));
-                            log.live.push((out.t_s, out.world_from_body));
-                            log.live_sources.add(out.source);
-                            log.segment_requests += u64::from(out.request_new_segment);
-                        }
-                    }
-                }
-            }
-            for (segment, ls) in r.landmarks.iter().cloned() {
-                engine.set_landmarks(segment, ls);
-            }
-            tracing::info!(
-                inputs = r.entries.len(),
-                local_maps = r.landmarks.len(),
-                ignored_lines = r.ignored_lines,
-                "restarted: replayed the killed instance's inputs"
-            );
-        }
         tracing::info!(slam = %settings.slam_process, end_after = ?settings.end_after, "fusion ready");
         Ok(Self {
             settings,
@@ -102,9 +64,8 @@ impl Stage for FusionStage {
             pose_out,
             map_out,
             commands,
-            log,
-            journal,
-            statuses,
+            log: RunLog::default(),
+            statuses: Default::default(),
             out_dir: ctx.out_dir.clone(),
         })
     }
@@ -117,28 +78,46 @@ impl Stage for FusionStage {
         Some(Duration::from_millis(200))
     }
 
-    fn step(&mut self, _rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> anyhow::Result<Step> {
-        let Self {
-            settings,
-            engine,
-            pairs,
-            fixes,
-            landmarks,
-            headings,
-            pose_out,
-            commands,
-            log,
-            journal,
-            statuses,
-            ..
-        } = self;
+    /// A restarted instance replays what the killed one had taken into the new engine (it is
+    /// deterministic: back in the killed one's state); nothing is published during the replay.
+    fn restore(&mut self, restart: Restart) -> anyhow::Result<usize> {
+        let r = crate::journal::read(&restart)?;
+        let (engine, log) = (&mut self.engine, &mut self.log);
+        for e in r.entries.iter().cloned() {
+            match e {
+                Entry::Fix(f) => engine.push_fix(f).map_err(|e| anyhow::anyhow!("journalled fix: {e}"))?,
+                Entry::Heading(h) => engine.push_heading(h).map_err(|e| anyhow::anyhow!("journalled heading: {e}"))?,
+                Entry::Pair(p) => {
+                    let (t_s, buoy) = (p.t_s, p.buoy_m);
+                    if let Ok(out) = engine.push_pair(*p) {
+                        log.buoy.push((t_s, buoy));
+                        log.live.push((out.t_s, out.world_from_body));
+                        log.live_sources.add(out.source);
+                        log.segment_requests += u64::from(out.request_new_segment);
+                    }
+                }
+            }
+        }
+        for (segment, ls) in r.landmarks.iter().cloned() {
+            engine.set_landmarks(segment, ls);
+        }
+        tracing::info!(
+            inputs = r.entries.len(),
+            local_maps = r.landmarks.len(),
+            "restarted: replayed the killed instance's inputs"
+        );
+        Ok(r.lines)
+    }
+
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> anyhow::Result<Step> {
+        let Self { settings, engine, pairs, fixes, landmarks, headings, pose_out, commands, log, statuses, .. } = self;
         // Fixes and maps first, so that a pair sees every fix that arrived with it.
         while let Some(s) = fixes.receive()? {
             let fix = fix_from_wire(s.user_header(), s.payload());
             if engine.push_fix(fix).is_err() {
                 count(log, "buoy fix with NaN");
             } else {
-                journal.push(&Entry::Fix(fix));
+                crate::journal::record(rt.state(), &Entry::Fix(fix));
             }
         }
         while let Some(s) = headings.receive()? {
@@ -151,7 +130,7 @@ impl Stage for FusionStage {
             if engine.push_heading(reading).is_err() {
                 count(log, "heading with NaN or sigma <= 0");
             } else {
-                journal.push(&Entry::Heading(reading));
+                crate::journal::record(rt.state(), &Entry::Heading(reading));
             }
         }
         while let Some(s) = landmarks.receive()? {
@@ -160,7 +139,7 @@ impl Stage for FusionStage {
             if ls.len() < s.payload().len() {
                 count(log, "landmark with NaN");
             }
-            journal.landmarks(h.segment_id, &ls)?;
+            crate::journal::landmarks(rt.state(), h.segment_id, &ls)?;
             engine.set_landmarks(h.segment_id, ls);
         }
         while let Some(s) = pairs.receive()? {
@@ -168,7 +147,7 @@ impl Stage for FusionStage {
             let pair = pair_from_wire(&h, s.payload());
             let buoy = pair.buoy_m;
             let t_s = pair.t_s;
-            journal.push(&Entry::Pair(Box::new(pair.clone())));
+            crate::journal::record(rt.state(), &Entry::Pair(Box::new(pair.clone())));
             let out = match engine.push_pair(pair) {
                 Ok(o) => o,
                 Err(e) => {
@@ -180,7 +159,7 @@ impl Stage for FusionStage {
             log.live.push((out.t_s, out.world_from_body));
             log.live_sources.add(out.source);
             // Journalled before publishing: a restarted instance replays what was journalled.
-            journal.flush()?;
+            rt.state().flush()?;
             if h.origin_ns > 0 {
                 let now = pipeline_runtime::clock::monotonic_ns();
                 log.stereo_to_fused_ms.push(now.saturating_sub(h.origin_ns) as f64 / 1e6);
@@ -220,7 +199,6 @@ impl Stage for FusionStage {
                 )?;
             }
         }
-        journal.flush()?;
         Ok(Step::Idle)
     }
 

@@ -15,7 +15,7 @@ pub mod stage;
 
 use std::time::{Duration, Instant};
 
-pub use progress::{Progress, ProgressFile};
+pub use progress::Progress;
 pub use settings::*;
 pub use sources::*;
 

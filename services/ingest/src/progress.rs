@@ -1,20 +1,14 @@
-//! Where a restarted ingest resumes: the process records, before it publishes each item, how many
-//! items it has taken from its source (plus its counters) in `<out>/state/<process>.progress`. A
+//! Where a restarted ingest resumes: the stage records, before it publishes each item, how many
+//! items it has taken from its source (plus its counters) as a line of the runtime's journal
+//! ([`pipeline_runtime::Runtime::state`]). A
 //! restarted instance (the supervisor sets `SLAM_PIPELINE_RESTARTS` > 0) reads it, takes that many
 //! items from the (deterministic) source without publishing them, and goes on with the next one:
 //! downstream sees the stream continue with newer stamps instead of the mission replayed from the
 //! start. Recording before publishing makes the delivery at most once: a kill between the record
 //! and the send loses that one item, it never duplicates one.
 //!
-//! The record is one fixed-size text line overwritten in place with a single `pwrite`, which a
-//! SIGKILL cannot tear, so no temporary file and rename are needed per item.
-
-use std::fs::File;
-use std::os::unix::fs::FileExt;
-use std::path::{Path, PathBuf};
-
-/// Size of the record, bytes (the line is padded with spaces).
-const RECORD_LEN: usize = 192;
+//! One line per item (one `write` each, flushed before the send); the runtime drops a line cut
+//! short by a kill.
 
 /// What a killed instance had done.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -27,27 +21,6 @@ pub struct Progress {
     pub empty_clouds: u64,
     /// Stamp of the first and of the last item taken, ns.
     pub first_last_stamp: Option<(u64, u64)>,
-}
-
-/// Why a progress record cannot be used.
-#[derive(Debug, thiserror::Error)]
-pub enum ProgressError {
-    /// The file cannot be read or written.
-    #[error("{path}: {source}")]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The error.
-        source: std::io::Error,
-    },
-    /// The record is not one this version writes.
-    #[error("{path}: not a progress record: `{line}`")]
-    Malformed {
-        /// The file.
-        path: PathBuf,
-        /// The line read.
-        line: String,
-    },
 }
 
 impl Progress {
@@ -94,51 +67,18 @@ impl Progress {
     }
 }
 
-/// The progress file of one ingest process.
-#[derive(Debug)]
-pub struct ProgressFile {
-    path: PathBuf,
-    file: File,
-}
-
-impl ProgressFile {
-    /// `<out_dir>/state/<process>.progress`.
-    pub fn path(out_dir: &Path, process: &str) -> PathBuf {
-        pipeline_runtime::restart::state_path(out_dir, process, "progress")
+/// The progress of a killed instance: the last record of its journal lines (each line a record
+/// written by [`Progress::encode`], in order). Returns it (`None` without a line) and how many
+/// lines were read; the first line that is not a record ends the journal.
+pub fn restored(lines: &[String]) -> (Option<Progress>, usize) {
+    let mut last = None;
+    let mut n = 0;
+    for line in lines {
+        let Some(p) = Progress::decode(line) else { break };
+        last = Some(p);
+        n += 1;
     }
-
-    /// Reads the record a killed instance left; `Ok(None)` when there is none.
-    pub fn read(path: &Path) -> Result<Option<Progress>, ProgressError> {
-        let text = match std::fs::read_to_string(path) {
-            Ok(t) => t,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-            Err(source) => return Err(ProgressError::Io { path: path.into(), source }),
-        };
-        Progress::decode(&text)
-            .map(Some)
-            .ok_or_else(|| ProgressError::Malformed { path: path.into(), line: text.trim_end().to_string() })
-    }
-
-    /// Opens (creating it and its directory) the file for recording.
-    pub fn create(path: &Path) -> Result<Self, ProgressError> {
-        let io = |source| ProgressError::Io { path: path.into(), source };
-        if let Some(dir) = path.parent() {
-            std::fs::create_dir_all(dir).map_err(io)?;
-        }
-        let file = std::fs::OpenOptions::new().create(true).truncate(false).write(true).open(path).map_err(io)?;
-        Ok(Self { path: path.into(), file })
-    }
-
-    /// Overwrites the record with `p` (one `pwrite` of the fixed-size line).
-    pub fn record(&self, p: &Progress) -> Result<(), ProgressError> {
-        let mut line = p.encode();
-        line.truncate(RECORD_LEN - 1);
-        let mut buf = format!("{line:<width$}", width = RECORD_LEN - 1);
-        buf.push('\n');
-        self.file
-            .write_all_at(buf.as_bytes(), 0)
-            .map_err(|source| ProgressError::Io { path: self.path.clone(), source })
-    }
+    (last, n)
 }
 
 #[cfg(test)]
@@ -146,32 +86,17 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_record_reads_back_as_written_and_rewrites_in_place() {
-        let dir = tempfile::tempdir().expect("temp dir");
-        let path = ProgressFile::path(dir.path(), "ingest");
-        assert!(ProgressFile::read(&path).expect("no file is no progress").is_none());
-        let f = ProgressFile::create(&path).expect("create");
+    fn the_last_record_is_the_progress_and_a_line_that_is_not_one_ends_the_journal() {
         let big = Progress {
             items: 123_456_789,
             counts: [1, 2, 3, 4, 5, u64::MAX],
             empty_clouds: 7,
             first_last_stamp: Some((10, u64::MAX)),
         };
-        f.record(&big).expect("record");
         let small = Progress { items: 3, ..Default::default() };
-        f.record(&small).expect("record");
-        assert_eq!(ProgressFile::read(&path).expect("read"), Some(small), "a shorter record replaces a longer one");
-        f.record(&big).expect("record");
-        assert_eq!(ProgressFile::read(&path).expect("read"), Some(big));
-        assert_eq!(std::fs::metadata(&path).expect("metadata").len(), RECORD_LEN as u64);
-    }
-
-    #[test]
-    fn a_malformed_record_is_an_error_naming_the_file() {
-        let dir = tempfile::tempdir().expect("temp dir");
-        let path = dir.path().join("x.progress");
-        std::fs::write(&path, "items=3\n").expect("write");
-        let e = ProgressFile::read(&path).unwrap_err().to_string();
-        assert!(e.contains("x.progress") && e.contains("not a progress record"), "{e}");
+        assert_eq!(Progress::decode(&big.encode()), Some(big));
+        assert_eq!(restored(&[]), (None, 0));
+        let lines = vec![small.encode(), big.encode(), "items=3".to_string(), small.encode()];
+        assert_eq!(restored(&lines), (Some(big), 2));
     }
 }

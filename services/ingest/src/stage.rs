@@ -5,9 +5,9 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use crate::{IngestSettings, Item, Pacer, Progress, ProgressFile, SimSource, Source, SourceKind, TruthFile};
+use crate::{IngestSettings, Item, Pacer, Progress, SimSource, Source, SourceKind, TruthFile};
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
-use pipeline_runtime::{Delivery, Output, ProcessContext, Runtime, Wake};
+use pipeline_runtime::{Delivery, Output, ProcessContext, Restart, Runtime, Wake};
 use shared_types::convert::quat_to_xyzw;
 use shared_types::services::{self, BUOY_RANGES, CLOUD, DEPTH, HEADING, ODOMETRY, STEREO};
 use shared_types::{
@@ -44,7 +44,6 @@ pub struct IngestStage {
     items: u64,
     /// Items still to take without publishing: what a killed instance had published already.
     skip: u64,
-    progress: ProgressFile,
     /// With factor 0: how long to wait for a lost subscriber to come back.
     resubscribe_wait: Option<Duration>,
     /// Most subscribers seen per output (odometry, stereo, buoy ranges, depth, cloud, heading).
@@ -70,7 +69,7 @@ fn header(stamp_ns: u64) -> MsgHeader {
 }
 
 impl IngestStage {
-    fn publish(&mut self, item: Item) -> anyhow::Result<()> {
+    fn publish(&mut self, rt: &mut Runtime, item: Item) -> anyhow::Result<()> {
         let stamp = item.stamp_ns();
         self.first_last_stamp = Some(self.first_last_stamp.map_or((stamp, stamp), |(a, _)| (a, stamp)));
         self.items += 1;
@@ -86,7 +85,8 @@ impl IngestStage {
             Item::Cloud { .. } => p.counts[4] += 1,
             Item::Heading { .. } => p.counts[5] += 1,
         }
-        self.progress.record(&p)?;
+        rt.state().record(&p.encode());
+        rt.state().flush()?;
         let o = &mut self.outputs;
         match item {
             Item::Odometry { stamp_ns, input } => {
@@ -294,7 +294,7 @@ impl IngestStage {
                 break;
             }
             let item = self.pending.take().expect("filled above");
-            self.publish(item)?;
+            self.publish(rt, item)?;
             if Instant::now() >= batch_end {
                 rt.wake_at(Instant::now()); // let the loop publish heartbeats, then go on
                 break;
@@ -337,18 +337,7 @@ impl Stage for IngestStage {
             heading: rt.output_with_qos(HEADING, &qos(HEADING), delivery)?,
             cloud: rt.output_slice_with_qos(CLOUD, &qos(CLOUD), cloud_len, delivery)?,
         };
-        // A restarted instance resumes after what the killed one had published; a first instance
-        // starts from the beginning (whatever an earlier run left in the output directory).
-        let progress_path = ProgressFile::path(&ctx.out_dir, &ctx.name);
-        let resumed = if crate::is_restart() { ProgressFile::read(&progress_path)? } else { None };
-        let progress = ProgressFile::create(&progress_path)?;
-        let start = resumed.unwrap_or_default();
-        if resumed.is_some() {
-            tracing::info!(items = start.items, "restarted: skipping the items the killed instance had published");
-            progress.record(&start)?;
-        } else {
-            progress.record(&Progress::default())?;
-        }
+        let start = Progress::default();
         let mut truth = TruthFile::create(&ctx.out_dir)?;
         truth.update(&*source)?;
         let state = IngestStage {
@@ -368,7 +357,6 @@ impl Stage for IngestStage {
             publish_from: Instant::now() + Duration::from_secs_f64(settings.connect_grace_s),
             items: start.items,
             skip: start.items,
-            progress,
             resubscribe_wait: (settings.real_time_factor <= 0.0 && settings.resubscribe_wait_s > 0.0)
                 .then(|| Duration::from_secs_f64(settings.resubscribe_wait_s)),
             subscribers: [0; 6],
@@ -376,6 +364,21 @@ impl Stage for IngestStage {
         };
         rt.wake_at(Instant::now());
         Ok(state)
+    }
+
+    /// A restarted instance resumes after what the killed one had published (its last progress
+    /// record): the items it took are taken again from the (deterministic) source, unpublished.
+    fn restore(&mut self, restart: Restart) -> anyhow::Result<usize> {
+        let (progress, lines) = crate::progress::restored(&restart.journal);
+        if let Some(p) = progress {
+            tracing::info!(items = p.items, "restarted: skipping the items the killed instance had published");
+            self.counts = p.counts;
+            self.empty_clouds = p.empty_clouds;
+            self.first_last_stamp = p.first_last_stamp;
+            self.items = p.items;
+            self.skip = p.items;
+        }
+        Ok(lines)
     }
 
     fn end_after(&self) -> EndAfter {

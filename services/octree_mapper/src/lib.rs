@@ -141,7 +141,8 @@ pub struct MapperSettings {
     pub obstacle_max_bhattacharyya: f64,
     /// The processes whose end of stream ends this one's input.
     pub end_after: Vec<String>,
-    /// Period of the occupancy checkpoint `<out>/state/<process>.bt` a restarted mapper starts
+    /// Period of the occupancy checkpoint (the snapshot `map.bt` of the runtime's restart state,
+    /// `<out>/state/<process>/map.bt`) a restarted mapper starts
     /// from, s (0 = none: a restarted mapper starts with an empty map).
     pub checkpoint_interval_s: f64,
 }
@@ -324,21 +325,11 @@ impl MapperState {
         })
     }
 
-    /// `<out_dir>/state/<process>.bt`: the occupancy checkpoint of a mapper.
-    pub fn checkpoint_path(out_dir: &std::path::Path, process: &str) -> std::path::PathBuf {
-        pipeline_runtime::restart::state_path(out_dir, process, "bt")
-    }
-
-    /// Writes the occupancy checkpoint (max-likelihood `.bt`, a temporary file renamed over it).
-    pub fn write_checkpoint(&self, path: &std::path::Path) -> Result<(), MapperError> {
-        let io = |source| MapperError::CheckpointIo { path: path.to_path_buf(), source };
-        if let Some(dir) = path.parent() {
-            std::fs::create_dir_all(dir).map_err(io)?;
-        }
-        let tmp = path.with_extension("bt.tmp");
-        self.tree.write_binary_file(&tmp)?;
-        std::fs::rename(&tmp, path).map_err(io)?;
-        Ok(())
+    /// The occupancy checkpoint: the max-likelihood map as a `.bt` file's bytes.
+    pub fn checkpoint(&self) -> Result<Vec<u8>, MapperError> {
+        let mut bytes = Vec::new();
+        self.tree.write_binary(&mut bytes)?;
+        Ok(bytes)
     }
 
     /// Starts from a checkpoint a killed instance wrote: its occupied and free voxels at the
@@ -484,12 +475,13 @@ mod tests {
     #[test]
     fn a_checkpoint_restores_the_occupied_and_free_voxels_and_a_wrong_resolution_is_an_error() {
         let dir = std::env::temp_dir().join(format!("mapper-checkpoint-{}", std::process::id()));
-        let path = MapperState::checkpoint_path(&dir, "map");
+        let path = dir.join("map.bt");
         let mut st = MapperState::new(MapperSettings::default()).expect("state");
         assert!(!st.restore_checkpoint(&path).expect("no checkpoint is not an error"));
         let wall: Vec<[f32; 3]> = (0..400).map(|i| [3.0, (i % 20) as f32 * 0.1, (i / 20) as f32 * 0.1]).collect();
         st.tree.insert_point_cloud(&wall, [0.0f32, 0.5, 0.5], 10.0, false).expect("insert");
-        st.write_checkpoint(&path).expect("checkpoint");
+        std::fs::create_dir_all(&dir).expect("dir");
+        std::fs::write(&path, st.checkpoint().expect("checkpoint")).expect("write");
         let (occupied, free) = st.tree.num_occupied_free_leaves();
         assert!(occupied > 0 && free > 0);
         let mut restored = MapperState::new(MapperSettings::default()).expect("state");

@@ -5,7 +5,10 @@
 use std::time::{Duration, Instant};
 
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
-use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
+use pipeline_runtime::{Input, Output, ProcessContext, Restart, Runtime, Wake};
+
+/// The snapshot key of the occupancy checkpoint (`<out>/state/<process>/map.bt`).
+const CHECKPOINT: &str = "map.bt";
 use shared_types::services::{CLOUD, COMMAND, FUSION_POSE, MAP_STATS, MAP_VOXELS, SLAM_POSE};
 use shared_types::*;
 
@@ -145,7 +148,6 @@ fn end_of_run(
 pub struct OctreeMapperStage {
     settings: MapperSettings,
     st: MapperState,
-    checkpoint: std::path::PathBuf,
     checkpoint_every: Option<Duration>,
     last_checkpoint: Instant,
     clouds: Input<[CloudPoint], CloudHeader>,
@@ -167,24 +169,13 @@ impl Stage for OctreeMapperStage {
     type Settings = MapperSettings;
 
     fn open(ctx: &ProcessContext, settings: MapperSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
-        let mut st = MapperState::new(settings.clone())?;
-        // A restarted instance starts from the killed one's last occupancy checkpoint; a first
-        // instance starts empty (whatever an earlier run left in the output directory).
-        let checkpoint = MapperState::checkpoint_path(&ctx.out_dir, &ctx.name);
-        let restarted = pipeline_runtime::restart::is_restart();
-        if restarted && st.restore_checkpoint(&checkpoint)? {
-            let (occupied, free) = st.tree.num_occupied_free_leaves();
-            tracing::info!(occupied, free, "restarted: the map starts from the killed instance's last checkpoint");
-        } else if !restarted && checkpoint.exists() {
-            std::fs::remove_file(&checkpoint)?;
-        }
+        let st = MapperState::new(settings.clone())?;
         let checkpoint_every =
             (settings.checkpoint_interval_s > 0.0).then(|| Duration::from_secs_f64(settings.checkpoint_interval_s));
         let every = |hz: f64| (hz > 0.0).then(|| Duration::from_secs_f64(1.0 / hz));
         tracing::info!(resolution_m = settings.resolution_m, pose = ?settings.pose_source, "octree mapper ready");
         Ok(Self {
             st,
-            checkpoint,
             checkpoint_every,
             last_checkpoint: Instant::now(),
             clouds: rt.input(CLOUD)?,
@@ -212,11 +203,21 @@ impl Stage for OctreeMapperStage {
         Some(Duration::from_millis(100))
     }
 
+    /// A restarted instance starts from the killed one's last occupancy checkpoint.
+    fn restore(&mut self, restart: Restart) -> anyhow::Result<usize> {
+        if let Some(path) = restart.snapshots.get(CHECKPOINT)
+            && self.st.restore_checkpoint(path)?
+        {
+            let (occupied, free) = self.st.tree.num_occupied_free_leaves();
+            tracing::info!(occupied, free, "restarted: the map starts from the killed instance's last checkpoint");
+        }
+        Ok(0)
+    }
+
     fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> anyhow::Result<Step> {
         let Self {
             settings,
             st,
-            checkpoint,
             checkpoint_every,
             last_checkpoint,
             clouds,
@@ -302,7 +303,7 @@ impl Stage for OctreeMapperStage {
         }
         if checkpoint_every.is_some_and(|e| last_checkpoint.elapsed() >= e) && !inputs_ended {
             *last_checkpoint = Instant::now();
-            st.write_checkpoint(checkpoint)?;
+            rt.state().snapshot(CHECKPOINT, &st.checkpoint()?)?;
         }
         if stats_every.is_some_and(|e| last_stats.elapsed() >= e) {
             *last_stats = Instant::now();

@@ -21,6 +21,7 @@ pub use config::{ConfigError, ConfigIssue, Issues, LogFormat, PipelineConfig, Pr
 pub use iox::IoxScope;
 pub use ports::{Delivery, Input, Output, PortError};
 pub use protocol::{CheckReport, process_main};
+pub use restart::{Restart, StateStore};
 pub use runtime::{Flow, ProcessArgs, ProcessContext, Runtime, RuntimeOptions, StopReason, Wake};
 pub use stage::{EndAfter, Ending, Stage, Step, stage_main};
 pub use stats::{LatencySummary, StatsReport};

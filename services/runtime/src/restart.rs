@@ -1,12 +1,14 @@
 //! What a restarted process finds: the supervisor tells each instance how many times the process
-//! was restarted before it ([`ENV_RESTARTS`], 0 for the first), and stages that keep state for a
-//! restart put it under `<out_dir>/state/` ([`state_path`]). A first instance ignores (and
-//! overwrites) whatever an earlier run left there; only a restart reads it back.
-//!
-//! Journals are text, one record per line, appended as the stage goes: a line cut short by the
-//! kill is dropped with everything after it ([`parse_lines`]).
+//! was restarted before it ([`ENV_RESTARTS`], 0 for the first), and the runtime keeps each stage's
+//! restart state under `<out_dir>/state/<process>/` ([`StateStore`]): a journal of text lines the
+//! stage records as it goes ([`StateStore::record`], reached through
+//! [`Runtime::state`](crate::Runtime::state)) and named snapshots ([`StateStore::snapshot`]).
+//! A first instance starts with an empty directory; a restarted one is given what is there
+//! ([`Restart`], through [`Stage::restore`](crate::Stage::restore)), and the runtime keeps the
+//! journal lines the stage took: a line cut short by the kill is dropped with everything after it.
 
 use std::fs::File;
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
 /// An error with a process's restart state: the file and what was being done are named.
@@ -54,13 +56,8 @@ pub fn is_restart() -> bool {
     restart_count() > 0
 }
 
-/// `<out_dir>/state/<process>.<extension>`: where a process keeps state for its restart.
-pub fn state_path(out_dir: &Path, process: &str, extension: &str) -> PathBuf {
-    out_dir.join("state").join(format!("{process}.{extension}"))
-}
-
 /// The text of a state file, `None` if there is none.
-pub fn read_state_text(path: &Path) -> Result<Option<String>, StateError> {
+fn read_state_text(path: &Path) -> Result<Option<String>, StateError> {
     match std::fs::read_to_string(path) {
         Ok(t) => Ok(Some(t)),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
@@ -68,19 +65,176 @@ pub fn read_state_text(path: &Path) -> Result<Option<String>, StateError> {
     }
 }
 
-/// Creates (truncating) a state file and its directory.
-pub fn create_state_file(path: &Path) -> Result<File, StateError> {
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(StateError::io("creating the directory of", path))?;
-    }
-    File::create(path).map_err(StateError::io("creating", path))
+/// What a restarted instance gets back from its killed predecessors ([`crate::Stage::restore`]).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Restart {
+    /// The journal's lines, in the order they were recorded (only whole lines: one cut short by
+    /// the kill is not here, and counted in `cut_lines`).
+    pub journal: Vec<String>,
+    /// Journal lines cut short by the kill (0 or 1).
+    pub cut_lines: usize,
+    /// The snapshots, by key: their files (read them with [`Restart::read_snapshot`], or hand
+    /// the path to a library that reads files).
+    pub snapshots: std::collections::BTreeMap<String, PathBuf>,
 }
 
-/// Feeds the lines of a journal to `parse` until one does not parse (returns false): that line,
-/// cut short by a kill, is dropped with every line after it. Returns the number of lines dropped.
-pub fn parse_lines(text: &str, mut parse: impl FnMut(&str) -> bool) -> usize {
-    let lines: Vec<&str> = text.lines().collect();
-    lines.iter().position(|l| !parse(l)).map_or(0, |i| lines.len() - i)
+impl Restart {
+    /// The bytes of snapshot `key`, `None` if there is none.
+    pub fn read_snapshot(&self, key: &str) -> Result<Option<Vec<u8>>, StateError> {
+        match self.snapshots.get(key) {
+            Some(p) => std::fs::read(p).map(Some).map_err(StateError::io("reading", p)),
+            None => Ok(None),
+        }
+    }
+}
+
+/// The restart state of one process, kept by the runtime under `<out_dir>/state/<process>/`:
+/// an append-only journal (`journal`, text lines the stage records as it goes, written in one
+/// write per [`StateStore::flush`]) and named snapshots (`<key>`, each replaced atomically by a
+/// temporary file renamed over it). A first instance starts with an empty directory (whatever
+/// an earlier run left is removed); a restarted one is given what is there
+/// ([`StateStore::open`]) and keeps the journal lines its stage took ([`StateStore::keep`]).
+#[derive(Debug)]
+pub struct StateStore {
+    dir: Option<PathBuf>,
+    journal: Option<File>,
+    buffer: String,
+    /// Journal lines recorded (and flushed) so far.
+    lines: u64,
+}
+
+impl StateStore {
+    /// A store that keeps nothing (a process without restart state, or a test fixture).
+    pub fn disabled() -> Self {
+        Self { dir: None, journal: None, buffer: String::new(), lines: 0 }
+    }
+
+    /// `<out_dir>/state/<process>/`.
+    pub fn dir_of(out_dir: &Path, process: &str) -> PathBuf {
+        out_dir.join("state").join(process)
+    }
+
+    /// Opens the store of `process`: for a restart (`restart`), what the killed instances left;
+    /// else an empty directory.
+    pub fn open(out_dir: &Path, process: &str, restart: bool) -> Result<(Self, Option<Restart>), StateError> {
+        let dir = Self::dir_of(out_dir, process);
+        let restored = if restart { Some(Self::read(&dir)?) } else { None };
+        if !restart && dir.exists() {
+            std::fs::remove_dir_all(&dir).map_err(StateError::io("removing", &dir))?;
+        }
+        std::fs::create_dir_all(&dir).map_err(StateError::io("creating", &dir))?;
+        let path = dir.join("journal");
+        // Rewritten by `keep` on a restart; empty for a first instance.
+        let journal = if restart {
+            std::fs::OpenOptions::new().create(true).append(true).open(&path)
+        } else {
+            File::create(&path)
+        }
+        .map_err(StateError::io("creating", &path))?;
+        Ok((Self { dir: Some(dir), journal: Some(journal), buffer: String::new(), lines: 0 }, restored))
+    }
+
+    fn read(dir: &Path) -> Result<Restart, StateError> {
+        let mut r = Restart::default();
+        let path = dir.join("journal");
+        if let Some(text) = read_state_text(&path)? {
+            r.journal = text.split_inclusive('\n').map(|l| l.to_string()).collect();
+            if r.journal.last().is_some_and(|l| !l.ends_with('\n')) {
+                r.journal.pop();
+                r.cut_lines = 1;
+            }
+            for l in &mut r.journal {
+                l.pop();
+            }
+        }
+        if let Ok(entries) = std::fs::read_dir(dir) {
+            for e in entries.flatten() {
+                let Some(key) = e.file_name().to_str().map(str::to_string) else { continue };
+                if key == "journal" || key.starts_with('.') {
+                    continue;
+                }
+                r.snapshots.insert(key, e.path());
+            }
+        }
+        Ok(r)
+    }
+
+    /// On a restart: keeps the first `n` journal lines of `restart` (those the stage took) and
+    /// drops the rest.
+    pub fn keep(&mut self, restart: &Restart, n: usize) -> Result<(), StateError> {
+        let Some(dir) = &self.dir else { return Ok(()) };
+        let path = dir.join("journal");
+        let mut text = String::new();
+        for l in restart.journal.iter().take(n) {
+            text.push_str(l);
+            text.push('\n');
+        }
+        let tmp = dir.join(".journal.tmp");
+        std::fs::write(&tmp, text)
+            .and_then(|_| std::fs::rename(&tmp, &path))
+            .map_err(StateError::io("writing", &path))?;
+        self.journal =
+            Some(std::fs::OpenOptions::new().append(true).open(&path).map_err(StateError::io("opening", &path))?);
+        self.lines = n as u64;
+        Ok(())
+    }
+
+    /// True when the store keeps what is recorded (a process under a runtime with an output
+    /// directory).
+    pub fn is_enabled(&self) -> bool {
+        self.journal.is_some()
+    }
+
+    /// Records one journal line (no newline inside), written at the next [`StateStore::flush`]
+    /// (the runtime flushes after every wake-up; a stage flushes itself before it publishes what
+    /// the line records, so that a restarted instance never misses what went out).
+    pub fn record(&mut self, line: &str) {
+        if self.journal.is_some() {
+            debug_assert!(!line.contains('\n'), "a journal line has no newline: {line:?}");
+            self.buffer.push_str(line);
+            self.buffer.push('\n');
+        }
+    }
+
+    /// Writes the recorded lines in one write.
+    pub fn flush(&mut self) -> Result<(), StateError> {
+        if self.buffer.is_empty() {
+            return Ok(());
+        }
+        if let (Some(file), Some(dir)) = (self.journal.as_mut(), &self.dir) {
+            file.write_all(self.buffer.as_bytes()).map_err(StateError::io("writing", &dir.join("journal")))?;
+            self.lines += self.buffer.matches('\n').count() as u64;
+        }
+        self.buffer.clear();
+        Ok(())
+    }
+
+    /// Journal lines written so far (kept from a predecessor included).
+    pub fn journal_lines(&self) -> u64 {
+        self.lines
+    }
+
+    /// Replaces the snapshot `key` (letters, digits, `_`, `-`, `.`; not `journal`) with `bytes`:
+    /// a temporary file renamed over it, so a kill leaves the old or the new one, whole.
+    pub fn snapshot(&self, key: &str, bytes: &[u8]) -> Result<(), StateError> {
+        let Some(dir) = &self.dir else { return Ok(()) };
+        let path = dir.join(key);
+        if key == "journal"
+            || key.is_empty()
+            || key.starts_with('.')
+            || !key.chars().all(|c| c.is_ascii_alphanumeric() || "_-.".contains(c))
+        {
+            return Err(StateError::Malformed { path, what: format!("`{key}` is not a snapshot key") });
+        }
+        let tmp = dir.join(format!(".{key}.tmp"));
+        std::fs::write(&tmp, bytes).and_then(|_| std::fs::rename(&tmp, &path)).map_err(StateError::io("writing", &path))
+    }
+
+    /// The path of snapshot `key` (for a stage whose snapshot is written by a library that
+    /// writes files itself; write to a temporary file and rename, as [`StateStore::snapshot`]).
+    pub fn snapshot_path(&self, key: &str) -> Option<PathBuf> {
+        self.dir.as_ref().map(|d| d.join(key))
+    }
 }
 
 #[cfg(test)]
@@ -88,16 +242,34 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_cut_line_is_dropped_with_the_rest_and_a_missing_file_is_no_state() {
-        let mut seen = vec![];
-        let dropped = parse_lines("1\n2\nx\n4\n", |l| l.parse::<u32>().map(|v| seen.push(v)).is_ok());
-        assert_eq!((seen, dropped), (vec![1, 2], 2));
-        assert_eq!(parse_lines("", |_| false), 0);
+    fn a_store_keeps_the_journal_and_snapshots_for_a_restart_and_a_first_instance_starts_empty() {
         let dir = tempfile::tempdir().expect("temp dir");
-        let path = state_path(dir.path(), "slam", "journal");
-        assert!(path.ends_with("state/slam.journal"));
-        assert!(read_state_text(&path).expect("no file").is_none());
-        drop(create_state_file(&path).expect("create"));
-        assert_eq!(read_state_text(&path).expect("read").as_deref(), Some(""));
+        let (mut st, restored) = StateStore::open(dir.path(), "slam", false).expect("open");
+        assert!(restored.is_none());
+        st.record("a 1");
+        st.record("b 2");
+        st.flush().expect("flush");
+        st.snapshot("map.bt", b"occupancy").expect("snapshot");
+        assert!(st.snapshot("journal", b"x").is_err() && st.snapshot("../x", b"x").is_err());
+        drop(st);
+        // A kill in the middle of the next line.
+        let journal = StateStore::dir_of(dir.path(), "slam").join("journal");
+        let mut f = std::fs::OpenOptions::new().append(true).open(&journal).expect("journal");
+        f.write_all(b"c 3 (cut").expect("write");
+        drop(f);
+        let (mut st, r) = StateStore::open(dir.path(), "slam", true).expect("reopen");
+        let r = r.expect("a restart gets the state");
+        assert_eq!((r.journal.clone(), r.cut_lines), (vec!["a 1".to_string(), "b 2".to_string()], 1));
+        assert_eq!(r.read_snapshot("map.bt").expect("read").as_deref(), Some(&b"occupancy"[..]));
+        // The stage took the first line only: the journal goes on after it.
+        st.keep(&r, 1).expect("keep");
+        st.record("d 4");
+        st.flush().expect("flush");
+        assert_eq!(std::fs::read_to_string(&journal).expect("journal"), "a 1\nd 4\n");
+        drop(st);
+        let (_, r) = StateStore::open(dir.path(), "slam", false).expect("a new run");
+        assert!(r.is_none());
+        assert_eq!(std::fs::read_to_string(&journal).expect("journal"), "", "a first instance starts empty");
+        assert!(!StateStore::dir_of(dir.path(), "slam").join("map.bt").exists());
     }
 }

@@ -214,6 +214,8 @@ pub struct Runtime {
     last_heartbeat: Option<Instant>,
     last_stats: Option<Instant>,
     wake_at: Option<Instant>,
+    /// The stage's restart state (disabled until [`crate::stage::run_stage`] opens it).
+    restart_state: crate::restart::StateStore,
 }
 
 fn qos_of(service: &str) -> Result<Qos, RuntimeError> {
@@ -253,6 +255,7 @@ impl Runtime {
             last_heartbeat: None,
             last_stats: None,
             wake_at: None,
+            restart_state: crate::restart::StateStore::disabled(),
         };
         if rt.options.publish_control {
             let hb_stats = Rc::new(RefCell::new(PortStats::new(services::HEARTBEAT, false)));
@@ -306,7 +309,18 @@ impl Runtime {
             last_heartbeat: None,
             last_stats: None,
             wake_at: None,
+            restart_state: crate::restart::StateStore::disabled(),
         }
+    }
+
+    /// The stage's restart state: record journal lines and write snapshots here (see
+    /// [`crate::restart`]); a restarted instance gets them back in [`crate::Stage::restore`].
+    pub fn state(&mut self) -> &mut crate::restart::StateStore {
+        &mut self.restart_state
+    }
+
+    pub(crate) fn set_state(&mut self, state: crate::restart::StateStore) {
+        self.restart_state = state;
     }
 
     /// Takes the deadline set with [`Runtime::wake_at`] (for a test driving a stage).

@@ -28,6 +28,7 @@ use shared_types::{EndOfStream, MsgHeader};
 
 use crate::config::ProcessSettings;
 use crate::ports::Input;
+use crate::restart::{Restart, StateStore};
 use crate::runtime::{Flow, ProcessContext, Runtime, StopReason, Wake};
 
 /// What a wake-up left.
@@ -111,6 +112,17 @@ pub trait Stage: Sized {
     /// `(last_seq, messages_sent)` of the stage's main output, for its end of stream.
     fn end_of_stream(&self) -> (u64, u64);
 
+    /// A restarted instance (the supervisor restarted the process after a kill or a failure):
+    /// what its predecessors kept through [`Runtime::state`] (journal lines, snapshots). Called
+    /// once, after [`Stage::open`] and before the first wake-up. Returns how many journal lines
+    /// it took, in order: the runtime keeps those and drops the rest (a line this version cannot
+    /// read), so the journal goes on from what the stage has. The default keeps nothing (a stage
+    /// without restart state starts over).
+    fn restore(&mut self, restart: Restart) -> anyhow::Result<usize> {
+        let _ = restart;
+        Ok(0)
+    }
+
     /// Whether the runtime sends this stage's end of stream after [`Stage::finish`] (a replayer
     /// told not to, because the recording carries the ends of stream of the processes it replays).
     fn sends_end_of_stream(&self) -> bool {
@@ -140,8 +152,33 @@ pub(crate) struct Driver {
 }
 
 impl Driver {
-    /// Opens the end-of-stream input on `rt` for `stage`.
-    pub(crate) fn new<S: Stage>(ctx: &ProcessContext, rt: &mut Runtime, stage: &S) -> anyhow::Result<Self> {
+    /// Opens the end-of-stream input and the restart state on `rt` for `stage`; a restarted
+    /// instance (`restart`) gets its predecessors' state ([`Stage::restore`]).
+    pub(crate) fn new<S: Stage>(
+        ctx: &ProcessContext,
+        rt: &mut Runtime,
+        stage: &mut S,
+        restart: bool,
+    ) -> anyhow::Result<Self> {
+        let (mut store, restored) = StateStore::open(&ctx.out_dir, &ctx.name, restart)?;
+        if let Some(r) = restored {
+            let lines = r.journal.len();
+            let kept = stage.restore(r.clone())?.min(lines);
+            store.keep(&r, kept)?;
+            tracing::info!(
+                journal_lines = kept,
+                snapshots = r.snapshots.len(),
+                "restarted: took the state the killed instance kept"
+            );
+            if kept < lines || r.cut_lines > 0 {
+                tracing::warn!(
+                    dropped = lines - kept + r.cut_lines,
+                    "journal lines dropped on restart (cut short by the kill, or unreadable): what they \
+                     recorded is lost"
+                );
+            }
+        }
+        rt.set_state(store);
         Ok(Self {
             eos: rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?,
             end_after: stage.end_after(),
@@ -180,11 +217,13 @@ impl Driver {
         self.ended.extend(rt.ended_upstream(&self.eos)?); // before the data: see Runtime::ended_upstream
         let over = self.end_after.inputs_ended(&self.ended);
         let step = stage.step(rt, wake, over)?;
+        rt.state().flush()?;
         if step == Step::Busy {
             rt.wake_at(Instant::now());
         }
         if step == Step::Done || (over && step == Step::Idle) {
             let part = stage.finish(rt, Ending::EndOfStream)?;
+            rt.state().flush()?;
             let part = self.with_failures(rt, part);
             write_summary_part(&self.out_dir, &self.name, &part)?;
             self.part = Some(part);
@@ -213,7 +252,7 @@ impl Driver {
 
 /// Runs `stage` to its end and until the process is stopped (see the module docs).
 pub fn run_stage<S: Stage>(ctx: &ProcessContext, rt: &mut Runtime, mut stage: S) -> anyhow::Result<StopReason> {
-    let mut driver = Driver::new(ctx, rt, &stage)?;
+    let mut driver = Driver::new(ctx, rt, &mut stage, crate::restart::is_restart())?;
     let tick = stage.tick();
     let stop = rt.run(&mut stage, tick, |rt, stage, wake| {
         driver.wake(rt, stage, wake)?;

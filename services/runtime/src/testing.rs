@@ -76,13 +76,28 @@ impl<S: Stage> StageHarness<S> {
         Self::open(ctx, settings)
     }
 
-    /// Opens the stage with explicit settings.
+    /// Opens the stage with explicit settings (a first instance: its restart state starts
+    /// empty under `<out>/state/<name>/`).
     pub fn open(ctx: ProcessContext, settings: S::Settings) -> anyhow::Result<Self> {
+        Self::open_instance(ctx, settings, false)
+    }
+
+    fn open_instance(ctx: ProcessContext, settings: S::Settings, restart: bool) -> anyhow::Result<Self> {
         let bus = Rc::new(LocalBus::default());
         let mut rt = Runtime::local(&ctx.name, bus.clone());
-        let stage = S::open(&ctx, settings, &mut rt)?;
-        let driver = Driver::new(&ctx, &mut rt, &stage)?;
+        let mut stage = S::open(&ctx, settings, &mut rt)?;
+        let driver = Driver::new(&ctx, &mut rt, &mut stage, restart)?;
         Ok(Self { ctx, bus, rt, stage, driver, seqs: Default::default() })
+    }
+
+    /// Kills this instance (nothing more is written; what its inputs held is lost) and starts
+    /// a restarted one, as the supervisor would: a new stage with the settings of the context's
+    /// config, given the restart state the killed one kept ([`Stage::restore`]).
+    pub fn restart(self) -> anyhow::Result<Self> {
+        let ctx = self.ctx.clone();
+        drop(self);
+        let settings: S::Settings = ctx.settings()?;
+        Self::open_instance(ctx, settings, true)
     }
 
     /// The process context the stage was opened with.
