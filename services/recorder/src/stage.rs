@@ -2,14 +2,16 @@
 //! MCAP sink on every wake-up. It ends after every process in `end_after` has ended (the runtime's
 //! rule; with an empty list it records until it is stopped) and always leaves a complete file:
 //! [`Stage::finish`] drains what is queued and writes the file's summary, whether the inputs
-//! ended or a signal stopped it.
+//! ended or a signal stopped it. A restarted recorder keeps the file of the killed instance
+//! (renamed `<stem>.part<N>.<ext>`, cut short at its last complete chunk: `mcap recover` reads it)
+//! and records the rest of the run in a new file under the configured name.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
-use pipeline_runtime::{ProcessContext, Runtime, Wake, monotonic_ns};
+use pipeline_runtime::{ProcessContext, Restart, Runtime, Wake, monotonic_ns};
 
 use crate::{McapSink, RecorderSettings, SinkOptions, Tap, Topic};
 
@@ -24,7 +26,13 @@ struct Counts {
 pub struct RecorderStage {
     settings: RecorderSettings,
     path: PathBuf,
+    /// The MCAP writer, created at the first wake-up (after a restart has moved the killed
+    /// instance's file aside); `None` before and after.
     sink: Option<McapSink>,
+    /// What the file is created with, until it is.
+    to_create: Option<(SinkOptions, BTreeMap<String, String>)>,
+    /// Files of killed instances, kept under another name.
+    earlier_parts: Vec<String>,
     topics: Vec<&'static Topic>,
     taps: Vec<Box<dyn Tap>>,
     skipped: BTreeMap<String, String>,
@@ -39,6 +47,20 @@ pub struct RecorderStage {
 }
 
 impl RecorderStage {
+    /// Creates the file (once).
+    fn create(&mut self) -> anyhow::Result<()> {
+        if let Some((options, metadata)) = self.to_create.take() {
+            self.sink = Some(McapSink::create(&self.path, &self.topics, &options, metadata)?);
+            tracing::info!(
+                file = %self.path.display(),
+                topics = self.topics.len(),
+                not_recorded = self.skipped.len(),
+                "recording"
+            );
+        }
+        Ok(())
+    }
+
     /// Drains every tap into the sink; returns how many messages there were.
     fn drain(&mut self) -> anyhow::Result<usize> {
         let mut total = 0;
@@ -108,13 +130,13 @@ impl Stage for RecorderStage {
             queue: settings.queue_messages,
             json_mirror: settings.json_mirror,
         };
-        let sink = McapSink::create(&path, &topics, &options, metadata)?;
-        tracing::info!(file = %path.display(), topics = topics.len(), not_recorded = skipped.len(), "recording");
         Ok(Self {
             counts: vec![Counts::default(); topics.len()],
             settings,
             path,
-            sink: Some(sink),
+            sink: None,
+            to_create: Some((options, metadata)),
+            earlier_parts: vec![],
             topics,
             taps,
             skipped,
@@ -138,7 +160,30 @@ impl Stage for RecorderStage {
         Some(Duration::from_millis(250))
     }
 
+    /// The killed instance's file is kept under another name, not overwritten.
+    fn restore(&mut self, _restart: Restart) -> anyhow::Result<usize> {
+        if self.path.exists() {
+            let stem = self.path.file_stem().and_then(|s| s.to_str()).unwrap_or("recording").to_string();
+            let ext = self.path.extension().and_then(|s| s.to_str()).unwrap_or("mcap").to_string();
+            let part = (1..)
+                .map(|k| self.path.with_file_name(format!("{stem}.part{k}.{ext}")))
+                .find(|p| !p.exists())
+                .expect("some part number is free");
+            std::fs::rename(&self.path, &part)?;
+            tracing::warn!(
+                file = %part.display(),
+                "restarted: the killed instance's recording is kept as {} (cut short at its last complete chunk; \
+                 `mcap recover` reads it); the rest of the run goes to {}",
+                part.display(),
+                self.path.display()
+            );
+            self.earlier_parts.push(part.display().to_string());
+        }
+        Ok(0)
+    }
+
     fn step(&mut self, _rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> anyhow::Result<Step> {
+        self.create()?;
         self.drain()?;
         Ok(Step::Idle)
     }
@@ -148,6 +193,7 @@ impl Stage for RecorderStage {
             Ending::EndOfStream => "end of stream",
             Ending::Stopped => "stopped",
         };
+        self.create()?;
         if ending == Ending::Stopped
             && let Err(e) = self.drain()
         {
@@ -182,6 +228,7 @@ impl Stage for RecorderStage {
         };
         Ok(serde_json::json!({ "recorder": {
             "file": self.path.display().to_string(),
+            "earlier_parts": self.earlier_parts,
             "ended_by": why,
             "file_bytes": r.file_bytes,
             "chunks": r.chunks,

@@ -65,3 +65,24 @@ fn a_stop_drains_what_is_queued_and_leaves_a_complete_file() {
     let file = std::fs::read(dir.path().join("recording.mcap")).unwrap();
     assert!(file.ends_with(b"\x89MCAP0\r\n"), "the file has its footer magic");
 }
+
+#[test]
+fn a_restarted_recorder_keeps_the_killed_instances_file_and_records_the_rest_in_a_new_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = CONFIG.replace("send_end_of_stream = true", "");
+    let mut h = open(dir.path(), &config);
+    feed(&h);
+    h.wake().unwrap();
+    let mut h = h.restart().unwrap(); // killed: its file has no summary section
+    feed(&h);
+    h.end_upstream("buoy").unwrap();
+    h.end_upstream("slam").unwrap();
+    let part = h.run_to_end(Duration::from_secs(10)).unwrap();
+    let rec = &part["recorder"];
+    let earlier = dir.path().join("recording.part1.mcap");
+    assert_eq!(rec["earlier_parts"], serde_json::json!([earlier.display().to_string()]), "{part}");
+    assert!(earlier.is_file(), "the killed instance's file is kept");
+    assert_eq!(rec["messages"][BUOY_FIX], 10, "the new file has what came after the restart: {part}");
+    let file = std::fs::read(dir.path().join("recording.mcap")).unwrap();
+    assert!(file.ends_with(b"\x89MCAP0\r\n"), "the new file is complete");
+}
