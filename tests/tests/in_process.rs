@@ -43,7 +43,7 @@ macro_rules! pipe_slices {
 
 fn open<S: Stage>(config: &str, name: &str, out: &Path) -> anyhow::Result<StageHarness<S>> {
     let source = Path::new(env!("CARGO_MANIFEST_DIR")).join("../config/default.toml");
-    StageHarness::<S>::from_config_str(config, &source, name, out)
+    Ok(StageHarness::<S>::from_config_str(config, &source, name, out)?)
 }
 
 /// True once `h` has finished (its summary part is written).

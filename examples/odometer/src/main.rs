@@ -3,7 +3,7 @@
 
 use odometer::{Odometer, OdometerSettings};
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
-use pipeline_runtime::{Input, ProcessContext, Runtime, Wake};
+use pipeline_runtime::{Input, ProcessContext, Runtime, StageError, Wake};
 use shared_types::services::ODOMETRY;
 use shared_types::{MsgHeader, OdometryInput};
 
@@ -16,7 +16,7 @@ struct OdometerStage {
 impl Stage for OdometerStage {
     type Settings = OdometerSettings;
 
-    fn open(_ctx: &ProcessContext, settings: OdometerSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+    fn open(_ctx: &ProcessContext, settings: OdometerSettings, rt: &mut Runtime) -> Result<Self, StageError> {
         Ok(Self { settings, odometer: Odometer::default(), odometry: rt.input(ODOMETRY)? })
     }
 
@@ -24,7 +24,7 @@ impl Stage for OdometerStage {
         EndAfter::FirstUpstream
     }
 
-    fn step(&mut self, _rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> anyhow::Result<Step> {
+    fn step(&mut self, _rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> Result<Step, StageError> {
         while let Some(s) = self.odometry.receive()? {
             let u = s.payload();
             if let Err(why) = self.odometer.on_odometry(u.v_mps, u.dt_s, &self.settings) {
@@ -35,7 +35,7 @@ impl Stage for OdometerStage {
         Ok(Step::Idle)
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> anyhow::Result<serde_json::Value> {
+    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<serde_json::Value, StageError> {
         tracing::info!(distance_m = self.odometer.distance_m, messages = self.odometer.messages, "done");
         Ok(self.odometer.summary_part())
     }

@@ -159,7 +159,7 @@ fn consume_iox(rec: &mut Recorder) -> anyhow::Result<()> {
                 ok,
             });
         }
-        Ok(if eos.receive()?.is_some() { Flow::Stop } else { Flow::Continue })
+        Ok::<_, anyhow::Error>(if eos.receive()?.is_some() { Flow::Stop } else { Flow::Continue })
     })?;
     if let StopReason::Signal(sig) = reason {
         bail!("stopped by signal {sig} before the end of stream");

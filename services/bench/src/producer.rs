@@ -214,7 +214,7 @@ pub fn drive(rt: &mut Runtime, sink: &mut dyn FrameSink, pacing: Pacing) -> anyh
     rt.wake_at(start);
     let reason = rt.run(&mut st, None, |rt, st, wake| {
         if !wake.tick {
-            return Ok(Flow::Continue);
+            return Ok::<_, anyhow::Error>(Flow::Continue);
         }
         let now = Instant::now();
         if now < st.due {

@@ -1,6 +1,7 @@
 //! The buoy EKF as a [`Stage`]: its ports and journal around [`BuoyState`]. It ends after the
 //! first upstream end of stream (its inputs come from one source), once no ranges wait.
 
+use pipeline_runtime::StageError;
 use std::time::{Duration, Instant};
 
 use buoy::Mode;
@@ -30,7 +31,7 @@ pub struct BuoyEkfStage {
 impl Stage for BuoyEkfStage {
     type Settings = BuoyEkfSettings;
 
-    fn open(ctx: &ProcessContext, settings: BuoyEkfSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+    fn open(ctx: &ProcessContext, settings: BuoyEkfSettings, rt: &mut Runtime) -> Result<Self, StageError> {
         let odometry = rt.input(ODOMETRY)?;
         let ranges = rt.input(BUOY_RANGES)?;
         let depth = rt.input(DEPTH)?;
@@ -59,7 +60,7 @@ impl Stage for BuoyEkfStage {
     }
 
     /// A restarted instance keeps the killed one's trajectory and inputs (the filter starts over).
-    fn restore(&mut self, restart: Restart) -> anyhow::Result<usize> {
+    fn restore(&mut self, restart: Restart) -> Result<usize, StageError> {
         let (r, lines) = crate::journal::parse(&restart.journal);
         tracing::info!(
             samples = r.trajectory.len(),
@@ -72,7 +73,7 @@ impl Stage for BuoyEkfStage {
         Ok(lines)
     }
 
-    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> anyhow::Result<Step> {
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
         let st = &mut self.st;
         let now = Instant::now();
         while let Some(s) = self.odometry.receive()? {
@@ -115,7 +116,7 @@ impl Stage for BuoyEkfStage {
         Ok(if st.pending() == 0 { Step::Idle } else { Step::Pending })
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> anyhow::Result<serde_json::Value> {
+    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
         if ending == Ending::Stopped {
             tracing::info!(fixes = self.fixes.sent(), "stopped early: writing the outputs so far");
         }
@@ -132,7 +133,7 @@ fn summary(
     settings: &BuoyEkfSettings,
     out_dir: &std::path::Path,
     fixes_sent: u64,
-) -> anyhow::Result<serde_json::Value> {
+) -> Result<serde_json::Value, StageError> {
     std::fs::create_dir_all(out_dir)?;
     let planar = settings.ekf.mode == Mode::Planar;
     let poses: Vec<_> = st.trajectory.iter().map(|(t, p, h)| (*t, fix_pose(p, *h))).collect();

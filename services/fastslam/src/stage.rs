@@ -1,6 +1,7 @@
 //! FastSLAM as a [`Stage`]: its ports, journal and per-frame publishing around [`SlamState`].
 //! It ends after the first upstream end of stream, once its own frame queue is empty.
 
+use pipeline_runtime::StageError;
 use std::time::{Duration, Instant};
 
 use fastslam::frontend::RegistrationError;
@@ -31,7 +32,7 @@ fn publish_landmarks(
     f: &FastSlam,
     stamp_ns: u64,
     origin_ns: u64,
-) -> anyhow::Result<()> {
+) -> Result<(), StageError> {
     let map = f.best_map();
     let segment = f.segment();
     let mut s = out.loan_slice_uninit(map.len())?.write_from_fn(|i| {
@@ -105,9 +106,9 @@ pub struct FastSlamStage {
 impl Stage for FastSlamStage {
     type Settings = FastSlamSettings;
 
-    fn open(ctx: &ProcessContext, settings: FastSlamSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+    fn open(ctx: &ProcessContext, settings: FastSlamSettings, rt: &mut Runtime) -> Result<Self, StageError> {
         let filter =
-            FastSlam::new(settings.filter.clone()).map_err(|p| anyhow::anyhow!("invalid filter settings: {p:?}"))?;
+            FastSlam::new(settings.filter.clone()).map_err(|p| StageError::Settings(format!("filter: {p:?}")))?;
         let body_from_camera = settings.body_from_camera();
         let odometry = rt.input(ODOMETRY)?;
         let stereo = rt.input(STEREO)?;
@@ -145,7 +146,7 @@ impl Stage for FastSlamStage {
     }
 
     /// A restarted instance keeps the killed one's trajectory and goes on in a new local map.
-    fn restore(&mut self, restart: Restart) -> anyhow::Result<usize> {
+    fn restore(&mut self, restart: Restart) -> Result<usize, StageError> {
         let (r, lines) = crate::journal::parse(&restart.journal);
         tracing::info!(
             frames = r.trajectory.len(),
@@ -158,7 +159,7 @@ impl Stage for FastSlamStage {
         Ok(lines)
     }
 
-    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> anyhow::Result<Step> {
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
         let Self {
             settings,
             st,
@@ -287,7 +288,7 @@ impl Stage for FastSlamStage {
         Ok(if busy { Step::Busy } else { Step::Idle })
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> anyhow::Result<serde_json::Value> {
+    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
         let st = &self.st;
         match ending {
             Ending::EndOfStream => {
@@ -312,7 +313,7 @@ fn summary(
     out_dir: &std::path::Path,
     update_ms: &[f64],
     stats: &RunStats,
-) -> anyhow::Result<serde_json::Value> {
+) -> Result<serde_json::Value, StageError> {
     std::fs::create_dir_all(out_dir)?;
     let mut tum = String::new();
     let mut seg = String::from("t_s,segment\n");

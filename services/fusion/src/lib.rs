@@ -2,6 +2,7 @@
 //! (TUM trajectories, the global map as PLY, per-segment transforms, accuracy, a top-view plot).
 //! The fusion itself is [`fusion::engine::Fusion`]; [`stage::FusionStage`] is the stage around it; `main.rs` one line.
 
+use pipeline_runtime::StageError;
 use std::path::Path;
 
 pub mod journal;
@@ -156,7 +157,7 @@ pub fn write_outputs(
     engine: &Fusion,
     result: &FinalResult,
     log: &RunLog,
-) -> anyhow::Result<serde_json::Value> {
+) -> Result<serde_json::Value, StageError> {
     use geometry::tum::write_tum;
     std::fs::create_dir_all(out_dir)?;
     let fused: Vec<(f64, Isometry3<f64>)> = result.path.iter().map(|o| (o.t_s, o.world_from_body)).collect();
@@ -166,7 +167,7 @@ pub fn write_outputs(
     let buoy_poses: Vec<(f64, Isometry3<f64>)> =
         log.buoy.iter().map(|(t, p)| (*t, Isometry3::translation(p.x, p.y, p.z))).collect();
     write_tum(&out_dir.join("buoy.tum"), buoy_poses.iter().map(|(t, p)| (*t, p)))?;
-    fusion::global_map::write_ply(&out_dir.join("global_map.ply"), &result.global_map)?;
+    fusion::global_map::write_ply(&out_dir.join("global_map.ply"), &result.global_map).map_err(StageError::stage)?;
     let mut final_sources = SourceCounts::default();
     for o in &result.path {
         final_sources.add(o.source);

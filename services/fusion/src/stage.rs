@@ -1,6 +1,7 @@
 //! Fusion as a [`Stage`]: its ports and journal around the [`Fusion`] engine. It ends after
 //! every process in `end_after` has ended (default: the synchronizer, the buoy EKF and SLAM).
 
+use pipeline_runtime::StageError;
 use std::time::Duration;
 
 use fusion::engine::{Fusion, Source};
@@ -43,9 +44,9 @@ pub struct FusionStage {
 impl Stage for FusionStage {
     type Settings = FusionSettings;
 
-    fn open(ctx: &ProcessContext, settings: FusionSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+    fn open(ctx: &ProcessContext, settings: FusionSettings, rt: &mut Runtime) -> Result<Self, StageError> {
         let engine =
-            Fusion::new(settings.fusion.clone()).map_err(|p| anyhow::anyhow!("invalid fusion settings: {p:?}"))?;
+            Fusion::new(settings.fusion.clone()).map_err(|p| StageError::Settings(format!("fusion: {p:?}")))?;
         let pairs = rt.input::<SyncedPair, MsgHeader>(SYNC_PAIR)?;
         let fixes = rt.input::<BuoyFix, MsgHeader>(BUOY_FIX)?;
         let landmarks = rt.input::<[Landmark], LandmarkMapHeader>(SLAM_LANDMARKS)?;
@@ -80,13 +81,15 @@ impl Stage for FusionStage {
 
     /// A restarted instance replays what the killed one had taken into the new engine (it is
     /// deterministic: back in the killed one's state); nothing is published during the replay.
-    fn restore(&mut self, restart: Restart) -> anyhow::Result<usize> {
+    fn restore(&mut self, restart: Restart) -> Result<usize, StageError> {
         let r = crate::journal::read(&restart)?;
         let (engine, log) = (&mut self.engine, &mut self.log);
         for e in r.entries.iter().cloned() {
             match e {
-                Entry::Fix(f) => engine.push_fix(f).map_err(|e| anyhow::anyhow!("journalled fix: {e}"))?,
-                Entry::Heading(h) => engine.push_heading(h).map_err(|e| anyhow::anyhow!("journalled heading: {e}"))?,
+                Entry::Fix(f) => engine.push_fix(f).map_err(|e| StageError::msg(format!("journalled fix: {e}")))?,
+                Entry::Heading(h) => {
+                    engine.push_heading(h).map_err(|e| StageError::msg(format!("journalled heading: {e}")))?
+                }
                 Entry::Pair(p) => {
                     let (t_s, buoy) = (p.t_s, p.buoy_m);
                     if let Ok(out) = engine.push_pair(*p) {
@@ -109,7 +112,7 @@ impl Stage for FusionStage {
         Ok(r.lines)
     }
 
-    fn step(&mut self, rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> anyhow::Result<Step> {
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> Result<Step, StageError> {
         let Self { settings, engine, pairs, fixes, landmarks, headings, pose_out, commands, log, statuses, .. } = self;
         // Fixes and maps first, so that a pair sees every fix that arrived with it.
         while let Some(s) = fixes.receive()? {
@@ -202,7 +205,7 @@ impl Stage for FusionStage {
         Ok(Step::Idle)
     }
 
-    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> anyhow::Result<serde_json::Value> {
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
         let result = self.engine.finish();
         rt.keep_alive();
         if ending == Ending::EndOfStream {

@@ -100,6 +100,12 @@ pub enum SourceError {
     Settings(String),
 }
 
+impl From<SourceError> for pipeline_runtime::StageError {
+    fn from(e: SourceError) -> Self {
+        pipeline_runtime::StageError::stage(e)
+    }
+}
+
 fn io_at(path: &Path) -> impl FnOnce(std::io::Error) -> SourceError + use<> {
     let path = path.to_path_buf();
     move |source| SourceError::Io { path, source }

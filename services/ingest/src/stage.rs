@@ -2,6 +2,7 @@
 //! data clock (back-pressure when replaying as fast as possible), the ground truth written as it
 //! becomes known, progress reported, and a restarted instance resuming where the killed one was.
 
+use pipeline_runtime::StageError;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
@@ -69,7 +70,7 @@ fn header(stamp_ns: u64) -> MsgHeader {
 }
 
 impl IngestStage {
-    fn publish(&mut self, rt: &mut Runtime, item: Item) -> anyhow::Result<()> {
+    fn publish(&mut self, rt: &mut Runtime, item: Item) -> Result<(), StageError> {
         let stamp = item.stamp_ns();
         self.first_last_stamp = Some(self.first_last_stamp.map_or((stamp, stamp), |(a, _)| (a, stamp)));
         self.items += 1;
@@ -138,7 +139,7 @@ impl IngestStage {
     }
 
     /// The next item of the source, its ground truth written first.
-    fn next_item(&mut self) -> anyhow::Result<Option<Item>> {
+    fn next_item(&mut self) -> Result<Option<Item>, StageError> {
         let item = self.source.next_item()?;
         self.truth.update(&*self.source)?;
         Ok(item)
@@ -221,7 +222,7 @@ impl IngestStage {
         false
     }
 
-    fn nudge_all(&self) -> anyhow::Result<()> {
+    fn nudge_all(&self) -> Result<(), StageError> {
         let o = &self.outputs;
         o.odometry.nudge()?;
         o.stereo.nudge()?;
@@ -233,18 +234,18 @@ impl IngestStage {
     }
 
     /// Publishes every item that is due; asks to be woken for the next one.
-    fn pump(&mut self, rt: &mut Runtime) -> anyhow::Result<Step> {
+    fn pump(&mut self, rt: &mut Runtime) -> Result<Step, StageError> {
         if self.skip > 0 {
             // A restart: take what the killed instance had published from the (deterministic)
             // source without publishing it, in batches so that heartbeats go on meanwhile.
             let batch_end = Instant::now() + Duration::from_millis(50);
             while self.skip > 0 && Instant::now() < batch_end {
                 if self.next_item()?.is_none() {
-                    anyhow::bail!(
+                    return Err(StageError::msg(format!(
                         "the source ended {} items before the point the killed instance had reached: \
                          it is not the same source (config changed?)",
                         self.skip
-                    );
+                    )));
                 }
                 self.skip -= 1;
             }
@@ -304,7 +305,7 @@ impl IngestStage {
     }
 }
 
-fn make_source(settings: &IngestSettings, _config_dir: &Path, out_dir: &Path) -> anyhow::Result<Box<dyn Source>> {
+fn make_source(settings: &IngestSettings, _config_dir: &Path, out_dir: &Path) -> Result<Box<dyn Source>, StageError> {
     Ok(match settings.source {
         SourceKind::Sim => Box::new(SimSource::new(settings.sim.clone(), out_dir)?),
         SourceKind::StereoSim => Box::new(crate::StereoSimSource::new(&settings.stereo_sim, out_dir)?),
@@ -315,7 +316,7 @@ fn make_source(settings: &IngestSettings, _config_dir: &Path, out_dir: &Path) ->
 impl Stage for IngestStage {
     type Settings = IngestSettings;
 
-    fn open(ctx: &ProcessContext, settings: IngestSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+    fn open(ctx: &ProcessContext, settings: IngestSettings, rt: &mut Runtime) -> Result<Self, StageError> {
         let config_dir = ctx.config.source.parent().unwrap_or(Path::new(".")).to_path_buf();
         let source = make_source(&settings, &config_dir, &ctx.out_dir)?;
         tracing::info!(real_time_factor = settings.real_time_factor, "source: {}", source.describe());
@@ -368,7 +369,7 @@ impl Stage for IngestStage {
 
     /// A restarted instance resumes after what the killed one had published (its last progress
     /// record): the items it took are taken again from the (deterministic) source, unpublished.
-    fn restore(&mut self, restart: Restart) -> anyhow::Result<usize> {
+    fn restore(&mut self, restart: Restart) -> Result<usize, StageError> {
         let (progress, lines) = crate::progress::restored(&restart.journal);
         if let Some(p) = progress {
             tracing::info!(items = p.items, "restarted: skipping the items the killed instance had published");
@@ -389,11 +390,11 @@ impl Stage for IngestStage {
         Some(Duration::from_millis(500))
     }
 
-    fn step(&mut self, rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> anyhow::Result<Step> {
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> Result<Step, StageError> {
         self.pump(rt)
     }
 
-    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> anyhow::Result<serde_json::Value> {
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
         let sent: u64 = self.counts.iter().sum();
         let completed = ending == Ending::EndOfStream;
         if completed {

@@ -303,6 +303,12 @@ pub enum MapperError {
     },
 }
 
+impl From<MapperError> for pipeline_runtime::StageError {
+    fn from(e: MapperError) -> Self {
+        pipeline_runtime::StageError::stage(e)
+    }
+}
+
 impl MapperState {
     /// A new state (settings validated).
     pub fn new(settings: MapperSettings) -> Result<Self, MapperError> {

@@ -2,6 +2,7 @@
 //! [`MapperState`]. It ends after every process in `end_after` has ended (empty: the first),
 //! once the cloud service's queue and its own are empty.
 
+use pipeline_runtime::StageError;
 use std::time::{Duration, Instant};
 
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
@@ -65,7 +66,7 @@ fn send_voxels(
     voxels: &[Voxel],
     resolution_m: f64,
     stamp_ns: u64,
-) -> anyhow::Result<()> {
+) -> Result<(), StageError> {
     let mut s = out.loan_slice_uninit(voxels.len())?.write_from_slice(voxels);
     *s.user_header_mut() = VoxelSetHeader {
         msg: MsgHeader { stamp_ns, ..Default::default() },
@@ -83,17 +84,19 @@ fn end_of_run(
     rt: &mut Runtime,
     st: &MapperState,
     out_dir: &std::path::Path,
-) -> anyhow::Result<(navigable::Discovery, Vec<Voxel>, serde_json::Value)> {
+) -> Result<(navigable::Discovery, Vec<Voxel>, serde_json::Value), StageError> {
     std::fs::create_dir_all(out_dir)?;
     let (d, voxels) = std::thread::scope(|s| {
-        let worker = s.spawn(|| -> anyhow::Result<(navigable::Discovery, Vec<Voxel>)> {
+        let worker = s.spawn(|| -> Result<(navigable::Discovery, Vec<Voxel>), StageError> {
             let t0 = Instant::now();
-            st.tree.write_binary_file(out_dir.join("map.bt"))?;
+            st.tree.write_binary_file(out_dir.join("map.bt")).map_err(StageError::stage)?;
             let t1 = Instant::now();
             let d = st.discover()?;
             let t2 = Instant::now();
-            navigable::write_navigable_ply(&out_dir.join("navigable.ply"), &st.points, &d)?;
-            navigable::write_obstacles_ply(&out_dir.join("obstacles.ply"), &st.points, &d)?;
+            navigable::write_navigable_ply(&out_dir.join("navigable.ply"), &st.points, &d)
+                .map_err(StageError::stage)?;
+            navigable::write_obstacles_ply(&out_dir.join("obstacles.ply"), &st.points, &d)
+                .map_err(StageError::stage)?;
             let voxels = build_voxels(st, Some(&d));
             tracing::info!(
                 "end of run: map.bt in {:.0} ms, navigable space in {:.0} ms, PLY layers and voxels in {:.0} ms",
@@ -107,7 +110,7 @@ fn end_of_run(
             rt.keep_alive();
             std::thread::sleep(Duration::from_millis(50));
         }
-        worker.join().map_err(|_| anyhow::anyhow!("end-of-run worker panicked"))?
+        worker.join().map_err(|_| StageError::msg("end-of-run worker panicked"))?
     })?;
     let (nav, steep, nonplanar, sparse) = d.counts();
     let (occ, free) = st.tree.num_occupied_free_leaves();
@@ -168,7 +171,7 @@ pub struct OctreeMapperStage {
 impl Stage for OctreeMapperStage {
     type Settings = MapperSettings;
 
-    fn open(ctx: &ProcessContext, settings: MapperSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+    fn open(ctx: &ProcessContext, settings: MapperSettings, rt: &mut Runtime) -> Result<Self, StageError> {
         let st = MapperState::new(settings.clone())?;
         let checkpoint_every =
             (settings.checkpoint_interval_s > 0.0).then(|| Duration::from_secs_f64(settings.checkpoint_interval_s));
@@ -204,7 +207,7 @@ impl Stage for OctreeMapperStage {
     }
 
     /// A restarted instance starts from the killed one's last occupancy checkpoint.
-    fn restore(&mut self, restart: Restart) -> anyhow::Result<usize> {
+    fn restore(&mut self, restart: Restart) -> Result<usize, StageError> {
         if let Some(path) = restart.snapshots.get(CHECKPOINT)
             && self.st.restore_checkpoint(path)?
         {
@@ -214,7 +217,7 @@ impl Stage for OctreeMapperStage {
         Ok(0)
     }
 
-    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> anyhow::Result<Step> {
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
         let Self {
             settings,
             st,
@@ -279,7 +282,7 @@ impl Stage for OctreeMapperStage {
             if (target.is_empty() || target == rt.name()) && c.command == COMMAND_CHECKPOINT {
                 let path = out_dir.join("map.bt");
                 std::fs::create_dir_all(&*out_dir)?;
-                st.tree.write_binary_file(&path)?;
+                st.tree.write_binary_file(&path).map_err(StageError::stage)?;
                 tracing::info!(path = %path.display(), "checkpoint written");
             }
         }
@@ -317,7 +320,7 @@ impl Stage for OctreeMapperStage {
         Ok(if queue_empty && st.pending.is_empty() { Step::Idle } else { Step::Pending })
     }
 
-    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> anyhow::Result<serde_json::Value> {
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
         let st = &self.st;
         if ending == Ending::EndOfStream {
             let (d, voxels, part) = end_of_run(rt, st, &self.out_dir)?;
@@ -329,7 +332,7 @@ impl Stage for OctreeMapperStage {
         // Stopped before the end of stream: the map so far (the navigable-space layers take
         // seconds on a large map and are written only at the end of stream).
         std::fs::create_dir_all(&self.out_dir)?;
-        st.tree.write_binary_file(self.out_dir.join("map.bt"))?;
+        st.tree.write_binary_file(self.out_dir.join("map.bt")).map_err(StageError::stage)?;
         let (occ, free) = st.tree.num_occupied_free_leaves();
         tracing::info!(clouds = st.counters.clouds_inserted, "stopped early: map.bt written");
         Ok(serde_json::json!({ "octree_mapper": {

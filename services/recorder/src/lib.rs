@@ -11,6 +11,6 @@ pub mod replay;
 pub mod stage;
 pub mod topics;
 
-pub use record::{Compression, McapSink, RecorderSettings, SinkOptions, SinkReport};
+pub use record::{Compression, McapSink, RecorderError, RecorderSettings, SinkOptions, SinkReport};
 pub use replay::{Replay, ReplayError, Replayed, ReplayerSettings, ScanReport, Selection, scan};
 pub use topics::{Emit, TOPICS, Tap, Topic, topic};

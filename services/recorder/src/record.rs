@@ -184,12 +184,65 @@ pub struct SinkOptions {
     pub json_mirror: bool,
 }
 
+/// What recording can fail with; each names the file or the service.
+#[derive(Debug, thiserror::Error)]
+pub enum RecorderError {
+    /// The file or its directory cannot be created, written or synced.
+    #[error("{}: {what}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// What was being done.
+        what: &'static str,
+        /// The error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The MCAP writer failed.
+    #[error("{}: {source}", path.display())]
+    Mcap {
+        /// The file.
+        path: PathBuf,
+        /// The error.
+        #[source]
+        source: mcap::McapError,
+    },
+    /// The writer thread is gone (finished, stopped after an error, or panicked).
+    #[error("{}: {what}", path.display())]
+    Writer {
+        /// The file.
+        path: PathBuf,
+        /// What happened.
+        what: &'static str,
+    },
+    /// A message cannot be taken as its service's wire type.
+    #[error("`{service}`: {what}")]
+    Message {
+        /// The service.
+        service: String,
+        /// What is wrong.
+        what: String,
+    },
+    /// A port failed.
+    #[error(transparent)]
+    Port(#[from] pipeline_runtime::PortError),
+    /// A schema or JSON mirror cannot be encoded.
+    #[error(transparent)]
+    Json(#[from] serde_json::Error),
+}
+
+impl From<RecorderError> for pipeline_runtime::StageError {
+    fn from(e: RecorderError) -> Self {
+        pipeline_runtime::StageError::stage(e)
+    }
+}
+
 /// An MCAP file being written by a writer thread.
 pub struct McapSink {
     path: PathBuf,
     tx: Option<SyncSender<Job>>,
     queued: std::sync::Arc<std::sync::atomic::AtomicUsize>,
-    thread: Option<JoinHandle<anyhow::Result<SinkReport>>>,
+    thread: Option<JoinHandle<Result<SinkReport, RecorderError>>>,
 }
 
 impl McapSink {
@@ -200,12 +253,13 @@ impl McapSink {
         topics: &[&'static Topic],
         options: &SinkOptions,
         metadata: BTreeMap<String, String>,
-    ) -> anyhow::Result<Self> {
+    ) -> Result<Self, RecorderError> {
+        let io = |what| move |source| RecorderError::Io { path: path.to_path_buf(), what, source };
+        let mcap_err = |source| RecorderError::Mcap { path: path.to_path_buf(), source };
         if let Some(dir) = path.parent() {
-            std::fs::create_dir_all(dir)
-                .map_err(|e| anyhow::anyhow!("cannot create directory {}: {e}", dir.display()))?;
+            std::fs::create_dir_all(dir).map_err(io("creating its directory"))?;
         }
-        let file = std::fs::File::create(path).map_err(|e| anyhow::anyhow!("cannot create {}: {e}", path.display()))?;
+        let file = std::fs::File::create(path).map_err(io("creating"))?;
         let compression = match options.compression {
             Compression::Zstd => Some(mcap::Compression::Zstd),
             Compression::Lz4 => Some(mcap::Compression::Lz4),
@@ -218,28 +272,34 @@ impl McapSink {
             .profile("")
             .library(format!("slam_pipeline recorder {}", env!("CARGO_PKG_VERSION")))
             .create(BufWriter::new(file))
-            .map_err(|e| anyhow::anyhow!("{}: cannot start the MCAP file: {e}", path.display()))?;
+            .map_err(mcap_err)?;
         let mut channels = vec![];
         let mut mirrors = vec![];
         for t in topics {
             let schema = serde_json::to_vec_pretty(&t.schema_json())?;
-            let schema_id = writer.add_schema(t.payload_type_name(), SCHEMA_ENCODING, &schema)?;
+            let schema_id = writer.add_schema(t.payload_type_name(), SCHEMA_ENCODING, &schema).map_err(mcap_err)?;
             let meta = BTreeMap::from([
                 ("user_header".to_string(), (t.header)().type_name.to_string()),
                 ("payload".to_string(), t.payload_type_name().to_string()),
                 ("payload_is_slice".to_string(), t.slice.to_string()),
             ]);
-            channels.push(writer.add_channel(schema_id, t.service, MESSAGE_ENCODING, &meta)?);
+            channels.push(writer.add_channel(schema_id, t.service, MESSAGE_ENCODING, &meta).map_err(mcap_err)?);
             let mirror = match json_schema(t.service) {
                 Some((name, schema)) if options.json_mirror => {
-                    let sid = writer.add_schema(name, "jsonschema", serde_json::to_string(&schema)?.as_bytes())?;
-                    Some(writer.add_channel(sid, &format!("{}{JSON_SUFFIX}", t.service), "json", &BTreeMap::new())?)
+                    let sid = writer
+                        .add_schema(name, "jsonschema", serde_json::to_string(&schema)?.as_bytes())
+                        .map_err(mcap_err)?;
+                    Some(
+                        writer
+                            .add_channel(sid, &format!("{}{JSON_SUFFIX}", t.service), "json", &BTreeMap::new())
+                            .map_err(mcap_err)?,
+                    )
                 }
                 _ => None,
             };
             mirrors.push(mirror);
         }
-        writer.write_metadata(&mcap::records::Metadata { name: "slam_pipeline".into(), metadata })?;
+        writer.write_metadata(&mcap::records::Metadata { name: "slam_pipeline".into(), metadata }).map_err(mcap_err)?;
         let services: Vec<&'static str> = topics.iter().map(|t| t.service).collect();
         let (tx, rx) = sync_channel(options.queue);
         let queued = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
@@ -248,7 +308,8 @@ impl McapSink {
         let p = path.to_path_buf();
         let thread = std::thread::Builder::new()
             .name("mcap-writer".into())
-            .spawn(move || write_loop(writer, rx, &services, &channels, &mirrors, flush_interval, &q, &p))?;
+            .spawn(move || write_loop(writer, rx, &services, &channels, &mirrors, flush_interval, &q, &p))
+            .map_err(io("starting the writer thread of"))?;
         Ok(Self { path: path.to_path_buf(), tx: Some(tx), queued, thread: Some(thread) })
     }
 
@@ -257,27 +318,31 @@ impl McapSink {
         &self.path
     }
 
-    fn send(&self, job: Job) -> anyhow::Result<()> {
-        let tx = self.tx.as_ref().ok_or_else(|| anyhow::anyhow!("{}: already finished", self.path.display()))?;
+    fn writer_error(&self, what: &'static str) -> RecorderError {
+        RecorderError::Writer { path: self.path.clone(), what }
+    }
+
+    fn send(&self, job: Job) -> Result<(), RecorderError> {
+        let tx = self.tx.as_ref().ok_or_else(|| self.writer_error("already finished"))?;
         self.queued.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        tx.send(job).map_err(|_| anyhow::anyhow!("{}: the writer thread stopped (see finish)", self.path.display()))
+        tx.send(job).map_err(|_| self.writer_error("the writer thread stopped (see finish)"))
     }
 
     /// Queues one message of topic index `topic` (waits while the queue is full).
-    pub fn write(&self, topic: usize, log_time: u64, publish_time: u64, data: Vec<u8>) -> anyhow::Result<()> {
+    pub fn write(&self, topic: usize, log_time: u64, publish_time: u64, data: Vec<u8>) -> Result<(), RecorderError> {
         self.send(Job::Message { topic, log_time, publish_time, data })
     }
 
     /// Queues a metadata record.
-    pub fn metadata(&self, name: &str, metadata: BTreeMap<String, String>) -> anyhow::Result<()> {
+    pub fn metadata(&self, name: &str, metadata: BTreeMap<String, String>) -> Result<(), RecorderError> {
         self.send(Job::Metadata(mcap::records::Metadata { name: name.into(), metadata }))
     }
 
     /// Writes everything queued, the summary section and the footer, and closes the file.
-    pub fn finish(mut self) -> anyhow::Result<SinkReport> {
+    pub fn finish(mut self) -> Result<SinkReport, RecorderError> {
         self.tx.take();
-        let thread = self.thread.take().ok_or_else(|| anyhow::anyhow!("already finished"))?;
-        thread.join().map_err(|_| anyhow::anyhow!("{}: the writer thread panicked", self.path.display()))?
+        let thread = self.thread.take().ok_or_else(|| self.writer_error("already finished"))?;
+        thread.join().map_err(|_| self.writer_error("the writer thread panicked"))?
     }
 }
 
@@ -300,14 +365,15 @@ fn write_loop(
     flush_interval: Option<Duration>,
     queued: &std::sync::atomic::AtomicUsize,
     path: &Path,
-) -> anyhow::Result<SinkReport> {
+) -> Result<SinkReport, RecorderError> {
     let mut report = SinkReport::default();
     let mut sequence = vec![0u32; channels.len()];
     let mut mirror_sequence = vec![0u32; channels.len()];
     let mut last_flush = Instant::now();
     let mut unflushed = false;
     let wait = flush_interval.unwrap_or(Duration::from_secs(3600));
-    let err = |e: mcap::McapError| anyhow::anyhow!("{}: {e}", path.display());
+    let err = |source: mcap::McapError| RecorderError::Mcap { path: path.to_path_buf(), source };
+    let io = |what| move |source| RecorderError::Io { path: path.to_path_buf(), what, source };
     loop {
         let job = match rx.recv_timeout(wait.saturating_sub(last_flush.elapsed()).max(Duration::from_millis(1))) {
             Ok(job) => Some(job),
@@ -320,7 +386,10 @@ fn write_loop(
             match job {
                 Job::Message { topic, log_time, publish_time, data } => {
                     let (Some(&channel_id), Some(service)) = (channels.get(topic), services.get(topic)) else {
-                        anyhow::bail!("{}: message for unknown topic index {topic}", path.display());
+                        return Err(RecorderError::Writer {
+                            path: path.to_path_buf(),
+                            what: "a message for an unknown topic",
+                        });
                     };
                     let header =
                         mcap::records::MessageHeader { channel_id, sequence: sequence[topic], log_time, publish_time };
@@ -358,9 +427,9 @@ fn write_loop(
     let summary = writer.finish().map_err(err)?;
     report.chunks = summary.chunk_indexes.len() as u64;
     let mut inner = writer.into_inner();
-    std::io::Write::flush(&mut inner).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
-    let file = inner.into_inner().map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.error()))?;
-    file.sync_all().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    std::io::Write::flush(&mut inner).map_err(io("writing"))?;
+    let file = inner.into_inner().map_err(|e| io("writing")(e.into_error()))?;
+    file.sync_all().map_err(io("syncing"))?;
     report.file_bytes = file.metadata().map(|m| m.len()).unwrap_or(0);
     Ok(report)
 }

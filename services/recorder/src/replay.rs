@@ -171,6 +171,12 @@ pub enum ReplayError {
     },
 }
 
+impl From<ReplayError> for pipeline_runtime::StageError {
+    fn from(e: ReplayError) -> Self {
+        pipeline_runtime::StageError::stage(e)
+    }
+}
+
 /// What [`scan`] found in a recording.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct ScanReport {

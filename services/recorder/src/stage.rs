@@ -6,6 +6,7 @@
 //! (renamed `<stem>.part<N>.<ext>`, cut short at its last complete chunk: `mcap recover` reads it)
 //! and records the rest of the run in a new file under the configured name.
 
+use pipeline_runtime::StageError;
 use std::collections::{BTreeMap, HashMap};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -48,7 +49,7 @@ pub struct RecorderStage {
 
 impl RecorderStage {
     /// Creates the file (once).
-    fn create(&mut self) -> anyhow::Result<()> {
+    fn create(&mut self) -> Result<(), StageError> {
         if let Some((options, metadata)) = self.to_create.take() {
             self.sink = Some(McapSink::create(&self.path, &self.topics, &options, metadata)?);
             tracing::info!(
@@ -62,7 +63,7 @@ impl RecorderStage {
     }
 
     /// Drains every tap into the sink; returns how many messages there were.
-    fn drain(&mut self) -> anyhow::Result<usize> {
+    fn drain(&mut self) -> Result<usize, StageError> {
         let mut total = 0;
         let Self { sink, taps, counts, last_seq, .. } = self;
         let Some(sink) = sink.as_ref() else { return Ok(0) };
@@ -93,7 +94,7 @@ impl RecorderStage {
 impl Stage for RecorderStage {
     type Settings = RecorderSettings;
 
-    fn open(ctx: &ProcessContext, settings: RecorderSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+    fn open(ctx: &ProcessContext, settings: RecorderSettings, rt: &mut Runtime) -> Result<Self, StageError> {
         let mut topics: Vec<&'static Topic> = vec![];
         let mut taps = vec![];
         let mut skipped = BTreeMap::new();
@@ -161,7 +162,7 @@ impl Stage for RecorderStage {
     }
 
     /// The killed instance's file is kept under another name, not overwritten.
-    fn restore(&mut self, _restart: Restart) -> anyhow::Result<usize> {
+    fn restore(&mut self, _restart: Restart) -> Result<usize, StageError> {
         if self.path.exists() {
             let stem = self.path.file_stem().and_then(|s| s.to_str()).unwrap_or("recording").to_string();
             let ext = self.path.extension().and_then(|s| s.to_str()).unwrap_or("mcap").to_string();
@@ -182,13 +183,13 @@ impl Stage for RecorderStage {
         Ok(0)
     }
 
-    fn step(&mut self, _rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> anyhow::Result<Step> {
+    fn step(&mut self, _rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> Result<Step, StageError> {
         self.create()?;
         self.drain()?;
         Ok(Step::Idle)
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> anyhow::Result<serde_json::Value> {
+    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
         let why = match ending {
             Ending::EndOfStream => "end of stream",
             Ending::Stopped => "stopped",

@@ -12,6 +12,8 @@ use iceoryx2::prelude::ZeroCopySend;
 use pipeline_runtime::ports::Header;
 use pipeline_runtime::runtime::RuntimeError;
 use pipeline_runtime::{Delivery, Input, Output, Runtime};
+
+use crate::record::RecorderError;
 use shared_types::services::{self, Qos};
 use shared_types::*;
 
@@ -220,7 +222,7 @@ pub trait Tap {
     /// The service.
     fn service(&self) -> &'static str;
     /// Receives every queued message, calling `sink` for each; returns how many there were.
-    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> anyhow::Result<()>) -> anyhow::Result<usize>;
+    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> Result<(), RecorderError>) -> Result<usize, RecorderError>;
 }
 
 /// A publisher that sends recorded messages (header and payload bytes).
@@ -230,9 +232,9 @@ pub trait Emit {
     /// Sends one recorded message (already checked with [`Topic::check_len`]): the header's
     /// `seq`, `origin_ns` and `publish_ns` are stamped anew by the publishing runtime, everything
     /// else is sent bit for bit. Returns (subscribers reached, subscribers registered).
-    fn emit(&mut self, data: &[u8]) -> anyhow::Result<(usize, usize)>;
+    fn emit(&mut self, data: &[u8]) -> Result<(usize, usize), RecorderError>;
     /// Wakes the subscribers so that they attach before the first message.
-    fn nudge(&self) -> anyhow::Result<()>;
+    fn nudge(&self) -> Result<(), RecorderError>;
 }
 
 struct FixedTap<T: Debug + ZeroCopySend + 'static, H: Header> {
@@ -252,7 +254,7 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Tap for FixedTap<
         self.service
     }
 
-    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> anyhow::Result<()>) -> anyhow::Result<usize> {
+    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> Result<(), RecorderError>) -> Result<usize, RecorderError> {
         let mut n = 0;
         while let Some(s) = self.input.receive()? {
             n += 1;
@@ -284,7 +286,7 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Tap for SliceTap<
         self.service
     }
 
-    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> anyhow::Result<()>) -> anyhow::Result<usize> {
+    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> Result<(), RecorderError>) -> Result<usize, RecorderError> {
         let mut n = 0;
         while let Some(s) = self.input.receive()? {
             n += 1;
@@ -301,12 +303,12 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Tap for SliceTap<
 
 /// Splits a checked message into its header (with the transport fields cleared, so that the
 /// publishing runtime stamps them) and its payload bytes.
-fn split_header<'a, H: Header + WireType>(service: &str, data: &'a [u8]) -> anyhow::Result<(H, &'a [u8])> {
+fn split_header<'a, H: Header + WireType>(service: &str, data: &'a [u8]) -> Result<(H, &'a [u8]), RecorderError> {
     let hs = size_of::<H>();
-    let mut header = data
-        .get(..hs)
-        .and_then(H::from_bytes)
-        .ok_or_else(|| anyhow::anyhow!("`{service}`: message of {} bytes has no whole user header", data.len()))?;
+    let mut header = data.get(..hs).and_then(H::from_bytes).ok_or_else(|| RecorderError::Message {
+        service: service.into(),
+        what: format!("message of {} bytes has no whole user header", data.len()),
+    })?;
     let m = header.msg_mut();
     m.seq = 0;
     m.origin_ns = 0;
@@ -333,17 +335,18 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for FixedEmi
         self.service
     }
 
-    fn emit(&mut self, data: &[u8]) -> anyhow::Result<(usize, usize)> {
+    fn emit(&mut self, data: &[u8]) -> Result<(usize, usize), RecorderError> {
         let (header, payload) = split_header::<H>(self.service, data)?;
-        let value = T::from_bytes(payload).ok_or_else(|| {
-            anyhow::anyhow!("`{}`: payload of {} bytes, the type has {}", self.service, payload.len(), size_of::<T>())
+        let value = T::from_bytes(payload).ok_or_else(|| RecorderError::Message {
+            service: self.service.into(),
+            what: format!("payload of {} bytes, the type has {}", payload.len(), size_of::<T>()),
         })?;
         let registered = self.output.subscribers();
         let reached = self.output.send_value(header, value)?;
         Ok((reached, registered))
     }
 
-    fn nudge(&self) -> anyhow::Result<()> {
+    fn nudge(&self) -> Result<(), RecorderError> {
         Ok(self.output.nudge()?)
     }
 }
@@ -368,11 +371,14 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for SliceEmi
         self.service
     }
 
-    fn emit(&mut self, data: &[u8]) -> anyhow::Result<(usize, usize)> {
+    fn emit(&mut self, data: &[u8]) -> Result<(usize, usize), RecorderError> {
         let (header, payload) = split_header::<H>(self.service, data)?;
         let size = size_of::<T>();
         if payload.len() % size != 0 {
-            anyhow::bail!("`{}`: slice payload of {} bytes is not a multiple of {size}", self.service, payload.len());
+            return Err(RecorderError::Message {
+                service: self.service.into(),
+                what: format!("slice payload of {} bytes is not a multiple of {size}", payload.len()),
+            });
         }
         let mut sample = self
             .output
@@ -384,7 +390,7 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for SliceEmi
         Ok((reached, registered))
     }
 
-    fn nudge(&self) -> anyhow::Result<()> {
+    fn nudge(&self) -> Result<(), RecorderError> {
         Ok(self.output.nudge()?)
     }
 }

@@ -5,6 +5,7 @@
 
 pub mod clock;
 pub mod config;
+pub mod error;
 pub mod iox;
 pub mod logging;
 pub mod ports;
@@ -18,6 +19,7 @@ pub mod validate;
 
 pub use clock::monotonic_ns;
 pub use config::{ConfigError, ConfigIssue, Issues, LogFormat, PipelineConfig, ProcessSettings};
+pub use error::{ContextError, StageError, error_chain};
 pub use iox::IoxScope;
 pub use ports::{Delivery, Input, Output, PortError};
 pub use protocol::{CheckReport, process_main};
@@ -28,11 +30,15 @@ pub use stats::{LatencySummary, StatsReport};
 
 /// Maps the end of a process's `run` to an exit code: 0 for a finished run or a SIGTERM/SIGINT
 /// stop (a requested stop is a success for a supervised child).
-pub fn exit_code(result: &anyhow::Result<StopReason>) -> std::process::ExitCode {
+pub fn exit_code<E>(result: Result<StopReason, E>) -> std::process::ExitCode
+where
+    E: Into<Box<dyn std::error::Error + Send + Sync + 'static>>,
+{
     match result {
         Ok(_) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            tracing::error!("{e:#}");
+            let e: Box<dyn std::error::Error + Send + Sync + 'static> = e.into();
+            tracing::error!("{}", error_chain(&*e));
             std::process::ExitCode::FAILURE
         }
     }

@@ -21,6 +21,7 @@ use clap::Parser;
 use serde::{Deserialize, Serialize};
 
 use crate::config::{ConfigIssue, ProcessSettings, load_pipeline_config, settings_for};
+use crate::error::ContextError;
 use crate::runtime::{ProcessArgs, StopReason};
 
 /// Version of the `--check` protocol.
@@ -40,11 +41,12 @@ pub struct CheckReport {
 }
 
 /// Validates the settings of process `args.name` in `args.config` as a `T`.
-pub fn check<T: ProcessSettings>(args: &ProcessArgs) -> anyhow::Result<CheckReport> {
+pub fn check<T: ProcessSettings>(args: &ProcessArgs) -> Result<CheckReport, ContextError> {
     let config = load_pipeline_config(&args.config)?;
-    let process = config.processes.get(&args.name).ok_or_else(|| {
-        anyhow::anyhow!("{}: no table [processes.{}] in this config", args.config.display(), args.name)
-    })?;
+    let process = config
+        .processes
+        .get(&args.name)
+        .ok_or_else(|| ContextError::NoProcess { file: args.config.clone(), name: args.name.clone() })?;
     let (issues, shm_estimate_bytes) = match settings_for::<T>(&args.name, &process.settings) {
         Ok(s) => (vec![], s.shm_estimate_bytes()),
         Err(issues) => (issues, 0),
@@ -55,20 +57,24 @@ pub fn check<T: ProcessSettings>(args: &ProcessArgs) -> anyhow::Result<CheckRepo
 /// The whole `main` of a process kind whose settings are a `T`: parses the command line,
 /// answers `--check` (see the module docs), or sets up logging, calls `run` and maps its end
 /// to the exit code (0 for a finished run or a requested stop, 1 for an error, logged).
-pub fn process_main<T: ProcessSettings>(run: impl FnOnce(&ProcessArgs) -> anyhow::Result<StopReason>) -> ExitCode {
+pub fn process_main<T, E>(run: impl FnOnce(&ProcessArgs) -> Result<StopReason, E>) -> ExitCode
+where
+    T: ProcessSettings,
+    E: Into<Box<dyn std::error::Error + Send + Sync + 'static>>,
+{
     let args = ProcessArgs::parse();
     if args.check {
-        return match check::<T>(&args).and_then(|r| Ok(serde_json::to_string(&r)?)) {
-            Ok(json) => {
-                println!("{json}");
+        return match check::<T>(&args) {
+            Ok(report) => {
+                println!("{}", serde_json::json!(report));
                 ExitCode::SUCCESS
             }
             Err(e) => {
-                eprintln!("{e:#}");
+                eprintln!("{}", crate::error::error_chain(&e));
                 ExitCode::from(2)
             }
         };
     }
     let _log = crate::logging::init(&args.name, args.log_format.unwrap_or_default());
-    crate::exit_code(&run(&args))
+    crate::exit_code(run(&args))
 }

@@ -13,7 +13,6 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
-use anyhow::Context as _;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
 use shared_types::services::{self, Qos};
@@ -21,6 +20,7 @@ use shared_types::{EndOfStream, Heartbeat, MsgHeader, name32};
 
 use crate::clock::monotonic_ns;
 use crate::config::{LogFormat, PipelineConfig, ProcessSettings, load_pipeline_config, settings_for};
+use crate::error::{ContextError, StageError};
 use crate::iox::IoxScope;
 use crate::ports::{Backpressure, Delivery, Header, Input, LocalBus, Output, PortError, Side};
 use crate::stats::{PortStats, StatsReport};
@@ -60,13 +60,11 @@ pub struct ProcessContext {
 
 impl ProcessContext {
     /// Loads the config and resolves the scope. Errors name the file and key.
-    pub fn from_args(args: &ProcessArgs) -> anyhow::Result<Self> {
+    pub fn from_args(args: &ProcessArgs) -> Result<Self, ContextError> {
         let config = load_pipeline_config(&args.config)?;
-        let process = config
-            .processes
-            .get(&args.name)
-            .with_context(|| format!("{}: no table [processes.{}] in this config", args.config.display(), args.name))?;
-        let _ = process;
+        if !config.processes.contains_key(&args.name) {
+            return Err(ContextError::NoProcess { file: args.config.clone(), name: args.name.clone() });
+        }
         let scope = IoxScope::from_env().unwrap_or_else(|| IoxScope {
             prefix: config.run.iceoryx_prefix.clone(),
             root: config.iceoryx_root(),
@@ -78,15 +76,10 @@ impl ProcessContext {
     }
 
     /// This process's typed, validated settings.
-    pub fn settings<T: ProcessSettings>(&self) -> anyhow::Result<T> {
+    pub fn settings<T: ProcessSettings>(&self) -> Result<T, ContextError> {
         let table = &self.config.processes[&self.name].settings;
-        settings_for::<T>(&self.name, table).map_err(|issues| {
-            anyhow::anyhow!(
-                "{}: invalid settings:{}",
-                self.config.source.display(),
-                issues.iter().map(|i| format!("\n  key `{}`: {}", i.key, i.message)).collect::<String>()
-            )
-        })
+        settings_for::<T>(&self.name, table)
+            .map_err(|issues| ContextError::Settings { file: self.config.source.clone(), issues })
     }
 
     /// Runtime options from the config's `[run]` table.
@@ -337,7 +330,7 @@ impl Runtime {
     }
 
     /// For a process started by the supervisor: context, logging guard and runtime in one call.
-    pub fn start(args: &ProcessArgs) -> anyhow::Result<(ProcessContext, Self)> {
+    pub fn start(args: &ProcessArgs) -> Result<(ProcessContext, Self), StageError> {
         let ctx = ProcessContext::from_args(args)?;
         let rt = Runtime::new(&ctx.name, &ctx.scope, ctx.runtime_options())?;
         Ok((ctx, rt))
@@ -626,12 +619,12 @@ impl Runtime {
     /// `handler` when an input was notified (`wake.data`) or the process's own `tick` is due
     /// (`wake.tick`), and returns when the handler says [`Flow::Stop`] or on SIGINT/SIGTERM.
     /// The first heartbeat with state READY goes out on entry: that is "ready" for the supervisor.
-    pub fn run<S>(
+    pub fn run<S, E: From<RuntimeError>>(
         &mut self,
         state: &mut S,
         tick: Option<Duration>,
-        mut handler: impl FnMut(&mut Runtime, &mut S, Wake) -> anyhow::Result<Flow>,
-    ) -> anyhow::Result<StopReason> {
+        mut handler: impl FnMut(&mut Runtime, &mut S, Wake) -> Result<Flow, E>,
+    ) -> Result<StopReason, E> {
         if self.node.is_none() {
             return Err(RuntimeError::Local.into());
         }

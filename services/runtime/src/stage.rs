@@ -27,6 +27,7 @@ use shared_types::services::END_OF_STREAM;
 use shared_types::{EndOfStream, MsgHeader};
 
 use crate::config::ProcessSettings;
+use crate::error::StageError;
 use crate::ports::Input;
 use crate::restart::{Restart, StateStore};
 use crate::runtime::{Flow, ProcessContext, Runtime, StopReason, Wake};
@@ -90,7 +91,7 @@ pub trait Stage: Sized {
 
     /// Builds the stage: opens its inputs and outputs on `rt`, restores a killed instance's state
     /// if it keeps one.
-    fn open(ctx: &ProcessContext, settings: Self::Settings, rt: &mut Runtime) -> anyhow::Result<Self>;
+    fn open(ctx: &ProcessContext, settings: Self::Settings, rt: &mut Runtime) -> Result<Self, StageError>;
 
     /// When this stage's inputs are over (usually `EndAfter::from_list(&settings.end_after)`).
     fn end_after(&self) -> EndAfter;
@@ -102,12 +103,12 @@ pub trait Stage: Sized {
 
     /// One wake-up: drain the inputs, do the work, publish. `inputs_ended`: every upstream
     /// process the stage waits for has ended, and everything they sent is already queued.
-    fn step(&mut self, rt: &mut Runtime, wake: Wake, inputs_ended: bool) -> anyhow::Result<Step>;
+    fn step(&mut self, rt: &mut Runtime, wake: Wake, inputs_ended: bool) -> Result<Step, StageError>;
 
     /// The end ([`Ending`]): write the final outputs and return this stage's part of summary.json
     /// (a JSON object, merged into the summary). Long work should call [`Runtime::keep_alive`]
     /// between its parts.
-    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> anyhow::Result<serde_json::Value>;
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError>;
 
     /// `(last_seq, messages_sent)` of the stage's main output, for its end of stream.
     fn end_of_stream(&self) -> (u64, u64);
@@ -118,7 +119,7 @@ pub trait Stage: Sized {
     /// it took, in order: the runtime keeps those and drops the rest (a line this version cannot
     /// read), so the journal goes on from what the stage has. The default keeps nothing (a stage
     /// without restart state starts over).
-    fn restore(&mut self, restart: Restart) -> anyhow::Result<usize> {
+    fn restore(&mut self, restart: Restart) -> Result<usize, StageError> {
         let _ = restart;
         Ok(0)
     }
@@ -131,7 +132,7 @@ pub trait Stage: Sized {
 }
 
 /// Writes a summary part (`<out>/parts/<process>.json`).
-pub fn write_summary_part(out_dir: &Path, name: &str, part: &serde_json::Value) -> anyhow::Result<()> {
+pub fn write_summary_part(out_dir: &Path, name: &str, part: &serde_json::Value) -> Result<(), StageError> {
     let dir = out_dir.join("parts");
     std::fs::create_dir_all(&dir)?;
     std::fs::write(dir.join(format!("{name}.json")), serde_json::to_vec_pretty(part)?)?;
@@ -159,7 +160,7 @@ impl Driver {
         rt: &mut Runtime,
         stage: &mut S,
         restart: bool,
-    ) -> anyhow::Result<Self> {
+    ) -> Result<Self, StageError> {
         let (mut store, restored) = StateStore::open(&ctx.out_dir, &ctx.name, restart)?;
         if let Some(r) = restored {
             let lines = r.journal.len();
@@ -210,7 +211,7 @@ impl Driver {
         rt: &mut Runtime,
         stage: &mut S,
         wake: Wake,
-    ) -> anyhow::Result<Option<Step>> {
+    ) -> Result<Option<Step>, StageError> {
         if self.done() {
             return Ok(None);
         }
@@ -237,7 +238,7 @@ impl Driver {
 
     /// A stop before the end of the inputs: the stage's finish with [`Ending::Stopped`] and the
     /// summary part (nothing when it has finished already).
-    pub(crate) fn stop<S: Stage>(&mut self, rt: &mut Runtime, stage: &mut S) -> anyhow::Result<()> {
+    pub(crate) fn stop<S: Stage>(&mut self, rt: &mut Runtime, stage: &mut S) -> Result<(), StageError> {
         if self.done() {
             return Ok(());
         }
@@ -251,12 +252,12 @@ impl Driver {
 }
 
 /// Runs `stage` to its end and until the process is stopped (see the module docs).
-pub fn run_stage<S: Stage>(ctx: &ProcessContext, rt: &mut Runtime, mut stage: S) -> anyhow::Result<StopReason> {
+pub fn run_stage<S: Stage>(ctx: &ProcessContext, rt: &mut Runtime, mut stage: S) -> Result<StopReason, StageError> {
     let mut driver = Driver::new(ctx, rt, &mut stage, crate::restart::is_restart())?;
     let tick = stage.tick();
     let stop = rt.run(&mut stage, tick, |rt, stage, wake| {
         driver.wake(rt, stage, wake)?;
-        Ok(Flow::Continue)
+        Ok::<_, StageError>(Flow::Continue)
     })?;
     driver.stop(rt, &mut stage)?;
     Ok(stop)
@@ -265,7 +266,7 @@ pub fn run_stage<S: Stage>(ctx: &ProcessContext, rt: &mut Runtime, mut stage: S)
 /// The whole `main` of a stage: `--check` (see [`crate::protocol`]), logging, the context and
 /// runtime, [`Stage::open`] with its validated settings, and [`run_stage`].
 pub fn stage_main<S: Stage>() -> ExitCode {
-    crate::protocol::process_main::<S::Settings>(|args| {
+    crate::protocol::process_main::<S::Settings, StageError>(|args| {
         let (ctx, mut rt) = Runtime::start(args)?;
         let settings: S::Settings = ctx.settings()?;
         let stage = S::open(&ctx, settings, &mut rt)?;

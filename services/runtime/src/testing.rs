@@ -7,7 +7,7 @@
 //! ```no_run
 //! # use pipeline_runtime::testing::StageHarness;
 //! # use pipeline_runtime::Stage;
-//! # fn demo<S: Stage>() -> anyhow::Result<()> {
+//! # fn demo<S: Stage>() -> Result<(), pipeline_runtime::testing::TestError> {
 //! let out = tempfile_dir();
 //! let mut h = StageHarness::<S>::from_config_file("config/default.toml".as_ref(), "synchronizer", &out)?;
 //! // h.feed(SLAM_POSE, MsgHeader { stamp_ns, ..Default::default() }, pose);
@@ -29,12 +29,54 @@ use shared_types::services::END_OF_STREAM;
 use shared_types::{EOS_COMPLETE, EOS_FAILED, EndOfStream, MsgHeader, name32};
 
 use crate::clock::monotonic_ns;
-use crate::config::{LogFormat, PipelineConfig, parse_toml_str};
+use crate::config::{ConfigError, LogFormat, PipelineConfig, parse_toml_str};
+use crate::error::{ContextError, StageError};
 use crate::iox::IoxScope;
-use crate::ports::{Header, LocalBus, Side};
+use crate::ports::{Header, LocalBus, PortError, Side};
 
 use crate::runtime::{ProcessContext, Runtime, Wake};
 use crate::stage::{Driver, Stage, Step};
+
+/// What a [`StageHarness`] can fail with.
+#[derive(Debug, thiserror::Error)]
+pub enum TestError {
+    /// The stage (or the runtime around it) failed.
+    #[error(transparent)]
+    Stage(#[from] StageError),
+    /// The config text.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// The config's process table or settings.
+    #[error(transparent)]
+    Context(#[from] ContextError),
+    /// A queue used with another type than the stage's port.
+    #[error(transparent)]
+    Port(#[from] PortError),
+    /// The config file cannot be read.
+    #[error("{}: {source}", path.display())]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// A message fed to a service the stage has no input on.
+    #[error("`{stage}` has no input on `{service}`")]
+    NoInput {
+        /// The stage's process name.
+        stage: String,
+        /// The service.
+        service: String,
+    },
+    /// [`StageHarness::run_to_end`] ran out of time.
+    #[error("`{stage}` has not finished within {limit:?}")]
+    NotFinished {
+        /// The stage's process name.
+        stage: String,
+        /// The limit.
+        limit: Duration,
+    },
+}
 
 /// A stage opened on in-process queues (see the module docs).
 pub struct StageHarness<S: Stage> {
@@ -50,21 +92,19 @@ pub struct StageHarness<S: Stage> {
 impl<S: Stage> StageHarness<S> {
     /// Opens process `name` of the pipeline config in `path` (its settings validated as the
     /// process would), writing its outputs to `out_dir`.
-    pub fn from_config_file(path: &Path, name: &str, out_dir: &Path) -> anyhow::Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    pub fn from_config_file(path: &Path, name: &str, out_dir: &Path) -> Result<Self, TestError> {
+        let text = std::fs::read_to_string(path).map_err(|source| TestError::Read { path: path.into(), source })?;
         Self::from_config_str(&text, path, name, out_dir)
     }
 
     /// As [`StageHarness::from_config_file`] with the config's text (`source` names it in
     /// errors and resolves its relative paths as the file would).
-    pub fn from_config_str(text: &str, source: &Path, name: &str, out_dir: &Path) -> anyhow::Result<Self> {
+    pub fn from_config_str(text: &str, source: &Path, name: &str, out_dir: &Path) -> Result<Self, TestError> {
         let mut config: PipelineConfig = parse_toml_str(text, source)?;
         config.source = source.to_path_buf();
-        anyhow::ensure!(
-            config.processes.contains_key(name),
-            "{}: no table [processes.{name}] in this config",
-            source.display()
-        );
+        if !config.processes.contains_key(name) {
+            return Err(ContextError::NoProcess { file: source.into(), name: name.into() }.into());
+        }
         let ctx = ProcessContext {
             name: name.to_string(),
             config,
@@ -78,11 +118,11 @@ impl<S: Stage> StageHarness<S> {
 
     /// Opens the stage with explicit settings (a first instance: its restart state starts
     /// empty under `<out>/state/<name>/`).
-    pub fn open(ctx: ProcessContext, settings: S::Settings) -> anyhow::Result<Self> {
+    pub fn open(ctx: ProcessContext, settings: S::Settings) -> Result<Self, TestError> {
         Self::open_instance(ctx, settings, false)
     }
 
-    fn open_instance(ctx: ProcessContext, settings: S::Settings, restart: bool) -> anyhow::Result<Self> {
+    fn open_instance(ctx: ProcessContext, settings: S::Settings, restart: bool) -> Result<Self, TestError> {
         let bus = Rc::new(LocalBus::default());
         let mut rt = Runtime::local(&ctx.name, bus.clone());
         let mut stage = S::open(&ctx, settings, &mut rt)?;
@@ -93,7 +133,7 @@ impl<S: Stage> StageHarness<S> {
     /// Kills this instance (nothing more is written; what its inputs held is lost) and starts
     /// a restarted one, as the supervisor would: a new stage with the settings of the context's
     /// config, given the restart state the killed one kept ([`Stage::restore`]).
-    pub fn restart(self) -> anyhow::Result<Self> {
+    pub fn restart(self) -> Result<Self, TestError> {
         let ctx = self.ctx.clone();
         drop(self);
         let settings: S::Settings = ctx.settings()?;
@@ -136,10 +176,12 @@ impl<S: Stage> StageHarness<S> {
         service: &str,
         header: H,
         value: T,
-    ) -> anyhow::Result<()> {
+    ) -> Result<(), TestError> {
         let header = self.stamp(service, header);
         let queues = self.bus.inputs::<T, H>(service)?;
-        anyhow::ensure!(!queues.is_empty(), "`{}` has no input on `{service}`", self.ctx.name);
+        if queues.is_empty() {
+            return Err(TestError::NoInput { stage: self.ctx.name.clone(), service: service.into() });
+        }
         for q in queues {
             q.borrow_mut().push_back((header, Box::new(value)));
         }
@@ -152,49 +194,53 @@ impl<S: Stage> StageHarness<S> {
         service: &str,
         header: H,
         values: &[T],
-    ) -> anyhow::Result<()> {
+    ) -> Result<(), TestError> {
         let header = self.stamp(service, header);
         let queues = self.bus.inputs::<[T], H>(service)?;
-        anyhow::ensure!(!queues.is_empty(), "`{}` has no input on `{service}`", self.ctx.name);
+        if queues.is_empty() {
+            return Err(TestError::NoInput { stage: self.ctx.name.clone(), service: service.into() });
+        }
         for q in queues {
             q.borrow_mut().push_back((header, values.into()));
         }
         Ok(())
     }
 
-    fn end_of(&self, process: &str, status: u32) -> anyhow::Result<()> {
+    fn end_of(&self, process: &str, status: u32) -> Result<(), TestError> {
         let eos = EndOfStream { process: name32(process), last_seq: 0, messages_sent: 0, status, _reserved: 0 };
         self.feed(END_OF_STREAM, MsgHeader::default(), eos)
     }
 
     /// Queues the end of stream of upstream process `process` (it completed).
-    pub fn end_upstream(&self, process: &str) -> anyhow::Result<()> {
+    pub fn end_upstream(&self, process: &str) -> Result<(), TestError> {
         self.end_of(process, EOS_COMPLETE)
     }
 
     /// Queues the end of stream the supervisor sends for `process` when it gave up on it.
-    pub fn fail_upstream(&self, process: &str) -> anyhow::Result<()> {
+    pub fn fail_upstream(&self, process: &str) -> Result<(), TestError> {
         self.end_of(process, EOS_FAILED)
     }
 
     /// One wake-up with data (as when an input was notified); `None` once the stage finished.
-    pub fn wake(&mut self) -> anyhow::Result<Option<Step>> {
-        self.driver.wake(&mut self.rt, &mut self.stage, Wake { data: true, tick: false })
+    pub fn wake(&mut self) -> Result<Option<Step>, TestError> {
+        Ok(self.driver.wake(&mut self.rt, &mut self.stage, Wake { data: true, tick: false })?)
     }
 
     /// One wake-up of the stage's tick.
-    pub fn tick(&mut self) -> anyhow::Result<Option<Step>> {
-        self.driver.wake(&mut self.rt, &mut self.stage, Wake { data: false, tick: true })
+    pub fn tick(&mut self) -> Result<Option<Step>, TestError> {
+        Ok(self.driver.wake(&mut self.rt, &mut self.stage, Wake { data: false, tick: true })?)
     }
 
     /// Wakes the stage until it has finished (its inputs ended, or a source's `Done`), sleeping
     /// until the deadlines it sets ([`Runtime::wake_at`]) as the loop would; returns its summary
     /// part. An error when it has not finished within `limit`.
-    pub fn run_to_end(&mut self, limit: Duration) -> anyhow::Result<serde_json::Value> {
+    pub fn run_to_end(&mut self, limit: Duration) -> Result<serde_json::Value, TestError> {
         let started = Instant::now();
         let mut data = true;
         while !self.driver.done() {
-            anyhow::ensure!(started.elapsed() < limit, "`{}` has not finished within {limit:?}", self.ctx.name);
+            if started.elapsed() >= limit {
+                return Err(TestError::NotFinished { stage: self.ctx.name.clone(), limit });
+            }
             let wake = Wake { data, tick: !data };
             data = false;
             match self.driver.wake(&mut self.rt, &mut self.stage, wake)? {
@@ -213,7 +259,7 @@ impl<S: Stage> StageHarness<S> {
 
     /// Stops the stage as a SIGTERM would (its finish with `Ending::Stopped`, unless it has
     /// finished already); returns its summary part.
-    pub fn stop(&mut self) -> anyhow::Result<serde_json::Value> {
+    pub fn stop(&mut self) -> Result<serde_json::Value, TestError> {
         self.driver.stop(&mut self.rt, &mut self.stage)?;
         Ok(self.summary().cloned().unwrap_or_default())
     }
@@ -227,7 +273,7 @@ impl<S: Stage> StageHarness<S> {
     pub fn take<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(
         &self,
         service: &str,
-    ) -> anyhow::Result<Vec<(H, T)>> {
+    ) -> Result<Vec<(H, T)>, TestError> {
         let q = self.bus.queue::<T, H>(service, Side::Output)?;
         let taken = q.borrow_mut().drain(..).map(|(h, p)| (h, *p)).collect();
         Ok(taken)
@@ -237,14 +283,14 @@ impl<S: Stage> StageHarness<S> {
     pub fn take_slices<T: Debug + ZeroCopySend + Copy + 'static, H: Header>(
         &self,
         service: &str,
-    ) -> anyhow::Result<Vec<(H, Vec<T>)>> {
+    ) -> Result<Vec<(H, Vec<T>)>, TestError> {
         let q = self.bus.queue::<[T], H>(service, Side::Output)?;
         let taken = q.borrow_mut().drain(..).map(|(h, p)| (h, p.into_vec())).collect();
         Ok(taken)
     }
 
     /// The stage's own end of stream, once it has sent it.
-    pub fn end_of_stream(&self) -> anyhow::Result<Option<EndOfStream>> {
+    pub fn end_of_stream(&self) -> Result<Option<EndOfStream>, TestError> {
         Ok(self.take::<EndOfStream, MsgHeader>(END_OF_STREAM)?.pop().map(|(_, e)| e))
     }
 }

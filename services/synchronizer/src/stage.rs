@@ -1,6 +1,7 @@
 //! The synchronizer as a [`Stage`]: its ports around [`SyncState`]. Fixes are taken before poses
 //! in each wake-up, so that a pose and the fix that brackets it in one wake-up are paired.
 
+use pipeline_runtime::StageError;
 use std::time::Instant;
 
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
@@ -26,8 +27,8 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
 impl Stage for SynchronizerStage {
     type Settings = SynchronizerSettings;
 
-    fn open(_ctx: &ProcessContext, settings: SynchronizerSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
-        let st = SyncState::new(&settings).map_err(|p| anyhow::anyhow!("invalid synchronizer settings: {p:?}"))?;
+    fn open(_ctx: &ProcessContext, settings: SynchronizerSettings, rt: &mut Runtime) -> Result<Self, StageError> {
+        let st = SyncState::new(&settings).map_err(|p| StageError::Settings(format!("synchronizer: {p:?}")))?;
         let poses = rt.input(SLAM_POSE)?;
         let fixes = rt.input(BUOY_FIX)?;
         let pairs = rt.output(SYNC_PAIR)?;
@@ -43,7 +44,7 @@ impl Stage for SynchronizerStage {
         Some(std::time::Duration::from_millis(100))
     }
 
-    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> anyhow::Result<Step> {
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
         while let Some(s) = self.fixes.receive()? {
             self.st.push_fix(s.user_header(), s.payload());
         }
@@ -71,7 +72,7 @@ impl Stage for SynchronizerStage {
         Ok(if self.st.pending.is_empty() { Step::Idle } else { Step::Pending })
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> anyhow::Result<serde_json::Value> {
+    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<serde_json::Value, StageError> {
         let st = &self.st;
         let mut ms: Vec<f64> = st.added_latency_s.iter().map(|s| s * 1e3).collect();
         ms.sort_by(f64::total_cmp);

@@ -32,7 +32,7 @@ fn main() {
                 got += 1;
                 std::thread::sleep(Duration::from_micros(200));
             }
-            Ok(if got >= n || Instant::now() > end { Flow::Stop } else { Flow::Continue })
+            Ok::<_, anyhow::Error>(if got >= n || Instant::now() > end { Flow::Stop } else { Flow::Continue })
         })
         .unwrap();
         println!("sub: got {got}, gaps {gaps}");

@@ -136,7 +136,7 @@ fn relay_iox(args: &RelayArgs, rec: &mut HopRecorder) -> anyhow::Result<()> {
             drop(sample);
             out.send(o)?;
             if index == END {
-                return Ok(Flow::Stop);
+                return Ok::<_, anyhow::Error>(Flow::Stop);
             }
         }
         Ok(Flow::Continue)

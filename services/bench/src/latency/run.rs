@@ -217,7 +217,7 @@ fn drive_iox(scope: &IoxScope, case: Case, touch: bool, pacer: &mut Pacer) -> an
         }
         loop {
             match p.next_action(Instant::now())? {
-                Action::Done => return Ok(Flow::Stop),
+                Action::Done => return Ok::<_, anyhow::Error>(Flow::Stop),
                 Action::WaitUntil(t) => {
                     rt.wake_at(t);
                     return Ok(Flow::Continue);

@@ -9,7 +9,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
-use pipeline_runtime::{Delivery, ProcessContext, Runtime, Wake};
+use pipeline_runtime::{Delivery, ProcessContext, Runtime, StageError, Wake};
 use recorder_stage::{Emit, Replay, Replayed, ReplayerSettings, ScanReport, Selection, scan, topic};
 use shared_types::services::service_spec;
 
@@ -31,7 +31,7 @@ struct Replayer {
 
 impl Replayer {
     /// Publishes every message that is due; asks to be woken for the next one.
-    fn pump(&mut self, rt: &mut Runtime) -> anyhow::Result<()> {
+    fn pump(&mut self, rt: &mut Runtime) -> Result<(), StageError> {
         if Instant::now() < self.publish_from {
             for e in self.emitters.values() {
                 e.nudge()?;
@@ -69,7 +69,7 @@ impl Replayer {
             let emitter = self
                 .emitters
                 .get_mut(service)
-                .ok_or_else(|| anyhow::anyhow!("`{service}`: no publisher (internal)"))?;
+                .ok_or_else(|| StageError::msg(format!("`{service}`: no publisher (internal)")))?;
             let (reached, registered) = emitter.emit(&m.data)?;
             *self.sent.entry(service).or_default() += 1;
             if reached < registered {
@@ -87,7 +87,7 @@ impl Replayer {
 impl Stage for Replayer {
     type Settings = ReplayerSettings;
 
-    fn open(ctx: &ProcessContext, settings: ReplayerSettings, rt: &mut Runtime) -> anyhow::Result<Self> {
+    fn open(ctx: &ProcessContext, settings: ReplayerSettings, rt: &mut Runtime) -> Result<Self, StageError> {
         let config_dir = ctx.config.source.parent().unwrap_or(Path::new(".")).to_path_buf();
         let path = settings.path(&config_dir);
         // Ends of stream recorded from processes of this config are theirs to send again.
@@ -136,12 +136,12 @@ impl Stage for Replayer {
         Some(Duration::from_millis(500))
     }
 
-    fn step(&mut self, rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> anyhow::Result<Step> {
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> Result<Step, StageError> {
         self.pump(rt)?;
         Ok(if self.done { Step::Done } else { Step::Idle })
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> anyhow::Result<serde_json::Value> {
+    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<serde_json::Value, StageError> {
         Ok(serde_json::json!({ "replayer": {
             "file": self.path.display().to_string(),
             "speed": self.settings.speed,

@@ -63,5 +63,5 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
 }
 
 fn main() -> ExitCode {
-    pipeline_runtime::process_main::<testkit::ConsumerSettings>(run)
+    pipeline_runtime::process_main::<testkit::ConsumerSettings, _>(run)
 }

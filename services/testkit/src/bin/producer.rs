@@ -48,5 +48,5 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
 }
 
 fn main() -> ExitCode {
-    pipeline_runtime::process_main::<testkit::ProducerSettings>(run)
+    pipeline_runtime::process_main::<testkit::ProducerSettings, _>(run)
 }

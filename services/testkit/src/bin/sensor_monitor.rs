@@ -166,5 +166,5 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
 }
 
 fn main() -> ExitCode {
-    pipeline_runtime::process_main::<testkit::SensorMonitorSettings>(run)
+    pipeline_runtime::process_main::<testkit::SensorMonitorSettings, _>(run)
 }

@@ -194,7 +194,7 @@ fn publish(rt: &mut Runtime, linger: Duration) -> anyhow::Result<()> {
     std::io::stdout().flush()?;
     let end = Instant::now() + linger;
     rt.run(&mut (), Some(Duration::from_millis(100)), |_, _, _| {
-        Ok(if Instant::now() > end { Flow::Stop } else { Flow::Continue })
+        Ok::<_, anyhow::Error>(if Instant::now() > end { Flow::Stop } else { Flow::Continue })
     })?;
     Ok(())
 }

@@ -1,0 +1,91 @@
+//! Typed errors of a process built on the runtime: [`ContextError`] (its config and settings)
+//! and [`StageError`] (what a [`Stage`](crate::Stage) and the runtime around it can fail with).
+//! A stage's own failures (its maths, its data files) keep their type inside
+//! [`StageError::Stage`]; [`error_chain`] renders any error with its causes for the log.
+
+use std::path::PathBuf;
+
+use crate::config::{ConfigError, ConfigIssue};
+use crate::ports::PortError;
+use crate::restart::StateError;
+use crate::runtime::RuntimeError;
+
+/// The config of a process cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ContextError {
+    /// The file cannot be read or parsed.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// The file has no table for this process.
+    #[error("{}: no table [processes.{name}] in this config", file.display())]
+    NoProcess {
+        /// The config file.
+        file: PathBuf,
+        /// The process name.
+        name: String,
+    },
+    /// The process's settings are invalid; every issue with its dotted key.
+    #[error("{}: invalid settings:{}", file.display(), issues.iter().map(|i| format!("\n  key `{}`: {}", i.key, i.message)).collect::<String>())]
+    Settings {
+        /// The config file.
+        file: PathBuf,
+        /// What is wrong, by key.
+        issues: Vec<ConfigIssue>,
+    },
+}
+
+/// What a stage, or the runtime around it, failed with.
+#[derive(Debug, thiserror::Error)]
+pub enum StageError {
+    /// The process's config or settings.
+    #[error(transparent)]
+    Context(#[from] ContextError),
+    /// The runtime (iceoryx2 node, WaitSet, signals).
+    #[error(transparent)]
+    Runtime(#[from] RuntimeError),
+    /// A port (open, loan, send, receive).
+    #[error(transparent)]
+    Port(#[from] PortError),
+    /// The restart state.
+    #[error(transparent)]
+    State(#[from] StateError),
+    /// Writing or reading a file (the summary part, an output).
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+    /// Encoding JSON (the summary part).
+    #[error(transparent)]
+    Json(#[from] serde_json::Error),
+    /// Settings the stage refuses beyond their own validation.
+    #[error("invalid settings: {0}")]
+    Settings(String),
+    /// The stage's own failure, with its type (downcast it to look inside).
+    #[error(transparent)]
+    Stage(Box<dyn std::error::Error + Send + Sync + 'static>),
+}
+
+impl StageError {
+    /// Wraps a stage's own typed error (e.g. `.map_err(StageError::stage)?`).
+    pub fn stage(e: impl std::error::Error + Send + Sync + 'static) -> Self {
+        StageError::Stage(Box::new(e))
+    }
+
+    /// An error with a message only, for a condition the stage names itself.
+    pub fn msg(message: impl Into<String>) -> Self {
+        StageError::Stage(message.into().into())
+    }
+}
+
+/// `error: cause: cause ...`, for the log.
+pub fn error_chain(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        let s_text = s.to_string();
+        if !text.contains(&s_text) {
+            text.push_str(": ");
+            text.push_str(&s_text);
+        }
+        source = s.source();
+    }
+    text
+}
