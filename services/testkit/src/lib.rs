@@ -1,7 +1,10 @@
 //! Test-only pipeline processes. Until the real stages exist they let the supervisor, restarts and
 //! latency accounting be exercised for real: a point-cloud producer of configurable size and rate
 //! (which can also crash or stall on purpose) and a consumer that verifies every point it receives.
-//! The logic is here as pure functions; the binaries are thin wiring around them.
+//! The logic is here as pure functions; the binaries are thin wiring around them. The sensor
+//! monitor ([`monitor`]), part of the main job, is a [`pipeline_runtime::Stage`].
+
+pub mod monitor;
 
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
