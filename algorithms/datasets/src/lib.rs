@@ -5,6 +5,7 @@
 //! - [`stereo_vo`]: GTSAM's stereo visual-odometry example (calibration, observations, poses);
 //! - [`scan`]: OctoMap's plain-text point clouds (`scan.dat`, with optional `NODE` poses);
 //! - [`ply`]: PLY point clouds (ASCII and binary), plus a writer;
+//! - [`carmen`]: CARMEN 2-D laser logs (FLASER, RAWLASER, ROBOTLASER1, ODOM; plain or gzip);
 //! - [`depth`]: 16-bit depth images (PNG or raw) and their back-projection to points.
 //!
 //! This is a pure library: no IPC, no logging, no panics on bad input. Every failure is a
@@ -13,6 +14,7 @@
 //! Text files ending in `.bz2` are decompressed on the fly. Units are SI and appear in field
 //! names (`_m`, `_s`, `_rad`, `_px`); points are `[f32; 3]` (x, y, z) in metres.
 
+pub mod carmen;
 pub mod depth;
 pub mod error;
 mod lines;

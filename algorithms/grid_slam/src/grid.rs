@@ -1,0 +1,306 @@
+//! A 2-D log-odds occupancy grid stored in square tiles shared copy-on-write between particles.
+//!
+//! Cloning a [`Grid`] copies only the tile index (one reference count per tile): a resampled
+//! particle shares every tile with its parent until one of them writes into a tile, and only that
+//! tile is copied ([`Arc::make_mut`]). Cells keep, besides their log-odds, the mean of the beam end
+//! points that hit them (as gmapping does), so scan matching is not limited to the cell's centre.
+//!
+//! Coordinates: the grid frame is the map (world) frame; cell (i, j) covers
+//! `[i·res, (i+1)·res) × [j·res, (j+1)·res)` metres. Cell indices may be negative; the grid grows
+//! in whole tiles on demand.
+
+use std::sync::Arc;
+
+/// Cells along a tile's side (a power of two).
+pub const TILE_SIDE: usize = 32;
+const TILE_BITS: i32 = 5;
+const TILE_MASK: i32 = TILE_SIDE as i32 - 1;
+
+/// One cell: log-odds of occupancy and the accumulated end points of the beams that hit it.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Cell {
+    /// ln(p / (1 − p)); 0 is unknown.
+    pub log_odds: f32,
+    /// Sum of hit end points' x offsets from the cell's centre, m.
+    pub hit_dx_m: f32,
+    /// Sum of hit end points' y offsets from the cell's centre, m.
+    pub hit_dy_m: f32,
+    /// Number of hits summed.
+    pub hits: u32,
+}
+
+/// A tile of `TILE_SIDE`² cells, row-major (y then x).
+#[derive(Debug, Clone)]
+pub struct Tile {
+    cells: [Cell; TILE_SIDE * TILE_SIDE],
+}
+
+impl Default for Tile {
+    fn default() -> Self {
+        Self { cells: [Cell::default(); TILE_SIDE * TILE_SIDE] }
+    }
+}
+
+/// Log-odds update parameters.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LogOddsParams {
+    /// Added to a cell a beam ends in (ln(0.7/0.3) for P(hit) = 0.7).
+    pub hit: f32,
+    /// Added to a cell a beam passes through (ln(0.4/0.6) for P(miss) = 0.4).
+    pub miss: f32,
+    /// Lower clamp (ln(0.1192/0.8808)).
+    pub min: f32,
+    /// Upper clamp (ln(0.971/0.029)).
+    pub max: f32,
+}
+
+impl Default for LogOddsParams {
+    fn default() -> Self {
+        Self { hit: 0.847_298, miss: -0.405_465, min: -2.0, max: 3.5 }
+    }
+}
+
+/// The occupancy grid of one particle.
+#[derive(Debug, Clone)]
+pub struct Grid {
+    resolution_m: f64,
+    /// Tile index range: tiles `[tx0, tx0 + nx) × [ty0, ty0 + ny)`.
+    tx0: i32,
+    ty0: i32,
+    nx: i32,
+    ny: i32,
+    tiles: Vec<Option<Arc<Tile>>>,
+}
+
+impl Grid {
+    /// An empty grid with square cells of `resolution_m`.
+    pub fn new(resolution_m: f64) -> Self {
+        Self { resolution_m, tx0: 0, ty0: 0, nx: 0, ny: 0, tiles: Vec::new() }
+    }
+
+    /// Cell side, m.
+    pub fn resolution_m(&self) -> f64 {
+        self.resolution_m
+    }
+
+    /// The cell containing world point (x, y).
+    #[inline]
+    pub fn cell_of(&self, x_m: f64, y_m: f64) -> (i32, i32) {
+        ((x_m / self.resolution_m).floor() as i32, (y_m / self.resolution_m).floor() as i32)
+    }
+
+    /// The centre of cell (i, j), m.
+    #[inline]
+    pub fn centre_of(&self, i: i32, j: i32) -> (f64, f64) {
+        ((i as f64 + 0.5) * self.resolution_m, (j as f64 + 0.5) * self.resolution_m)
+    }
+
+    /// The cell (i, j), or `None` where nothing was ever written.
+    #[inline]
+    pub fn cell(&self, i: i32, j: i32) -> Option<&Cell> {
+        let (tx, ty) = ((i >> TILE_BITS) - self.tx0, (j >> TILE_BITS) - self.ty0);
+        if tx < 0 || ty < 0 || tx >= self.nx || ty >= self.ny {
+            return None;
+        }
+        let tile = self.tiles[(ty * self.nx + tx) as usize].as_ref()?;
+        Some(&tile.cells[((j & TILE_MASK) as usize) * TILE_SIDE + (i & TILE_MASK) as usize])
+    }
+
+    /// Log-odds of cell (i, j) (0 where unknown).
+    #[inline]
+    pub fn log_odds(&self, i: i32, j: i32) -> f32 {
+        self.cell(i, j).map_or(0.0, |c| c.log_odds)
+    }
+
+    /// The mean hit point of cell (i, j) if it is occupied (log-odds above `threshold`).
+    #[inline]
+    pub fn occupied_mean(&self, i: i32, j: i32, threshold: f32) -> Option<(f64, f64)> {
+        let c = self.cell(i, j)?;
+        if c.log_odds <= threshold {
+            return None;
+        }
+        let (cx, cy) = self.centre_of(i, j);
+        if c.hits == 0 {
+            return Some((cx, cy));
+        }
+        let n = c.hits as f64;
+        Some((cx + c.hit_dx_m as f64 / n, cy + c.hit_dy_m as f64 / n))
+    }
+
+    fn grow_to(&mut self, tx: i32, ty: i32) {
+        if self.nx > 0 && tx >= self.tx0 && ty >= self.ty0 && tx < self.tx0 + self.nx && ty < self.ty0 + self.ny {
+            return;
+        }
+        // Grow with a margin so a moving robot does not regrow at every scan.
+        const MARGIN: i32 = 4;
+        let (x0, y0, x1, y1) = if self.nx == 0 {
+            (tx - MARGIN, ty - MARGIN, tx + MARGIN + 1, ty + MARGIN + 1)
+        } else {
+            let x0 = if tx < self.tx0 { tx - MARGIN } else { self.tx0 };
+            let y0 = if ty < self.ty0 { ty - MARGIN } else { self.ty0 };
+            let x1 = if tx >= self.tx0 + self.nx { tx + MARGIN + 1 } else { self.tx0 + self.nx };
+            let y1 = if ty >= self.ty0 + self.ny { ty + MARGIN + 1 } else { self.ty0 + self.ny };
+            (x0, y0, x1, y1)
+        };
+        let (nx, ny) = (x1 - x0, y1 - y0);
+        let mut tiles = vec![None; (nx * ny) as usize];
+        for y in 0..self.ny {
+            for x in 0..self.nx {
+                let src = (y * self.nx + x) as usize;
+                let dst = ((y + self.ty0 - y0) * nx + (x + self.tx0 - x0)) as usize;
+                tiles[dst] = self.tiles[src].take();
+            }
+        }
+        (self.tx0, self.ty0, self.nx, self.ny, self.tiles) = (x0, y0, nx, ny, tiles);
+    }
+
+    /// The cell (i, j) for writing: grows the grid, creates the tile, and copies it first if
+    /// another grid shares it.
+    #[inline]
+    pub fn cell_mut(&mut self, i: i32, j: i32) -> &mut Cell {
+        let (tx, ty) = (i >> TILE_BITS, j >> TILE_BITS);
+        self.grow_to(tx, ty);
+        let k = ((ty - self.ty0) * self.nx + (tx - self.tx0)) as usize;
+        let tile = Arc::make_mut(self.tiles[k].get_or_insert_with(|| Arc::new(Tile::default())));
+        &mut tile.cells[((j & TILE_MASK) as usize) * TILE_SIDE + (i & TILE_MASK) as usize]
+    }
+
+    /// A miss: the beam passed through cell (i, j).
+    #[inline]
+    pub fn add_miss(&mut self, i: i32, j: i32, p: &LogOddsParams) {
+        let c = self.cell_mut(i, j);
+        c.log_odds = (c.log_odds + p.miss).clamp(p.min, p.max);
+    }
+
+    /// A hit: a beam ended at world point (x, y).
+    #[inline]
+    pub fn add_hit(&mut self, x_m: f64, y_m: f64, p: &LogOddsParams) {
+        let (i, j) = self.cell_of(x_m, y_m);
+        let (cx, cy) = self.centre_of(i, j);
+        let c = self.cell_mut(i, j);
+        c.log_odds = (c.log_odds + p.hit).clamp(p.min, p.max);
+        if c.hits < u32::MAX {
+            c.hit_dx_m += (x_m - cx) as f32;
+            c.hit_dy_m += (y_m - cy) as f32;
+            c.hits += 1;
+        }
+    }
+
+    /// Casts one beam from `from` to `to` (world, m): misses on the cells strictly before the end
+    /// cell, and a hit at `to` when `hit` is set (a beam cut at the usable range updates free space
+    /// only).
+    pub fn cast(&mut self, from: (f64, f64), to: (f64, f64), hit: bool, p: &LogOddsParams) {
+        let (i0, j0) = self.cell_of(from.0, from.1);
+        let (i1, j1) = self.cell_of(to.0, to.1);
+        // Bresenham over the cells from (i0, j0) up to, not including, (i1, j1).
+        let (dx, dy) = ((i1 - i0).abs(), -(j1 - j0).abs());
+        let (sx, sy) = (if i0 < i1 { 1 } else { -1 }, if j0 < j1 { 1 } else { -1 });
+        let (mut i, mut j, mut err) = (i0, j0, dx + dy);
+        while (i, j) != (i1, j1) {
+            self.add_miss(i, j, p);
+            let e2 = 2 * err;
+            if e2 >= dy {
+                err += dy;
+                i += sx;
+            }
+            if e2 <= dx {
+                err += dx;
+                j += sy;
+            }
+        }
+        if hit {
+            self.add_hit(to.0, to.1, p);
+        }
+    }
+
+    /// The tiles this grid holds, as pointers (to count how many distinct tiles several grids
+    /// hold between them).
+    pub fn tile_ptrs(&self) -> impl Iterator<Item = *const Tile> + '_ {
+        self.tiles.iter().flatten().map(Arc::as_ptr)
+    }
+
+    /// Number of tiles allocated.
+    pub fn tile_count(&self) -> usize {
+        self.tiles.iter().flatten().count()
+    }
+
+    /// Bytes of one tile.
+    pub const TILE_BYTES: usize = std::mem::size_of::<Tile>();
+
+    /// The bounds of the known cells: (i_min, j_min, i_max, j_max), inclusive; `None` if empty.
+    pub fn known_bounds(&self) -> Option<(i32, i32, i32, i32)> {
+        let mut b: Option<(i32, i32, i32, i32)> = None;
+        for ty in 0..self.ny {
+            for tx in 0..self.nx {
+                let Some(tile) = &self.tiles[(ty * self.nx + tx) as usize] else { continue };
+                for (k, c) in tile.cells.iter().enumerate() {
+                    if c.log_odds == 0.0 {
+                        continue;
+                    }
+                    let i = ((tx + self.tx0) << TILE_BITS) + (k % TILE_SIDE) as i32;
+                    let j = ((ty + self.ty0) << TILE_BITS) + (k / TILE_SIDE) as i32;
+                    b = Some(match b {
+                        None => (i, j, i, j),
+                        Some((a, bb, c2, d)) => (a.min(i), bb.min(j), c2.max(i), d.max(j)),
+                    });
+                }
+            }
+        }
+        b
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_clone_shares_every_tile_until_one_side_writes_and_then_copies_only_that_tile() {
+        let p = LogOddsParams::default();
+        let mut a = Grid::new(0.05);
+        a.cast((0.0, 0.0), (5.0, 0.0), true, &p);
+        a.cast((0.0, 0.0), (0.0, 5.0), true, &p);
+        let tiles = a.tile_count();
+        assert!(tiles >= 7, "{tiles}");
+        let mut b = a.clone();
+        let shared = |a: &Grid, b: &Grid| {
+            let pa: std::collections::HashSet<_> = a.tile_ptrs().collect();
+            b.tile_ptrs().filter(|t| pa.contains(t)).count()
+        };
+        assert_eq!(shared(&a, &b), tiles);
+        b.add_miss(5, 0, &p);
+        assert_eq!(shared(&a, &b), tiles - 1, "one tile copied");
+        assert_eq!(a.log_odds(5, 0), p.miss, "the original is untouched");
+        assert_eq!(b.log_odds(5, 0), (2.0 * p.miss).clamp(p.min, p.max));
+    }
+
+    #[test]
+    fn a_beam_frees_the_cells_before_its_end_and_marks_the_end_with_the_mean_hit_point() {
+        let p = LogOddsParams::default();
+        let mut g = Grid::new(0.1);
+        g.cast((0.05, 0.05), (1.03, 0.05), true, &p);
+        for i in 0..10 {
+            assert!(g.log_odds(i, 0) < 0.0, "cell {i} free");
+        }
+        let (mx, my) = g.occupied_mean(10, 0, 0.0).expect("end cell occupied");
+        assert!((mx - 1.03).abs() < 1e-6 && (my - 0.05).abs() < 1e-6);
+        assert_eq!(g.log_odds(11, 0), 0.0);
+        // Negative coordinates work the same, across tile borders.
+        g.cast((0.0, 0.0), (-4.0, -3.0), false, &p);
+        assert!(g.log_odds(-20, -15) < 0.0);
+        assert_eq!(g.known_bounds().map(|b| b.0), Some(-39), "the end cell of a beam without a hit is not touched");
+    }
+
+    #[test]
+    fn log_odds_are_clamped() {
+        let p = LogOddsParams::default();
+        let mut g = Grid::new(0.05);
+        for _ in 0..100 {
+            g.add_hit(0.01, 0.01, &p);
+            g.add_miss(5, 5, &p);
+        }
+        assert_eq!(g.log_odds(0, 0), p.max);
+        assert_eq!(g.log_odds(5, 5), p.min);
+    }
+}

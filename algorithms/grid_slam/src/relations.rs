@@ -1,0 +1,202 @@
+//! The relations metric of Kümmerle et al. 2009 ("On measuring the accuracy of SLAM
+//! algorithms", SPEC §8): for each relation (t1, t2, δ), with δ the true motion from the pose at t1
+//! to the pose at t2 in the frame of t1, the error is e = (x_t1⁻¹ ⊕ x_t2) ⊖ δ; the score is the
+//! mean ± std of ‖e_xy‖ (m) and |e_θ| (deg) over the relations the trajectory covers.
+
+use crate::GridSlamError;
+use omni::{Pose2, wrap_angle};
+use std::path::Path;
+
+/// One relation: the motion from the pose at `t1_s` to the pose at `t2_s`, in the frame of the
+/// first.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Relation {
+    /// First stamp, s (the relations file's clock).
+    pub t1_s: f64,
+    /// Second stamp, s.
+    pub t2_s: f64,
+    /// The motion (x, y, yaw).
+    pub delta: Pose2,
+}
+
+/// Reads a relations file: `t1 t2 dx dy dz droll dpitch dyaw` per line (m, rad); blank lines and
+/// `#` comments are skipped. Errors name file:line.
+pub fn read_relations(path: &Path) -> Result<Vec<Relation>, GridSlamError> {
+    let text =
+        std::fs::read_to_string(path).map_err(|e| GridSlamError::Io { path: path.display().to_string(), source: e })?;
+    parse_relations(&text, &path.display().to_string())
+}
+
+/// Parses relations text (see [`read_relations`]); `source` names it in errors.
+pub fn parse_relations(text: &str, source: &str) -> Result<Vec<Relation>, GridSlamError> {
+    let mut out = Vec::new();
+    for (n, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let bad = |why: String| GridSlamError::Parse { file: source.to_string(), line: n + 1, why };
+        let v: Vec<f64> = line
+            .split_whitespace()
+            .map(|f| f.parse::<f64>().map_err(|_| bad(format!("'{f}' is not a number"))))
+            .collect::<Result<_, _>>()?;
+        if v.len() != 8 {
+            return Err(bad(format!("expected 8 fields (t1 t2 dx dy dz droll dpitch dyaw), found {}", v.len())));
+        }
+        if v.iter().any(|x| !x.is_finite()) {
+            return Err(bad("a field is not finite".into()));
+        }
+        out.push(Relation { t1_s: v[0], t2_s: v[1], delta: Pose2 { x_m: v[2], y_m: v[3], theta_rad: v[7] } });
+    }
+    Ok(out)
+}
+
+/// The score of a trajectory against relations.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct RelationScore {
+    /// Relations scored.
+    pub scored: usize,
+    /// Relations the trajectory does not cover (a stamp outside it, or in a gap longer than
+    /// the allowed one).
+    pub uncovered: usize,
+    /// Mean translational error, m.
+    pub trans_mean_m: f64,
+    /// Its std dev, m.
+    pub trans_std_m: f64,
+    /// Largest translational error, m.
+    pub trans_max_m: f64,
+    /// Mean rotational error, deg.
+    pub rot_mean_deg: f64,
+    /// Its std dev, deg.
+    pub rot_std_deg: f64,
+    /// Largest rotational error, deg.
+    pub rot_max_deg: f64,
+}
+
+/// The pose at `t_s` interpolated linearly (yaw along the shorter arc) between the two
+/// trajectory poses around it; `None` outside the trajectory or across a gap over `max_gap_s`.
+pub fn pose_at(traj: &[(f64, Pose2)], t_s: f64, max_gap_s: f64) -> Option<Pose2> {
+    let i = traj.partition_point(|(t, _)| *t < t_s);
+    if let Some((t, p)) = traj.get(i)
+        && (*t - t_s).abs() < 1e-9
+    {
+        return Some(*p);
+    }
+    if i == 0 || i >= traj.len() {
+        return None;
+    }
+    let ((ta, a), (tb, b)) = (traj[i - 1], traj[i]);
+    if tb - ta > max_gap_s {
+        return None;
+    }
+    let f = (t_s - ta) / (tb - ta);
+    Some(Pose2 {
+        x_m: a.x_m + f * (b.x_m - a.x_m),
+        y_m: a.y_m + f * (b.y_m - a.y_m),
+        theta_rad: wrap_angle(a.theta_rad + f * wrap_angle(b.theta_rad - a.theta_rad)),
+    })
+}
+
+/// Scores `traj` (sorted by stamp; stamps on the trajectory's clock) against `relations`; a
+/// relation's stamps are mapped onto the trajectory's clock by subtracting `offset_s`.
+pub fn score(traj: &[(f64, Pose2)], relations: &[Relation], offset_s: f64, max_gap_s: f64) -> RelationScore {
+    let (mut et, mut er) = (Vec::new(), Vec::new());
+    let mut uncovered = 0;
+    for r in relations {
+        let (Some(a), Some(b)) =
+            (pose_at(traj, r.t1_s - offset_s, max_gap_s), pose_at(traj, r.t2_s - offset_s, max_gap_s))
+        else {
+            uncovered += 1;
+            continue;
+        };
+        let rel = a.between(&b);
+        // e = rel ⊕ δ⁻¹
+        let e = rel.compose(&invert(&r.delta));
+        et.push(e.x_m.hypot(e.y_m));
+        er.push(e.theta_rad.abs().to_degrees());
+    }
+    let stats = |v: &[f64]| {
+        if v.is_empty() {
+            return (f64::NAN, f64::NAN, f64::NAN);
+        }
+        let n = v.len() as f64;
+        let m = v.iter().sum::<f64>() / n;
+        let s = (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / n).sqrt();
+        (m, s, v.iter().cloned().fold(0.0, f64::max))
+    };
+    let (tm, ts, tx) = stats(&et);
+    let (rm, rs, rx) = stats(&er);
+    RelationScore {
+        scored: et.len(),
+        uncovered,
+        trans_mean_m: tm,
+        trans_std_m: ts,
+        trans_max_m: tx,
+        rot_mean_deg: rm,
+        rot_std_deg: rs,
+        rot_max_deg: rx,
+    }
+}
+
+/// The inverse of a planar pose.
+pub fn invert(p: &Pose2) -> Pose2 {
+    p.between(&Pose2::default())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn circle(n: usize) -> Vec<(f64, Pose2)> {
+        (0..n)
+            .map(|k| {
+                let a = k as f64 * 0.05;
+                (
+                    k as f64 * 0.1,
+                    Pose2 {
+                        x_m: 3.0 * a.cos(),
+                        y_m: 3.0 * a.sin(),
+                        theta_rad: wrap_angle(a + std::f64::consts::FRAC_PI_2),
+                    },
+                )
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_trajectory_scores_zero_against_its_own_relations_and_the_error_of_a_bias_shows() {
+        let traj = circle(200);
+        let rels: Vec<Relation> = (0..150)
+            .map(|k| {
+                let (t1, t2) = (k as f64 * 0.1 + 0.05 + 100.0, k as f64 * 0.1 + 0.95 + 100.0);
+                let a = pose_at(&traj, t1 - 100.0, 1.0).expect("inside");
+                let b = pose_at(&traj, t2 - 100.0, 1.0).expect("inside");
+                Relation { t1_s: t1, t2_s: t2, delta: a.between(&b) }
+            })
+            .collect();
+        let s = score(&traj, &rels, 100.0, 1.0);
+        assert_eq!((s.scored, s.uncovered), (150, 0));
+        assert!(s.trans_mean_m < 1e-9 && s.rot_mean_deg < 1e-9, "{s:?}");
+        // A trajectory that turns 1% too fast: rotational error ≈ 1% of each relation's turn.
+        let fast: Vec<(f64, Pose2)> = traj
+            .iter()
+            .map(|(t, p)| (*t, Pose2 { theta_rad: wrap_angle(p.theta_rad + 0.01 * t * 0.5), ..*p }))
+            .collect();
+        let s2 = score(&fast, &rels, 100.0, 1.0);
+        assert!((s2.rot_mean_deg - (0.01f64 * 0.9 * 0.5).to_degrees()).abs() < 1e-6, "{s2:?}");
+        // Relations outside the trajectory are counted as uncovered.
+        let s3 = score(&traj, &rels, 90.0, 1.0);
+        assert!(s3.uncovered > 0);
+    }
+
+    #[test]
+    fn relations_files_are_parsed_and_errors_name_the_line() {
+        let r = parse_relations("# c\n1 2 0.5 0 0 0 0 0.1\n\n", "x").expect("ok");
+        assert_eq!(r.len(), 1);
+        assert_eq!(r[0].delta, Pose2 { x_m: 0.5, y_m: 0.0, theta_rad: 0.1 });
+        let e = parse_relations("1 2 0.5 0 0 0 0 0.1\n1 2 x 0 0 0 0 0\n", "f.relations").unwrap_err();
+        assert!(e.to_string().contains("f.relations:2"), "{e}");
+        let e = parse_relations("1 2 3\n", "f").unwrap_err();
+        assert!(e.to_string().contains("8 fields"), "{e}");
+    }
+}

@@ -1,0 +1,209 @@
+//! Not a test: runs CARMEN logs through the `grid_slam` filter (in one process, no IPC) and prints
+//! a table of relation errors (Kümmerle et al. 2009), wall time and map memory next to the
+//! published numbers of the data sets (../shared/data/carmen/ATTRIBUTION.md).
+//!
+//! The Radish "corrected" logs carry SLAM-corrected poses, so the odometry fed to the filter is
+//! those poses with seeded synthetic drift (`grid_slam::drift::DriftModel`, defaults stated in its
+//! docs); the drifted odometry alone is scored as well, as the baseline.
+//!
+//! ```text
+//! cargo run --release -p pipeline_bench --bin grid_slam_bench            # fr079, 30 particles, 0.05 m
+//! cargo run --release -p pipeline_bench --bin grid_slam_bench -- --particles 1,30 --max-scans 1500
+//! ```
+
+use anyhow::{Context, Result, bail};
+use clap::Parser;
+use datasets::carmen::{OdometrySource, read_carmen};
+use grid_slam::drift::DriftModel;
+use grid_slam::export::{Occupancy, write_tum2};
+use grid_slam::relations::{read_relations, score};
+use grid_slam::{GridSlam, GridSlamConfig, Pose2, ScanGeometry};
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Parser, Debug)]
+#[command(about = "2-D grid SLAM on CARMEN logs: relation errors, wall time, memory")]
+struct Args {
+    /// Data directory holding the logs and relations.
+    #[arg(long, default_value = "../shared/data/carmen")]
+    data: PathBuf,
+    /// Data sets: fr079, intel, aces (comma-separated).
+    #[arg(long, default_value = "fr079", value_delimiter = ',')]
+    sets: Vec<String>,
+    /// Particle counts to run (comma-separated).
+    #[arg(long, default_value = "30", value_delimiter = ',')]
+    particles: Vec<usize>,
+    /// Grid resolution, m.
+    #[arg(long, default_value_t = 0.05)]
+    resolution: f64,
+    /// Worker threads (0: all cores).
+    #[arg(long, default_value_t = 2)]
+    threads: usize,
+    /// Stop after this many scans (0: all).
+    #[arg(long, default_value_t = 0)]
+    max_scans: usize,
+    /// Drift seed.
+    #[arg(long, default_value_t = 7)]
+    seed: u64,
+    /// Filter settings as TOML (the `[grid_slam]` keys of a pipeline config), applied over the defaults.
+    #[arg(long)]
+    settings: Option<PathBuf>,
+    /// Override the beam spacing: the scan spans this many degrees from its first to its last
+    /// beam (CARMEN's FLASER lines do not say; 0: the reader's rule).
+    #[arg(long, default_value_t = 0.0)]
+    span_deg: f64,
+    /// Where the maps and trajectories go.
+    #[arg(long, default_value = "target/grid_slam_bench")]
+    out: PathBuf,
+}
+
+struct Set {
+    name: &'static str,
+    log: &'static str,
+    relations: &'static str,
+    offset_s: f64,
+    published: &'static str,
+}
+
+const SETS: [Set; 3] = [
+    Set {
+        name: "fr079",
+        log: "freiburg-079-corrected.log.gz",
+        relations: "fr079.relations",
+        offset_s: 1211.38,
+        published: "gmapping 0.061±0.044 m; Cartographer 0.045±0.035 m / 0.54±0.72°, 62 s",
+    },
+    Set {
+        name: "intel",
+        log: "intel-corrected.log.gz",
+        relations: "intel.relations",
+        offset_s: 976052857.34,
+        published: "gmapping 0.070±0.083 m; Cartographer 0.023±0.024 m / 0.45±1.34°",
+    },
+    Set {
+        name: "aces",
+        log: "aces-corrected.log.gz",
+        relations: "aces.relations",
+        offset_s: 70.14,
+        published: "gmapping 0.060±0.049 m; Cartographer 0.038±0.043 m / 0.37±0.47°",
+    },
+];
+
+fn main() -> Result<()> {
+    let args = Args::parse();
+    let mut base = GridSlamConfig::default();
+    if let Some(p) = &args.settings {
+        let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+        base = toml::from_str(&text).with_context(|| format!("{}: not valid grid_slam settings", p.display()))?;
+    }
+    std::fs::create_dir_all(&args.out)?;
+    println!(
+        "{:<6} {:>4} {:>6} {:>6} {:>5} {:>8} {:>8} {:>20} {:>18} {:>16} {:>7}",
+        "set",
+        "N",
+        "scans",
+        "upd",
+        "resmp",
+        "wall s",
+        "data s",
+        "trans m (mean±std)",
+        "rot deg",
+        "odometry m/deg",
+        "mem x"
+    );
+    for name in &args.sets {
+        let Some(set) = SETS.iter().find(|s| s.name == name) else {
+            bail!("unknown data set {name} (fr079, intel, aces)")
+        };
+        let log_path = args.data.join(set.log);
+        if !log_path.exists() {
+            println!("{:<6} skipped: {} is absent", set.name, log_path.display());
+            continue;
+        }
+        let log = read_carmen(&log_path)?;
+        let relations = read_relations(&args.data.join(set.relations))?;
+        let odo = log.scan_odometry(OdometrySource::LaserLines);
+        let mut scans: Vec<(usize, Pose2)> = log
+            .scans
+            .iter()
+            .zip(&odo)
+            .enumerate()
+            .filter_map(|(i, (_, o))| o.map(|o| (i, Pose2 { x_m: o[0], y_m: o[1], theta_rad: o[2] })))
+            .collect();
+        if args.max_scans > 0 {
+            scans.truncate(args.max_scans);
+        }
+        let truth: Vec<Pose2> = scans.iter().map(|s| s.1).collect();
+        let drifted = DriftModel { seed: args.seed, ..Default::default() }.apply(&truth);
+        let first = &log.scans[scans[0].0];
+        let geom = ScanGeometry {
+            angle_min_rad: first.angle_min_rad,
+            angle_increment_rad: if args.span_deg > 0.0 {
+                args.span_deg.to_radians() / (first.ranges.len() - 1) as f64
+            } else {
+                first.angle_increment_rad
+            },
+            beams: first.ranges.len(),
+            range_min_m: 0.01,
+            range_max_m: first.range_max_m.unwrap_or(81.8),
+            body_from_laser: Pose2::default(),
+        };
+        let odo_traj: Vec<(f64, Pose2)> =
+            scans.iter().zip(&drifted).map(|((i, _), p)| (log.scans[*i].stamp_s, *p)).collect();
+        let odo_score = score(&odo_traj, &relations, set.offset_s, 2.0);
+        for &n in &args.particles {
+            let cfg =
+                GridSlamConfig { particles: n, resolution_m: args.resolution, threads: args.threads, ..base.clone() };
+            let mut f = GridSlam::new(cfg, geom)?;
+            let t0 = Instant::now();
+            let mut refused = 0;
+            for ((i, _), odom) in scans.iter().zip(&drifted) {
+                let s = &log.scans[*i];
+                if f.process(s.stamp_s, *odom, &s.ranges).is_err() {
+                    refused += 1;
+                }
+            }
+            let wall = t0.elapsed().as_secs_f64();
+            let traj = f.trajectory();
+            let sc = score(&traj, &relations, set.offset_s, 2.0);
+            let st = f.stats();
+            let mem = f.peak_memory().map_or(f64::NAN, |m| m.ratio);
+            let span = traj.last().map_or(0.0, |l| l.0) - traj.first().map_or(0.0, |f| f.0);
+            println!(
+                "{:<6} {:>4} {:>6} {:>6} {:>5} {:>8.1} {:>8.0} {:>9.4}±{:<6.4} ({:>4}) {:>8.3}±{:<7.3} {:>7.3}/{:<7.2} {:>7.2}",
+                set.name,
+                n,
+                st.scans,
+                st.updates,
+                st.resamples,
+                wall,
+                span,
+                sc.trans_mean_m,
+                sc.trans_std_m,
+                sc.scored,
+                sc.rot_mean_deg,
+                sc.rot_std_deg,
+                odo_score.trans_mean_m,
+                odo_score.rot_mean_deg,
+                mem
+            );
+            if refused > 0 || st.tracking_failures > 0 || st.proposal_fallbacks > 0 {
+                println!(
+                    "       refused scans {refused}, tracking failures {}, proposal fallbacks {}, invalid beams {}",
+                    st.tracking_failures, st.proposal_fallbacks, st.invalid_beams
+                );
+            }
+            let stem = format!("{}_{}", set.name, n);
+            write_tum2(&args.out.join(format!("{stem}.tum")), &traj)?;
+            if let Some(g) = f.best_grid() {
+                let occ = Occupancy::from_grid(g, 5);
+                occ.write_map_server(&args.out, &stem)?;
+                let path: Vec<Pose2> = traj.iter().map(|p| p.1).collect();
+                occ.write_png(&args.out.join(format!("{stem}.png")), &path)?;
+            }
+        }
+        println!("       published: {}", set.published);
+    }
+    println!("maps and trajectories: {}", args.out.display());
+    Ok(())
+}
