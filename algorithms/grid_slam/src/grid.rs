@@ -12,8 +12,8 @@
 use std::sync::Arc;
 
 /// Cells along a tile's side (a power of two).
-pub const TILE_SIDE: usize = 32;
-const TILE_BITS: i32 = 5;
+pub const TILE_SIDE: usize = 16;
+const TILE_BITS: i32 = 4;
 const TILE_MASK: i32 = TILE_SIDE as i32 - 1;
 
 /// One cell: log-odds of occupancy and the accumulated end points of the beams that hit it.
@@ -166,9 +166,14 @@ impl Grid {
         &mut tile.cells[((j & TILE_MASK) as usize) * TILE_SIDE + (i & TILE_MASK) as usize]
     }
 
-    /// A miss: the beam passed through cell (i, j).
+    /// A miss: the beam passed through cell (i, j). A miss on a cell already at the lower clamp
+    /// changes nothing and writes nothing, so it does not copy a shared tile (most of a scan's
+    /// misses fall in free space seen many times before).
     #[inline]
     pub fn add_miss(&mut self, i: i32, j: i32, p: &LogOddsParams) {
+        if self.cell(i, j).is_some_and(|c| c.log_odds <= p.min) {
+            return;
+        }
         let c = self.cell_mut(i, j);
         c.log_odds = (c.log_odds + p.miss).clamp(p.min, p.max);
     }

@@ -98,7 +98,7 @@ fn main() -> Result<()> {
     }
     std::fs::create_dir_all(&args.out)?;
     println!(
-        "{:<6} {:>4} {:>6} {:>6} {:>5} {:>8} {:>8} {:>20} {:>18} {:>16} {:>7}",
+        "{:<6} {:>4} {:>6} {:>6} {:>5} {:>8} {:>8} {:>20} {:>18} {:>16} {:>7} {:>8} {:>7}",
         "set",
         "N",
         "scans",
@@ -109,6 +109,8 @@ fn main() -> Result<()> {
         "trans m (mean±std)",
         "rot deg",
         "odometry m/deg",
+        "peak MB",
+        "map MB",
         "mem x"
     );
     for name in &args.sets {
@@ -167,10 +169,13 @@ fn main() -> Result<()> {
             let traj = f.trajectory();
             let sc = score(&traj, &relations, set.offset_s, 2.0);
             let st = f.stats();
-            let mem = f.peak_memory().map_or(f64::NAN, |m| m.ratio);
+            // Peak bytes of all particles' distinct tiles against the final map of one particle.
+            let peak_mb = f.peak_memory().map_or(f64::NAN, |m| m.bytes as f64 / 1e6);
+            let one_map_mb = f.memory().best_tiles as f64 * grid_slam::grid::Grid::TILE_BYTES as f64 / 1e6;
+            let mem = peak_mb / one_map_mb;
             let span = traj.last().map_or(0.0, |l| l.0) - traj.first().map_or(0.0, |f| f.0);
             println!(
-                "{:<6} {:>4} {:>6} {:>6} {:>5} {:>8.1} {:>8.0} {:>9.4}±{:<6.4} ({:>4}) {:>8.3}±{:<7.3} {:>7.3}/{:<7.2} {:>7.2}",
+                "{:<6} {:>4} {:>6} {:>6} {:>5} {:>8.1} {:>8.0} {:>9.4}±{:<6.4} ({:>4}) {:>8.3}±{:<7.3} {:>7.3}/{:<7.2} {:>8.1} {:>7.1} {:>7.2}",
                 set.name,
                 n,
                 st.scans,
@@ -185,6 +190,8 @@ fn main() -> Result<()> {
                 sc.rot_std_deg,
                 odo_score.trans_mean_m,
                 odo_score.rot_mean_deg,
+                peak_mb,
+                one_map_mb,
                 mem
             );
             if refused > 0 || st.tracking_failures > 0 || st.proposal_fallbacks > 0 {
