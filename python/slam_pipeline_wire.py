@@ -394,6 +394,118 @@ class VoxelSetHeader(ctypes.Structure):
 assert ctypes.sizeof(VoxelSetHeader) == 48, "VoxelSetHeader size"
 assert ctypes.alignment(VoxelSetHeader) == 8, "VoxelSetHeader alignment"
 
+class LaserScanHeader(ctypes.Structure):
+    """User header of `pipeline/sensors/laser`: a planar laser scan whose ranges are the slice"""
+
+    _fields_ = [
+        ("msg", MsgHeader),
+        ("angle_min_rad", ctypes.c_double),
+        ("angle_increment_rad", ctypes.c_double),
+        ("range_min_m", ctypes.c_double),
+        ("range_max_m", ctypes.c_double),
+        ("body_from_laser_xy_m", (ctypes.c_double) * 2),
+        ("body_from_laser_yaw_rad", ctypes.c_double),
+        ("beams", ctypes.c_uint32),
+        ("flags", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        return "slam_pipeline::v1::LaserScanHeader"
+
+
+assert ctypes.sizeof(LaserScanHeader) == 96, "LaserScanHeader size"
+assert ctypes.alignment(LaserScanHeader) == 8, "LaserScanHeader alignment"
+
+class LaserRange(ctypes.Structure):
+    """One beam of a laser scan (slice on `pipeline/sensors/laser`). NaN or negative: invalid."""
+
+    _fields_ = [
+        ("range_m", ctypes.c_float),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        return "slam_pipeline::v1::LaserRange"
+
+
+assert ctypes.sizeof(LaserRange) == 4, "LaserRange size"
+assert ctypes.alignment(LaserRange) == 4, "LaserRange alignment"
+
+class PlanarOdometry(ctypes.Structure):
+    """Planar wheel odometry (`pipeline/sensors/planar_odometry`): the odometry's own pose"""
+
+    _fields_ = [
+        ("position_m", (ctypes.c_double) * 2),
+        ("yaw_rad", ctypes.c_double),
+        ("velocity", (ctypes.c_double) * 3),
+        ("wheel_speeds_mps", (ctypes.c_double) * 3),
+        ("flags", ctypes.c_uint32),
+        ("_reserved", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        return "slam_pipeline::v1::PlanarOdometry"
+
+
+assert ctypes.sizeof(PlanarOdometry) == 80, "PlanarOdometry size"
+assert ctypes.alignment(PlanarOdometry) == 8, "PlanarOdometry alignment"
+
+class PlanarPose(ctypes.Structure):
+    """A planar pose with covariance (`pipeline/grid_slam/pose`): `map_from_body` of the 2-D SLAM."""
+
+    _fields_ = [
+        ("position_m", (ctypes.c_double) * 2),
+        ("yaw_rad", ctypes.c_double),
+        ("covariance", (ctypes.c_double) * 9),
+        ("n_eff", ctypes.c_double),
+        ("updates", ctypes.c_uint32),
+        ("flags", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        return "slam_pipeline::v1::PlanarPose"
+
+
+assert ctypes.sizeof(PlanarPose) == 112, "PlanarPose size"
+assert ctypes.alignment(PlanarPose) == 8, "PlanarPose alignment"
+
+class OccupancyGridHeader(ctypes.Structure):
+    """User header of `pipeline/grid_slam/grid`: an occupancy grid whose cells are the slice"""
+
+    _fields_ = [
+        ("msg", MsgHeader),
+        ("resolution_m", ctypes.c_double),
+        ("origin_m", (ctypes.c_double) * 2),
+        ("width", ctypes.c_uint32),
+        ("height", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        return "slam_pipeline::v1::OccupancyGridHeader"
+
+
+assert ctypes.sizeof(OccupancyGridHeader) == 64, "OccupancyGridHeader size"
+assert ctypes.alignment(OccupancyGridHeader) == 8, "OccupancyGridHeader alignment"
+
+class OccupancyCell(ctypes.Structure):
+    """One cell of an occupancy grid (slice on `pipeline/grid_slam/grid`): −1 unknown, else 0..=100 (%)."""
+
+    _fields_ = [
+        ("value", i8),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        return "slam_pipeline::v1::OccupancyCell"
+
+
+assert ctypes.sizeof(OccupancyCell) == 1, "OccupancyCell size"
+assert ctypes.alignment(OccupancyCell) == 1, "OccupancyCell alignment"
+
 class Heartbeat(ctypes.Structure):
     """Liveness and readiness of a process (`pipeline/control/heartbeat`), sent periodically."""
 
@@ -469,6 +581,12 @@ SERVICES = {
     "pipeline/fusion/map": {"payload": "[Landmark]", "user_header": "LandmarkMapHeader", "max_publishers": 2, "max_subscribers": 2, "max_nodes": 32, "subscriber_max_buffer_size": 4, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/map/stats": {"payload": "MapStats", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 4, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/map/voxels": {"payload": "[Voxel]", "user_header": "VoxelSetHeader", "max_publishers": 2, "max_subscribers": 2, "max_nodes": 32, "subscriber_max_buffer_size": 1, "subscriber_max_borrowed_samples": 1, "history_size": 0, "enable_safe_overflow": True},
+    "pipeline/sensors/laser": {"payload": "[LaserRange]", "user_header": "LaserScanHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 16, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": False},
+    "pipeline/sensors/planar_odometry": {"payload": "PlanarOdometry", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 64, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": False},
+    "pipeline/grid_slam/pose": {"payload": "PlanarPose", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 256, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
+    "pipeline/grid_slam/pose3d": {"payload": "PoseEstimate", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 256, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
+    "pipeline/grid_slam/particles": {"payload": "[Particle]", "user_header": "ParticleSetHeader", "max_publishers": 2, "max_subscribers": 2, "max_nodes": 32, "subscriber_max_buffer_size": 4, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
+    "pipeline/grid_slam/grid": {"payload": "[OccupancyCell]", "user_header": "OccupancyGridHeader", "max_publishers": 2, "max_subscribers": 2, "max_nodes": 32, "subscriber_max_buffer_size": 1, "subscriber_max_borrowed_samples": 1, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/control/heartbeat": {"payload": "Heartbeat", "user_header": "MsgHeader", "max_publishers": 48, "max_subscribers": 16, "max_nodes": 56, "subscriber_max_buffer_size": 8, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/control/end_of_stream": {"payload": "EndOfStream", "user_header": "MsgHeader", "max_publishers": 48, "max_subscribers": 16, "max_nodes": 56, "subscriber_max_buffer_size": 8, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/control/command": {"payload": "ControlCommand", "user_header": "MsgHeader", "max_publishers": 48, "max_subscribers": 16, "max_nodes": 56, "subscriber_max_buffer_size": 8, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},

@@ -109,6 +109,18 @@ pub const FUSION_MAP: &str = "pipeline/fusion/map";
 pub const MAP_STATS: &str = "pipeline/map/stats";
 /// Occupied voxels, `[Voxel]` with a [`crate::VoxelSetHeader`].
 pub const MAP_VOXELS: &str = "pipeline/map/voxels";
+/// Planar laser scans ([`crate::LaserScanHeader`] + `[LaserRange]`).
+pub const LASER: &str = "pipeline/sensors/laser";
+/// Planar wheel odometry, [`crate::PlanarOdometry`].
+pub const PLANAR_ODOMETRY: &str = "pipeline/sensors/planar_odometry";
+/// The 2-D SLAM's pose, [`crate::PlanarPose`].
+pub const GRID_SLAM_POSE: &str = "pipeline/grid_slam/pose";
+/// The 2-D SLAM's pose lifted to 3-D (z 0, roll and pitch 0) for the 3-D stages, [`crate::PoseEstimate`].
+pub const GRID_SLAM_POSE3D: &str = "pipeline/grid_slam/pose3d";
+/// The 2-D SLAM's particles ([`crate::ParticleSetHeader`] + `[Particle]`).
+pub const GRID_SLAM_PARTICLES: &str = "pipeline/grid_slam/particles";
+/// The best particle's occupancy grid ([`crate::OccupancyGridHeader`] + `[OccupancyCell]`).
+pub const GRID_SLAM_GRID: &str = "pipeline/grid_slam/grid";
 /// Heartbeats of every process, [`crate::Heartbeat`].
 pub const HEARTBEAT: &str = "pipeline/control/heartbeat";
 /// End of stream, [`crate::EndOfStream`].
@@ -176,6 +188,18 @@ pub const SERVICES: &[ServiceSpec] = &[
         "[Voxel]",
         "VoxelSetHeader",
         Qos { subscriber_buffer: 1, subscriber_borrowed: 1, publisher_loans: 1, ..Qos::stream(2, 16 * 1024) },
+    ),
+    spec(LASER, "[LaserRange]", "LaserScanHeader", Qos::sensor(4, 16, 1024)),
+    spec(PLANAR_ODOMETRY, "PlanarOdometry", "MsgHeader", Qos::sensor(4, 64, 0)),
+    spec(GRID_SLAM_POSE, "PlanarPose", "MsgHeader", Qos::estimates(4)),
+    spec(GRID_SLAM_POSE3D, "PoseEstimate", "MsgHeader", Qos::estimates(4)),
+    spec(GRID_SLAM_PARTICLES, "[Particle]", "ParticleSetHeader", Qos::stream(2, 64)),
+    spec(
+        GRID_SLAM_GRID,
+        "[OccupancyCell]",
+        "OccupancyGridHeader",
+        // Large (a 50 × 50 m map at 0.05 m is 1 MB): zero-copy, newest wins, one in flight.
+        Qos { subscriber_buffer: 1, subscriber_borrowed: 1, publisher_loans: 1, ..Qos::stream(2, 1024 * 1024) },
     ),
     spec(HEARTBEAT, "Heartbeat", "MsgHeader", CONTROL_QOS),
     spec(END_OF_STREAM, "EndOfStream", "MsgHeader", CONTROL_QOS),

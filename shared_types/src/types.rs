@@ -438,6 +438,116 @@ wire_type! {
     }
 }
 
+/// `LaserScanHeader::flags` bit: ranges at or above `range_max_m` mean "no return".
+pub const LASER_MAX_IS_NO_RETURN: u32 = 1;
+
+wire_type! {
+    /// User header of `pipeline/sensors/laser`: a planar laser scan whose ranges are the slice
+    /// payload ([`LaserRange`], one per beam, counter-clockwise from `angle_min_rad`).
+    type_name = "slam_pipeline::v1::LaserScanHeader", size = 96;
+    pub struct LaserScanHeader {
+        /// Common header (`stamp_ns`: the scan's time).
+        pub msg: MsgHeader,
+        /// Angle of the first beam in the laser frame, rad (counter-clockwise from the laser's x).
+        pub angle_min_rad: f64,
+        /// Angle between consecutive beams, rad.
+        pub angle_increment_rad: f64,
+        /// Ranges below this are invalid, m.
+        pub range_min_m: f64,
+        /// Ranges at or above this are "no return", m.
+        pub range_max_m: f64,
+        /// The laser's position on the robot (`body_from_laser`, x and y), m.
+        pub body_from_laser_xy_m: [f64; 2],
+        /// The laser's yaw on the robot (`body_from_laser`), rad.
+        pub body_from_laser_yaw_rad: f64,
+        /// Beams in the slice.
+        pub beams: u32,
+        /// Bit set: 1 = maximum range means no return.
+        pub flags: u32,
+    }
+}
+
+wire_type! {
+    /// One beam of a laser scan (slice on `pipeline/sensors/laser`). NaN or negative: invalid.
+    type_name = "slam_pipeline::v1::LaserRange", size = 4;
+    pub struct LaserRange {
+        /// Range, m.
+        pub range_m: f32,
+    }
+}
+
+/// `PlanarOdometry::flags` bit: `wheel_speeds_mps` holds the three omni wheels' rim speeds.
+pub const ODOM_HAS_WHEELS: u32 = 1;
+/// `PlanarOdometry::flags` bit: `velocity` holds the body velocity.
+pub const ODOM_HAS_VELOCITY: u32 = 2;
+
+wire_type! {
+    /// Planar wheel odometry (`pipeline/sensors/planar_odometry`): the odometry's own pose
+    /// (`odom_from_body`, any fixed origin: consumers use increments), and optionally the body
+    /// velocity and the three omni wheels' rim speeds ([2D3D] eq 1-2).
+    type_name = "slam_pipeline::v1::PlanarOdometry", size = 80;
+    pub struct PlanarOdometry {
+        /// Position (x, y) in the odometry frame, m.
+        pub position_m: [f64; 2],
+        /// Yaw in the odometry frame, rad.
+        pub yaw_rad: f64,
+        /// Body velocity (v_x m/s, v_y m/s, ω rad/s), valid with ODOM_HAS_VELOCITY.
+        pub velocity: [f64; 3],
+        /// Wheel rim speeds, m/s, valid with ODOM_HAS_WHEELS.
+        pub wheel_speeds_mps: [f64; 3],
+        /// Bit set: 1 wheels, 2 velocity.
+        pub flags: u32,
+        /// Zero.
+        pub _reserved: u32,
+    }
+}
+
+wire_type! {
+    /// A planar pose with covariance (`pipeline/grid_slam/pose`): `map_from_body` of the 2-D SLAM.
+    type_name = "slam_pipeline::v1::PlanarPose", size = 112;
+    pub struct PlanarPose {
+        /// Position (x, y) in the map frame, m.
+        pub position_m: [f64; 2],
+        /// Yaw in the map frame, rad.
+        pub yaw_rad: f64,
+        /// 3×3 row-major covariance over (x, y, yaw), m² / rad².
+        pub covariance: [f64; 9],
+        /// Effective sample size of the filter.
+        pub n_eff: f64,
+        /// Filter updates so far.
+        pub updates: u32,
+        /// Bit set: 1 = the filter was updated at this scan, 2 = resampled.
+        pub flags: u32,
+    }
+}
+
+wire_type! {
+    /// User header of `pipeline/grid_slam/grid`: an occupancy grid whose cells are the slice
+    /// payload ([`OccupancyCell`], row-major, first row at the lowest y, as nav_msgs/OccupancyGrid).
+    type_name = "slam_pipeline::v1::OccupancyGridHeader", size = 64;
+    pub struct OccupancyGridHeader {
+        /// Common header.
+        pub msg: MsgHeader,
+        /// Cell side, m.
+        pub resolution_m: f64,
+        /// Map-frame position of the lower-left corner of cell (0, 0), m.
+        pub origin_m: [f64; 2],
+        /// Cells along x.
+        pub width: u32,
+        /// Cells along y.
+        pub height: u32,
+    }
+}
+
+wire_type! {
+    /// One cell of an occupancy grid (slice on `pipeline/grid_slam/grid`): −1 unknown, else 0..=100 (%).
+    type_name = "slam_pipeline::v1::OccupancyCell", size = 1;
+    pub struct OccupancyCell {
+        /// Occupancy, percent, or −1.
+        pub value: i8,
+    }
+}
+
 /// `Heartbeat::state`: the process is setting up its ports.
 pub const STATE_STARTING: u32 = 1;
 /// `Heartbeat::state`: the process is ready and processing.
@@ -551,4 +661,11 @@ macro_rules! has_msg_header {
         }
     )*};
 }
-has_msg_header!(CloudHeader, ParticleSetHeader, LandmarkMapHeader, VoxelSetHeader);
+has_msg_header!(
+    CloudHeader,
+    ParticleSetHeader,
+    LandmarkMapHeader,
+    VoxelSetHeader,
+    LaserScanHeader,
+    OccupancyGridHeader
+);

@@ -127,11 +127,17 @@ macro_rules! for_each_wire_type {
         $m!(EndOfStream, 19, $($arg),*);
         $m!(ControlCommand, 20, $($arg),*);
         $m!(HeadingReading, 22, $($arg),*);
+        $m!(LaserScanHeader, 23, $($arg),*);
+        $m!(LaserRange, 24, $($arg),*);
+        $m!(PlanarOdometry, 25, $($arg),*);
+        $m!(PlanarPose, 26, $($arg),*);
+        $m!(OccupancyGridHeader, 27, $($arg),*);
+        $m!(OccupancyCell, 28, $($arg),*);
     };
 }
 
 /// Number of fixed-size types above; a test checks it against `all_layouts()`.
-const FIXED_TYPES: usize = 23;
+const FIXED_TYPES: usize = 29;
 
 fn subscribe(rt: &mut Runtime, timeout: Duration) -> anyhow::Result<()> {
     let mut checks: Vec<Box<dyn Check>> = vec![];
