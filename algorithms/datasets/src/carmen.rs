@@ -51,6 +51,9 @@ pub struct CarmenScan {
     pub ranges: Vec<f32>,
     /// The odometry pose the line carries (FLASER: odom_x/y/θ; ROBOTLASER1: the robot pose), if any.
     pub odometry: Option<Pose2d>,
+    /// FLASER's own pose field (x y θ: the robot's pose as the logging system knew it; in the
+    /// "corrected" logs, a SLAM-corrected pose).
+    pub pose: Option<Pose2d>,
 }
 
 /// One `ODOM` line.
@@ -235,6 +238,8 @@ fn parse_flaser(f: &[&str], line: usize) -> std::result::Result<CarmenScan, Stri
         return Err(format!("{n} beams"));
     }
     let r = ranges(f, 2, n)?;
+    let p = 2 + n;
+    let pose = [finite(num(f, p)?, "x")?, finite(num(f, p + 1)?, "y")?, finite(num(f, p + 2)?, "theta")?];
     let o = 2 + n + 3;
     let odom =
         [finite(num(f, o)?, "odom_x")?, finite(num(f, o + 1)?, "odom_y")?, finite(num(f, o + 2)?, "odom_theta")?];
@@ -248,6 +253,7 @@ fn parse_flaser(f: &[&str], line: usize) -> std::result::Result<CarmenScan, Stri
         range_max_m: None,
         ranges: r,
         odometry: Some(odom),
+        pose: Some(pose),
     })
 }
 
@@ -289,6 +295,7 @@ fn parse_raw(f: &[&str], line: usize, robot: bool) -> std::result::Result<Carmen
         range_max_m: (max > 0.0).then_some(max),
         ranges: r,
         odometry,
+        pose: None,
     })
 }
 

@@ -2,12 +2,13 @@
 //!
 //! A [`Source`] yields [`Item`]s in data-time order: the built-in simulator ([`sim`]), or replays
 //! of real data (Plaza2 odometry and beacon ranges, stereo landmark observations in the
-//! `stereo_vo_large` format, point-cloud files, depth images). The process paces them on the data
+//! `stereo_vo_large` format, point-cloud files, depth images, CARMEN 2-D laser logs). The process paces them on the data
 //! clock ([`Pacer`]: real time, N× or as fast as possible with back-pressure), publishes each on its
 //! service, reports progress, and ends with an end-of-stream message. This library holds the pure
 //! parts (settings, sources, conversions, pacing); [`stage::IngestStage`] is the stage around
 //! them; `main.rs` one line.
 
+pub mod carmen;
 pub mod progress;
 pub mod settings;
 pub mod sources;

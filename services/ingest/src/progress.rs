@@ -15,8 +15,9 @@
 pub struct Progress {
     /// Items taken from the source (published, skipped as empty, or lost to the kill).
     pub items: u64,
-    /// Messages published per service: odometry, stereo, buoy ranges, depth, cloud, heading.
-    pub counts: [u64; 6],
+    /// Messages published per service: odometry, stereo, buoy ranges, depth, cloud, heading,
+    /// laser, planar odometry.
+    pub counts: [u64; 8],
     /// Empty clouds skipped.
     pub empty_clouds: u64,
     /// Stamp of the first and of the last item taken, ns.
@@ -29,7 +30,7 @@ impl Progress {
         let (a, b) = self.first_last_stamp.unwrap_or((0, 0));
         let c = self.counts;
         format!(
-            "v1 items={} counts={},{},{},{},{},{} empty={} first={} last={} stamped={}",
+            "v1 items={} counts={},{},{},{},{},{},{},{} empty={} first={} last={} stamped={}",
             self.items,
             c[0],
             c[1],
@@ -37,6 +38,8 @@ impl Progress {
             c[3],
             c[4],
             c[5],
+            c[6],
+            c[7],
             self.empty_clouds,
             a,
             b,
@@ -57,7 +60,11 @@ impl Progress {
         let first: u64 = value("first")?.parse().ok()?;
         let last: u64 = value("last")?.parse().ok()?;
         let stamped = value("stamped")? == "1";
-        let counts: Vec<u64> = counts_text.split(',').map(str::parse).collect::<Result<_, _>>().ok()?;
+        let mut counts: Vec<u64> = counts_text.split(',').map(str::parse).collect::<Result<_, _>>().ok()?;
+        // Records written before the laser and planar odometry services had six counts.
+        if counts.len() == 6 {
+            counts.extend([0, 0]);
+        }
         Some(Self {
             items,
             counts: counts.try_into().ok()?,
@@ -89,7 +96,7 @@ mod tests {
     fn the_last_record_is_the_progress_and_a_line_that_is_not_one_ends_the_journal() {
         let big = Progress {
             items: 123_456_789,
-            counts: [1, 2, 3, 4, 5, u64::MAX],
+            counts: [1, 2, 3, 4, 5, u64::MAX, 6, 7],
             empty_clouds: 7,
             first_last_stamp: Some((10, u64::MAX)),
         };
@@ -98,5 +105,7 @@ mod tests {
         assert_eq!(restored(&[]), (None, 0));
         let lines = vec![small.encode(), big.encode(), "items=3".to_string(), small.encode()];
         assert_eq!(restored(&lines), (Some(big), 2));
+        let six = "v1 items=3 counts=1,2,3,4,5,6 empty=0 first=0 last=0 stamped=0";
+        assert_eq!(Progress::decode(six).map(|p| p.counts), Some([1, 2, 3, 4, 5, 6, 0, 0]));
     }
 }

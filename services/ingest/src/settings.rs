@@ -24,6 +24,8 @@ pub enum SourceKind {
     Clouds,
     /// Depth images, 16-bit PNG or raw (`depth_images` table).
     DepthImages,
+    /// A CARMEN 2-D laser log: laser scans and planar odometry (`carmen` table).
+    Carmen,
 }
 
 /// Ingest settings.
@@ -62,6 +64,8 @@ pub struct IngestSettings {
     pub clouds: CloudFileSettings,
     /// Depth-image settings.
     pub depth_images: DepthImageSettings,
+    /// CARMEN log settings.
+    pub carmen: crate::carmen::CarmenSettings,
 }
 
 impl Default for IngestSettings {
@@ -79,6 +83,7 @@ impl Default for IngestSettings {
             stereo_sim: StereoSimSettings::default(),
             clouds: CloudFileSettings::default(),
             depth_images: DepthImageSettings::default(),
+            carmen: crate::carmen::CarmenSettings::default(),
         }
     }
 }
@@ -270,6 +275,7 @@ impl ProcessSettings for IngestSettings {
                 issues.check(self.clouds.rate_hz > 0.0, format!("{key}.clouds.rate_hz"), "must be > 0");
                 issues.check(self.clouds.repeat >= 1, format!("{key}.clouds.repeat"), "must be >= 1");
             }
+            SourceKind::Carmen => self.carmen.validate(&format!("{key}.carmen"), issues),
             SourceKind::DepthImages => {
                 let d = &self.depth_images;
                 issues.check(!d.files.is_empty(), format!("{key}.depth_images.files"), "no files");

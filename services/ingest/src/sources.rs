@@ -6,8 +6,8 @@ use geometry::StereoPixels;
 use nalgebra::Isometry3;
 use shared_types::convert::{mat3_to_row_major, quat_to_xyzw};
 use shared_types::{
-    BuoyRange, DepthReading, HeadingReading, OdometryInput, STEREO_HAS_DESCRIPTOR, STEREO_HAS_PIXELS,
-    STEREO_HAS_TRACK_ID, StereoObservation,
+    BuoyRange, DepthReading, HeadingReading, LaserScanHeader, OdometryInput, PlanarOdometry, STEREO_HAS_DESCRIPTOR,
+    STEREO_HAS_PIXELS, STEREO_HAS_TRACK_ID, StereoObservation,
 };
 
 /// One message to publish.
@@ -48,6 +48,22 @@ pub enum Item {
         /// The reading.
         reading: HeadingReading,
     },
+    /// A planar laser scan.
+    Laser {
+        /// Measurement time, ns.
+        stamp_ns: u64,
+        /// Geometry (the header's `msg` is filled in when published).
+        header: LaserScanHeader,
+        /// Ranges, m.
+        ranges: Vec<f32>,
+    },
+    /// Planar wheel odometry.
+    PlanarOdometry {
+        /// Measurement time, ns.
+        stamp_ns: u64,
+        /// The odometry.
+        odometry: PlanarOdometry,
+    },
     /// A point cloud.
     Cloud {
         /// Measurement time, ns.
@@ -68,6 +84,8 @@ impl Item {
             | Item::BuoyRanges { stamp_ns, .. }
             | Item::Depth { stamp_ns, .. }
             | Item::Heading { stamp_ns, .. }
+            | Item::Laser { stamp_ns, .. }
+            | Item::PlanarOdometry { stamp_ns, .. }
             | Item::Cloud { stamp_ns, .. } => *stamp_ns,
         }
     }
@@ -323,6 +341,7 @@ pub fn file_source(
             Box::new(StereoVoSource::load(&crate::resolve(config_dir, &settings.stereo_vo.dir), &settings.stereo_vo)?)
         }
         Clouds => Box::new(CloudFileSource::new(config_dir, &settings.clouds)?),
+        Carmen => Box::new(crate::carmen::CarmenSource::load(config_dir, &settings.carmen)?),
         DepthImages => Box::new(DepthImageSource::new(config_dir, &settings.depth_images)?),
     })
 }
@@ -336,6 +355,14 @@ pub fn initial_cloud_len(settings: &crate::IngestSettings) -> usize {
         }
         crate::SourceKind::DepthImages => 640 * 480,
         crate::SourceKind::Clouds => 100_000,
+        _ => 1,
+    }
+}
+
+/// Elements to reserve per laser scan up front.
+pub fn initial_laser_len(settings: &crate::IngestSettings) -> usize {
+    match settings.source {
+        crate::SourceKind::Carmen => 361,
         _ => 1,
     }
 }

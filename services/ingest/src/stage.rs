@@ -10,10 +10,10 @@ use crate::{IngestSettings, Item, Pacer, Progress, SimSource, Source, SourceKind
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
 use pipeline_runtime::{Delivery, Output, ProcessContext, Restart, Runtime, Wake};
 use shared_types::convert::quat_to_xyzw;
-use shared_types::services::{self, BUOY_RANGES, CLOUD, DEPTH, HEADING, ODOMETRY, STEREO};
+use shared_types::services::{self, BUOY_RANGES, CLOUD, DEPTH, HEADING, LASER, ODOMETRY, PLANAR_ODOMETRY, STEREO};
 use shared_types::{
-    BuoyRange, CLOUD_HAS_POSE, CloudHeader, CloudPoint, DepthReading, FRAME_SENSOR, HeadingReading, MsgHeader,
-    OdometryInput, StereoObservation,
+    BuoyRange, CLOUD_HAS_POSE, CloudHeader, CloudPoint, DepthReading, FRAME_SENSOR, HeadingReading, LaserRange,
+    LaserScanHeader, MsgHeader, OdometryInput, PlanarOdometry, StereoObservation,
 };
 
 struct Outputs {
@@ -23,6 +23,8 @@ struct Outputs {
     depth: Output<DepthReading, MsgHeader>,
     heading: Output<HeadingReading, MsgHeader>,
     cloud: Output<[CloudPoint], CloudHeader>,
+    laser: Output<[LaserRange], LaserScanHeader>,
+    planar_odometry: Output<PlanarOdometry, MsgHeader>,
 }
 
 /// The `ingest` stage: a source (it ends itself at the end of its data).
@@ -37,7 +39,7 @@ pub struct IngestStage {
     progress_every: Option<Duration>,
     last_progress: Instant,
     started: Instant,
-    counts: [u64; 6],
+    counts: [u64; 8],
     empty_clouds: u64,
     first_last_stamp: Option<(u64, u64)>,
     publish_from: Instant,
@@ -47,8 +49,9 @@ pub struct IngestStage {
     skip: u64,
     /// With factor 0: how long to wait for a lost subscriber to come back.
     resubscribe_wait: Option<Duration>,
-    /// Most subscribers seen per output (odometry, stereo, buoy ranges, depth, cloud, heading).
-    subscribers: [usize; 6],
+    /// Most subscribers seen per output (odometry, stereo, buoy ranges, depth, cloud, heading,
+    /// laser, planar odometry).
+    subscribers: [usize; 8],
     /// Since when publishing waits for a lost subscriber.
     waiting: Option<Instant>,
 }
@@ -62,6 +65,8 @@ fn output_index(item: &Item) -> usize {
         Item::Depth { .. } => 3,
         Item::Cloud { .. } => 4,
         Item::Heading { .. } => 5,
+        Item::Laser { .. } => 6,
+        Item::PlanarOdometry { .. } => 7,
     }
 }
 
@@ -85,6 +90,8 @@ impl IngestStage {
             Item::Cloud { points, .. } if points.is_empty() => p.empty_clouds += 1,
             Item::Cloud { .. } => p.counts[4] += 1,
             Item::Heading { .. } => p.counts[5] += 1,
+            Item::Laser { .. } => p.counts[6] += 1,
+            Item::PlanarOdometry { .. } => p.counts[7] += 1,
         }
         rt.state().record(&p.encode());
         rt.state().flush()?;
@@ -113,6 +120,17 @@ impl IngestStage {
             Item::Heading { stamp_ns, reading } => {
                 o.heading.send_value(header(stamp_ns), reading)?;
                 self.counts[5] += 1;
+            }
+            Item::Laser { stamp_ns, header: h, ranges } => {
+                let mut s =
+                    o.laser.loan_slice_uninit(ranges.len())?.write_from_fn(|i| LaserRange { range_m: ranges[i] });
+                *s.user_header_mut() = LaserScanHeader { msg: header(stamp_ns), beams: ranges.len() as u32, ..h };
+                o.laser.send(s)?;
+                self.counts[6] += 1;
+            }
+            Item::PlanarOdometry { stamp_ns, odometry } => {
+                o.planar_odometry.send_value(header(stamp_ns), odometry)?;
+                self.counts[7] += 1;
             }
             Item::Cloud { stamp_ns, world_from_sensor, points } => {
                 if points.is_empty() {
@@ -154,7 +172,8 @@ impl IngestStage {
             "completed": completed,
             "progress": self.source.progress(),
             "messages": { "odometry": self.counts[0], "stereo": self.counts[1], "buoy_ranges": self.counts[2],
-                          "depth": self.counts[3], "cloud": self.counts[4], "heading": self.counts[5] },
+                          "depth": self.counts[3], "cloud": self.counts[4], "heading": self.counts[5],
+                          "laser": self.counts[6], "planar_odometry": self.counts[7] },
             "empty_clouds_skipped": self.empty_clouds,
             "data_warts": self.source.warts(),
             "ground_truth_samples": self.truth.written(),
@@ -172,7 +191,9 @@ impl IngestStage {
             2 => o.buoys.subscribers(),
             3 => o.depth.subscribers(),
             4 => o.cloud.subscribers(),
-            _ => o.heading.subscribers(),
+            5 => o.heading.subscribers(),
+            6 => o.laser.subscribers(),
+            _ => o.planar_odometry.subscribers(),
         }
     }
 
@@ -197,7 +218,9 @@ impl IngestStage {
             2 => BUOY_RANGES,
             3 => DEPTH,
             4 => CLOUD,
-            _ => HEADING,
+            5 => HEADING,
+            6 => LASER,
+            _ => PLANAR_ODOMETRY,
         };
         let since = *self.waiting.get_or_insert_with(|| {
             tracing::info!(
@@ -230,6 +253,8 @@ impl IngestStage {
         o.depth.nudge()?;
         o.heading.nudge()?;
         o.cloud.nudge()?;
+        o.laser.nudge()?;
+        o.planar_odometry.nudge()?;
         Ok(())
     }
 
@@ -337,6 +362,8 @@ impl Stage for IngestStage {
             depth: rt.output_with_qos(DEPTH, &qos(DEPTH), delivery)?,
             heading: rt.output_with_qos(HEADING, &qos(HEADING), delivery)?,
             cloud: rt.output_slice_with_qos(CLOUD, &qos(CLOUD), cloud_len, delivery)?,
+            laser: rt.output_slice_with_qos(LASER, &qos(LASER), crate::initial_laser_len(&settings), delivery)?,
+            planar_odometry: rt.output_with_qos(PLANAR_ODOMETRY, &qos(PLANAR_ODOMETRY), delivery)?,
         };
         let start = Progress::default();
         let mut truth = TruthFile::create(&ctx.out_dir)?;
@@ -360,7 +387,7 @@ impl Stage for IngestStage {
             skip: start.items,
             resubscribe_wait: (settings.real_time_factor <= 0.0 && settings.resubscribe_wait_s > 0.0)
                 .then(|| Duration::from_secs_f64(settings.resubscribe_wait_s)),
-            subscribers: [0; 6],
+            subscribers: [0; 8],
             waiting: None,
         };
         rt.wake_at(Instant::now());

@@ -1,0 +1,418 @@
+//! `grid_slam` as a [`Stage`]: ports around the [`ScanQueue`] and the filter. It ends after the
+//! first upstream end of stream (its inputs come from one source), once no scan waits.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use grid_slam::export::{Occupancy, write_tum2};
+use grid_slam::relations::{read_relations, score};
+use grid_slam::{GridSlam, GridSlamError, Pose2, ScanGeometry};
+use nalgebra::{UnitQuaternion, Vector3};
+use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
+use pipeline_runtime::{Input, Output, ProcessContext, Runtime, StageError, Wake};
+use shared_types::services::{
+    GRID_SLAM_GRID, GRID_SLAM_PARTICLES, GRID_SLAM_POSE, GRID_SLAM_POSE3D, LASER, PLANAR_ODOMETRY,
+};
+use shared_types::*;
+
+use crate::{GridSlamSettings, PendingScan, ScanQueue};
+
+/// `PlanarPose::flags` bit: the filter was updated at this scan.
+pub const POSE_UPDATED: u32 = 1;
+/// `PlanarPose::flags` bit: the particles were resampled at this scan.
+pub const POSE_RESAMPLED: u32 = 2;
+
+/// The `grid_slam` stage.
+pub struct GridSlamStage {
+    settings: GridSlamSettings,
+    laser: Input<[LaserRange], LaserScanHeader>,
+    odometry: Input<PlanarOdometry, MsgHeader>,
+    pose: Output<PlanarPose, MsgHeader>,
+    pose3d: Output<PoseEstimate, MsgHeader>,
+    particles: Output<[Particle], ParticleSetHeader>,
+    grid: Output<[OccupancyCell], OccupancyGridHeader>,
+    queue: ScanQueue,
+    geometry: Option<ScanGeometry>,
+    filter: Option<GridSlam>,
+    /// Scans the filter refused, by kind.
+    refused: BTreeMap<&'static str, u64>,
+    last_grid_ns: Option<u64>,
+    first_stamp_ns: Option<u64>,
+    out_dir: PathBuf,
+    config_dir: PathBuf,
+    started: Instant,
+}
+
+fn s_of(ns: u64) -> f64 {
+    ns as f64 * 1e-9
+}
+
+/// The scan geometry a header states, or why it is unusable.
+fn geometry_of(h: &LaserScanHeader) -> Result<ScanGeometry, &'static str> {
+    let g = ScanGeometry {
+        angle_min_rad: h.angle_min_rad,
+        angle_increment_rad: h.angle_increment_rad,
+        beams: h.beams as usize,
+        range_min_m: h.range_min_m,
+        range_max_m: h.range_max_m,
+        body_from_laser: Pose2 {
+            x_m: h.body_from_laser_xy_m[0],
+            y_m: h.body_from_laser_xy_m[1],
+            theta_rad: h.body_from_laser_yaw_rad,
+        },
+    };
+    let finite =
+        [g.body_from_laser.x_m, g.body_from_laser.y_m, g.body_from_laser.theta_rad].iter().all(|v| v.is_finite());
+    if g.validate().is_err() || !finite {
+        return Err("laser_geometry_invalid");
+    }
+    Ok(g)
+}
+
+impl GridSlamStage {
+    fn count(map: &mut BTreeMap<&'static str, u64>, kind: &'static str, what: impl FnOnce() -> String) {
+        let n = map.entry(kind).or_default();
+        if *n == 0 {
+            tracing::warn!("{} (counted as {kind}; further ones are counted, not logged)", what());
+        }
+        *n += 1;
+    }
+
+    fn receive(&mut self) -> Result<(), StageError> {
+        while let Some(s) = self.odometry.receive()? {
+            let (h, o) = (s.user_header(), s.payload());
+            let pose = Pose2 { x_m: o.position_m[0], y_m: o.position_m[1], theta_rad: o.yaw_rad };
+            let before = self.queue.rejected.clone();
+            if !self.queue.push_odometry(h.stamp_ns, pose) {
+                warn_new(&before, &self.queue.rejected);
+            }
+        }
+        while let Some(s) = self.laser.receive()? {
+            let h = *s.user_header();
+            let ranges = s.payload();
+            if h.beams as usize != ranges.len() {
+                Self::count(&mut self.refused, "scans_beam_count_mismatch", || {
+                    format!(
+                        "scan at {:.3} s: header says {} beams, the slice has {}",
+                        s_of(h.msg.stamp_ns),
+                        h.beams,
+                        ranges.len()
+                    )
+                });
+                continue;
+            }
+            let g = match geometry_of(&h) {
+                Ok(g) => g,
+                Err(kind) => {
+                    Self::count(&mut self.refused, kind, || {
+                        format!("scan at {:.3} s: unusable laser geometry {h:?}", s_of(h.msg.stamp_ns))
+                    });
+                    continue;
+                }
+            };
+            match &self.geometry {
+                None => {
+                    tracing::info!(
+                        beams = g.beams,
+                        fov_deg = (g.angle_increment_rad * (g.beams - 1) as f64).to_degrees(),
+                        range_max_m = g.range_max_m,
+                        "laser geometry from the first scan"
+                    );
+                    self.geometry = Some(g);
+                }
+                Some(first) if *first != g => {
+                    Self::count(&mut self.refused, "scans_geometry_changed", || {
+                        format!(
+                            "scan at {:.3} s: the laser geometry differs from the first scan's: {g:?}",
+                            s_of(h.msg.stamp_ns)
+                        )
+                    });
+                    continue;
+                }
+                Some(_) => {}
+            }
+            let before = self.queue.rejected.clone();
+            let scan = PendingScan {
+                stamp_ns: h.msg.stamp_ns,
+                origin_ns: h.msg.origin_ns,
+                ranges: ranges.iter().map(|r| r.range_m).collect(),
+            };
+            if !self.queue.push_scan(scan) {
+                warn_new(&before, &self.queue.rejected);
+            }
+        }
+        Ok(())
+    }
+
+    fn process(&mut self, scan: PendingScan, odom: Pose2) -> Result<(), StageError> {
+        let Some(geom) = self.geometry else { return Ok(()) };
+        if self.filter.is_none() {
+            self.filter = Some(GridSlam::new(self.settings.filter.clone(), geom).map_err(StageError::stage)?);
+        }
+        let f = self.filter.as_mut().expect("created above");
+        let t_s = s_of(scan.stamp_ns);
+        let out = match f.process(t_s, odom, &scan.ranges) {
+            Ok(o) => o,
+            Err(e) => {
+                let kind = match e {
+                    GridSlamError::BeamCount { .. } => "scans_wrong_beam_count",
+                    GridSlamError::Stamp { .. } => "scans_stamp_not_increasing",
+                    GridSlamError::Odometry { .. } => "scans_odometry_not_finite",
+                    _ => "scans_filter_error",
+                };
+                Self::count(&mut self.refused, kind, || format!("scan at {t_s:.3} s refused: {e}"));
+                return Ok(());
+            }
+        };
+        self.first_stamp_ns.get_or_insert(scan.stamp_ns);
+        let header = MsgHeader { stamp_ns: scan.stamp_ns, origin_ns: scan.origin_ns, ..Default::default() };
+        let cov = f.covariance();
+        let flags = if out.updated { POSE_UPDATED } else { 0 } | if out.resampled { POSE_RESAMPLED } else { 0 };
+        let p = out.pose;
+        self.pose.send_value(
+            header,
+            PlanarPose {
+                position_m: [p.x_m, p.y_m],
+                yaw_rad: p.theta_rad,
+                covariance: cov,
+                n_eff: out.n_eff,
+                updates: f.stats().updates as u32,
+                flags,
+            },
+        )?;
+        // Lifted to 3-D: z 0, roll and pitch 0; (x, y, yaw) → indices (0, 1, 5) of the 6×6.
+        let mut c6 = [0.0; 36];
+        let idx = [0usize, 1, 5];
+        for r in 0..3 {
+            for c in 0..3 {
+                c6[idx[r] * 6 + idx[c]] = cov[r * 3 + c];
+            }
+        }
+        let q = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), p.theta_rad);
+        self.pose3d.send_value(
+            header,
+            PoseEstimate {
+                position_m: [p.x_m, p.y_m, 0.0],
+                orientation_xyzw: [q.i, q.j, q.k, q.w],
+                covariance: c6,
+                segment_id: 0,
+                frame: FRAME_WORLD,
+            },
+        )?;
+        if out.updated && self.settings.publish_particles {
+            let ps = f.particles();
+            let mut s = self.particles.loan_slice_uninit(ps.len())?.write_from_fn(|i| {
+                let (pp, w) = ps[i];
+                let q = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), pp.theta_rad);
+                Particle {
+                    position_m: [pp.x_m, pp.y_m, 0.0],
+                    orientation_xyzw: [q.i, q.j, q.k, q.w],
+                    log_weight: w.max(f64::MIN_POSITIVE).ln(),
+                }
+            });
+            *s.user_header_mut() = ParticleSetHeader { msg: header, segment_id: 0, _reserved: 0, n_eff: out.n_eff };
+            self.particles.send(s)?;
+        }
+        let every_ns = (self.settings.grid_every_s * 1e9) as u64;
+        if every_ns > 0 && self.last_grid_ns.is_none_or(|t| scan.stamp_ns.saturating_sub(t) >= every_ns) {
+            self.last_grid_ns = Some(scan.stamp_ns);
+            self.publish_grid(header)?;
+        }
+        Ok(())
+    }
+
+    fn publish_grid(&mut self, header: MsgHeader) -> Result<(), StageError> {
+        let Some(g) = self.filter.as_ref().and_then(|f| f.best_grid()) else { return Ok(()) };
+        let occ = Occupancy::from_grid(g, self.settings.grid_margin_cells);
+        if occ.data.is_empty() {
+            return Ok(());
+        }
+        let mut s =
+            self.grid.loan_slice_uninit(occ.data.len())?.write_from_fn(|i| OccupancyCell { value: occ.data[i] });
+        *s.user_header_mut() = OccupancyGridHeader {
+            msg: header,
+            resolution_m: occ.resolution_m,
+            origin_m: [occ.origin_m.0, occ.origin_m.1],
+            width: occ.width as u32,
+            height: occ.height as u32,
+        };
+        self.grid.send(s)?;
+        Ok(())
+    }
+
+    fn summary(&self) -> Result<serde_json::Value, StageError> {
+        std::fs::create_dir_all(&self.out_dir)?;
+        let mut rejected: BTreeMap<&str, u64> = self.queue.rejected.clone();
+        rejected.extend(self.refused.iter().map(|(k, v)| (*k, *v)));
+        let Some(f) = &self.filter else {
+            tracing::warn!("no scan was processed: no map, no trajectory");
+            return Ok(serde_json::json!({ "grid_slam": { "scans": 0, "rejected": rejected } }));
+        };
+        let traj = f.trajectory();
+        write_tum2(&self.out_dir.join("grid_slam.tum"), &traj).map_err(StageError::stage)?;
+        let mut grid_part = serde_json::Value::Null;
+        if let Some(g) = f.best_grid() {
+            let occ = Occupancy::from_grid(g, self.settings.grid_margin_cells);
+            occ.write_map_server(&self.out_dir, "grid").map_err(StageError::stage)?;
+            let path: Vec<Pose2> = traj.iter().map(|p| p.1).collect();
+            occ.write_png(&self.out_dir.join("grid.png"), &path).map_err(StageError::stage)?;
+            grid_part = serde_json::json!({ "pgm": "grid.pgm", "yaml": "grid.yaml", "png": "grid.png",
+                "width": occ.width, "height": occ.height, "resolution_m": occ.resolution_m,
+                "origin_m": [occ.origin_m.0, occ.origin_m.1] });
+        }
+        let st = f.stats();
+        let mem = f.peak_memory();
+        let one_map = f.memory().best_tiles * grid_slam::grid::Grid::TILE_BYTES;
+        let mut part = serde_json::json!({ "grid_slam": {
+            "scans": st.scans,
+            "updates": st.updates,
+            "resamples": st.resamples,
+            "particles": f.config().particles,
+            "resolution_m": f.config().resolution_m,
+            "poses_published": self.pose.sent(),
+            "grids_published": self.grid.sent(),
+            "particle_sets_published": self.particles.sent(),
+            "rejected": rejected,
+            "invalid_beams": st.invalid_beams,
+            "tracking_failures": st.tracking_failures,
+            "proposal_fallbacks": st.proposal_fallbacks,
+            "memory": { "peak_bytes": mem.map(|m| m.bytes), "one_map_bytes": one_map,
+                        "peak_over_one_map": mem.map(|m| m.bytes as f64 / one_map.max(1) as f64) },
+            "grid": grid_part,
+            "trajectory": "grid_slam.tum",
+            "wall_s": self.started.elapsed().as_secs_f64(),
+        }});
+        let n_rejected: u64 = rejected.values().sum();
+        if n_rejected > 0 {
+            tracing::warn!(?rejected, "inputs rejected (counted in summary.json grid_slam.rejected)");
+        }
+        if !self.settings.relations.as_os_str().is_empty() {
+            let path = if self.settings.relations.is_absolute() {
+                self.settings.relations.clone()
+            } else {
+                self.config_dir.join(&self.settings.relations)
+            };
+            match read_relations(&path) {
+                Ok(rel) => {
+                    let s = score(&traj, &rel, self.settings.relations_offset_s, 2.0);
+                    tracing::info!(
+                        "relations ({}): {} scored, {} not covered: {:.4} ± {:.4} m, {:.3} ± {:.3} deg",
+                        path.display(),
+                        s.scored,
+                        s.uncovered,
+                        s.trans_mean_m,
+                        s.trans_std_m,
+                        s.rot_mean_deg,
+                        s.rot_std_deg
+                    );
+                    part["grid_slam"]["relations"] = serde_json::to_value(s)?;
+                }
+                Err(e) => tracing::warn!("relations not scored: {e}"),
+            }
+        }
+        let gt_path = self.out_dir.join(&self.settings.ground_truth);
+        match geometry::tum::read_tum(&gt_path) {
+            Ok(truth) if !truth.is_empty() => {
+                let truth_p: Vec<(f64, Vector3<f64>)> = truth.iter().map(|(t, p)| (*t, p.translation.vector)).collect();
+                let est: Vec<(f64, Vector3<f64>)> =
+                    traj.iter().map(|(t, p)| (*t, Vector3::new(p.x_m, p.y_m, 0.0))).collect();
+                let ate = geometry::trajectory::ate_nearest(&est, &truth_p, true);
+                tracing::info!("ATE (2-D, nearest stamp, against {}): grid SLAM {ate:.3} m", gt_path.display());
+                part["ate_m"] = serde_json::json!({ "grid_slam": ate });
+            }
+            Ok(_) => tracing::info!("no accuracy evaluation: {} is empty", gt_path.display()),
+            Err(e) => tracing::info!("no accuracy evaluation: {e}"),
+        }
+        tracing::info!(
+            scans = st.scans,
+            updates = st.updates,
+            resamples = st.resamples,
+            "grid SLAM done: grid.pgm, grid.yaml, grid.png, grid_slam.tum in {}",
+            self.out_dir.display()
+        );
+        Ok(part)
+    }
+}
+
+/// Warns the first time a kind of rejection appears.
+fn warn_new(before: &BTreeMap<&'static str, u64>, after: &BTreeMap<&'static str, u64>) {
+    for (k, n) in after {
+        if before.get(k).copied().unwrap_or(0) == 0 && *n > 0 {
+            tracing::warn!("input rejected: {k} (further ones are counted, not logged)");
+        }
+    }
+}
+
+impl Stage for GridSlamStage {
+    type Settings = GridSlamSettings;
+
+    fn open(ctx: &ProcessContext, settings: GridSlamSettings, rt: &mut Runtime) -> Result<Self, StageError> {
+        let laser = rt.input(LASER)?;
+        let odometry = rt.input(PLANAR_ODOMETRY)?;
+        let pose = rt.output(GRID_SLAM_POSE)?;
+        let pose3d = rt.output(GRID_SLAM_POSE3D)?;
+        let particles = rt.output_slice(GRID_SLAM_PARTICLES, settings.filter.particles.max(1))?;
+        let grid = rt.output_slice(GRID_SLAM_GRID, 1024 * 1024)?;
+        tracing::info!(
+            particles = settings.filter.particles,
+            resolution_m = settings.filter.resolution_m,
+            "grid SLAM ready"
+        );
+        Ok(Self {
+            settings,
+            laser,
+            odometry,
+            pose,
+            pose3d,
+            particles,
+            grid,
+            queue: ScanQueue::default(),
+            geometry: None,
+            filter: None,
+            refused: BTreeMap::new(),
+            last_grid_ns: None,
+            first_stamp_ns: None,
+            out_dir: ctx.out_dir.clone(),
+            config_dir: ctx.config.source.parent().unwrap_or(std::path::Path::new(".")).to_path_buf(),
+            started: Instant::now(),
+        })
+    }
+
+    fn end_after(&self) -> EndAfter {
+        EndAfter::FirstUpstream
+    }
+
+    fn tick(&self) -> Option<Duration> {
+        Some(Duration::from_millis(200))
+    }
+
+    fn step(&mut self, _rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
+        self.receive()?;
+        let wait_ns = (self.settings.odometry_wait_s * 1e9) as u64;
+        let batch_end = Instant::now() + Duration::from_millis(50);
+        while let Some((scan, odom)) = self.queue.pop(wait_ns, inputs_ended) {
+            self.process(scan, odom)?;
+            if Instant::now() > batch_end {
+                // Let the loop send heartbeats; come back at once.
+                return Ok(Step::Busy);
+            }
+        }
+        Ok(if self.queue.pending() == 0 { Step::Idle } else { Step::Pending })
+    }
+
+    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+        if ending == Ending::Stopped {
+            tracing::info!(poses = self.pose.sent(), "stopped early: writing the outputs so far");
+        } else if self.filter.is_some() {
+            // The last grid, so a viewer has the final map.
+            let h = MsgHeader { stamp_ns: self.last_grid_ns.unwrap_or(0), ..Default::default() };
+            self.publish_grid(h)?;
+        }
+        self.summary()
+    }
+
+    fn end_of_stream(&self) -> (u64, u64) {
+        (self.pose.sent().saturating_sub(1), self.pose.sent())
+    }
+}
