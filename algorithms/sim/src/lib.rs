@@ -11,6 +11,7 @@
 //! settings does not change another's noise.
 
 pub mod config;
+pub mod indoor;
 pub mod road;
 pub mod scene;
 

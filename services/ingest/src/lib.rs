@@ -9,6 +9,7 @@
 //! them; `main.rs` one line.
 
 pub mod carmen;
+pub mod indoor;
 pub mod progress;
 pub mod settings;
 pub mod sources;

@@ -26,6 +26,8 @@ pub enum SourceKind {
     DepthImages,
     /// A CARMEN 2-D laser log: laser scans and planar odometry (`carmen` table).
     Carmen,
+    /// The simulated indoor mission of the omni-directional robot (`indoor` table).
+    Indoor,
 }
 
 /// Ingest settings.
@@ -66,6 +68,8 @@ pub struct IngestSettings {
     pub depth_images: DepthImageSettings,
     /// CARMEN log settings.
     pub carmen: crate::carmen::CarmenSettings,
+    /// Indoor simulator settings.
+    pub indoor: sim::indoor::IndoorConfig,
 }
 
 impl Default for IngestSettings {
@@ -84,6 +88,7 @@ impl Default for IngestSettings {
             clouds: CloudFileSettings::default(),
             depth_images: DepthImageSettings::default(),
             carmen: crate::carmen::CarmenSettings::default(),
+            indoor: sim::indoor::IndoorConfig::default(),
         }
     }
 }
@@ -276,6 +281,11 @@ impl ProcessSettings for IngestSettings {
                 issues.check(self.clouds.repeat >= 1, format!("{key}.clouds.repeat"), "must be >= 1");
             }
             SourceKind::Carmen => self.carmen.validate(&format!("{key}.carmen"), issues),
+            SourceKind::Indoor => {
+                for (k, m) in self.indoor.validate() {
+                    issues.push(format!("{key}.indoor.{k}"), m);
+                }
+            }
             SourceKind::DepthImages => {
                 let d = &self.depth_images;
                 issues.check(!d.files.is_empty(), format!("{key}.depth_images.files"), "no files");
@@ -303,6 +313,7 @@ impl ProcessSettings for IngestSettings {
                 if d.rate_hz > 0.0 { (d.width_px * d.height_px) as usize } else { 0 }
             }
             SourceKind::Clouds => 400_000,
+            SourceKind::Indoor => (self.indoor.depth.width_px * self.indoor.depth.height_px) as usize,
             SourceKind::DepthImages => 640 * 480,
             _ => 0,
         };

@@ -129,6 +129,11 @@ fn io_at(path: &Path) -> impl FnOnce(std::io::Error) -> SourceError + use<> {
     move |source| SourceError::Io { path, source }
 }
 
+/// Writes `scene.json` (pretty JSON) into `out_dir` (for the other sources' modules).
+pub(crate) fn write_scene_json(out_dir: &Path, scene: &serde_json::Value) -> Result<(), SourceError> {
+    write_scene(out_dir, scene)
+}
+
 /// Writes `scene.json` (pretty JSON) into `out_dir`.
 fn write_scene(out_dir: &Path, scene: &serde_json::Value) -> Result<(), SourceError> {
     std::fs::create_dir_all(out_dir).map_err(io_at(out_dir))?;
@@ -335,7 +340,7 @@ pub fn file_source(
 ) -> Result<Box<dyn Source>, SourceError> {
     use crate::SourceKind::*;
     Ok(match kind {
-        Sim | StereoSim => return Err(SourceError::Settings("a simulator is not a file source".into())),
+        Sim | StereoSim | Indoor => return Err(SourceError::Settings("a simulator is not a file source".into())),
         Plaza2 => Box::new(Plaza2Source::load(&crate::resolve(config_dir, &settings.plaza2.dir), &settings.plaza2)?),
         StereoVo => {
             Box::new(StereoVoSource::load(&crate::resolve(config_dir, &settings.stereo_vo.dir), &settings.stereo_vo)?)
@@ -355,6 +360,10 @@ pub fn initial_cloud_len(settings: &crate::IngestSettings) -> usize {
         }
         crate::SourceKind::DepthImages => 640 * 480,
         crate::SourceKind::Clouds => 100_000,
+        crate::SourceKind::Indoor => {
+            let d = &settings.indoor.depth;
+            (d.width_px * d.height_px) as usize
+        }
         _ => 1,
     }
 }
@@ -363,6 +372,7 @@ pub fn initial_cloud_len(settings: &crate::IngestSettings) -> usize {
 pub fn initial_laser_len(settings: &crate::IngestSettings) -> usize {
     match settings.source {
         crate::SourceKind::Carmen => 361,
+        crate::SourceKind::Indoor => settings.indoor.laser.beams,
         _ => 1,
     }
 }

@@ -334,6 +334,7 @@ fn make_source(settings: &IngestSettings, _config_dir: &Path, out_dir: &Path) ->
     Ok(match settings.source {
         SourceKind::Sim => Box::new(SimSource::new(settings.sim.clone(), out_dir)?),
         SourceKind::StereoSim => Box::new(crate::StereoSimSource::new(&settings.stereo_sim, out_dir)?),
+        SourceKind::Indoor => Box::new(crate::indoor::IndoorSource::new(settings.indoor.clone(), out_dir)?),
         other => crate::file_source(other, settings, _config_dir, out_dir)?,
     })
 }

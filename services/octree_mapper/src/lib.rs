@@ -28,6 +28,9 @@ pub enum PoseSource {
     /// The pose each cloud carries in its header (`CLOUD_HAS_POSE`; the simulator's true pose,
     /// or a data set's).
     Cloud,
+    /// The 2-D grid SLAM's pose lifted to 3-D (`pipeline/grid_slam/pose3d`, [2D3D] eq 5-9: the
+    /// depth camera's pose is the 2-D SLAM pose composed with the camera's mounting).
+    GridSlam,
 }
 
 /// What the mapper does while insertion is behind the clouds coming in.
@@ -141,6 +144,14 @@ pub struct MapperSettings {
     pub obstacle_max_bhattacharyya: f64,
     /// The processes whose end of stream ends this one's input.
     pub end_after: Vec<String>,
+    /// At the end, rebuild the map from the clouds kept in memory, each at its pose on this
+    /// trajectory (TUM, relative to the output directory; e.g. `grid_slam.tum`, the final best
+    /// particle's path, written by grid_slam at its end: list grid_slam in `end_after`), so that
+    /// loop closures correct the 3-D map too. The live map is kept as `map_live.bt`; `map.bt`
+    /// and the navigable-space layers are the rebuilt map's. Empty: no rebuild.
+    pub rebuild_from: String,
+    /// Most clouds kept for the rebuild (the oldest are let go beyond it, counted).
+    pub rebuild_max_clouds: usize,
     /// Period of the occupancy checkpoint (the snapshot `map.bt` of the runtime's restart state,
     /// `<out>/state/<process>/map.bt`) a restarted mapper starts
     /// from, s (0 = none: a restarted mapper starts with an empty map).
@@ -166,6 +177,8 @@ impl Default for MapperSettings {
             obstacle_max_bhattacharyya: 1.0,
             end_after: vec!["ingest".into(), "fusion".into()],
             checkpoint_interval_s: 10.0,
+            rebuild_from: String::new(),
+            rebuild_max_clouds: 5000,
         }
     }
 }
@@ -272,6 +285,26 @@ pub struct MapperState {
     pub obstacles: navigable::ObstacleTracker,
     /// Latency from the cloud entering the pipeline to the octree updated with it, ms.
     pub cloud_to_octree_ms: Vec<f64>,
+    /// Clouds kept for the end-of-run rebuild (stamp s, points in the sensor frame).
+    pub kept: VecDeque<(f64, Vec<[f32; 3]>)>,
+    /// Clouds let go from `kept` (beyond `rebuild_max_clouds`).
+    pub kept_dropped: u64,
+}
+
+/// What a rebuild did.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct RebuildReport {
+    /// The trajectory file.
+    pub trajectory: String,
+    /// Clouds re-inserted.
+    pub clouds: usize,
+    /// Clouds without a pose on the trajectory (outside it or in a gap), not inserted.
+    pub clouds_without_pose: usize,
+    /// Clouds let go before the end (beyond `rebuild_max_clouds`): in the live map only.
+    pub clouds_not_kept: u64,
+    /// Mean distance between each cloud's live sensor position and its rebuilt one, m (over the
+    /// clouds whose live pose is still in the pose buffer: its last 4,096 poses).
+    pub mean_pose_change_m: f64,
 }
 
 /// An error of the mapper's state: the octree, the navigable-space discovery, or a checkpoint
@@ -327,8 +360,55 @@ impl MapperState {
             insert_ms: vec![],
             obstacles: navigable::ObstacleTracker::default(),
             cloud_to_octree_ms: vec![],
+            kept: VecDeque::new(),
+            kept_dropped: 0,
             settings,
         })
+    }
+
+    /// Rebuilds the map (tree, point statistics, obstacle tracks) from the kept clouds at their
+    /// poses on `trajectory` (`world_from_body`, sorted by time); the counters of the live run
+    /// stay. Returns what it did.
+    pub fn rebuild(&mut self, trajectory: &[(f64, Isometry3<f64>)], name: &str) -> Result<RebuildReport, MapperError> {
+        let mut fresh = MapperState::new(MapperSettings { rebuild_from: String::new(), ..self.settings.clone() })?;
+        let mut buf = PoseBuffer::default();
+        // PoseBuffer keeps 4096 poses: feed it in windows as the clouds advance.
+        let mut next = 0;
+        let mut report =
+            RebuildReport { trajectory: name.to_string(), clouds_not_kept: self.kept_dropped, ..Default::default() };
+        let (mut moved, mut compared) = (0.0, 0usize);
+        let kept = std::mem::take(&mut self.kept);
+        for (t, points) in &kept {
+            while next < trajectory.len() && trajectory[next].0 <= t + self.settings.max_pose_gap_s {
+                buf.push(trajectory[next].0, trajectory[next].1);
+                next += 1;
+            }
+            let PoseLookup::Ready(body) = buf.at(*t, self.settings.max_pose_gap_s) else {
+                report.clouds_without_pose += 1;
+                continue;
+            };
+            let world_from_sensor = body * self.body_from_sensor;
+            if let PoseLookup::Ready(live) = self.poses.at(*t, self.settings.max_pose_gap_s) {
+                moved +=
+                    ((live * self.body_from_sensor).translation.vector - world_from_sensor.translation.vector).norm();
+                compared += 1;
+            }
+            let c = PendingCloud {
+                stamp_ns: (t * 1e9) as u64,
+                points_sensor_m: points.clone(),
+                origin_ns: 0,
+                own_pose: None,
+                received: Instant::now(),
+            };
+            fresh.insert(&c, &world_from_sensor)?;
+            report.clouds += 1;
+        }
+        report.mean_pose_change_m = if compared > 0 { moved / compared as f64 } else { 0.0 };
+        self.tree = fresh.tree;
+        self.points = fresh.points;
+        self.obstacles = fresh.obstacles;
+        self.kept = kept;
+        Ok(report)
     }
 
     /// The occupancy checkpoint: the max-likelihood map as a `.bt` file's bytes.
@@ -450,6 +530,13 @@ impl MapperState {
             let u = self.obstacles.update(&scan, &self.settings.nsd, self.settings.obstacle_max_bhattacharyya, reg)?;
             self.counters.obstacles_associated += u.associated;
             self.counters.obstacles_new += u.new;
+        }
+        if !self.settings.rebuild_from.is_empty() {
+            self.kept.push_back((c.stamp_ns as f64 / 1e9, c.points_sensor_m.clone()));
+            while self.kept.len() > self.settings.rebuild_max_clouds.max(1) {
+                self.kept.pop_front();
+                self.kept_dropped += 1;
+            }
         }
         self.counters.clouds_inserted += 1;
         self.counters.points_inserted += (stats.points - stats.skipped_points) as u64;

@@ -10,7 +10,7 @@ use pipeline_runtime::{Input, Output, ProcessContext, Restart, Runtime, Wake};
 
 /// The snapshot key of the occupancy checkpoint (`<out>/state/<process>/map.bt`).
 const CHECKPOINT: &str = "map.bt";
-use shared_types::services::{CLOUD, COMMAND, FUSION_POSE, MAP_STATS, MAP_VOXELS, SLAM_POSE};
+use shared_types::services::{CLOUD, COMMAND, FUSION_POSE, GRID_SLAM_POSE3D, MAP_STATS, MAP_VOXELS, SLAM_POSE};
 use shared_types::*;
 
 use crate::{MapperSettings, MapperState, PendingCloud, PoseSource};
@@ -156,6 +156,7 @@ pub struct OctreeMapperStage {
     clouds: Input<[CloudPoint], CloudHeader>,
     fused: Input<FusedPose, MsgHeader>,
     slam: Input<PoseEstimate, MsgHeader>,
+    grid_slam: Input<PoseEstimate, MsgHeader>,
     commands: Input<ControlCommand, MsgHeader>,
     stats_out: Output<MapStats, MsgHeader>,
     voxels_out: Output<[Voxel], VoxelSetHeader>,
@@ -184,6 +185,7 @@ impl Stage for OctreeMapperStage {
             clouds: rt.input(CLOUD)?,
             fused: rt.input(FUSION_POSE)?,
             slam: rt.input(SLAM_POSE)?,
+            grid_slam: rt.input(GRID_SLAM_POSE3D)?,
             commands: rt.input(COMMAND)?,
             stats_out: rt.output(MAP_STATS)?,
             voxels_out: rt.output_slice(MAP_VOXELS, 16 * 1024)?,
@@ -226,6 +228,7 @@ impl Stage for OctreeMapperStage {
             clouds,
             fused,
             slam,
+            grid_slam,
             commands,
             stats_out,
             voxels_out,
@@ -244,6 +247,11 @@ impl Stage for OctreeMapperStage {
         }
         while let Some(s) = slam.receive()? {
             if settings.pose_source == PoseSource::Slam {
+                st.poses.push(s.user_header().stamp_ns as f64 / 1e9, s.payload().frame_from_body());
+            }
+        }
+        while let Some(s) = grid_slam.receive()? {
+            if settings.pose_source == PoseSource::GridSlam {
                 st.poses.push(s.user_header().stamp_ns as f64 / 1e9, s.payload().frame_from_body());
             }
         }
@@ -321,9 +329,54 @@ impl Stage for OctreeMapperStage {
     }
 
     fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+        let mut rebuild = serde_json::Value::Null;
+        if ending == Ending::EndOfStream && !self.settings.rebuild_from.is_empty() {
+            let path = self.out_dir.join(&self.settings.rebuild_from);
+            match geometry::tum::read_tum(&path) {
+                Ok(_) if self.st.kept.is_empty() => tracing::warn!(
+                    "no rebuild: no cloud kept (a restarted mapper has not the killed one's clouds): map.bt is the live map"
+                ),
+                Ok(traj) if !traj.is_empty() => {
+                    std::fs::create_dir_all(&self.out_dir)?;
+                    self.st.tree.write_binary_file(self.out_dir.join("map_live.bt")).map_err(StageError::stage)?;
+                    let t0 = Instant::now();
+                    let (st, name) = (&mut self.st, &self.settings.rebuild_from);
+                    // Heartbeats go on while the clouds are re-inserted (seconds on a long run).
+                    let r = std::thread::scope(|s| {
+                        let worker = s.spawn(|| st.rebuild(&traj, name));
+                        while !worker.is_finished() {
+                            rt.keep_alive();
+                            std::thread::sleep(Duration::from_millis(50));
+                        }
+                        worker.join().map_err(|_| StageError::msg("rebuild worker panicked"))
+                    })??;
+                    tracing::info!(
+                        clouds = r.clouds,
+                        without_pose = r.clouds_without_pose,
+                        mean_pose_change_m = r.mean_pose_change_m,
+                        "map rebuilt along {} in {:.1} s (the live map is map_live.bt)",
+                        path.display(),
+                        t0.elapsed().as_secs_f64()
+                    );
+                    if r.clouds_without_pose > 0 || r.clouds_not_kept > 0 {
+                        tracing::warn!(
+                            without_pose = r.clouds_without_pose,
+                            not_kept = r.clouds_not_kept,
+                            "clouds left out of the rebuilt map"
+                        );
+                    }
+                    rebuild = serde_json::to_value(r)?;
+                }
+                Ok(_) => tracing::warn!("no rebuild: {} is empty", path.display()),
+                Err(e) => tracing::warn!("no rebuild: {e}"),
+            }
+        }
         let st = &self.st;
         if ending == Ending::EndOfStream {
-            let (d, voxels, part) = end_of_run(rt, st, &self.out_dir)?;
+            let (d, voxels, mut part) = end_of_run(rt, st, &self.out_dir)?;
+            if !rebuild.is_null() {
+                part["octree_mapper"]["rebuild"] = rebuild;
+            }
             let header = MsgHeader { stamp_ns: self.last_stamp, ..Default::default() };
             self.stats_out.send_value(header, stats_msg(st, d.regions.len() as u32, d.obstacles.len() as u32))?;
             send_voxels(&mut self.voxels_out, &voxels, st.tree.resolution(), self.last_stamp)?;

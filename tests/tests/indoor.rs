@@ -1,0 +1,182 @@
+//! The simulated indoor mission of the omni-directional robot end to end under the supervisor
+//! (config/indoor.toml's processes, 10 particles): grid SLAM on the laser and the wheel encoders,
+//! the 3-D map built from the depth camera at the 2-D SLAM poses and rebuilt along the final path.
+//! Checks the trajectory against the ground truth, the 2-D map against the true walls, and the 3-D
+//! map against the scene's true occupancy (scene.json), including the furniture that differs
+//! between the laser's plane and the 3-D scene (a table top, a crate below the laser).
+
+use std::time::Duration;
+
+use pipeline_tests::TestRun;
+
+/// Distance from a point to an axis-aligned box (0 inside).
+fn box_distance(p: [f64; 3], min: [f64; 3], max: [f64; 3]) -> f64 {
+    (0..3).map(|i| (min[i] - p[i]).max(p[i] - max[i]).max(0.0).powi(2)).sum::<f64>().sqrt()
+}
+
+#[test]
+fn the_indoor_mission_maps_in_2d_and_3d_at_the_grid_slam_poses() {
+    let mut run = TestRun::new("indoor");
+    let processes = r#"
+[processes.slam2d]
+kind = "grid_slam"
+[processes.slam2d.settings]
+grid_every_s = 5.0
+[processes.slam2d.settings.filter]
+particles = 10
+resolution_m = 0.05
+usable_range_m = 12.0
+threads = 2
+
+[processes.map]
+kind = "octree_mapper"
+[processes.map.settings]
+resolution_m = 0.05
+pose_source = "grid_slam"
+max_range_m = 6.0
+end_after = ["ingest", "slam2d"]
+rebuild_from = "grid_slam.tum"
+[processes.map.settings.mount]
+offset_m = [0.1, 0.0, 0.6]
+pitch_down_deg = 10.0
+
+[processes.ingest]
+kind = "ingest"
+after = ["slam2d", "map"]
+[processes.ingest.settings]
+source = "indoor"
+real_time_factor = 0.0
+"#;
+    let summary = run.run_to_end(
+        "end = \"end_of_stream\"\nend_of_stream_from = [\"slam2d\", \"map\"]",
+        processes,
+        Duration::from_secs(600),
+    );
+    let ate = summary["ate_m"]["grid_slam"].as_f64().expect("ATE");
+    let g = &summary["grid_slam"];
+    let m = &summary["octree_mapper"];
+    eprintln!("ATE {ate:.3} m; grid_slam {g}; mapper counters {} rebuild {}", m["counters"], m["rebuild"]);
+    assert!(ate <= 0.05, "ATE {ate}");
+    assert_eq!(g["scans"], summary["ingest"]["messages"]["laser"], "every scan mapped");
+    let clouds = summary["ingest"]["messages"]["cloud"].as_u64().unwrap();
+    assert_eq!(m["counters"]["clouds_inserted"], clouds, "every cloud in the live map: {m}");
+    assert_eq!(m["rebuild"]["clouds"], clouds, "every cloud in the rebuilt map: {m}");
+    assert_eq!(m["rebuild"]["clouds_without_pose"], 0);
+
+    let out = run.out_dir();
+    let scene: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("scene.json")).unwrap()).unwrap();
+    let boxes: Vec<(String, [f64; 3], [f64; 3])> = scene["boxes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|b| {
+            let v = |k: &str| -> [f64; 3] {
+                let a = b[k].as_array().unwrap();
+                [a[0].as_f64().unwrap(), a[1].as_f64().unwrap(), a[2].as_f64().unwrap()]
+            };
+            (b["what"].as_str().unwrap().to_string(), v("min"), v("max"))
+        })
+        .collect();
+
+    // 2-D: the walls' inner faces at the laser's height, occupied within one cell in grid.pgm.
+    let yaml = std::fs::read_to_string(out.join("grid.yaml")).unwrap();
+    let origin: Vec<f64> = yaml
+        .lines()
+        .find_map(|l| l.strip_prefix("origin: ["))
+        .unwrap()
+        .trim_end_matches(']')
+        .split(',')
+        .map(|x| x.trim().parse().unwrap())
+        .collect();
+    let pgm = std::fs::read(out.join("grid.pgm")).unwrap();
+    let text = String::from_utf8_lossy(&pgm[..64]).to_string();
+    let dims: Vec<usize> = text.lines().nth(2).unwrap().split_whitespace().map(|x| x.parse().unwrap()).collect();
+    let (w, h) = (dims[0], dims[1]);
+    let data = &pgm[pgm.len() - w * h..];
+    let occupied_2d = |x: f64, y: f64| -> bool {
+        let (i, j) = (((x - origin[0]) / 0.05).floor() as i64, ((y - origin[1]) / 0.05).floor() as i64);
+        (-1..=1).any(|di| {
+            (-1..=1).any(|dj| {
+                let (a, b) = (i + di, j + dj);
+                a >= 0
+                    && b >= 0
+                    && (a as usize) < w
+                    && (b as usize) < h
+                    && data[(h - 1 - b as usize) * w + a as usize] == 0
+            })
+        })
+    };
+    let (mut on, mut all) = (0usize, 0usize);
+    // Inner faces of the outer walls (the room is x ∈ [-8, 8], y ∈ [-5, 5]) and of the middle wall,
+    // except along the shelves, which stand in front of them.
+    let mut faces: Vec<(f64, f64)> = vec![];
+    for k in 0..=320 {
+        let x = -8.0 + k as f64 * 0.05;
+        faces.push((x, -4.99));
+        faces.push((x, 4.99));
+    }
+    for k in 0..=200 {
+        let y = -5.0 + k as f64 * 0.05;
+        faces.push((-7.99, y));
+        faces.push((7.99, y));
+        if y.abs() > 0.75 {
+            faces.push((-0.06, y));
+            faces.push((0.06, y));
+        }
+    }
+    for (x, y) in faces {
+        let behind_shelf = boxes.iter().any(|(what, min, max)| {
+            what == "shelf" && x >= min[0] - 0.1 && x <= max[0] + 0.1 && y >= min[1] - 0.1 && y <= max[1] + 0.1
+        });
+        if behind_shelf {
+            continue;
+        }
+        all += 1;
+        on += usize::from(occupied_2d(x, y));
+    }
+    let wall_share = on as f64 / all as f64;
+    // Below the laser's plane: the crate is not in the 2-D map.
+    let crate_in_2d = occupied_2d(-3.5, -4.3);
+
+    // 3-D: occupied voxels on true surfaces (precision), and the furniture seen.
+    let tree = octree::OcTree::read_binary_file(out.join("map.bt")).unwrap();
+    let res = tree.resolution();
+    let (mut near, mut occ) = (0usize, 0usize);
+    for l in tree.leaves().filter(|l| tree.is_occupied_log_odds(l.log_odds) && l.depth >= 16) {
+        let c = tree.key_to_coord(l.key);
+        occ += 1;
+        if boxes.iter().any(|(_, min, max)| box_distance(c, *min, *max) <= res) {
+            near += 1;
+        }
+    }
+    let precision = near as f64 / occ as f64;
+    // Occupied voxels on each table top (above its legs' height), and on the crate.
+    let on_box = |what: &str| -> Vec<usize> {
+        boxes
+            .iter()
+            .filter(|(w, _, _)| w == what)
+            .map(|(_, min, max)| {
+                tree.leaves()
+                    .filter(|l| tree.is_occupied_log_odds(l.log_odds) && l.depth >= 16)
+                    .filter(|l| box_distance(tree.key_to_coord(l.key), *min, *max) <= 0.5 * res)
+                    .count()
+            })
+            .collect()
+    };
+    let tops = on_box("table_top");
+    let table_tops = tops.iter().filter(|n| **n >= 5).count();
+    let crate_3d = on_box("crate").iter().all(|n| *n >= 5);
+    let live = octree::OcTree::read_binary_file(out.join("map_live.bt")).unwrap();
+    let (live_occ, _) = live.num_occupied_free_leaves();
+    eprintln!(
+        "2-D walls occupied within one cell: {:.1}% of {all}; crate in the 2-D map: {crate_in_2d}; \
+         3-D occupied voxels on true surfaces (within {res} m): {:.1}% of {occ} (live map {live_occ} occupied leaves); \
+         table-top voxels {tops:?}, crate seen {crate_3d}",
+        100.0 * wall_share,
+        100.0 * precision
+    );
+    assert!(wall_share >= 0.95, "{wall_share}");
+    assert!(!crate_in_2d, "the crate is below the laser's plane");
+    assert!(precision >= 0.95, "{precision}");
+    assert!(table_tops == 2 && crate_3d, "the 3-D map holds what the laser cannot see");
+}
