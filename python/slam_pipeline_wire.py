@@ -495,7 +495,7 @@ class OccupancyCell(ctypes.Structure):
     """One cell of an occupancy grid (slice on `pipeline/grid_slam/grid`): −1 unknown, else 0..=100 (%)."""
 
     _fields_ = [
-        ("value", i8),
+        ("value", ctypes.c_int8),
     ]
 
     @staticmethod

@@ -212,7 +212,12 @@ fn ctype(ty: &str) -> String {
     }
     match ty {
         "u8" => "ctypes.c_uint8".into(),
+        "i8" => "ctypes.c_int8".into(),
+        "u16" => "ctypes.c_uint16".into(),
+        "i16" => "ctypes.c_int16".into(),
         "u32" => "ctypes.c_uint32".into(),
+        "i32" => "ctypes.c_int32".into(),
+        "i64" => "ctypes.c_int64".into(),
         "u64" => "ctypes.c_uint64".into(),
         "f32" => "ctypes.c_float".into(),
         "f64" => "ctypes.c_double".into(),

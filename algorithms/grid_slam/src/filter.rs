@@ -268,7 +268,7 @@ pub struct ScanOutcome {
 }
 
 /// Counts kept over a run.
-#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct GridSlamStats {
     /// Scans processed.
     pub scans: u64,
@@ -304,6 +304,25 @@ struct ScanRecord {
     rel: Pose2,
 }
 
+/// What [`GridSlam::snapshot`] keeps: the best particle (pose, map), the odometry and clock it
+/// was at, the trajectory so far, and the counters.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+struct Snapshot {
+    version: u32,
+    resolution_m: f64,
+    geometry: ScanGeometry,
+    updates: u32,
+    last_update_odom: Pose2,
+    last_stamp_s: f64,
+    pose: Pose2,
+    rel: Pose2,
+    history: Vec<(f64, Pose2)>,
+    tiles: Vec<crate::grid::TileData>,
+    stats: GridSlamStats,
+}
+
+const SNAPSHOT_VERSION: u32 = 1;
+
 /// The 2-D grid SLAM filter.
 pub struct GridSlam {
     cfg: GridSlamConfig,
@@ -319,6 +338,8 @@ pub struct GridSlam {
     n_eff: f64,
     stats: GridSlamStats,
     peak_memory: Option<MemoryStats>,
+    /// The trajectory before a restore (frozen: later loop closures do not move it).
+    history: Vec<(f64, Pose2)>,
 }
 
 /// One beam prepared for the map update: its end in the body frame and whether it is a hit.
@@ -359,7 +380,63 @@ impl GridSlam {
             n_eff: 0.0,
             stats: GridSlamStats::default(),
             peak_memory: None,
+            history: Vec::new(),
         })
+    }
+
+    /// The filter's state as bytes, for a restart: the best particle's pose and map (not the
+    /// other particles: a restored filter starts from N copies of the best one), the odometry and
+    /// stamp it was at, the trajectory so far and the counters. Empty before the first scan.
+    pub fn snapshot(&self) -> Vec<u8> {
+        let Some(best) = self.particles.get(self.best) else { return Vec::new() };
+        let s = Snapshot {
+            version: SNAPSHOT_VERSION,
+            resolution_m: self.cfg.resolution_m,
+            geometry: self.geom,
+            updates: self.updates,
+            last_update_odom: self.last_update_odom,
+            last_stamp_s: self.last_stamp_s.unwrap_or(f64::NEG_INFINITY),
+            pose: best.pose,
+            rel: self.records.last().map(|r| r.rel).unwrap_or_default(),
+            history: self.trajectory(),
+            tiles: best.grid.to_tiles(),
+            stats: self.stats,
+        };
+        // Plain data: encoding cannot fail.
+        bincode::serde::encode_to_vec(&s, bincode::config::standard()).unwrap_or_default()
+    }
+
+    /// A filter from [`GridSlam::snapshot`]'s bytes, with settings `cfg` (the particle count may
+    /// differ; the resolution and the laser geometry must be the snapshot's).
+    pub fn restore(cfg: GridSlamConfig, bytes: &[u8]) -> Result<Self, GridSlamError> {
+        let bad = |why: String| GridSlamError::Snapshot { why };
+        let (s, _): (Snapshot, usize) = bincode::serde::decode_from_slice(bytes, bincode::config::standard())
+            .map_err(|e| bad(format!("cannot decode: {e}")))?;
+        if s.version != SNAPSHOT_VERSION {
+            return Err(bad(format!("version {}, this build reads {SNAPSHOT_VERSION}", s.version)));
+        }
+        if (s.resolution_m - cfg.resolution_m).abs() > 1e-12 {
+            return Err(bad(format!("resolution {} m, the settings say {} m", s.resolution_m, cfg.resolution_m)));
+        }
+        let grid = Grid::from_tiles(s.resolution_m, &s.tiles).ok_or_else(|| bad("a tile has the wrong size".into()))?;
+        let mut f = GridSlam::new(cfg, s.geometry)?;
+        let path = Arc::new(PathNode { update: s.updates, pose: s.pose, parent: None });
+        let p = Particle { pose: s.pose, log_weight: 0.0, grid, path };
+        f.particles = vec![p; f.cfg.particles];
+        f.updates = s.updates;
+        f.last_update_odom = s.last_update_odom;
+        f.last_stamp_s = s.last_stamp_s.is_finite().then_some(s.last_stamp_s);
+        f.stats = s.stats;
+        f.n_eff = f.cfg.particles as f64;
+        // The last scan's record continues from the restored pose; the history holds the rest.
+        let mut history = s.history;
+        let last = history.pop();
+        f.history = history;
+        if let Some((t, _)) = last {
+            f.records.push(ScanRecord { stamp_s: t, update: s.updates, rel: s.rel });
+        }
+        f.note_memory();
+        Ok(f)
     }
 
     /// The settings.
@@ -643,10 +720,11 @@ impl GridSlam {
             }
             node = n.parent.as_ref();
         }
-        self.records
-            .iter()
-            .filter_map(|r| at_update.get(r.update as usize).copied().flatten().map(|p| (r.stamp_s, p.compose(&r.rel))))
-            .collect()
+        let mut out = self.history.clone();
+        out.extend(self.records.iter().filter_map(|r| {
+            at_update.get(r.update as usize).copied().flatten().map(|p| (r.stamp_s, p.compose(&r.rel)))
+        }));
+        out
     }
 }
 

@@ -61,6 +61,10 @@ impl Default for LogOddsParams {
     }
 }
 
+/// One tile as plain data: (tile x, tile y, cells row-major as (log-odds, hit dx sum, hit dy sum,
+/// hits)).
+pub type TileData = (i32, i32, Vec<(f32, f32, f32, u32)>);
+
 /// The occupancy grid of one particle.
 #[derive(Debug, Clone)]
 pub struct Grid {
@@ -232,6 +236,39 @@ impl Grid {
 
     /// Bytes of one tile.
     pub const TILE_BYTES: usize = std::mem::size_of::<Tile>();
+
+    /// The tiles as plain data: (tile x, tile y, cells row-major as (log-odds, hit dx sum,
+    /// hit dy sum, hits)), for a snapshot.
+    pub fn to_tiles(&self) -> Vec<TileData> {
+        let mut out = Vec::new();
+        for ty in 0..self.ny {
+            for tx in 0..self.nx {
+                if let Some(t) = &self.tiles[(ty * self.nx + tx) as usize] {
+                    let cells = t.cells.iter().map(|c| (c.log_odds, c.hit_dx_m, c.hit_dy_m, c.hits)).collect();
+                    out.push((tx + self.tx0, ty + self.ty0, cells));
+                }
+            }
+        }
+        out
+    }
+
+    /// A grid from [`Grid::to_tiles`]' data; `None` if a tile has the wrong cell count.
+    pub fn from_tiles(resolution_m: f64, tiles: &[TileData]) -> Option<Self> {
+        let mut g = Grid::new(resolution_m);
+        for (tx, ty, cells) in tiles {
+            if cells.len() != TILE_SIDE * TILE_SIDE {
+                return None;
+            }
+            let mut tile = Tile::default();
+            for (c, &(l, dx, dy, n)) in tile.cells.iter_mut().zip(cells) {
+                *c = Cell { log_odds: l, hit_dx_m: dx, hit_dy_m: dy, hits: n };
+            }
+            g.grow_to(*tx, *ty);
+            let k = ((ty - g.ty0) * g.nx + (tx - g.tx0)) as usize;
+            g.tiles[k] = Some(Arc::new(tile));
+        }
+        Some(g)
+    }
 
     /// The bounds of the known cells: (i_min, j_min, i_max, j_max), inclusive; `None` if empty.
     pub fn known_bounds(&self) -> Option<(i32, i32, i32, i32)> {

@@ -62,6 +62,12 @@ pub enum GridSlamError {
         /// Why.
         source: std::io::Error,
     },
+    /// A snapshot cannot be restored.
+    #[error("grid_slam snapshot: {why}")]
+    Snapshot {
+        /// What is wrong.
+        why: String,
+    },
     /// A line of a text file is malformed.
     #[error("{file}:{line}: {why}")]
     Parse {

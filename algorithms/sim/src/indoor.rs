@@ -352,6 +352,8 @@ pub enum IndoorEvent {
     Cloud {
         /// Time, s.
         t_s: f64,
+        /// The camera's true pose (`world_from_camera`), for building a reference map.
+        world_from_camera: Isometry3<f64>,
         /// Points, m.
         points: Vec<[f32; 3]>,
     },
@@ -583,7 +585,8 @@ impl IndoorSim {
         }
         if self.cfg.depth.rate_hz > 0.0 && t + 1e-9 >= self.next_depth_s {
             self.next_depth_s += 1.0 / self.cfg.depth.rate_hz;
-            out.push(IndoorEvent::Cloud { t_s: t, points: self.depth_cloud(&now) });
+            let world_from_camera = Self::iso(&now) * self.body_from_camera();
+            out.push(IndoorEvent::Cloud { t_s: t, world_from_camera, points: self.depth_cloud(&now) });
         }
         Some(out)
     }

@@ -39,6 +39,10 @@ pub struct GridSlamSettings {
     pub relations: PathBuf,
     /// Seconds added to the trajectory's stamps to reach the relations' clock.
     pub relations_offset_s: f64,
+    /// Snapshot the filter (the best particle's map and pose, the trajectory so far) into the
+    /// runtime's restart state every this many seconds of data time, so a restarted instance
+    /// goes on from there instead of from an empty map (0: never).
+    pub snapshot_every_s: f64,
 }
 
 impl Default for GridSlamSettings {
@@ -52,6 +56,7 @@ impl Default for GridSlamSettings {
             ground_truth: "ground_truth.tum".into(),
             relations: PathBuf::new(),
             relations_offset_s: 0.0,
+            snapshot_every_s: 30.0,
         }
     }
 }
@@ -77,6 +82,11 @@ impl ProcessSettings for GridSlamSettings {
         );
         issues.check(self.grid_margin_cells >= 0, format!("{key}.grid_margin_cells"), "must be >= 0");
         issues.check(self.relations_offset_s.is_finite(), format!("{key}.relations_offset_s"), "must be finite");
+        issues.check(
+            self.snapshot_every_s.is_finite() && self.snapshot_every_s >= 0.0,
+            format!("{key}.snapshot_every_s"),
+            "must be >= 0 (0: no snapshots)",
+        );
     }
 
     fn shm_estimate_bytes(&self) -> u64 {
@@ -84,6 +94,9 @@ impl ProcessSettings for GridSlamSettings {
         8 << 20
     }
 }
+
+/// Most odometry samples kept while no scan takes them.
+pub const MAX_ODOMETRY: usize = 1 << 16;
 
 /// One scan waiting for its odometry.
 #[derive(Debug, Clone, PartialEq)]
@@ -137,6 +150,12 @@ impl ScanQueue {
             return false;
         }
         self.odometry.push_back((stamp_ns, pose));
+        // Odometry without scans (a laser that stopped) must not grow without bound: 65,536
+        // samples are 22 min at 50 Hz.
+        if self.odometry.len() > MAX_ODOMETRY {
+            self.odometry.pop_front();
+            self.reject("odometry_buffer_overflow");
+        }
         true
     }
 

@@ -10,7 +10,7 @@ use grid_slam::relations::{read_relations, score};
 use grid_slam::{GridSlam, GridSlamError, Pose2, ScanGeometry};
 use nalgebra::{UnitQuaternion, Vector3};
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
-use pipeline_runtime::{Input, Output, ProcessContext, Runtime, StageError, Wake};
+use pipeline_runtime::{Input, Output, ProcessContext, Restart, Runtime, StageError, Wake};
 use shared_types::services::{
     GRID_SLAM_GRID, GRID_SLAM_PARTICLES, GRID_SLAM_POSE, GRID_SLAM_POSE3D, LASER, PLANAR_ODOMETRY,
 };
@@ -22,6 +22,9 @@ use crate::{GridSlamSettings, PendingScan, ScanQueue};
 pub const POSE_UPDATED: u32 = 1;
 /// `PlanarPose::flags` bit: the particles were resampled at this scan.
 pub const POSE_RESAMPLED: u32 = 2;
+
+/// The restart snapshot's key.
+pub const SNAPSHOT: &str = "grid_slam.bin";
 
 /// The `grid_slam` stage.
 pub struct GridSlamStage {
@@ -38,7 +41,8 @@ pub struct GridSlamStage {
     /// Scans the filter refused, by kind.
     refused: BTreeMap<&'static str, u64>,
     last_grid_ns: Option<u64>,
-    first_stamp_ns: Option<u64>,
+    last_snapshot_ns: Option<u64>,
+    last_stamp_ns: u64,
     out_dir: PathBuf,
     config_dir: PathBuf,
     started: Instant,
@@ -165,7 +169,7 @@ impl GridSlamStage {
                 return Ok(());
             }
         };
-        self.first_stamp_ns.get_or_insert(scan.stamp_ns);
+        self.last_stamp_ns = scan.stamp_ns;
         let header = MsgHeader { stamp_ns: scan.stamp_ns, origin_ns: scan.origin_ns, ..Default::default() };
         let cov = f.covariance();
         let flags = if out.updated { POSE_UPDATED } else { 0 } | if out.resampled { POSE_RESAMPLED } else { 0 };
@@ -372,7 +376,8 @@ impl Stage for GridSlamStage {
             filter: None,
             refused: BTreeMap::new(),
             last_grid_ns: None,
-            first_stamp_ns: None,
+            last_snapshot_ns: None,
+            last_stamp_ns: 0,
             out_dir: ctx.out_dir.clone(),
             config_dir: ctx.config.source.parent().unwrap_or(std::path::Path::new(".")).to_path_buf(),
             started: Instant::now(),
@@ -387,18 +392,52 @@ impl Stage for GridSlamStage {
         Some(Duration::from_millis(200))
     }
 
-    fn step(&mut self, _rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
         self.receive()?;
         let wait_ns = (self.settings.odometry_wait_s * 1e9) as u64;
         let batch_end = Instant::now() + Duration::from_millis(50);
+        let mut busy = false;
         while let Some((scan, odom)) = self.queue.pop(wait_ns, inputs_ended) {
             self.process(scan, odom)?;
             if Instant::now() > batch_end {
-                // Let the loop send heartbeats; come back at once.
-                return Ok(Step::Busy);
+                busy = true;
+                break;
             }
         }
-        Ok(if self.queue.pending() == 0 { Step::Idle } else { Step::Pending })
+        let every_ns = (self.settings.snapshot_every_s * 1e9) as u64;
+        if every_ns > 0
+            && let Some(f) = &self.filter
+            && self.last_snapshot_ns.is_none_or(|t| self.last_stamp_ns.saturating_sub(t) >= every_ns)
+        {
+            self.last_snapshot_ns = Some(self.last_stamp_ns);
+            rt.state().snapshot(SNAPSHOT, &f.snapshot())?;
+        }
+        // Busy: let the loop send heartbeats, and come back at once.
+        Ok(if busy {
+            Step::Busy
+        } else if self.queue.pending() == 0 {
+            Step::Idle
+        } else {
+            Step::Pending
+        })
+    }
+
+    /// A restarted instance goes on from the killed one's last snapshot: the best particle's map
+    /// and pose (copied to every particle) and the trajectory up to it.
+    fn restore(&mut self, restart: Restart) -> Result<usize, StageError> {
+        if let Some(bytes) = restart.read_snapshot(SNAPSHOT)?
+            && !bytes.is_empty()
+        {
+            let f = GridSlam::restore(self.settings.filter.clone(), &bytes).map_err(StageError::stage)?;
+            tracing::info!(
+                scans = f.stats().scans,
+                poses = f.trajectory().len(),
+                "restarted: going on from the killed instance's last snapshot (its map and trajectory)"
+            );
+            self.geometry = Some(*f.geometry());
+            self.filter = Some(f);
+        }
+        Ok(0)
     }
 
     fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
@@ -406,7 +445,7 @@ impl Stage for GridSlamStage {
             tracing::info!(poses = self.pose.sent(), "stopped early: writing the outputs so far");
         } else if self.filter.is_some() {
             // The last grid, so a viewer has the final map.
-            let h = MsgHeader { stamp_ns: self.last_grid_ns.unwrap_or(0), ..Default::default() };
+            let h = MsgHeader { stamp_ns: self.last_stamp_ns, ..Default::default() };
             self.publish_grid(h)?;
         }
         self.summary()

@@ -224,3 +224,62 @@ fn a_room_loop_is_mapped_and_bad_input_is_counted_without_losing_the_rest() {
     eprintln!("room walls occupied within one cell: {:.1}%", 100.0 * share);
     assert!(share > 0.95, "{share}");
 }
+
+#[test]
+fn a_restarted_instance_goes_on_from_the_killed_ones_map_and_trajectory() {
+    let dir = tempfile::tempdir().unwrap();
+    let config_path = dir.path().join("c.toml");
+    let config = CONFIG.replace("grid_every_s = 2.0", "grid_every_s = 0.0\nsnapshot_every_s = 5.0");
+    let mut h = StageHarness::<grid_slam_stage::stage::GridSlamStage>::from_config_str(
+        &config,
+        &config_path,
+        "slam2d",
+        dir.path(),
+    )
+    .expect("opens");
+    let walls = walls();
+    let truth = mission();
+    let feed = |h: &StageHarness<grid_slam_stage::stage::GridSlamStage>, k: usize| {
+        let (t, p) = truth[k];
+        let o = PlanarOdometry { position_m: [p.x_m, p.y_m], yaw_rad: p.theta_rad, ..Default::default() };
+        h.feed(PLANAR_ODOMETRY, MsgHeader { stamp_ns: (t * 1e9) as u64, ..Default::default() }, o).unwrap();
+        let ranges: Vec<LaserRange> = (0..360)
+            .map(|b| {
+                let a = -std::f64::consts::PI + b as f64 * std::f64::consts::TAU / 360.0;
+                LaserRange { range_m: cast(&p, a, &walls).min(12.0) as f32 }
+            })
+            .collect();
+        h.feed_slice(LASER, header(t, 360), &ranges).unwrap();
+    };
+    for k in 0..230 {
+        feed(&h, k);
+        if k % 10 == 9 {
+            h.wake().unwrap();
+        }
+    }
+    h.wake().unwrap();
+    assert!(dir.path().join("state/slam2d/grid_slam.bin").is_file(), "snapshots are taken");
+    // Killed after 23 s; the last snapshot is from 20 s of data.
+    let mut h = h.restart().unwrap();
+    for k in 230..truth.len() {
+        feed(&h, k);
+        if k % 10 == 9 {
+            h.wake().unwrap();
+        }
+    }
+    h.end_upstream("ingest").unwrap();
+    let part = h.run_to_end(Duration::from_secs(60)).unwrap();
+    let traj = geometry::tum::read_tum(&dir.path().join("grid_slam.tum")).unwrap();
+    let first = traj.first().unwrap().0;
+    assert!(first < 0.05, "the trajectory starts at the mission's start: {first}");
+    assert!(traj.len() > 350, "{} poses: the snapshot's and the restarted instance's", traj.len());
+    let mut sq = 0.0;
+    for (t, p) in &traj {
+        let k = (t * 10.0).round() as usize;
+        let tp = truth[k].1;
+        sq += (p.translation.x - tp.x_m).powi(2) + (p.translation.y - tp.y_m).powi(2);
+    }
+    let rmse = (sq / traj.len() as f64).sqrt();
+    eprintln!("after a restart: {} poses, RMSE {rmse:.3} m; {}", traj.len(), part["grid_slam"]);
+    assert!(rmse < 0.05, "{rmse}: the restarted filter went on in the same map frame");
+}

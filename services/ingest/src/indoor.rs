@@ -1,7 +1,8 @@
 //! The simulated indoor mission of the omni-directional robot (`source = "indoor"`,
 //! `sim::indoor`): planar odometry from its wheel encoders (50 Hz, with the wheel speeds and body
 //! velocity), 2-D laser scans (10 Hz) and depth-camera clouds (2 Hz, in the camera's optical frame,
-//! without a pose: the mapper places them at the SLAM pose). Ground truth as it goes;
+//! with the camera's true pose in the header for reference maps; a mapper with `pose_source =
+//! "grid_slam"` places them at the SLAM pose instead). Ground truth as it goes;
 //! `scene.json` holds the scene's boxes (the true occupancy) for evaluating the 3-D map.
 
 use std::collections::VecDeque;
@@ -68,8 +69,10 @@ impl IndoorSource {
                 };
                 Item::Laser { stamp_ns: stamp_ns(t_s), header, ranges }
             }
-            IndoorEvent::Cloud { t_s, points } => {
-                Item::Cloud { stamp_ns: stamp_ns(t_s), world_from_sensor: None, points }
+            // The true camera pose goes along (CLOUD_HAS_POSE), as the underwater simulator's does:
+            // a mapper with `pose_source = "cloud"` builds the reference map from it.
+            IndoorEvent::Cloud { t_s, world_from_camera, points } => {
+                Item::Cloud { stamp_ns: stamp_ns(t_s), world_from_sensor: Some(world_from_camera), points }
             }
         }
     }
