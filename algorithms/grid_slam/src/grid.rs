@@ -1,8 +1,10 @@
 //! A 2-D log-odds occupancy grid stored in square tiles shared copy-on-write between particles.
 //!
 //! Cloning a [`Grid`] copies only the tile index (one reference count per tile): a resampled
-//! particle shares every tile with its parent until one of them writes into a tile, and only that
-//! tile is copied ([`Arc::make_mut`]). Cells keep, besides their log-odds, the mean of the beam end
+//! particle shares every tile with its parent. A write into a shared tile goes into a small delta
+//! over it (the changed cells only: cell-level copy-on-write); a delta that grows past
+//! [`DELTA_MAX`] cells becomes a tile of its own, and one whose base nobody else holds any more is
+//! folded into it in place. Cells keep, besides their log-odds, the mean of the beam end
 //! points that hit them (as gmapping does), so scan matching is not limited to the cell's centre.
 //!
 //! Coordinates: the grid frame is the map (world) frame; cell (i, j) covers
@@ -61,6 +63,68 @@ impl Default for LogOddsParams {
     }
 }
 
+/// Changed cells a delta holds before it becomes a full tile of its own.
+pub const DELTA_MAX: usize = 48;
+
+/// A tile's changes over a shared base tile: cell k is `cells[pos[k] - 1]` where `pos[k] > 0`,
+/// else the base's.
+#[derive(Debug, Clone)]
+pub struct DeltaTile {
+    base: Arc<Tile>,
+    pos: [u8; TILE_SIDE * TILE_SIDE],
+    cells: Vec<Cell>,
+}
+
+impl DeltaTile {
+    fn new(base: Arc<Tile>) -> Self {
+        Self { base, pos: [0; TILE_SIDE * TILE_SIDE], cells: Vec::new() }
+    }
+
+    #[inline(always)]
+    fn has(&self, k: usize) -> bool {
+        self.pos[k] != 0
+    }
+
+    #[inline(always)]
+    fn get(&self, k: usize) -> &Cell {
+        match self.pos[k] {
+            0 => &self.base.cells[k],
+            p => &self.cells[p as usize - 1],
+        }
+    }
+
+    /// The cell for writing, copied from the base first if it is not in the delta yet.
+    #[inline]
+    fn get_mut(&mut self, k: usize) -> &mut Cell {
+        if self.pos[k] == 0 {
+            self.cells.push(self.base.cells[k]);
+            self.pos[k] = self.cells.len() as u8;
+        }
+        &mut self.cells[self.pos[k] as usize - 1]
+    }
+
+    fn materialise(&self) -> Tile {
+        let mut t = (*self.base).clone();
+        for (k, c) in t.cells.iter_mut().enumerate() {
+            *c = *self.get(k);
+        }
+        t
+    }
+
+    fn bytes(&self) -> usize {
+        std::mem::size_of::<DeltaTile>() + self.cells.capacity() * std::mem::size_of::<Cell>()
+    }
+}
+
+/// A tile slot: nothing, a tile, or a delta over a shared tile.
+#[derive(Debug, Clone, Default)]
+enum Slot {
+    #[default]
+    Empty,
+    Full(Arc<Tile>),
+    Delta(Arc<DeltaTile>),
+}
+
 /// One tile as plain data: (tile x, tile y, cells row-major as (log-odds, hit dx sum, hit dy sum,
 /// hits)).
 pub type TileData = (i32, i32, Vec<(f32, f32, f32, u32)>);
@@ -74,7 +138,7 @@ pub struct Grid {
     ty0: i32,
     nx: i32,
     ny: i32,
-    tiles: Vec<Option<Arc<Tile>>>,
+    tiles: Vec<Slot>,
 }
 
 impl Grid {
@@ -101,14 +165,18 @@ impl Grid {
     }
 
     /// The cell (i, j), or `None` where nothing was ever written.
-    #[inline]
+    #[inline(always)]
     pub fn cell(&self, i: i32, j: i32) -> Option<&Cell> {
         let (tx, ty) = ((i >> TILE_BITS) - self.tx0, (j >> TILE_BITS) - self.ty0);
         if tx < 0 || ty < 0 || tx >= self.nx || ty >= self.ny {
             return None;
         }
-        let tile = self.tiles[(ty * self.nx + tx) as usize].as_ref()?;
-        Some(&tile.cells[((j & TILE_MASK) as usize) * TILE_SIDE + (i & TILE_MASK) as usize])
+        let k = ((j & TILE_MASK) as usize) * TILE_SIDE + (i & TILE_MASK) as usize;
+        match &self.tiles[(ty * self.nx + tx) as usize] {
+            Slot::Empty => None,
+            Slot::Full(t) => Some(&t.cells[k]),
+            Slot::Delta(d) => Some(d.get(k)),
+        }
     }
 
     /// Log-odds of cell (i, j) (0 where unknown).
@@ -148,26 +216,58 @@ impl Grid {
             (x0, y0, x1, y1)
         };
         let (nx, ny) = (x1 - x0, y1 - y0);
-        let mut tiles = vec![None; (nx * ny) as usize];
+        let mut tiles = vec![Slot::Empty; (nx * ny) as usize];
         for y in 0..self.ny {
             for x in 0..self.nx {
                 let src = (y * self.nx + x) as usize;
                 let dst = ((y + self.ty0 - y0) * nx + (x + self.tx0 - x0)) as usize;
-                tiles[dst] = self.tiles[src].take();
+                tiles[dst] = std::mem::take(&mut self.tiles[src]);
             }
         }
         (self.tx0, self.ty0, self.nx, self.ny, self.tiles) = (x0, y0, nx, ny, tiles);
     }
 
-    /// The cell (i, j) for writing: grows the grid, creates the tile, and copies it first if
-    /// another grid shares it.
+    /// The cell (i, j) for writing: grows the grid and creates the tile. A tile another grid
+    /// shares is not copied: the write goes into a delta over it (cell-level copy-on-write),
+    /// which becomes a tile of its own once it holds [`DELTA_MAX`] cells.
     #[inline]
     pub fn cell_mut(&mut self, i: i32, j: i32) -> &mut Cell {
         let (tx, ty) = (i >> TILE_BITS, j >> TILE_BITS);
         self.grow_to(tx, ty);
-        let k = ((ty - self.ty0) * self.nx + (tx - self.tx0)) as usize;
-        let tile = Arc::make_mut(self.tiles[k].get_or_insert_with(|| Arc::new(Tile::default())));
-        &mut tile.cells[((j & TILE_MASK) as usize) * TILE_SIDE + (i & TILE_MASK) as usize]
+        let slot = ((ty - self.ty0) * self.nx + (tx - self.tx0)) as usize;
+        let k = ((j & TILE_MASK) as usize) * TILE_SIDE + (i & TILE_MASK) as usize;
+        let s = &mut self.tiles[slot];
+        match s {
+            Slot::Empty => *s = Slot::Full(Arc::new(Tile::default())),
+            Slot::Full(t) if Arc::strong_count(t) > 1 || Arc::weak_count(t) > 0 => {
+                let base = t.clone();
+                *s = Slot::Delta(Arc::new(DeltaTile::new(base)));
+            }
+            Slot::Delta(d) if Arc::strong_count(d) == 1 && Arc::strong_count(&d.base) == 1 => {
+                // Nobody else holds the base any more: fold the delta into it, in place.
+                let Slot::Delta(d) = std::mem::take(s) else { unreachable!("matched above") };
+                let (pos, cells, mut base) = match Arc::try_unwrap(d) {
+                    Ok(d) => (d.pos, d.cells, d.base),
+                    Err(_) => unreachable!("the count was 1"),
+                };
+                let t = Arc::make_mut(&mut base);
+                for (c, p) in t.cells.iter_mut().zip(pos) {
+                    if p != 0 {
+                        *c = cells[p as usize - 1];
+                    }
+                }
+                *s = Slot::Full(base);
+            }
+            Slot::Delta(d) if d.cells.len() >= DELTA_MAX && !d.has(k) => {
+                *s = Slot::Full(Arc::new(d.materialise()));
+            }
+            _ => {}
+        }
+        match s {
+            Slot::Full(t) => &mut Arc::make_mut(t).cells[k],
+            Slot::Delta(d) => Arc::make_mut(d).get_mut(k),
+            Slot::Empty => unreachable!("filled above"),
+        }
     }
 
     /// A miss: the beam passed through cell (i, j). A miss on a cell already at the lower clamp
@@ -223,15 +323,57 @@ impl Grid {
         }
     }
 
-    /// The tiles this grid holds, as pointers (to count how many distinct tiles several grids
-    /// hold between them).
-    pub fn tile_ptrs(&self) -> impl Iterator<Item = *const Tile> + '_ {
-        self.tiles.iter().flatten().map(Arc::as_ptr)
+    /// Bytes of the tiles and deltas this grid holds that are not in `seen` yet (pointers),
+    /// adding them: called over several grids, the memory they hold between them.
+    pub fn add_bytes(&self, seen: &mut std::collections::HashSet<usize>) -> usize {
+        let mut bytes = 0;
+        for s in &self.tiles {
+            match s {
+                Slot::Empty => {}
+                Slot::Full(t) => {
+                    if seen.insert(Arc::as_ptr(t) as usize) {
+                        bytes += Self::TILE_BYTES;
+                    }
+                }
+                Slot::Delta(d) => {
+                    if seen.insert(Arc::as_ptr(d) as usize) {
+                        bytes += d.bytes();
+                    }
+                    if seen.insert(Arc::as_ptr(&d.base) as usize) {
+                        bytes += Self::TILE_BYTES;
+                    }
+                }
+            }
+        }
+        bytes
     }
 
-    /// Number of tiles allocated.
+    /// Bytes of this grid alone (its tiles, deltas and their bases).
+    pub fn bytes(&self) -> usize {
+        self.add_bytes(&mut std::collections::HashSet::new())
+    }
+
+    /// The tiles this grid holds (full tiles and delta bases), as pointers.
+    pub fn tile_ptrs(&self) -> impl Iterator<Item = *const Tile> + '_ {
+        self.tiles.iter().filter_map(|s| match s {
+            Slot::Empty => None,
+            Slot::Full(t) => Some(Arc::as_ptr(t)),
+            Slot::Delta(d) => Some(Arc::as_ptr(&d.base)),
+        })
+    }
+
+    /// Number of tiles (full or delta) allocated.
     pub fn tile_count(&self) -> usize {
-        self.tiles.iter().flatten().count()
+        self.tiles.iter().filter(|s| !matches!(s, Slot::Empty)).count()
+    }
+
+    /// The cells of slot `s` (copied), or `None` if empty.
+    fn slot_cells(s: &Slot) -> Option<std::borrow::Cow<'_, Tile>> {
+        match s {
+            Slot::Empty => None,
+            Slot::Full(t) => Some(std::borrow::Cow::Borrowed(&**t)),
+            Slot::Delta(d) => Some(std::borrow::Cow::Owned(d.materialise())),
+        }
     }
 
     /// Bytes of one tile.
@@ -243,7 +385,7 @@ impl Grid {
         let mut out = Vec::new();
         for ty in 0..self.ny {
             for tx in 0..self.nx {
-                if let Some(t) = &self.tiles[(ty * self.nx + tx) as usize] {
+                if let Some(t) = Self::slot_cells(&self.tiles[(ty * self.nx + tx) as usize]) {
                     let cells = t.cells.iter().map(|c| (c.log_odds, c.hit_dx_m, c.hit_dy_m, c.hits)).collect();
                     out.push((tx + self.tx0, ty + self.ty0, cells));
                 }
@@ -265,7 +407,7 @@ impl Grid {
             }
             g.grow_to(*tx, *ty);
             let k = ((ty - g.ty0) * g.nx + (tx - g.tx0)) as usize;
-            g.tiles[k] = Some(Arc::new(tile));
+            g.tiles[k] = Slot::Full(Arc::new(tile));
         }
         Some(g)
     }
@@ -275,7 +417,7 @@ impl Grid {
         let mut b: Option<(i32, i32, i32, i32)> = None;
         for ty in 0..self.ny {
             for tx in 0..self.nx {
-                let Some(tile) = &self.tiles[(ty * self.nx + tx) as usize] else { continue };
+                let Some(tile) = Self::slot_cells(&self.tiles[(ty * self.nx + tx) as usize]) else { continue };
                 for (k, c) in tile.cells.iter().enumerate() {
                     if c.log_odds == 0.0 {
                         continue;
@@ -312,9 +454,24 @@ mod tests {
         };
         assert_eq!(shared(&a, &b), tiles);
         b.add_miss(5, 0, &p);
-        assert_eq!(shared(&a, &b), tiles - 1, "one tile copied");
+        assert_eq!(shared(&a, &b), tiles, "a write into a shared tile goes into a delta over it");
         assert_eq!(a.log_odds(5, 0), p.miss, "the original is untouched");
         assert_eq!(b.log_odds(5, 0), (2.0 * p.miss).clamp(p.min, p.max));
+        assert_eq!(b.log_odds(6, 0), a.log_odds(6, 0), "the other cells read through to the shared tile");
+        let one = a.bytes();
+        let mut seen = std::collections::HashSet::new();
+        let both = a.add_bytes(&mut seen) + b.add_bytes(&mut seen);
+        assert!(both < one + Grid::TILE_BYTES, "the delta costs less than a tile: {both} vs {one}");
+        // Many writes into one shared tile make it a tile of its own, with every cell right.
+        for i in 0..TILE_SIDE as i32 {
+            for j in 0..4 {
+                b.add_miss(i, j, &p);
+            }
+        }
+        assert_eq!(shared(&a, &b), tiles - 1, "one tile copied");
+        assert_eq!(b.log_odds(5, 0), (3.0 * p.miss).clamp(p.min, p.max));
+        assert_eq!(b.log_odds(6, 5), a.log_odds(6, 5));
+        assert_eq!(a.log_odds(5, 0), p.miss);
     }
 
     #[test]

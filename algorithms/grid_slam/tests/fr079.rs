@@ -46,7 +46,7 @@ fn fr079_relations_beat_the_drifting_odometry_and_the_published_gmapping_error()
     let mem = f.memory();
     eprintln!(
         "fr079 first {n} scans, 8 particles: {} relations, {:.4} ± {:.4} m, {:.3} ± {:.3} deg (odometry {:.4} m, {:.2} deg); \
-         {} updates, {} resamples; memory {} tiles for {} in one map ({:.2}x)",
+         {} updates, {} resamples; memory {} bytes for {} in one map ({:.2}x)",
         ours.scored,
         ours.trans_mean_m,
         ours.trans_std_m,
@@ -56,8 +56,8 @@ fn fr079_relations_beat_the_drifting_odometry_and_the_published_gmapping_error()
         odometry.rot_mean_deg,
         f.stats().updates,
         f.stats().resamples,
-        mem.distinct_tiles,
-        mem.best_tiles,
+        mem.bytes,
+        mem.best_bytes,
         mem.ratio
     );
     assert!(ours.scored > 350, "{ours:?}");

@@ -267,7 +267,7 @@ impl GridSlamStage {
         }
         let st = f.stats();
         let mem = f.peak_memory();
-        let one_map = f.memory().best_tiles * grid_slam::grid::Grid::TILE_BYTES;
+        let one_map = f.memory().best_bytes;
         let mut part = serde_json::json!({ "grid_slam": {
             "scans": st.scans,
             "updates": st.updates,

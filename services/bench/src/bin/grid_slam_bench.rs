@@ -52,6 +52,9 @@ struct Args {
     /// beam (CARMEN's FLASER lines do not say; 0: the reader's rule).
     #[arg(long, default_value_t = 0.0)]
     span_deg: f64,
+    /// Print the particles' map memory after every filter update (stderr) and its distribution.
+    #[arg(long)]
+    mem_trace: bool,
     /// Where the maps and trajectories go.
     #[arg(long, default_value = "target/grid_slam_bench")]
     out: PathBuf,
@@ -159,10 +162,17 @@ fn main() -> Result<()> {
             let mut f = GridSlam::new(cfg, geom)?;
             let t0 = Instant::now();
             let mut refused = 0;
+            let mut mem_trace: Vec<f64> = Vec::new();
             for ((i, _), odom) in scans.iter().zip(&drifted) {
                 let s = &log.scans[*i];
-                if f.process(s.stamp_s, *odom, &s.ranges).is_err() {
-                    refused += 1;
+                match f.process(s.stamp_s, *odom, &s.ranges) {
+                    Ok(o) if o.updated && args.mem_trace => {
+                        let m = f.memory();
+                        mem_trace.push(m.bytes as f64 / 1e6);
+                        eprintln!("mem update={} bytes={} resampled={}", f.stats().updates, m.bytes, o.resampled);
+                    }
+                    Ok(_) => {}
+                    Err(_) => refused += 1,
                 }
             }
             let wall = t0.elapsed().as_secs_f64();
@@ -171,7 +181,7 @@ fn main() -> Result<()> {
             let st = f.stats();
             // Peak bytes of all particles' distinct tiles against the final map of one particle.
             let peak_mb = f.peak_memory().map_or(f64::NAN, |m| m.bytes as f64 / 1e6);
-            let one_map_mb = f.memory().best_tiles as f64 * grid_slam::grid::Grid::TILE_BYTES as f64 / 1e6;
+            let one_map_mb = f.memory().best_bytes as f64 / 1e6;
             let mem = peak_mb / one_map_mb;
             let span = traj.last().map_or(0.0, |l| l.0) - traj.first().map_or(0.0, |f| f.0);
             println!(
@@ -198,6 +208,18 @@ fn main() -> Result<()> {
                 println!(
                     "       refused scans {refused}, tracking failures {}, proposal fallbacks {}, invalid beams {}",
                     st.tracking_failures, st.proposal_fallbacks, st.invalid_beams
+                );
+            }
+            if !mem_trace.is_empty() {
+                let mut v = mem_trace.clone();
+                v.sort_by(f64::total_cmp);
+                println!(
+                    "       maps' memory over the {} updates: mean {:.1} MB, median {:.1}, p90 {:.1}, max {:.1}",
+                    v.len(),
+                    v.iter().sum::<f64>() / v.len() as f64,
+                    v[v.len() / 2],
+                    v[v.len() * 9 / 10],
+                    v[v.len() - 1]
                 );
             }
             let stem = format!("{}_{}", set.name, n);
