@@ -76,4 +76,27 @@ add_drift = true
     assert!(yaml.contains("image: grid.pgm") && yaml.contains("resolution: 0.05"), "{yaml}");
     let pgm = std::fs::read(out.join("grid.pgm")).unwrap();
     assert!(pgm.starts_with(b"P5\n"));
+
+    // The metric as a command gives the stage's numbers; a bad relations file is named with its line.
+    let cmd = |relations: &str| {
+        std::process::Command::new(pipeline_tests::bin("relations_score"))
+            .args(["--trajectory", &out.join("grid_slam.tum").display().to_string(), "--relations", relations])
+            .args(["--offset", "1211.38", "--json"])
+            .output()
+            .unwrap()
+    };
+    let o = cmd(&format!("{data}/fr079.relations"));
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let printed: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(printed["scored"], rel["scored"]);
+    for k in ["trans_mean_m", "rot_mean_deg"] {
+        let (a, b) = (printed[k].as_f64().unwrap(), rel[k].as_f64().unwrap());
+        assert!((a - b).abs() < 1e-5, "{k}: {a} (command, TUM's 6 decimals) vs {b} (stage)");
+    }
+    let bad = run.dir.path().join("bad.relations");
+    std::fs::write(&bad, "1 2 0 0 0 0 0 0\n1 2 x 0 0 0 0 0\n").unwrap();
+    let o = cmd(&bad.display().to_string());
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("bad.relations:2") && err.contains("'x' is not a number"), "{err}");
 }

@@ -106,33 +106,47 @@ real_time_factor = 0.0
             })
         })
     };
+    // Every vertical face of every wall longer than 0.2 m, sampled 2 cm off it inside the
+    // building, except where furniture stands in front of it (a shelf, the radiator).
+    let inside = |x: f64, y: f64| x > -8.0 && x < 8.0 && y > -5.0 && y < 7.0;
+    let blocked = |x: f64, y: f64| {
+        boxes.iter().filter(|(w, _, _)| w != "wall").any(|(_, min, max)| {
+            min[2] <= 0.25
+                && max[2] >= 0.25
+                && x >= min[0] - 0.1
+                && x <= max[0] + 0.1
+                && y >= min[1] - 0.1
+                && y <= max[1] + 0.1
+        })
+    };
     let (mut on, mut all) = (0usize, 0usize);
-    // Inner faces of the outer walls (the room is x ∈ [-8, 8], y ∈ [-5, 5]) and of the middle wall,
-    // except along the shelves, which stand in front of them.
-    let mut faces: Vec<(f64, f64)> = vec![];
-    for k in 0..=320 {
-        let x = -8.0 + k as f64 * 0.05;
-        faces.push((x, -4.99));
-        faces.push((x, 4.99));
-    }
-    for k in 0..=200 {
-        let y = -5.0 + k as f64 * 0.05;
-        faces.push((-7.99, y));
-        faces.push((7.99, y));
-        if y.abs() > 0.75 {
-            faces.push((-0.06, y));
-            faces.push((0.06, y));
-        }
-    }
-    for (x, y) in faces {
-        let behind_shelf = boxes.iter().any(|(what, min, max)| {
-            what == "shelf" && x >= min[0] - 0.1 && x <= max[0] + 0.1 && y >= min[1] - 0.1 && y <= max[1] + 0.1
-        });
-        if behind_shelf {
+    for (what, min, max) in &boxes {
+        if what != "wall" {
             continue;
         }
-        all += 1;
-        on += usize::from(occupied_2d(x, y));
+        let mut faces: Vec<(f64, f64)> = vec![];
+        let (nx, ny) = (((max[0] - min[0]) / 0.05) as usize, ((max[1] - min[1]) / 0.05) as usize);
+        if nx > 4 {
+            for k in 1..nx {
+                let x = min[0] + k as f64 * 0.05;
+                faces.push((x, min[1] - 0.02));
+                faces.push((x, max[1] + 0.02));
+            }
+        }
+        if ny > 4 {
+            for k in 1..ny {
+                let y = min[1] + k as f64 * 0.05;
+                faces.push((min[0] - 0.02, y));
+                faces.push((max[0] + 0.02, y));
+            }
+        }
+        for (x, y) in faces {
+            if !inside(x, y) || blocked(x, y) {
+                continue;
+            }
+            all += 1;
+            on += usize::from(occupied_2d(x, y));
+        }
     }
     let wall_share = on as f64 / all as f64;
     // Below the laser's plane: the crate is not in the 2-D map.

@@ -1,5 +1,6 @@
 //! A simulated indoor mission of a three-wheel omni-directional robot ([2D3D], SPEC §8):
-//! two furnished rooms joined by a door, the base driving two laps of a loop through both with
+//! two furnished rooms joined by a door and a corridor, the base driving two laps of a loop through
+//! them with
 //! holonomic motion (its heading sways independently of the path: it strafes), a 2-D laser, wheel
 //! encoders with slip, and a Kinect-like depth camera. Deterministic for a seed, with ground truth.
 //!
@@ -71,18 +72,27 @@ pub struct IndoorScene {
 }
 
 impl IndoorScene {
-    /// The two-room building (16 × 10 m, 2.5 m high, a 1.4 m door at x = 0).
+    /// The building: two 8 × 10 m rooms joined by a 1.4 m door at x = 0, and a 16 × 1.9 m
+    /// corridor along their north side that each room opens onto by a 1.2 m door; 2.5 m high.
     pub fn two_rooms() -> Self {
         let h = 2.5;
         let t = 0.1;
         let mut b = vec![
-            Box3::new("floor", [-8.2, -5.2, -0.1], [8.2, 5.2, 0.0]),
+            Box3::new("floor", [-8.2, -5.2, -0.1], [8.2, 7.2, 0.0]),
             Box3::new("wall", [-8.0 - t, -5.0 - t, 0.0], [8.0 + t, -5.0, h]),
-            Box3::new("wall", [-8.0 - t, 5.0, 0.0], [8.0 + t, 5.0 + t, h]),
-            Box3::new("wall", [-8.0 - t, -5.0, 0.0], [-8.0, 5.0, h]),
-            Box3::new("wall", [8.0, -5.0, 0.0], [8.0 + t, 5.0, h]),
+            Box3::new("wall", [-8.0 - t, 7.0, 0.0], [8.0 + t, 7.0 + t, h]),
+            Box3::new("wall", [-8.0 - t, -5.0, 0.0], [-8.0, 7.0, h]),
+            Box3::new("wall", [8.0, -5.0, 0.0], [8.0 + t, 7.0, h]),
+            // Between the rooms and the corridor, with a door into each room.
+            Box3::new("wall", [-8.0, 5.0, 0.0], [-4.6, 5.0 + t, h]),
+            Box3::new("wall", [-3.4, 5.0, 0.0], [4.4, 5.0 + t, h]),
+            Box3::new("wall", [5.6, 5.0, 0.0], [8.0, 5.0 + t, h]),
             Box3::new("wall", [-t / 2.0, -5.0, 0.0], [t / 2.0, -0.7, h]),
             Box3::new("wall", [-t / 2.0, 0.7, 0.0], [t / 2.0, 5.0, h]),
+            // The corridor: a radiator and two cabinets on its north wall (in the laser's plane).
+            Box3::new("radiator", [-1.0, 6.85, 0.1], [1.0, 7.0, 0.7]),
+            Box3::new("cabinet", [-6.4, 6.5, 0.0], [-5.6, 7.0, 1.2]),
+            Box3::new("cabinet", [2.6, 6.5, 0.0], [3.4, 7.0, 1.2]),
             // Room A: a table (legs only in the laser's plane), a shelf, a crate below the laser.
             Box3::new("shelf", [-7.0, 4.4, 0.0], [-5.5, 4.95, 1.8]),
             Box3::new("crate", [-3.8, -4.6, 0.0], [-3.2, -4.0, 0.15]),
@@ -313,16 +323,17 @@ impl IndoorConfig {
     }
 }
 
-/// The loop's waypoints (m): around room A, through the door, around room B and back.
+/// The loop's waypoints (m): up room A, through its door into the corridor, along it, into room B,
+/// down room B and back through the middle door into room A.
 pub const WAYPOINTS: [[f64; 2]; 10] = [
     [-6.0, -3.0],
     [-6.0, 3.2],
-    [-2.0, 3.2],
-    [-1.5, 0.0],
-    [1.5, 0.0],
+    [-4.0, 3.6],
+    [-4.0, 6.0],
+    [5.0, 6.0],
+    [5.0, 3.8],
+    [6.5, 3.0],
     [6.5, 0.3],
-    [6.5, 3.5],
-    [1.8, 3.5],
     [1.5, 0.0],
     [-1.5, 0.0],
 ];
