@@ -4,7 +4,9 @@
 //! particle shares every tile with its parent. A write into a shared tile goes into a small delta
 //! over it (the changed cells only: cell-level copy-on-write); a delta that grows past
 //! [`DELTA_MAX`] cells becomes a tile of its own, and one whose base nobody else holds any more is
-//! folded into it in place. Cells keep, besides their log-odds, the mean of the beam end
+//! folded into it in place. After a filter update, [`share_written_tiles`] turns the tiles the
+//! particles wrote alike (siblings writing one scan from nearly the same pose) into deltas over
+//! one another's. Cells keep, besides their log-odds, the mean of the beam end
 //! points that hit them (as gmapping does), so scan matching is not limited to the cell's centre.
 //!
 //! Coordinates: the grid frame is the map (world) frame; cell (i, j) covers
@@ -103,6 +105,22 @@ impl DeltaTile {
         &mut self.cells[self.pos[k] as usize - 1]
     }
 
+    /// `tile` as a delta over `base`, if they differ in at most `max_cells` cells.
+    fn between(base: &Arc<Tile>, tile: &Tile, max_cells: usize) -> Option<Self> {
+        let mut d = Self::new(base.clone());
+        for (k, (a, b)) in base.cells.iter().zip(&tile.cells).enumerate() {
+            if a != b {
+                if d.cells.len() >= max_cells {
+                    return None;
+                }
+                d.cells.push(*b);
+                d.pos[k] = d.cells.len() as u8;
+            }
+        }
+        d.cells.shrink_to_fit();
+        Some(d)
+    }
+
     fn materialise(&self) -> Tile {
         let mut t = (*self.base).clone();
         for (k, c) in t.cells.iter_mut().enumerate() {
@@ -139,12 +157,28 @@ pub struct Grid {
     nx: i32,
     ny: i32,
     tiles: Vec<Slot>,
+    /// Per slot: the write generation it was last written in (parallel to `tiles`).
+    written: Vec<u32>,
+    /// The current write generation (bumped by [`Grid::take_written`]).
+    generation: u32,
+    /// Tiles (absolute tile coordinates) written in the current generation.
+    dirty: Vec<(i32, i32)>,
 }
 
 impl Grid {
     /// An empty grid with square cells of `resolution_m`.
     pub fn new(resolution_m: f64) -> Self {
-        Self { resolution_m, tx0: 0, ty0: 0, nx: 0, ny: 0, tiles: Vec::new() }
+        Self {
+            resolution_m,
+            tx0: 0,
+            ty0: 0,
+            nx: 0,
+            ny: 0,
+            tiles: Vec::new(),
+            written: Vec::new(),
+            generation: 1,
+            dirty: Vec::new(),
+        }
     }
 
     /// Cell side, m.
@@ -217,14 +251,16 @@ impl Grid {
         };
         let (nx, ny) = (x1 - x0, y1 - y0);
         let mut tiles = vec![Slot::Empty; (nx * ny) as usize];
+        let mut written = vec![0; (nx * ny) as usize];
         for y in 0..self.ny {
             for x in 0..self.nx {
                 let src = (y * self.nx + x) as usize;
                 let dst = ((y + self.ty0 - y0) * nx + (x + self.tx0 - x0)) as usize;
                 tiles[dst] = std::mem::take(&mut self.tiles[src]);
+                written[dst] = self.written[src];
             }
         }
-        (self.tx0, self.ty0, self.nx, self.ny, self.tiles) = (x0, y0, nx, ny, tiles);
+        (self.tx0, self.ty0, self.nx, self.ny, self.tiles, self.written) = (x0, y0, nx, ny, tiles, written);
     }
 
     /// The cell (i, j) for writing: grows the grid and creates the tile. A tile another grid
@@ -236,6 +272,10 @@ impl Grid {
         self.grow_to(tx, ty);
         let slot = ((ty - self.ty0) * self.nx + (tx - self.tx0)) as usize;
         let k = ((j & TILE_MASK) as usize) * TILE_SIDE + (i & TILE_MASK) as usize;
+        if self.written[slot] != self.generation {
+            self.written[slot] = self.generation;
+            self.dirty.push((tx, ty));
+        }
         let s = &mut self.tiles[slot];
         match s {
             Slot::Empty => *s = Slot::Full(Arc::new(Tile::default())),
@@ -348,6 +388,18 @@ impl Grid {
         bytes
     }
 
+    /// The tiles (absolute tile coordinates) written since the last call, and starts a new
+    /// write generation.
+    pub fn take_written(&mut self) -> Vec<(i32, i32)> {
+        self.generation = self.generation.wrapping_add(1).max(1);
+        std::mem::take(&mut self.dirty)
+    }
+
+    fn slot_index(&self, tx: i32, ty: i32) -> Option<usize> {
+        let (x, y) = (tx - self.tx0, ty - self.ty0);
+        (x >= 0 && y >= 0 && x < self.nx && y < self.ny).then(|| (y * self.nx + x) as usize)
+    }
+
     /// Bytes of this grid alone (its tiles, deltas and their bases).
     pub fn bytes(&self) -> usize {
         self.add_bytes(&mut std::collections::HashSet::new())
@@ -435,6 +487,59 @@ impl Grid {
     }
 }
 
+/// Shares the tiles the grids wrote since their last [`Grid::take_written`] between them (and
+/// starts a new write generation in each): a written tile that differs from another grid's tile
+/// at the same place in at most `max_cells` cells becomes a delta over that tile. Particles
+/// descended from one parent write nearly the same cells with nearly the same poses (their
+/// tiles differ mostly at the scan's end points), so after an update most of their newly written
+/// tiles become small deltas over a sibling's instead of private copies. Returns the number of
+/// tiles turned into deltas. Reading and writing a grid give the same values before and after.
+pub fn share_written_tiles<'a>(grids: impl IntoIterator<Item = &'a mut Grid>, max_cells: usize) -> usize {
+    /// Tiles kept per place to compare against.
+    const REPS: usize = 6;
+    let max_cells = max_cells.min(DELTA_LIMIT);
+    let mut reps: std::collections::HashMap<(i32, i32), Vec<Arc<Tile>>> = std::collections::HashMap::new();
+    // What each tile already processed became (clones of one particle hold the same tile).
+    let mut done: std::collections::HashMap<usize, Slot> = std::collections::HashMap::new();
+    let mut shared = 0;
+    for g in grids {
+        for (tx, ty) in g.take_written() {
+            let Some(slot) = g.slot_index(tx, ty) else { continue };
+            let Slot::Full(t) = &g.tiles[slot] else { continue };
+            let key = Arc::as_ptr(t) as usize;
+            if let Some(s) = done.get(&key) {
+                g.tiles[slot] = s.clone();
+                continue;
+            }
+            let t = t.clone();
+            let candidates = reps.entry((tx, ty)).or_default();
+            let mut result = Slot::Full(t.clone());
+            for r in candidates.iter() {
+                if Arc::ptr_eq(r, &t) {
+                    break;
+                }
+                if let Some(d) = DeltaTile::between(r, &t, max_cells) {
+                    result = if d.cells.is_empty() { Slot::Full(r.clone()) } else { Slot::Delta(Arc::new(d)) };
+                    shared += 1;
+                    break;
+                }
+            }
+            if matches!(result, Slot::Full(_))
+                && candidates.len() < REPS
+                && !candidates.iter().any(|r| Arc::ptr_eq(r, &t))
+            {
+                candidates.push(t.clone());
+            }
+            g.tiles[slot] = result.clone();
+            done.insert(key, result);
+        }
+    }
+    shared
+}
+
+/// Most cells a delta may hold (its `pos` entries are `u8`).
+const DELTA_LIMIT: usize = 255;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -489,6 +594,53 @@ mod tests {
         g.cast((0.0, 0.0), (-4.0, -3.0), false, &p);
         assert!(g.log_odds(-20, -15) < 0.0);
         assert_eq!(g.known_bounds().map(|b| b.0), Some(-39), "the end cell of a beam without a hit is not touched");
+    }
+
+    #[test]
+    fn tiles_written_alike_are_shared_as_deltas_and_every_cell_reads_the_same() {
+        let p = LogOddsParams::default();
+        let mut parent = Grid::new(0.05);
+        let fan = |g: &mut Grid, ox: f64, oy: f64, dtheta: f64| {
+            for b in 0..180 {
+                let a = (b as f64).to_radians() * 2.0 + dtheta;
+                g.cast((ox, oy), (ox + 4.0 * a.cos(), oy + 3.0 * a.sin()), true, &p);
+            }
+        };
+        fan(&mut parent, 0.0, 0.0, 0.0);
+        parent.take_written();
+        // Four children of one parent write the next scan from slightly different poses; two of
+        // them are clones (a resampled particle picked twice).
+        let mut kids: Vec<Grid> = (0..3).map(|_| parent.clone()).collect();
+        for (k, g) in kids.iter_mut().enumerate() {
+            fan(g, 0.5 + 0.002 * k as f64, 0.1, 0.001 * k as f64);
+        }
+        kids.push(kids[2].clone());
+        let before: Vec<Vec<TileData>> = kids.iter().map(Grid::to_tiles).collect();
+        let bytes = |gs: &[Grid]| {
+            let mut seen = std::collections::HashSet::new();
+            gs.iter().map(|g| g.add_bytes(&mut seen)).sum::<usize>()
+        };
+        let (held, one) = (bytes(&kids), kids[0].bytes());
+        let shared = share_written_tiles(kids.iter_mut(), 128);
+        assert!(shared > 10, "{shared} tiles shared");
+        let after: Vec<Vec<TileData>> = kids.iter().map(Grid::to_tiles).collect();
+        assert_eq!(before, after, "every cell of every grid reads as before");
+        let held_after = bytes(&kids);
+        assert!(held_after < held * 3 / 4, "{held} -> {held_after} bytes (one grid: {one})");
+        assert!(kids.iter().all(|g| g.dirty.is_empty()), "a new write generation");
+        // Writing after sharing copies on write as before: the sibling is untouched.
+        let (i, j) = kids[1].cell_of(0.55, 0.15);
+        let was = kids[0].log_odds(i, j);
+        assert_eq!(kids[2].log_odds(i, j), kids[1].log_odds(i, j), "this cell is alike in the two");
+        for _ in 0..3 {
+            kids[1].add_hit(0.55, 0.15, &p);
+        }
+        assert_eq!(kids[0].log_odds(i, j), was);
+        let expected = (0..3).fold(kids[2].log_odds(i, j), |l, _| (l + p.hit).clamp(p.min, p.max));
+        assert_eq!(kids[1].log_odds(i, j), expected);
+        assert_eq!(kids[1].take_written().len(), 1, "the written tile is listed once");
+        // Nothing written, nothing shared.
+        assert_eq!(share_written_tiles(kids.iter_mut(), 128), 0);
     }
 
     #[test]

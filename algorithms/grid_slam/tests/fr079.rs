@@ -44,9 +44,10 @@ fn fr079_relations_beat_the_drifting_odometry_and_the_published_gmapping_error()
     let odo_traj: Vec<(f64, Pose2)> = log.scans[..n].iter().zip(&drifted).map(|(s, p)| (s.stamp_s, *p)).collect();
     let odometry = score(&odo_traj, &relations, offset, 2.0);
     let mem = f.memory();
+    let peak = f.peak_memory().expect("updates were made");
     eprintln!(
         "fr079 first {n} scans, 8 particles: {} relations, {:.4} ± {:.4} m, {:.3} ± {:.3} deg (odometry {:.4} m, {:.2} deg); \
-         {} updates, {} resamples; memory {} bytes for {} in one map ({:.2}x)",
+         {} updates, {} resamples; memory {} bytes for {} in one map ({:.2}x), peak {} bytes ({:.2}x), {} tiles shared",
         ours.scored,
         ours.trans_mean_m,
         ours.trans_std_m,
@@ -58,7 +59,10 @@ fn fr079_relations_beat_the_drifting_odometry_and_the_published_gmapping_error()
         f.stats().resamples,
         mem.bytes,
         mem.best_bytes,
-        mem.ratio
+        mem.ratio,
+        peak.bytes,
+        peak.bytes as f64 / mem.best_bytes as f64,
+        f.stats().shared_tiles
     );
     assert!(ours.scored > 350, "{ours:?}");
     assert!(ours.trans_mean_m <= 0.061, "gmapping's published 0.061 m: {ours:?}");
@@ -66,4 +70,6 @@ fn fr079_relations_beat_the_drifting_odometry_and_the_published_gmapping_error()
     assert!(ours.rot_mean_deg < 0.5 * odometry.rot_mean_deg, "{ours:?} against odometry {odometry:?}");
     assert!(ours.rot_mean_deg < 1.6, "{ours:?}");
     assert!(mem.ratio < 8.0, "tiles stay shared between the 8 particles: {mem:?}");
+    assert!(f.stats().shared_tiles > 1000, "tiles written alike are shared: {:?}", f.stats());
+    assert!(peak.bytes < 3 * mem.best_bytes, "the peak stays under 3 maps: {peak:?} against {mem:?}");
 }

@@ -281,7 +281,7 @@ impl GridSlamStage {
             "invalid_beams": st.invalid_beams,
             "tracking_failures": st.tracking_failures,
             "proposal_fallbacks": st.proposal_fallbacks,
-            "memory": { "peak_bytes": mem.map(|m| m.bytes), "one_map_bytes": one_map,
+            "memory": { "peak_bytes": mem.map(|m| m.bytes), "one_map_bytes": one_map, "tiles_shared": st.shared_tiles,
                         "peak_over_one_map": mem.map(|m| m.bytes as f64 / one_map.max(1) as f64) },
             "grid": grid_part,
             "trajectory": "grid_slam.tum",

@@ -128,6 +128,7 @@ fn main() -> Result<()> {
         let log = read_carmen(&log_path)?;
         let relations = read_relations(&args.data.join(set.relations))?;
         let odo = log.scan_odometry(OdometrySource::LaserLines);
+        let mut one_particle_map_mb: Option<f64> = None;
         let mut scans: Vec<(usize, Pose2)> = log
             .scans
             .iter()
@@ -179,10 +180,14 @@ fn main() -> Result<()> {
             let traj = f.trajectory();
             let sc = score(&traj, &relations, set.offset_s, 2.0);
             let st = f.stats();
-            // Peak bytes of all particles' distinct tiles against the final map of one particle.
+            // Peak bytes of all particles' distinct tiles against one map: the one-particle run's
+            // map when it ran first (`--particles 1,...`), else this run's best particle's.
             let peak_mb = f.peak_memory().map_or(f64::NAN, |m| m.bytes as f64 / 1e6);
             let one_map_mb = f.memory().best_bytes as f64 / 1e6;
-            let mem = peak_mb / one_map_mb;
+            if n == 1 {
+                one_particle_map_mb = Some(one_map_mb);
+            }
+            let mem = peak_mb / one_particle_map_mb.unwrap_or(one_map_mb);
             let span = traj.last().map_or(0.0, |l| l.0) - traj.first().map_or(0.0, |f| f.0);
             println!(
                 "{:<6} {:>4} {:>6} {:>6} {:>5} {:>8.1} {:>8.0} {:>9.4}±{:<6.4} ({:>4}) {:>8.3}±{:<7.3} {:>7.3}/{:<7.2} {:>8.1} {:>7.1} {:>7.2}",
@@ -233,6 +238,9 @@ fn main() -> Result<()> {
         }
         println!("       published: {}", set.published);
     }
+    println!(
+        "mem x: peak MB of all particles' maps over one map (the one-particle run's when --particles starts with 1, else the best particle's at the end)"
+    );
     println!("maps and trajectories: {}", args.out.display());
     Ok(())
 }
