@@ -2,15 +2,15 @@
 //! file (one channel per service, one schema per wire type, the exact header and payload bytes
 //! of every message), and the `replayer` process publishes a recording back into the pipeline
 //! in the original publish order, so that one stage can be rerun in isolation on recorded
-//! inputs. [`topics`] is the table of recordable services with their wire types, [`record`] the
+//! inputs. `pipeline_runtime::topics` is the table of recordable services with their wire types
+//! (re-exported here), [`record`] the
 //! recorder's settings and MCAP sink, [`replay`] the replayer's settings, file checks and order.
 //! The binaries (`src/bin/`) are the wiring around them.
 
 pub mod record;
 pub mod replay;
 pub mod stage;
-pub mod topics;
 
+pub use pipeline_runtime::topics::{self, Emit, TOPICS, Tap, Topic, TopicError, topic};
 pub use record::{Compression, McapSink, RecorderError, RecorderSettings, SinkOptions, SinkReport};
 pub use replay::{Replay, ReplayError, Replayed, ReplayerSettings, ScanReport, Selection, scan};
-pub use topics::{Emit, TOPICS, Tap, Topic, topic};

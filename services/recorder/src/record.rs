@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 use shared_types::services;
 use shared_types::{BuoyFix, FusedPose, MsgHeader, PoseEstimate, WireType};
 
-use crate::topics::{TOPICS, Topic, topic};
+use pipeline_runtime::topics::{TOPICS, Topic, topic};
 
 /// MCAP schema encoding of the wire types: the schema data is the JSON layout description of
 /// [`Topic::schema_json`].
@@ -226,6 +226,9 @@ pub enum RecorderError {
     /// A port failed.
     #[error(transparent)]
     Port(#[from] pipeline_runtime::PortError),
+    /// A message could not be moved in or out of shared memory.
+    #[error(transparent)]
+    Topic(#[from] pipeline_runtime::topics::TopicError),
     /// A schema or JSON mirror cannot be encoded.
     #[error(transparent)]
     Json(#[from] serde_json::Error),

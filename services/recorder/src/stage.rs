@@ -67,20 +67,32 @@ impl RecorderStage {
         let mut total = 0;
         let Self { sink, taps, counts, last_seq, .. } = self;
         let Some(sink) = sink.as_ref() else { return Ok(0) };
+        let mut failed = None;
         for (index, tap) in taps.iter().enumerate() {
-            total += tap.drain(&mut |r| {
-                let c = &mut counts[index];
-                c.received += 1;
-                if let Some(last) = last_seq.insert((index, r.publisher), r.msg.seq)
-                    && r.msg.seq > last + 1
-                {
-                    c.missed += r.msg.seq - last - 1;
-                }
-                let mut data = Vec::with_capacity(r.header.len() + r.payload.len());
-                data.extend_from_slice(r.header);
-                data.extend_from_slice(r.payload);
-                sink.write(index, monotonic_ns(), r.msg.publish_ns, data)
-            })?;
+            total += tap
+                .drain(&mut |r| {
+                    let c = &mut counts[index];
+                    c.received += 1;
+                    if let Some(last) = last_seq.insert((index, r.publisher), r.msg.seq)
+                        && r.msg.seq > last + 1
+                    {
+                        c.missed += r.msg.seq - last - 1;
+                    }
+                    let mut data = Vec::with_capacity(r.header.len() + r.payload.len());
+                    data.extend_from_slice(r.header);
+                    data.extend_from_slice(r.payload);
+                    match sink.write(index, monotonic_ns(), r.msg.publish_ns, data) {
+                        Ok(()) => std::ops::ControlFlow::Continue(()),
+                        Err(e) => {
+                            failed = Some(e);
+                            std::ops::ControlFlow::Break(())
+                        }
+                    }
+                })
+                .map_err(crate::RecorderError::from)?;
+            if let Some(e) = failed.take() {
+                return Err(e.into());
+            }
         }
         if total > 0 {
             let now = Instant::now();

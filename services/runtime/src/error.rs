@@ -63,6 +63,15 @@ pub enum StageError {
     Stage(Box<dyn std::error::Error + Send + Sync + 'static>),
 }
 
+impl From<crate::topics::TopicError> for StageError {
+    fn from(e: crate::topics::TopicError) -> Self {
+        match e {
+            crate::topics::TopicError::Port(p) => StageError::Port(p),
+            other => StageError::stage(other),
+        }
+    }
+}
+
 impl StageError {
     /// Wraps a stage's own typed error (e.g. `.map_err(StageError::stage)?`).
     pub fn stage(e: impl std::error::Error + Send + Sync + 'static) -> Self {

@@ -15,6 +15,7 @@ pub mod runtime;
 pub mod stage;
 pub mod stats;
 pub mod testing;
+pub mod topics;
 pub mod validate;
 
 pub use clock::monotonic_ns;

@@ -4,18 +4,36 @@
 //! A recorded message is the exact bytes of the user header followed by the payload bytes, both
 //! `#[repr(C)]` without padding as in `docs/WIRE_FORMAT.md`: for a slice service, the elements one
 //! after another. [`Topic::check_len`] says whether a byte string can be such a message, and the
-//! [`Tap`] / [`Emit`] ports move these bytes in and out of shared memory.
+//! [`Tap`] / [`Emit`] ports move these bytes in and out of shared memory. The recorder and the
+//! replayer use them, and so does the bridge (the same bytes over Zenoh).
 
 use std::fmt::Debug;
 
-use iceoryx2::prelude::ZeroCopySend;
-use pipeline_runtime::ports::Header;
-use pipeline_runtime::runtime::RuntimeError;
-use pipeline_runtime::{Delivery, Input, Output, Runtime};
+use std::ops::ControlFlow;
 
-use crate::record::RecorderError;
+use iceoryx2::prelude::ZeroCopySend;
+
+use crate::ports::Header;
+use crate::runtime::RuntimeError;
+use crate::{Delivery, Input, Output, PortError, Runtime};
 use shared_types::services::{self, Qos};
 use shared_types::*;
+
+/// Why a message cannot be moved through a [`Tap`] or an [`Emit`].
+#[derive(Debug, thiserror::Error)]
+pub enum TopicError {
+    /// A message cannot be taken as its service's wire type.
+    #[error("`{service}`: {what}")]
+    Message {
+        /// The service.
+        service: String,
+        /// What is wrong.
+        what: String,
+    },
+    /// A port failed.
+    #[error(transparent)]
+    Port(#[from] PortError),
+}
 
 /// One recordable service and its wire types.
 #[derive(Debug, Clone, Copy)]
@@ -227,8 +245,9 @@ pub struct Received<'a> {
 pub trait Tap {
     /// The service.
     fn service(&self) -> &'static str;
-    /// Receives every queued message, calling `sink` for each; returns how many there were.
-    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> Result<(), RecorderError>) -> Result<usize, RecorderError>;
+    /// Receives every queued message, calling `sink` for each until it breaks; returns how many
+    /// were received.
+    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> ControlFlow<()>) -> Result<usize, TopicError>;
 }
 
 /// A publisher that sends recorded messages (header and payload bytes).
@@ -238,9 +257,18 @@ pub trait Emit {
     /// Sends one recorded message (already checked with [`Topic::check_len`]): the header's
     /// `seq`, `origin_ns` and `publish_ns` are stamped anew by the publishing runtime, everything
     /// else is sent bit for bit. Returns (subscribers reached, subscribers registered).
-    fn emit(&mut self, data: &[u8]) -> Result<(usize, usize), RecorderError>;
+    fn emit(&mut self, data: &[u8]) -> Result<(usize, usize), TopicError> {
+        self.send_bytes(data, false)
+    }
+    /// Sends one message forwarded from elsewhere (a bridge): as [`Emit::emit`], but keeps the
+    /// header's `origin_ns` (when set), so that end-to-end latency spans the hops before.
+    fn forward(&mut self, data: &[u8]) -> Result<(usize, usize), TopicError> {
+        self.send_bytes(data, true)
+    }
+    /// Sends `data`; `keep_origin` keeps the header's `origin_ns`.
+    fn send_bytes(&mut self, data: &[u8], keep_origin: bool) -> Result<(usize, usize), TopicError>;
     /// Wakes the subscribers so that they attach before the first message.
-    fn nudge(&self) -> Result<(), RecorderError>;
+    fn nudge(&self) -> Result<(), TopicError>;
 }
 
 struct FixedTap<T: Debug + ZeroCopySend + 'static, H: Header> {
@@ -260,16 +288,19 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Tap for FixedTap<
         self.service
     }
 
-    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> Result<(), RecorderError>) -> Result<usize, RecorderError> {
+    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> ControlFlow<()>) -> Result<usize, TopicError> {
         let mut n = 0;
         while let Some(s) = self.input.receive()? {
             n += 1;
-            sink(Received {
+            let flow = sink(Received {
                 publisher: s.publisher_id(),
                 msg: *s.user_header().msg(),
                 header: s.user_header().as_bytes(),
                 payload: s.payload().as_bytes(),
-            })?;
+            });
+            if flow.is_break() {
+                break;
+            }
         }
         Ok(n)
     }
@@ -292,32 +323,41 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Tap for SliceTap<
         self.service
     }
 
-    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> Result<(), RecorderError>) -> Result<usize, RecorderError> {
+    fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> ControlFlow<()>) -> Result<usize, TopicError> {
         let mut n = 0;
         while let Some(s) = self.input.receive()? {
             n += 1;
-            sink(Received {
+            let flow = sink(Received {
                 publisher: s.publisher_id(),
                 msg: *s.user_header().msg(),
                 header: s.user_header().as_bytes(),
                 payload: slice_bytes(s.payload()),
-            })?;
+            });
+            if flow.is_break() {
+                break;
+            }
         }
         Ok(n)
     }
 }
 
 /// Splits a checked message into its header (with the transport fields cleared, so that the
-/// publishing runtime stamps them) and its payload bytes.
-fn split_header<'a, H: Header + WireType>(service: &str, data: &'a [u8]) -> Result<(H, &'a [u8]), RecorderError> {
+/// publishing runtime stamps them; `origin_ns` kept if asked) and its payload bytes.
+fn split_header<'a, H: Header + WireType>(
+    service: &str,
+    data: &'a [u8],
+    keep_origin: bool,
+) -> Result<(H, &'a [u8]), TopicError> {
     let hs = size_of::<H>();
-    let mut header = data.get(..hs).and_then(H::from_bytes).ok_or_else(|| RecorderError::Message {
+    let mut header = data.get(..hs).and_then(H::from_bytes).ok_or_else(|| TopicError::Message {
         service: service.into(),
         what: format!("message of {} bytes has no whole user header", data.len()),
     })?;
     let m = header.msg_mut();
     m.seq = 0;
-    m.origin_ns = 0;
+    if !keep_origin {
+        m.origin_ns = 0;
+    }
     m.publish_ns = 0;
     Ok((header, &data[hs..]))
 }
@@ -341,9 +381,9 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for FixedEmi
         self.service
     }
 
-    fn emit(&mut self, data: &[u8]) -> Result<(usize, usize), RecorderError> {
-        let (header, payload) = split_header::<H>(self.service, data)?;
-        let value = T::from_bytes(payload).ok_or_else(|| RecorderError::Message {
+    fn send_bytes(&mut self, data: &[u8], keep_origin: bool) -> Result<(usize, usize), TopicError> {
+        let (header, payload) = split_header::<H>(self.service, data, keep_origin)?;
+        let value = T::from_bytes(payload).ok_or_else(|| TopicError::Message {
             service: self.service.into(),
             what: format!("payload of {} bytes, the type has {}", payload.len(), size_of::<T>()),
         })?;
@@ -352,7 +392,7 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for FixedEmi
         Ok((reached, registered))
     }
 
-    fn nudge(&self) -> Result<(), RecorderError> {
+    fn nudge(&self) -> Result<(), TopicError> {
         Ok(self.output.nudge()?)
     }
 }
@@ -377,11 +417,11 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for SliceEmi
         self.service
     }
 
-    fn emit(&mut self, data: &[u8]) -> Result<(usize, usize), RecorderError> {
-        let (header, payload) = split_header::<H>(self.service, data)?;
+    fn send_bytes(&mut self, data: &[u8], keep_origin: bool) -> Result<(usize, usize), TopicError> {
+        let (header, payload) = split_header::<H>(self.service, data, keep_origin)?;
         let size = size_of::<T>();
         if payload.len() % size != 0 {
-            return Err(RecorderError::Message {
+            return Err(TopicError::Message {
                 service: self.service.into(),
                 what: format!("slice payload of {} bytes is not a multiple of {size}", payload.len()),
             });
@@ -396,7 +436,7 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for SliceEmi
         Ok((reached, registered))
     }
 
-    fn nudge(&self) -> Result<(), RecorderError> {
+    fn nudge(&self) -> Result<(), TopicError> {
         Ok(self.output.nudge()?)
     }
 }
