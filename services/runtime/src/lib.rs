@@ -25,7 +25,7 @@ pub use iox::IoxScope;
 pub use ports::{Delivery, Input, Output, PortError};
 pub use protocol::{CheckReport, process_main};
 pub use restart::{Restart, StateStore};
-pub use runtime::{Flow, ProcessArgs, ProcessContext, Runtime, RuntimeOptions, StopReason, Wake};
+pub use runtime::{Flow, ProcessArgs, ProcessContext, Runtime, RuntimeOptions, StopReason, Wake, Waker};
 pub use stage::{EndAfter, Ending, Stage, Step, stage_main};
 pub use stats::{LatencySummary, StatsReport};
 

@@ -209,6 +209,53 @@ pub struct Runtime {
     wake_at: Option<Instant>,
     /// The stage's restart state (disabled until [`crate::stage::run_stage`] opens it).
     restart_state: crate::restart::StateStore,
+    /// Threads that turn [`Waker::wake`] calls into iceoryx2 events (joined on drop).
+    wakers: Vec<WakerThread>,
+}
+
+/// Wakes a process's loop from any thread (a network callback, a worker): [`Runtime::waker`].
+/// Cheap to clone and to call; wakes that come while one is pending are merged.
+#[derive(Debug, Clone)]
+pub struct Waker {
+    tx: std::sync::mpsc::SyncSender<()>,
+}
+
+impl Waker {
+    /// Wakes the loop (the stage's next `step` sees `wake.data`); never blocks.
+    pub fn wake(&self) {
+        let _ = self.tx.try_send(());
+    }
+}
+
+/// The thread behind [`Waker`]s: owns its own iceoryx2 node and the notifier (iceoryx2 ports
+/// stay on the thread that made them).
+struct WakerThread {
+    stop: Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Drop for WakerThread {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The event service of a [`Waker`].
+fn open_wake_event(
+    node: &Node<ipc::Service>,
+    name: &str,
+) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, RuntimeError> {
+    let svc_name = ServiceName::new(name).map_err(|_| RuntimeError::Port(PortError::InvalidName(name.to_string())))?;
+    node.service_builder(&svc_name)
+        .event()
+        .max_notifiers(2)
+        .max_listeners(1)
+        .max_nodes(2)
+        .open_or_create()
+        .map_err(|e| RuntimeError::Port(PortError::Open { service: name.to_string(), reason: format!("{e:?}") }))
 }
 
 fn qos_of(service: &str) -> Result<Qos, RuntimeError> {
@@ -234,6 +281,7 @@ impl Runtime {
             options,
             ports: vec![],
             listeners: vec![],
+            wakers: vec![],
             connectors: vec![],
             heartbeat: None,
             stats_out: None,
@@ -288,6 +336,7 @@ impl Runtime {
             options: RuntimeOptions { publish_control: false, final_stats_dir: None, ..Default::default() },
             ports: vec![],
             listeners: vec![],
+            wakers: vec![],
             connectors: vec![],
             heartbeat: None,
             stats_out: None,
@@ -495,6 +544,63 @@ impl Runtime {
     /// [`Runtime::ended_upstream`].
     pub fn failed_upstream(&self) -> Vec<String> {
         self.failed_upstream.borrow().iter().cloned().collect()
+    }
+
+    /// A [`Waker`] for work that arrives outside iceoryx2 (a network callback, another thread):
+    /// its `wake` makes the loop's WaitSet return (no polling). The event travels on the
+    /// private service `pipeline/wake/<process>/<pid>/<n>` through a thread with its own node,
+    /// stopped and joined when the runtime is dropped. Needs shared memory (not in-process).
+    pub fn waker(&mut self) -> Result<Waker, RuntimeError> {
+        let (Some(node), Some(scope)) = (&self.node, &self.scope) else { return Err(RuntimeError::Local) };
+        let name = format!("pipeline/wake/{}/{}/{}", self.name, self.pid, self.wakers.len());
+        let svc = open_wake_event(node, &name)?;
+        let listener = svc
+            .listener_builder()
+            .create()
+            .map_err(|e| RuntimeError::Port(PortError::Open { service: name.clone(), reason: format!("{e:?}") }))?;
+        self.listeners.push(Rc::new(listener));
+        let (tx, rx) = std::sync::mpsc::sync_channel::<()>(1);
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let (scope, node_name, stop_t, name_t) =
+            (scope.clone(), format!("{}.waker{}", self.name, self.wakers.len()), stop.clone(), name.clone());
+        // The notifier is made on the thread (and reported back) so that a failure is an error here.
+        let (ready_tx, ready_rx) = std::sync::mpsc::channel::<Result<(), String>>();
+        let thread = std::thread::Builder::new()
+            .name("waker".into())
+            .spawn(move || {
+                let setup = || -> Result<_, String> {
+                    let node = scope.create_node(&node_name).map_err(|e| e.to_string())?;
+                    let svc = open_wake_event(&node, &name_t).map_err(|e| e.to_string())?;
+                    let notifier = svc.notifier_builder().create().map_err(|e| format!("{e:?}"))?;
+                    Ok((node, notifier))
+                };
+                let (_node, notifier) = match setup() {
+                    Ok(x) => {
+                        let _ = ready_tx.send(Ok(()));
+                        x
+                    }
+                    Err(e) => {
+                        let _ = ready_tx.send(Err(e));
+                        return;
+                    }
+                };
+                while !stop_t.load(Ordering::Relaxed) {
+                    match rx.recv_timeout(Duration::from_millis(200)) {
+                        Ok(()) => {
+                            if let Err(e) = notifier.notify() {
+                                tracing::warn!("waker: {e:?}");
+                            }
+                        }
+                        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
+                        Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
+                    }
+                }
+            })
+            .map_err(|e| RuntimeError::WaitSet(format!("waker thread: {e}")))?;
+        let ready = ready_rx.recv().unwrap_or_else(|_| Err("the waker thread ended".into()));
+        self.wakers.push(WakerThread { stop, thread: Some(thread) });
+        ready.map_err(|reason| RuntimeError::Port(PortError::Open { service: name, reason }))?;
+        Ok(Waker { tx })
     }
 
     /// Asks for a `wake.tick` at `at` (earlier than the regular tick, if need be): for sources that

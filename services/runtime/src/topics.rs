@@ -199,6 +199,18 @@ impl Topic {
         (self.emitter)(rt, self.service, qos, delivery)
     }
 
+    /// Creates a publisher with this topic's wire types on another service name (e.g. a bridged
+    /// robot's stream kept apart under `r2/...`).
+    pub fn emitter_on(
+        &self,
+        rt: &mut Runtime,
+        service: &'static str,
+        qos: &Qos,
+        delivery: Delivery,
+    ) -> Result<Box<dyn Emit>, RuntimeError> {
+        (self.emitter)(rt, service, qos, delivery)
+    }
+
     /// The MCAP schema data of this topic: a JSON description of the user header and payload
     /// layouts (every field's name, type, offset, size and meaning), as in `docs/WIRE_FORMAT.md`.
     pub fn schema_json(&self) -> serde_json::Value {

@@ -1,0 +1,367 @@
+//! The Zenoh bridge (issue #16): one pipeline spanning several hosts. A `bridge` process forwards
+//! configured services from its host's iceoryx2 pipeline to Zenoh (`out`) and from Zenoh into its
+//! host's pipeline (`in`).
+//!
+//! - **Keys**: a service `s` of robot `r` travels on the key `<namespace>/<r>/<s>` (e.g.
+//!   `slam/r1/pipeline/fusion/pose`). The value is the message exactly as on the wire
+//!   (docs/WIRE_FORMAT.md): the user header's bytes followed by the payload's bytes. The Zenoh
+//!   attachment carries the wire signature ([`signature`]: wire version, user header and payload
+//!   type names, slice or not); a receiver checks it and the length against its own types, and a
+//!   mismatch is counted and logged, never published.
+//! - **Received messages** are written into loaned iceoryx2 samples with the contract's QoS,
+//!   `seq` and `publish_ns` stamped anew, `origin_ns` kept: end-to-end latency spans both hosts.
+//!   That assumes the hosts' `CLOCK_MONOTONIC` clocks are comparable, which holds only on one
+//!   machine (two pipelines on loopback or in network namespaces); across machines the
+//!   cross-host latency is only as good as the offset between their clocks.
+//! - **Policy per route**: `reliable` (Zenoh congestion control `Block`: a slow link slows the
+//!   sender down, nothing is dropped) for poses, fixes and ends of stream; `drop_oldest`
+//!   (congestion control `Drop`, with `max_rate_hz`) for clouds and voxel maps over a slow link.
+//! - **End of stream**: when its inputs are over, an `out` bridge sends an end marker on
+//!   `<namespace>/<robot>/_bridge/end` with the count it sent per service, and waits (up to
+//!   `end_ack_timeout_s`) for a receiving bridge's acknowledgement. An `in` bridge that has the
+//!   end markers of every robot it receives from (and has published what came before them) ends
+//!   its own stream, so the processes after it end as in a one-host pipeline; what it did not get
+//!   is counted per service (sent by the other side minus received).
+//!
+//! Everything is counted per route and direction in summary.json (`bridge.out`, `bridge.in`).
+
+pub mod stage;
+
+use pipeline_runtime::config::{Issues, ProcessSettings};
+use pipeline_runtime::topics::{TOPICS, Topic, topic};
+use serde::Deserialize;
+
+/// The bridge's settings (`[processes.<name>.settings]`).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BridgeSettings {
+    /// First chunk of every key: keeps several deployments apart on one Zenoh network.
+    #[serde(default = "default_namespace")]
+    pub namespace: String,
+    /// This pipeline's name in the keys it publishes (`out`).
+    #[serde(default)]
+    pub robot: String,
+    /// The Zenoh session.
+    #[serde(default)]
+    pub zenoh: ZenohSettings,
+    /// Services sent from this pipeline to Zenoh.
+    #[serde(default)]
+    pub out: Vec<OutRoute>,
+    /// Services received from Zenoh into this pipeline.
+    #[serde(default, rename = "in")]
+    pub inbound: Vec<InRoute>,
+    /// Processes whose end ends the `out` direction (empty: the first upstream process to end).
+    #[serde(default)]
+    pub end_after: Vec<String>,
+    /// Before its first message, wait this long for a subscriber on the other side of every
+    /// reliable `out` route (what is sent before the other side subscribes is lost), s; 0: do
+    /// not wait.
+    #[serde(default = "default_wait")]
+    pub wait_for_remote_s: f64,
+    /// After the end marker, wait this long for the other side's acknowledgement, s.
+    #[serde(default = "default_ack")]
+    pub end_ack_timeout_s: f64,
+    /// Received messages queued before they are published (beyond it, the oldest is dropped and
+    /// counted).
+    #[serde(default = "default_queue")]
+    pub queue_messages: usize,
+}
+
+fn default_namespace() -> String {
+    "slam".into()
+}
+fn default_wait() -> f64 {
+    20.0
+}
+fn default_ack() -> f64 {
+    5.0
+}
+fn default_queue() -> usize {
+    4096
+}
+
+/// The Zenoh session of a bridge.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ZenohSettings {
+    /// `peer`, `client` (through a router: `connect` names it) or `router`.
+    #[serde(default = "default_mode")]
+    pub mode: String,
+    /// Endpoints to listen on, e.g. `tcp/0.0.0.0:7447`.
+    #[serde(default)]
+    pub listen: Vec<String>,
+    /// Endpoints to connect to (a peer's or a `zenohd` router's), e.g. `tcp/10.0.0.2:7447`.
+    #[serde(default)]
+    pub connect: Vec<String>,
+    /// Find peers by UDP multicast scouting (off: many networks block multicast; name the
+    /// endpoints instead).
+    #[serde(default)]
+    pub multicast_scouting: bool,
+}
+
+fn default_mode() -> String {
+    "peer".into()
+}
+
+impl Default for ZenohSettings {
+    fn default() -> Self {
+        Self { mode: default_mode(), listen: vec![], connect: vec![], multicast_scouting: false }
+    }
+}
+
+/// What a route does when the link cannot keep up.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Policy {
+    /// Block the sender until the link takes the message (nothing dropped).
+    #[default]
+    Reliable,
+    /// Drop rather than wait, and send at most `max_rate_hz`.
+    DropOldest,
+}
+
+/// A service sent to Zenoh.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OutRoute {
+    /// The local service (one of the contract's, e.g. `pipeline/fusion/pose`).
+    pub service: String,
+    /// `reliable` (default) or `drop_oldest`.
+    #[serde(default)]
+    pub policy: Policy,
+    /// Most messages per second sent (drop_oldest only; 0: no limit).
+    #[serde(default)]
+    pub max_rate_hz: f64,
+}
+
+/// A service received from Zenoh.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InRoute {
+    /// The robot (the sending bridge's `robot`).
+    pub from: String,
+    /// The service as the sender names it.
+    pub service: String,
+    /// The local service it is published on (default: the same name). Two robots' streams of one
+    /// service are kept apart by publishing them on different local names (e.g.
+    /// `r2/pipeline/fusion/pose`); the wire types are those of `service`.
+    #[serde(default)]
+    pub local: String,
+}
+
+impl InRoute {
+    /// The local service name.
+    pub fn local_service(&self) -> &str {
+        if self.local.is_empty() { &self.service } else { &self.local }
+    }
+}
+
+/// The wire signature of a topic, sent as each message's Zenoh attachment and checked on receipt.
+pub fn signature(t: &Topic) -> String {
+    format!(
+        "slam-wire;v={};h={};p={};slice={}",
+        shared_types::WIRE_VERSION,
+        (t.header)().type_name,
+        t.payload_type_name(),
+        t.slice
+    )
+}
+
+/// The Zenoh key of `service` sent by `robot`.
+pub fn key(namespace: &str, robot: &str, service: &str) -> String {
+    format!("{namespace}/{robot}/{service}")
+}
+
+/// The key of `robot`'s end marker.
+pub fn end_key(namespace: &str, robot: &str) -> String {
+    format!("{namespace}/{robot}/_bridge/end")
+}
+
+/// The key of the acknowledgement of `robot`'s end marker.
+pub fn ack_key(namespace: &str, robot: &str) -> String {
+    format!("{namespace}/{robot}/_bridge/ack")
+}
+
+/// A key chunk: letters, digits, `_`, `-`, `.` (no Zenoh wildcards or separators).
+fn is_chunk(s: &str) -> bool {
+    !s.is_empty() && s.chars().all(|c| c.is_ascii_alphanumeric() || "_-.".contains(c))
+}
+
+/// A service name usable in a key: chunks joined by `/`.
+fn is_path(s: &str) -> bool {
+    !s.is_empty() && s.split('/').all(is_chunk)
+}
+
+fn topics_list() -> String {
+    TOPICS.iter().map(|t| t.service).collect::<Vec<_>>().join(", ")
+}
+
+/// Checks an endpoint `<protocol>/<address>`.
+fn endpoint_ok(e: &str) -> bool {
+    match e.split_once('/') {
+        Some((proto, addr)) => ["tcp", "udp", "tls", "quic", "ws"].contains(&proto) && !addr.is_empty(),
+        None => false,
+    }
+}
+
+impl ProcessSettings for BridgeSettings {
+    fn validate(&self, key: &str, issues: &mut Issues) {
+        issues.check(
+            is_path(&self.namespace),
+            format!("{key}.namespace"),
+            "must be key chunks (letters, digits, _ - .) joined by /",
+        );
+        if !self.out.is_empty() {
+            issues.check(
+                is_chunk(&self.robot),
+                format!("{key}.robot"),
+                "an `out` bridge needs its robot's name (letters, digits, _ - .)",
+            );
+        } else if !self.robot.is_empty() {
+            issues.check(is_chunk(&self.robot), format!("{key}.robot"), "letters, digits, _ - . only");
+        }
+        issues.check(
+            !self.out.is_empty() || !self.inbound.is_empty(),
+            format!("{key}.out"),
+            "the bridge forwards nothing: give `out` and/or `in` routes",
+        );
+        let z = &self.zenoh;
+        issues.check(
+            ["peer", "client", "router"].contains(&z.mode.as_str()),
+            format!("{key}.zenoh.mode"),
+            format!("`{}`: one of peer, client, router", z.mode),
+        );
+        for (field, list) in [("listen", &z.listen), ("connect", &z.connect)] {
+            for (i, e) in list.iter().enumerate() {
+                issues.check(
+                    endpoint_ok(e),
+                    format!("{key}.zenoh.{field}[{i}]"),
+                    format!("`{e}`: an endpoint is <protocol>/<address>, e.g. tcp/192.168.1.2:7447"),
+                );
+            }
+        }
+        if z.mode == "client" {
+            issues.check(
+                !z.connect.is_empty(),
+                format!("{key}.zenoh.connect"),
+                "a client needs a router or peer to connect to",
+            );
+        }
+        if z.listen.is_empty() && z.connect.is_empty() && !z.multicast_scouting {
+            issues.push(
+                format!("{key}.zenoh"),
+                "with neither `listen` nor `connect` endpoints and multicast scouting off, the bridge can reach no one",
+            );
+        }
+        let mut seen = std::collections::BTreeSet::new();
+        for (i, r) in self.out.iter().enumerate() {
+            issues.check(
+                topic(&r.service).is_some(),
+                format!("{key}.out[{i}].service"),
+                format!("`{}` is not a service that can be bridged (one of: {})", r.service, topics_list()),
+            );
+            issues.check(
+                seen.insert(r.service.clone()),
+                format!("{key}.out[{i}].service"),
+                format!("`{}` is routed twice", r.service),
+            );
+            issues.check(
+                r.max_rate_hz.is_finite() && r.max_rate_hz >= 0.0,
+                format!("{key}.out[{i}].max_rate_hz"),
+                "must be >= 0",
+            );
+            issues.check(
+                r.max_rate_hz == 0.0 || r.policy == Policy::DropOldest,
+                format!("{key}.out[{i}].max_rate_hz"),
+                "a rate limit drops messages: set `policy = \"drop_oldest\"` too",
+            );
+        }
+        let mut locals = std::collections::BTreeSet::new();
+        for (i, r) in self.inbound.iter().enumerate() {
+            issues.check(
+                is_chunk(&r.from),
+                format!("{key}.in[{i}].from"),
+                "the sending robot's name (letters, digits, _ - .)",
+            );
+            issues.check(
+                topic(&r.service).is_some(),
+                format!("{key}.in[{i}].service"),
+                format!("`{}` is not a service that can be bridged (one of: {})", r.service, topics_list()),
+            );
+            issues.check(
+                is_path(r.local_service()),
+                format!("{key}.in[{i}].local"),
+                "a service name: chunks joined by /",
+            );
+            issues.check(
+                locals.insert(r.local_service().to_string()),
+                format!("{key}.in[{i}].local"),
+                format!("`{}` is published by two routes: give one a `local` name", r.local_service()),
+            );
+            issues.check(
+                !self.out.iter().any(|o| o.service == r.local_service()),
+                format!("{key}.in[{i}].local"),
+                format!("`{}` is also sent out: it would loop back", r.local_service()),
+            );
+        }
+        for (field, v) in [("wait_for_remote_s", self.wait_for_remote_s), ("end_ack_timeout_s", self.end_ack_timeout_s)]
+        {
+            issues.check(v.is_finite() && v >= 0.0, format!("{key}.{field}"), "must be >= 0");
+        }
+        issues.check(self.queue_messages >= 1, format!("{key}.queue_messages"), "must be at least 1");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn issues(text: &str) -> Vec<String> {
+        let s: BridgeSettings = toml::from_str(text).expect("parses");
+        let mut i = Issues::default();
+        s.validate("processes.b.settings", &mut i);
+        i.0.iter().map(|c| format!("{}: {}", c.key, c.message)).collect()
+    }
+
+    #[test]
+    fn settings_errors_name_the_key() {
+        let ok = r#"
+robot = "r1"
+zenoh = { listen = ["tcp/127.0.0.1:7447"] }
+out = [{ service = "pipeline/fusion/pose" }, { service = "pipeline/sensors/cloud", policy = "drop_oldest", max_rate_hz = 2.0 }]
+in = [{ from = "r2", service = "pipeline/fusion/pose", local = "r2/pipeline/fusion/pose" }]
+"#;
+        assert!(issues(ok).is_empty(), "{:?}", issues(ok));
+        let bad = r#"
+robot = "r/1"
+zenoh = { mode = "mesh", connect = ["127.0.0.1:7447"] }
+out = [{ service = "pipeline/nope" }, { service = "pipeline/sensors/cloud", max_rate_hz = 2.0 }]
+in = [{ from = "r2", service = "pipeline/fusion/pose" }, { from = "r3", service = "pipeline/fusion/pose" }]
+"#;
+        let got = issues(bad).join("\n");
+        for needle in [
+            "processes.b.settings.robot",
+            "processes.b.settings.zenoh.mode: `mesh`",
+            "processes.b.settings.zenoh.connect[0]: `127.0.0.1:7447`",
+            "processes.b.settings.out[0].service: `pipeline/nope`",
+            "processes.b.settings.out[1].max_rate_hz",
+            "processes.b.settings.in[1].local: `pipeline/fusion/pose` is published by two routes",
+        ] {
+            assert!(got.contains(needle), "missing {needle:?} in\n{got}");
+        }
+        let nothing = issues("zenoh = { listen = [\"tcp/127.0.0.1:1\"] }").join("\n");
+        assert!(nothing.contains("forwards nothing"), "{nothing}");
+        let deaf = issues("robot = \"r\"\nout = [{ service = \"pipeline/fusion/pose\" }]").join("\n");
+        assert!(deaf.contains("can reach no one"), "{deaf}");
+    }
+
+    #[test]
+    fn keys_and_signatures() {
+        assert_eq!(key("slam", "r1", "pipeline/fusion/pose"), "slam/r1/pipeline/fusion/pose");
+        let pose = topic("pipeline/fusion/pose").unwrap();
+        let cloud = topic("pipeline/sensors/cloud").unwrap();
+        assert!(signature(pose).contains("slice=false"));
+        assert!(signature(cloud).contains("slice=true"));
+        assert_ne!(signature(pose), signature(cloud));
+    }
+}

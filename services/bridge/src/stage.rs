@@ -1,0 +1,589 @@
+//! The bridge as a [`Stage`]: its `out` routes are taps (subscribers) drained into Zenoh
+//! publishers at every wake-up; its `in` routes are Zenoh subscribers whose callbacks queue the
+//! received bytes and wake the loop through a [`pipeline_runtime::Waker`] (no polling), and the
+//! step publishes them into loaned iceoryx2 samples. See the crate docs for keys, policies, the
+//! end of stream and what is counted.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
+use std::ops::ControlFlow;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
+use pipeline_runtime::topics::{Emit, Tap, Topic, topic};
+use pipeline_runtime::{Delivery, ProcessContext, Runtime, StageError, Wake};
+use shared_types::WireType;
+use shared_types::services;
+use zenoh::Wait;
+use zenoh::qos::CongestionControl;
+
+use crate::{BridgeSettings, Policy, ack_key, end_key, key, signature};
+
+/// Counters of one `out` route.
+#[derive(Debug, Default, Clone, Copy, serde::Serialize)]
+struct OutCounts {
+    /// Messages taken from the local service.
+    received: u64,
+    /// Handed to Zenoh.
+    sent: u64,
+    /// Not sent: over the route's `max_rate_hz`.
+    rate_dropped: u64,
+    /// Not sent: Zenoh refused them.
+    send_errors: u64,
+    /// Missed on the local service before the bridge took them (sequence gaps per publisher).
+    missed_locally: u64,
+}
+
+struct OutRoute {
+    topic: &'static Topic,
+    tap: Box<dyn Tap>,
+    publisher: zenoh::pubsub::Publisher<'static>,
+    policy: Policy,
+    min_interval: Option<Duration>,
+    next_send: Option<Instant>,
+    signature: Vec<u8>,
+    counts: OutCounts,
+    last_seq: HashMap<u128, u64>,
+    warned: bool,
+}
+
+/// Counters of one `in` route.
+#[derive(Debug, Default, Clone, Copy, serde::Serialize)]
+struct InCounts {
+    /// Messages that arrived from Zenoh.
+    received: u64,
+    /// Published into the local pipeline.
+    published: u64,
+    /// Refused: the wire signature (version, types) differs from this side's.
+    wrong_type: u64,
+    /// Refused: the length is not a message of the service's types.
+    bad_length: u64,
+    /// Dropped: the bridge's receive queue was full.
+    queue_dropped: u64,
+    /// Published but not delivered to a local subscriber (its queue was full or it died).
+    undelivered: u64,
+    /// Gaps in the sender's sequence numbers (lost on the way, before or over the link).
+    seq_gaps: u64,
+}
+
+struct InRoute {
+    from: String,
+    service: String,
+    local: &'static str,
+    topic: &'static Topic,
+    signature: Vec<u8>,
+    emitter: Box<dyn Emit>,
+    counts: InCounts,
+    last_seq: Option<u64>,
+    warned: bool,
+    _subscriber: zenoh::pubsub::Subscriber<()>,
+}
+
+/// What the Zenoh callbacks hand to the stage.
+enum Incoming {
+    Data { route: usize, bytes: Vec<u8>, attachment: Option<Vec<u8>> },
+    End { from: String, body: Vec<u8> },
+}
+
+/// The queue between the Zenoh callbacks and the stage.
+struct Inbox {
+    queue: Mutex<VecDeque<Incoming>>,
+    capacity: usize,
+    /// Per `in` route: dropped because the queue was full.
+    dropped: Vec<AtomicU64>,
+    waker: Option<pipeline_runtime::Waker>,
+}
+
+impl Inbox {
+    fn push(&self, item: Incoming) {
+        {
+            let mut q = self.queue.lock().unwrap_or_else(|p| p.into_inner());
+            if q.len() >= self.capacity
+                && let Some(pos) = q.iter().position(|i| matches!(i, Incoming::Data { .. }))
+                && let Some(Incoming::Data { route, .. }) = q.remove(pos)
+            {
+                self.dropped[route].fetch_add(1, Ordering::Relaxed);
+            }
+            q.push_back(item);
+        }
+        if let Some(w) = &self.waker {
+            w.wake();
+        }
+    }
+
+    fn take(&self) -> VecDeque<Incoming> {
+        std::mem::take(&mut *self.queue.lock().unwrap_or_else(|p| p.into_inner()))
+    }
+
+    fn is_empty(&self) -> bool {
+        self.queue.lock().unwrap_or_else(|p| p.into_inner()).is_empty()
+    }
+}
+
+/// The `bridge` stage.
+pub struct BridgeStage {
+    settings: BridgeSettings,
+    session: zenoh::Session,
+    outs: Vec<OutRoute>,
+    ins: Vec<InRoute>,
+    inbox: Arc<Inbox>,
+    /// The robots this bridge receives from, and what each said it sent (once its end marker came).
+    ends: BTreeMap<String, Option<BTreeMap<String, u64>>>,
+    _end_subscribers: Vec<zenoh::pubsub::Subscriber<()>>,
+    /// Set when a receiving bridge acknowledged this bridge's end marker.
+    acked: Arc<AtomicBool>,
+    _ack_subscriber: Option<zenoh::pubsub::Subscriber<()>>,
+    end_acknowledged: Option<bool>,
+    published: u64,
+    started: Instant,
+}
+
+fn zenoh_err(what: impl std::fmt::Display, e: impl std::fmt::Display) -> StageError {
+    StageError::msg(format!("zenoh: {what}: {e}"))
+}
+
+/// The Zenoh configuration of `settings` (errors name the key).
+fn zenoh_config(s: &BridgeSettings) -> Result<zenoh::Config, StageError> {
+    let mut c = zenoh::Config::default();
+    let json = |v: &dyn erased::Json| v.json();
+    let set = |c: &mut zenoh::Config, k: &str, v: String| {
+        c.insert_json5(k, &v).map_err(|e| StageError::Settings(format!("zenoh.{k} = {v}: {e}")))
+    };
+    set(&mut c, "mode", json(&s.zenoh.mode))?;
+    set(&mut c, "listen/endpoints", json(&s.zenoh.listen))?;
+    set(&mut c, "connect/endpoints", json(&s.zenoh.connect))?;
+    set(&mut c, "scouting/multicast/enabled", s.zenoh.multicast_scouting.to_string())?;
+    // Keep trying the peers named in `connect` if they are not up yet (or go away).
+    set(&mut c, "connect/exit_on_failure", "false".into())?;
+    Ok(c)
+}
+
+mod erased {
+    /// JSON text of a setting value.
+    pub trait Json {
+        fn json(&self) -> String;
+    }
+    impl<T: serde::Serialize> Json for T {
+        fn json(&self) -> String {
+            serde_json::to_string(self).unwrap_or_default()
+        }
+    }
+}
+
+impl BridgeStage {
+    /// Waits (up to `wait_for_remote_s`) until every reliable route has a subscriber on the
+    /// other side, saying what it waits for every 2 s.
+    fn wait_for_remote(&self) {
+        let limit = Duration::from_secs_f64(self.settings.wait_for_remote_s);
+        if limit.is_zero() {
+            return;
+        }
+        let t0 = Instant::now();
+        let mut last_note = t0;
+        loop {
+            let waiting: Vec<&str> = self
+                .outs
+                .iter()
+                .filter(|o| o.policy == Policy::Reliable)
+                .filter(|o| !o.publisher.matching_status().wait().is_ok_and(|m| m.matching()))
+                .map(|o| o.topic.service)
+                .collect();
+            if waiting.is_empty() {
+                if t0.elapsed() > Duration::from_millis(500) {
+                    tracing::info!(waited_s = t0.elapsed().as_secs_f64(), "the other side subscribed");
+                }
+                return;
+            }
+            if t0.elapsed() >= limit {
+                tracing::warn!(
+                    ?waiting,
+                    "no subscriber on the other side after {:.0} s (wait_for_remote_s): sending anyway; what \
+                     is sent before one subscribes is lost",
+                    limit.as_secs_f64()
+                );
+                return;
+            }
+            if last_note.elapsed() >= Duration::from_secs(2) {
+                tracing::info!(?waiting, "waiting for a subscriber on the other side");
+                last_note = Instant::now();
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Takes every queued local message of every `out` route and hands it to Zenoh.
+    fn pump_out(&mut self) -> Result<usize, StageError> {
+        let mut total = 0;
+        for o in &mut self.outs {
+            let OutRoute {
+                tap, publisher, min_interval, next_send, signature, counts, last_seq, warned, topic, ..
+            } = o;
+            total += tap.drain(&mut |r| {
+                counts.received += 1;
+                if let Some(last) = last_seq.insert(r.publisher, r.msg.seq)
+                    && r.msg.seq > last + 1
+                {
+                    counts.missed_locally += r.msg.seq - last - 1;
+                }
+                if let Some(dt) = *min_interval {
+                    let now = Instant::now();
+                    if next_send.is_some_and(|t| now < t) {
+                        counts.rate_dropped += 1;
+                        return ControlFlow::Continue(());
+                    }
+                    *next_send = Some(now + dt);
+                }
+                let mut data = Vec::with_capacity(r.header.len() + r.payload.len());
+                data.extend_from_slice(r.header);
+                data.extend_from_slice(r.payload);
+                match publisher.put(data).attachment(signature.clone()).wait() {
+                    Ok(()) => counts.sent += 1,
+                    Err(e) => {
+                        counts.send_errors += 1;
+                        if !*warned {
+                            tracing::warn!(
+                                service = topic.service,
+                                "not sent (counted in summary.json bridge.out): {e}"
+                            );
+                            *warned = true;
+                        }
+                    }
+                }
+                ControlFlow::Continue(())
+            })?;
+        }
+        Ok(total)
+    }
+
+    /// Publishes what the Zenoh callbacks queued; acknowledges end markers.
+    fn pump_in(&mut self) -> Result<usize, StageError> {
+        let mut n = 0;
+        for item in self.inbox.take() {
+            match item {
+                Incoming::Data { route, bytes, attachment } => {
+                    n += 1;
+                    let r = &mut self.ins[route];
+                    r.counts.received += 1;
+                    if attachment.as_deref() != Some(&r.signature[..]) {
+                        r.counts.wrong_type += 1;
+                        if !r.warned {
+                            tracing::warn!(
+                                from = %r.from,
+                                service = %r.service,
+                                expected = %String::from_utf8_lossy(&r.signature),
+                                got = %attachment.as_deref().map(String::from_utf8_lossy).unwrap_or_default(),
+                                "refused a message with another wire signature (counted in summary.json bridge.in)"
+                            );
+                            r.warned = true;
+                        }
+                        continue;
+                    }
+                    if let Err(e) = r.topic.check_len(bytes.len()) {
+                        r.counts.bad_length += 1;
+                        if !r.warned {
+                            tracing::warn!(from = %r.from, service = %r.service, "refused a message: {e} (counted)");
+                            r.warned = true;
+                        }
+                        continue;
+                    }
+                    if let Some(h) = bytes.get(..32).and_then(shared_types::MsgHeader::from_bytes) {
+                        if let Some(last) = r.last_seq
+                            && h.seq > last + 1
+                        {
+                            r.counts.seq_gaps += h.seq - last - 1;
+                        }
+                        r.last_seq = Some(h.seq);
+                    }
+                    let (reached, registered) = r.emitter.forward(&bytes)?;
+                    r.counts.published += 1;
+                    self.published += 1;
+                    if reached < registered {
+                        r.counts.undelivered += (registered - reached) as u64;
+                    }
+                }
+                Incoming::End { from, body } => {
+                    let sent: BTreeMap<String, u64> = serde_json::from_slice::<serde_json::Value>(&body)
+                        .ok()
+                        .and_then(|v| serde_json::from_value(v["sent"].clone()).ok())
+                        .unwrap_or_default();
+                    tracing::info!(%from, ?sent, "end of stream from the other side");
+                    if let Err(e) = self.session.put(ack_key(&self.settings.namespace, &from), "ack").wait() {
+                        tracing::warn!(%from, "end marker not acknowledged: {e}");
+                    }
+                    self.ends.insert(from, Some(sent));
+                }
+            }
+        }
+        Ok(n)
+    }
+
+    fn ins_done(&self) -> bool {
+        self.ends.values().all(Option::is_some) && self.inbox.is_empty()
+    }
+
+    /// Sends the end marker with the counts sent per service and waits for an acknowledgement.
+    fn send_end(&mut self, rt: &mut Runtime) {
+        if self.outs.is_empty() {
+            return;
+        }
+        let sent: BTreeMap<&str, u64> = self.outs.iter().map(|o| (o.topic.service, o.counts.sent)).collect();
+        let body = serde_json::json!({ "sent": sent }).to_string();
+        let k = end_key(&self.settings.namespace, &self.settings.robot);
+        if let Err(e) = self.session.put(&k, body).congestion_control(CongestionControl::Block).wait() {
+            tracing::warn!("end marker not sent: {e}");
+            self.end_acknowledged = Some(false);
+            return;
+        }
+        let limit = Duration::from_secs_f64(self.settings.end_ack_timeout_s);
+        let t0 = Instant::now();
+        while !self.acked.load(Ordering::Relaxed) && t0.elapsed() < limit {
+            rt.keep_alive();
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let acked = self.acked.load(Ordering::Relaxed);
+        if !acked && !limit.is_zero() {
+            tracing::warn!(
+                "no bridge acknowledged the end of stream within {:.1} s (end_ack_timeout_s): the other side \
+                 may not have got everything",
+                limit.as_secs_f64()
+            );
+        }
+        self.end_acknowledged = Some(acked);
+    }
+}
+
+impl Stage for BridgeStage {
+    type Settings = BridgeSettings;
+
+    fn open(_ctx: &ProcessContext, settings: BridgeSettings, rt: &mut Runtime) -> Result<Self, StageError> {
+        let config = zenoh_config(&settings)?;
+        let session = zenoh::open(config).wait().map_err(|e| {
+            zenoh_err(
+                format!(
+                    "cannot open a session (mode {}, listen {:?}, connect {:?})",
+                    settings.zenoh.mode, settings.zenoh.listen, settings.zenoh.connect
+                ),
+                e,
+            )
+        })?;
+        tracing::info!(zid = %session.zid(), mode = %settings.zenoh.mode, listen = ?settings.zenoh.listen,
+            connect = ?settings.zenoh.connect, "zenoh session open");
+        let ns = settings.namespace.clone();
+        let mut outs = vec![];
+        for r in &settings.out {
+            let t =
+                topic(&r.service).ok_or_else(|| StageError::Settings(format!("out: unknown service {}", r.service)))?;
+            let k = key(&ns, &settings.robot, t.service);
+            let cc = match r.policy {
+                Policy::Reliable => CongestionControl::Block,
+                Policy::DropOldest => CongestionControl::Drop,
+            };
+            let publisher = session
+                .declare_publisher(k.clone())
+                .congestion_control(cc)
+                .wait()
+                .map_err(|e| zenoh_err(format!("publisher on {k}"), e))?;
+            outs.push(OutRoute {
+                topic: t,
+                tap: t.tap(rt)?,
+                publisher,
+                policy: r.policy,
+                min_interval: (r.max_rate_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / r.max_rate_hz)),
+                next_send: None,
+                signature: signature(t).into_bytes(),
+                counts: OutCounts::default(),
+                last_seq: HashMap::new(),
+                warned: false,
+            });
+        }
+        let waker = if settings.inbound.is_empty() { None } else { Some(rt.waker()?) };
+        let inbox = Arc::new(Inbox {
+            queue: Mutex::new(VecDeque::new()),
+            capacity: settings.queue_messages,
+            dropped: settings.inbound.iter().map(|_| AtomicU64::new(0)).collect(),
+            waker,
+        });
+        let mut ins = vec![];
+        for (i, r) in settings.inbound.iter().enumerate() {
+            let t =
+                topic(&r.service).ok_or_else(|| StageError::Settings(format!("in: unknown service {}", r.service)))?;
+            let local: &'static str = Box::leak(r.local_service().to_string().into_boxed_str());
+            let qos = services::service_spec(t.service)
+                .map(|s| s.qos)
+                .ok_or_else(|| StageError::Settings(format!("in: {} has no QoS in the contract", t.service)))?;
+            let emitter = t.emitter_on(rt, local, &qos, Delivery::WaitWhenFull { max_wait: None })?;
+            let k = key(&ns, &r.from, t.service);
+            let inbox_cb = inbox.clone();
+            let subscriber = session
+                .declare_subscriber(k.clone())
+                .callback(move |sample| {
+                    inbox_cb.push(Incoming::Data {
+                        route: i,
+                        bytes: sample.payload().to_bytes().into_owned(),
+                        attachment: sample.attachment().map(|a| a.to_bytes().into_owned()),
+                    });
+                })
+                .wait()
+                .map_err(|e| zenoh_err(format!("subscriber on {k}"), e))?;
+            ins.push(InRoute {
+                from: r.from.clone(),
+                service: r.service.clone(),
+                local,
+                topic: t,
+                signature: signature(t).into_bytes(),
+                emitter,
+                counts: InCounts::default(),
+                last_seq: None,
+                warned: false,
+                _subscriber: subscriber,
+            });
+        }
+        let robots: BTreeSet<String> = settings.inbound.iter().map(|r| r.from.clone()).collect();
+        let mut end_subscribers = vec![];
+        for from in &robots {
+            let k = end_key(&ns, from);
+            let inbox_cb = inbox.clone();
+            let from_cb = from.clone();
+            end_subscribers.push(
+                session
+                    .declare_subscriber(k.clone())
+                    .callback(move |sample| {
+                        inbox_cb.push(Incoming::End {
+                            from: from_cb.clone(),
+                            body: sample.payload().to_bytes().into_owned(),
+                        });
+                    })
+                    .wait()
+                    .map_err(|e| zenoh_err(format!("subscriber on {k}"), e))?,
+            );
+        }
+        let acked = Arc::new(AtomicBool::new(false));
+        let ack_subscriber = if outs.is_empty() {
+            None
+        } else {
+            let k = ack_key(&ns, &settings.robot);
+            let a = acked.clone();
+            Some(
+                session
+                    .declare_subscriber(k.clone())
+                    .callback(move |_| a.store(true, Ordering::Relaxed))
+                    .wait()
+                    .map_err(|e| zenoh_err(format!("subscriber on {k}"), e))?,
+            )
+        };
+        let stage = Self {
+            ends: robots.into_iter().map(|r| (r, None)).collect(),
+            settings,
+            session,
+            outs,
+            ins,
+            inbox,
+            _end_subscribers: end_subscribers,
+            acked,
+            _ack_subscriber: ack_subscriber,
+            end_acknowledged: None,
+            published: 0,
+            started: Instant::now(),
+        };
+        stage.wait_for_remote();
+        Ok(stage)
+    }
+
+    fn end_after(&self) -> EndAfter {
+        if self.outs.is_empty() { EndAfter::Itself } else { EndAfter::from_list(&self.settings.end_after) }
+    }
+
+    fn step(&mut self, _rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
+        self.pump_out()?;
+        self.pump_in()?;
+        let ins_done = self.ins_done();
+        if self.outs.is_empty() {
+            return Ok(if ins_done { Step::Done } else { Step::Idle });
+        }
+        Ok(if inputs_ended && !ins_done { Step::Pending } else { Step::Idle })
+    }
+
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+        if ending == Ending::Stopped {
+            if let Err(e) = self.pump_out() {
+                tracing::warn!("last drain: {e:#}");
+            }
+            if let Err(e) = self.pump_in() {
+                tracing::warn!("last publish: {e:#}");
+            }
+        }
+        if ending == Ending::EndOfStream {
+            self.send_end(rt);
+        }
+        let outs: BTreeMap<&str, serde_json::Value> = self
+            .outs
+            .iter()
+            .map(|o| {
+                (
+                    o.topic.service,
+                    serde_json::json!({
+                        "key": key(&self.settings.namespace, &self.settings.robot, o.topic.service),
+                        "policy": format!("{:?}", o.policy).to_lowercase(),
+                        "counts": o.counts,
+                    }),
+                )
+            })
+            .collect();
+        let mut lost_total = 0u64;
+        let ins: BTreeMap<&str, serde_json::Value> = self
+            .ins
+            .iter()
+            .enumerate()
+            .map(|(i, r)| {
+                let mut c = r.counts;
+                c.queue_dropped = self.inbox.dropped[i].load(Ordering::Relaxed);
+                // What the other side said it sent, against what arrived here.
+                let lost = self
+                    .ends
+                    .get(&r.from)
+                    .and_then(|e| e.as_ref())
+                    .and_then(|sent| sent.get(&r.service))
+                    .map(|&sent| sent.saturating_sub(c.received - c.wrong_type - c.bad_length));
+                lost_total += lost.unwrap_or(0) + c.wrong_type + c.bad_length + c.queue_dropped;
+                (
+                    r.local,
+                    serde_json::json!({
+                        "from": r.from,
+                        "service": r.service,
+                        "key": key(&self.settings.namespace, &r.from, &r.service),
+                        "counts": c,
+                        "lost_on_the_way": lost,
+                    }),
+                )
+            })
+            .collect();
+        let out_dropped: u64 = self.outs.iter().map(|o| o.counts.rate_dropped + o.counts.send_errors).sum();
+        if lost_total > 0 || out_dropped > 0 {
+            tracing::warn!(
+                received_side_lost = lost_total,
+                send_side_dropped = out_dropped,
+                "messages lost across the bridge (per route in summary.json bridge)"
+            );
+        }
+        let missing_ends: Vec<&String> = self.ends.iter().filter(|(_, e)| e.is_none()).map(|(r, _)| r).collect();
+        if !missing_ends.is_empty() {
+            tracing::warn!(?missing_ends, "no end of stream came from these robots");
+        }
+        Ok(serde_json::json!({ "bridge": {
+            "namespace": self.settings.namespace,
+            "robot": self.settings.robot,
+            "zid": self.session.zid().to_string(),
+            "out": outs,
+            "in": ins,
+            "ends_received": self.ends.iter().filter(|(_, e)| e.is_some()).map(|(r, _)| r).collect::<Vec<_>>(),
+            "ends_missing": missing_ends,
+            "end_acknowledged": self.end_acknowledged,
+            "wall_s": self.started.elapsed().as_secs_f64(),
+        }}))
+    }
+
+    fn end_of_stream(&self) -> (u64, u64) {
+        (self.published.saturating_sub(1), self.published)
+    }
+}
