@@ -81,8 +81,22 @@ impl TestRun {
 
     /// Starts the supervisor on `config` (stdout and stderr, its children's included, go to the log).
     pub fn start_supervisor(&mut self, config: &Path, extra: &[&str]) {
+        self.start_supervisor_in(&[], config, extra);
+    }
+
+    /// Starts the supervisor under `wrapper` (e.g. `ip netns exec <ns>`, which execs it in a
+    /// network namespace: the child is the supervisor itself), as [`TestRun::start_supervisor`].
+    pub fn start_supervisor_in(&mut self, wrapper: &[String], config: &Path, extra: &[&str]) {
         let log = std::fs::File::create(self.log_path()).expect("log file");
-        let child = Command::new(bin("supervisor"))
+        let mut cmd = match wrapper.split_first() {
+            Some((first, rest)) => {
+                let mut c = Command::new(first);
+                c.args(rest).arg(bin("supervisor"));
+                c
+            }
+            None => Command::new(bin("supervisor")),
+        };
+        let child = cmd
             .arg("--config")
             .arg(config)
             .args(extra)

@@ -171,3 +171,222 @@ rate_hz = 0.0
     }
     eprintln!("compared {compared:?}");
 }
+
+/// Two network namespaces joined by a veth pair (deleted on drop), when this user may make them.
+struct NetPair {
+    names: [String; 2],
+    veth: [String; 2],
+    addrs: [String; 2],
+}
+
+fn ip(args: &[&str]) -> bool {
+    std::process::Command::new("ip")
+        .args(args)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
+impl NetPair {
+    fn new() -> Option<Self> {
+        // SAFETY: geteuid has no preconditions and cannot fail.
+        if unsafe { libc::geteuid() } != 0 {
+            return None;
+        }
+        let pid = std::process::id();
+        let tag = format!("slb{}", pid % 100_000);
+        let pair = Self {
+            names: [format!("{tag}r"), format!("{tag}b")],
+            veth: [format!("{tag}vr"), format!("{tag}vb")],
+            addrs: [format!("10.213.{}.1", pid % 250), format!("10.213.{}.2", pid % 250)],
+        };
+        if !ip(&["netns", "add", &pair.names[0]]) {
+            return None;
+        }
+        let ok = ip(&["netns", "add", &pair.names[1]])
+            && ip(&["link", "add", &pair.veth[0], "type", "veth", "peer", "name", &pair.veth[1]])
+            && (0..2).all(|i| {
+                ip(&["link", "set", &pair.veth[i], "netns", &pair.names[i]])
+                    && ip(&[
+                        "-n",
+                        &pair.names[i],
+                        "addr",
+                        "add",
+                        &format!("{}/24", pair.addrs[i]),
+                        "dev",
+                        &pair.veth[i],
+                    ])
+                    && ip(&["-n", &pair.names[i], "link", "set", &pair.veth[i], "up"])
+                    && ip(&["-n", &pair.names[i], "link", "set", "lo", "up"])
+            });
+        ok.then_some(pair)
+    }
+
+    fn wrapper(&self, i: usize) -> Vec<String> {
+        vec!["ip".into(), "netns".into(), "exec".into(), self.names[i].clone()]
+    }
+
+    fn set_link(&self, up: bool) {
+        assert!(ip(&["-n", &self.names[0], "link", "set", &self.veth[0], if up { "up" } else { "down" }]));
+    }
+}
+
+impl Drop for NetPair {
+    fn drop(&mut self) {
+        for n in &self.names {
+            ip(&["netns", "del", n]);
+        }
+    }
+}
+
+const ESTIMATORS: &str = r#"
+[processes.buoy]
+kind = "buoy_ekf"
+after = ["sync"]
+[processes.buoy.settings.ekf]
+mode = "spatial"
+buoys = [
+    { id = 0, position_m = [-10.0, -10.0, 0.0] },
+    { id = 1, position_m = [130.0, -10.0, 0.0] },
+    { id = 2, position_m = [130.0, 90.0, 0.0] },
+    { id = 3, position_m = [-10.0, 90.0, 0.0] },
+    { id = 4, position_m = [60.0, 100.0, 0.0] },
+]
+
+[processes.slam]
+kind = "fastslam"
+after = ["sync"]
+[processes.slam.settings.filter]
+particles = 30
+
+[processes.sync]
+kind = "synchronizer"
+after = ["fusion"]
+[processes.sync.settings]
+end_after = ["slam", "buoy"]
+
+[processes.fusion]
+kind = "fusion"
+[processes.fusion.settings]
+slam_process = "slam"
+end_after = ["sync", "buoy", "slam"]
+"#;
+
+#[test]
+fn a_robot_in_one_network_namespace_feeds_a_base_stations_map_in_another_through_a_link_cut() {
+    let net = NetPair::new();
+    let (robot_wrap, base_wrap, base_addr) = match &net {
+        Some(n) => (n.wrapper(0), n.wrapper(1), format!("{}:7447", n.addrs[1])),
+        None => {
+            eprintln!(
+                "network namespaces are not permitted here (not root, or `ip netns add` failed): both \
+                 pipelines run on loopback, and the link cut is skipped"
+            );
+            (vec![], vec![], format!("127.0.0.1:{}", free_port()))
+        }
+    };
+    let mut base = TestRun::new("brmapbase");
+    let base_cfg = base.write_config(
+        "end = \"end_of_stream\"\nend_of_stream_from = [\"map\", \"link\"]\nduration_s = 300",
+        &format!(
+            r#"
+[processes.map]
+kind = "octree_mapper"
+restart = "never"
+[processes.map.settings]
+pose_source = "cloud"
+end_after = ["link"]
+
+[processes.link]
+kind = "bridge"
+after = ["map"]
+restart = "never"
+[processes.link.settings]
+zenoh = {{ listen = ["tcp/{base_addr}"] }}
+in = [{{ from = "auv", service = "pipeline/sensors/cloud" }}, {{ from = "auv", service = "pipeline/fusion/pose" }}]
+"#
+        ),
+    );
+    base.start_supervisor_in(&base_wrap, &base_cfg, &[]);
+    base.wait_for_log("zenoh session open", 1, Duration::from_secs(60));
+
+    let mut robot = TestRun::new("brmaprobot");
+    let robot_cfg = robot.write_config(
+        "end = \"end_of_stream\"\nend_of_stream_from = [\"map\", \"link\", \"fusion\"]\nduration_s = 300",
+        &format!(
+            r#"
+{ESTIMATORS}
+[processes.map]
+kind = "octree_mapper"
+restart = "never"
+[processes.map.settings]
+pose_source = "cloud"
+end_after = ["ingest"]
+
+[processes.link]
+kind = "bridge"
+restart = "never"
+[processes.link.settings]
+robot = "auv"
+end_after = ["ingest", "fusion"]
+zenoh = {{ connect = ["tcp/{base_addr}"] }}
+out = [{{ service = "pipeline/sensors/cloud" }}, {{ service = "pipeline/fusion/pose" }}]
+
+[processes.ingest]
+kind = "ingest"
+after = ["map", "link", "slam", "buoy"]
+restart = "never"
+[processes.ingest.settings]
+source = "sim"
+real_time_factor = 0.0
+progress_interval_s = 0.0
+[processes.ingest.settings.sim.mission]
+legs = 1
+leg_length_m = 30.0
+[processes.ingest.settings.sim.sensors.depth_camera]
+width_px = 48
+height_px = 36
+"#
+        ),
+    );
+    robot.start_supervisor_in(&robot_wrap, &robot_cfg, &[]);
+    let mut cut_during_run = false;
+    if let Some(n) = &net {
+        robot.wait_for_log("process=ingest", 1, Duration::from_secs(120));
+        std::thread::sleep(Duration::from_millis(500));
+        n.set_link(false);
+        std::thread::sleep(Duration::from_secs(2));
+        cut_during_run = robot.wait_supervisor(Duration::ZERO).is_none();
+        n.set_link(true);
+    }
+    let rs = robot.wait_supervisor(LONG).expect("the robot's run ends");
+    let bs = base.wait_supervisor(LONG).expect("the base station's run ends");
+    assert_eq!(rs.code(), Some(0), "robot:\n{}", robot.log());
+    assert_eq!(bs.code(), Some(0), "base:\n{}", base.log());
+    for run in [&robot, &base] {
+        assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new(), "iceoryx2 files left behind");
+    }
+    let (r, b) = (robot.summary(), base.summary());
+    let (rb, bb) = (&r["bridge"], &b["bridge"]);
+    eprintln!(
+        "link cut for 2 s during the run: {cut_during_run}\nrobot bridge {rb:#}\nbase bridge {bb:#}\nrobot map {:#}\nbase map {:#}",
+        r["octree_mapper"]["counters"], b["octree_mapper"]["counters"]
+    );
+    assert_eq!(rb["end_acknowledged"], true, "{rb:#}");
+    for s in ["pipeline/sensors/cloud", "pipeline/fusion/pose"] {
+        let (out, inn) = (&rb["out"][s]["counts"], &bb["in"][s]["counts"]);
+        assert!(out["sent"].as_u64().unwrap() > 3, "{s}: {out}");
+        assert_eq!(out["missed_locally"].as_u64(), Some(0), "{s}: {out}");
+        assert_eq!(inn["published"], out["sent"], "{s}: {inn} against {out}");
+        assert_eq!(inn["digest"], out["digest"], "{s}: the same bytes arrived, in order");
+        assert_eq!(bb["in"][s]["lost_on_the_way"].as_u64(), Some(0), "{s}");
+    }
+    let clouds = r["ingest"]["messages"]["cloud"].as_u64().unwrap();
+    for (who, s) in [("robot", &r), ("base", &b)] {
+        let c = &s["octree_mapper"]["counters"];
+        assert_eq!(c["clouds_inserted"].as_u64(), Some(clouds), "{who}: every cloud in the map: {c:#}");
+    }
+    let map = |run: &TestRun| std::fs::read(run.out_dir().join("map.bt")).expect("map.bt");
+    assert!(map(&robot) == map(&base), "the base station's map.bt equals the robot's, byte for byte");
+}

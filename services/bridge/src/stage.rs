@@ -33,6 +33,25 @@ struct OutCounts {
     send_errors: u64,
     /// Missed on the local service before the bridge took them (sequence gaps per publisher).
     missed_locally: u64,
+    /// FNV-1a 64 over the bytes of every message sent, in order: equal on the receiving side
+    /// (`in.digest`) when the same messages arrived.
+    #[serde(serialize_with = "hex")]
+    digest: u64,
+}
+
+/// FNV-1a 64 offset basis.
+const FNV0: u64 = 0xcbf2_9ce4_8422_2325;
+
+/// Folds `bytes` into an FNV-1a 64 digest.
+fn fnv(mut h: u64, bytes: &[u8]) -> u64 {
+    for &b in bytes {
+        h = (h ^ b as u64).wrapping_mul(0x0100_0000_01b3);
+    }
+    h
+}
+
+fn hex<S: serde::Serializer>(v: &u64, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_str(&format!("{v:016x}"))
 }
 
 struct OutRoute {
@@ -65,6 +84,10 @@ struct InCounts {
     undelivered: u64,
     /// Gaps in the sender's sequence numbers (lost on the way, before or over the link).
     seq_gaps: u64,
+    /// FNV-1a 64 over the bytes of every message published, in order (as they came over the
+    /// link): equal to the sender's `out.digest` when the same messages arrived.
+    #[serde(serialize_with = "hex")]
+    digest: u64,
 }
 
 struct InRoute {
@@ -237,8 +260,12 @@ impl BridgeStage {
                 let mut data = Vec::with_capacity(r.header.len() + r.payload.len());
                 data.extend_from_slice(r.header);
                 data.extend_from_slice(r.payload);
+                let h = fnv(counts.digest, &data);
                 match publisher.put(data).attachment(signature.clone()).wait() {
-                    Ok(()) => counts.sent += 1,
+                    Ok(()) => {
+                        counts.sent += 1;
+                        counts.digest = h;
+                    }
                     Err(e) => {
                         counts.send_errors += 1;
                         if !*warned {
@@ -297,6 +324,7 @@ impl BridgeStage {
                     }
                     let (reached, registered) = r.emitter.forward(&bytes)?;
                     r.counts.published += 1;
+                    r.counts.digest = fnv(r.counts.digest, &bytes);
                     self.published += 1;
                     if reached < registered {
                         r.counts.undelivered += (registered - reached) as u64;
@@ -392,7 +420,7 @@ impl Stage for BridgeStage {
                 min_interval: (r.max_rate_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / r.max_rate_hz)),
                 next_send: None,
                 signature: signature(t).into_bytes(),
-                counts: OutCounts::default(),
+                counts: OutCounts { digest: FNV0, ..Default::default() },
                 last_seq: HashMap::new(),
                 warned: false,
             });
@@ -433,7 +461,7 @@ impl Stage for BridgeStage {
                 topic: t,
                 signature: signature(t).into_bytes(),
                 emitter,
-                counts: InCounts::default(),
+                counts: InCounts { digest: FNV0, ..Default::default() },
                 last_seq: None,
                 warned: false,
                 _subscriber: subscriber,
