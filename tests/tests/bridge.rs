@@ -390,3 +390,116 @@ height_px = 36
     let map = |run: &TestRun| std::fs::read(run.out_dir().join("map.bt")).expect("map.bt");
     assert!(map(&robot) == map(&base), "the base station's map.bt equals the robot's, byte for byte");
 }
+
+#[test]
+fn two_robots_feed_one_base_station_their_fixes_kept_apart_and_their_clouds_in_one_map() {
+    let port = free_port();
+    let mut base = TestRun::new("br2base");
+    let base_cfg = base.write_config(
+        "end = \"end_of_stream\"\nend_of_stream_from = [\"map\", \"link\"]\nduration_s = 300",
+        &format!(
+            r#"
+[processes.map]
+kind = "octree_mapper"
+restart = "never"
+[processes.map.settings]
+pose_source = "cloud"
+end_after = ["link"]
+
+[processes.link]
+kind = "bridge"
+after = ["map"]
+restart = "never"
+[processes.link.settings]
+zenoh = {{ listen = ["tcp/127.0.0.1:{port}"] }}
+in = [
+    {{ from = "r1", service = "pipeline/buoy/fix", local = "r1/pipeline/buoy/fix" }},
+    {{ from = "r2", service = "pipeline/buoy/fix", local = "r2/pipeline/buoy/fix" }},
+    {{ from = "r1", service = "pipeline/sensors/cloud" }},
+    {{ from = "r2", service = "pipeline/sensors/cloud" }},
+]
+"#
+        ),
+    );
+    base.start_supervisor(&base_cfg, &[]);
+    base.wait_for_log("zenoh session open", 1, Duration::from_secs(60));
+    let robot = |name: &str, seed: u32| {
+        let mut run = TestRun::new(&format!("br2{name}"));
+        let cfg = run.write_config(
+            "end = \"end_of_stream\"\nend_of_stream_from = [\"link\", \"buoy\"]\nduration_s = 300",
+            &format!(
+                r#"
+[processes.buoy]
+kind = "buoy_ekf"
+[processes.buoy.settings.ekf]
+mode = "spatial"
+buoys = [
+    {{ id = 0, position_m = [-10.0, -10.0, 0.0] }},
+    {{ id = 1, position_m = [130.0, -10.0, 0.0] }},
+    {{ id = 2, position_m = [130.0, 90.0, 0.0] }},
+    {{ id = 3, position_m = [-10.0, 90.0, 0.0] }},
+    {{ id = 4, position_m = [60.0, 100.0, 0.0] }},
+]
+
+[processes.link]
+kind = "bridge"
+restart = "never"
+[processes.link.settings]
+robot = "{name}"
+end_after = ["ingest", "buoy"]
+zenoh = {{ connect = ["tcp/127.0.0.1:{port}"] }}
+out = [{{ service = "pipeline/buoy/fix" }}, {{ service = "pipeline/sensors/cloud" }}]
+
+[processes.ingest]
+kind = "ingest"
+after = ["link", "buoy"]
+restart = "never"
+[processes.ingest.settings]
+source = "sim"
+real_time_factor = 0.0
+progress_interval_s = 0.0
+[processes.ingest.settings.sim]
+seed = {seed}
+[processes.ingest.settings.sim.mission]
+legs = 1
+leg_length_m = 20.0
+[processes.ingest.settings.sim.sensors.depth_camera]
+width_px = 32
+height_px = 24
+"#
+            ),
+        );
+        run.start_supervisor(&cfg, &[]);
+        run
+    };
+    let mut robots = [robot("r1", 1), robot("r2", 2)];
+    for r in &mut robots {
+        let st = r.wait_supervisor(LONG).expect("a robot's run ends");
+        assert_eq!(st.code(), Some(0), "{}", r.log());
+    }
+    let bs = base.wait_supervisor(LONG).expect("the base station ends after both robots' ends of stream");
+    assert_eq!(bs.code(), Some(0), "base:\n{}", base.log());
+    let b = base.summary();
+    let bb = &b["bridge"];
+    eprintln!("base bridge {bb:#}\nbase map {:#}", b["octree_mapper"]["counters"]);
+    assert_eq!(bb["ends_received"], serde_json::json!(["r1", "r2"]), "{bb:#}");
+    let mut clouds = 0;
+    let mut digests = vec![];
+    for (name, run) in ["r1", "r2"].iter().zip(&robots) {
+        let r = run.summary();
+        let out = &r["bridge"]["out"];
+        let fix = &bb["in"][format!("{name}/pipeline/buoy/fix")]["counts"];
+        assert!(out["pipeline/buoy/fix"]["counts"]["sent"].as_u64().unwrap() > 3, "{out:#}");
+        assert_eq!(fix["published"], out["pipeline/buoy/fix"]["counts"]["sent"], "{name}: {fix}");
+        assert_eq!(fix["digest"], out["pipeline/buoy/fix"]["counts"]["digest"], "{name}: its own fixes, apart");
+        digests.push(fix["digest"].clone());
+        let cloud = &bb["in"][format!("{name}:pipeline/sensors/cloud")]["counts"];
+        assert_eq!(cloud["published"], out["pipeline/sensors/cloud"]["counts"]["sent"], "{name}: {cloud}");
+        assert_eq!(cloud["digest"], out["pipeline/sensors/cloud"]["counts"]["digest"], "{name}");
+        clouds += r["ingest"]["messages"]["cloud"].as_u64().unwrap();
+    }
+    assert_ne!(digests[0], digests[1], "two robots, two different fix streams");
+    let c = &b["octree_mapper"]["counters"];
+    assert_eq!(c["clouds_inserted"].as_u64(), Some(clouds), "both robots' clouds in one map: {c:#}");
+    assert_eq!(base.leftovers(), Vec::<std::path::PathBuf>::new());
+}

@@ -276,7 +276,9 @@ impl ProcessSettings for BridgeSettings {
                 "a rate limit drops messages: set `policy = \"drop_oldest\"` too",
             );
         }
-        let mut locals = std::collections::BTreeSet::new();
+        // A local service may take several robots' streams of one service (e.g. every robot's
+        // clouds into one map), never two services or one robot twice.
+        let mut locals: std::collections::BTreeMap<&str, (&str, Vec<&str>)> = std::collections::BTreeMap::new();
         for (i, r) in self.inbound.iter().enumerate() {
             issues.check(
                 is_chunk(&r.from),
@@ -293,11 +295,17 @@ impl ProcessSettings for BridgeSettings {
                 format!("{key}.in[{i}].local"),
                 "a service name: chunks joined by /",
             );
+            let entry = locals.entry(r.local_service()).or_insert((r.service.as_str(), vec![]));
             issues.check(
-                locals.insert(r.local_service().to_string()),
+                entry.0 == r.service && !entry.1.contains(&r.from.as_str()),
                 format!("{key}.in[{i}].local"),
-                format!("`{}` is published by two routes: give one a `local` name", r.local_service()),
+                format!(
+                    "`{}` is published by two routes of {}: give one a `local` name",
+                    r.local_service(),
+                    if entry.0 == r.service { "one robot" } else { "different services" }
+                ),
             );
+            entry.1.push(r.from.as_str());
             issues.check(
                 !self.out.iter().any(|o| o.service == r.local_service()),
                 format!("{key}.in[{i}].local"),
@@ -336,7 +344,8 @@ in = [{ from = "r2", service = "pipeline/fusion/pose", local = "r2/pipeline/fusi
 robot = "r/1"
 zenoh = { mode = "mesh", connect = ["127.0.0.1:7447"] }
 out = [{ service = "pipeline/nope" }, { service = "pipeline/sensors/cloud", max_rate_hz = 2.0 }]
-in = [{ from = "r2", service = "pipeline/fusion/pose" }, { from = "r3", service = "pipeline/fusion/pose" }]
+in = [{ from = "r2", service = "pipeline/fusion/pose" }, { from = "r3", service = "pipeline/fusion/pose" },
+      { from = "r2", service = "pipeline/fusion/pose" }, { from = "r4", service = "pipeline/slam/pose", local = "pipeline/fusion/pose" }]
 "#;
         let got = issues(bad).join("\n");
         for needle in [
@@ -345,7 +354,8 @@ in = [{ from = "r2", service = "pipeline/fusion/pose" }, { from = "r3", service 
             "processes.b.settings.zenoh.connect[0]: `127.0.0.1:7447`",
             "processes.b.settings.out[0].service: `pipeline/nope`",
             "processes.b.settings.out[1].max_rate_hz",
-            "processes.b.settings.in[1].local: `pipeline/fusion/pose` is published by two routes",
+            "processes.b.settings.in[2].local: `pipeline/fusion/pose` is published by two routes of one robot",
+            "processes.b.settings.in[3].local: `pipeline/fusion/pose` is published by two routes of different services",
         ] {
             assert!(got.contains(needle), "missing {needle:?} in\n{got}");
         }

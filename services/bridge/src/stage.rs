@@ -94,9 +94,13 @@ struct InRoute {
     from: String,
     service: String,
     local: &'static str,
+    /// The route's name in summary.json: the local service, prefixed with `<from>:` when
+    /// several robots publish on it.
+    route_name: String,
     topic: &'static Topic,
     signature: Vec<u8>,
-    emitter: Box<dyn Emit>,
+    /// Index into the stage's emitters (routes of several robots may share one local service).
+    emitter: usize,
     counts: InCounts,
     last_seq: Option<u64>,
     warned: bool,
@@ -150,6 +154,7 @@ pub struct BridgeStage {
     session: zenoh::Session,
     outs: Vec<OutRoute>,
     ins: Vec<InRoute>,
+    emitters: Vec<Box<dyn Emit>>,
     inbox: Arc<Inbox>,
     /// The robots this bridge receives from, and what each said it sent (once its end marker came).
     ends: BTreeMap<String, Option<BTreeMap<String, u64>>>,
@@ -322,7 +327,7 @@ impl BridgeStage {
                         }
                         r.last_seq = Some(h.seq);
                     }
-                    let (reached, registered) = r.emitter.forward(&bytes)?;
+                    let (reached, registered) = self.emitters[r.emitter].forward(&bytes)?;
                     r.counts.published += 1;
                     r.counts.digest = fnv(r.counts.digest, &bytes);
                     self.published += 1;
@@ -433,6 +438,8 @@ impl Stage for BridgeStage {
             waker,
         });
         let mut ins = vec![];
+        let mut emitters: Vec<Box<dyn Emit>> = vec![];
+        let mut emitter_of: HashMap<String, usize> = HashMap::new();
         for (i, r) in settings.inbound.iter().enumerate() {
             let t =
                 topic(&r.service).ok_or_else(|| StageError::Settings(format!("in: unknown service {}", r.service)))?;
@@ -440,7 +447,14 @@ impl Stage for BridgeStage {
             let qos = services::service_spec(t.service)
                 .map(|s| s.qos)
                 .ok_or_else(|| StageError::Settings(format!("in: {} has no QoS in the contract", t.service)))?;
-            let emitter = t.emitter_on(rt, local, &qos, Delivery::WaitWhenFull { max_wait: None })?;
+            let emitter = match emitter_of.get(local) {
+                Some(&e) => e,
+                None => {
+                    emitters.push(t.emitter_on(rt, local, &qos, Delivery::WaitWhenFull { max_wait: None })?);
+                    emitter_of.insert(local.to_string(), emitters.len() - 1);
+                    emitters.len() - 1
+                }
+            };
             let k = key(&ns, &r.from, t.service);
             let inbox_cb = inbox.clone();
             let subscriber = session
@@ -454,7 +468,9 @@ impl Stage for BridgeStage {
                 })
                 .wait()
                 .map_err(|e| zenoh_err(format!("subscriber on {k}"), e))?;
+            let shared = settings.inbound.iter().filter(|o| o.local_service() == local).count() > 1;
             ins.push(InRoute {
+                route_name: if shared { format!("{}:{local}", r.from) } else { local.to_string() },
                 from: r.from.clone(),
                 service: r.service.clone(),
                 local,
@@ -506,6 +522,7 @@ impl Stage for BridgeStage {
             session,
             outs,
             ins,
+            emitters,
             inbox,
             _end_subscribers: end_subscribers,
             acked,
@@ -575,8 +592,9 @@ impl Stage for BridgeStage {
                     .map(|&sent| sent.saturating_sub(c.received - c.wrong_type - c.bad_length));
                 lost_total += lost.unwrap_or(0) + c.wrong_type + c.bad_length + c.queue_dropped;
                 (
-                    r.local,
+                    r.route_name.as_str(),
                     serde_json::json!({
+                        "local": r.local,
                         "from": r.from,
                         "service": r.service,
                         "key": key(&self.settings.namespace, &r.from, &r.service),
