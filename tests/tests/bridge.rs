@@ -584,5 +584,16 @@ rate_hz = 0.0
     assert!(got > 0 && lost > 0, "the new instance received the rest and counts the loss: {bb:#}");
     assert_eq!(got + lost, sent, "{bb:#}");
     assert!(base.log().contains("messages lost across the bridge"), "warned");
+    // The robot's side knows what it sent while nobody on the other side subscribed: counted as
+    // dropped, in the status line and summary.json like any other loss.
+    let unmatched = rb["out"][s]["counts"]["no_subscriber"].as_u64().unwrap();
+    assert!(unmatched > 0 && unmatched <= lost, "{unmatched} sent unmatched, {lost} lost: {rb:#}");
+    let dropped = r["dropped"].as_array().expect("dropped list");
+    assert!(
+        dropped.iter().any(|d| d["process"] == "link" && d["reason"] == "no subscriber on the other side"),
+        "{dropped:#?}"
+    );
+    let bd = b["dropped"].as_array().expect("dropped list");
+    assert!(bd.iter().any(|d| d["process"] == "link" && d["reason"] == "lost on the way"), "{bd:#?}");
     assert_eq!(base.leftovers(), Vec::<std::path::PathBuf>::new());
 }

@@ -33,6 +33,8 @@ struct OutCounts {
     send_errors: u64,
     /// Missed on the local service before the bridge took them (sequence gaps per publisher).
     missed_locally: u64,
+    /// Sent while no subscriber on the other side matched the key: lost.
+    no_subscriber: u64,
     /// FNV-1a 64 over the bytes of every message sent, in order: equal on the receiving side
     /// (`in.digest`) when the same messages arrived.
     #[serde(serialize_with = "hex")]
@@ -65,6 +67,9 @@ struct OutRoute {
     counts: OutCounts,
     last_seq: HashMap<u128, u64>,
     warned: bool,
+    /// Whether a subscriber on the other side matches the key (kept by a matching listener).
+    matched: Arc<AtomicBool>,
+    _matching: zenoh::matching::MatchingListener<()>,
 }
 
 /// Counters of one `in` route.
@@ -99,6 +104,8 @@ struct InRoute {
     route_name: String,
     topic: &'static Topic,
     signature: Vec<u8>,
+    /// Index of the route (into the inbox's counters).
+    index: usize,
     /// Index into the stage's emitters (routes of several robots may share one local service).
     emitter: usize,
     counts: InCounts,
@@ -245,7 +252,17 @@ impl BridgeStage {
         let mut total = 0;
         for o in &mut self.outs {
             let OutRoute {
-                tap, publisher, min_interval, next_send, signature, counts, last_seq, warned, topic, ..
+                tap,
+                publisher,
+                min_interval,
+                next_send,
+                signature,
+                counts,
+                last_seq,
+                warned,
+                topic,
+                matched,
+                ..
             } = o;
             total += tap.drain(&mut |r| {
                 counts.received += 1;
@@ -253,11 +270,13 @@ impl BridgeStage {
                     && r.msg.seq > last + 1
                 {
                     counts.missed_locally += r.msg.seq - last - 1;
+                    tap.count_dropped("missed: sequence gap", r.msg.seq - last - 1);
                 }
                 if let Some(dt) = *min_interval {
                     let now = Instant::now();
                     if next_send.is_some_and(|t| now < t) {
                         counts.rate_dropped += 1;
+                        tap.count_dropped("over the route's max_rate_hz", 1);
                         return ControlFlow::Continue(());
                     }
                     *next_send = Some(now + dt);
@@ -265,6 +284,10 @@ impl BridgeStage {
                 let mut data = Vec::with_capacity(r.header.len() + r.payload.len());
                 data.extend_from_slice(r.header);
                 data.extend_from_slice(r.payload);
+                if !matched.load(Ordering::Relaxed) {
+                    counts.no_subscriber += 1;
+                    tap.count_dropped("no subscriber on the other side", 1);
+                }
                 let h = fnv(counts.digest, &data);
                 match publisher.put(data).attachment(signature.clone()).wait() {
                     Ok(()) => {
@@ -273,6 +296,7 @@ impl BridgeStage {
                     }
                     Err(e) => {
                         counts.send_errors += 1;
+                        tap.count_dropped("zenoh refused it", 1);
                         if !*warned {
                             tracing::warn!(
                                 service = topic.service,
@@ -290,6 +314,13 @@ impl BridgeStage {
 
     /// Publishes what the Zenoh callbacks queued; acknowledges end markers.
     fn pump_in(&mut self) -> Result<usize, StageError> {
+        for r in &mut self.ins {
+            let total = self.inbox.dropped[r.index].load(Ordering::Relaxed);
+            if total > r.counts.queue_dropped {
+                self.emitters[r.emitter].count_dropped("receive queue full", total - r.counts.queue_dropped);
+                r.counts.queue_dropped = total;
+            }
+        }
         let mut n = 0;
         for item in self.inbox.take() {
             match item {
@@ -299,6 +330,7 @@ impl BridgeStage {
                     r.counts.received += 1;
                     if attachment.as_deref() != Some(&r.signature[..]) {
                         r.counts.wrong_type += 1;
+                        self.emitters[r.emitter].count_dropped("another wire signature", 1);
                         if !r.warned {
                             tracing::warn!(
                                 from = %r.from,
@@ -313,6 +345,7 @@ impl BridgeStage {
                     }
                     if let Err(e) = r.topic.check_len(bytes.len()) {
                         r.counts.bad_length += 1;
+                        self.emitters[r.emitter].count_dropped("not a message of the service's types", 1);
                         if !r.warned {
                             tracing::warn!(from = %r.from, service = %r.service, "refused a message: {e} (counted)");
                             r.warned = true;
@@ -324,6 +357,7 @@ impl BridgeStage {
                             && h.seq > last + 1
                         {
                             r.counts.seq_gaps += h.seq - last - 1;
+                            self.emitters[r.emitter].count_dropped("lost on the way", h.seq - last - 1);
                         }
                         r.last_seq = Some(h.seq);
                     }
@@ -417,7 +451,16 @@ impl Stage for BridgeStage {
                 .congestion_control(cc)
                 .wait()
                 .map_err(|e| zenoh_err(format!("publisher on {k}"), e))?;
+            let matched = Arc::new(AtomicBool::new(publisher.matching_status().wait().is_ok_and(|m| m.matching())));
+            let flag = matched.clone();
+            let matching = publisher
+                .matching_listener()
+                .callback(move |m| flag.store(m.matching(), Ordering::Relaxed))
+                .wait()
+                .map_err(|e| zenoh_err(format!("matching listener on {k}"), e))?;
             outs.push(OutRoute {
+                matched,
+                _matching: matching,
                 topic: t,
                 tap: t.tap(rt)?,
                 publisher,
@@ -470,6 +513,7 @@ impl Stage for BridgeStage {
                 .map_err(|e| zenoh_err(format!("subscriber on {k}"), e))?;
             let shared = settings.inbound.iter().filter(|o| o.local_service() == local).count() > 1;
             ins.push(InRoute {
+                index: i,
                 route_name: if shared { format!("{}:{local}", r.from) } else { local.to_string() },
                 from: r.from.clone(),
                 service: r.service.clone(),
@@ -579,10 +623,8 @@ impl Stage for BridgeStage {
         let ins: BTreeMap<&str, serde_json::Value> = self
             .ins
             .iter()
-            .enumerate()
-            .map(|(i, r)| {
-                let mut c = r.counts;
-                c.queue_dropped = self.inbox.dropped[i].load(Ordering::Relaxed);
+            .map(|r| {
+                let c = r.counts;
                 // What the other side said it sent, against what arrived here.
                 let lost = self
                     .ends
@@ -590,6 +632,9 @@ impl Stage for BridgeStage {
                     .and_then(|e| e.as_ref())
                     .and_then(|sent| sent.get(&r.service))
                     .map(|&sent| sent.saturating_sub(c.received - c.wrong_type - c.bad_length));
+                // What went missing without a sequence gap here (lost before the end) is counted now.
+                let unseen = lost.unwrap_or(0).saturating_sub(c.seq_gaps);
+                self.emitters[r.emitter].count_dropped("lost on the way", unseen);
                 lost_total += lost.unwrap_or(0) + c.wrong_type + c.bad_length + c.queue_dropped;
                 (
                     r.route_name.as_str(),

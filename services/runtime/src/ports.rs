@@ -392,6 +392,15 @@ impl<P: Payload + ?Sized, H: Header> Output<P, H> {
         self.seq
     }
 
+    /// Counts `n` messages meant for this output that the stage dropped before it could publish
+    /// them (a bridge: refused or lost on the way), for `reason`: shown like an input's drops
+    /// (status line `DROPPED`, warning, summary.json `dropped`).
+    pub fn count_dropped(&self, reason: &str, n: u64) {
+        if n > 0 {
+            *self.stats.borrow_mut().dropped_by.entry(reason.to_string()).or_default() += n;
+        }
+    }
+
     /// Wakes the subscribers without sending data: a woken subscriber attaches to this publisher
     /// (a source calls this while it waits for its subscribers before the first message).
     pub fn nudge(&self) -> Result<(), PortError> {

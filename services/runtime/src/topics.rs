@@ -257,6 +257,8 @@ pub struct Received<'a> {
 pub trait Tap {
     /// The service.
     fn service(&self) -> &'static str;
+    /// Counts `n` messages of this service dropped for `reason` (see `Input::count_dropped`).
+    fn count_dropped(&self, reason: &str, n: u64);
     /// Receives every queued message, calling `sink` for each until it breaks; returns how many
     /// were received.
     fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> ControlFlow<()>) -> Result<usize, TopicError>;
@@ -281,6 +283,9 @@ pub trait Emit {
     fn send_bytes(&mut self, data: &[u8], keep_origin: bool) -> Result<(usize, usize), TopicError>;
     /// Wakes the subscribers so that they attach before the first message.
     fn nudge(&self) -> Result<(), TopicError>;
+    /// Counts `n` messages meant for this service that were dropped for `reason` (see
+    /// `Output::count_dropped`).
+    fn count_dropped(&self, reason: &str, n: u64);
 }
 
 struct FixedTap<T: Debug + ZeroCopySend + 'static, H: Header> {
@@ -298,6 +303,10 @@ fn fixed_tap<T: WireType + Debug + ZeroCopySend, H: Header + WireType>(
 impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Tap for FixedTap<T, H> {
     fn service(&self) -> &'static str {
         self.service
+    }
+
+    fn count_dropped(&self, reason: &str, n: u64) {
+        self.input.count_dropped(reason, n);
     }
 
     fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> ControlFlow<()>) -> Result<usize, TopicError> {
@@ -333,6 +342,10 @@ fn slice_tap<T: WireType + Debug + ZeroCopySend, H: Header + WireType>(
 impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Tap for SliceTap<T, H> {
     fn service(&self) -> &'static str {
         self.service
+    }
+
+    fn count_dropped(&self, reason: &str, n: u64) {
+        self.input.count_dropped(reason, n);
     }
 
     fn drain(&self, sink: &mut dyn FnMut(Received<'_>) -> ControlFlow<()>) -> Result<usize, TopicError> {
@@ -407,6 +420,10 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for FixedEmi
     fn nudge(&self) -> Result<(), TopicError> {
         Ok(self.output.nudge()?)
     }
+
+    fn count_dropped(&self, reason: &str, n: u64) {
+        self.output.count_dropped(reason, n);
+    }
 }
 
 struct SliceEmit<T: WireType + Debug + ZeroCopySend, H: Header> {
@@ -450,6 +467,10 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for SliceEmi
 
     fn nudge(&self) -> Result<(), TopicError> {
         Ok(self.output.nudge()?)
+    }
+
+    fn count_dropped(&self, reason: &str, n: u64) {
+        self.output.count_dropped(reason, n);
     }
 }
 

@@ -49,13 +49,13 @@ pub fn undelivered(rows: &[ProcessRow<'_>]) -> BTreeMap<(String, String, String)
     out
 }
 
-/// What each process's stages dropped of their inputs, summed over its instances: (process,
+/// What each process's stages dropped (of their inputs, or meant for their outputs), summed over its instances: (process,
 /// service, reason) → messages.
 pub fn dropped(rows: &[ProcessRow<'_>]) -> BTreeMap<(String, String, String), u64> {
     let mut out = BTreeMap::new();
     for row in rows {
         for report in &row.reports {
-            for port in report.ports.iter().filter(|p| p.input) {
+            for port in &report.ports {
                 for (reason, n) in &port.dropped_by {
                     if *n > 0 {
                         *out.entry((row.name.to_string(), port.service.clone(), reason.clone())).or_default() += *n;

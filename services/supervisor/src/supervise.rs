@@ -760,12 +760,12 @@ impl Supervisor {
     }
 }
 
-/// Input messages a process's stage dropped so far, over all its instances, by "service
+/// Messages a process's stage dropped so far (of its inputs, or meant for its outputs), over all its instances, by "service
 /// (reason)".
 fn dropped_by(c: &Child) -> BTreeMap<String, u64> {
     let mut out: BTreeMap<String, u64> = BTreeMap::new();
     for r in c.reports.values() {
-        for port in r.ports.iter().filter(|p| p.input) {
+        for port in &r.ports {
             for (reason, n) in &port.dropped_by {
                 *out.entry(format!("{} ({reason})", port.service)).or_default() += *n;
             }
