@@ -106,3 +106,32 @@ fn doctor_reports_the_machine_against_a_config_and_fails_on_a_bad_one() {
     assert_eq!(out.status.code(), Some(2), "{text}");
     assert!(text.contains("PROBLEM") && text.contains("no_such_kind"), "{text}");
 }
+
+#[test]
+fn every_shipped_config_passes_the_check() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../config");
+    let mut checked = vec![];
+    for e in std::fs::read_dir(&dir).expect("config/") {
+        let path = e.expect("entry").path();
+        if path.extension().is_none_or(|x| x != "toml") {
+            continue;
+        }
+        let out = std::process::Command::new(pipeline_tests::bin("supervisor"))
+            .arg("--config")
+            .arg(&path)
+            .arg("--check")
+            .current_dir(dir.parent().expect("repo"))
+            .output()
+            .expect("supervisor runs");
+        assert_eq!(
+            out.status.code(),
+            Some(0),
+            "{}: {}{}",
+            path.display(),
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        checked.push(path.file_name().expect("name").to_string_lossy().to_string());
+    }
+    assert!(checked.len() >= 8 && checked.contains(&"robot.toml".to_string()), "{checked:?}");
+}
