@@ -61,8 +61,8 @@ pub struct BridgeSettings {
     /// After the end marker, wait this long for the other side's acknowledgement, s.
     #[serde(default = "default_ack")]
     pub end_ack_timeout_s: f64,
-    /// Received messages queued before they are published (beyond it, the oldest is dropped and
-    /// counted).
+    /// Received messages queued before they are published: when it is full, the link is held back
+    /// (for at most 5 s at a time, then the oldest is dropped and counted).
     #[serde(default = "default_queue")]
     pub queue_messages: usize,
 }
@@ -74,7 +74,7 @@ fn default_wait() -> f64 {
     20.0
 }
 fn default_ack() -> f64 {
-    5.0
+    30.0
 }
 fn default_queue() -> usize {
     4096
@@ -147,6 +147,23 @@ pub struct InRoute {
     /// `r2/pipeline/fusion/pose`); the wire types are those of `service`.
     #[serde(default)]
     pub local: String,
+    /// When a local subscriber's queue is full (on a service that does not overwrite): `wait`
+    /// (default: lossless, the wait holds the link back and a reliable sender with it) or `drop`
+    /// (the newest message is not delivered to that subscriber, counted: for clouds and voxel
+    /// maps the sender sends `drop_oldest`).
+    #[serde(default)]
+    pub when_full: WhenFull,
+}
+
+/// What an `in` route does when a local subscriber is full.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum WhenFull {
+    /// Wait for room (lossless; slows the link down).
+    #[default]
+    Wait,
+    /// Do not deliver to that subscriber; counted.
+    Drop,
 }
 
 impl InRoute {

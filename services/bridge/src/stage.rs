@@ -18,7 +18,7 @@ use shared_types::services;
 use zenoh::Wait;
 use zenoh::qos::CongestionControl;
 
-use crate::{BridgeSettings, Policy, ack_key, end_key, key, signature};
+use crate::{BridgeSettings, Policy, WhenFull, ack_key, end_key, key, signature};
 
 /// Counters of one `out` route.
 #[derive(Debug, Default, Clone, Copy, serde::Serialize)]
@@ -106,6 +106,9 @@ struct InRoute {
     signature: Vec<u8>,
     /// Index of the route (into the inbox's counters).
     index: usize,
+    /// Publishing may wait for a full local subscriber (`when_full = wait` on a service that
+    /// does not overwrite).
+    may_wait: bool,
     /// Index into the stage's emitters (routes of several robots may share one local service).
     emitter: usize,
     counts: InCounts,
@@ -123,21 +126,40 @@ enum Incoming {
 /// The queue between the Zenoh callbacks and the stage.
 struct Inbox {
     queue: Mutex<VecDeque<Incoming>>,
+    /// Signalled when the stage has taken the queue.
+    space: std::sync::Condvar,
     capacity: usize,
-    /// Per `in` route: dropped because the queue was full.
+    /// Per `in` route: dropped because the queue stayed full for [`BLOCK_AT_MOST`].
     dropped: Vec<AtomicU64>,
     waker: Option<pipeline_runtime::Waker>,
 }
 
+/// Longest a Zenoh callback waits for room in a full receive queue (back-pressure on the link)
+/// before it drops the oldest message: half of Zenoh's default 10 s lease, so that the session's
+/// keep-alives are still read in time.
+const BLOCK_AT_MOST: Duration = Duration::from_secs(5);
+
 impl Inbox {
+    /// Queues `item`; when the queue is full, waits (up to [`BLOCK_AT_MOST`]) for the stage to
+    /// take it, which holds the link back (a reliable sender blocks), then drops the oldest.
     fn push(&self, item: Incoming) {
         {
             let mut q = self.queue.lock().unwrap_or_else(|p| p.into_inner());
-            if q.len() >= self.capacity
-                && let Some(pos) = q.iter().position(|i| matches!(i, Incoming::Data { .. }))
-                && let Some(Incoming::Data { route, .. }) = q.remove(pos)
-            {
-                self.dropped[route].fetch_add(1, Ordering::Relaxed);
+            let t0 = Instant::now();
+            while q.len() >= self.capacity {
+                let left = BLOCK_AT_MOST.saturating_sub(t0.elapsed());
+                if left.is_zero() {
+                    if let Some(pos) = q.iter().position(|i| matches!(i, Incoming::Data { .. }))
+                        && let Some(Incoming::Data { route, .. }) = q.remove(pos)
+                    {
+                        self.dropped[route].fetch_add(1, Ordering::Relaxed);
+                    }
+                    break;
+                }
+                if let Some(w) = &self.waker {
+                    w.wake();
+                }
+                q = self.space.wait_timeout(q, left).unwrap_or_else(|p| p.into_inner()).0;
             }
             q.push_back(item);
         }
@@ -147,7 +169,9 @@ impl Inbox {
     }
 
     fn take(&self) -> VecDeque<Incoming> {
-        std::mem::take(&mut *self.queue.lock().unwrap_or_else(|p| p.into_inner()))
+        let q = std::mem::take(&mut *self.queue.lock().unwrap_or_else(|p| p.into_inner()));
+        self.space.notify_all();
+        q
     }
 
     fn is_empty(&self) -> bool {
@@ -248,8 +272,10 @@ impl BridgeStage {
     }
 
     /// Takes every queued local message of every `out` route and hands it to Zenoh.
-    fn pump_out(&mut self) -> Result<usize, StageError> {
+    fn pump_out(&mut self, rt: &mut Runtime) -> Result<usize, StageError> {
         let mut total = 0;
+        // A reliable send may wait for the link: the heartbeat goes on meanwhile.
+        let _hold = self.outs.iter().any(|o| o.policy == Policy::Reliable).then(|| rt.hold_heartbeat());
         for o in &mut self.outs {
             let OutRoute {
                 tap,
@@ -313,7 +339,9 @@ impl BridgeStage {
     }
 
     /// Publishes what the Zenoh callbacks queued; acknowledges end markers.
-    fn pump_in(&mut self) -> Result<usize, StageError> {
+    fn pump_in(&mut self, rt: &mut Runtime) -> Result<usize, StageError> {
+        // Publishing may wait for a full local subscriber (when_full = wait), holding the link.
+        let _hold = rt.hold_heartbeat();
         for r in &mut self.ins {
             let total = self.inbox.dropped[r.index].load(Ordering::Relaxed);
             if total > r.counts.queue_dropped {
@@ -322,7 +350,18 @@ impl BridgeStage {
             }
         }
         let mut n = 0;
+        // Messages of routes that never wait first, then those that may wait for a full local
+        // subscriber, then the ends of stream: a cloud waiting for the mapper must not hold back
+        // the poses the mapper waits for (each route keeps its own order).
+        let (mut quick, mut waiting, mut ends) = (vec![], vec![], vec![]);
         for item in self.inbox.take() {
+            match &item {
+                Incoming::Data { route, .. } if self.ins[*route].may_wait => waiting.push(item),
+                Incoming::Data { .. } => quick.push(item),
+                Incoming::End { .. } => ends.push(item),
+            }
+        }
+        for item in quick.into_iter().chain(waiting).chain(ends) {
             match item {
                 Incoming::Data { route, bytes, attachment } => {
                     n += 1;
@@ -476,6 +515,7 @@ impl Stage for BridgeStage {
         let waker = if settings.inbound.is_empty() { None } else { Some(rt.waker()?) };
         let inbox = Arc::new(Inbox {
             queue: Mutex::new(VecDeque::new()),
+            space: std::sync::Condvar::new(),
             capacity: settings.queue_messages,
             dropped: settings.inbound.iter().map(|_| AtomicU64::new(0)).collect(),
             waker,
@@ -493,7 +533,11 @@ impl Stage for BridgeStage {
             let emitter = match emitter_of.get(local) {
                 Some(&e) => e,
                 None => {
-                    emitters.push(t.emitter_on(rt, local, &qos, Delivery::WaitWhenFull { max_wait: None })?);
+                    let delivery = match r.when_full {
+                        WhenFull::Wait => Delivery::WaitWhenFull { max_wait: None },
+                        WhenFull::Drop => Delivery::DiscardWhenFull,
+                    };
+                    emitters.push(t.emitter_on(rt, local, &qos, delivery)?);
                     emitter_of.insert(local.to_string(), emitters.len() - 1);
                     emitters.len() - 1
                 }
@@ -514,6 +558,7 @@ impl Stage for BridgeStage {
             let shared = settings.inbound.iter().filter(|o| o.local_service() == local).count() > 1;
             ins.push(InRoute {
                 index: i,
+                may_wait: r.when_full == WhenFull::Wait && !qos.safe_overflow,
                 route_name: if shared { format!("{}:{local}", r.from) } else { local.to_string() },
                 from: r.from.clone(),
                 service: r.service.clone(),
@@ -583,9 +628,9 @@ impl Stage for BridgeStage {
         if self.outs.is_empty() { EndAfter::Itself } else { EndAfter::from_list(&self.settings.end_after) }
     }
 
-    fn step(&mut self, _rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
-        self.pump_out()?;
-        self.pump_in()?;
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
+        self.pump_out(rt)?;
+        self.pump_in(rt)?;
         let ins_done = self.ins_done();
         if self.outs.is_empty() {
             return Ok(if ins_done { Step::Done } else { Step::Idle });
@@ -595,10 +640,10 @@ impl Stage for BridgeStage {
 
     fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
         if ending == Ending::Stopped {
-            if let Err(e) = self.pump_out() {
+            if let Err(e) = self.pump_out(rt) {
                 tracing::warn!("last drain: {e:#}");
             }
-            if let Err(e) = self.pump_in() {
+            if let Err(e) = self.pump_in(rt) {
                 tracing::warn!("last publish: {e:#}");
             }
         }
@@ -631,7 +676,7 @@ impl Stage for BridgeStage {
                     .get(&r.from)
                     .and_then(|e| e.as_ref())
                     .and_then(|sent| sent.get(&r.service))
-                    .map(|&sent| sent.saturating_sub(c.received - c.wrong_type - c.bad_length));
+                    .map(|&sent| sent.saturating_sub(c.received + c.queue_dropped - c.wrong_type - c.bad_length));
                 // What went missing without a sequence gap here (lost before the end) is counted now.
                 let unseen = lost.unwrap_or(0).saturating_sub(c.seq_gaps);
                 self.emitters[r.emitter].count_dropped("lost on the way", unseen);

@@ -26,6 +26,7 @@ pub use ports::{Delivery, Input, Output, PortError};
 pub use protocol::{CheckReport, process_main};
 pub use restart::{Restart, StateStore};
 pub use runtime::{Flow, ProcessArgs, ProcessContext, Runtime, RuntimeOptions, StopReason, Wake, Waker};
+pub use runtime::HeartbeatHold;
 pub use stage::{EndAfter, Ending, Stage, Step, stage_main};
 pub use stats::{LatencySummary, StatsReport};
 

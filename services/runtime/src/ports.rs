@@ -254,17 +254,29 @@ pub struct Backpressure {
     signal: Arc<AtomicUsize>,
     /// Total time spent waiting, µs.
     waited_us: AtomicU64,
+    /// Waits outside iceoryx2 in progress ([`crate::Runtime::hold_heartbeat`]).
+    external_waits: AtomicUsize,
 }
 
 impl Backpressure {
     /// Shared state for the outputs of one process.
     pub fn new(config: iceoryx2::config::Config, waiting: Arc<AtomicBool>, signal: Arc<AtomicUsize>) -> Arc<Self> {
-        Arc::new(Self { config, waiting, signal, waited_us: AtomicU64::new(0) })
+        Arc::new(Self { config, waiting, signal, waited_us: AtomicU64::new(0), external_waits: AtomicUsize::new(0) })
     }
 
-    /// True while a send waits for a full subscriber.
+    /// True while a send waits for a full subscriber (or the stage waits outside iceoryx2).
     pub fn is_waiting(&self) -> bool {
-        self.waiting.load(Ordering::Relaxed)
+        self.waiting.load(Ordering::Relaxed) || self.external_waits.load(Ordering::Relaxed) > 0
+    }
+
+    /// Marks the start of a wait outside iceoryx2; [`Backpressure::end_external_wait`] ends it.
+    pub fn begin_external_wait(&self) {
+        self.external_waits.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Marks the end of a wait begun with [`Backpressure::begin_external_wait`].
+    pub fn end_external_wait(&self) {
+        self.external_waits.fetch_sub(1, Ordering::Relaxed);
     }
 
     /// Total time the process's sends have waited for full subscribers.

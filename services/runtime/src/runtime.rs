@@ -213,6 +213,19 @@ pub struct Runtime {
     wakers: Vec<WakerThread>,
 }
 
+/// While it lives, the process's heartbeat goes on from the keep-alive thread
+/// ([`Runtime::hold_heartbeat`]).
+#[must_use = "the heartbeat is held only while this lives"]
+pub struct HeartbeatHold {
+    bp: Arc<Backpressure>,
+}
+
+impl Drop for HeartbeatHold {
+    fn drop(&mut self) {
+        self.bp.end_external_wait();
+    }
+}
+
 /// Wakes a process's loop from any thread (a network callback, a worker): [`Runtime::waker`].
 /// Cheap to clone and to call; wakes that come while one is pending are merged.
 #[derive(Debug, Clone)]
@@ -634,6 +647,15 @@ impl Runtime {
                 self.started,
             ));
         }
+    }
+
+    /// Keeps the process's heartbeat going (from the keep-alive thread) while the stage blocks
+    /// outside iceoryx2, until the returned hold is dropped: e.g. a network send held back by a
+    /// slow link, which is waiting for a slow consumer, not a hang.
+    pub fn hold_heartbeat(&mut self) -> HeartbeatHold {
+        self.keep_alive_for(Delivery::WaitWhenFull { max_wait: None });
+        self.backpressure.begin_external_wait();
+        HeartbeatHold { bp: self.backpressure.clone() }
     }
 
     /// Total time this process's sends waited for full subscribers (back-pressure).
