@@ -665,35 +665,33 @@ impl Stage for BridgeStage {
             })
             .collect();
         let mut lost_total = 0u64;
-        let ins: BTreeMap<&str, serde_json::Value> = self
-            .ins
-            .iter()
-            .map(|r| {
-                let c = r.counts;
-                // What the other side said it sent, against what arrived here.
-                let lost = self
-                    .ends
-                    .get(&r.from)
-                    .and_then(|e| e.as_ref())
-                    .and_then(|sent| sent.get(&r.service))
-                    .map(|&sent| sent.saturating_sub(c.received + c.queue_dropped - c.wrong_type - c.bad_length));
-                // What went missing without a sequence gap here (lost before the end) is counted now.
-                let unseen = lost.unwrap_or(0).saturating_sub(c.seq_gaps);
-                self.emitters[r.emitter].count_dropped("lost on the way", unseen);
-                lost_total += lost.unwrap_or(0) + c.wrong_type + c.bad_length + c.queue_dropped;
-                (
-                    r.route_name.as_str(),
-                    serde_json::json!({
-                        "local": r.local,
-                        "from": r.from,
-                        "service": r.service,
-                        "key": key(&self.settings.namespace, &r.from, &r.service),
-                        "counts": c,
-                        "lost_on_the_way": lost,
-                    }),
-                )
-            })
-            .collect();
+        let ins: BTreeMap<&str, serde_json::Value> =
+            self.ins
+                .iter()
+                .map(|r| {
+                    let c = r.counts;
+                    // What the other side said it sent, against what arrived here.
+                    let lost =
+                        self.ends.get(&r.from).and_then(|e| e.as_ref()).and_then(|sent| sent.get(&r.service)).map(
+                            |&sent| sent.saturating_sub(c.received + c.queue_dropped - c.wrong_type - c.bad_length),
+                        );
+                    // What went missing without a sequence gap here (lost before the end) is counted now.
+                    let unseen = lost.unwrap_or(0).saturating_sub(c.seq_gaps);
+                    self.emitters[r.emitter].count_dropped("lost on the way", unseen);
+                    lost_total += lost.unwrap_or(0) + c.wrong_type + c.bad_length + c.queue_dropped;
+                    (
+                        r.route_name.as_str(),
+                        serde_json::json!({
+                            "local": r.local,
+                            "from": r.from,
+                            "service": r.service,
+                            "key": key(&self.settings.namespace, &r.from, &r.service),
+                            "counts": c,
+                            "lost_on_the_way": lost,
+                        }),
+                    )
+                })
+                .collect();
         let out_dropped: u64 = self.outs.iter().map(|o| o.counts.rate_dropped + o.counts.send_errors).sum();
         if lost_total > 0 || out_dropped > 0 {
             tracing::warn!(

@@ -25,8 +25,8 @@ pub use iox::IoxScope;
 pub use ports::{Delivery, Input, Output, PortError};
 pub use protocol::{CheckReport, process_main};
 pub use restart::{Restart, StateStore};
-pub use runtime::{Flow, ProcessArgs, ProcessContext, Runtime, RuntimeOptions, StopReason, Wake, Waker};
 pub use runtime::HeartbeatHold;
+pub use runtime::{Flow, ProcessArgs, ProcessContext, Runtime, RuntimeOptions, StopReason, Wake, Waker};
 pub use stage::{EndAfter, Ending, Stage, Step, stage_main};
 pub use stats::{LatencySummary, StatsReport};
 
