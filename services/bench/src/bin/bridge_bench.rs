@@ -1,0 +1,374 @@
+//! `bridge_bench`: latency and throughput across the Zenoh bridge against a bare Zenoh
+//! publisher/subscriber pair, for messages from a cloud header alone (96 B) to a 300k-point
+//! cloud (3.6 MB), in one run, on this machine's loopback.
+//!
+//! - **bare Zenoh**: this process puts the bytes on a key; a child process (`bridge_bench
+//!   zenoh-sub`, its own session, TCP over 127.0.0.1) receives them. Latency = the child's
+//!   CLOCK_MONOTONIC at receipt − the send time written in the payload's first 8 bytes.
+//! - **bridge**: this process publishes a cloud into iceoryx2 (prefix A, written in place in a
+//!   loaned sample); a `bridge` process of prefix A sends it to Zenoh; a `bridge` process of
+//!   prefix B receives it and publishes it into a loaned sample of prefix B; a thread of this
+//!   process receives it there. Latency = receipt − the header's `origin_ns` (kept by the bridge).
+//!   So the bridge row has two processes and two iceoryx2 hops more than the bare row: what a
+//!   pipeline pays to reach another host.
+//!
+//! One message in flight at `--rate-hz` for latency; then a burst of messages back to back
+//! (reliable: Zenoh congestion control `Block` on both rows) for throughput. Both clocks are this
+//! machine's, so one-way latency is exact. Not measured here yet: `tc netem` delay and loss.
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context as _, bail};
+use clap::{Parser, Subcommand};
+use pipeline_runtime::{Delivery, Flow, IoxScope, Runtime, RuntimeOptions, StageError, monotonic_ns};
+use shared_types::services::{CLOUD, service_spec};
+use shared_types::{CloudHeader, CloudPoint, MsgHeader};
+use zenoh::Wait;
+use zenoh::qos::CongestionControl;
+
+#[derive(Parser)]
+#[command(about = "Latency and throughput across the Zenoh bridge against bare Zenoh, on loopback")]
+struct Cli {
+    #[command(subcommand)]
+    child: Option<ChildCommand>,
+    /// Message sizes, bytes (the bridge rows send a cloud of 96 + 12·n bytes, the nearest below).
+    #[arg(long, value_delimiter = ',', default_value = "96,65536,1048576,3600000")]
+    sizes: Vec<usize>,
+    /// Measured messages per size and row (after 20 warm-up ones).
+    #[arg(long, default_value_t = 200)]
+    samples: usize,
+    /// Message rate of the latency phase, Hz.
+    #[arg(long, default_value_t = 50.0)]
+    rate_hz: f64,
+    /// Bytes sent back to back for throughput, per size and row (20 to 20,000 messages).
+    #[arg(long, default_value_t = 200_000_000)]
+    burst_bytes: usize,
+}
+
+#[derive(Subcommand)]
+enum ChildCommand {
+    /// (internal) Subscribes `key` on a session listening on `listen`; prints the result as JSON.
+    ZenohSub {
+        /// Endpoint to listen on.
+        #[arg(long)]
+        listen: String,
+        /// Key to subscribe.
+        #[arg(long)]
+        key: String,
+        /// Latency messages to wait for.
+        #[arg(long)]
+        latency: usize,
+        /// Burst messages to wait for.
+        #[arg(long)]
+        burst: usize,
+    },
+}
+
+/// What a receiver saw: latencies (µs) of the latency phase, and the burst's messages and span.
+#[derive(Debug, Default, serde::Serialize, serde::Deserialize)]
+struct Seen {
+    latencies_us: Vec<f64>,
+    burst_messages: usize,
+    burst_s: f64,
+}
+
+/// Flag of a message: a probe (not counted), a latency sample, or part of the burst.
+const PROBE: u8 = 0;
+const SAMPLE: u8 = 1;
+const BURST: u8 = 2;
+
+fn zerr(e: impl std::fmt::Display) -> anyhow::Error {
+    anyhow::anyhow!("zenoh: {e}")
+}
+
+fn zenoh_config(listen: Option<&str>, connect: Option<&str>) -> anyhow::Result<zenoh::Config> {
+    let mut c = zenoh::Config::default();
+    let mut set = |k: &str, v: String| c.insert_json5(k, &v).map_err(|e| anyhow::anyhow!("{k}: {e}"));
+    set("mode", "\"peer\"".into())?;
+    set("scouting/multicast/enabled", "false".into())?;
+    if let Some(l) = listen {
+        set("listen/endpoints", format!("[\"{l}\"]"))?;
+    }
+    if let Some(e) = connect {
+        set("connect/endpoints", format!("[\"{e}\"]"))?;
+    }
+    Ok(c)
+}
+
+/// The child of the bare row.
+fn zenoh_sub(listen: &str, key: &str, latency: usize, burst: usize) -> anyhow::Result<()> {
+    let s = zenoh::open(zenoh_config(Some(listen), None)?).wait().map_err(zerr)?;
+    let (tx, rx) = std::sync::mpsc::channel::<(u64, u64, u8)>();
+    let _sub = s
+        .declare_subscriber(key)
+        .callback(move |sample| {
+            let now = monotonic_ns();
+            let b = sample.payload().to_bytes();
+            if b.len() >= 9 {
+                let sent = u64::from_le_bytes(b[..8].try_into().unwrap_or_default());
+                let _ = tx.send((now, sent, b[8]));
+            }
+        })
+        .wait()
+        .map_err(zerr)?;
+    println!("ready");
+    let mut seen = Seen::default();
+    let mut burst_start = None;
+    let deadline = Instant::now() + Duration::from_secs(600);
+    while seen.latencies_us.len() < latency || seen.burst_messages < burst {
+        let Ok((now, sent, flag)) = rx.recv_timeout(deadline.saturating_duration_since(Instant::now())) else {
+            bail!("timed out after {} latency and {} burst messages", seen.latencies_us.len(), seen.burst_messages)
+        };
+        match flag {
+            SAMPLE => seen.latencies_us.push(now.saturating_sub(sent) as f64 / 1e3),
+            BURST => {
+                let start = *burst_start.get_or_insert(sent);
+                seen.burst_messages += 1;
+                seen.burst_s = now.saturating_sub(start) as f64 / 1e9;
+            }
+            _ => {}
+        }
+    }
+    println!("{}", serde_json::to_string(&seen)?);
+    Ok(())
+}
+
+/// A child process, killed and reaped on drop.
+struct Killed(Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn free_port() -> anyhow::Result<u16> {
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
+}
+
+fn message(size: usize, flag: u8) -> Vec<u8> {
+    let mut v = vec![0u8; size.max(9)];
+    v[..8].copy_from_slice(&monotonic_ns().to_le_bytes());
+    v[8] = flag;
+    v
+}
+
+/// The bare Zenoh row for one size.
+fn bare(size: usize, cli: &Cli, burst: usize) -> anyhow::Result<Seen> {
+    let port = free_port()?;
+    let exe = std::env::current_exe()?;
+    let mut child = Killed(
+        Command::new(&exe)
+            .args(["zenoh-sub", "--listen", &format!("tcp/127.0.0.1:{port}"), "--key", "bench/bare"])
+            .args(["--latency", &cli.samples.to_string(), "--burst", &burst.to_string()])
+            .stdout(Stdio::piped())
+            .spawn()?,
+    );
+    let mut lines = BufReader::new(child.0.stdout.take().context("stdout")?).lines();
+    if lines.next().transpose()?.as_deref() != Some("ready") {
+        bail!("the subscriber did not start");
+    }
+    let s = zenoh::open(zenoh_config(None, Some(&format!("tcp/127.0.0.1:{port}")))?).wait().map_err(zerr)?;
+    let p = s.declare_publisher("bench/bare").congestion_control(CongestionControl::Block).wait().map_err(zerr)?;
+    let t0 = Instant::now();
+    while !p.matching_status().wait().map_err(zerr)?.matching() {
+        if t0.elapsed() > Duration::from_secs(30) {
+            bail!("no subscriber matched");
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let period = Duration::from_secs_f64(1.0 / cli.rate_hz);
+    for k in 0..20 + cli.samples {
+        p.put(message(size, if k < 20 { PROBE } else { SAMPLE })).wait().map_err(zerr)?;
+        std::thread::sleep(period);
+    }
+    for _ in 0..burst {
+        p.put(message(size, BURST)).wait().map_err(zerr)?;
+    }
+    let line = lines.next().transpose()?.context("the subscriber ended without a result")?;
+    Ok(serde_json::from_str(&line)?)
+}
+
+/// Writes a pipeline config with one bridge process `link` in `scope`.
+fn bridge_config(
+    dir: &std::path::Path,
+    name: &str,
+    scope: &IoxScope,
+    settings: &str,
+) -> anyhow::Result<std::path::PathBuf> {
+    let text = format!(
+        "[run]\niceoryx_prefix = \"{}\"\niceoryx_root = \"{}\"\nout_dir = \"{}\"\n\n[processes.link]\nkind = \"bridge\"\n\
+         [processes.link.settings]\n{settings}\n",
+        scope.prefix,
+        scope.root.display(),
+        dir.join(format!("out_{name}")).display()
+    );
+    let path = dir.join(format!("{name}.toml"));
+    std::fs::write(&path, text)?;
+    Ok(path)
+}
+
+/// The bridge row for one size: (what arrived, the message size sent).
+fn bridged(size: usize, cli: &Cli, burst: usize, dir: &std::path::Path, n: usize) -> anyhow::Result<(Seen, usize)> {
+    let port = free_port()?;
+    let scope = |tag: &str| IoxScope {
+        prefix: format!("pbb{tag}{}_{n}_", std::process::id()),
+        root: dir.join(format!("iox_{tag}{n}")),
+        base_config: None,
+    };
+    let (a, b) = (scope("a"), scope("b"));
+    let bin = std::env::current_exe()?.parent().context("bin dir")?.join("bridge");
+    if !bin.exists() {
+        bail!("{} is missing: build it (cargo build --release --workspace --bins)", bin.display());
+    }
+    let ca = bridge_config(
+        dir,
+        &format!("a{n}"),
+        &a,
+        &format!(
+            "robot = \"r\"\nend_ack_timeout_s = 0\nzenoh = {{ connect = [\"tcp/127.0.0.1:{port}\"] }}\n\
+             out = [{{ service = \"{CLOUD}\" }}]"
+        ),
+    )?;
+    let cb = bridge_config(
+        dir,
+        &format!("b{n}"),
+        &b,
+        &format!("zenoh = {{ listen = [\"tcp/127.0.0.1:{port}\"] }}\nin = [{{ from = \"r\", service = \"{CLOUD}\" }}]"),
+    )?;
+    let spawn = |cfg: &std::path::Path| -> anyhow::Result<Killed> {
+        Ok(Killed(
+            Command::new(&bin)
+                .arg("--config")
+                .arg(cfg)
+                .args(["--name", "link"])
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()?,
+        ))
+    };
+    let _rb = spawn(&cb)?;
+    // The receiving side: a thread with its own runtime in prefix B.
+    let (ready_tx, ready_rx) = std::sync::mpsc::channel::<()>();
+    let (samples, b_t) = (cli.samples, b.clone());
+    let receiver = std::thread::spawn(move || -> anyhow::Result<Seen> {
+        let options = RuntimeOptions { publish_control: false, ..Default::default() };
+        let mut rt = Runtime::new("bench_rx", &b_t, options)?;
+        let input = rt.input::<[CloudPoint], CloudHeader>(CLOUD)?;
+        let _ = ready_tx.send(());
+        let mut seen = Seen::default();
+        let mut burst_start = None;
+        let mut last = Instant::now();
+        rt.run(&mut seen, Some(Duration::from_millis(100)), |_, seen, _| {
+            while let Some(s) = input.receive()? {
+                let now = monotonic_ns();
+                let h = *s.user_header();
+                match h.flags as u8 {
+                    SAMPLE => seen.latencies_us.push(now.saturating_sub(h.msg.origin_ns) as f64 / 1e3),
+                    BURST => {
+                        let start = *burst_start.get_or_insert(h.msg.origin_ns);
+                        seen.burst_messages += 1;
+                        seen.burst_s = now.saturating_sub(start) as f64 / 1e9;
+                    }
+                    _ => {}
+                }
+                last = Instant::now();
+            }
+            let done = seen.latencies_us.len() >= samples && seen.burst_messages >= burst;
+            let stalled = last.elapsed() > Duration::from_secs(60);
+            Ok::<_, StageError>(if done || stalled { Flow::Stop } else { Flow::Continue })
+        })?;
+        Ok(seen)
+    });
+    ready_rx.recv_timeout(Duration::from_secs(30)).context("the receiving runtime did not start")?;
+    let _ra = spawn(&ca)?;
+    let options = RuntimeOptions { publish_control: false, ..Default::default() };
+    let mut rt = Runtime::new("bench_tx", &a, options)?;
+    let qos = service_spec(CLOUD).context("cloud QoS")?.qos;
+    let points = size.saturating_sub(96) / 12;
+    let mut out = rt.output_slice_with_qos::<CloudPoint, CloudHeader>(
+        CLOUD,
+        &qos,
+        points.max(1),
+        Delivery::WaitWhenFull { max_wait: Some(Duration::from_secs(10)) },
+    )?;
+    // Until the sending bridge has subscribed (and waited for the other side to match).
+    let t0 = Instant::now();
+    while out.subscribers() == 0 {
+        if t0.elapsed() > Duration::from_secs(30) {
+            bail!("the sending bridge never subscribed");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let mut send = |flag: u8| -> anyhow::Result<usize> {
+        let mut s = out.loan_slice_uninit(points)?.write_from_fn(|i| CloudPoint { x_m: i as f32, y_m: 0.0, z_m: 0.0 });
+        *s.user_header_mut() = CloudHeader { msg: MsgHeader::default(), flags: flag as u32, ..Default::default() };
+        Ok(out.send(s)?)
+    };
+    std::thread::sleep(Duration::from_secs(2));
+    let period = Duration::from_secs_f64(1.0 / cli.rate_hz);
+    for k in 0..20 + cli.samples {
+        send(if k < 20 { PROBE } else { SAMPLE })?;
+        std::thread::sleep(period);
+    }
+    for _ in 0..burst {
+        send(BURST)?;
+    }
+    let seen = receiver.join().map_err(|_| anyhow::anyhow!("the receiver panicked"))??;
+    Ok((seen, 96 + 12 * points))
+}
+
+fn pct(v: &[f64], q: f64) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    if s.is_empty() { f64::NAN } else { s[((s.len() - 1) as f64 * q).round() as usize] }
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    if let Some(ChildCommand::ZenohSub { listen, key, latency, burst }) = &cli.child {
+        return zenoh_sub(listen, key, *latency, *burst);
+    }
+    let dir = tempfile::Builder::new().prefix("bridge-bench-").tempdir()?;
+    println!(
+        "bridge_bench: one-way latency in µs (one message in flight at {} Hz, {} measured per row) and throughput \
+         (back to back, reliable) on loopback, {} CPUs; bridge = iceoryx2 -> bridge -> Zenoh -> bridge -> iceoryx2",
+        cli.rate_hz,
+        cli.samples,
+        std::thread::available_parallelism().map_or(0, |n| n.get())
+    );
+    println!(
+        "{:>9} | {:>9} {:>9} {:>8} | {:>10} {:>9} {:>8} | {:>6}",
+        "bytes", "zenoh p50", "p99", "MB/s", "bridge p50", "p99", "MB/s", "p50 x"
+    );
+    for (n, &size) in cli.sizes.iter().enumerate() {
+        let burst = (cli.burst_bytes / size.max(1)).clamp(20, 20_000);
+        let z = bare(size, &cli, burst)?;
+        let (b, sent_size) = bridged(size, &cli, burst, dir.path(), n)?;
+        let mbs = |s: &Seen, bytes: usize| s.burst_messages as f64 * bytes as f64 / 1e6 / s.burst_s.max(1e-9);
+        println!(
+            "{:>9} | {:>9.0} {:>9.0} {:>8.1} | {:>10.0} {:>9.0} {:>8.1} | {:>6.2}",
+            size,
+            pct(&z.latencies_us, 0.5),
+            pct(&z.latencies_us, 0.99),
+            mbs(&z, size),
+            pct(&b.latencies_us, 0.5),
+            pct(&b.latencies_us, 0.99),
+            mbs(&b, sent_size),
+            pct(&b.latencies_us, 0.5) / pct(&z.latencies_us, 0.5)
+        );
+        if b.latencies_us.len() < cli.samples || b.burst_messages < burst || sent_size != size {
+            println!(
+                "          note: the bridge row sent {sent_size}-byte clouds; got {} of {} latency and {} of {burst} \
+                 burst messages",
+                b.latencies_us.len(),
+                cli.samples,
+                b.burst_messages
+            );
+        }
+    }
+    Ok(())
+}
