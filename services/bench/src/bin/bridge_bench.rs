@@ -135,11 +135,21 @@ fn zenoh_sub(listen: &str, key: &str, latency: usize, burst: usize) -> anyhow::R
     Ok(())
 }
 
-/// A child process, killed and reaped on drop.
+/// A child process, stopped (SIGTERM, so that a pipeline process removes its iceoryx2 files; SIGKILL
+/// after 5 s) and reaped on drop.
 struct Killed(Child);
 
 impl Drop for Killed {
     fn drop(&mut self) {
+        // SAFETY: kill(2) on our own child's pid; no memory is involved.
+        unsafe { libc::kill(self.0.id() as libc::pid_t, libc::SIGTERM) };
+        let t0 = Instant::now();
+        while t0.elapsed() < Duration::from_secs(5) {
+            if matches!(self.0.try_wait(), Ok(Some(_))) {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
         let _ = self.0.kill();
         let _ = self.0.wait();
     }
