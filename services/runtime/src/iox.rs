@@ -118,6 +118,19 @@ impl IoxScope {
             .map_err(|e| IoxError::NodeCreation { name: name.to_string(), reason: format!("{e:?}") })
     }
 
+    /// Creates a node of the thread-safe service variant (same resources as `ipc`; its ports may
+    /// be used from any thread), for ports shared between threads such as a [`crate::Waker`]'s.
+    pub fn create_threadsafe_node(&self, name: &str) -> Result<Node<ipc_threadsafe::Service>, IoxError> {
+        let config = self.config()?;
+        let node_name = NodeName::new(name).map_err(|_| IoxError::InvalidNodeName(name.to_string()))?;
+        NodeBuilder::new()
+            .name(&node_name)
+            .config(&config)
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<ipc_threadsafe::Service>()
+            .map_err(|e| IoxError::NodeCreation { name: name.to_string(), reason: format!("{e:?}") })
+    }
+
     /// Counts the nodes of this scope that are alive and dead (dead = crashed, resources stale).
     pub fn node_census(&self) -> Result<NodeCensus, IoxError> {
         let config = self.config()?;

@@ -210,7 +210,8 @@ pub struct Runtime {
     /// The stage's restart state (disabled until [`crate::stage::run_stage`] opens it).
     restart_state: crate::restart::StateStore,
     /// Threads that turn [`Waker::wake`] calls into iceoryx2 events (joined on drop).
-    wakers: Vec<WakerThread>,
+    /// The pending flags of the [`Waker`]s, cleared before each step.
+    wakers: Vec<Arc<std::sync::atomic::AtomicBool>>,
 }
 
 /// While it lives, the process's heartbeat goes on from the keep-alive thread
@@ -228,39 +229,44 @@ impl Drop for HeartbeatHold {
 
 /// Wakes a process's loop from any thread (a network callback, a worker): [`Runtime::waker`].
 /// Cheap to clone and to call; wakes that come while one is pending are merged.
-#[derive(Debug, Clone)]
+#[derive(Clone)]
 pub struct Waker {
-    tx: std::sync::mpsc::SyncSender<()>,
+    inner: Arc<WakeNotifier>,
+}
+
+/// The notifier behind a [`Waker`]: a port of the thread-safe iceoryx2 service variant (the same
+/// shared-memory resources as `ipc`, its ports behind a mutex), so the waking thread notifies the
+/// loop's listener itself, with no thread in between.
+struct WakeNotifier {
+    /// Set by the first wake after the loop last woke; cleared by the loop before its step.
+    pending: Arc<std::sync::atomic::AtomicBool>,
+    notifier: iceoryx2::port::notifier::Notifier<ipc_threadsafe::Service>,
+    _node: Node<ipc_threadsafe::Service>,
+}
+
+impl std::fmt::Debug for Waker {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Waker").field("pending", &self.inner.pending.load(Ordering::Relaxed)).finish()
+    }
 }
 
 impl Waker {
     /// Wakes the loop (the stage's next `step` sees `wake.data`); never blocks.
     pub fn wake(&self) {
-        let _ = self.tx.try_send(());
-    }
-}
-
-/// The thread behind [`Waker`]s: owns its own iceoryx2 node and the notifier (iceoryx2 ports
-/// stay on the thread that made them).
-struct WakerThread {
-    stop: Arc<std::sync::atomic::AtomicBool>,
-    thread: Option<std::thread::JoinHandle<()>>,
-}
-
-impl Drop for WakerThread {
-    fn drop(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
+        if !self.inner.pending.swap(true, Ordering::AcqRel)
+            && let Err(e) = self.inner.notifier.notify()
+        {
+            self.inner.pending.store(false, Ordering::Release);
+            tracing::warn!("waker: {e:?}");
         }
     }
 }
 
 /// The event service of a [`Waker`].
-fn open_wake_event(
-    node: &Node<ipc::Service>,
+fn open_wake_event<S: iceoryx2::service::Service>(
+    node: &Node<S>,
     name: &str,
-) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, RuntimeError> {
+) -> Result<iceoryx2::service::port_factory::event::PortFactory<S>, RuntimeError> {
     let svc_name = ServiceName::new(name).map_err(|_| RuntimeError::Port(PortError::InvalidName(name.to_string())))?;
     node.service_builder(&svc_name)
         .event()
@@ -572,48 +578,14 @@ impl Runtime {
             .create()
             .map_err(|e| RuntimeError::Port(PortError::Open { service: name.clone(), reason: format!("{e:?}") }))?;
         self.listeners.push(Rc::new(listener));
-        let (tx, rx) = std::sync::mpsc::sync_channel::<()>(1);
-        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
-        let (scope, node_name, stop_t, name_t) =
-            (scope.clone(), format!("{}.waker{}", self.name, self.wakers.len()), stop.clone(), name.clone());
-        // The notifier is made on the thread (and reported back) so that a failure is an error here.
-        let (ready_tx, ready_rx) = std::sync::mpsc::channel::<Result<(), String>>();
-        let thread = std::thread::Builder::new()
-            .name("waker".into())
-            .spawn(move || {
-                let setup = || -> Result<_, String> {
-                    let node = scope.create_node(&node_name).map_err(|e| e.to_string())?;
-                    let svc = open_wake_event(&node, &name_t).map_err(|e| e.to_string())?;
-                    let notifier = svc.notifier_builder().create().map_err(|e| format!("{e:?}"))?;
-                    Ok((node, notifier))
-                };
-                let (_node, notifier) = match setup() {
-                    Ok(x) => {
-                        let _ = ready_tx.send(Ok(()));
-                        x
-                    }
-                    Err(e) => {
-                        let _ = ready_tx.send(Err(e));
-                        return;
-                    }
-                };
-                while !stop_t.load(Ordering::Relaxed) {
-                    match rx.recv_timeout(Duration::from_millis(200)) {
-                        Ok(()) => {
-                            if let Err(e) = notifier.notify() {
-                                tracing::warn!("waker: {e:?}");
-                            }
-                        }
-                        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
-                        Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
-                    }
-                }
-            })
-            .map_err(|e| RuntimeError::WaitSet(format!("waker thread: {e}")))?;
-        let ready = ready_rx.recv().unwrap_or_else(|_| Err("the waker thread ended".into()));
-        self.wakers.push(WakerThread { stop, thread: Some(thread) });
-        ready.map_err(|reason| RuntimeError::Port(PortError::Open { service: name, reason }))?;
-        Ok(Waker { tx })
+        let open = |e: String| RuntimeError::Port(PortError::Open { service: name.clone(), reason: e });
+        let node = scope
+            .create_threadsafe_node(&format!("{}.waker{}", self.name, self.wakers.len()))
+            .map_err(|e| open(e.to_string()))?;
+        let notifier = open_wake_event(&node, &name)?.notifier_builder().create().map_err(|e| open(format!("{e:?}")))?;
+        let pending = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        self.wakers.push(pending.clone());
+        Ok(Waker { inner: Arc::new(WakeNotifier { pending, notifier, _node: node }) })
     }
 
     /// Asks for a `wake.tick` at `at` (earlier than the regular tick, if need be): for sources that
@@ -796,6 +768,11 @@ impl Runtime {
                 self.wake_at.map_or(period, |w| w.saturating_duration_since(Instant::now()).min(period)),
             )
             .map_err(|e| RuntimeError::WaitSet(format!("wait: {e:?}")))?;
+            // After the listeners were drained and before the step: a wake from now on notifies
+            // again (one before this is seen by the step anyway).
+            for pending in &self.wakers {
+                pending.store(false, Ordering::Release);
+            }
             for connect in &self.connectors {
                 connect();
             }

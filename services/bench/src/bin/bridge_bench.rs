@@ -15,6 +15,7 @@
 //! One message in flight at `--rate-hz` for latency; then a burst of messages back to back
 //! (reliable: Zenoh congestion control `Block` on both rows) for throughput. Both clocks are this
 //! machine's, so one-way latency is exact. Not measured here yet: `tc netem` delay and loss.
+//! Each row's iceoryx2 files are removed from /dev/shm when it ends.
 
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
@@ -70,6 +71,10 @@ enum ChildCommand {
 #[derive(Debug, Default, serde::Serialize, serde::Deserialize)]
 struct Seen {
     latencies_us: Vec<f64>,
+    /// Bridge row: of each latency, the last iceoryx2 hop (the receiving bridge's `publish_ns` to
+    /// receipt); the rest is the sending side, Zenoh and the receiving bridge.
+    #[serde(default)]
+    last_hop_us: Vec<f64>,
     burst_messages: usize,
     burst_s: f64,
 }
@@ -155,6 +160,16 @@ impl Drop for Killed {
     }
 }
 
+/// Removes an iceoryx2 scope's files from /dev/shm and its root path on drop (after the row's
+/// processes ended).
+struct RemoveFiles(IoxScope);
+
+impl Drop for RemoveFiles {
+    fn drop(&mut self) {
+        let _ = self.0.remove_all_resources();
+    }
+}
+
 fn free_port() -> anyhow::Result<u16> {
     Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
 }
@@ -230,6 +245,8 @@ fn bridged(size: usize, cli: &Cli, burst: usize, dir: &std::path::Path, n: usize
         base_config: None,
     };
     let (a, b) = (scope("a"), scope("b"));
+    // Declared before every process and runtime of the row, so dropped after them all.
+    let _files = (RemoveFiles(a.clone()), RemoveFiles(b.clone()));
     let bin = std::env::current_exe()?.parent().context("bin dir")?.join("bridge");
     if !bin.exists() {
         bail!("{} is missing: build it (cargo build --release --workspace --bins)", bin.display());
@@ -277,7 +294,10 @@ fn bridged(size: usize, cli: &Cli, burst: usize, dir: &std::path::Path, n: usize
                 let now = monotonic_ns();
                 let h = *s.user_header();
                 match h.flags as u8 {
-                    SAMPLE => seen.latencies_us.push(now.saturating_sub(h.msg.origin_ns) as f64 / 1e3),
+                    SAMPLE => {
+                        seen.latencies_us.push(now.saturating_sub(h.msg.origin_ns) as f64 / 1e3);
+                        seen.last_hop_us.push(now.saturating_sub(h.msg.publish_ns) as f64 / 1e3);
+                    }
                     BURST => {
                         let start = *burst_start.get_or_insert(h.msg.origin_ns);
                         seen.burst_messages += 1;
@@ -351,8 +371,8 @@ fn main() -> anyhow::Result<()> {
         std::thread::available_parallelism().map_or(0, |n| n.get())
     );
     println!(
-        "{:>9} | {:>9} {:>9} {:>8} | {:>10} {:>9} {:>8} | {:>6}",
-        "bytes", "zenoh p50", "p99", "MB/s", "bridge p50", "p99", "MB/s", "p50 x"
+        "{:>9} | {:>9} {:>9} {:>8} | {:>10} {:>9} {:>8} {:>9} | {:>6}",
+        "bytes", "zenoh p50", "p99", "MB/s", "bridge p50", "p99", "MB/s", "last hop", "p50 x"
     );
     for (n, &size) in cli.sizes.iter().enumerate() {
         let burst = (cli.burst_bytes / size.max(1)).clamp(20, 20_000);
@@ -360,7 +380,7 @@ fn main() -> anyhow::Result<()> {
         let (b, sent_size) = bridged(size, &cli, burst, dir.path(), n)?;
         let mbs = |s: &Seen, bytes: usize| s.burst_messages as f64 * bytes as f64 / 1e6 / s.burst_s.max(1e-9);
         println!(
-            "{:>9} | {:>9.0} {:>9.0} {:>8.1} | {:>10.0} {:>9.0} {:>8.1} | {:>6.2}",
+            "{:>9} | {:>9.0} {:>9.0} {:>8.1} | {:>10.0} {:>9.0} {:>8.1} {:>9.0} | {:>6.2}",
             size,
             pct(&z.latencies_us, 0.5),
             pct(&z.latencies_us, 0.99),
@@ -368,6 +388,7 @@ fn main() -> anyhow::Result<()> {
             pct(&b.latencies_us, 0.5),
             pct(&b.latencies_us, 0.99),
             mbs(&b, sent_size),
+            pct(&b.last_hop_us, 0.5),
             pct(&b.latencies_us, 0.5) / pct(&z.latencies_us, 0.5)
         );
         if b.latencies_us.len() < cli.samples || b.burst_messages < burst || sent_size != size {
