@@ -144,6 +144,9 @@ rate_hz = 0.0
     eprintln!("robot bridge {rb:#}\nbase bridge {bb:#}");
     assert_eq!(rb["end_acknowledged"], true, "{rb:#}");
     assert_eq!(bb["ends_received"], serde_json::json!(["r1"]), "{bb:#}");
+    // `clock = "auto"`: the robot's bridge answered from this machine: origin_ns kept as is.
+    assert_eq!(bb["clock"]["r1"]["same_machine"], true, "{bb:#}");
+    assert_eq!(bb["clock"]["r1"]["shifted"], false, "{bb:#}");
     for s in SERVICES {
         let out = &rb["out"][s]["counts"];
         let inn = &bb["in"][s]["counts"];
@@ -419,6 +422,7 @@ after = ["map"]
 restart = "never"
 [processes.link.settings]
 zenoh = {{ listen = ["tcp/127.0.0.1:{port}"] }}
+clock = "measure"
 in = [
     {{ from = "r1", service = "pipeline/buoy/fix", local = "r1/pipeline/buoy/fix" }},
     {{ from = "r2", service = "pipeline/buoy/fix", local = "r2/pipeline/buoy/fix" }},
@@ -504,6 +508,15 @@ height_px = 24
         assert_eq!(cloud["published"], out["pipeline/sensors/cloud"]["counts"]["sent"], "{name}: {cloud}");
         assert_eq!(cloud["digest"], out["pipeline/sensors/cloud"]["counts"]["digest"], "{name}");
         clouds += r["ingest"]["messages"]["cloud"].as_u64().unwrap();
+        // `clock = "measure"` on one machine: the true offset is 0, so the estimate must lie
+        // within half its round trip (the remote stamp falls between the query and the answer).
+        let clock = &bb["clock"][name];
+        assert!(clock["answered"].as_u64().unwrap() > 0, "{name}: {clock}");
+        assert_eq!(clock["same_machine"], true, "{name}: {clock}");
+        let (off, rtt) = (clock["offset_ns"].as_i64().unwrap(), clock["rtt_ns"].as_i64().unwrap());
+        assert!(off.abs() <= rtt / 2 + 1, "{name}: offset within the round trip's bound: {clock}");
+        assert!(rtt < 1_000_000_000, "{name}: {clock}");
+        assert_eq!(clock["shifted"], true, "{name}: measure shifts even on one machine: {clock}");
     }
     assert_ne!(digests[0], digests[1], "two robots, two different fix streams");
     let c = &b["octree_mapper"]["counters"];

@@ -10,9 +10,9 @@
 //!   mismatch is counted and logged, never published.
 //! - **Received messages** are written into loaned iceoryx2 samples with the contract's QoS,
 //!   `seq` and `publish_ns` stamped anew, `origin_ns` kept: end-to-end latency spans both hosts.
-//!   That assumes the hosts' `CLOCK_MONOTONIC` clocks are comparable, which holds only on one
-//!   machine (two pipelines on loopback or in network namespaces); across machines the
-//!   cross-host latency is only as good as the offset between their clocks.
+//!   `origin_ns` is on the sender's `CLOCK_MONOTONIC`: on one machine (two pipelines on loopback
+//!   or in network namespaces: the same boot id) it is kept as is; from another machine it is
+//!   moved onto this one's clock by the offset the bridge measures ([`clock`]; `clock = "auto"`).
 //! - **Policy per route**: `reliable` (Zenoh congestion control `Block`: a slow link slows the
 //!   sender down, nothing is dropped) for poses, fixes and ends of stream; `drop_oldest`
 //!   (congestion control `Drop`, with `max_rate_hz`) for clouds and voxel maps over a slow link.
@@ -25,6 +25,7 @@
 //!
 //! Everything is counted per route and direction in summary.json (`bridge.out`, `bridge.in`).
 
+pub mod clock;
 pub mod stage;
 
 use pipeline_runtime::config::{Issues, ProcessSettings};
@@ -65,6 +66,23 @@ pub struct BridgeSettings {
     /// (for at most 5 s at a time, then the oldest is dropped and counted).
     #[serde(default = "default_queue")]
     pub queue_messages: usize,
+    /// What becomes of a received message's `origin_ns` (stamped on the sender's clock).
+    #[serde(default)]
+    pub clock: ClockMode,
+}
+
+/// How a receiving bridge maps the sender's `origin_ns` onto its own clock ([`clock`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ClockMode {
+    /// Kept when the sender runs on this machine (same boot id: one clock), moved by the
+    /// measured offset when it runs on another.
+    #[default]
+    Auto,
+    /// Always kept as sent (no offset measured).
+    Keep,
+    /// Always moved by the measured offset, even on one machine (to check the measurement).
+    Measure,
 }
 
 fn default_namespace() -> String {
@@ -192,6 +210,11 @@ pub fn key(namespace: &str, robot: &str, service: &str) -> String {
 /// The key of `robot`'s end marker.
 pub fn end_key(namespace: &str, robot: &str) -> String {
     format!("{namespace}/{robot}/_bridge/end")
+}
+
+/// The key on which `robot`'s bridge answers clock queries ([`clock`]).
+pub fn clock_key(namespace: &str, robot: &str) -> String {
+    format!("{namespace}/{robot}/_bridge/clock")
 }
 
 /// The key of the acknowledgement of `robot`'s end marker.

@@ -18,7 +18,10 @@ use shared_types::services;
 use zenoh::Wait;
 use zenoh::qos::CongestionControl;
 
-use crate::{BridgeSettings, Policy, WhenFull, ack_key, end_key, key, signature};
+use crate::clock::{ClockSample, OffsetEstimator, boot_id, decode_answer, encode_answer};
+use crate::{BridgeSettings, ClockMode, Policy, WhenFull, ack_key, clock_key, end_key, key, signature};
+use pipeline_runtime::monotonic_ns;
+use pipeline_runtime::topics::Origin;
 
 /// Counters of one `out` route.
 #[derive(Debug, Default, Clone, Copy, serde::Serialize)]
@@ -35,7 +38,7 @@ struct OutCounts {
     missed_locally: u64,
     /// Sent while no subscriber on the other side matched the key: lost.
     no_subscriber: u64,
-    /// XXH3-64 folded over the bytes of every message sent, in order: equal on the receiving side
+    /// XXH64 folded over the bytes of every message sent, in order: equal on the receiving side
     /// (`in.digest`) when the same messages arrived.
     #[serde(serialize_with = "hex")]
     digest: u64,
@@ -44,12 +47,13 @@ struct OutCounts {
 /// The digest of no message.
 const DIGEST0: u64 = 0;
 
-/// Folds one message into a digest: XXH3-64 of the message seeded with the digest so far, so the
-/// digest depends on every byte and on the order. (Fast enough for the hot path: a 3.6 MB cloud
+/// Folds one message into a digest: XXH64 of the message seeded with the digest so far, so the
+/// digest depends on every byte and on the order (the message may come in parts: a header and a
+/// payload hash as their concatenation). (Fast enough for the hot path: a 3.6 MB cloud
 /// takes well under a millisecond, where a byte-wise FNV took several.)
 fn fold(h: u64, parts: &[&[u8]]) -> u64 {
     use std::hash::Hasher as _;
-    let mut x = twox_hash::Xxh3Hash64::with_seed(h);
+    let mut x = twox_hash::XxHash64::with_seed(h);
     for p in parts {
         x.write(p);
     }
@@ -93,7 +97,10 @@ struct InCounts {
     undelivered: u64,
     /// Gaps in the sender's sequence numbers (lost on the way, before or over the link).
     seq_gaps: u64,
-    /// XXH3-64 folded over the bytes of every message published, in order (as they came over the
+    /// Published with `origin_ns` on the sender's clock because the offset to another machine's
+    /// clock was not measured yet (their end-to-end latency is off by that offset).
+    origin_unaligned: u64,
+    /// XXH64 folded over the bytes of every message published, in order (as they came over the
     /// link): equal to the sender's `out.digest` when the same messages arrived.
     #[serde(serialize_with = "hex")]
     digest: u64,
@@ -118,14 +125,128 @@ struct InRoute {
     counts: InCounts,
     last_seq: Option<u64>,
     warned: bool,
+    /// The clock of the sending robot (`None` under `clock = "keep"`).
+    clock: Option<Arc<Mutex<ClockState>>>,
+    warned_clock: bool,
     _subscriber: zenoh::pubsub::Subscriber<()>,
+}
+
+/// What is known of a sending robot's clock (kept by its [`ClockProbe`]).
+#[derive(Debug, Default)]
+struct ClockState {
+    mode: ClockMode,
+    /// Whether the robot's bridge runs on this machine (same boot id), once it answered.
+    same_machine: Option<bool>,
+    estimator: OffsetEstimator,
+    asked: u64,
+    answered: u64,
+}
+
+impl ClockState {
+    /// What becomes of a message's `origin_ns`; `None`: the offset is needed but not known yet
+    /// (the message keeps the sender's clock).
+    fn origin(&self) -> Option<Origin> {
+        if self.mode == ClockMode::Auto && self.same_machine == Some(true) {
+            return Some(Origin::Keep);
+        }
+        self.estimator.estimate().map(|e| Origin::Shift(-e.offset_ns))
+    }
+
+    fn json(&self) -> serde_json::Value {
+        let e = self.estimator.estimate();
+        serde_json::json!({
+            "mode": self.mode,
+            "same_machine": self.same_machine,
+            "offset_ns": e.map(|e| e.offset_ns),
+            "rtt_ns": e.map(|e| e.rtt_ns),
+            "shifted": self.origin().is_some_and(|o| o != Origin::Keep),
+            "asked": self.asked,
+            "answered": self.answered,
+        })
+    }
+}
+
+/// A thread that asks a robot's bridge for its clock (see [`crate::clock`]).
+struct ClockProbe {
+    state: Arc<Mutex<ClockState>>,
+    stop: Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl ClockProbe {
+    fn start(session: zenoh::Session, key: String, robot: String, mode: ClockMode) -> Result<Self, StageError> {
+        let state = Arc::new(Mutex::new(ClockState { mode, ..Default::default() }));
+        let stop = Arc::new(AtomicBool::new(false));
+        let (st, sp) = (state.clone(), stop.clone());
+        let local_boot = boot_id();
+        let thread = std::thread::Builder::new()
+            .name("clock".into())
+            .spawn(move || {
+                let mut known = false;
+                let mut k = 0u32;
+                while !sp.load(Ordering::Relaxed) {
+                    let t0 = monotonic_ns();
+                    lock(&st).asked += 1;
+                    if let Ok(replies) = session.get(&key).timeout(Duration::from_millis(500)).wait()
+                        && let Ok(reply) = replies.recv()
+                        && let Ok(sample) = reply.result()
+                    {
+                        let t1 = monotonic_ns();
+                        if let Some((remote, boot)) = decode_answer(&sample.payload().to_bytes()) {
+                            let mut s = lock(&st);
+                            s.answered += 1;
+                            s.same_machine = Some(!boot.is_empty() && boot == local_boot);
+                            let sample = s.estimator.add(t0, remote, t1);
+                            if !known && let Some(ClockSample { offset_ns, rtt_ns }) = sample {
+                                known = true;
+                                tracing::info!(
+                                    %robot,
+                                    same_machine = s.same_machine,
+                                    offset_ms = offset_ns as f64 / 1e6,
+                                    error_ms = rtt_ns as f64 / 2e6,
+                                    "clock of the sending robot measured (its CLOCK_MONOTONIC minus ours)"
+                                );
+                            }
+                        }
+                    }
+                    k += 1;
+                    let pause = if k < 10 { Duration::from_millis(200) } else { Duration::from_secs(1) };
+                    let until = Instant::now() + pause;
+                    while !sp.load(Ordering::Relaxed) && Instant::now() < until {
+                        std::thread::sleep(Duration::from_millis(20));
+                    }
+                }
+            })
+            .map_err(|e| StageError::Settings(format!("clock thread: {e}")))?;
+        Ok(Self { state, stop, thread: Some(thread) })
+    }
+}
+
+impl Drop for ClockProbe {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 /// What the Zenoh callbacks hand to the stage.
 enum Incoming {
     /// A message as Zenoh received it (not copied: Zenoh's buffers are reference counted).
-    Data { route: usize, payload: zenoh::bytes::ZBytes, attachment: Option<zenoh::bytes::ZBytes> },
-    End { from: String, body: Vec<u8> },
+    Data {
+        route: usize,
+        payload: zenoh::bytes::ZBytes,
+        attachment: Option<zenoh::bytes::ZBytes>,
+    },
+    End {
+        from: String,
+        body: Vec<u8>,
+    },
 }
 
 /// The queue between the Zenoh callbacks and the stage.
@@ -201,6 +322,10 @@ pub struct BridgeStage {
     end_acknowledged: Option<bool>,
     published: u64,
     started: Instant,
+    /// Answers other bridges' clock queries (when this bridge sends).
+    _clock_queryable: Option<zenoh::query::Queryable<()>>,
+    /// Per robot received from: its clock (stopped before the session closes).
+    clocks: BTreeMap<String, ClockProbe>,
 }
 
 fn zenoh_err(what: impl std::fmt::Display, e: impl std::fmt::Display) -> StageError {
@@ -409,7 +534,21 @@ impl BridgeStage {
                         }
                         r.last_seq = Some(h.seq);
                     }
-                    let (reached, registered) = self.emitters[r.emitter].forward(&bytes)?;
+                    let origin = match &r.clock {
+                        None => Some(Origin::Keep),
+                        Some(c) => lock(c).origin(),
+                    };
+                    if origin.is_none() {
+                        r.counts.origin_unaligned += 1;
+                        if !r.warned_clock {
+                            tracing::warn!(from = %r.from, service = %r.service,
+                                "the clock of the sending robot's machine is not measured yet: origin_ns stays on its \
+                                 clock (counted in summary.json bridge.in as origin_unaligned)");
+                            r.warned_clock = true;
+                        }
+                    }
+                    let (reached, registered) =
+                        self.emitters[r.emitter].send_bytes(&bytes, origin.unwrap_or(Origin::Keep))?;
                     r.counts.published += 1;
                     r.counts.digest = fold(r.counts.digest, &[&bytes]);
                     self.published += 1;
@@ -529,6 +668,32 @@ impl Stage for BridgeStage {
             dropped: settings.inbound.iter().map(|_| AtomicU64::new(0)).collect(),
             waker,
         });
+        // The clock of every robot received from (see crate::clock).
+        let mut clocks = BTreeMap::new();
+        if settings.clock != ClockMode::Keep {
+            for from in settings.inbound.iter().map(|r| &r.from).collect::<BTreeSet<_>>() {
+                let probe = ClockProbe::start(session.clone(), clock_key(&ns, from), from.clone(), settings.clock)?;
+                clocks.insert(from.clone(), probe);
+            }
+        }
+        let clock_queryable = if outs.is_empty() {
+            None
+        } else {
+            let (k, boot) = (clock_key(&ns, &settings.robot), boot_id());
+            let kq = k.clone();
+            Some(
+                session
+                    .declare_queryable(k.clone())
+                    .callback(move |q| {
+                        let stamp = monotonic_ns();
+                        if let Err(e) = q.reply(kq.clone(), encode_answer(stamp, &boot)).wait() {
+                            tracing::debug!("clock query not answered: {e}");
+                        }
+                    })
+                    .wait()
+                    .map_err(|e| zenoh_err(format!("queryable on {k}"), e))?,
+            )
+        };
         let mut ins = vec![];
         let mut emitters: Vec<Box<dyn Emit>> = vec![];
         let mut emitter_of: HashMap<String, usize> = HashMap::new();
@@ -578,6 +743,8 @@ impl Stage for BridgeStage {
                 counts: InCounts { digest: DIGEST0, ..Default::default() },
                 last_seq: None,
                 warned: false,
+                clock: clocks.get(&r.from).map(|p: &ClockProbe| p.state.clone()),
+                warned_clock: false,
                 _subscriber: subscriber,
             });
         }
@@ -628,6 +795,8 @@ impl Stage for BridgeStage {
             end_acknowledged: None,
             published: 0,
             started: Instant::now(),
+            _clock_queryable: clock_queryable,
+            clocks,
         };
         stage.wait_for_remote();
         Ok(stage)
@@ -709,6 +878,13 @@ impl Stage for BridgeStage {
                 "messages lost across the bridge (per route in summary.json bridge)"
             );
         }
+        for (robot, probe) in &self.clocks {
+            let c = lock(&probe.state);
+            if c.answered == 0 {
+                tracing::warn!(%robot, asked = c.asked,
+                    "the robot's bridge never answered a clock query: origin_ns of what came from it stayed on its clock");
+            }
+        }
         let missing_ends: Vec<&String> = self.ends.iter().filter(|(_, e)| e.is_none()).map(|(r, _)| r).collect();
         if !missing_ends.is_empty() {
             tracing::warn!(?missing_ends, "no end of stream came from these robots");
@@ -722,6 +898,7 @@ impl Stage for BridgeStage {
             "ends_received": self.ends.iter().filter(|(_, e)| e.is_some()).map(|(r, _)| r).collect::<Vec<_>>(),
             "ends_missing": missing_ends,
             "end_acknowledged": self.end_acknowledged,
+            "clock": self.clocks.iter().map(|(r, p)| (r.clone(), lock(&p.state).json())).collect::<BTreeMap<_, _>>(),
             "wall_s": self.started.elapsed().as_secs_f64(),
         }}))
     }
@@ -737,6 +914,10 @@ mod tests {
 
     #[test]
     fn digest_folds_parts_as_one_message_and_depends_on_order() {
+        // Long parts of odd lengths too (a cloud's header and its 12-byte points).
+        let long: Vec<u8> = (0..100_003u32).map(|i| (i * 7 + i / 13) as u8).collect();
+        let (h, p) = long.split_at(97);
+        assert_eq!(fold(7, &[h, p]), fold(7, &[&long]));
         let (a, b) = (b"header".as_slice(), b"payload bytes".as_slice());
         let whole = [a, b].concat();
         assert_eq!(fold(DIGEST0, &[a, b]), fold(DIGEST0, &[&whole]));

@@ -582,7 +582,8 @@ impl Runtime {
         let node = scope
             .create_threadsafe_node(&format!("{}.waker{}", self.name, self.wakers.len()))
             .map_err(|e| open(e.to_string()))?;
-        let notifier = open_wake_event(&node, &name)?.notifier_builder().create().map_err(|e| open(format!("{e:?}")))?;
+        let notifier =
+            open_wake_event(&node, &name)?.notifier_builder().create().map_err(|e| open(format!("{e:?}")))?;
         let pending = Arc::new(std::sync::atomic::AtomicBool::new(false));
         self.wakers.push(pending.clone());
         Ok(Waker { inner: Arc::new(WakeNotifier { pending, notifier, _node: node }) })
