@@ -14,7 +14,13 @@
 //!
 //! One message in flight at `--rate-hz` for latency; then a burst of messages back to back
 //! (reliable: Zenoh congestion control `Block` on both rows) for throughput. Both clocks are this
-//! machine's, so one-way latency is exact. Not measured here yet: `tc netem` delay and loss.
+//! machine's, so one-way latency is exact.
+//!
+//! `--shape "<tc qdisc>"` (repeatable, as root) also runs every row across a shaped link: the
+//! receiving side (the bare row's subscriber, the receiving bridge) in a network namespace of its
+//! own, joined to this one by a veth pair whose sending end gets the qdisc (e.g. `netem delay
+//! 20ms loss 1%`, `tbf rate 20mbit burst 64kb latency 100ms`). A qdisc the kernel lacks (netem
+//! needs the sch_netem module) is reported and skipped.
 //! Each row's iceoryx2 files are removed from /dev/shm when it ends.
 
 use std::io::{BufRead, BufReader};
@@ -46,6 +52,89 @@ struct Cli {
     /// Bytes sent back to back for throughput, per size and row (20 to 20,000 messages).
     #[arg(long, default_value_t = 200_000_000)]
     burst_bytes: usize,
+    /// Also run the rows across a veth link shaped by this `tc qdisc` (e.g. "netem delay 20ms
+    /// loss 1%"); repeatable; needs root.
+    #[arg(long)]
+    shape: Vec<String>,
+}
+
+/// Where the receiving side runs: this network namespace (loopback) or another one behind a veth.
+struct Net {
+    /// The receiving side's address.
+    host: String,
+    /// Prefix of the receiving side's command (`ip netns exec <ns>`), empty on loopback.
+    wrap: Vec<String>,
+}
+
+impl Net {
+    fn loopback() -> Self {
+        Self { host: "127.0.0.1".into(), wrap: vec![] }
+    }
+
+    fn command(&self, program: &std::path::Path) -> Command {
+        match self.wrap.split_first() {
+            None => Command::new(program),
+            Some((first, rest)) => {
+                let mut c = Command::new(first);
+                c.args(rest).arg(program);
+                c
+            }
+        }
+    }
+}
+
+/// A network namespace joined to this one by a veth pair whose end here is shaped by a qdisc
+/// (deleted on drop).
+struct Shaped {
+    ns: String,
+    net: Net,
+}
+
+fn run_ip(args: &[&str]) -> Result<(), String> {
+    let out = Command::new(args[0]).args(&args[1..]).output().map_err(|e| format!("{}: {e}", args[0]))?;
+    if out.status.success() {
+        Ok(())
+    } else {
+        Err(format!("`{}`: {}", args.join(" "), String::from_utf8_lossy(&out.stderr).trim()))
+    }
+}
+
+impl Shaped {
+    fn new(qdisc: &str, n: usize) -> Result<Self, String> {
+        // SAFETY: geteuid has no preconditions and cannot fail.
+        if unsafe { libc::geteuid() } != 0 {
+            return Err("network namespaces need root".into());
+        }
+        let tag = format!("pbb{}s{n}", std::process::id() % 100_000);
+        let (ns, here, there) = (format!("{tag}n"), format!("{tag}a"), format!("{tag}b"));
+        let net = format!("10.214.{}", (std::process::id() as usize + n) % 250);
+        run_ip(&["ip", "netns", "add", &ns])?;
+        let shaped = Self {
+            ns: ns.clone(),
+            net: Net {
+                host: format!("{net}.2"),
+                wrap: ["ip", "netns", "exec", &ns].iter().map(|s| s.to_string()).collect(),
+            },
+        };
+        run_ip(&["ip", "link", "add", &here, "type", "veth", "peer", "name", &there])?;
+        run_ip(&["ip", "link", "set", &there, "netns", &ns])?;
+        run_ip(&["ip", "addr", "add", &format!("{net}.1/24"), "dev", &here])?;
+        run_ip(&["ip", "link", "set", &here, "up"])?;
+        run_ip(&["ip", "-n", &ns, "addr", "add", &format!("{net}.2/24"), "dev", &there])?;
+        run_ip(&["ip", "-n", &ns, "link", "set", &there, "up"])?;
+        run_ip(&["ip", "-n", &ns, "link", "set", "lo", "up"])?;
+        let mut tc = vec!["tc", "qdisc", "add", "dev", &here, "root"];
+        tc.extend(qdisc.split_whitespace());
+        run_ip(&tc)?;
+        Ok(shaped)
+    }
+}
+
+impl Drop for Shaped {
+    fn drop(&mut self) {
+        // Deleting the namespace deletes its veth end and so the pair.
+        let _ = run_ip(&["ip", "netns", "del", &self.ns]);
+    }
 }
 
 #[derive(Subcommand)]
@@ -182,12 +271,13 @@ fn message(size: usize, flag: u8) -> Vec<u8> {
 }
 
 /// The bare Zenoh row for one size.
-fn bare(size: usize, cli: &Cli, burst: usize) -> anyhow::Result<Seen> {
+fn bare(size: usize, cli: &Cli, burst: usize, net: &Net) -> anyhow::Result<Seen> {
     let port = free_port()?;
     let exe = std::env::current_exe()?;
+    let host = &net.host;
     let mut child = Killed(
-        Command::new(&exe)
-            .args(["zenoh-sub", "--listen", &format!("tcp/127.0.0.1:{port}"), "--key", "bench/bare"])
+        net.command(&exe)
+            .args(["zenoh-sub", "--listen", &format!("tcp/{host}:{port}"), "--key", "bench/bare"])
             .args(["--latency", &cli.samples.to_string(), "--burst", &burst.to_string()])
             .stdout(Stdio::piped())
             .spawn()?,
@@ -196,7 +286,7 @@ fn bare(size: usize, cli: &Cli, burst: usize) -> anyhow::Result<Seen> {
     if lines.next().transpose()?.as_deref() != Some("ready") {
         bail!("the subscriber did not start");
     }
-    let s = zenoh::open(zenoh_config(None, Some(&format!("tcp/127.0.0.1:{port}")))?).wait().map_err(zerr)?;
+    let s = zenoh::open(zenoh_config(None, Some(&format!("tcp/{host}:{port}")))?).wait().map_err(zerr)?;
     let p = s.declare_publisher("bench/bare").congestion_control(CongestionControl::Block).wait().map_err(zerr)?;
     let t0 = Instant::now();
     while !p.matching_status().wait().map_err(zerr)?.matching() {
@@ -237,8 +327,16 @@ fn bridge_config(
 }
 
 /// The bridge row for one size: (what arrived, the message size sent).
-fn bridged(size: usize, cli: &Cli, burst: usize, dir: &std::path::Path, n: usize) -> anyhow::Result<(Seen, usize)> {
+fn bridged(
+    size: usize,
+    cli: &Cli,
+    burst: usize,
+    dir: &std::path::Path,
+    n: usize,
+    net: &Net,
+) -> anyhow::Result<(Seen, usize)> {
     let port = free_port()?;
+    let host = &net.host;
     let scope = |tag: &str| IoxScope {
         prefix: format!("pbb{tag}{}_{n}_", std::process::id()),
         root: dir.join(format!("iox_{tag}{n}")),
@@ -256,7 +354,7 @@ fn bridged(size: usize, cli: &Cli, burst: usize, dir: &std::path::Path, n: usize
         &format!("a{n}"),
         &a,
         &format!(
-            "robot = \"r\"\nend_ack_timeout_s = 0\nzenoh = {{ connect = [\"tcp/127.0.0.1:{port}\"] }}\n\
+            "robot = \"r\"\nend_ack_timeout_s = 0\nzenoh = {{ connect = [\"tcp/{host}:{port}\"] }}\n\
              out = [{{ service = \"{CLOUD}\" }}]"
         ),
     )?;
@@ -264,11 +362,11 @@ fn bridged(size: usize, cli: &Cli, burst: usize, dir: &std::path::Path, n: usize
         dir,
         &format!("b{n}"),
         &b,
-        &format!("zenoh = {{ listen = [\"tcp/127.0.0.1:{port}\"] }}\nin = [{{ from = \"r\", service = \"{CLOUD}\" }}]"),
+        &format!("zenoh = {{ listen = [\"tcp/{host}:{port}\"] }}\nin = [{{ from = \"r\", service = \"{CLOUD}\" }}]"),
     )?;
-    let spawn = |cfg: &std::path::Path| -> anyhow::Result<Killed> {
+    let spawn = |cfg: &std::path::Path, net: &Net| -> anyhow::Result<Killed> {
         Ok(Killed(
-            Command::new(&bin)
+            net.command(&bin)
                 .arg("--config")
                 .arg(cfg)
                 .args(["--name", "link"])
@@ -277,7 +375,7 @@ fn bridged(size: usize, cli: &Cli, burst: usize, dir: &std::path::Path, n: usize
                 .spawn()?,
         ))
     };
-    let _rb = spawn(&cb)?;
+    let _rb = spawn(&cb, net)?;
     // The receiving side: a thread with its own runtime in prefix B.
     let (ready_tx, ready_rx) = std::sync::mpsc::channel::<()>();
     let (samples, b_t) = (cli.samples, b.clone());
@@ -314,7 +412,7 @@ fn bridged(size: usize, cli: &Cli, burst: usize, dir: &std::path::Path, n: usize
         Ok(seen)
     });
     ready_rx.recv_timeout(Duration::from_secs(30)).context("the receiving runtime did not start")?;
-    let _ra = spawn(&ca)?;
+    let _ra = spawn(&ca, &Net::loopback())?;
     let options = RuntimeOptions { publish_control: false, ..Default::default() };
     let mut rt = Runtime::new("bench_tx", &a, options)?;
     let qos = service_spec(CLOUD).context("cloud QoS")?.qos;
@@ -365,40 +463,60 @@ fn main() -> anyhow::Result<()> {
     let dir = tempfile::Builder::new().prefix("bridge-bench-").tempdir()?;
     println!(
         "bridge_bench: one-way latency in µs (one message in flight at {} Hz, {} measured per row) and throughput \
-         (back to back, reliable) on loopback, {} CPUs; bridge = iceoryx2 -> bridge -> Zenoh -> bridge -> iceoryx2",
+         (back to back, reliable), {} CPUs; bridge = iceoryx2 -> bridge -> Zenoh -> bridge -> iceoryx2",
         cli.rate_hz,
         cli.samples,
         std::thread::available_parallelism().map_or(0, |n| n.get())
     );
-    println!(
-        "{:>9} | {:>9} {:>9} {:>8} | {:>10} {:>9} {:>8} {:>9} | {:>6}",
-        "bytes", "zenoh p50", "p99", "MB/s", "bridge p50", "p99", "MB/s", "last hop", "p50 x"
-    );
-    for (n, &size) in cli.sizes.iter().enumerate() {
-        let burst = (cli.burst_bytes / size.max(1)).clamp(20, 20_000);
-        let z = bare(size, &cli, burst)?;
-        let (b, sent_size) = bridged(size, &cli, burst, dir.path(), n)?;
-        let mbs = |s: &Seen, bytes: usize| s.burst_messages as f64 * bytes as f64 / 1e6 / s.burst_s.max(1e-9);
+    let mut links: Vec<(String, Option<Shaped>)> = vec![("loopback".into(), None)];
+    for (i, q) in cli.shape.iter().enumerate() {
+        match Shaped::new(q, i) {
+            Ok(sh) => links.push((format!("veth shaped by `tc qdisc ... {q}`"), Some(sh))),
+            Err(e) => println!("link shaped by `{q}`: not measured: {e}"),
+        }
+    }
+    let loopback = Net::loopback();
+    for (l, (what, shaped)) in links.iter().enumerate() {
+        let net = shaped.as_ref().map_or(&loopback, |s| &s.net);
+        println!("link: {what}");
         println!(
-            "{:>9} | {:>9.0} {:>9.0} {:>8.1} | {:>10.0} {:>9.0} {:>8.1} {:>9.0} | {:>6.2}",
-            size,
-            pct(&z.latencies_us, 0.5),
-            pct(&z.latencies_us, 0.99),
-            mbs(&z, size),
-            pct(&b.latencies_us, 0.5),
-            pct(&b.latencies_us, 0.99),
-            mbs(&b, sent_size),
-            pct(&b.last_hop_us, 0.5),
-            pct(&b.latencies_us, 0.5) / pct(&z.latencies_us, 0.5)
+            "{:>9} | {:>9} {:>9} {:>8} | {:>10} {:>9} {:>8} {:>9} | {:>6}",
+            "bytes", "zenoh p50", "p99", "MB/s", "bridge p50", "p99", "MB/s", "last hop", "p50 x"
         );
-        if b.latencies_us.len() < cli.samples || b.burst_messages < burst || sent_size != size {
+        for (n, &size) in cli.sizes.iter().enumerate() {
+            let burst = (cli.burst_bytes / size.max(1)).clamp(20, 20_000);
+            let z = bare(size, &cli, burst, net)?;
+            let (b, sent_size) = bridged(size, &cli, burst, dir.path(), l * 100 + n, net)?;
+            let mbs = |s: &Seen, bytes: usize| s.burst_messages as f64 * bytes as f64 / 1e6 / s.burst_s.max(1e-9);
             println!(
-                "          note: the bridge row sent {sent_size}-byte clouds; got {} of {} latency and {} of {burst} \
-                 burst messages",
-                b.latencies_us.len(),
-                cli.samples,
-                b.burst_messages
+                "{:>9} | {:>9.0} {:>9.0} {:>8.1} | {:>10.0} {:>9.0} {:>8.1} {:>9.0} | {:>6.2}",
+                size,
+                pct(&z.latencies_us, 0.5),
+                pct(&z.latencies_us, 0.99),
+                mbs(&z, size),
+                pct(&b.latencies_us, 0.5),
+                pct(&b.latencies_us, 0.99),
+                mbs(&b, sent_size),
+                pct(&b.last_hop_us, 0.5),
+                pct(&b.latencies_us, 0.5) / pct(&z.latencies_us, 0.5)
             );
+            if b.latencies_us.len() < cli.samples || b.burst_messages < burst || sent_size != size {
+                println!(
+                    "          note: the bridge row sent {sent_size}-byte clouds; got {} of {} latency and {} of \
+                     {burst} burst messages",
+                    b.latencies_us.len(),
+                    cli.samples,
+                    b.burst_messages
+                );
+            }
+            if z.latencies_us.len() < cli.samples || z.burst_messages < burst {
+                println!(
+                    "          note: the zenoh row got {} of {} latency and {} of {burst} burst messages",
+                    z.latencies_us.len(),
+                    cli.samples,
+                    z.burst_messages
+                );
+            }
         }
     }
     Ok(())
