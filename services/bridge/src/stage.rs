@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
 use pipeline_runtime::topics::{Emit, Tap, Topic, topic};
-use pipeline_runtime::{Delivery, ProcessContext, Runtime, StageError, Wake};
+use pipeline_runtime::{Delivery, ProcessContext, Restart, Runtime, StageError, Wake};
 use shared_types::WireType;
 use shared_types::services;
 use zenoh::Wait;
@@ -24,7 +24,7 @@ use pipeline_runtime::monotonic_ns;
 use pipeline_runtime::topics::Origin;
 
 /// Counters of one `out` route.
-#[derive(Debug, Default, Clone, Copy, serde::Serialize)]
+#[derive(Debug, Default, Clone, Copy, serde::Serialize, serde::Deserialize)]
 struct OutCounts {
     /// Messages taken from the local service.
     received: u64,
@@ -40,7 +40,7 @@ struct OutCounts {
     no_subscriber: u64,
     /// XXH64 folded over the bytes of every message sent, in order: equal on the receiving side
     /// (`in.digest`) when the same messages arrived.
-    #[serde(serialize_with = "hex")]
+    #[serde(serialize_with = "hex", deserialize_with = "unhex")]
     digest: u64,
 }
 
@@ -64,6 +64,43 @@ fn hex<S: serde::Serializer>(v: &u64, s: S) -> Result<S::Ok, S::Error> {
     s.serialize_str(&format!("{v:016x}"))
 }
 
+fn unhex<'de, D: serde::Deserializer<'de>>(d: D) -> Result<u64, D::Error> {
+    let text = <String as serde::Deserialize>::deserialize(d)?;
+    u64::from_str_radix(&text, 16).map_err(serde::de::Error::custom)
+}
+
+/// The restart snapshot of the counts (see [`Kept`]).
+const KEPT: &str = "bridge_counts";
+
+/// Shortest time between two snapshots of the counts.
+const KEEP_EVERY: Duration = Duration::from_millis(100);
+
+/// What a restarted bridge takes over from the killed instance (a snapshot at most
+/// [`KEEP_EVERY`] old): every route's counts and last sequence numbers, so that its summary, its
+/// end marker's counts and its gap counting cover the whole run, and the ends of stream already
+/// received.
+#[derive(Debug, Default, serde::Serialize, serde::Deserialize)]
+struct Kept {
+    out: BTreeMap<String, KeptOut>,
+    #[serde(rename = "in")]
+    inbound: BTreeMap<String, KeptIn>,
+    ends: BTreeMap<String, Option<BTreeMap<String, u64>>>,
+    published: u64,
+}
+
+#[derive(Debug, Default, serde::Serialize, serde::Deserialize)]
+struct KeptOut {
+    counts: OutCounts,
+    /// Per local publisher (its port id, in decimal): the last sequence number taken.
+    last_seq: BTreeMap<String, u64>,
+}
+
+#[derive(Debug, Default, serde::Serialize, serde::Deserialize)]
+struct KeptIn {
+    counts: InCounts,
+    last_seq: Option<u64>,
+}
+
 struct OutRoute {
     topic: &'static Topic,
     tap: Box<dyn Tap>,
@@ -81,7 +118,7 @@ struct OutRoute {
 }
 
 /// Counters of one `in` route.
-#[derive(Debug, Default, Clone, Copy, serde::Serialize)]
+#[derive(Debug, Default, Clone, Copy, serde::Serialize, serde::Deserialize)]
 struct InCounts {
     /// Messages that arrived from Zenoh.
     received: u64,
@@ -102,7 +139,7 @@ struct InCounts {
     origin_unaligned: u64,
     /// XXH64 folded over the bytes of every message published, in order (as they came over the
     /// link): equal to the sender's `out.digest` when the same messages arrived.
-    #[serde(serialize_with = "hex")]
+    #[serde(serialize_with = "hex", deserialize_with = "unhex")]
     digest: u64,
 }
 
@@ -128,6 +165,8 @@ struct InRoute {
     /// The clock of the sending robot (`None` under `clock = "keep"`).
     clock: Option<Arc<Mutex<ClockState>>>,
     warned_clock: bool,
+    /// Receive-queue drops of the killed instances before this one (restored counts).
+    queue_dropped_before: u64,
     _subscriber: zenoh::pubsub::Subscriber<()>,
 }
 
@@ -326,6 +365,8 @@ pub struct BridgeStage {
     _clock_queryable: Option<zenoh::query::Queryable<()>>,
     /// Per robot received from: its clock (stopped before the session closes).
     clocks: BTreeMap<String, ClockProbe>,
+    /// When the counts were last kept for a restart, and the activity they had then.
+    kept_at: Option<(Instant, u64)>,
 }
 
 fn zenoh_err(what: impl std::fmt::Display, e: impl std::fmt::Display) -> StageError {
@@ -473,7 +514,7 @@ impl BridgeStage {
         // Publishing may wait for a full local subscriber (when_full = wait), holding the link.
         let _hold = rt.hold_heartbeat();
         for r in &mut self.ins {
-            let total = self.inbox.dropped[r.index].load(Ordering::Relaxed);
+            let total = r.queue_dropped_before + self.inbox.dropped[r.index].load(Ordering::Relaxed);
             if total > r.counts.queue_dropped {
                 self.emitters[r.emitter].count_dropped("receive queue full", total - r.counts.queue_dropped);
                 r.counts.queue_dropped = total;
@@ -570,6 +611,45 @@ impl BridgeStage {
             }
         }
         Ok(n)
+    }
+
+    /// Messages handled and ends received so far: the kept counts are renewed when it moves.
+    fn activity(&self) -> u64 {
+        let outs: u64 = self.outs.iter().map(|o| o.counts.received).sum();
+        let ins: u64 = self.ins.iter().map(|r| r.counts.received).sum();
+        outs + ins + self.ends.values().filter(|e| e.is_some()).count() as u64
+    }
+
+    /// Snapshots the counts for a restarted instance (at most every [`KEEP_EVERY`], when they moved).
+    fn keep_counts(&mut self, rt: &mut Runtime) {
+        let activity = self.activity();
+        if self.kept_at.is_some_and(|(t, a)| a == activity || t.elapsed() < KEEP_EVERY) {
+            return;
+        }
+        self.kept_at = Some((Instant::now(), activity));
+        let kept = Kept {
+            out: self
+                .outs
+                .iter()
+                .map(|o| {
+                    let last_seq = o.last_seq.iter().map(|(p, s)| (p.to_string(), *s)).collect();
+                    (o.topic.service.to_string(), KeptOut { counts: o.counts, last_seq })
+                })
+                .collect(),
+            inbound: self
+                .ins
+                .iter()
+                .map(|r| (r.route_name.clone(), KeptIn { counts: r.counts, last_seq: r.last_seq }))
+                .collect(),
+            ends: self.ends.clone(),
+            published: self.published,
+        };
+        let written = serde_json::to_vec(&kept)
+            .map_err(|e| e.to_string())
+            .and_then(|b| rt.state().snapshot(KEPT, &b).map_err(|e| e.to_string()));
+        if let Err(e) = written {
+            tracing::warn!("counts not kept for a restart: {e}");
+        }
     }
 
     fn ins_done(&self) -> bool {
@@ -745,6 +825,7 @@ impl Stage for BridgeStage {
                 warned: false,
                 clock: clocks.get(&r.from).map(|p: &ClockProbe| p.state.clone()),
                 warned_clock: false,
+                queue_dropped_before: 0,
                 _subscriber: subscriber,
             });
         }
@@ -797,6 +878,7 @@ impl Stage for BridgeStage {
             started: Instant::now(),
             _clock_queryable: clock_queryable,
             clocks,
+            kept_at: None,
         };
         stage.wait_for_remote();
         Ok(stage)
@@ -809,6 +891,7 @@ impl Stage for BridgeStage {
     fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
         self.pump_out(rt)?;
         self.pump_in(rt)?;
+        self.keep_counts(rt);
         let ins_done = self.ins_done();
         if self.outs.is_empty() {
             return Ok(if ins_done { Step::Done } else { Step::Idle });
@@ -905,6 +988,47 @@ impl Stage for BridgeStage {
 
     fn end_of_stream(&self) -> (u64, u64) {
         (self.published.saturating_sub(1), self.published)
+    }
+
+    /// A restarted bridge goes on counting from the killed instance's last kept counts (what it
+    /// handled after them, at most 0.1 s, is not in them: on the receiving side it shows as lost).
+    fn restore(&mut self, restart: Restart) -> Result<usize, StageError> {
+        let Some(bytes) = restart.read_snapshot(KEPT)? else { return Ok(0) };
+        let kept: Kept = match serde_json::from_slice(&bytes) {
+            Ok(k) => k,
+            Err(e) => {
+                tracing::warn!("restarted: the killed instance's counts are unreadable ({e}): counting from 0");
+                return Ok(0);
+            }
+        };
+        for o in &mut self.outs {
+            if let Some(k) = kept.out.get(o.topic.service) {
+                o.counts = k.counts;
+                o.last_seq = k.last_seq.iter().filter_map(|(p, s)| Some((p.parse().ok()?, *s))).collect();
+            }
+        }
+        for r in &mut self.ins {
+            if let Some(k) = kept.inbound.get(&r.route_name) {
+                r.counts = k.counts;
+                r.last_seq = k.last_seq;
+                // This instance's receive queue counts its drops from 0.
+                r.queue_dropped_before = k.counts.queue_dropped;
+            }
+        }
+        for (robot, end) in kept.ends {
+            if let Some(slot) = self.ends.get_mut(&robot)
+                && end.is_some()
+            {
+                *slot = end;
+            }
+        }
+        self.published = kept.published;
+        tracing::info!(
+            sent = self.outs.iter().map(|o| o.counts.sent).sum::<u64>(),
+            published = self.published,
+            "restarted: counting on from the killed instance's counts"
+        );
+        Ok(0)
     }
 }
 
