@@ -45,11 +45,12 @@ impl Qos {
     }
 
     /// Estimates every sample of which a downstream stage needs (poses, fixes, pairs): newest
-    /// wins and the publisher never blocks, but 256 samples of queue (seconds at camera rate)
-    /// absorb a consumer that is briefly descheduled or slower for a while. A loss still shows as
-    /// a sequence gap (`missed` in the stats).
+    /// wins and the publisher never blocks, but 1024 samples of queue (tens of seconds at camera
+    /// rate, predicted and refined fused poses together) absorb a consumer that is descheduled,
+    /// slower for a while, or held by a link (a bridge waiting out a cut). A loss still shows as
+    /// a sequence gap (`missed` in the stats). Under 0.5 MB per subscriber for these small types.
     pub const fn estimates(max_subscribers: usize) -> Self {
-        Self { subscriber_buffer: 256, ..Self::stream(max_subscribers, 0) }
+        Self { subscriber_buffer: 1024, ..Self::stream(max_subscribers, 0) }
     }
 
     /// Sensor data: nothing is overwritten; a full subscriber queue makes the publisher either

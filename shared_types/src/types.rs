@@ -326,6 +326,10 @@ pub const SYNC_LINEAR: u32 = 2;
 pub const SYNC_GAP: u32 = 4;
 /// `SyncedPair::flags` bit: interpolated between fixes on both sides of the stamp.
 pub const SYNC_INTERPOLATED: u32 = 8;
+/// `SyncedPair::flags` bit: a prediction, sent as soon as the SLAM pose arrived with the buoy
+/// position extrapolated from the latest fixes; the pair of the same stamp without this bit
+/// follows when the bracketing fix has come (or the wait is over).
+pub const SYNC_PREDICTED: u32 = 16;
 
 wire_type! {
     /// A local SLAM pose paired with the buoy position interpolated to its stamp (`pipeline/sync/pair`).
@@ -339,7 +343,7 @@ wire_type! {
         pub buoy_covariance_m2: [f64; 9],
         /// Stamp of the newest buoy fix used, ns.
         pub newest_fix_stamp_ns: u64,
-        /// Bit set: 1 extrapolated, 2 linear, 4 gap, 8 interpolated (`SYNC_*`).
+        /// Bit set: 1 extrapolated, 2 linear, 4 gap, 8 interpolated, 16 predicted (`SYNC_*`).
         pub flags: u32,
         /// Number of fixes used (1 when extrapolated or an exact fix, 2 linear, 3 quadratic).
         pub fixes_used: u32,
@@ -354,6 +358,14 @@ pub const FUSED_CAMERA_ONLY: u32 = 2;
 /// `FusedPose::flags` bit: the buoy estimate alone (the local map has no transform to the world
 /// yet); the orientation is then the last known one, or identity, with a large covariance.
 pub const FUSED_BUOY_ONLY: u32 = 4;
+/// `FusedPose::flags` bit: a first estimate, published as soon as the SLAM pose arrived, with the
+/// buoy position predicted from the latest fixes (for a controller: no wait). The fusion state is
+/// not changed by it.
+pub const FUSED_PREDICTED: u32 = 8;
+/// `FusedPose::flags` bit: the refined estimate of its stamp (the buoy position interpolated
+/// between the fixes around it, or extrapolated once the wait for them was over); fusion's state
+/// and its outputs follow these. Exactly one of `FUSED_PREDICTED` and `FUSED_REFINED` is set.
+pub const FUSED_REFINED: u32 = 16;
 
 wire_type! {
     /// The globally consistent pose (`pipeline/fusion/pose`), world frame.
@@ -361,7 +373,8 @@ wire_type! {
     pub struct FusedPose {
         /// The pose, `frame` = 3 (world).
         pub pose: PoseEstimate,
-        /// Bit set: 1 fused with a buoy estimate, 2 camera only, 4 buoy only (`FUSED_*`).
+        /// Bit set: 1 fused with a buoy estimate, 2 camera only, 4 buoy only; 8 predicted or
+        /// 16 refined (`FUSED_*`).
         pub flags: u32,
         /// Zero.
         pub _reserved: u32,

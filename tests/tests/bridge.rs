@@ -552,6 +552,7 @@ in = [{{ from = "r1", service = "pipeline/sensors/odometry" }}]
 [processes.link]
 kind = "bridge"
 restart = "never"
+nice = 7
 [processes.link.settings]
 robot = "r1"
 end_after = ["ingest"]
@@ -578,6 +579,11 @@ rate_hz = 0.0
     robot.start_supervisor(&robot_cfg, &[]);
     robot.wait_for_log("process=ingest", 1, Duration::from_secs(60));
     std::thread::sleep(Duration::from_secs(2));
+    // The robot's bridge runs at the niceness its config asks for (field 19 of /proc/<pid>/stat).
+    let rpid = *robot.started_pids("link").first().expect("the robot's bridge started");
+    let stat = std::fs::read_to_string(format!("/proc/{rpid}/stat")).expect("its /proc stat");
+    let after_comm = stat.rsplit_once(')').expect("stat format").1;
+    assert_eq!(after_comm.split_whitespace().nth(16), Some("7"), "nice = 7: {stat}");
     let pid = *base.started_pids("link").first().expect("the base's bridge started");
     nix::sys::signal::kill(nix::unistd::Pid::from_raw(pid), nix::sys::signal::Signal::SIGKILL).expect("kill");
     assert!(robot.wait_supervisor(Duration::ZERO).is_none(), "the robot was still running when its base's bridge died");

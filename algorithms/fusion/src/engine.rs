@@ -486,6 +486,21 @@ impl Fusion {
 
     /// One SLAM pose with its synchronised buoy position: the fused global pose.
     pub fn push_pair(&mut self, pair: PairInput) -> Result<FusedOutput, FusionError> {
+        Self::check_pair(&pair)?;
+        self.push_checked_pair(pair)
+    }
+
+    /// The fused pose of a predicted pair (the buoy position extrapolated, the refined pair of
+    /// the same stamp still to come) from the state as it is: its segment's current alignment,
+    /// nothing stored, nothing realigned. A segment not seen yet has no alignment (buoy only).
+    pub fn predict_pair(&self, pair: &PairInput) -> Result<FusedOutput, FusionError> {
+        Self::check_pair(pair)?;
+        let zero = Matrix3::zeros();
+        let seg = self.segments.get(&pair.segment);
+        Ok(self.pose_of(pair, seg.and_then(|s| s.alignment.as_ref()), seg.map_or(&zero, |s| &s.excess_cov_m2)))
+    }
+
+    fn check_pair(pair: &PairInput) -> Result<(), FusionError> {
         let ok = pair.t_s.is_finite()
             && finite3(&pair.local_from_body.translation.vector)
             && pair.local_from_body.rotation.coords.iter().all(|v| v.is_finite())
@@ -495,6 +510,10 @@ impl Fusion {
         if !ok {
             return Err(FusionError::NonFinite("synced pair"));
         }
+        Ok(())
+    }
+
+    fn push_checked_pair(&mut self, pair: PairInput) -> Result<FusedOutput, FusionError> {
         let id = pair.segment;
         let seg = self.segments.entry(id).or_insert_with(|| Segment::new(id));
         if seg.samples.last().is_none_or(|s| pair.t_s > s.t_s) {
@@ -834,6 +853,33 @@ mod tests {
         let fused = fin.path.iter().filter(|o| o.source == Source::Fused).count();
         assert!(fused >= 580, "{fused} of 600 fused");
         assert_eq!(fin.slam_world.len(), 600);
+    }
+
+    #[test]
+    fn a_prediction_changes_nothing_and_matches_the_pose_of_an_unchanged_alignment() {
+        let run = |predict: bool| {
+            let mut f = Fusion::new(FusionConfig::default()).unwrap();
+            let mut outs = vec![];
+            for k in 0..300 {
+                let t = k as f64 * 0.1;
+                if k % 10 == 0 {
+                    let position_m = truth_at(t) + Vector3::new(0.1, -0.1, 0.05) * (k as f64 * 0.7).sin();
+                    f.push_fix(FixInput { t_s: t, position_m, covariance_m2: Matrix3::identity() * 0.25 }).unwrap();
+                }
+                let p = pair(t, 0, truth_at(t), 0.3);
+                let first = predict.then(|| f.predict_pair(&p).unwrap());
+                let out = f.push_pair(p).unwrap();
+                if let Some(first) = first
+                    && !out.realigned
+                {
+                    // Same state, same pair: the same pose as the refined one.
+                    assert_eq!(first.world_from_body, out.world_from_body, "at {t}");
+                }
+                outs.push(out.world_from_body);
+            }
+            (outs, f.finish().path.len())
+        };
+        assert_eq!(run(true), run(false), "predictions leave the state as it was");
     }
 
     #[test]

@@ -136,6 +136,15 @@ pub struct RunLog {
     pub invalid: std::collections::BTreeMap<String, u64>,
     /// Latency from the stereo frame entering the pipeline to the fused pose leaving, ms.
     pub stereo_to_fused_ms: Vec<f64>,
+    /// The predicted poses published (flag `FUSED_PREDICTED`): (t, world_from_body).
+    pub predicted: Vec<(f64, Isometry3<f64>)>,
+    /// The first pose published at each stamp (the predicted one, or the refined one when none
+    /// was predicted): what a consumer that takes the first pose gets.
+    pub first: Vec<(f64, Isometry3<f64>)>,
+    /// Latency from the stereo frame to the first fused pose of its stamp leaving, ms.
+    pub stereo_to_first_fused_ms: Vec<f64>,
+    /// Predicted pairs that fusion could not turn into a pose (invalid), counted.
+    pub predicted_invalid: u64,
 }
 
 /// p50, p99 and max of `v` (ms), as JSON.
@@ -163,6 +172,7 @@ pub fn write_outputs(
     let fused: Vec<(f64, Isometry3<f64>)> = result.path.iter().map(|o| (o.t_s, o.world_from_body)).collect();
     write_tum(&out_dir.join("fused_global.tum"), fused.iter().map(|(t, p)| (*t, p)))?;
     write_tum(&out_dir.join("fused_live.tum"), log.live.iter().map(|(t, p)| (*t, p)))?;
+    write_tum(&out_dir.join("fused_first.tum"), log.first.iter().map(|(t, p)| (*t, p)))?;
     write_tum(&out_dir.join("slam_global.tum"), result.slam_world.iter().map(|(t, p)| (*t, p)))?;
     let buoy_poses: Vec<(f64, Isometry3<f64>)> =
         log.buoy.iter().map(|(t, p)| (*t, Isometry3::translation(p.x, p.y, p.z))).collect();
@@ -201,8 +211,12 @@ pub fn write_outputs(
         "global_landmarks": result.global_map.len(),
         "global_landmarks_merged": merged,
         "invalid_inputs": log.invalid,
+        "predicted": log.predicted.len(),
     }});
-    part["pipeline_latency_ms"] = serde_json::json!({ "stereo_to_fused_pose": latency_json(&log.stereo_to_fused_ms) });
+    part["pipeline_latency_ms"] = serde_json::json!({
+        "stereo_to_fused_pose": latency_json(&log.stereo_to_fused_ms),
+        "stereo_to_first_fused_pose": latency_json(&log.stereo_to_first_fused_ms),
+    });
     let truth = geometry::tum::read_tum(&out_dir.join(&settings.ground_truth));
     let truth = match truth {
         Ok(t) if !t.is_empty() => Some(t),
@@ -219,6 +233,8 @@ pub fn write_outputs(
         let ates = serde_json::json!({
             "fused": ate(&positions(&fused)),
             "fused_live": ate(&positions(&log.live)),
+            "fused_first": ate(&positions(&log.first)),
+            "fused_predicted": ate(&positions(&log.predicted)),
             "buoy": ate(&log.buoy),
             "slam_global": ate(&positions(&result.slam_world)),
         });

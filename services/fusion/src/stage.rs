@@ -39,6 +39,8 @@ pub struct FusionStage {
     log: RunLog,
     statuses: std::collections::BTreeMap<u32, std::mem::Discriminant<fusion::engine::SegmentStatus>>,
     out_dir: std::path::PathBuf,
+    /// Stamps of the predicted poses whose refined pose has not come yet, oldest first.
+    predicted_stamps: std::collections::VecDeque<u64>,
 }
 
 impl Stage for FusionStage {
@@ -68,6 +70,7 @@ impl Stage for FusionStage {
             log: RunLog::default(),
             statuses: Default::default(),
             out_dir: ctx.out_dir.clone(),
+            predicted_stamps: Default::default(),
         })
     }
 
@@ -113,7 +116,20 @@ impl Stage for FusionStage {
     }
 
     fn step(&mut self, rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> Result<Step, StageError> {
-        let Self { settings, engine, pairs, fixes, landmarks, headings, pose_out, commands, log, statuses, .. } = self;
+        let Self {
+            settings,
+            engine,
+            pairs,
+            fixes,
+            landmarks,
+            headings,
+            pose_out,
+            commands,
+            log,
+            statuses,
+            predicted_stamps,
+            ..
+        } = self;
         // Fixes and maps first, so that a pair sees every fix that arrived with it.
         while let Some(s) = fixes.receive()? {
             let fix = fix_from_wire(s.user_header(), s.payload());
@@ -148,6 +164,46 @@ impl Stage for FusionStage {
         while let Some(s) = pairs.receive()? {
             let h = *s.user_header();
             let pair = pair_from_wire(&h, s.payload());
+            let now = pipeline_runtime::clock::monotonic_ns();
+            let latency_ms = (h.origin_ns > 0).then(|| now.saturating_sub(h.origin_ns) as f64 / 1e6);
+            if s.payload().flags & SYNC_PREDICTED != 0 {
+                // A first pose at once from the state as it is; the refined pair follows. Not
+                // journalled: it changes nothing.
+                let out = match engine.predict_pair(&pair) {
+                    Ok(o) => o,
+                    Err(e) => {
+                        log.predicted_invalid += 1;
+                        count(log, &format!("predicted pair: {e}"));
+                        continue;
+                    }
+                };
+                log.predicted.push((out.t_s, out.world_from_body));
+                log.first.push((out.t_s, out.world_from_body));
+                predicted_stamps.push_back(h.stamp_ns);
+                log.stereo_to_first_fused_ms.extend(latency_ms);
+                pose_out.send_value(
+                    MsgHeader { stamp_ns: h.stamp_ns, origin_ns: h.origin_ns, ..Default::default() },
+                    FusedPose {
+                        pose: PoseEstimate::from_nalgebra(
+                            &out.world_from_body,
+                            &out.covariance,
+                            out.segment,
+                            FRAME_WORLD,
+                        ),
+                        flags: flags(out.source) | FUSED_PREDICTED,
+                        _reserved: 0,
+                    },
+                )?;
+                continue;
+            }
+            // The refined pose: the first of its stamp unless one was predicted.
+            while predicted_stamps.front().is_some_and(|&t| t < h.stamp_ns) {
+                predicted_stamps.pop_front();
+            }
+            let was_predicted = predicted_stamps.front() == Some(&h.stamp_ns);
+            if was_predicted {
+                predicted_stamps.pop_front();
+            }
             let buoy = pair.buoy_m;
             let t_s = pair.t_s;
             crate::journal::record(rt.state(), &Entry::Pair(Box::new(pair.clone())));
@@ -161,17 +217,23 @@ impl Stage for FusionStage {
             log.buoy.push((t_s, buoy));
             log.live.push((out.t_s, out.world_from_body));
             log.live_sources.add(out.source);
+            if !was_predicted {
+                log.first.push((out.t_s, out.world_from_body));
+            }
             // Journalled before publishing: a restarted instance replays what was journalled.
             rt.state().flush()?;
-            if h.origin_ns > 0 {
-                let now = pipeline_runtime::clock::monotonic_ns();
-                log.stereo_to_fused_ms.push(now.saturating_sub(h.origin_ns) as f64 / 1e6);
+            if let Some(ms) = latency_ms {
+                let ms = ms + (pipeline_runtime::clock::monotonic_ns() - now) as f64 / 1e6;
+                log.stereo_to_fused_ms.push(ms);
+                if !was_predicted {
+                    log.stereo_to_first_fused_ms.push(ms);
+                }
             }
             pose_out.send_value(
                 MsgHeader { stamp_ns: h.stamp_ns, origin_ns: h.origin_ns, ..Default::default() },
                 FusedPose {
                     pose: PoseEstimate::from_nalgebra(&out.world_from_body, &out.covariance, out.segment, FRAME_WORLD),
-                    flags: flags(out.source),
+                    flags: flags(out.source) | FUSED_REFINED,
                     _reserved: 0,
                 },
             )?;

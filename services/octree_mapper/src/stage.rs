@@ -241,7 +241,9 @@ impl Stage for OctreeMapperStage {
             out_dir,
         } = self;
         while let Some(s) = fused.receive()? {
-            if settings.pose_source == PoseSource::Fused {
+            // The refined poses only: a predicted one (published at once, refined later) would
+            // place clouds by an extrapolated buoy position.
+            if settings.pose_source == PoseSource::Fused && s.payload().flags & shared_types::FUSED_PREDICTED == 0 {
                 st.poses.push(s.user_header().stamp_ns as f64 / 1e9, s.payload().pose.frame_from_body());
             }
         }

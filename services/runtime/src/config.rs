@@ -219,6 +219,12 @@ pub struct ProcessConfig {
     /// them as ready once spawned and to skip their heartbeat deadline.
     #[serde(default = "yes")]
     pub heartbeat: bool,
+    /// Scheduling niceness of the process, 0 (default, as the supervisor) to 19 (runs only on
+    /// what the others leave). Bulk work that nothing waits on at once (the octree mapper, a
+    /// recorder, a monitor) at 10 lets the latency-critical chain (SLAM, synchronizer, fusion)
+    /// take a core as soon as it needs one on a busy machine.
+    #[serde(default)]
+    pub nice: i32,
     /// Process-specific settings, parsed by the process's own typed settings struct.
     #[serde(default)]
     pub settings: toml::Table,
@@ -398,6 +404,11 @@ impl PipelineConfig {
             positive(&mut issues, &format!("{key}.backoff_initial_s"), p.backoff_initial_s);
             positive(&mut issues, &format!("{key}.backoff_max_s"), p.backoff_max_s);
             issues.check(
+                (0..=19).contains(&p.nice),
+                format!("{key}.nice"),
+                "must be 0 (default) to 19 (lowest priority); raising priority needs privileges the supervisor does not ask for",
+            );
+            issues.check(
                 p.backoff_max_s >= p.backoff_initial_s,
                 format!("{key}.backoff_max_s"),
                 "must be >= backoff_initial_s",
@@ -514,6 +525,16 @@ mod tests {
         assert_eq!(issues.0.len(), 1, "{issues:?}");
         assert_eq!(issues.0[0].key, "processes.a.after");
         assert!(issues.0[0].message.contains("ghost"));
+    }
+
+    #[test]
+    fn niceness_out_of_range_is_named() {
+        assert!(parse("[processes.a]\nnice = 10\n").unwrap().validate().0.is_empty());
+        for bad in ["-5", "20"] {
+            let issues = parse(&format!("[processes.a]\nnice = {bad}\n")).unwrap().validate();
+            assert_eq!(issues.0.len(), 1, "{issues:?}");
+            assert_eq!(issues.0[0].key, "processes.a.nice");
+        }
     }
 
     #[test]

@@ -558,7 +558,9 @@ impl Supervisor {
         // stops the children in reverse dependency order.
         std::os::unix::process::CommandExt::process_group(&mut cmd, 0);
         let parent = std::process::id() as libc::pid_t;
-        // SAFETY: only async-signal-safe calls (prctl, getppid, _exit) between fork and exec.
+        let nice = c.plan.config.nice;
+        // SAFETY: only async-signal-safe calls (prctl, getppid, setpriority, _exit) between fork
+        // and exec.
         unsafe {
             std::os::unix::process::CommandExt::pre_exec(&mut cmd, move || {
                 // The child dies with the supervisor, even on SIGKILL of the supervisor.
@@ -567,6 +569,10 @@ impl Supervisor {
                 }
                 if libc::getppid() != parent {
                     libc::_exit(1); // the supervisor died between fork and prctl
+                }
+                // Lower the process's priority (validated 0..=19: never raised).
+                if nice > 0 && libc::setpriority(libc::PRIO_PROCESS as _, 0, nice) != 0 {
+                    return Err(std::io::Error::last_os_error());
                 }
                 Ok(())
             });

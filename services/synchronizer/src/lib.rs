@@ -27,11 +27,15 @@ pub struct SynchronizerSettings {
     /// The processes whose end of stream ends this one's input (the SLAM and buoy stages): it
     /// flushes and ends once all of them have ended. Empty: the first end of stream received.
     pub end_after: Vec<String>,
+    /// Send, as soon as a SLAM pose arrives and has to wait for the fix after it, a predicted
+    /// pair (flag `SYNC_PREDICTED`: the buoy position extrapolated from the newest fix), so that
+    /// fusion publishes a first pose at once; the pair proper follows as before.
+    pub predict: bool,
 }
 
 impl Default for SynchronizerSettings {
     fn default() -> Self {
-        Self { sync: SyncConfig::default(), end_after: vec!["slam".into(), "buoy".into()] }
+        Self { sync: SyncConfig::default(), end_after: vec!["slam".into(), "buoy".into()], predict: true }
     }
 }
 
@@ -69,6 +73,8 @@ pub struct Paired {
     pub buoy: SyncResult,
     /// Wall time the pose spent here, s.
     pub added_latency_s: f64,
+    /// A prediction (`SYNC_PREDICTED`), sent when the pose arrived; its pair proper follows.
+    pub predicted: bool,
 }
 
 /// Counts of what happened to the poses and fixes.
@@ -88,6 +94,9 @@ pub struct SyncStats {
     pub invalid_fixes: u64,
     /// Poses rejected (NaN stamp or position).
     pub invalid_poses: u64,
+    /// Predicted pairs sent (one per pose that had to wait, when a fix was near enough to
+    /// extrapolate from); not counted in the kinds above, which count the pairs proper.
+    pub predicted: u64,
 }
 
 /// The process state.
@@ -142,6 +151,26 @@ impl SyncState {
         self.pending.push_back(PendingPose { header, pose, arrived: now });
     }
 
+    /// The predicted pair of a pose that has to wait for the fix after it (`None` when it need not
+    /// wait, when poses queue before it, or when no fix is near enough to extrapolate from).
+    pub fn predict(&mut self, header: &MsgHeader, pose: &PoseEstimate) -> Option<Paired> {
+        if !pose.position_m.iter().all(|v| v.is_finite()) {
+            return None;
+        }
+        let t_s = header.stamp_ns as f64 / 1e9;
+        // Paired at once (a fix after it is here): no prediction needed.
+        if !matches!(self.sync.try_sync(t_s, t_s), Ok(SyncDecision::Wait { .. })) {
+            return None;
+        }
+        let past_wait = t_s + self.max_latency.as_secs_f64() + 1.0;
+        match self.sync.try_sync(t_s, past_wait) {
+            Ok(SyncDecision::Ready(r) | SyncDecision::Extrapolated(r)) => {
+                Some(Paired { header: *header, pose: *pose, buoy: r, added_latency_s: 0.0, predicted: true })
+            }
+            _ => None,
+        }
+    }
+
     /// When the oldest waiting pose stops waiting.
     pub fn next_deadline(&self) -> Option<Instant> {
         self.pending.front().map(|p| p.arrived + self.max_latency)
@@ -182,7 +211,13 @@ impl SyncState {
             self.stats.extrapolated += u64::from(f.extrapolated);
             self.stats.gap += u64::from(f.gap);
             self.added_latency_s.push(waited.as_secs_f64());
-            out.push(Paired { header: p.header, pose: p.pose, buoy: result, added_latency_s: waited.as_secs_f64() });
+            out.push(Paired {
+                header: p.header,
+                pose: p.pose,
+                buoy: result,
+                added_latency_s: waited.as_secs_f64(),
+                predicted: false,
+            });
         }
         out
     }

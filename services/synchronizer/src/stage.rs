@@ -49,10 +49,21 @@ impl Stage for SynchronizerStage {
             self.st.push_fix(s.user_header(), s.payload());
         }
         let now = Instant::now();
+        let mut predicted = vec![];
         while let Some(s) = self.poses.receive()? {
-            self.st.push_pose(*s.user_header(), *s.payload(), now);
+            let (h, pose) = (*s.user_header(), *s.payload());
+            if self.settings.predict
+                && let Some(p) = self.st.predict(&h, &pose)
+            {
+                predicted.push(p);
+            }
+            self.st.push_pose(h, pose, now);
         }
-        for p in self.st.step(Instant::now(), inputs_ended) {
+        let paired = self.st.step(Instant::now(), inputs_ended);
+        // A pose paired in this very wake-up needs no prediction.
+        predicted.retain(|p| !paired.iter().any(|q| q.header.stamp_ns == p.header.stamp_ns));
+        for p in predicted.into_iter().chain(paired) {
+            self.st.stats.predicted += u64::from(p.predicted);
             let b = &p.buoy;
             self.pairs.send_value(
                 MsgHeader { stamp_ns: p.header.stamp_ns, origin_ns: p.header.origin_ns, ..Default::default() },
@@ -61,7 +72,7 @@ impl Stage for SynchronizerStage {
                     buoy_position_m: b.position_m.into(),
                     buoy_covariance_m2: convert::mat3_to_row_major(&b.covariance_m2),
                     newest_fix_stamp_ns: (b.newest_fix_s * 1e9).round().max(0.0) as u64,
-                    flags: b.flags.bits(),
+                    flags: b.flags.bits() | if p.predicted { shared_types::SYNC_PREDICTED } else { 0 },
                     fixes_used: b.fixes_used as u32,
                 },
             )?;

@@ -76,17 +76,26 @@ fn a_failed_upstream_ends_its_inputs_and_is_named_in_the_summary() {
     for t in 0..3 {
         h.feed(BUOY_FIX, at(t as f64), fix(t as f64)).unwrap();
     }
-    // A pose after the last fix waits for the next one (up to max_latency_s) ...
+    // A pose after the last fix waits for the next one (up to max_latency_s), with a predicted
+    // pair sent at once (the buoy position extrapolated from the newest fix) ...
     h.feed(shared_types::services::SLAM_POSE, at(2.5), pose()).unwrap();
     h.end_upstream("slam").unwrap();
     h.wake().unwrap();
-    assert!(h.take::<SyncedPair, MsgHeader>(SYNC_PAIR).unwrap().is_empty());
+    let predicted = h.take::<SyncedPair, MsgHeader>(SYNC_PAIR).unwrap();
+    assert_eq!(predicted.len(), 1, "a prediction at once");
+    let (ph, p) = &predicted[0];
+    assert_eq!(ph.stamp_ns, 2_500_000_000);
+    assert_ne!(p.flags & shared_types::SYNC_PREDICTED, 0, "flagged as predicted");
+    assert!((p.buoy_position_m[0] - 2.5).abs() < 0.02, "extrapolated at 1 m/s: {:?}", p.buoy_position_m);
     // ... until the buoy EKF is given up on: then it is paired by extrapolation and the stage ends.
     h.fail_upstream("buoy").unwrap();
     let part = h.run_to_end(Duration::from_secs(5)).unwrap();
     let pairs = h.take::<SyncedPair, MsgHeader>(SYNC_PAIR).unwrap();
     assert_eq!(pairs.len(), 1);
     assert_ne!(pairs[0].1.flags & shared_types::SYNC_EXTRAPOLATED, 0, "flagged as extrapolated");
+    assert_eq!(pairs[0].1.flags & shared_types::SYNC_PREDICTED, 0, "the pair proper");
+    assert_eq!(part["synchronizer"]["poses"]["predicted"], 1, "{part}");
+    assert_eq!(part["synchronizer"]["pairs"], 1, "pairs proper: {part}");
     assert_eq!(part["processes"]["sync"]["upstream_failed"], serde_json::json!(["buoy"]), "{part}");
 }
 
