@@ -291,6 +291,15 @@ impl BuoyConfig {
         let i = &self.init;
         check(pos(i.window_s), "init.window_s", "must be > 0");
         check(i.min_buoys >= 3, "init.min_buoys", "must be >= 3");
+        // A filter that needs more distinct buoys to start than there are would wait forever.
+        let starts = self.buoys.len() < 3 || i.min_buoys <= self.buoys.len();
+        let msg = format!(
+            "is {} but `buoys` lists {}: the filter could never initialise; set it to {} or fewer (>= 3), or add buoys",
+            i.min_buoys,
+            self.buoys.len(),
+            self.buoys.len()
+        );
+        check(starts, "init.min_buoys", &msg);
         check(pos(i.max_condition) && i.max_condition > 1.0, "init.max_condition", "must be > 1");
         check(pos(i.max_normalised_rms), "init.max_normalised_rms", "must be > 0");
         check(i.prior_position_m.iter().all(|c| c.is_finite()), "init.prior_position_m", "must be finite");
@@ -330,6 +339,18 @@ mod tests {
         // The default has no buoys: that is the one problem.
         let keys: Vec<String> = BuoyConfig::default().validate().into_iter().map(|(k, _)| k).collect();
         assert_eq!(keys, ["buoys"]);
+    }
+
+    #[test]
+    fn more_buoys_to_start_than_configured_is_refused() {
+        let mut c = with_buoys();
+        c.buoys.pop(); // 3 buoys, min_buoys 4 by default
+        let issues = c.validate();
+        assert_eq!(issues.len(), 1, "{issues:?}");
+        assert_eq!(issues[0].0, "init.min_buoys");
+        assert!(issues[0].1.contains("never initialise") && issues[0].1.contains("lists 3"), "{}", issues[0].1);
+        c.init.min_buoys = 3;
+        assert_eq!(c.validate(), vec![]);
     }
 
     #[test]

@@ -122,9 +122,16 @@ pub struct BuoyState {
     pub filter_errors: std::collections::BTreeMap<String, u64>,
     /// Ranges buffered while the filter waited for a usable trilateration.
     pub waiting: u64,
+    /// Why the filter is still waiting (the last trilateration's failure), once it waited.
+    pub waiting_reason: Option<String>,
+    /// When the last "still waiting" warning went out (one every [`WAIT_WARN_EVERY`]).
+    waiting_warned: Option<Instant>,
     /// Time of the last event applied, ns.
     last_ns: Option<u64>,
 }
+
+/// Wall time between two warnings that the filter still waits for its initialisation.
+pub const WAIT_WARN_EVERY: Duration = Duration::from_secs(5);
 
 fn stamp_s(ns: u64) -> f64 {
     ns as f64 / 1e9
@@ -146,6 +153,8 @@ impl BuoyState {
             invalid: Default::default(),
             filter_errors: Default::default(),
             waiting: 0,
+            waiting_reason: None,
+            waiting_warned: None,
             last_ns: None,
         }
     }
@@ -344,11 +353,15 @@ impl BuoyState {
         }
         let mut errors = vec![];
         let mut waiting = 0;
+        let mut reason = None;
         for b in &r.ranges {
             match ekf.update_range(b.buoy_id, b.range_m, b.sigma_m) {
                 Ok(RangeOutcome::Accepted { .. } | RangeOutcome::Initialised) => used += 1,
                 Ok(RangeOutcome::Rejected { .. }) => rejected += 1,
-                Ok(RangeOutcome::Waiting(_)) => waiting += 1,
+                Ok(RangeOutcome::Waiting(why)) => {
+                    waiting += 1;
+                    reason = Some(why.to_string());
+                }
                 Err(e) => {
                     rejected += 1;
                     errors.push(format!("range: {e}"));
@@ -357,6 +370,21 @@ impl BuoyState {
         }
         let estimate = ekf.is_initialised().then(|| ekf.estimate());
         self.waiting += waiting;
+        if reason.is_some() {
+            self.waiting_reason = reason;
+        }
+        if estimate.is_none()
+            && let Some(reason) = &self.waiting_reason
+            && self.waiting_warned.is_none_or(|w| w.elapsed() >= WAIT_WARN_EVERY)
+        {
+            self.waiting_warned = Some(Instant::now());
+            tracing::warn!(
+                ranges_waiting = self.waiting,
+                data_time_s = t,
+                min_buoys = self.settings.ekf.init.min_buoys,
+                "the buoy EKF is not initialised yet, no fix published: {reason} (settings `ekf.init`)"
+            );
+        }
         for e in errors {
             Self::count(&mut self.filter_errors, e);
         }

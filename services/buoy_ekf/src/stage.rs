@@ -135,6 +135,13 @@ fn summary(
     fixes_sent: u64,
 ) -> Result<serde_json::Value, StageError> {
     std::fs::create_dir_all(out_dir)?;
+    if !st.ekf().is_some_and(|e| e.is_initialised()) {
+        tracing::warn!(
+            ranges_waiting = st.waiting,
+            reason = st.waiting_reason.as_deref().unwrap_or("no ranges came"),
+            "the buoy EKF never initialised: no fix was published (settings `ekf.init`, `ekf.buoys`)"
+        );
+    }
     let planar = settings.ekf.mode == Mode::Planar;
     let poses: Vec<_> = st.trajectory.iter().map(|(t, p, h)| (*t, fix_pose(p, *h))).collect();
     geometry::tum::write_tum(&out_dir.join("buoy_ekf.tum"), poses.iter().map(|(t, p)| (*t, p)))?;
@@ -148,6 +155,8 @@ fn summary(
         "recoveries": counters.recoveries,
         "depth_rejected": counters.depth_rejected,
         "ranges_waiting_for_initialisation": st.waiting,
+        "initialised": st.ekf().is_some_and(|e| e.is_initialised()),
+        "last_waiting_reason": st.waiting_reason,
         "per_buoy": counters.per_buoy.iter().map(|b| serde_json::json!({
             "id": b.id, "accepted": b.accepted, "rejected": b.rejected })).collect::<Vec<_>>(),
         "range_biases_m": estimate.as_ref().map(|e| e.biases.iter().map(|b| serde_json::json!({
