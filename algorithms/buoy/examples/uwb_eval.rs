@@ -4,8 +4,13 @@
 //! (each range carries its variance, the odometry its wheel-speed variances).
 //!
 //! ```sh
-//! cargo run --release -p buoy --example uwb_eval [-- [DIR] [--config FILE.toml] [--dump FILE]]
+//! cargo run --release -p buoy --example uwb_eval [-- [DIR] [--config FILE.toml] [--dump FILE]
+//!     [--beacons 105,107,108] [--outliers 0.15] [--outlier-seed 1]]
 //! ```
+//! `--beacons` keeps only the ranges to those modules (the buoy table shrinks with them and
+//! `init.min_buoys` is lowered to their number); `--outliers` turns that share of the ranges
+//! into gross errors of 1-4 m of either sign (seeded, `--outlier-seed`): the real data under
+//! the heavy-outlier conditions of issue 18, for comparison with the same run without them.
 //! DIR defaults to `../shared/data/indoor_uwb` relative to the workspace root; it holds
 //! `Indoor_UWB_Input.txt` and `Indoor_UWB_GT.txt`. `--config` and `--dump` as in `plaza2_eval`.
 //! Lines (whitespace separated):
@@ -149,11 +154,29 @@ fn run() -> Result<()> {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
     let mut dir = root.join("../shared/data/indoor_uwb");
     let (mut config, mut dump) = (None, None);
+    let (mut keep, mut outliers, mut outlier_seed): (Option<Vec<u32>>, f64, u64) = (None, 0.0, 1);
     let mut it = std::env::args().skip(1);
     while let Some(a) = it.next() {
         match a.as_str() {
             "--config" => config = Some(PathBuf::from(it.next().context("--config needs a file")?)),
             "--dump" => dump = Some(PathBuf::from(it.next().context("--dump needs a file")?)),
+            "--beacons" => {
+                let list = it.next().context("--beacons needs ids, e.g. 105,107,108")?;
+                keep = Some(
+                    list.split(',')
+                        .map(|x| x.parse().with_context(|| format!("--beacons: `{x}`")))
+                        .collect::<Result<_>>()?,
+                );
+            }
+            "--outliers" => {
+                outliers = it.next().context("--outliers needs a share")?.parse().context("--outliers")?;
+                if !(0.0..=0.5).contains(&outliers) {
+                    bail!("--outliers must be in [0, 0.5]");
+                }
+            }
+            "--outlier-seed" => {
+                outlier_seed = it.next().context("--outlier-seed needs a number")?.parse().context("--outlier-seed")?
+            }
             s if s.starts_with("--") => bail!("unknown option {s}"),
             _ => dir = a.into(),
         }
@@ -195,9 +218,34 @@ fn run() -> Result<()> {
             bail!("module {} moves from {:?} to {:?}", r.id, p, r.module_xy_m);
         }
     }
+    if let Some(k) = &keep {
+        if let Some(id) = k.iter().find(|id| !modules.contains_key(id)) {
+            bail!("--beacons: module {id} is not in the data set (it has {:?})", modules.keys().collect::<Vec<_>>());
+        }
+        modules.retain(|id, _| k.contains(id));
+        ranges.retain(|r| k.contains(&r.id));
+    }
+    let mut injected = 0;
+    if outliers > 0.0 {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(outlier_seed);
+        for r in &mut ranges {
+            let (hit, magnitude, negative) =
+                (rng.random_bool(outliers), rng.random_range(1.0..=4.0), rng.random_bool(0.5));
+            if hit {
+                injected += 1;
+                r.range_m = if negative && r.range_m - magnitude >= 0.05 {
+                    r.range_m - magnitude
+                } else {
+                    r.range_m + magnitude
+                };
+            }
+        }
+    }
     let mut cfg = common::load_config(config.as_deref())?;
     cfg.mode = Mode::Planar;
     cfg.buoys = modules.iter().map(|(&id, p)| BuoyEntry { id, position_m: [p[0], p[1], 0.0] }).collect();
+    cfg.init.min_buoys = cfg.init.min_buoys.min(cfg.buoys.len());
 
     let first_dt = ranges.get(1).map_or(0.1, |r| r.t_s - ranges[0].t_s);
     let inputs: Vec<(f64, OdometryInput)> = odom
@@ -229,7 +277,7 @@ fn run() -> Result<()> {
     let t0 = (inputs[0].0 - inputs[0].1.dt_s).min(ranges[0].t_s);
     let run = common::replay(cfg, t0, &inputs, &events)?;
     println!(
-        "Indoor UWB ({}): {} ground-truth rows, {} odometry rows, {} ranges, {} beacons",
+        "Indoor UWB ({}): {} ground-truth rows, {} odometry rows, {} ranges ({injected} made gross errors), {} beacons",
         common::tidy(&dir).display(),
         gt.len(),
         inputs.len(),

@@ -69,6 +69,15 @@ pub struct RangeConfig {
     /// Huber constant on the normalised innovation |ν|/√S: an accepted range beyond it is
     /// down-weighted (its variance scaled by |ν|/(k√S)); 0 turns the down-weighting off.
     pub huber_k: f64,
+    /// The range scale and bias states do not learn from a range whose innovation exceeds this
+    /// many σ of what they cannot explain themselves (ν² > k²·(H_p P_pp H_pᵀ + R): the position's
+    /// uncertainty and the range's noise, not the calibration's own prior). Such a range still
+    /// updates the rest of the state (down-weighted by Huber, gated by the full innovation
+    /// covariance). Without this a gross error soon after the start, while the bias prior is
+    /// still wide (1 m), passes the gate and teaches the bias a metre; with it, calibration is
+    /// learned from ranges that agree with the position and only drifts as the evidence builds
+    /// up. 0 turns it off.
+    pub calibration_k: f64,
     /// Bias states.
     pub bias: BiasMode,
     /// Prior σ of each bias state, m.
@@ -87,6 +96,7 @@ impl Default for RangeConfig {
         Self {
             gate_probability: 0.999,
             huber_k: 1.345,
+            calibration_k: 3.0,
             bias: BiasMode::Global,
             bias_prior_sigma_m: 1.0,
             bias_random_walk_m_per_sqrt_s: 0.0,
@@ -169,6 +179,23 @@ pub struct InitConfig {
     pub heading_hypotheses: usize,
     /// The hypotheses merge into one filter once the mixture's heading σ is below this, rad.
     pub heading_max_sigma_rad: f64,
+    /// Planar mode with odometry: start (and re-start a lost filter) from a robust fix over a
+    /// window of ranges with the positions propagated by odometry (`crate::window_fix`: outliers
+    /// found by sampling, heading solved with the position once the path shows it) instead of
+    /// the stationary trilateration, which assumes the vehicle stands still and, with exactly 3
+    /// buoys, cannot see a wrong range.
+    pub odometry_window: bool,
+    /// Length of that window, s.
+    pub odometry_window_s: f64,
+    /// At most this many of the newest ranges in the window.
+    pub odometry_window_max_ranges: usize,
+    /// Ranges the robust fix must explain (inliers), at least.
+    pub odometry_window_min_inliers: usize,
+    /// Share of the window's ranges the robust fix must explain.
+    pub odometry_window_min_inlier_fraction: f64,
+    /// Odometry error per metre of path assumed by the robust fix (added to a range's σ for each
+    /// metre between it and the newest range).
+    pub odometry_drift_fraction: f64,
 }
 
 impl Default for InitConfig {
@@ -186,6 +213,12 @@ impl Default for InitConfig {
             initial_speed_sigma_mps: 1.0,
             heading_hypotheses: 16,
             heading_max_sigma_rad: 0.1,
+            odometry_window: true,
+            odometry_window_s: 30.0,
+            odometry_window_max_ranges: 60,
+            odometry_window_min_inliers: 8,
+            odometry_window_min_inlier_fraction: 0.6,
+            odometry_drift_fraction: 0.05,
         }
     }
 }
@@ -205,11 +238,25 @@ pub struct RecoveryConfig {
     pub buoy_consecutive_rejections: u32,
     /// After this many position fixes in a row rejected, the position is reset to the fix.
     pub fix_rejections: u32,
+    /// Lost-filter check (with the odometry window, `init.odometry_window`): over the last
+    /// this many ranges, …
+    pub check_ranges: usize,
+    /// … a rejected share at or above this (or a recovery) makes the filter ask the window for
+    /// a robust fix; a fix that disagrees with the filter (χ²₂ gate of the position difference)
+    /// re-starts it there (counted as `reinitialisations`).
+    pub check_rejected_share: f64,
 }
 
 impl Default for RecoveryConfig {
     fn default() -> Self {
-        Self { consecutive_rejections: 8, heading_sigma_rad: 0.3, buoy_consecutive_rejections: 15, fix_rejections: 2 }
+        Self {
+            consecutive_rejections: 8,
+            heading_sigma_rad: 0.3,
+            buoy_consecutive_rejections: 15,
+            fix_rejections: 2,
+            check_ranges: 20,
+            check_rejected_share: 0.4,
+        }
     }
 }
 
@@ -269,6 +316,11 @@ impl BuoyConfig {
         let r = &self.range;
         check(r.gate_probability > 0.0 && r.gate_probability < 1.0, "range.gate_probability", "must be in (0, 1)");
         check(r.huber_k == 0.0 || (pos(r.huber_k) && r.huber_k >= 1.0), "range.huber_k", "must be 0 (off) or >= 1");
+        check(
+            r.calibration_k == 0.0 || (pos(r.calibration_k) && r.calibration_k >= 1.0),
+            "range.calibration_k",
+            "must be 0 (off) or >= 1",
+        );
         check(pos(r.bias_prior_sigma_m), "range.bias_prior_sigma_m", "must be > 0");
         check(nonneg(r.bias_random_walk_m_per_sqrt_s), "range.bias_random_walk_m_per_sqrt_s", "must be >= 0");
         check(pos(r.scale_prior_sigma) && r.scale_prior_sigma < 0.5, "range.scale_prior_sigma", "must be in (0, 0.5)");
@@ -313,11 +365,35 @@ impl BuoyConfig {
             "init.heading_max_sigma_rad",
             "must be in (0, 1)",
         );
+        check(pos(i.odometry_window_s), "init.odometry_window_s", "must be > 0");
+        check(i.odometry_window_max_ranges >= 8, "init.odometry_window_max_ranges", "must be >= 8");
+        check(i.odometry_window_min_inliers >= 4, "init.odometry_window_min_inliers", "must be >= 4");
+        check(
+            i.odometry_window_min_inliers <= i.odometry_window_max_ranges,
+            "init.odometry_window_min_inliers",
+            "must be <= init.odometry_window_max_ranges",
+        );
+        check(
+            i.odometry_window_min_inlier_fraction > 0.0 && i.odometry_window_min_inlier_fraction <= 1.0,
+            "init.odometry_window_min_inlier_fraction",
+            "must be in (0, 1]",
+        );
+        check(
+            nonneg(i.odometry_drift_fraction) && i.odometry_drift_fraction < 1.0,
+            "init.odometry_drift_fraction",
+            "must be in [0, 1)",
+        );
         let c = &self.recovery;
         check(c.consecutive_rejections >= 1, "recovery.consecutive_rejections", "must be >= 1");
         check(nonneg(c.heading_sigma_rad), "recovery.heading_sigma_rad", "must be >= 0");
         check(c.buoy_consecutive_rejections >= 1, "recovery.buoy_consecutive_rejections", "must be >= 1");
         check(c.fix_rejections >= 1, "recovery.fix_rejections", "must be >= 1");
+        check(c.check_ranges >= 4, "recovery.check_ranges", "must be >= 4");
+        check(
+            c.check_rejected_share > 0.0 && c.check_rejected_share <= 1.0,
+            "recovery.check_rejected_share",
+            "must be in (0, 1]",
+        );
         v
     }
 }

@@ -30,7 +30,11 @@
 //! - Depth: d = −z (spatial mode only). Position fix: p directly (the planar mode uses x, y).
 //!
 //! All updates are Joseph-form. Accepted ranges beyond `range.huber_k` normalised innovations
-//! are down-weighted (Huber, R scaled by |ν|/(k√S)).
+//! are down-weighted (Huber, R scaled by |ν|/(k√S)). The range scale and bias states do not
+//! learn from a range whose innovation is more than `range.calibration_k` σ of what they cannot
+//! explain (position uncertainty and range noise): its gain rows for them are zeroed (a
+//! Schmidt update; counted as `calibration_held`), so a gross error accepted while the bias
+//! prior is still wide moves the position a little instead of the bias a lot.
 //!
 //! # Gating and recovery
 //! A range whose normalised innovation ν²/S exceeds the χ²₁ quantile of `range.gate_probability`
@@ -43,6 +47,14 @@
 //! row while others pass has its bias state (per-buoy biases) reset to its prior. After
 //! `recovery.fix_rejections` position fixes in a row rejected the position is reset to the fix.
 //!
+//! With the odometry window (below) a lost filter is re-started instead: when a run of
+//! rejections trips, or at least `recovery.check_rejected_share` of the last
+//! `recovery.check_ranges` ranges were rejected, the window's robust fix (ranges corrected by the
+//! current calibration, or raw if that finds none) is compared with the filter; if they disagree
+//! (χ²₂ gate of the position difference) the filter re-starts at the fix with the heading it
+//! solved (`reinitialisations`); a check without a fix is counted (`lost_checks_without_fix`)
+//! and the covariance inflation above applies as before.
+//!
 //! # Initialisation
 //! `init.method = "trilateration"`: ranges are buffered for `init.window_s`; once they reach
 //! `init.min_buoys` distinct buoys (default 4: one spare, so a wrong range shows in the residual)
@@ -51,6 +63,16 @@
 //! covariance, with the matching cross-covariances). Until then ranges return
 //! [`RangeOutcome::Waiting`] with the reason. A position fix initialises too.
 //! `init.method = "prior"`: the filter starts at `init.prior_position_m`.
+//!
+//! **Odometry window** (planar mode with odometry, `init.odometry_window`, default on): every
+//! range is also kept with the odometry's dead-reckoned pose at its time, for the last
+//! `init.odometry_window_s`. While waiting, the filter starts from [`crate::window_fix()`]: a robust
+//! fix over that window with the positions propagated by odometry, outliers found by sampling,
+//! and the heading solved with the position once the path shows it. A stationary trilateration
+//! with a spare buoy (`init.min_buoys` > 3) is tried first (it starts at once and a wrong range
+//! shows in its residual); with exactly 3 buoys only the window can tell a wrong range. While
+//! the heading is still a mixture of hypotheses, a window fix that agrees with the mixture's
+//! position and is as sure of the heading as `init.heading_max_sigma_rad` settles it.
 //!
 //! Heading: without a prior heading the filter has none. Once odometry arrives it splits into
 //! `init.heading_hypotheses` filters with evenly spaced headings (a Gaussian sum), each updated
@@ -74,6 +96,7 @@ use crate::chi2::chi2_quantile;
 use crate::config::{BiasMode, BuoyConfig, InitMethod, Mode};
 use crate::error::{BuoyError, TrilaterationError};
 use crate::trilaterate::{Geometry, Limits, RangeObs, trilaterate, wrap_angle};
+use crate::window_fix::{WindowFix, WindowLimits, WindowRange, window_fix};
 
 /// An odometry input over the interval (t − `dt_s`, t] (EQUATIONS §1: forward speed and yaw turn).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -162,6 +185,13 @@ pub struct Counters {
     pub consecutive_rejected: u32,
     /// Recoveries (covariance inflations after rejections in a row).
     pub recoveries: u64,
+    /// Re-starts of a lost filter from a robust window fix (see `recovery.check_rejected_share`).
+    pub reinitialisations: u64,
+    /// Lost-filter checks whose window gave no fix (the filter went on as it was).
+    pub lost_checks_without_fix: u64,
+    /// Accepted ranges from which the range scale and bias states did not learn (normalised
+    /// innovation beyond `range.calibration_k`).
+    pub calibration_held: u64,
     /// Bias states reset to their prior.
     pub bias_resets: u64,
     /// Depth readings rejected.
@@ -303,6 +333,8 @@ struct UpdateInfo {
     accepted: bool,
     weight: f64,
     log_lik: f64,
+    /// The calibration states were held (not learned) in this update.
+    held: bool,
 }
 
 /// The models, without state.
@@ -491,11 +523,46 @@ impl Model {
         gate: f64,
         huber_k: f64,
     ) -> Result<UpdateInfo, BuoyError> {
-        let info = self.gate(g, H, nu, R, gate, huber_k)?;
+        self.update_holding(g, H, nu, R, gate, huber_k, false)
+    }
+
+    /// As [`Self::update`]; with `hold_calibration`, or when the normalised innovation exceeds
+    /// `range.calibration_k`, the range scale and bias states are not learned from it (their gain rows are zeroed: a
+    /// Schmidt "consider" update, which the Joseph form keeps consistent).
+    #[allow(clippy::too_many_arguments)]
+    fn update_holding(
+        &self,
+        g: &mut Gaussian,
+        H: &DMatrix<f64>,
+        nu: &DVector<f64>,
+        R: &DMatrix<f64>,
+        gate: f64,
+        huber_k: f64,
+        hold_calibration: bool,
+    ) -> Result<UpdateInfo, BuoyError> {
+        let mut info = self.gate(g, H, nu, R, gate, huber_k)?;
         if info.accepted {
-            self.apply(g, H, nu, &(R / info.weight))?;
+            let calibration_k = self.cfg.range.calibration_k;
+            let cal = self.calibration_states();
+            // The innovation against what the calibration states cannot explain: the
+            // covariance without their part (known calibration).
+            let mut Hn = H.clone();
+            for &i in &cal {
+                Hn.column_mut(i).fill(0.0);
+            }
+            let Sn = &Hn * &g.P * Hn.transpose() + R;
+            let nis_known = Sn.cholesky().map_or(f64::INFINITY, |c| nu.dot(&c.solve(nu)));
+            info.held = hold_calibration || (calibration_k > 0.0 && nis_known > calibration_k * calibration_k);
+            let held: Vec<usize> = if info.held { cal } else { Vec::new() };
+            self.apply(g, H, nu, &(R / info.weight), &held)?;
         }
         Ok(info)
+    }
+
+    /// Indices of the range scale and bias states.
+    fn calibration_states(&self) -> Vec<usize> {
+        let l = &self.lay;
+        l.scale.into_iter().chain(l.bias.into_iter().flat_map(|b| b..b + l.n_bias)).collect()
     }
 
     /// The gate decision, likelihood and Huber weight of an innovation (no state change).
@@ -519,15 +586,26 @@ impl Model {
         let log_lik = -0.5 * (nis.min(gate) + ln_det + m * (2.0 * std::f64::consts::PI).ln());
         let e = nis.sqrt();
         let weight = if huber_k > 0.0 && e > huber_k { huber_k / e } else { 1.0 };
-        Ok(UpdateInfo { nu0: nu[0], nis, accepted: nis <= gate, weight, log_lik })
+        Ok(UpdateInfo { nu0: nu[0], nis, accepted: nis <= gate, weight, log_lik, held: false })
     }
 
-    /// Joseph-form update x += K·ν, P = (I − KH)P(I − KH)ᵀ + K·R·Kᵀ; on failure `g` is unchanged.
-    fn apply(&self, g: &mut Gaussian, H: &DMatrix<f64>, nu: &DVector<f64>, R: &DMatrix<f64>) -> Result<(), BuoyError> {
+    /// Joseph-form update x += K·ν, P = (I − KH)P(I − KH)ᵀ + K·R·Kᵀ, with the gain rows of the
+    /// `held` states zeroed (valid for any gain); on failure `g` is unchanged.
+    fn apply(
+        &self,
+        g: &mut Gaussian,
+        H: &DMatrix<f64>,
+        nu: &DVector<f64>,
+        R: &DMatrix<f64>,
+        held: &[usize],
+    ) -> Result<(), BuoyError> {
         let PHt = &g.P * H.transpose();
         let S = H * &PHt + R;
         let chol = S.cholesky().ok_or(BuoyError::NotPositiveDefinite("innovation covariance S"))?;
-        let K = chol.solve(&PHt.transpose()).transpose();
+        let mut K = chol.solve(&PHt.transpose()).transpose();
+        for &i in held {
+            K.row_mut(i).fill(0.0);
+        }
         let x = &g.x + &K * nu;
         let IKH = DMatrix::identity(self.lay.n, self.lay.n) - &K * H;
         let mut P = &IKH * &g.P * IKH.transpose() + &K * R * K.transpose();
@@ -541,11 +619,18 @@ impl Model {
         Ok(())
     }
 
-    fn range_update(&self, g: &mut Gaussian, j: usize, r: f64, sigma: f64) -> Result<UpdateInfo, BuoyError> {
+    fn range_update(
+        &self,
+        g: &mut Gaussian,
+        j: usize,
+        r: f64,
+        sigma: f64,
+        hold_calibration: bool,
+    ) -> Result<UpdateInfo, BuoyError> {
         let (h, H, _) = self.range_model(&g.x, j);
         let nu = DVector::from_element(1, r - h);
         let R = DMatrix::from_element(1, 1, sigma * sigma);
-        self.update(g, &H, &nu, &R, self.gate1, self.cfg.range.huber_k)
+        self.update_holding(g, &H, &nu, &R, self.gate1, self.cfg.range.huber_k, hold_calibration)
     }
 
     fn depth_update(&self, g: &mut Gaussian, z: f64, sigma: f64) -> Result<UpdateInfo, BuoyError> {
@@ -638,6 +723,12 @@ pub struct BuoyEkf {
     /// Σν² of the current run of rejected ranges.
     rejection_run_nu2: f64,
     fix_run: u32,
+    /// Dead reckoning of the odometry inputs: (x m, y m, ψ rad, path m), from the first input.
+    odo: Option<[f64; 4]>,
+    /// The odometry window of ranges (`init.odometry_window`), oldest first, with their stamps.
+    window: VecDeque<(f64, WindowRange)>,
+    /// The last ranges' outcomes (true: rejected), for the lost-filter check.
+    recent: VecDeque<bool>,
 }
 
 fn finite(x: f64, what: &'static str) -> Result<f64, BuoyError> {
@@ -695,6 +786,9 @@ impl BuoyEkf {
             counters,
             rejection_run_nu2: 0.0,
             fix_run: 0,
+            odo: None,
+            window: VecDeque::new(),
+            recent: VecDeque::new(),
         };
         if f.model.cfg.init.method == InitMethod::Prior {
             let i = f.model.cfg.init.clone();
@@ -805,6 +899,12 @@ impl BuoyEkf {
         if start > self.t_s {
             self.predict_to(start)?;
         }
+        let o = self.odo.get_or_insert([0.0; 4]);
+        let mid = o[2] + input.dtheta_rad / 2.0;
+        o[0] += input.v_mps * input.dt_s * mid.cos();
+        o[1] += input.v_mps * input.dt_s * mid.sin();
+        o[2] = wrap_angle(o[2] + input.dtheta_rad);
+        o[3] += input.v_mps.abs() * input.dt_s;
         let held = HeldInput {
             v_mps: input.v_mps,
             rate_rps: input.dtheta_rad / input.dt_s,
@@ -903,18 +1003,63 @@ impl BuoyEkf {
         non_negative(range_m, "range_m")?;
         positive(sigma_m, "range sigma_m")?;
         let j = self.buoy_index(buoy_id)?;
+        self.push_window(j, range_m, sigma_m);
         if matches!(self.phase, Phase::Waiting) {
-            return Ok(self.try_trilaterate(InitRange { t_s: self.t_s, buoy: j, range_m, sigma_m }));
+            let r = InitRange { t_s: self.t_s, buoy: j, range_m, sigma_m };
+            if !self.window_enabled() {
+                return Ok(self.try_trilaterate(r));
+            }
+            // With a spare buoy (`init.min_buoys` above the unknowns) the stationary
+            // trilateration sees a wrong range in its residual and starts at once; without one
+            // only the window can tell a wrong range.
+            if self.model.cfg.init.min_buoys > self.model.lay.d + 1 {
+                let stationary = self.try_trilaterate(r);
+                if stationary == RangeOutcome::Initialised {
+                    return Ok(stationary);
+                }
+            }
+            return Ok(self.try_window_init());
+        }
+        if matches!(self.phase, Phase::Mixture(_)) && self.window_enabled() {
+            // The heading is still unknown: once the path shows it, the window's fix gives it.
+            if let Phase::Mixture(h) = &self.phase {
+                let merged = self.model.moment_match(h);
+                if let Ok(fix) = self.window_fix_with(Some(&merged))
+                    && self.position_distance2(&merged, &fix) <= self.model.gate_fix
+                    && let Some(h) = fix.heading_rad
+                    && fix.heading_sigma_rad <= self.model.cfg.init.heading_max_sigma_rad
+                {
+                    // Take the heading; the mixture's position agrees with the fix and keeps its
+                    // correlations with the calibration states.
+                    let mut g = merged;
+                    let psi = self.model.lay.psi;
+                    g.x[psi] = h;
+                    g.P.row_mut(psi).fill(0.0);
+                    g.P.column_mut(psi).fill(0.0);
+                    g.P[(psi, psi)] = fix.heading_sigma_rad.max(1f64.to_radians()).powi(2);
+                    self.phase = Phase::Single(g);
+                    self.heading_known = true;
+                    self.recent.clear();
+                    return Ok(RangeOutcome::Initialised);
+                }
+            }
         }
         let single = matches!(self.phase, Phase::Single(_));
-        let info = self.for_each_hypothesis(|m, g| m.range_update(g, j, range_m, sigma_m))?;
+        let info = self.for_each_hypothesis(|m, g| m.range_update(g, j, range_m, sigma_m, false))?;
+        let checks = self.model.cfg.recovery.check_ranges;
+        self.recent.push_back(!info.accepted);
+        while self.recent.len() > checks {
+            self.recent.pop_front();
+        }
         let c = &mut self.counters;
         if info.accepted {
             c.accepted += 1;
             c.consecutive_rejected = 0;
             c.per_buoy[j].accepted += 1;
             c.per_buoy[j].consecutive_rejected = 0;
+            c.calibration_held += u64::from(info.held);
             self.rejection_run_nu2 = 0.0;
+            self.check_lost(false);
             return Ok(RangeOutcome::Accepted { innovation_m: info.nu0, nis: info.nis, weight: info.weight });
         }
         c.rejected += 1;
@@ -927,15 +1072,178 @@ impl BuoyEkf {
             let rc = self.model.cfg.recovery.clone();
             if self.counters.consecutive_rejected >= rc.consecutive_rejections {
                 let mean_nu2 = self.rejection_run_nu2 / f64::from(self.counters.consecutive_rejected);
-                self.inflate_after_rejections(mean_nu2, rc.heading_sigma_rad);
+                if !self.check_lost(true) {
+                    self.inflate_after_rejections(mean_nu2, rc.heading_sigma_rad);
+                }
+                self.counters.consecutive_rejected = 0;
+                self.rejection_run_nu2 = 0.0;
                 recovery = true;
             } else if self.counters.per_buoy[j].consecutive_rejected >= rc.buoy_consecutive_rejections
                 && self.model.lay.n_bias > 1
             {
                 self.reset_bias(j);
+            } else {
+                self.check_lost(false);
             }
+        } else {
+            self.check_lost(false);
         }
         Ok(RangeOutcome::Rejected { innovation_m: info.nu0, nis: info.nis, recovery })
+    }
+
+    /// Whether the odometry window is in use: planar mode, `init.odometry_window`, odometry seen.
+    fn window_enabled(&self) -> bool {
+        self.model.lay.d == 2 && self.model.cfg.init.odometry_window && self.odo.is_some()
+    }
+
+    /// Adds a range to the odometry window (with the odometry's pose now) and drops old ones.
+    fn push_window(&mut self, j: usize, range_m: f64, sigma_m: f64) {
+        if !(self.model.lay.d == 2 && self.model.cfg.init.odometry_window) {
+            return;
+        }
+        let Some(o) = self.odo else { return };
+        let i = &self.model.cfg.init;
+        let (span, max) = (i.odometry_window_s, i.odometry_window_max_ranges);
+        self.window.push_back((
+            self.t_s,
+            WindowRange {
+                odom_pose: [o[0], o[1], o[2]],
+                path_m: o[3],
+                buoy_id: self.ids[j],
+                buoy_m: self.model.buoys[j],
+                range_m,
+                sigma_m,
+            },
+        ));
+        while self.window.front().is_some_and(|w| w.0 < self.t_s - span) || self.window.len() > max {
+            self.window.pop_front();
+        }
+    }
+
+    /// The robust fix of the window, with the ranges corrected by the calibration (scale and
+    /// bias means) of `calibration`, or taken as they are.
+    fn window_fix_with(&self, calibration: Option<&Gaussian>) -> Result<WindowFix, TrilaterationError> {
+        let l = &self.model.lay;
+        let i = &self.model.cfg.init;
+        let obs: Vec<WindowRange> = self
+            .window
+            .iter()
+            .map(|(_, w)| {
+                let mut w = *w;
+                if let Some(g) = calibration {
+                    let j = self.ids.iter().position(|&id| id == w.buoy_id).unwrap_or(0);
+                    let s = l.scale.map_or(0.0, |k| g.x[k]);
+                    let beta = l.bias_of(j).map_or(0.0, |k| g.x[k]);
+                    w.range_m = ((w.range_m - beta) / (1.0 + s)).max(0.0);
+                }
+                w
+            })
+            .collect();
+        let limits = WindowLimits {
+            min_buoys: i.min_buoys,
+            min_inliers: i.odometry_window_min_inliers,
+            min_inlier_fraction: i.odometry_window_min_inlier_fraction,
+            drift_fraction: i.odometry_drift_fraction,
+            ..WindowLimits::default()
+        };
+        window_fix(&obs, self.model.cfg.planar_height_m, &limits)
+    }
+
+    /// Waiting with the odometry window: starts from its robust fix when it has one.
+    fn try_window_init(&mut self) -> RangeOutcome {
+        match self.window_fix_with(None) {
+            Err(e) => RangeOutcome::Waiting(e),
+            Ok(fix) => {
+                self.start_from_fix(&fix, None);
+                RangeOutcome::Initialised
+            }
+        }
+    }
+
+    /// (Re)starts the filter at a window fix: the position (and heading, when the fix has one)
+    /// from the fix, the velocity at its prior; the calibration states from `keep` (a filter
+    /// being re-started) or their priors.
+    fn start_from_fix(&mut self, fix: &WindowFix, keep: Option<Gaussian>) {
+        let l = self.model.lay;
+        let cov = fix.covariance_m2 * fix.normalised_rms.max(1.0).powi(2);
+        let mut g = match keep {
+            Some(mut g) => {
+                self.model.reset_position(&mut g, &fix.position_m, &cov);
+                let prior = self.model.prior_variances();
+                for k in l.d..2 * l.d {
+                    g.x[k] = 0.0;
+                    g.P.row_mut(k).fill(0.0);
+                    g.P.column_mut(k).fill(0.0);
+                    g.P[(k, k)] = prior[k];
+                }
+                g
+            }
+            None => self.initial_gaussian(&fix.position_m, &cov),
+        };
+        g.P.row_mut(l.psi).fill(0.0);
+        g.P.column_mut(l.psi).fill(0.0);
+        match fix.heading_rad {
+            Some(h) => {
+                g.x[l.psi] = h;
+                g.P[(l.psi, l.psi)] = fix.heading_sigma_rad.max(1f64.to_radians()).powi(2);
+                self.heading_known = true;
+                self.phase = Phase::Single(g);
+            }
+            None => {
+                g.P[(l.psi, l.psi)] = std::f64::consts::PI.powi(2);
+                self.heading_known = false;
+                self.phase = Phase::Single(g);
+                self.split_if_heading_unknown();
+            }
+        }
+        self.init_ranges.clear();
+        self.recent.clear();
+    }
+
+    /// Squared Mahalanobis distance between the planar positions of `g` and `fix`.
+    fn position_distance2(&self, g: &Gaussian, fix: &WindowFix) -> f64 {
+        let dp = nalgebra::Vector2::new(fix.position_m.x - g.x[0], fix.position_m.y - g.x[1]);
+        let S = nalgebra::Matrix2::new(g.P[(0, 0)], g.P[(0, 1)], g.P[(1, 0)], g.P[(1, 1)])
+            + fix.covariance_m2.fixed_view::<2, 2>(0, 0);
+        S.try_inverse().map_or(f64::INFINITY, |inv| dp.dot(&(inv * dp)))
+    }
+
+    /// The lost-filter check (see `recovery.check_rejected_share`): with `forced` (a run of
+    /// rejections) or too many rejections among the last ranges, asks the window for a robust
+    /// fix and re-starts the filter there if the two disagree. Returns whether it re-started.
+    fn check_lost(&mut self, forced: bool) -> bool {
+        if !self.window_enabled() {
+            return false;
+        }
+        let rc = &self.model.cfg.recovery;
+        let rejected = self.recent.iter().filter(|&&r| r).count();
+        let due = self.recent.len() >= rc.check_ranges
+            && rejected as f64 >= rc.check_rejected_share * self.recent.len() as f64;
+        if !(forced || due) {
+            return false;
+        }
+        self.recent.clear();
+        let g = match &self.phase {
+            Phase::Single(g) => g.clone(),
+            Phase::Mixture(h) => self.model.moment_match(h),
+            Phase::Waiting => return false,
+        };
+        let (fix, keep) = match self.window_fix_with(Some(&g)) {
+            Ok(f) => (f, true),
+            Err(_) => match self.window_fix_with(None) {
+                Ok(f) => (f, false),
+                Err(_) => {
+                    self.counters.lost_checks_without_fix += 1;
+                    return false;
+                }
+            },
+        };
+        if self.position_distance2(&g, &fix) <= self.model.gate_fix {
+            return false;
+        }
+        self.start_from_fix(&fix, keep.then_some(g));
+        self.counters.reinitialisations += 1;
+        true
     }
 
     fn inflate_after_rejections(&mut self, mean_nu2: f64, heading_sigma: f64) {
@@ -1267,7 +1575,8 @@ mod tests {
     #[test]
     fn converges_on_a_circular_path_with_noise_scale_and_bias() {
         let s = Sim::default();
-        let (ekf, track) = simulate(planar_config(BiasMode::Global), &s);
+        let cfg = planar_config(BiasMode::Global);
+        let (ekf, track) = simulate(cfg, &s);
         let rmse = rmse_after(&track, 100.0);
         assert!(rmse < 0.3, "RMSE after 100 s: {rmse}");
         let e = ekf.estimate().unwrap();
@@ -1355,8 +1664,16 @@ mod tests {
         cfg.init.prior_position_m = [s.start.0 + 20.0, s.start.1 + 15.0, 0.0];
         cfg.init.prior_position_sigma_m = 0.5;
         cfg.init.prior_heading_rad = Some(s.start.2);
+        // With the odometry window the lost filter is re-started at the window's robust fix.
+        let (ekf, track) = simulate(cfg.clone(), &s);
+        assert!(ekf.counters().reinitialisations >= 1, "{:?}", ekf.counters());
+        assert!(ekf.counters().rejected >= 8);
+        assert!(rmse_after(&track, 60.0) < 0.5, "RMSE {}", rmse_after(&track, 60.0));
+        // Without it, the covariance inflation after a run of rejections brings it back.
+        cfg.init.odometry_window = false;
         let (ekf, track) = simulate(cfg, &s);
         assert!(ekf.counters().recoveries >= 1);
+        assert_eq!(ekf.counters().reinitialisations, 0);
         assert!(ekf.counters().rejected >= 8);
         assert!(rmse_after(&track, 60.0) < 0.5, "RMSE {}", rmse_after(&track, 60.0));
     }

@@ -79,6 +79,55 @@ pub enum TrilaterationError {
     /// An input was NaN or infinite, or a σ not positive.
     #[error("invalid input: {0}")]
     InvalidInput(&'static str),
+    /// Too few ranges in the window for a robust fix yet.
+    #[error("{got} ranges in the window, {needed} needed for a robust fix")]
+    TooFewRanges {
+        /// Ranges in the window.
+        got: usize,
+        /// Ranges needed.
+        needed: usize,
+    },
+    /// The best robust fix explains too few of the window's ranges (outliers, or the odometry
+    /// does not hold over the window).
+    #[error(
+        "the best fix explains {inliers} of {ranges} ranges to {buoys} buoys; {needed} ranges and {min_share:.0} % needed, to >= 3 buoys"
+    )]
+    TooFewInliers {
+        /// Ranges the best fix explains.
+        inliers: usize,
+        /// Ranges in the window.
+        ranges: usize,
+        /// Distinct buoys among the inliers.
+        buoys: usize,
+        /// Inliers needed.
+        needed: usize,
+        /// Share needed, %.
+        min_share: f64,
+    },
+    /// The vehicle moved too far in the window to be taken as standing still, and not far
+    /// enough for the heading to show.
+    #[error(
+        "moved {travel_m:.2} m in the window: too far to take as standing still, not far enough ({needed_m:.1} m) to solve the heading"
+    )]
+    Moving {
+        /// Largest distance of the window's odometry positions from the newest, m.
+        travel_m: f64,
+        /// Distance that makes the heading observable, m.
+        needed_m: f64,
+    },
+    /// Two distinct poses explain the window almost equally well (e.g. mirror positions, or a
+    /// heading that the path so far cannot tell).
+    #[error(
+        "ambiguous: the best fix explains {best} ranges, a distinct one {runner_up} nearly as well (cost gap {cost_gap:.1} outliers' worth)"
+    )]
+    Ambiguous {
+        /// Inliers of the best fix.
+        best: usize,
+        /// Inliers of the best distinct alternative.
+        runner_up: usize,
+        /// Its truncated cost above the best, in outliers' worth (k² each).
+        cost_gap: f64,
+    },
 }
 
 fn format_problems(problems: &[(String, String)]) -> String {

@@ -5,6 +5,12 @@
 //!   (χ²₁ gate with recovery, range scale and bias states, odometry or constant-velocity
 //!   prediction, depth and GPS fixes), 2-D or 3-D.
 //! - [`trilaterate`](mod@trilaterate): its least-squares initialisation, refusing degenerate geometry.
+//! - [`window_fix`](mod@window_fix): the robust planar fix over a window of ranges taken while
+//!   moving (positions propagated by odometry, outliers found by sampling, heading solved too),
+//!   which starts and re-starts the filter when there is odometry.
+//! - [`scenario`]: a seeded range-only mission with heavy outliers and ground truth (3 beacons at
+//!   different heights), and the per-step trilateration baseline, for tests and
+//!   `cargo run --release -p buoy --example outlier_eval`.
 //! - [`config`]: [`BuoyConfig`] (serde, `deny_unknown_fields`, defaults, `validate()`).
 //!
 //! Units are SI; angles in rad; frames as in EQUATIONS §0 (world z up). Matrices are nalgebra's
@@ -23,7 +29,9 @@ pub mod chi2;
 pub mod config;
 pub mod ekf;
 pub mod error;
+pub mod scenario;
 pub mod trilaterate;
+pub mod window_fix;
 
 pub use config::{
     BiasMode, BuoyConfig, BuoyEntry, InitConfig, InitMethod, Mode, MotionConfig, RangeConfig, RecoveryConfig,
@@ -31,3 +39,4 @@ pub use config::{
 pub use ekf::{BiasEstimate, BuoyCounters, BuoyEkf, Counters, Estimate, FixOutcome, OdometryInput, RangeOutcome};
 pub use error::{BuoyError, TrilaterationError};
 pub use trilaterate::{Geometry, Limits, RangeObs, Trilateration, trilaterate, wrap_angle};
+pub use window_fix::{WindowFix, WindowLimits, WindowRange, window_fix};

@@ -152,12 +152,16 @@ pub fn report(gt: &[Stamped], run: &Run, dr: &[Stamped], t0_s: f64) -> Result<()
     let c = run.ekf.counters();
     let per_buoy: Vec<String> = c.per_buoy.iter().map(|b| format!("{}:{}", b.id, b.rejected)).collect();
     println!(
-        "ranges accepted {}, rejected {} (per beacon {}), recoveries {}, bias resets {}",
+        "ranges accepted {}, rejected {} (per beacon {}), recoveries {}, bias resets {}, re-starts from the window {} \
+         (lost checks without a fix {}), updates with the calibration held {}",
         c.accepted,
         c.rejected,
         per_buoy.join(" "),
         c.recoveries,
-        c.bias_resets
+        c.bias_resets,
+        c.reinitialisations,
+        c.lost_checks_without_fix,
+        c.calibration_held
     );
     let e = run.ekf.estimate()?;
     if let Some((s, ss)) = e.range_scale {
