@@ -295,6 +295,14 @@ impl Default for BuoyConfig {
 }
 
 impl BuoyConfig {
+    /// Spatial mode: the buoys lie in one plane (e.g. all at the surface), so a 3-D fix has a
+    /// mirror image across that plane and needs depth readings to pick the side.
+    pub fn needs_depth(&self) -> bool {
+        let p: Vec<nalgebra::Vector3<f64>> = self.buoys.iter().map(|b| nalgebra::Vector3::from(b.position_m)).collect();
+        self.mode == Mode::Spatial
+            && (p.len() < 4 || crate::trilaterate::spread_ratio(&p) < crate::trilaterate::DEGENERATE_SPREAD)
+    }
+
     /// Checks the values; each problem is (key, message).
     pub fn validate(&self) -> Vec<(String, String)> {
         let mut v = vec![];
@@ -312,6 +320,16 @@ impl BuoyConfig {
             if self.buoys[..i].iter().any(|o| o.id == b.id) {
                 check(false, &format!("buoys[{i}].id"), &format!("buoy id {} is listed twice", b.id));
             }
+        }
+        if self.buoys.len() >= 3 && self.buoys.iter().all(|b| b.position_m.iter().all(|c| c.is_finite())) {
+            let xy: Vec<nalgebra::Vector2<f64>> =
+                self.buoys.iter().map(|b| nalgebra::Vector2::new(b.position_m[0], b.position_m[1])).collect();
+            let msg = format!(
+                "all {} buoys lie on one line seen from above: every position has a mirror image across it that \
+                 reads the same ranges; add a buoy off the line",
+                self.buoys.len()
+            );
+            check(crate::trilaterate::spread_ratio(&xy) >= crate::trilaterate::DEGENERATE_SPREAD, "buoys", &msg);
         }
         let r = &self.range;
         check(r.gate_probability > 0.0 && r.gate_probability < 1.0, "range.gate_probability", "must be in (0, 1)");
@@ -427,6 +445,24 @@ mod tests {
         assert!(issues[0].1.contains("never initialise") && issues[0].1.contains("lists 3"), "{}", issues[0].1);
         c.init.min_buoys = 3;
         assert_eq!(c.validate(), vec![]);
+    }
+
+    #[test]
+    fn buoys_on_one_line_are_refused_and_coplanar_ones_need_depth_in_3d() {
+        let mut c = with_buoys();
+        for (i, b) in c.buoys.iter_mut().enumerate() {
+            b.position_m = [i as f64 * 10.0, i as f64 * 5.0, -(i as f64)];
+        }
+        let issues = c.validate();
+        assert_eq!(issues.len(), 1, "{issues:?}");
+        assert!(issues[0].0 == "buoys" && issues[0].1.contains("one line"), "{issues:?}");
+        let c = with_buoys(); // all at z = 0
+        assert!(c.needs_depth());
+        let mut c = with_buoys();
+        c.buoys[3].position_m[2] = -5.0;
+        assert!(!c.needs_depth());
+        c.mode = Mode::Planar;
+        assert!(!c.needs_depth());
     }
 
     #[test]

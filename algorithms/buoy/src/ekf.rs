@@ -717,7 +717,7 @@ pub struct BuoyEkf {
     heading_known: bool,
     held: Option<HeldInput>,
     init_ranges: VecDeque<InitRange>,
-    /// Latest depth reading before initialisation: (t, z, σ).
+    /// Latest depth reading: (t, z, σ).
     last_depth: Option<(f64, f64, f64)>,
     counters: Counters,
     /// Σν² of the current run of rejected ranges.
@@ -828,6 +828,14 @@ impl BuoyEkf {
     /// The counters of accepted and rejected measurements.
     pub fn counters(&self) -> &Counters {
         &self.counters
+    }
+
+    /// The share of rejected ranges among the last ones since the latest (re)start or lost
+    /// check (at most `recovery.check_ranges`), with their number; `None` before any. A share
+    /// at the end well below `recovery.check_rejected_share` says the estimate has recovered.
+    pub fn recent_rejected_share(&self) -> Option<(f64, usize)> {
+        let n = self.recent.len();
+        (n > 0).then(|| (self.recent.iter().filter(|&&r| r).count() as f64 / n as f64, n))
     }
 
     fn buoy_index(&self, id: u32) -> Result<usize, BuoyError> {
@@ -1009,10 +1017,11 @@ impl BuoyEkf {
             if !self.window_enabled() {
                 return Ok(self.try_trilaterate(r));
             }
-            // With a spare buoy (`init.min_buoys` above the unknowns) the stationary
-            // trilateration sees a wrong range in its residual and starts at once; without one
-            // only the window can tell a wrong range.
-            if self.model.cfg.init.min_buoys > self.model.lay.d + 1 {
+            // With a spare buoy (`init.min_buoys` above the 2 horizontal unknowns plus one) the
+            // stationary trilateration sees a wrong range in its residual and starts at once, if
+            // the vehicle stood still over its window; otherwise only the window can tell.
+            let still = self.recent_travel_m() <= sigma_m.max(0.05);
+            if self.model.cfg.init.min_buoys > 3 && still {
                 let stationary = self.try_trilaterate(r);
                 if stationary == RangeOutcome::Initialised {
                     return Ok(stationary);
@@ -1091,17 +1100,39 @@ impl BuoyEkf {
         Ok(RangeOutcome::Rejected { innovation_m: info.nu0, nis: info.nis, recovery })
     }
 
-    /// Whether the odometry window is in use: planar mode, `init.odometry_window`, odometry seen.
+    /// The vehicle's known height now: planar mode's fixed height, or in spatial mode the
+    /// latest depth reading if it is at most `init.window_s` old.
+    fn known_height(&self) -> Option<(f64, f64)> {
+        match self.model.lay.d {
+            2 => Some((self.model.cfg.planar_height_m, 0.0)),
+            _ => self.last_depth.filter(|d| self.t_s - d.0 <= self.model.cfg.init.window_s).map(|d| (d.1, d.2)),
+        }
+    }
+
+    /// Whether the odometry window is in use: `init.odometry_window`, odometry seen, and the
+    /// height known (planar mode, or a recent depth reading in spatial mode).
     fn window_enabled(&self) -> bool {
-        self.model.lay.d == 2 && self.model.cfg.init.odometry_window && self.odo.is_some()
+        self.model.cfg.init.odometry_window && self.odo.is_some() && self.known_height().is_some()
+    }
+
+    /// How far the odometry moved over the last `init.window_s` (the stationary trilateration's
+    /// window), m; 0 without odometry.
+    fn recent_travel_m(&self) -> f64 {
+        let Some(o) = self.odo else { return 0.0 };
+        let since = self.t_s - self.model.cfg.init.window_s;
+        self.window
+            .iter()
+            .filter(|(t, _)| *t >= since)
+            .map(|(_, w)| (w.odom_pose[0] - o[0]).hypot(w.odom_pose[1] - o[1]))
+            .fold(0.0, f64::max)
     }
 
     /// Adds a range to the odometry window (with the odometry's pose now) and drops old ones.
     fn push_window(&mut self, j: usize, range_m: f64, sigma_m: f64) {
-        if !(self.model.lay.d == 2 && self.model.cfg.init.odometry_window) {
+        if !self.window_enabled() {
             return;
         }
-        let Some(o) = self.odo else { return };
+        let (Some(o), Some((height_m, _))) = (self.odo, self.known_height()) else { return };
         let i = &self.model.cfg.init;
         let (span, max) = (i.odometry_window_s, i.odometry_window_max_ranges);
         self.window.push_back((
@@ -1109,6 +1140,7 @@ impl BuoyEkf {
             WindowRange {
                 odom_pose: [o[0], o[1], o[2]],
                 path_m: o[3],
+                height_m,
                 buoy_id: self.ids[j],
                 buoy_m: self.model.buoys[j],
                 range_m,
@@ -1146,7 +1178,7 @@ impl BuoyEkf {
             drift_fraction: i.odometry_drift_fraction,
             ..WindowLimits::default()
         };
-        window_fix(&obs, self.model.cfg.planar_height_m, &limits)
+        window_fix(&obs, &limits)
     }
 
     /// Waiting with the odometry window: starts from its robust fix when it has one.
@@ -1165,7 +1197,11 @@ impl BuoyEkf {
     /// being re-started) or their priors.
     fn start_from_fix(&mut self, fix: &WindowFix, keep: Option<Gaussian>) {
         let l = self.model.lay;
-        let cov = fix.covariance_m2 * fix.normalised_rms.max(1.0).powi(2);
+        let mut cov = fix.covariance_m2 * fix.normalised_rms.max(1.0).powi(2);
+        if l.d == 3 {
+            // z comes from the depth reading.
+            cov[(2, 2)] = self.known_height().map_or(1.0, |(_, sigma)| sigma * sigma).max(1e-6);
+        }
         let mut g = match keep {
             Some(mut g) => {
                 self.model.reset_position(&mut g, &fix.position_m, &cov);
@@ -1353,8 +1389,8 @@ impl BuoyEkf {
         }
         finite(depth_m, "depth_m")?;
         positive(sigma_m, "depth sigma_m")?;
+        self.last_depth = Some((self.t_s, -depth_m, sigma_m));
         if matches!(self.phase, Phase::Waiting) {
-            self.last_depth = Some((self.t_s, -depth_m, sigma_m));
             return Ok(FixOutcome::Stored);
         }
         let info = self.for_each_hypothesis(|m, g| m.depth_update(g, -depth_m, sigma_m))?;
@@ -1795,16 +1831,22 @@ mod tests {
 
     #[test]
     fn collinear_buoys_keep_the_filter_waiting() {
+        // A table on one line is refused outright …
         let mut cfg = planar_config(BiasMode::Global);
         for (i, b) in cfg.buoys.iter_mut().enumerate() {
             b.position_m = [10.0 * i as f64, 5.0 * i as f64, 0.0];
         }
+        assert!(matches!(BuoyEkf::new(cfg.clone(), 0.0), Err(BuoyError::InvalidConfig(p)) if p[0].0 == "buoys"));
+        // … and when only the buoys on one line answer, the filter waits.
+        cfg.buoys[3].position_m = [0.0, 60.0, 0.0];
+        cfg.buoys[4].position_m = [30.0, 75.0, 0.0];
+        cfg.init.min_buoys = 3;
         let mut ekf = BuoyEkf::new(cfg, 0.0).unwrap();
         for k in 0..10u32 {
-            let b = &ekf.config().buoys[k as usize % 5].position_m.clone();
+            let b = &ekf.config().buoys[k as usize % 3].position_m.clone();
             let r = (b[0] - 3.0).hypot(b[1] - 20.0);
             ekf.predict_to(f64::from(k) * 0.1).unwrap();
-            let outcome = ekf.update_range(10 + k % 5, r, 0.1).unwrap();
+            let outcome = ekf.update_range(10 + k % 3, r, 0.1).unwrap();
             if k >= 3 {
                 assert!(
                     matches!(outcome, RangeOutcome::Waiting(TrilaterationError::DegenerateGeometry(_))),

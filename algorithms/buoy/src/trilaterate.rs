@@ -199,7 +199,7 @@ fn distinct_buoys(obs: &[RangeObs]) -> Vec<Vector3<f64>> {
 }
 
 /// Smallest over largest eigenvalue of the scatter of `points` (0 when degenerate).
-fn spread_ratio<const D: usize>(points: &[nalgebra::SVector<f64, D>]) -> f64 {
+pub(crate) fn spread_ratio<const D: usize>(points: &[nalgebra::SVector<f64, D>]) -> f64 {
     let n = points.len() as f64;
     let mean = points.iter().fold(nalgebra::SVector::<f64, D>::zeros(), |a, p| a + p) / n;
     let mut scatter = DMatrix::zeros(D, D);
@@ -212,7 +212,7 @@ fn spread_ratio<const D: usize>(points: &[nalgebra::SVector<f64, D>]) -> f64 {
 }
 
 /// Relative spread below which buoys count as collinear (2-D) or coplanar (3-D): (1e-3)².
-const DEGENERATE_SPREAD: f64 = 1e-6;
+pub(crate) const DEGENERATE_SPREAD: f64 = 1e-6;
 
 /// Position from ranges (see the module docs). The ranges must already be corrected for any
 /// known bias; an unknown one is the caller's to propagate through [`Trilateration::sensitivity`].

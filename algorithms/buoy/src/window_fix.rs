@@ -5,7 +5,8 @@
 //! reckoning in an arbitrary frame) and the path length travelled since the window started.
 //! Relative to the newest range n, the vehicle was at d_i = R(−ψ_n)(o_i − o_n) in the newest
 //! body frame; the unknowns are the newest world pose (p, ψ): range i reads
-//! r_i = ‖(p + R(ψ)d_i, h) − b_i‖ with h the vehicle's (planar) height. Odometry error grows
+//! r_i = ‖(p + R(ψ)d_i, h_i) − b_i‖ with h_i the vehicle's known height at that time (planar
+//! mode: its fixed height; underwater: from the depth sensor). Odometry error grows
 //! with the path between range i and the newest, so each range's σ becomes
 //! σ_i² + (`drift_fraction` · path_i→n)².
 //!
@@ -35,6 +36,9 @@ pub struct WindowRange {
     pub odom_pose: [f64; 3],
     /// Path length travelled by the odometry up to the range's time (from any origin), m.
     pub path_m: f64,
+    /// The vehicle's height z at the range's time, m (planar mode: `planar_height_m`; spatial
+    /// mode: from the latest depth reading).
+    pub height_m: f64,
     /// Buoy id.
     pub buoy_id: u32,
     /// Buoy position, m.
@@ -90,7 +94,7 @@ impl Default for WindowLimits {
 /// A robust fix.
 #[derive(Debug, Clone, PartialEq)]
 pub struct WindowFix {
-    /// Position at the newest range's time, m (z = the planar height).
+    /// Position at the newest range's time, m (z = the newest range's height).
     pub position_m: Vector3<f64>,
     /// Its covariance, m² (the z row and column are 0).
     pub covariance_m2: Matrix3<f64>,
@@ -127,6 +131,8 @@ fn rot(psi: f64, v: Vector2<f64>) -> Vector2<f64> {
 
 /// Per-range data prepared once.
 struct Prepared {
+    /// The vehicle's height, m.
+    h: f64,
     /// Offset in the newest body frame, m.
     d: Vector2<f64>,
     b: Vector3<f64>,
@@ -136,9 +142,9 @@ struct Prepared {
     rho: f64,
 }
 
-fn residual(p: &Prepared, pos: Vector2<f64>, psi: f64, h: f64) -> f64 {
+fn residual(p: &Prepared, pos: Vector2<f64>, psi: f64) -> f64 {
     let q = pos + rot(psi, p.d);
-    let dist = Vector3::new(q.x - p.b.x, q.y - p.b.y, h - p.b.z).norm();
+    let dist = Vector3::new(q.x - p.b.x, q.y - p.b.y, p.h - p.b.z).norm();
     (p.r - dist) / p.sigma
 }
 
@@ -170,11 +176,12 @@ struct Candidate {
     psi: f64,
 }
 
-/// The robust fix of a window (see the module docs); `height_m` is the vehicle's planar height.
-pub fn window_fix(obs: &[WindowRange], height_m: f64, limits: &WindowLimits) -> Result<WindowFix, TrilaterationError> {
+/// The robust fix of a window (see the module docs).
+pub fn window_fix(obs: &[WindowRange], limits: &WindowLimits) -> Result<WindowFix, TrilaterationError> {
     for o in obs {
         let ok = o.odom_pose.iter().all(|c| c.is_finite())
             && o.path_m.is_finite()
+            && o.height_m.is_finite()
             && o.buoy_m.iter().all(|c| c.is_finite())
             && o.range_m.is_finite()
             && o.range_m >= 0.0;
@@ -184,9 +191,6 @@ pub fn window_fix(obs: &[WindowRange], height_m: f64, limits: &WindowLimits) -> 
         if !(o.sigma_m.is_finite() && o.sigma_m > 0.0) {
             return Err(TrilaterationError::InvalidInput("range σ must be positive"));
         }
-    }
-    if !height_m.is_finite() {
-        return Err(TrilaterationError::InvalidInput("non-finite height"));
     }
     let needed = limits.min_inliers.max(3);
     let mut ids: Vec<u32> = obs.iter().map(|o| o.buoy_id).collect();
@@ -218,8 +222,9 @@ pub fn window_fix(obs: &[WindowRange], height_m: f64, limits: &WindowLimits) -> 
         .map(|(o, d)| {
             let drift = limits.drift_fraction * (newest.path_m - o.path_m).abs();
             let (d, extra) = if heading_observable { (*d, 0.0) } else { (Vector2::zeros(), d.norm()) };
-            let dz = o.buoy_m.z - height_m;
+            let dz = o.buoy_m.z - o.height_m;
             Prepared {
+                h: o.height_m,
                 d,
                 b: o.buoy_m,
                 r: o.range_m,
@@ -233,7 +238,7 @@ pub fn window_fix(obs: &[WindowRange], height_m: f64, limits: &WindowLimits) -> 
     let score = |pos: Vector2<f64>, psi: f64| {
         let (mut cost, mut inliers) = (0.0, 0usize);
         for p in &prepared {
-            let e2 = residual(p, pos, psi, height_m).powi(2);
+            let e2 = residual(p, pos, psi).powi(2);
             if e2 <= k2 {
                 inliers += 1;
                 cost += e2;
@@ -297,12 +302,12 @@ pub fn window_fix(obs: &[WindowRange], height_m: f64, limits: &WindowLimits) -> 
         let mut info = Matrix3::zeros();
         for _round in 0..3 {
             let inl: Vec<&Prepared> =
-                prepared.iter().filter(|p| residual(p, pos, psi, height_m).abs() <= limits.inlier_k).collect();
+                prepared.iter().filter(|p| residual(p, pos, psi).abs() <= limits.inlier_k).collect();
             for _it in 0..10 {
                 let (mut A, mut g) = (Matrix3::zeros(), Vector3::zeros());
                 for p in &inl {
                     let q = pos + rot(psi, p.d);
-                    let u = Vector3::new(q.x - p.b.x, q.y - p.b.y, height_m - p.b.z);
+                    let u = Vector3::new(q.x - p.b.x, q.y - p.b.y, p.h - p.b.z);
                     let dist = u.norm().max(1e-9);
                     let e = (p.r - dist) / p.sigma;
                     // ∂dist/∂p = u_xy/dist; ∂dist/∂ψ = u_xy · ∂(R(ψ)d)/∂ψ / dist.
@@ -331,7 +336,7 @@ pub fn window_fix(obs: &[WindowRange], height_m: f64, limits: &WindowLimits) -> 
         (pos, psi, info)
     };
     let (pos, psi, info) = refine(coarse.pos, coarse.psi);
-    let residuals: Vec<f64> = prepared.iter().map(|p| residual(p, pos, psi, height_m)).collect();
+    let residuals: Vec<f64> = prepared.iter().map(|p| residual(p, pos, psi)).collect();
     let inliers: Vec<bool> = residuals.iter().map(|e| e.abs() <= limits.inlier_k).collect();
     let count = inliers.iter().filter(|&&b| b).count();
     let mut inlier_ids: Vec<u32> = obs.iter().zip(&inliers).filter(|(_, i)| **i).map(|(o, _)| o.buoy_id).collect();
@@ -374,7 +379,7 @@ pub fn window_fix(obs: &[WindowRange], height_m: f64, limits: &WindowLimits) -> 
     let mut covariance_m2 = Matrix3::zeros();
     covariance_m2.view_mut((0, 0), (2, 2)).copy_from(&cov.view((0, 0), (2, 2)));
     Ok(WindowFix {
-        position_m: Vector3::new(pos.x, pos.y, height_m),
+        position_m: Vector3::new(pos.x, pos.y, newest.height_m),
         covariance_m2,
         heading_rad: heading_observable.then_some(psi),
         heading_sigma_rad: if heading_observable { cov[(2, 2)].max(0.0).sqrt() } else { std::f64::consts::PI },
@@ -415,6 +420,7 @@ mod tests {
             out.push(WindowRange {
                 odom_pose: [o.x, o.y, psi - frame_rot],
                 path_m: path,
+                height_m: 1.12,
                 buoy_id: j as u32 + 1,
                 buoy_m: b,
                 range_m: r,
@@ -428,7 +434,7 @@ mod tests {
     fn finds_position_and_heading_through_a_quarter_of_gross_errors() {
         let bad = [1, 4, 9, 13, 17, 22];
         let (w, truth, psi) = window(&bad, true);
-        let fix = window_fix(&w, 1.12, &WindowLimits::default()).unwrap();
+        let fix = window_fix(&w, &WindowLimits::default()).unwrap();
         assert!((fix.position_m.xy() - truth).norm() < 0.1, "{:?} vs {truth:?}", fix.position_m);
         let h = fix.heading_rad.expect("moved: heading observable");
         assert!(wrap_angle(h - psi).abs() < 0.05, "{h} vs {psi}");
@@ -441,7 +447,7 @@ mod tests {
     #[test]
     fn standing_still_gives_a_position_without_heading() {
         let (w, truth, _) = window(&[2, 11], false);
-        let fix = window_fix(&w, 1.12, &WindowLimits::default()).unwrap();
+        let fix = window_fix(&w, &WindowLimits::default()).unwrap();
         assert!((fix.position_m.xy() - truth).norm() < 0.1);
         assert_eq!(fix.heading_rad, None);
     }
@@ -449,23 +455,17 @@ mod tests {
     #[test]
     fn too_many_outliers_or_too_few_ranges_wait_with_the_reason() {
         let (w, _, _) = window(&(0..24).filter(|i| i % 2 == 0).collect::<Vec<_>>(), true);
-        assert!(matches!(
-            window_fix(&w, 1.12, &WindowLimits::default()),
-            Err(TrilaterationError::TooFewInliers { .. })
-        ));
+        assert!(matches!(window_fix(&w, &WindowLimits::default()), Err(TrilaterationError::TooFewInliers { .. })));
         let (w, _, _) = window(&[], true);
         assert!(matches!(
-            window_fix(&w[..5], 1.12, &WindowLimits::default()),
+            window_fix(&w[..5], &WindowLimits::default()),
             Err(TrilaterationError::TooFewRanges { got: 5, needed: 8 })
         ));
         let mut two = w.clone();
         two.retain(|o| o.buoy_id != 3);
-        assert!(matches!(
-            window_fix(&two, 1.12, &WindowLimits::default()),
-            Err(TrilaterationError::TooFewBuoys { .. })
-        ));
+        assert!(matches!(window_fix(&two, &WindowLimits::default()), Err(TrilaterationError::TooFewBuoys { .. })));
         let mut nan = w;
         nan[3].range_m = f64::NAN;
-        assert!(matches!(window_fix(&nan, 1.12, &WindowLimits::default()), Err(TrilaterationError::InvalidInput(_))));
+        assert!(matches!(window_fix(&nan, &WindowLimits::default()), Err(TrilaterationError::InvalidInput(_))));
     }
 }

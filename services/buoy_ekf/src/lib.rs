@@ -61,6 +61,13 @@ impl ProcessSettings for BuoyEkfSettings {
             issues.push(format!("{key}.ekf.{k}"), m);
         }
         issues.check(
+            !(self.ekf.needs_depth() && !self.use_depth),
+            format!("{key}.use_depth"),
+            "is false, but the buoys lie in one plane (or there are fewer than 4) in spatial mode: a fix has a \
+             mirror image across that plane and only depth readings pick the side; set use_depth = true, add a buoy \
+             off the plane, or use mode = \"planar\"",
+        );
+        issues.check(
             self.odometry_wait_s.is_finite() && self.odometry_wait_s >= 0.0,
             format!("{key}.odometry_wait_s"),
             "must be >= 0",
@@ -126,12 +133,18 @@ pub struct BuoyState {
     pub waiting_reason: Option<String>,
     /// When the last "still waiting" warning went out (one every [`WAIT_WARN_EVERY`]).
     waiting_warned: Option<Instant>,
+    /// Data time of the first range that had to wait, s.
+    waiting_since_s: Option<f64>,
     /// Time of the last event applied, ns.
     last_ns: Option<u64>,
 }
 
 /// Wall time between two warnings that the filter still waits for its initialisation.
 pub const WAIT_WARN_EVERY: Duration = Duration::from_secs(5);
+
+/// Data time the filter may wait for its initialisation before the first warning, s (a start
+/// needs a few ranges, a depth reading, or with the odometry window, a few metres of path).
+pub const WAIT_WARN_AFTER_S: f64 = 10.0;
 
 fn stamp_s(ns: u64) -> f64 {
     ns as f64 / 1e9
@@ -155,6 +168,7 @@ impl BuoyState {
             waiting: 0,
             waiting_reason: None,
             waiting_warned: None,
+            waiting_since_s: None,
             last_ns: None,
         }
     }
@@ -354,6 +368,7 @@ impl BuoyState {
         let mut errors = vec![];
         let mut waiting = 0;
         let mut reason = None;
+        let restarts_before = ekf.counters().reinitialisations;
         for b in &r.ranges {
             match ekf.update_range(b.buoy_id, b.range_m, b.sigma_m) {
                 Ok(RangeOutcome::Accepted { .. } | RangeOutcome::Initialised) => used += 1,
@@ -369,12 +384,22 @@ impl BuoyState {
             }
         }
         let estimate = ekf.is_initialised().then(|| ekf.estimate());
+        if ekf.counters().reinitialisations > restarts_before {
+            tracing::warn!(
+                data_time_s = t,
+                restarts = ekf.counters().reinitialisations,
+                "the buoy EKF was lost (too many ranges rejected) and re-started from a robust fix over its \
+                 odometry window (`ekf.recovery.check_rejected_share`, `ekf.init.odometry_window_s`)"
+            );
+        }
         self.waiting += waiting;
         if reason.is_some() {
             self.waiting_reason = reason;
+            self.waiting_since_s.get_or_insert(t);
         }
         if estimate.is_none()
             && let Some(reason) = &self.waiting_reason
+            && self.waiting_since_s.is_some_and(|t0| t - t0 >= WAIT_WARN_AFTER_S)
             && self.waiting_warned.is_none_or(|w| w.elapsed() >= WAIT_WARN_EVERY)
         {
             self.waiting_warned = Some(Instant::now());

@@ -153,12 +153,19 @@ fn summary(
         "ranges_accepted": counters.accepted,
         "ranges_rejected": counters.rejected,
         "recoveries": counters.recoveries,
+        "reinitialisations": counters.reinitialisations,
+        "lost_checks_without_fix": counters.lost_checks_without_fix,
+        "bias_resets": counters.bias_resets,
+        "calibration_held": counters.calibration_held,
+        "rejected_share_at_end": st.ekf().and_then(|e| e.recent_rejected_share()).map(|(share, n)| serde_json::json!({
+            "share": share, "of_last_ranges": n })),
         "depth_rejected": counters.depth_rejected,
         "ranges_waiting_for_initialisation": st.waiting,
         "initialised": st.ekf().is_some_and(|e| e.is_initialised()),
         "last_waiting_reason": st.waiting_reason,
         "per_buoy": counters.per_buoy.iter().map(|b| serde_json::json!({
-            "id": b.id, "accepted": b.accepted, "rejected": b.rejected })).collect::<Vec<_>>(),
+            "id": b.id, "accepted": b.accepted, "rejected": b.rejected,
+            "rejected_share": b.rejected as f64 / (b.accepted + b.rejected).max(1) as f64 })).collect::<Vec<_>>(),
         "range_biases_m": estimate.as_ref().map(|e| e.biases.iter().map(|b| serde_json::json!({
             "buoy_id": b.buoy_id, "bias_m": b.bias_m, "sigma_m": b.sigma_m })).collect::<Vec<_>>()),
         "range_scale": estimate.as_ref().and_then(|e| e.range_scale).map(|s| s.0),
