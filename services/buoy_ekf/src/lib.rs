@@ -61,7 +61,7 @@ impl ProcessSettings for BuoyEkfSettings {
             issues.push(format!("{key}.ekf.{k}"), m);
         }
         issues.check(
-            !(self.ekf.needs_depth() && !self.use_depth),
+            !self.ekf.needs_depth() || self.use_depth,
             format!("{key}.use_depth"),
             "is false, but the buoys lie in one plane (or there are fewer than 4) in spatial mode: a fix has a \
              mirror image across that plane and only depth readings pick the side; set use_depth = true, add a buoy \
