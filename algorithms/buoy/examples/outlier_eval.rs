@@ -6,7 +6,8 @@
 //! `init.min_buoys = 3`).
 //!
 //! ```sh
-//! cargo run --release -p buoy --example outlier_eval [-- --seeds 1-10 --outliers 0.15 --config FILE.toml]
+//! cargo run --release -p buoy --example outlier_eval [-- --seeds 1-10 --outliers 0.15 --outlier-m 1,4
+//!     --range-sigma 0.1 --duration 1000 --config FILE.toml]
 //! ```
 //!
 //! Per seed: the filter's ATE with the outliers and on the same mission with them removed (the
@@ -54,8 +55,19 @@ fn run() -> Result<()> {
             "--outliers" => {
                 scenario.outlier_fraction = it.next().context("--outliers needs a fraction")?.parse()?;
             }
+            "--outlier-m" => {
+                let v = it.next().context("--outlier-m needs MIN,MAX")?;
+                let (a, b) = v.split_once(',').context("--outlier-m needs MIN,MAX")?;
+                scenario.outlier_m = [a.parse().context("--outlier-m")?, b.parse().context("--outlier-m")?];
+            }
+            "--range-sigma" => {
+                scenario.range_sigma_m = it.next().context("--range-sigma needs metres")?.parse()?;
+            }
+            "--duration" => scenario.duration_s = it.next().context("--duration needs seconds")?.parse()?,
             "--config" => config = Some(PathBuf::from(it.next().context("--config needs a file")?)),
-            other => bail!("unknown argument {other} (options: --seeds, --outliers, --config)"),
+            other => bail!(
+                "unknown argument {other} (options: --seeds, --outliers, --outlier-m, --range-sigma, --duration, --config)"
+            ),
         }
     }
     let problems = scenario.validate();

@@ -1129,10 +1129,13 @@ impl BuoyEkf {
 
     /// Adds a range to the odometry window (with the odometry's pose now) and drops old ones.
     fn push_window(&mut self, j: usize, range_m: f64, sigma_m: f64) {
-        if !self.window_enabled() {
+        if !self.model.cfg.init.odometry_window {
             return;
         }
-        let (Some(o), Some((height_m, _))) = (self.odo, self.known_height()) else { return };
+        let Some(o) = self.odo else { return };
+        // Without a known height (3-D before a depth reading) the range is kept for the
+        // travel check only (NaN height: left out of the fix).
+        let height_m = self.known_height().map_or(f64::NAN, |h| h.0);
         let i = &self.model.cfg.init;
         let (span, max) = (i.odometry_window_s, i.odometry_window_max_ranges);
         self.window.push_back((
@@ -1160,6 +1163,7 @@ impl BuoyEkf {
         let obs: Vec<WindowRange> = self
             .window
             .iter()
+            .filter(|(_, w)| w.height_m.is_finite())
             .map(|(_, w)| {
                 let mut w = *w;
                 if let Some(g) = calibration {
@@ -1856,6 +1860,66 @@ mod tests {
         }
         assert!(!ekf.is_initialised());
         assert_eq!(ekf.estimate(), Err(BuoyError::NotInitialised));
+    }
+
+    #[test]
+    fn a_filter_started_while_the_vehicle_moves_in_3d_starts_from_the_odometry_window() {
+        // What a buoy EKF restarted mid-mission sees: a vehicle at 12 m depth moving at 1.5 m/s
+        // on a circle, ranges to the five surface buoys every second (4 % read up to 12 m long),
+        // depth at 10 Hz, odometry at 10 Hz. It must start near the truth, not where a
+        // trilateration that takes the moving vehicle for a standing one would put it.
+        let run = |window: bool| {
+            let mut cfg = planar_config(BiasMode::Global);
+            cfg.mode = Mode::Spatial;
+            cfg.init.odometry_window = window;
+            let mut ekf = BuoyEkf::new(cfg, 0.0).unwrap();
+            let mut rng = Xoshiro256PlusPlus::seed_from_u64(11);
+            let n = Normal::new(0.0, 1.0).unwrap();
+            let (radius, speed, z) = (20.0, 1.5, -12.0);
+            let omega = speed / radius;
+            let truth = |t: f64| Vector3::new(30.0 + radius * (omega * t).cos(), 30.0 + radius * (omega * t).sin(), z);
+            let mut worst_after_start: f64 = 0.0;
+            let mut started = None;
+            for k in 1..=1200 {
+                let t = f64::from(k) * 0.1;
+                let input = OdometryInput {
+                    dt_s: 0.1,
+                    v_mps: speed + 0.02 * n.sample(&mut rng),
+                    dtheta_rad: omega * 0.1 + 0.001 * n.sample(&mut rng),
+                    var_v: 0.02f64.powi(2),
+                    var_dtheta: 0.001f64.powi(2),
+                };
+                ekf.predict_with_input(t, &input).unwrap();
+                if t >= 3.0 {
+                    // The depth sensor comes up 3 s late: until then a 3-D fix from surface buoys
+                    // has a mirror image and the filter waits, while the vehicle moves 4.5 m.
+                    ekf.update_depth(-z + 0.05 * n.sample(&mut rng), 0.05).unwrap();
+                }
+                if k % 10 == 0 {
+                    for j in 0..5 {
+                        let b = Vector3::new(BUOYS_XY[j][0], BUOYS_XY[j][1], 0.0);
+                        let mut r = (truth(t) - b).norm() + 0.3 * n.sample(&mut rng);
+                        if rand::RngExt::random_bool(&mut rng, 0.04) {
+                            r += rand::RngExt::random_range(&mut rng, 1.0..12.0);
+                        }
+                        if ekf.update_range(10 + j as u32, r, 0.3).unwrap() == RangeOutcome::Initialised {
+                            started.get_or_insert(t);
+                        }
+                    }
+                    if let (Some(_), Ok(e)) = (started, ekf.estimate()) {
+                        worst_after_start = worst_after_start.max((e.position_m - truth(t)).norm());
+                    }
+                }
+            }
+            (started.expect("started"), worst_after_start, ekf.heading_known())
+        };
+        let (t0, worst, heading_known) = run(true);
+        assert!(t0 <= 15.0, "started at {t0} s");
+        assert!(worst < 1.0, "worst error since the start: {worst} m");
+        assert!(heading_known);
+        // The stationary trilateration alone starts on the 3 s of ranges taken while moving.
+        let (_, worst, _) = run(false);
+        assert!(worst > 2.0, "without the window: worst error {worst} m");
     }
 
     #[test]
