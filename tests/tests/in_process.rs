@@ -264,7 +264,9 @@ fn every_stage_killed_and_restarted_mid_run_keeps_what_it_had() -> anyhow::Resul
     for f in ["slam_local.tum", "buoy_ekf.tum", "fused_live.tum"] {
         let rows = geometry::tum::read_tum(&out.join(f))?;
         let (a, b) = (rows[0].0, rows[rows.len() - 1].0);
-        assert!(a - t0 < 2.0 && t1 - b < 2.0, "{f} covers {a:.1}..{b:.1} s of {t0:.1}..{t1:.1} s");
+        // (The buoy EKF starts at the first instant with four good ranges and a depth reading:
+        // 1-2 s into this mission, whose vehicle is under way from the start.)
+        assert!(a - t0 <= 2.5 && t1 - b < 2.0, "{f} covers {a:.1}..{b:.1} s of {t0:.1}..{t1:.1} s");
     }
     for (name, key) in [("buoy", "buoy_ekf"), ("slam", "slam"), ("fusion", "fused")] {
         let v = ate(&part(out, name)?, key);

@@ -70,7 +70,9 @@
 //! fix over that window with the positions propagated by odometry, outliers found by sampling,
 //! and the heading solved with the position once the path shows it. A stationary trilateration
 //! with a spare buoy (`init.min_buoys` > 3) is tried first (it starts at once and a wrong range
-//! shows in its residual); with exactly 3 buoys only the window can tell a wrong range. While
+//! shows in its residual), of the ranges taken within a range σ of the odometry's position now
+//! (a vehicle under way is not smeared along its path); with exactly 3 buoys only the window can
+//! tell a wrong range. While
 //! the heading is still a mixture of hypotheses, a window fix that agrees with the mixture's
 //! position and is as sure of the heading as `init.heading_max_sigma_rad` settles it.
 //!
@@ -705,6 +707,8 @@ struct InitRange {
     buoy: usize,
     range_m: f64,
     sigma_m: f64,
+    /// The odometry's dead-reckoned position at the range, when there is odometry.
+    odom_xy: Option<[f64; 2]>,
 }
 
 /// The buoy estimator (see the module docs).
@@ -1013,15 +1017,14 @@ impl BuoyEkf {
         let j = self.buoy_index(buoy_id)?;
         self.push_window(j, range_m, sigma_m);
         if matches!(self.phase, Phase::Waiting) {
-            let r = InitRange { t_s: self.t_s, buoy: j, range_m, sigma_m };
+            let r = InitRange { t_s: self.t_s, buoy: j, range_m, sigma_m, odom_xy: self.odo.map(|o| [o[0], o[1]]) };
             if !self.window_enabled() {
                 return Ok(self.try_trilaterate(r));
             }
             // With a spare buoy (`init.min_buoys` above the 2 horizontal unknowns plus one) the
-            // stationary trilateration sees a wrong range in its residual and starts at once, if
-            // the vehicle stood still over its window; otherwise only the window can tell.
-            let still = self.recent_travel_m() <= sigma_m.max(0.05);
-            if self.model.cfg.init.min_buoys > 3 && still {
+            // stationary trilateration (of the ranges taken within a σ of here) sees a wrong range
+            // in its residual and starts at once; without one only the window can tell.
+            if self.model.cfg.init.min_buoys > 3 {
                 let stationary = self.try_trilaterate(r);
                 if stationary == RangeOutcome::Initialised {
                     return Ok(stationary);
@@ -1113,18 +1116,6 @@ impl BuoyEkf {
     /// height known (planar mode, or a recent depth reading in spatial mode).
     fn window_enabled(&self) -> bool {
         self.model.cfg.init.odometry_window && self.odo.is_some() && self.known_height().is_some()
-    }
-
-    /// How far the odometry moved over the last `init.window_s` (the stationary trilateration's
-    /// window), m; 0 without odometry.
-    fn recent_travel_m(&self) -> f64 {
-        let Some(o) = self.odo else { return 0.0 };
-        let since = self.t_s - self.model.cfg.init.window_s;
-        self.window
-            .iter()
-            .filter(|(t, _)| *t >= since)
-            .map(|(_, w)| (w.odom_pose[0] - o[0]).hypot(w.odom_pose[1] - o[1]))
-            .fold(0.0, f64::max)
     }
 
     /// Adds a range to the odometry window (with the odometry's pose now) and drops old ones.
@@ -1320,6 +1311,15 @@ impl BuoyEkf {
         self.init_ranges.push_back(r);
         while self.init_ranges.front().is_some_and(|o| o.t_s < self.t_s - window) {
             self.init_ranges.pop_front();
+        }
+        // With odometry, only the ranges taken while the vehicle was within a range σ of where
+        // it is now (the trilateration takes them as taken from one place; a range from before
+        // the first odometry input counts as taken where the odometry started).
+        if let Some(o) = self.odo {
+            self.init_ranges.retain(|r| {
+                let p = r.odom_xy.unwrap_or([0.0, 0.0]);
+                (p[0] - o[0]).hypot(p[1] - o[1]) <= r.sigma_m.max(0.05)
+            });
         }
         let obs: Vec<RangeObs> = self
             .init_ranges
@@ -1863,7 +1863,7 @@ mod tests {
     }
 
     #[test]
-    fn a_filter_started_while_the_vehicle_moves_in_3d_starts_from_the_odometry_window() {
+    fn a_filter_started_while_the_vehicle_moves_in_3d_starts_where_it_is_not_along_its_path() {
         // What a buoy EKF restarted mid-mission sees: a vehicle at 12 m depth moving at 1.5 m/s
         // on a circle, ranges to the five surface buoys every second (4 % read up to 12 m long),
         // depth at 10 Hz, odometry at 10 Hz. It must start near the truth, not where a
@@ -1896,8 +1896,8 @@ mod tests {
                     ekf.update_depth(-z + 0.05 * n.sample(&mut rng), 0.05).unwrap();
                 }
                 if k % 10 == 0 {
-                    for j in 0..5 {
-                        let b = Vector3::new(BUOYS_XY[j][0], BUOYS_XY[j][1], 0.0);
+                    for (j, xy) in BUOYS_XY.iter().enumerate() {
+                        let b = Vector3::new(xy[0], xy[1], 0.0);
                         let mut r = (truth(t) - b).norm() + 0.3 * n.sample(&mut rng);
                         if rand::RngExt::random_bool(&mut rng, 0.04) {
                             r += rand::RngExt::random_range(&mut rng, 1.0..12.0);
@@ -1917,9 +1917,11 @@ mod tests {
         assert!(t0 <= 15.0, "started at {t0} s");
         assert!(worst < 1.0, "worst error since the start: {worst} m");
         assert!(heading_known);
-        // The stationary trilateration alone starts on the 3 s of ranges taken while moving.
-        let (_, worst, _) = run(false);
-        assert!(worst > 2.0, "without the window: worst error {worst} m");
+        // Without the window the stationary trilateration starts it, from the ranges of the
+        // instant the depth came (not the 3 s of ranges taken along 4.5 m of path).
+        let (t0, worst, _) = run(false);
+        assert!(t0 <= 4.0, "started at {t0} s");
+        assert!(worst < 1.0, "without the window: worst error {worst} m");
     }
 
     #[test]
