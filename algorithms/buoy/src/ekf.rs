@@ -1015,7 +1015,20 @@ impl BuoyEkf {
         non_negative(range_m, "range_m")?;
         positive(sigma_m, "range sigma_m")?;
         let j = self.buoy_index(buoy_id)?;
-        self.push_window(j, range_m, sigma_m);
+        // The range joins the odometry window for the fixes below; on an error it leaves again
+        // (the filter is left as it was).
+        let pushed = self.push_window(j, range_m, sigma_m);
+        let result = self.update_range_at(j, range_m, sigma_m);
+        if result.is_err() && pushed {
+            self.window.pop_back();
+        } else {
+            self.prune_window();
+        }
+        result
+    }
+
+    /// [`Self::update_range`] after the validation and the window.
+    fn update_range_at(&mut self, j: usize, range_m: f64, sigma_m: f64) -> Result<RangeOutcome, BuoyError> {
         if matches!(self.phase, Phase::Waiting) {
             let r = InitRange { t_s: self.t_s, buoy: j, range_m, sigma_m, odom_xy: self.odo.map(|o| [o[0], o[1]]) };
             if !self.window_enabled() {
@@ -1118,17 +1131,17 @@ impl BuoyEkf {
         self.model.cfg.init.odometry_window && self.odo.is_some() && self.known_height().is_some()
     }
 
-    /// Adds a range to the odometry window (with the odometry's pose now) and drops old ones.
-    fn push_window(&mut self, j: usize, range_m: f64, sigma_m: f64) {
+    /// Adds a range to the odometry window (with the odometry's pose now); whether it did.
+    fn push_window(&mut self, j: usize, range_m: f64, sigma_m: f64) -> bool {
         if !self.model.cfg.init.odometry_window {
-            return;
+            return false;
         }
-        let Some(o) = self.odo else { return };
-        // Without a known height (3-D before a depth reading) the range is kept for the
-        // travel check only (NaN height: left out of the fix).
+        // Before the first odometry input the vehicle is where the odometry will start.
+        let o = self.odo.unwrap_or([0.0; 4]);
+        // Without a known height yet (3-D before the first depth reading) the height is filled
+        // in by the first reading if it comes within `init.window_s` (see `update_depth`), else
+        // the range stays out of the fix (NaN).
         let height_m = self.known_height().map_or(f64::NAN, |h| h.0);
-        let i = &self.model.cfg.init;
-        let (span, max) = (i.odometry_window_s, i.odometry_window_max_ranges);
         self.window.push_back((
             self.t_s,
             WindowRange {
@@ -1141,6 +1154,13 @@ impl BuoyEkf {
                 sigma_m,
             },
         ));
+        true
+    }
+
+    /// Drops the window's ranges older than `init.odometry_window_s` or beyond its size.
+    fn prune_window(&mut self) {
+        let i = &self.model.cfg.init;
+        let (span, max) = (i.odometry_window_s, i.odometry_window_max_ranges);
         while self.window.front().is_some_and(|w| w.0 < self.t_s - span) || self.window.len() > max {
             self.window.pop_front();
         }
@@ -1393,6 +1413,12 @@ impl BuoyEkf {
         }
         finite(depth_m, "depth_m")?;
         positive(sigma_m, "depth sigma_m")?;
+        if self.last_depth.is_none() {
+            let since = self.t_s - self.model.cfg.init.window_s;
+            for (_, w) in self.window.iter_mut().filter(|(t, w)| *t >= since && w.height_m.is_nan()) {
+                w.height_m = -depth_m;
+            }
+        }
         self.last_depth = Some((self.t_s, -depth_m, sigma_m));
         if matches!(self.phase, Phase::Waiting) {
             return Ok(FixOutcome::Stored);

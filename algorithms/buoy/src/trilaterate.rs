@@ -294,7 +294,11 @@ pub fn trilaterate(obs: &[RangeObs], geometry: Geometry, limits: &Limits) -> Res
     if condition > limits.max_condition {
         return Err(TrilaterationError::IllConditioned { condition, max: limits.max_condition });
     }
-    let rms = check_fit(&sol.e.rows(0, m).into_owned(), needed, limits.max_normalised_rms)?;
+    // The inliers must over-determine the position by one (the spare that shows a wrong range):
+    // with `needed` distinct buoys ranged, one of them may be that wrong range.
+    let unknowns = if z_constraint.is_some() || planar_z.is_some() { 2 } else { 3 };
+    let min_inliers = (unknowns + 1).max(needed.saturating_sub(1)).min(needed);
+    let rms = check_fit(&sol.e.rows(0, m).into_owned(), min_inliers, limits.max_normalised_rms)?;
     let cov = sol
         .A
         .clone()
