@@ -1,4 +1,4 @@
-//! The buoy estimator of the pipeline ([3D] §5), as a pure library: no IPC, no clocks (time is
+//! The buoy estimator of the pipeline (\[3D\] §5), as a pure library: no IPC, no clocks (time is
 //! always passed in), no panics on bad input. The timestamp synchronizer is the `timesync` crate.
 //!
 //! - [`ekf`]: [`BuoyEkf`], an EKF for the global position from ranges to buoys at known positions

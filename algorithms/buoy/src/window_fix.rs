@@ -68,7 +68,7 @@ pub struct WindowLimits {
     /// Triples scored per heading.
     pub samples_per_heading: usize,
     /// The heading counts as observable once the odometry positions in the window spread over
-    /// at least this distance from the newest, m.
+    /// this distance from the newest, or over 5 range σ if that is shorter, m.
     pub min_travel_for_heading_m: f64,
     /// A distinct pose whose truncated cost is within this many outliers' worth (k² each) of
     /// the best makes the fix ambiguous.
@@ -90,6 +90,10 @@ impl Default for WindowLimits {
         }
     }
 }
+
+/// The heading counts as observable once the path spreads over this many range σ (or
+/// `min_travel_for_heading_m`, whichever is shorter).
+const HEADING_TRAVEL_SIGMAS: f64 = 5.0;
 
 /// A robust fix.
 #[derive(Debug, Clone, PartialEq)]
@@ -207,12 +211,14 @@ pub fn window_fix(obs: &[WindowRange], limits: &WindowLimits) -> Result<WindowFi
     let offsets: Vec<Vector2<f64>> =
         obs.iter().map(|o| rot(-newest.odom_pose[2], Vector2::new(o.odom_pose[0], o.odom_pose[1]) - on)).collect();
     let travel = offsets.iter().map(|d| d.norm()).fold(0.0, f64::max);
-    let heading_observable = travel >= limits.min_travel_for_heading_m;
     // Between standing still (moved less than the ranges' noise) and a path that shows the
-    // heading, the offsets cannot be placed: wait.
+    // heading (a path long against the ranges' noise), the offsets cannot be placed: wait.
     let mut sigmas: Vec<f64> = obs.iter().map(|o| o.sigma_m).collect();
     sigmas.sort_by(f64::total_cmp);
-    let still = travel <= sigmas[sigmas.len() / 2].max(0.05);
+    let median_sigma = sigmas[sigmas.len() / 2];
+    let heading_observable =
+        travel >= limits.min_travel_for_heading_m.min(HEADING_TRAVEL_SIGMAS * median_sigma.max(0.05));
+    let still = travel <= median_sigma.max(0.05);
     if !heading_observable && !still {
         return Err(TrilaterationError::Moving { travel_m: travel, needed_m: limits.min_travel_for_heading_m });
     }
