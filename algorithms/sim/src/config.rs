@@ -57,7 +57,8 @@ pub struct SceneConfig {
     pub landmarks_per_m2_objects: f64,
     /// A band of x with no seabed landmarks (sand): feature-scarce stretch, m.
     pub barren_x_m: [f64; 2],
-    /// Surface buoys (x, y, z), m; at least 4, not all on one line.
+    /// Buoys (x, y, z), m (z 0 at the surface, below it when moored at depth); at least 3, not
+    /// all on one line.
     pub buoys_m: Vec<[f64; 3]>,
 }
 
@@ -221,8 +222,13 @@ pub struct BuoyConfig {
     pub bias_m: f64,
     /// Probability that a range is an outlier.
     pub outlier_probability: f64,
-    /// Outliers read long by up to this much, m (uniform).
+    /// Outliers are off by at least this much, m.
+    pub outlier_min_m: f64,
+    /// Outliers are off by up to this much, m (uniform between the two).
     pub outlier_max_m: f64,
+    /// Outliers read long or short with equal odds (multipath locks and non-line-of-sight
+    /// paths), instead of only long (a range that would go below 0.05 m reads long).
+    pub outliers_both_signs: bool,
     /// Probability that a range is missing.
     pub dropout_probability: f64,
 }
@@ -234,7 +240,9 @@ impl Default for BuoyConfig {
             sigma_m: 0.3,
             bias_m: 0.4,
             outlier_probability: 0.04,
+            outlier_min_m: 0.0,
             outlier_max_m: 12.0,
+            outliers_both_signs: false,
             dropout_probability: 0.1,
         }
     }
@@ -387,7 +395,14 @@ impl SimConfig {
             "sensors.pressure.rate_hz",
             "must be in [0, odometry rate]",
         );
-        check(self.scene.buoys_m.len() >= 4, "scene.buoys_m", "at least 4 buoys");
+        check(self.scene.buoys_m.len() >= 3, "scene.buoys_m", "at least 3 buoys");
+        check(
+            s.buoys.outlier_min_m.is_finite()
+                && s.buoys.outlier_min_m >= 0.0
+                && s.buoys.outlier_min_m <= s.buoys.outlier_max_m,
+            "sensors.buoys.outlier_min_m",
+            "must be in [0, sensors.buoys.outlier_max_m]",
+        );
         check(self.scene.extent_m.iter().all(|x| pos(*x)), "scene.extent_m", "must be > 0");
         check(
             self.scene.rock_radius_m[0] > 0.0 && self.scene.rock_radius_m[0] <= self.scene.rock_radius_m[1],

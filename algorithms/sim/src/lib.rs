@@ -479,14 +479,16 @@ impl Simulator {
             // Draw every random number every time, so the sequence does not depend on outcomes.
             let drop = rng.random_bool(b.dropout_probability);
             let outlier = rng.random_bool(b.outlier_probability);
-            let extra = rng.random_range(0.0..=b.outlier_max_m.max(0.0));
+            let extra = rng.random_range(b.outlier_min_m.max(0.0)..=b.outlier_max_m.max(b.outlier_min_m.max(0.0)));
             let noise = n.sample(rng);
+            // Only drawn when asked for, so the default sequence stays as it was.
+            let short = b.outliers_both_signs && rng.random_bool(0.5);
             if drop {
                 continue;
             }
             let mut range_m = (p - Vector3::from(*pos)).norm() + b.bias_m + noise;
             if outlier {
-                range_m += extra;
+                range_m = if short && range_m - extra >= 0.05 { range_m - extra } else { range_m + extra };
             }
             ranges.push(BuoyRangeSample { buoy_id: id as u32, range_m: range_m.max(0.0), sigma_m: b.sigma_m });
         }
