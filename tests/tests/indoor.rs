@@ -27,6 +27,8 @@ particles = 10
 resolution_m = 0.05
 usable_range_m = 12.0
 threads = 2
+linear_update_m = 0.25
+angular_update_rad = 0.125
 
 [processes.map]
 kind = "octree_mapper"

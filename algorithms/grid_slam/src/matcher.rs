@@ -1,7 +1,20 @@
 //! Scan matching against a particle's own grid (gmapping's matcher, SPEC §8 step 1): each beam's
-//! end point is scored by its distance to the mean hit point of the nearest occupied cell in a
-//! small window whose cell one step nearer along the beam is not occupied (so a wall is matched
-//! from the side the beam saw it). Hill climbing over x, y, θ with step halving.
+//! end point is scored by its distance to the surface through the mean hit points of the nearest
+//! occupied cells in a small window whose cell one step nearer along the beam is not occupied (so
+//! a wall is matched from the side the beam saw it). Pattern search over x, y, θ with step
+//! halving.
+//!
+//! Two departures from gmapping, both measured (`cargo run --release -p grid_slam --example
+//! indoor_eval -- --probe`: scans matched from their true pose on a map built at the true poses):
+//! - the "one step nearer" cell is the beam's direction quantised to the 8 neighbours, the same
+//!   whichever cell the end point falls in. gmapping takes the cell of the point one cell nearer
+//!   along the beam, which jumps (and on diagonal beams can be the end point's own cell, so the beam
+//!   matches nothing) as the end point crosses a cell border: the score then has steps of several
+//!   beams every few millimetres and hill climbing stops on them, 1.7 cm (2.9 cm with a noiseless
+//!   laser) from the truth in the probe; with the fixed direction, 1.1 cm (0.7 cm);
+//! - the distance is to the line through the two nearest mean hit points (when they are at least
+//!   half a cell apart), not to the nearest point, so where along a wall the end point falls does
+//!   not count (indoor mission: mean ATE 0.037 against 0.045 m over six runs).
 
 use crate::grid::Grid;
 use omni::Pose2;
@@ -31,6 +44,9 @@ pub struct MatcherParams {
     pub occupied_log_odds: f32,
     /// A match is accepted when its score is at least this share of the beams used.
     pub min_score_share: f64,
+    /// Distance of an end point to the surface: to the line through the two nearest occupied
+    /// cells' mean hit points (`true`), or to the nearest mean hit point (gmapping's, `false`).
+    pub point_to_line: bool,
 }
 
 impl Default for MatcherParams {
@@ -38,7 +54,7 @@ impl Default for MatcherParams {
         Self {
             kernel_cells: 1,
             score_sigma_m: 0.1,
-            likelihood_sigma_m: 0.15,
+            likelihood_sigma_m: 0.075,
             null_log_likelihood: -0.5,
             linear_step_m: 0.05,
             angular_step_rad: 0.05,
@@ -46,6 +62,7 @@ impl Default for MatcherParams {
             beam_stride: 1,
             occupied_log_odds: 0.0,
             min_score_share: 0.15,
+            point_to_line: true,
         }
     }
 }
@@ -89,9 +106,16 @@ pub fn fit(grid: &Grid, scan: &ScanPoints, pose: &Pose2, p: &MatcherParams) -> F
         let hit = to_world(b.hit);
         let free = to_world(b.free);
         let (hi, hj) = grid.cell_of(hit.0, hit.1);
-        let (fi, fj) = grid.cell_of(free.0, free.1);
-        let (di, dj) = (fi - hi, fj - hj);
+        // One cell towards the sensor, from the beam's direction quantised to the 8 neighbours
+        // (the same whichever cell the end point falls in, so the score has no jumps where it
+        // crosses a cell border).
+        let (bx, by) = (free.0 - hit.0, free.1 - hit.1);
+        let t = 0.414 * bx.abs().max(by.abs());
+        let (di, dj) =
+            (if bx.abs() >= t { bx.signum() as i32 } else { 0 }, if by.abs() >= t { by.signum() as i32 } else { 0 });
         let mut best = f64::INFINITY;
+        let mut m1 = (0.0, 0.0);
+        let (mut second, mut m2) = (f64::INFINITY, (0.0, 0.0));
         for yy in -k..=k {
             for xx in -k..=k {
                 let (i, j) = (hi + xx, hj + yy);
@@ -101,8 +125,21 @@ pub fn fit(grid: &Grid, scan: &ScanPoints, pose: &Pose2, p: &MatcherParams) -> F
                 }
                 let d2 = (mx - hit.0).powi(2) + (my - hit.1).powi(2);
                 if d2 < best {
-                    best = d2;
+                    (second, m2) = (best, m1);
+                    (best, m1) = (d2, (mx, my));
+                } else if d2 < second {
+                    (second, m2) = (d2, (mx, my));
                 }
+            }
+        }
+        if p.point_to_line && second.is_finite() {
+            // The surface through the two nearest mean points; only when they are apart enough
+            // to give it a direction.
+            let (ux, uy) = (m2.0 - m1.0, m2.1 - m1.1);
+            let len2 = ux * ux + uy * uy;
+            if len2 > 0.25 * grid.resolution_m() * grid.resolution_m() {
+                let cross = ux * (hit.1 - m1.1) - uy * (hit.0 - m1.0);
+                best = best.min(cross * cross / len2);
             }
         }
         if best.is_finite() {
@@ -122,35 +159,40 @@ pub fn optimize(grid: &Grid, scan: &ScanPoints, start: &Pose2, p: &MatcherParams
     let mut current_fit = fit(grid, scan, &current, p);
     let (mut ld, mut ad) = (p.linear_step_m, p.angular_step_rad);
     let mut refinement = 0u32;
-    let mut best_score = f64::NEG_INFINITY;
-    // gmapping's loop: halve the steps whenever a round brings no improvement.
-    let mut rounds = 0;
+    // Pattern search: poll the six moves starting with the last one that improved, take the
+    // first that improves, halve the steps when none does; stop after `refinements` halvings.
+    let mut first = 0usize;
+    let mut evaluations = 0u32;
     loop {
-        if best_score >= current_fit.score {
-            refinement += 1;
-            ld *= 0.5;
-            ad *= 0.5;
-        }
-        best_score = current_fit.score;
-        let mut best_local = current;
-        let mut best_local_fit = current_fit;
         let moves = [(ld, 0.0, 0.0), (-ld, 0.0, 0.0), (0.0, ld, 0.0), (0.0, -ld, 0.0), (0.0, 0.0, ad), (0.0, 0.0, -ad)];
-        for (dx, dy, dth) in moves {
+        let mut improved = false;
+        for k in 0..moves.len() {
+            let m = (first + k) % moves.len();
+            let (dx, dy, dth) = moves[m];
             let cand = Pose2 {
                 x_m: current.x_m + dx,
                 y_m: current.y_m + dy,
                 theta_rad: omni::wrap_angle(current.theta_rad + dth),
             };
             let f = fit(grid, scan, &cand, p);
-            if f.score > best_local_fit.score {
-                best_local = cand;
-                best_local_fit = f;
+            evaluations += 1;
+            if f.score > current_fit.score {
+                current = cand;
+                current_fit = f;
+                first = m;
+                improved = true;
+                break;
             }
         }
-        current = best_local;
-        current_fit = best_local_fit;
-        rounds += 1;
-        if !(current_fit.score > best_score || refinement < p.refinements) || rounds > 200 {
+        if !improved {
+            if refinement >= p.refinements {
+                break;
+            }
+            refinement += 1;
+            ld *= 0.5;
+            ad *= 0.5;
+        }
+        if evaluations > 1200 {
             break;
         }
     }
@@ -197,5 +239,74 @@ mod tests {
         assert!(f.matched > 340, "{f:?}");
         let at_truth = fit(&g, &pts, &Pose2::default(), &p);
         assert!(at_truth.log_likelihood > fit(&g, &pts, &start, &p).log_likelihood);
+    }
+
+    /// A room 8 × 5 m turned 17° against the grid, scanned (360 beams, noiseless) at `pose`.
+    fn turned_room_scan(pose: &Pose2, res: f64) -> (Vec<(f64, f64)>, ScanPoints) {
+        let turn = 17f64.to_radians();
+        let (hx, hy) = (4.0, 2.5);
+        let mut ends = Vec::new();
+        let mut pts = ScanPoints::default();
+        for k in 0..360 {
+            let a = (k as f64).to_radians();
+            // The beam in the room's frame.
+            let (s, c) = (pose.theta_rad + a - turn).sin_cos();
+            let (ct, st) = (turn.cos(), turn.sin());
+            let (ox, oy) = (ct * pose.x_m + st * pose.y_m, -st * pose.x_m + ct * pose.y_m);
+            let tx = if c > 1e-9 {
+                (hx - ox) / c
+            } else if c < -1e-9 {
+                (-hx - ox) / c
+            } else {
+                f64::INFINITY
+            };
+            let ty = if s > 1e-9 {
+                (hy - oy) / s
+            } else if s < -1e-9 {
+                (-hy - oy) / s
+            } else {
+                f64::INFINITY
+            };
+            let r = tx.min(ty);
+            let (bs, bc) = a.sin_cos();
+            ends.push((r * bc, r * bs));
+            pts.points.push(BeamPoint { hit: (r * bc, r * bs), free: ((r - res) * bc, (r - res) * bs) });
+        }
+        (ends, pts)
+    }
+
+    #[test]
+    fn a_scan_matched_from_its_true_pose_stays_there_to_a_fraction_of_a_cell() {
+        // Walls at an angle to the grid, a map built from scans at known poses, new scans from
+        // poses at arbitrary places within their cells matched from the truth: the match must not
+        // walk off on steps of the score (gmapping's "one cell nearer" cell jumps as end points
+        // cross cell borders; with it this error was 2-3 cm).
+        let (res, lp, p) = (0.05, LogOddsParams::default(), MatcherParams::default());
+        let mut g = Grid::new(res);
+        let world = |pose: &Pose2, q: (f64, f64)| {
+            let (s, c) = pose.theta_rad.sin_cos();
+            (pose.x_m + c * q.0 - s * q.1, pose.y_m + s * q.0 + c * q.1)
+        };
+        for k in 0..12 {
+            let pose =
+                Pose2 { x_m: -2.5 + 0.43 * k as f64, y_m: 0.3 * ((k % 3) as f64 - 1.0), theta_rad: 0.2 * k as f64 };
+            let (ends, _) = turned_room_scan(&pose, res);
+            for e in ends {
+                g.cast((pose.x_m, pose.y_m), world(&pose, e), true, &lp);
+            }
+        }
+        let (mut sum2, mut worst) = (0.0, 0.0f64);
+        let n = 24;
+        for k in 0..n {
+            let f = k as f64;
+            let truth = Pose2 { x_m: -2.0 + 0.1731 * f, y_m: -0.6 + 0.0517 * f, theta_rad: -1.0 + 0.0913 * f };
+            let (_, pts) = turned_room_scan(&truth, res);
+            let (m, _) = optimize(&g, &pts, &truth, &p);
+            let e = (m.x_m - truth.x_m).hypot(m.y_m - truth.y_m);
+            sum2 += e * e;
+            worst = worst.max(e);
+        }
+        let rms = (sum2 / n as f64).sqrt();
+        assert!(rms < 0.008 && worst < 0.02, "rms {rms:.4} m, worst {worst:.4} m");
     }
 }

@@ -1,0 +1,240 @@
+//! The filter on the simulated indoor mission (`sim::indoor`, the omni base of `config/indoor.toml`)
+//! in one process, without the pipeline: for each simulator seed × filter seed, the ATE of the
+//! final best particle's path against the ground truth (2-D, nearest stamp, no alignment, as
+//! summary.json's `ate_m.grid_slam`), the heading error at the end and the wall time.
+//!
+//! `cargo run --release -p grid_slam --example indoor_eval -- --sim-seeds 1 --filter-seeds 1-4 [--particles 30]`
+
+use grid_slam::{GridSlam, GridSlamConfig, Pose2, ScanGeometry};
+use sim::indoor::{IndoorConfig, IndoorEvent, IndoorSim};
+use std::time::Instant;
+
+fn seeds(s: &str) -> Vec<u64> {
+    s.split(',')
+        .flat_map(|part| match part.split_once('-') {
+            Some((a, b)) => (a.parse::<u64>().expect("seed")..=b.parse::<u64>().expect("seed")).collect::<Vec<_>>(),
+            None => vec![part.parse().expect("seed")],
+        })
+        .collect()
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let arg = |k: &str| args.iter().position(|a| a == k).and_then(|i| args.get(i + 1)).cloned();
+    let sim_seeds = seeds(&arg("--sim-seeds").unwrap_or_else(|| "1".into()));
+    let filter_seeds = seeds(&arg("--filter-seeds").unwrap_or_else(|| "1".into()));
+    let particles: usize = arg("--particles").map_or(30, |v| v.parse().expect("--particles"));
+    let trace = args.iter().any(|a| a == "--trace");
+    let threads: usize = arg("--threads").map_or(2, |v| v.parse().expect("--threads"));
+    println!("sim_seed filter_seed  ate_m  final_yaw_err_deg  max_err_m  updates resamples  wall_s");
+    let mut all = Vec::new();
+    for &ss in &sim_seeds {
+        let mut sc = IndoorConfig { seed: ss, ..Default::default() };
+        sc.depth.rate_hz = 0.0;
+        if args.iter().any(|a| a == "--perfect-odometry") {
+            sc.odometry.wheel_scale = [0.0; 3];
+            sc.odometry.wheel_noise = 0.0;
+            sc.odometry.slip_rate_hz = 0.0;
+        }
+        if args.iter().any(|a| a == "--laser-at-centre") {
+            sc.laser.offset_m = [0.0, 0.0];
+        }
+        if args.iter().any(|a| a == "--perfect-laser") {
+            sc.laser.noise_sigma_m = 0.0;
+            sc.laser.dropout_prob = 0.0;
+        }
+        // The events once per simulator seed (the laser and odometry only).
+        let mut sim = IndoorSim::new(sc.clone()).expect("simulator");
+        let mut events = Vec::new();
+        while let Some(evs) = sim.next_events() {
+            events.extend(evs);
+        }
+        let truth = sim.truth().to_vec();
+        let l = &sc.laser;
+        let geom = ScanGeometry {
+            angle_min_rad: -std::f64::consts::PI,
+            angle_increment_rad: std::f64::consts::TAU / l.beams as f64,
+            beams: l.beams,
+            range_min_m: 0.05,
+            range_max_m: l.max_range_m,
+            body_from_laser: Pose2 { x_m: l.offset_m[0], y_m: l.offset_m[1], theta_rad: 0.0 },
+        };
+        if args.iter().any(|a| a == "--probe") {
+            probe(&events, &truth, &geom, &GridSlamConfig::default());
+            continue;
+        }
+        for &fs in &filter_seeds {
+            let mut cfg = GridSlamConfig { particles, threads, seed: fs, usable_range_m: 12.0, ..Default::default() };
+            let num = |k: &str| arg(k).map(|v| v.parse::<f64>().unwrap_or_else(|_| panic!("{k}: a number")));
+            if let Some(v) = num("--linear-update") {
+                cfg.linear_update_m = v;
+            }
+            if let Some(v) = num("--angular-update") {
+                cfg.angular_update_rad = v;
+            }
+            if let Some(v) = num("--obs-gain") {
+                cfg.obs_gain = v;
+            }
+            if let Some(v) = num("--likelihood-sigma") {
+                cfg.matcher.likelihood_sigma_m = v;
+            }
+            if let Some(v) = num("--score-sigma") {
+                cfg.matcher.score_sigma_m = v;
+            }
+            if let Some(v) = num("--proposal-step-m") {
+                cfg.proposal_step_m = v;
+            }
+            if let Some(v) = num("--proposal-step-rad") {
+                cfg.proposal_step_rad = v;
+            }
+            if let Some(v) = num("--point-to-line") {
+                cfg.matcher.point_to_line = v != 0.0;
+            }
+            if let Some(v) = num("--srr") {
+                cfg.motion.srr = v;
+                cfg.motion.srt = v;
+            }
+            if let Some(v) = num("--stt") {
+                cfg.motion.stt = v;
+                cfg.motion.str_ = v;
+            }
+            let mut f = GridSlam::new(cfg, geom).expect("filter");
+            let started = Instant::now();
+            let mut odom = Pose2::default();
+            for e in &events {
+                match e {
+                    IndoorEvent::Odometry { pose, .. } => odom = *pose,
+                    IndoorEvent::Laser { t_s, ranges } => {
+                        let out = f.process(*t_s, odom, ranges).expect("scan");
+                        if trace && out.updated {
+                            let k = truth.partition_point(|(s, _)| s < t_s).min(truth.len() - 1);
+                            let tp = truth[k].1;
+                            println!(
+                                "  t {t_s:6.1}  yaw err {:7.3} deg  pos err {:.3} m  odom yaw err {:7.3} deg  odom pos err {:.3} m  n_eff {:.1}",
+                                omni::wrap_angle(out.pose.theta_rad - tp.theta_rad).to_degrees(),
+                                (out.pose.x_m - tp.x_m).hypot(out.pose.y_m - tp.y_m),
+                                omni::wrap_angle(odom.theta_rad - tp.theta_rad).to_degrees(),
+                                (odom.x_m - tp.x_m).hypot(odom.y_m - tp.y_m),
+                                out.n_eff
+                            );
+                        }
+                    }
+                    IndoorEvent::Cloud { .. } => {}
+                }
+            }
+            let wall = started.elapsed().as_secs_f64();
+            let traj = f.trajectory();
+            let (mut sum, mut max) = (0.0, 0.0f64);
+            for (t, p) in &truth {
+                let k = traj.partition_point(|(s, _)| s < t);
+                let cand = [k.saturating_sub(1), k.min(traj.len() - 1)];
+                let e = cand
+                    .iter()
+                    .map(|&i| traj[i])
+                    .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
+                    .expect("pose");
+                let d2 = (e.1.x_m - p.x_m).powi(2) + (e.1.y_m - p.y_m).powi(2);
+                sum += d2;
+                max = max.max(d2.sqrt());
+            }
+            let ate = (sum / truth.len() as f64).sqrt();
+            let (last_t, last) = truth.last().expect("truth");
+            let est = traj.iter().min_by(|a, b| (a.0 - last_t).abs().total_cmp(&(b.0 - last_t).abs())).expect("pose").1;
+            let yaw = omni::wrap_angle(est.theta_rad - last.theta_rad).to_degrees();
+            let st = f.stats();
+            println!(
+                "{ss:8} {fs:11}  {ate:.4}  {yaw:17.3}  {max:9.3}  {:7} {:9}  {wall:6.1}",
+                st.updates, st.resamples
+            );
+            all.push(ate);
+        }
+    }
+    let mean = all.iter().sum::<f64>() / all.len() as f64;
+    let worst = all.iter().cloned().fold(0.0, f64::max);
+    let within = all.iter().filter(|a| **a <= 0.05).count();
+    println!("mean ATE {mean:.4} m, worst {worst:.4} m, {within} of {} runs <= 0.05 m", all.len());
+}
+
+/// Matcher probe: a map built at the true poses (one scan per 0.5 m), each new scan matched from
+/// its true pose; prints the optimum's offset from the truth.
+fn probe(events: &[IndoorEvent], truth: &[(f64, Pose2)], geom: &ScanGeometry, cfg: &GridSlamConfig) {
+    use grid_slam::grid::Grid;
+    use grid_slam::matcher::{BeamPoint, ScanPoints, fit, optimize};
+    let mut grid = Grid::new(cfg.resolution_m);
+    let mut last: Option<Pose2> = None;
+    let (mut n, mut sx, mut sy, mut st, mut s2) = (0, 0.0, 0.0, 0.0, 0.0);
+    for e in events {
+        let IndoorEvent::Laser { t_s, ranges } = e else { continue };
+        let k = truth.partition_point(|(s, _)| s < t_s).min(truth.len() - 1);
+        let tp = truth[k].1;
+        if last.is_some_and(|l| l.between(&tp).x_m.hypot(l.between(&tp).y_m) < 0.5) {
+            continue;
+        }
+        let mut pts = ScanPoints::default();
+        let mut ends = Vec::new();
+        for (b, r) in ranges.iter().enumerate() {
+            let r = *r as f64;
+            if !r.is_finite() || r < geom.range_min_m || r >= geom.range_max_m {
+                continue;
+            }
+            let a = geom.angle_min_rad + b as f64 * geom.angle_increment_rad;
+            let at =
+                |d: f64| geom.body_from_laser.compose(&Pose2 { x_m: d * a.cos(), y_m: d * a.sin(), theta_rad: 0.0 });
+            let (h, f) = (at(r), at(r - cfg.resolution_m));
+            pts.points.push(BeamPoint { hit: (h.x_m, h.y_m), free: (f.x_m, f.y_m) });
+            ends.push((h.x_m, h.y_m));
+        }
+        if last.is_some() {
+            let (m, _) = optimize(&grid, &pts, &tp, &cfg.matcher);
+            let e = tp.between(&m);
+            n += 1;
+            sx += e.x_m;
+            sy += e.y_m;
+            st += e.theta_rad;
+            s2 += e.x_m * e.x_m + e.y_m * e.y_m;
+            if n % 20 == 0 && args_has("--landscape") {
+                let line: Vec<String> = (-10..=10)
+                    .map(|i| {
+                        let q = tp.compose(&Pose2 { x_m: i as f64 * 0.005, y_m: 0.0, theta_rad: 0.0 });
+                        format!("{:.1}", fit(&grid, &pts, &q, &cfg.matcher).score)
+                    })
+                    .collect();
+                println!("  landscape x -5..5 cm: {}", line.join(" "));
+                let line: Vec<String> = (-10..=10)
+                    .map(|i| {
+                        let q = tp.compose(&Pose2 { x_m: 0.0, y_m: i as f64 * 0.005, theta_rad: 0.0 });
+                        format!("{:.1}", fit(&grid, &pts, &q, &cfg.matcher).score)
+                    })
+                    .collect();
+                println!("  landscape y -5..5 cm: {}", line.join(" "));
+            }
+            if n % 20 == 0 {
+                println!(
+                    "  probe t {t_s:6.1}: match - truth (body) dx {:+.4} dy {:+.4} dth {:+.3} deg",
+                    e.x_m,
+                    e.y_m,
+                    e.theta_rad.to_degrees()
+                );
+            }
+        }
+        let (s, c) = tp.theta_rad.sin_cos();
+        let w = |q: (f64, f64)| (tp.x_m + c * q.0 - s * q.1, tp.y_m + s * q.0 + c * q.1);
+        let o = w((geom.body_from_laser.x_m, geom.body_from_laser.y_m));
+        for q in &ends {
+            grid.cast(o, w(*q), true, &cfg.log_odds);
+        }
+        last = Some(tp);
+    }
+    let nf = n as f64;
+    println!(
+        "probe: {n} matches from the true pose on a map built at the true poses: mean offset (body) dx {:+.4} dy {:+.4} m, dth {:+.3} deg, rms {:.4} m",
+        sx / nf,
+        sy / nf,
+        (st / nf).to_degrees(),
+        (s2 / nf).sqrt()
+    );
+}
+
+fn args_has(k: &str) -> bool {
+    std::env::args().any(|a| a == k)
+}
