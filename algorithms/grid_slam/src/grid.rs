@@ -134,6 +134,30 @@ impl DeltaTile {
     }
 }
 
+/// Read access to one tile's cells ([`Grid::tile_around`]).
+#[derive(Debug, Clone, Copy)]
+pub enum TileRef<'a> {
+    /// Nothing written there.
+    Empty,
+    /// A tile.
+    Full(&'a Tile),
+    /// A delta over a shared tile.
+    Delta(&'a DeltaTile),
+}
+
+impl TileRef<'_> {
+    /// Cell (i, j), which must lie in this tile (`None` where nothing was written).
+    #[inline(always)]
+    pub fn cell(&self, i: i32, j: i32) -> Option<&Cell> {
+        let k = ((j & TILE_MASK) as usize) * TILE_SIDE + (i & TILE_MASK) as usize;
+        match self {
+            TileRef::Empty => None,
+            TileRef::Full(t) => Some(&t.cells[k]),
+            TileRef::Delta(d) => Some(d.get(k)),
+        }
+    }
+}
+
 /// A tile slot: nothing, a tile, or a delta over a shared tile.
 #[derive(Debug, Clone, Default)]
 enum Slot {
@@ -222,7 +246,31 @@ impl Grid {
     /// The mean hit point of cell (i, j) if it is occupied (log-odds above `threshold`).
     #[inline]
     pub fn occupied_mean(&self, i: i32, j: i32, threshold: f32) -> Option<(f64, f64)> {
-        let c = self.cell(i, j)?;
+        self.mean_of(self.cell(i, j)?, i, j, threshold)
+    }
+
+    /// The tile holding cell (i, j), when every cell within `margin` cells of it lies in that
+    /// tile too: lookups around (i, j) then skip the tile search (the matcher's fast path).
+    #[inline(always)]
+    pub fn tile_around(&self, i: i32, j: i32, margin: i32) -> Option<TileRef<'_>> {
+        let (li, lj) = (i & TILE_MASK, j & TILE_MASK);
+        if li < margin || lj < margin || li > TILE_MASK - margin || lj > TILE_MASK - margin {
+            return None;
+        }
+        let (tx, ty) = ((i >> TILE_BITS) - self.tx0, (j >> TILE_BITS) - self.ty0);
+        if tx < 0 || ty < 0 || tx >= self.nx || ty >= self.ny {
+            return Some(TileRef::Empty);
+        }
+        Some(match &self.tiles[(ty * self.nx + tx) as usize] {
+            Slot::Empty => TileRef::Empty,
+            Slot::Full(t) => TileRef::Full(t),
+            Slot::Delta(d) => TileRef::Delta(d),
+        })
+    }
+
+    /// The mean hit point of cell `c` (at (i, j)) if it is occupied (log-odds above `threshold`).
+    #[inline(always)]
+    pub fn mean_of(&self, c: &Cell, i: i32, j: i32, threshold: f32) -> Option<(f64, f64)> {
         if c.log_odds <= threshold {
             return None;
         }
