@@ -324,7 +324,7 @@ struct Snapshot {
     stats: GridSlamStats,
 }
 
-const SNAPSHOT_VERSION: u32 = 1;
+const SNAPSHOT_VERSION: u32 = 2;
 
 /// The 2-D grid SLAM filter.
 pub struct GridSlam {
@@ -571,14 +571,22 @@ impl GridSlam {
         let update = self.updates + 1;
         let cfg = &self.cfg;
         let seed = cfg.seed;
-        let chunk = self.particles.len().div_ceil(self.threads);
         let fallbacks = std::sync::atomic::AtomicU64::new(0);
+        // Workers take the next particle from a shared queue (particles differ in work: a fixed
+        // split left one core idle at the end of most updates).
+        let workers = self.threads.min(self.particles.len()).max(1);
+        let queue = std::sync::Mutex::new(self.particles.iter_mut().enumerate());
         std::thread::scope(|scope| {
-            for (c, part) in self.particles.chunks_mut(chunk).enumerate() {
-                let (pts, beams, fallbacks) = (&pts, &beams, &fallbacks);
+            for _ in 0..workers {
+                let (pts, beams, fallbacks, queue) = (&pts, &beams, &fallbacks, &queue);
                 scope.spawn(move || {
-                    for (k, p) in part.iter_mut().enumerate() {
-                        let index = c * chunk + k;
+                    loop {
+                        // A poisoned lock means another worker panicked: the scope re-raises that.
+                        let next = match queue.lock() {
+                            Ok(mut q) => q.next(),
+                            Err(_) => None,
+                        };
+                        let Some((index, p)) = next else { break };
                         let mut rng = Xoshiro256PlusPlus::seed_from_u64(mix(seed, update as u64, index as u64));
                         let (pose, log_eta, fell_back) = propose(cfg, p, &delta, pts, min_score, &mut rng);
                         if fell_back {

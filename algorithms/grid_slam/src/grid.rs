@@ -25,11 +25,12 @@ const TILE_MASK: i32 = TILE_SIDE as i32 - 1;
 pub struct Cell {
     /// ln(p / (1 − p)); 0 is unknown.
     pub log_odds: f32,
-    /// Sum of hit end points' x offsets from the cell's centre, m.
-    pub hit_dx_m: f32,
-    /// Sum of hit end points' y offsets from the cell's centre, m.
-    pub hit_dy_m: f32,
-    /// Number of hits summed.
+    /// Mean x offset of the hit end points from the cell's centre, m (kept as a mean, not a
+    /// sum, so the matcher reads it without a division).
+    pub mean_dx_m: f32,
+    /// Mean y offset of the hit end points from the cell's centre, m.
+    pub mean_dy_m: f32,
+    /// Number of hits averaged.
     pub hits: u32,
 }
 
@@ -158,6 +159,14 @@ impl TileRef<'_> {
     }
 }
 
+/// ⌊v⌋ as an i32 without a libm call (the default x86-64 target has no rounding instruction);
+/// values beyond the i32 range saturate, like `floor() as i32`.
+#[inline(always)]
+fn floor_i32(v: f64) -> i32 {
+    let t = v as i32;
+    if (t as f64) > v { t.saturating_sub(1) } else { t }
+}
+
 /// A tile slot: nothing, a tile, or a delta over a shared tile.
 #[derive(Debug, Clone, Default)]
 enum Slot {
@@ -167,14 +176,16 @@ enum Slot {
     Delta(Arc<DeltaTile>),
 }
 
-/// One tile as plain data: (tile x, tile y, cells row-major as (log-odds, hit dx sum, hit dy sum,
-/// hits)).
+/// One tile as plain data: (tile x, tile y, cells row-major as (log-odds, mean hit dx, mean hit
+/// dy, hits)).
 pub type TileData = (i32, i32, Vec<(f32, f32, f32, u32)>);
 
 /// The occupancy grid of one particle.
 #[derive(Debug, Clone)]
 pub struct Grid {
     resolution_m: f64,
+    /// 1 / `resolution_m`.
+    inv_resolution: f64,
     /// Tile index range: tiles `[tx0, tx0 + nx) × [ty0, ty0 + ny)`.
     tx0: i32,
     ty0: i32,
@@ -194,6 +205,7 @@ impl Grid {
     pub fn new(resolution_m: f64) -> Self {
         Self {
             resolution_m,
+            inv_resolution: 1.0 / resolution_m,
             tx0: 0,
             ty0: 0,
             nx: 0,
@@ -213,7 +225,7 @@ impl Grid {
     /// The cell containing world point (x, y).
     #[inline]
     pub fn cell_of(&self, x_m: f64, y_m: f64) -> (i32, i32) {
-        ((x_m / self.resolution_m).floor() as i32, (y_m / self.resolution_m).floor() as i32)
+        (floor_i32(x_m * self.inv_resolution), floor_i32(y_m * self.inv_resolution))
     }
 
     /// The centre of cell (i, j), m.
@@ -275,11 +287,7 @@ impl Grid {
             return None;
         }
         let (cx, cy) = self.centre_of(i, j);
-        if c.hits == 0 {
-            return Some((cx, cy));
-        }
-        let n = c.hits as f64;
-        Some((cx + c.hit_dx_m as f64 / n, cy + c.hit_dy_m as f64 / n))
+        Some((cx + c.mean_dx_m as f64, cy + c.mean_dy_m as f64))
     }
 
     fn grow_to(&mut self, tx: i32, ty: i32) {
@@ -378,9 +386,10 @@ impl Grid {
         let c = self.cell_mut(i, j);
         c.log_odds = (c.log_odds + p.hit).clamp(p.min, p.max);
         if c.hits < u32::MAX {
-            c.hit_dx_m += (x_m - cx) as f32;
-            c.hit_dy_m += (y_m - cy) as f32;
             c.hits += 1;
+            let w = 1.0 / c.hits as f32;
+            c.mean_dx_m += ((x_m - cx) as f32 - c.mean_dx_m) * w;
+            c.mean_dy_m += ((y_m - cy) as f32 - c.mean_dy_m) * w;
         }
     }
 
@@ -479,14 +488,14 @@ impl Grid {
     /// Bytes of one tile.
     pub const TILE_BYTES: usize = std::mem::size_of::<Tile>();
 
-    /// The tiles as plain data: (tile x, tile y, cells row-major as (log-odds, hit dx sum,
-    /// hit dy sum, hits)), for a snapshot.
+    /// The tiles as plain data: (tile x, tile y, cells row-major as (log-odds, mean hit dx,
+    /// mean hit dy, hits)), for a snapshot.
     pub fn to_tiles(&self) -> Vec<TileData> {
         let mut out = Vec::new();
         for ty in 0..self.ny {
             for tx in 0..self.nx {
                 if let Some(t) = Self::slot_cells(&self.tiles[(ty * self.nx + tx) as usize]) {
-                    let cells = t.cells.iter().map(|c| (c.log_odds, c.hit_dx_m, c.hit_dy_m, c.hits)).collect();
+                    let cells = t.cells.iter().map(|c| (c.log_odds, c.mean_dx_m, c.mean_dy_m, c.hits)).collect();
                     out.push((tx + self.tx0, ty + self.ty0, cells));
                 }
             }
@@ -503,7 +512,7 @@ impl Grid {
             }
             let mut tile = Tile::default();
             for (c, &(l, dx, dy, n)) in tile.cells.iter_mut().zip(cells) {
-                *c = Cell { log_odds: l, hit_dx_m: dx, hit_dy_m: dy, hits: n };
+                *c = Cell { log_odds: l, mean_dx_m: dx, mean_dy_m: dy, hits: n };
             }
             g.grow_to(*tx, *ty);
             let k = ((ty - g.ty0) * g.nx + (tx - g.tx0)) as usize;

@@ -154,7 +154,7 @@ pub fn fit(grid: &Grid, scan: &ScanPoints, pose: &Pose2, p: &MatcherParams) -> F
             }
         }
         if best.is_finite() {
-            score += (-best * inv_score).exp();
+            score += exp_neg(best * inv_score);
             ll += -best * inv_lik;
             matched += 1;
         } else {
@@ -162,6 +162,30 @@ pub fn fit(grid: &Grid, scan: &ScanPoints, pose: &Pose2, p: &MatcherParams) -> F
         }
     }
     Fit { score, log_likelihood: ll, matched }
+}
+
+/// e^(−y) for y ≥ 0, to a relative error below 1e-8 (against libm's `exp`, which took a tenth
+/// of the matcher's time as a library call): y = n·ln 2 + r with |r| ≤ ln 2 / 2, e^(−r) by its
+/// Taylor series to the 8th power, 2^(−n) from the exponent bits. 0 beyond y = 700.
+#[inline(always)]
+pub fn exp_neg(y: f64) -> f64 {
+    if y.is_nan() {
+        return f64::NAN;
+    }
+    if y >= 700.0 {
+        return 0.0;
+    }
+    let y = y.max(0.0);
+    let n = (y * std::f64::consts::LOG2_E + 0.5) as i64;
+    let r = n as f64 * std::f64::consts::LN_2 - y;
+    // e^r, |r| ≤ 0.347: Horner over 1/k!.
+    let p = 1.0
+        + r * (1.0
+            + r * (1.0 / 2.0
+                + r * (1.0 / 6.0
+                    + r * (1.0 / 24.0
+                        + r * (1.0 / 120.0 + r * (1.0 / 720.0 + r * (1.0 / 5040.0 + r * (1.0 / 40320.0))))))));
+    p * f64::from_bits(((1023 - n) as u64) << 52)
 }
 
 /// Pattern search from `start`: poll the six moves (±x, ±y, ±θ) starting with the last one that
@@ -240,6 +264,20 @@ mod tests {
             pts.points.push(BeamPoint { hit: (r * c, r * s), free: ((r - 0.05) * c, (r - 0.05) * s) });
         }
         (g, pts)
+    }
+
+    #[test]
+    fn exp_neg_agrees_with_libm() {
+        let mut y = 0.0;
+        while y < 700.0 {
+            let (a, b) = (exp_neg(y), (-y).exp());
+            assert!((a - b).abs() <= 1e-8 * b, "y {y}: {a} against {b}");
+            y += 0.0137;
+        }
+        assert_eq!(exp_neg(0.0), 1.0);
+        assert_eq!(exp_neg(800.0), 0.0);
+        assert_eq!(exp_neg(f64::INFINITY), 0.0);
+        assert!(exp_neg(f64::NAN).is_nan());
     }
 
     #[test]
