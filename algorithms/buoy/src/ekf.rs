@@ -34,7 +34,12 @@
 //! learn from a range whose innovation is more than `range.calibration_k` σ of what they cannot
 //! explain (position uncertainty and range noise): its gain rows for them are zeroed (a
 //! Schmidt update; counted as `calibration_held`), so a gross error accepted while the bias
-//! prior is still wide moves the position a little instead of the bias a lot.
+//! prior is still wide moves the position a little instead of the bias a lot. Nor do they learn
+//! what the recent ranges cannot determine (`range.observable_sigma_fraction`,
+//! [`Model::unobservable_calibration`]: the ranges of the last `range.observability_window_s`,
+//! along the odometry's path, with the position's offset and the other calibration states
+//! free; counted as `calibration_unobservable`): from one place among 3 buoys a scale, a bias
+//! and the position cannot be told apart, and per-buoy biases need the vehicle to move.
 //!
 //! # Gating and recovery
 //! A range whose normalised innovation ν²/S exceeds the χ²₁ quantile of `range.gate_probability`
@@ -194,6 +199,9 @@ pub struct Counters {
     /// Accepted ranges from which the range scale and bias states did not learn (normalised
     /// innovation beyond `range.calibration_k`).
     pub calibration_held: u64,
+    /// Accepted ranges from which at least one range scale or bias state did not learn because
+    /// the recent ranges do not determine it (`range.observable_sigma_fraction`).
+    pub calibration_unobservable: u64,
     /// Bias states reset to their prior.
     pub bias_resets: u64,
     /// Depth readings rejected.
@@ -525,12 +533,13 @@ impl Model {
         gate: f64,
         huber_k: f64,
     ) -> Result<UpdateInfo, BuoyError> {
-        self.update_holding(g, H, nu, R, gate, huber_k, false)
+        self.update_holding(g, H, nu, R, gate, huber_k, &[])
     }
 
-    /// As [`Self::update`]; with `hold_calibration`, or when the normalised innovation exceeds
-    /// `range.calibration_k`, the range scale and bias states are not learned from it (their gain rows are zeroed: a
-    /// Schmidt "consider" update, which the Joseph form keeps consistent).
+    /// As [`Self::update`]; the states in `hold` are not learned from it, and when the normalised
+    /// innovation exceeds `range.calibration_k` none of the range scale and bias states are
+    /// (their gain rows are zeroed: a Schmidt "consider" update, which the Joseph form keeps
+    /// consistent).
     #[allow(clippy::too_many_arguments)]
     fn update_holding(
         &self,
@@ -540,7 +549,7 @@ impl Model {
         R: &DMatrix<f64>,
         gate: f64,
         huber_k: f64,
-        hold_calibration: bool,
+        hold: &[usize],
     ) -> Result<UpdateInfo, BuoyError> {
         let mut info = self.gate(g, H, nu, R, gate, huber_k)?;
         if info.accepted {
@@ -554,11 +563,85 @@ impl Model {
             }
             let Sn = &Hn * &g.P * Hn.transpose() + R;
             let nis_known = Sn.cholesky().map_or(f64::INFINITY, |c| nu.dot(&c.solve(nu)));
-            info.held = hold_calibration || (calibration_k > 0.0 && nis_known > calibration_k * calibration_k);
-            let held: Vec<usize> = if info.held { cal } else { Vec::new() };
-            self.apply(g, H, nu, &(R / info.weight), &held)?;
+            info.held = calibration_k > 0.0 && nis_known > calibration_k * calibration_k;
+            let held: &[usize] = if info.held { &cal } else { hold };
+            self.apply(g, H, nu, &(R / info.weight), held)?;
         }
         Ok(info)
+    }
+
+    /// The range scale and bias states that the accepted ranges `seen` (with `next`, the range
+    /// about to be applied) do not determine: with the estimated path over the window taken as
+    /// right up to a common offset δp (unknown; in spatial mode z known to `z_sigma_m` when a
+    /// depth reading is recent), the information of those ranges alone on each calibration
+    /// state, the others and δp free (a Schur complement: no prior enters, so a state is not
+    /// "determined" by another state's prior), gives it a σ; a state whose σ exceeds
+    /// `range.observable_sigma_fraction` times its prior σ is not determined by the ranges
+    /// (e.g. a scale and a bias from one place among 3 buoys, per-buoy biases from one place).
+    /// Empty when the check is off.
+    fn unobservable_calibration(
+        &self,
+        seen: &VecDeque<SeenRange>,
+        next: &SeenRange,
+        z_sigma_m: Option<f64>,
+        anchor: Option<PathAnchor>,
+    ) -> Vec<usize> {
+        let fraction = self.cfg.range.observable_sigma_fraction;
+        let cal = self.calibration_states();
+        if fraction <= 0.0 || cal.is_empty() {
+            return Vec::new();
+        }
+        let (d, l) = (self.lay.d, &self.lay);
+        let m = d + cal.len();
+        let col = |state: usize| cal.iter().position(|&c| c == state).map(|k| d + k);
+        let prior = self.prior_variances();
+        let mut A = DMatrix::<f64>::zeros(m, m);
+        // No priors: tiny ones (1e-9 of the calibration's, 1e-9 m⁻² on δp) keep A invertible
+        // where the ranges leave a direction open, whose σ then comes out huge.
+        for (k, &c) in cal.iter().enumerate() {
+            A[(d + k, d + k)] = 1e-9 / prior[c];
+        }
+        for a in 0..d {
+            A[(a, a)] = 1e-9;
+        }
+        if d == 3
+            && let Some(sz) = z_sigma_m
+        {
+            A[(2, 2)] += 1.0 / (sz * sz);
+        }
+        let mut h = DVector::<f64>::zeros(m);
+        for r in seen.iter().chain(std::iter::once(next)) {
+            // Where the vehicle was: along the odometry's path through the estimate now (so the
+            // estimate's own jitter is not taken for a change of geometry), else the estimate.
+            let p = match (anchor, r.odom_xy) {
+                (Some(a), Some(o)) => {
+                    let (sn, cs) = a.turn_rad.sin_cos();
+                    let (dx, dy) = (o[0] - a.odom_xy[0], o[1] - a.odom_xy[1]);
+                    Vector3::new(a.position_m.x + cs * dx - sn * dy, a.position_m.y + sn * dx + cs * dy, r.position_m.z)
+                }
+                _ => r.position_m,
+            };
+            let u = p - self.buoys[r.buoy];
+            let distance = u.norm().max(1e-6);
+            h.fill(0.0);
+            for a in 0..d {
+                h[a] = u[a] / distance;
+            }
+            if let Some(c) = l.scale.and_then(col) {
+                h[c] = distance;
+            }
+            if let Some(c) = l.bias_of(r.buoy).and_then(col) {
+                h[c] = 1.0;
+            }
+            A += &h * h.transpose() / (r.sigma_m * r.sigma_m);
+        }
+        let Some(chol) = A.cholesky() else { return cal };
+        let cov = chol.inverse();
+        cal.iter()
+            .enumerate()
+            .filter(|&(k, &c)| cov[(d + k, d + k)].max(0.0).sqrt() > fraction * prior[c].sqrt())
+            .map(|(_, &c)| c)
+            .collect()
     }
 
     /// Indices of the range scale and bias states.
@@ -627,12 +710,12 @@ impl Model {
         j: usize,
         r: f64,
         sigma: f64,
-        hold_calibration: bool,
+        hold: &[usize],
     ) -> Result<UpdateInfo, BuoyError> {
         let (h, H, _) = self.range_model(&g.x, j);
         let nu = DVector::from_element(1, r - h);
         let R = DMatrix::from_element(1, 1, sigma * sigma);
-        self.update_holding(g, &H, &nu, &R, self.gate1, self.cfg.range.huber_k, hold_calibration)
+        self.update_holding(g, &H, &nu, &R, self.gate1, self.cfg.range.huber_k, hold)
     }
 
     fn depth_update(&self, g: &mut Gaussian, z: f64, sigma: f64) -> Result<UpdateInfo, BuoyError> {
@@ -700,6 +783,29 @@ fn symmetrise(P: &mut DMatrix<f64>) {
     *P *= 0.5;
 }
 
+/// An accepted range, kept for the calibration's observability check
+/// ([`Model::unobservable_calibration`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct SeenRange {
+    t_s: f64,
+    buoy: usize,
+    /// The estimated position when the range came, m.
+    position_m: Vector3<f64>,
+    /// The odometry's dead-reckoned position then, when there is odometry (the path's shape
+    /// without the estimate's jitter).
+    odom_xy: Option<[f64; 2]>,
+    sigma_m: f64,
+}
+
+/// Where the odometry path is anchored for the observability check: the estimated position
+/// now, the odometry's position now, and the turn from the odometry's frame to the world.
+#[derive(Debug, Clone, Copy)]
+struct PathAnchor {
+    position_m: Vector3<f64>,
+    odom_xy: [f64; 2],
+    turn_rad: f64,
+}
+
 /// A range kept for initialisation.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct InitRange {
@@ -733,6 +839,8 @@ pub struct BuoyEkf {
     window: VecDeque<(f64, WindowRange)>,
     /// The last ranges' outcomes (true: rejected), for the lost-filter check.
     recent: VecDeque<bool>,
+    /// Accepted ranges of the last `range.observability_window_s`, oldest first.
+    seen: VecDeque<SeenRange>,
 }
 
 fn finite(x: f64, what: &'static str) -> Result<f64, BuoyError> {
@@ -793,6 +901,7 @@ impl BuoyEkf {
             odo: None,
             window: VecDeque::new(),
             recent: VecDeque::new(),
+            seen: VecDeque::new(),
         };
         if f.model.cfg.init.method == InitMethod::Prior {
             let i = f.model.cfg.init.clone();
@@ -1070,7 +1179,14 @@ impl BuoyEkf {
             }
         }
         let single = matches!(self.phase, Phase::Single(_));
-        let info = self.for_each_hypothesis(|m, g| m.range_update(g, j, range_m, sigma_m, false))?;
+        if self.seen.is_empty() {
+            self.seed_seen();
+        }
+        let next = self.seen_range(j, sigma_m)?;
+        let z_sigma = self.last_depth.filter(|&(t, _, _)| self.t_s - t <= self.model.cfg.range.observability_window_s);
+        let anchor = self.path_anchor();
+        let unobservable = self.model.unobservable_calibration(&self.seen, &next, z_sigma.map(|(_, _, s)| s), anchor);
+        let info = self.for_each_hypothesis(|m, g| m.range_update(g, j, range_m, sigma_m, &unobservable))?;
         let checks = self.model.cfg.recovery.check_ranges;
         self.recent.push_back(!info.accepted);
         while self.recent.len() > checks {
@@ -1083,7 +1199,13 @@ impl BuoyEkf {
             c.per_buoy[j].accepted += 1;
             c.per_buoy[j].consecutive_rejected = 0;
             c.calibration_held += u64::from(info.held);
+            c.calibration_unobservable += u64::from(!info.held && !unobservable.is_empty());
             self.rejection_run_nu2 = 0.0;
+            self.seen.push_back(next);
+            let window = self.model.cfg.range.observability_window_s;
+            while self.seen.front().is_some_and(|r| self.t_s - r.t_s > window) {
+                self.seen.pop_front();
+            }
             self.check_lost(false);
             return Ok(RangeOutcome::Accepted { innovation_m: info.nu0, nis: info.nis, weight: info.weight });
         }
@@ -1114,6 +1236,55 @@ impl BuoyEkf {
             self.check_lost(false);
         }
         Ok(RangeOutcome::Rejected { innovation_m: info.nu0, nis: info.nis, recovery })
+    }
+
+    /// Fills the observability window from the odometry window (just after the start): the
+    /// geometry of the ranges the start was made from, placed along the odometry's path
+    /// through the estimate now (turned by the estimated heading once it is known).
+    fn seed_seen(&mut self) {
+        let (Some(odo), Ok(e)) = (self.odo, self.estimate()) else { return };
+        let window = self.model.cfg.range.observability_window_s;
+        let turn = e.heading_rad.map_or(0.0, |h| h - odo[2]);
+        let (sn, cs) = turn.sin_cos();
+        for (t, w) in &self.window {
+            if self.t_s - t > window {
+                continue;
+            }
+            let Some(j) = self.ids.iter().position(|&id| id == w.buoy_id) else { continue };
+            let (dx, dy) = (w.odom_pose[0] - odo[0], w.odom_pose[1] - odo[1]);
+            let mut p = e.position_m;
+            p.x += cs * dx - sn * dy;
+            p.y += sn * dx + cs * dy;
+            if self.model.lay.d == 3 {
+                p.z = w.height_m;
+            }
+            self.seen.push_back(SeenRange {
+                t_s: *t,
+                buoy: j,
+                position_m: p,
+                odom_xy: Some([w.odom_pose[0], w.odom_pose[1]]),
+                sigma_m: w.sigma_m,
+            });
+        }
+    }
+
+    /// Range `j` as seen from the current estimate (for the observability check).
+    fn seen_range(&self, j: usize, sigma_m: f64) -> Result<SeenRange, BuoyError> {
+        let x = match &self.phase {
+            Phase::Waiting => return Err(BuoyError::NotInitialised),
+            Phase::Single(g) => g.x.clone(),
+            Phase::Mixture(h) => self.model.moment_match(h).x,
+        };
+        let odom_xy = self.odo.map(|o| [o[0], o[1]]);
+        Ok(SeenRange { t_s: self.t_s, buoy: j, position_m: self.model.position(&x), odom_xy, sigma_m })
+    }
+
+    /// The odometry path's anchor for the observability check (with odometry and a heading).
+    fn path_anchor(&self) -> Option<PathAnchor> {
+        let o = self.odo?;
+        let e = self.estimate().ok()?;
+        let heading = e.heading_rad?;
+        Some(PathAnchor { position_m: e.position_m, odom_xy: [o[0], o[1]], turn_rad: heading - o[2] })
     }
 
     /// The vehicle's known height now: planar mode's fixed height, or in spatial mode the
@@ -1370,6 +1541,14 @@ impl BuoyEkf {
                 let mut g = self.initial_gaussian(&sol.position_m, &sol.covariance_m2);
                 self.add_consider_covariance(&mut g, &sol.sensitivity, &sol.position_m);
                 self.phase = Phase::Single(g);
+                // The ranges it started from join the observability window (taken at the
+                // solution, as the trilateration took them).
+                self.seen.clear();
+                for o in &self.init_ranges {
+                    let (t_s, buoy, sigma_m) = (o.t_s, o.buoy, o.sigma_m);
+                    let odom_xy = o.odom_xy;
+                    self.seen.push_back(SeenRange { t_s, buoy, position_m: sol.position_m, odom_xy, sigma_m });
+                }
                 self.init_ranges.clear();
                 self.split_if_heading_unknown();
                 RangeOutcome::Initialised
@@ -1769,6 +1948,80 @@ mod tests {
             Err(BuoyError::NotPositiveDefinite("position fix covariance"))
         );
         assert_eq!(ekf, before, "nothing changed");
+    }
+
+    /// A vehicle standing among 3 buoys (planar, scale and global bias states) whose ranges all
+    /// read 0.5 m long: from one place a scale cannot be told from a bias (nor either from the
+    /// position), so neither is learned (counted); once the vehicle moves, the ranges determine
+    /// both and they are. Returns (scale, its σ, bias, ranges the calibration did not learn
+    /// from) after standing and after moving.
+    fn stand_then_move(fraction: f64) -> [(f64, f64, f64, u64); 2] {
+        let buoys = [[0.0, 0.0], [40.0, 0.0], [20.0, 35.0]];
+        let mut cfg = BuoyConfig {
+            mode: Mode::Planar,
+            buoys: buoys
+                .iter()
+                .enumerate()
+                .map(|(i, b)| BuoyEntry { id: i as u32, position_m: [b[0], b[1], 0.0] })
+                .collect(),
+            ..BuoyConfig::default()
+        };
+        cfg.init.method = InitMethod::Prior;
+        cfg.init.prior_position_m = [20.0, 12.0, 0.0];
+        cfg.init.prior_position_sigma_m = 1.0;
+        cfg.init.prior_heading_rad = Some(0.0);
+        cfg.init.min_buoys = 3;
+        cfg.range.observable_sigma_fraction = fraction;
+        let mut ekf = BuoyEkf::new(cfg, 0.0).unwrap();
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(3);
+        let n01 = Normal::new(0.0, 1.0).unwrap();
+        let mut out = [(0.0, 0.0, 0.0, 0); 2];
+        for (phase, slot) in out.iter_mut().enumerate() {
+            for k in 0..400 {
+                let t = (phase * 400 + k + 1) as f64 * 0.25;
+                // Standing at (20, 12) heading along x, then driving an 8 m circle at 0.8 m/s.
+                let (omega, radius) = (0.1, 8.0);
+                let (p, v) = if phase == 0 {
+                    (Vector2::new(20.0, 12.0), 0.0)
+                } else {
+                    let a = omega * (t - 100.0);
+                    (Vector2::new(20.0 + radius * a.sin(), 20.0 - radius * a.cos()), omega * radius)
+                };
+                let w = if phase == 0 { 0.0 } else { omega };
+                let input = OdometryInput { dt_s: 0.25, v_mps: v, dtheta_rad: w * 0.25, var_v: 1e-4, var_dtheta: 1e-6 };
+                ekf.predict_with_input(t, &input).unwrap();
+                let j = k % 3;
+                let d = (p - Vector2::new(buoys[j][0], buoys[j][1])).norm();
+                let r = d + 0.5 + 0.1 * n01.sample(&mut rng);
+                ekf.update_range(j as u32, r, 0.1).unwrap();
+            }
+            let e = ekf.estimate().unwrap();
+            let (s, ss) = e.range_scale.unwrap();
+            let c = ekf.counters();
+            *slot = (s, ss, e.biases[0].bias_m, c.calibration_unobservable + c.calibration_held);
+        }
+        out
+    }
+
+    #[test]
+    fn calibration_the_ranges_do_not_determine_is_held_until_they_do() {
+        let prior = crate::config::RangeConfig::default().scale_prior_sigma;
+        let [stood, moved] = stand_then_move(5.0);
+        // Standing: neither the scale nor the bias learned (both at their priors).
+        assert!(stood.3 >= 399, "held on {} of 400 ranges", stood.3);
+        assert!(
+            stood.0 == 0.0 && stood.1 == prior && stood.2 == 0.0,
+            "scale {} ± {}, bias {}",
+            stood.0,
+            stood.1,
+            stood.2
+        );
+        // Moving: both learned, the 0.5 m went to the bias.
+        assert!(moved.1 < 0.5 * prior, "scale σ {} after moving", moved.1);
+        assert!(moved.0.abs() < 0.01 && (moved.2 - 0.5).abs() < 0.15, "scale {} bias {}", moved.0, moved.2);
+        // Without the check the split of the error between them while standing is the priors'.
+        let [free, _] = stand_then_move(0.0);
+        assert!(free.0.abs() > 0.005, "scale {} learned from one place", free.0);
     }
 
     #[test]

@@ -157,6 +157,7 @@ fn summary(
         "lost_checks_without_fix": counters.lost_checks_without_fix,
         "bias_resets": counters.bias_resets,
         "calibration_held": counters.calibration_held,
+        "calibration_unobservable": counters.calibration_unobservable,
         "rejected_share_at_end": st.ekf().and_then(|e| e.recent_rejected_share()).map(|(share, n)| serde_json::json!({
             "share": share, "of_last_ranges": n })),
         "depth_rejected": counters.depth_rejected,
