@@ -30,6 +30,23 @@ pub(crate) fn norm_f32(v: [f32; 3]) -> f64 {
 /// of the current voxel exceeds the ray length. Nothing is visited when origin and end share a
 /// voxel. Returns false (and visits nothing) when origin or end lies outside the tree.
 pub fn compute_ray_keys(origin: [f32; 3], end: [f32; 3], resolution: f64, mut visit: impl FnMut(OcTreeKey)) -> bool {
+    ray_keys_packed(origin, end, resolution, |k| visit(OcTreeKey::unpack(k)))
+}
+
+/// Adds `step` (±1, wrapping like OctoMap's `unsigned short`) to the 16-bit key field at `shift`
+/// of a packed key ([`OcTreeKey::pack`]).
+#[inline(always)]
+fn step_field(packed: u64, shift: u32, step: u16) -> u64 {
+    let f = ((packed >> shift) as u16).wrapping_add(step);
+    (packed & !(0xFFFF_u64 << shift)) | (f as u64) << shift
+}
+
+/// [`compute_ray_keys`] on packed keys, the key and the three crossing distances in registers
+/// (stepping a key held as an array by a run-time axis index kept it in memory, and reading it
+/// back whole after a 16-bit store stalled on store forwarding: a quarter of the ray time).
+/// The same arithmetic in the same order, so the same voxels.
+#[inline]
+pub(crate) fn ray_keys_packed(origin: [f32; 3], end: [f32; 3], resolution: f64, mut visit: impl FnMut(u64)) -> bool {
     let res_factor = 1.0 / resolution;
     let (Some(key_origin), Some(key_end)) = (point_key(origin, res_factor), point_key(end, res_factor)) else {
         return false;
@@ -37,7 +54,9 @@ pub fn compute_ray_keys(origin: [f32; 3], end: [f32; 3], resolution: f64, mut vi
     if key_origin == key_end {
         return true;
     }
-    visit(key_origin);
+    let mut current = key_origin.pack();
+    let end_packed = key_end.pack();
+    visit(current);
 
     let mut dir = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
     let length = norm_f32(dir) as f32;
@@ -48,7 +67,6 @@ pub fn compute_ray_keys(origin: [f32; 3], end: [f32; 3], resolution: f64, mut vi
     let mut step = [0i32; 3];
     let mut t_max = [f64::MAX; 3];
     let mut t_delta = [f64::MAX; 3];
-    let mut current = key_origin;
     for i in 0..3 {
         step[i] = if dir[i] > 0.0 {
             1
@@ -58,7 +76,7 @@ pub fn compute_ray_keys(origin: [f32; 3], end: [f32; 3], resolution: f64, mut vi
             0
         };
         if step[i] != 0 {
-            let mut border = key_to_coord(current.0[i], resolution);
+            let mut border = key_to_coord(key_origin.0[i], resolution);
             border += (step[i] as f64 * resolution * 0.5) as f32 as f64;
             t_max[i] = (border - origin[i] as f64) / dir[i] as f64;
             t_delta[i] = resolution / dir[i].abs() as f64;
@@ -66,20 +84,29 @@ pub fn compute_ray_keys(origin: [f32; 3], end: [f32; 3], resolution: f64, mut vi
     }
 
     let length = length as f64;
+    let [mut t0, mut t1, mut t2] = t_max;
+    let [d0, d1, d2] = t_delta;
+    let [s0, s1, s2] = step.map(|s| s as u16);
     for _ in 0..MAX_STEPS {
-        let dim = if t_max[0] < t_max[1] {
-            if t_max[0] < t_max[2] { 0 } else { 2 }
-        } else if t_max[1] < t_max[2] {
-            1
+        if t0 < t1 {
+            if t0 < t2 {
+                current = step_field(current, 0, s0);
+                t0 += d0;
+            } else {
+                current = step_field(current, 32, s2);
+                t2 += d2;
+            }
+        } else if t1 < t2 {
+            current = step_field(current, 16, s1);
+            t1 += d1;
         } else {
-            2
-        };
-        current.0[dim] = (current.0[dim] as i32 + step[dim]) as u16;
-        t_max[dim] += t_delta[dim];
-        if current == key_end {
+            current = step_field(current, 32, s2);
+            t2 += d2;
+        }
+        if current == end_packed {
             break;
         }
-        let dist = t_max[0].min(t_max[1]).min(t_max[2]);
+        let dist = t0.min(t1).min(t2);
         if dist > length {
             break;
         }
@@ -132,8 +159,8 @@ impl RayScratch {
         let d = [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]];
         let free = &mut self.free;
         if max_range < 0.0 || norm_f32(d) <= max_range {
-            compute_ray_keys(origin, p, resolution, |k| {
-                free.insert(k.pack());
+            ray_keys_packed(origin, p, resolution, |k| {
+                free.insert(k);
             });
             match point_key(p, res_factor) {
                 Some(k) => {
@@ -143,8 +170,8 @@ impl RayScratch {
             }
         } else {
             let end = truncated_end(origin, p, max_range);
-            compute_ray_keys(origin, end, resolution, |k| {
-                free.insert(k.pack());
+            ray_keys_packed(origin, end, resolution, |k| {
+                free.insert(k);
             });
         }
     }
