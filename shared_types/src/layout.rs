@@ -158,7 +158,12 @@ pub fn render_markdown(types: &[TypeLayout], services: &[crate::services::Servic
     let _ = writeln!(
         s,
         "Every data service has an event service of the same name; publishers notify it after each send,\n\
-         subscribers wait on it. A slice payload `[T]` carries a variable number of `T`.\n"
+         subscribers wait on it. A slice payload `[T]` carries a variable number of `T`.\n\n\
+         The subscriber limits leave room for {} watchers (a viewer and a recorder) next to the shipped\n\
+         configs' own consumers. A run with `run.extra_subscribers = n` opens every service with n more\n\
+         subscribers and nodes; an external producer that may create a service before the pipeline\n\
+         does must add the same n.\n",
+        crate::services::WATCHERS
     );
     let _ = writeln!(
         s,
@@ -256,7 +261,12 @@ pub fn render_python(types: &[TypeLayout], services: &[crate::services::ServiceS
             t.rust_name, t.size, t.align
         );
     }
-    let _ = writeln!(s, "\n# Services: name -> (payload, user header, QoS the pipeline creates them with)");
+    let _ = writeln!(
+        s,
+        "\n# Services: name -> (payload, user header, QoS the pipeline creates them with). A run with\n\
+         # `run.extra_subscribers = n` adds n to every max_subscribers and max_nodes: add it too when\n\
+         # this producer may create a service before the pipeline does."
+    );
     let _ = writeln!(s, "SERVICES = {{");
     for sv in services {
         let q = &sv.qos;

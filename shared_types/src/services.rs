@@ -4,6 +4,32 @@
 //! messaging patterns apart); publishers notify it after every send. The QoS values below are the
 //! ones the pipeline creates the services with; a process that opens a service must ask for at most
 //! these values (iceoryx2 treats the opener's values as minimums).
+//!
+//! Every data service's `max_subscribers` leaves room for [`WATCHERS`] subscribers beyond what the
+//! shipped configs use (a viewer and a recorder). A run that needs more sets
+//! `run.extra_subscribers`: every process of the run then adds that many to every service's
+//! `max_subscribers` and `max_nodes` ([`Qos::effective`], [`set_extra_subscribers`]); an external
+//! producer that may create a service before the pipeline does must add them too.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// Subscribers every data service admits beyond the shipped configs' own consumers: room for a
+/// viewer and a recorder to attach to a running pipeline.
+pub const WATCHERS: usize = 2;
+
+/// `run.extra_subscribers` of this process's run (set once at start-up).
+static EXTRA_SUBSCRIBERS: AtomicUsize = AtomicUsize::new(0);
+
+/// Sets this process's `run.extra_subscribers` (before it opens any service): every
+/// [`Qos::effective`] adds it to `max_subscribers` and `max_nodes`.
+pub fn set_extra_subscribers(n: usize) {
+    EXTRA_SUBSCRIBERS.store(n, Ordering::Relaxed);
+}
+
+/// This process's `run.extra_subscribers`.
+pub fn extra_subscribers() -> usize {
+    EXTRA_SUBSCRIBERS.load(Ordering::Relaxed)
+}
 
 /// Quality of service of one publish-subscribe service.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -59,7 +85,15 @@ impl Qos {
         Self { safe_overflow: false, subscriber_buffer, ..Self::stream(max_subscribers, initial_slice_len) }
     }
 
-    /// Chunks one publisher of this service reserves (iceoryx2's data-segment formula).
+    /// This QoS with the run's `run.extra_subscribers` ([`set_extra_subscribers`]) added to
+    /// `max_subscribers` and `max_nodes`: what every process of the run opens services with.
+    pub fn effective(&self) -> Self {
+        let extra = extra_subscribers();
+        Self { max_subscribers: self.max_subscribers + extra, max_nodes: self.max_nodes + extra, ..*self }
+    }
+
+    /// Chunks one publisher of this service reserves (iceoryx2's data-segment formula); apply
+    /// [`Qos::effective`] first for a run's real figure.
     pub const fn chunks_per_publisher(&self) -> usize {
         self.max_subscribers * (self.subscriber_buffer + self.subscriber_borrowed) + self.history + self.publisher_loans
     }
@@ -163,44 +197,54 @@ pub const STATS_QOS: Qos = Qos {
 
 /// Every fixed service of the contract, with the QoS the pipeline creates it with.
 pub const SERVICES: &[ServiceSpec] = &[
-    spec(ODOMETRY, "OdometryInput", "MsgHeader", Qos::sensor(4, 16, 0)),
-    spec(STEREO, "[StereoObservation]", "MsgHeader", Qos::sensor(4, 8, 1024)),
-    spec(BUOY_RANGES, "[BuoyRange]", "MsgHeader", Qos::sensor(4, 8, 16)),
-    spec(DEPTH, "DepthReading", "MsgHeader", Qos::sensor(4, 8, 0)),
-    spec(HEADING, "HeadingReading", "MsgHeader", Qos::sensor(4, 8, 0)),
+    spec(ODOMETRY, "OdometryInput", "MsgHeader", Qos::sensor(4 + WATCHERS, 16, 0)),
+    spec(STEREO, "[StereoObservation]", "MsgHeader", Qos::sensor(4 + WATCHERS, 8, 1024)),
+    spec(BUOY_RANGES, "[BuoyRange]", "MsgHeader", Qos::sensor(4 + WATCHERS, 8, 16)),
+    spec(DEPTH, "DepthReading", "MsgHeader", Qos::sensor(4 + WATCHERS, 8, 0)),
+    spec(HEADING, "HeadingReading", "MsgHeader", Qos::sensor(4 + WATCHERS, 8, 0)),
     spec(
         CLOUD,
         "[CloudPoint]",
         "CloudHeader",
         // Sensor data: a replay waits for a slow mapper, a live source drops (counted).
-        Qos { subscriber_borrowed: 1, publisher_loans: 1, ..Qos::sensor(2, 2, 320 * 240) },
+        Qos { subscriber_borrowed: 1, publisher_loans: 1, ..Qos::sensor(2 + WATCHERS, 2, 320 * 240) },
     ),
-    spec(SLAM_POSE, "PoseEstimate", "MsgHeader", Qos::estimates(4)),
-    spec(SLAM_PARTICLES, "[Particle]", "ParticleSetHeader", Qos::stream(2, 1024)),
-    spec(SLAM_LANDMARKS, "[Landmark]", "LandmarkMapHeader", Qos::stream(2, 4096)),
-    spec(SLAM_DIAGNOSTICS, "SlamDiagnostics", "MsgHeader", Qos::stream(4, 0)),
-    spec(BUOY_FIX, "BuoyFix", "MsgHeader", Qos::estimates(4)),
-    spec(SYNC_PAIR, "SyncedPair", "MsgHeader", Qos::estimates(4)),
-    spec(FUSION_POSE, "FusedPose", "MsgHeader", Qos::estimates(4)),
-    spec(FUSION_MAP, "[Landmark]", "LandmarkMapHeader", Qos::stream(2, 4096)),
-    spec(MAP_STATS, "MapStats", "MsgHeader", Qos::stream(4, 0)),
+    spec(SLAM_POSE, "PoseEstimate", "MsgHeader", Qos::estimates(4 + WATCHERS)),
+    spec(SLAM_PARTICLES, "[Particle]", "ParticleSetHeader", Qos::stream(2 + WATCHERS, 1024)),
+    spec(SLAM_LANDMARKS, "[Landmark]", "LandmarkMapHeader", Qos::stream(2 + WATCHERS, 4096)),
+    spec(SLAM_DIAGNOSTICS, "SlamDiagnostics", "MsgHeader", Qos::stream(4 + WATCHERS, 0)),
+    spec(BUOY_FIX, "BuoyFix", "MsgHeader", Qos::estimates(4 + WATCHERS)),
+    spec(SYNC_PAIR, "SyncedPair", "MsgHeader", Qos::estimates(4 + WATCHERS)),
+    spec(FUSION_POSE, "FusedPose", "MsgHeader", Qos::estimates(4 + WATCHERS)),
+    spec(FUSION_MAP, "[Landmark]", "LandmarkMapHeader", Qos::stream(2 + WATCHERS, 4096)),
+    spec(MAP_STATS, "MapStats", "MsgHeader", Qos::stream(4 + WATCHERS, 0)),
     spec(
         MAP_VOXELS,
         "[Voxel]",
         "VoxelSetHeader",
-        Qos { subscriber_buffer: 1, subscriber_borrowed: 1, publisher_loans: 1, ..Qos::stream(2, 16 * 1024) },
+        Qos {
+            subscriber_buffer: 1,
+            subscriber_borrowed: 1,
+            publisher_loans: 1,
+            ..Qos::stream(2 + WATCHERS, 16 * 1024)
+        },
     ),
-    spec(LASER, "[LaserRange]", "LaserScanHeader", Qos::sensor(4, 16, 1024)),
-    spec(PLANAR_ODOMETRY, "PlanarOdometry", "MsgHeader", Qos::sensor(4, 64, 0)),
-    spec(GRID_SLAM_POSE, "PlanarPose", "MsgHeader", Qos::estimates(4)),
-    spec(GRID_SLAM_POSE3D, "PoseEstimate", "MsgHeader", Qos::estimates(4)),
-    spec(GRID_SLAM_PARTICLES, "[Particle]", "ParticleSetHeader", Qos::stream(2, 64)),
+    spec(LASER, "[LaserRange]", "LaserScanHeader", Qos::sensor(4 + WATCHERS, 16, 1024)),
+    spec(PLANAR_ODOMETRY, "PlanarOdometry", "MsgHeader", Qos::sensor(4 + WATCHERS, 64, 0)),
+    spec(GRID_SLAM_POSE, "PlanarPose", "MsgHeader", Qos::estimates(4 + WATCHERS)),
+    spec(GRID_SLAM_POSE3D, "PoseEstimate", "MsgHeader", Qos::estimates(4 + WATCHERS)),
+    spec(GRID_SLAM_PARTICLES, "[Particle]", "ParticleSetHeader", Qos::stream(2 + WATCHERS, 64)),
     spec(
         GRID_SLAM_GRID,
         "[OccupancyCell]",
         "OccupancyGridHeader",
         // Large (a 50 × 50 m map at 0.05 m is 1 MB): zero-copy, newest wins, one in flight.
-        Qos { subscriber_buffer: 1, subscriber_borrowed: 1, publisher_loans: 1, ..Qos::stream(2, 1024 * 1024) },
+        Qos {
+            subscriber_buffer: 1,
+            subscriber_borrowed: 1,
+            publisher_loans: 1,
+            ..Qos::stream(2 + WATCHERS, 1024 * 1024)
+        },
     ),
     spec(HEARTBEAT, "Heartbeat", "MsgHeader", CONTROL_QOS),
     spec(END_OF_STREAM, "EndOfStream", "MsgHeader", CONTROL_QOS),

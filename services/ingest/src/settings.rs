@@ -319,7 +319,7 @@ impl ProcessSettings for IngestSettings {
         };
         let qos = service_spec(CLOUD).expect("cloud service is in the contract").qos;
         let chunk = (points.max(1) * size_of::<shared_types::CloudPoint>()).next_power_of_two() as u64;
-        chunk * qos.chunks_per_publisher() as u64 + (4 << 20)
+        chunk * qos.effective().chunks_per_publisher() as u64 + (4 << 20)
     }
 }
 

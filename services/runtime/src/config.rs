@@ -145,7 +145,16 @@ pub struct RunConfig {
     pub stats_interval_s: f64,
     /// Log format of the supervisor and its children.
     pub log_format: LogFormat,
+    /// Subscribers every service admits beyond the contract's (which already leaves room for
+    /// `shared_types::services::WATCHERS` = 2 watchers, a viewer and a recorder, next to the
+    /// shipped configs' consumers): for more recorders, viewers or tools on one run. Every
+    /// process of the run opens every service with this many more subscribers and nodes, and
+    /// the shared-memory pre-flight counts the chunks they reserve. 0-16.
+    pub extra_subscribers: usize,
 }
+
+/// Largest `run.extra_subscribers`.
+pub const MAX_EXTRA_SUBSCRIBERS: usize = 16;
 
 impl Default for RunConfig {
     fn default() -> Self {
@@ -164,6 +173,7 @@ impl Default for RunConfig {
             heartbeat_interval_s: 0.25,
             stats_interval_s: 1.0,
             log_format: LogFormat::Text,
+            extra_subscribers: 0,
         }
     }
 }
@@ -347,6 +357,12 @@ impl PipelineConfig {
         let mut issues = Issues::default();
         let r = &self.run;
         positive(&mut issues, "run.ready_timeout_s", r.ready_timeout_s);
+        if r.extra_subscribers > MAX_EXTRA_SUBSCRIBERS {
+            issues.push(
+                "run.extra_subscribers",
+                format!("must be at most {MAX_EXTRA_SUBSCRIBERS} (got {})", r.extra_subscribers),
+            );
+        }
         positive(&mut issues, "run.heartbeat_timeout_s", r.heartbeat_timeout_s);
         positive(&mut issues, "run.stop_timeout_s", r.stop_timeout_s);
         positive(&mut issues, "run.heartbeat_interval_s", r.heartbeat_interval_s);
@@ -535,6 +551,14 @@ mod tests {
             assert_eq!(issues.0.len(), 1, "{issues:?}");
             assert_eq!(issues.0[0].key, "processes.a.nice");
         }
+    }
+
+    #[test]
+    fn extra_subscribers_beyond_the_limit_are_named() {
+        assert!(parse("[run]\nextra_subscribers = 16\n[processes.a]\n").unwrap().validate().0.is_empty());
+        let issues = parse("[run]\nextra_subscribers = 17\n[processes.a]\n").unwrap().validate();
+        assert_eq!(issues.0.len(), 1, "{issues:?}");
+        assert_eq!(issues.0[0].key, "run.extra_subscribers");
     }
 
     #[test]

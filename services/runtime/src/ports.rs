@@ -106,18 +106,20 @@ pub trait Payload: Debug + IceoryxSend + 'static {
 }
 
 macro_rules! open_with_qos {
-    ($builder:expr, $name:expr, $qos:expr) => {
+    ($builder:expr, $name:expr, $qos:expr) => {{
+        // With the run's `run.extra_subscribers`.
+        let qos = $qos.effective();
         $builder
-            .max_publishers($qos.max_publishers)
-            .max_subscribers($qos.max_subscribers)
-            .max_nodes($qos.max_nodes)
-            .subscriber_max_buffer_size($qos.subscriber_buffer)
-            .subscriber_max_borrowed_samples($qos.subscriber_borrowed)
-            .history_size($qos.history)
-            .enable_safe_overflow($qos.safe_overflow)
+            .max_publishers(qos.max_publishers)
+            .max_subscribers(qos.max_subscribers)
+            .max_nodes(qos.max_nodes)
+            .subscriber_max_buffer_size(qos.subscriber_buffer)
+            .subscriber_max_borrowed_samples(qos.subscriber_borrowed)
+            .history_size(qos.history)
+            .enable_safe_overflow(qos.safe_overflow)
             .open_or_create()
             .map_err(|e| PortError::Open { service: $name.to_string(), reason: format!("{e:?}") })
-    };
+    }};
 }
 
 macro_rules! with_delivery {
@@ -208,6 +210,7 @@ fn open_event(
     name: &str,
     qos: &Qos,
 ) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, PortError> {
+    let qos = qos.effective();
     node.service_builder(&service_name(name)?)
         .event()
         .max_notifiers(qos.max_publishers)
@@ -684,8 +687,18 @@ impl<P: Payload + ?Sized, H: Header> Input<P, H> {
         if let Ok(port_name) = iceoryx2::port::port_name::PortName::new(node.name().as_str()) {
             builder = builder.name(&port_name);
         }
-        let subscriber =
-            builder.create().map_err(|e| PortError::Create { service: name.to_string(), reason: format!("{e:?}") })?;
+        let subscriber = builder.create().map_err(|e| {
+            let mut reason = format!("{e:?}");
+            if reason.contains("ExceedsMaxSupportedSubscribers") {
+                let q = qos.effective();
+                reason += &format!(
+                    " (it admits {} subscribers, all taken by other processes of this run or tools attached to it; \
+                     raise `run.extra_subscribers`)",
+                    q.max_subscribers
+                );
+            }
+            PortError::Create { service: name.to_string(), reason }
+        })?;
         let listener = open_event(node, name, qos)?
             .listener_builder()
             .create()

@@ -43,6 +43,7 @@ pub struct CheckReport {
 /// Validates the settings of process `args.name` in `args.config` as a `T`.
 pub fn check<T: ProcessSettings>(args: &ProcessArgs) -> Result<CheckReport, ContextError> {
     let config = load_pipeline_config(&args.config)?;
+    shared_types::services::set_extra_subscribers(config.run.extra_subscribers);
     let process = config
         .processes
         .get(&args.name)

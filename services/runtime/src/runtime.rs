@@ -62,6 +62,7 @@ impl ProcessContext {
     /// Loads the config and resolves the scope. Errors name the file and key.
     pub fn from_args(args: &ProcessArgs) -> Result<Self, ContextError> {
         let config = load_pipeline_config(&args.config)?;
+        shared_types::services::set_extra_subscribers(config.run.extra_subscribers);
         if !config.processes.contains_key(&args.name) {
             return Err(ContextError::NoProcess { file: args.config.clone(), name: args.name.clone() });
         }

@@ -53,7 +53,7 @@ impl ProcessSettings for ProducerSettings {
     fn shm_estimate_bytes(&self) -> u64 {
         let qos = service_spec(CLOUD).expect("cloud service is in the contract").qos;
         let chunk = (self.points * size_of::<CloudPoint>()).next_power_of_two() as u64;
-        chunk * qos.chunks_per_publisher() as u64
+        chunk * qos.effective().chunks_per_publisher() as u64
     }
 }
 

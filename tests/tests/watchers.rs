@@ -1,0 +1,121 @@
+//! Room to watch (issue 17): every service of the shipped main job admits a viewer and a recorder
+//! next to the pipeline's own consumers, and `run.extra_subscribers` makes room for more.
+//!
+//! The main job's process graph (config/default.toml, on a short mission) runs with two recorders
+//! that subscribe to every service, clouds and voxels included, and start before the pipeline's
+//! consumers (so they take their slots first, the worst case): every stage still opens its
+//! inputs, the run ends cleanly and neither recorder misses a service. A third recorder does not
+//! fit, says which key to raise, and with `run.extra_subscribers = 1` it does.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use pipeline_tests::TestRun;
+
+const LONG: Duration = Duration::from_secs(300);
+
+/// The `[processes.*]` tables of config/default.toml on a 45 s mission (10 particles; the depth camera sees the
+/// bottom from about 25 s), with `recorders` (names)
+/// added to ingest's `after`; they start before the pipeline's consumers (`first`) or after them.
+fn default_graph_with(recorders: &[&str], first: bool) -> (String, Vec<String>) {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../config/default.toml");
+    let text = std::fs::read_to_string(&path).expect("config/default.toml");
+    let start = text.find("[processes.").expect("a process table");
+    let mut procs = text[start..].to_string();
+    let quoted: Vec<String> = recorders.iter().map(|r| format!("\"{r}\"")).collect();
+    let after = r#"after = ["monitor", "slam", "buoy", "map"]"#;
+    assert!(procs.contains(after), "ingest's `after` in config/default.toml changed: update this test");
+    procs = procs.replace(after, &format!(r#"after = ["monitor", "slam", "buoy", "map", {}]"#, quoted.join(", ")));
+    let sim = "[processes.ingest.settings.sim]\nseed = 1";
+    assert!(procs.contains(sim), "ingest's sim table in config/default.toml changed: update this test");
+    procs = procs.replace(sim, &format!("{sim}\n[processes.ingest.settings.sim.mission]\nmax_duration_s = 45.0"));
+    // Fewer particles: these debug-built runs are about who subscribes, not about accuracy.
+    let particles = "particles = 100";
+    assert!(procs.contains(particles), "fastslam's particles in config/default.toml changed: update this test");
+    procs = procs.replace(particles, "particles = 10");
+    for r in recorders {
+        procs.push_str(&format!(
+            r#"
+[processes.{r}]
+kind = "recorder"
+{}
+[processes.{r}.settings]
+file = "{r}.mcap"
+end_after = ["ingest", "slam", "buoy", "sync", "fusion", "map"]
+compression = "lz4"
+"#,
+            if first { "" } else { r#"after = ["monitor", "slam", "buoy", "sync", "fusion", "map"]"# }
+        ));
+    }
+    // The recorders end after the producers (`end_after`) but send no end of stream of their own.
+    let ends: Vec<String> =
+        ["monitor", "slam", "buoy", "sync", "fusion", "map"].iter().map(|s| format!("\"{s}\"")).collect();
+    (procs, ends)
+}
+
+fn part(run: &TestRun, name: &str) -> serde_json::Value {
+    let p = run.out_dir().join("parts").join(format!("{name}.json"));
+    serde_json::from_slice(&std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))).expect("JSON")
+}
+
+#[test]
+fn the_main_job_leaves_room_for_a_viewer_and_a_recorder_on_every_service() {
+    let mut run = TestRun::new("watch");
+    let (procs, ends) = default_graph_with(&["rec1", "rec2"], true);
+    let s = run.run_to_end(
+        &format!("end = \"end_of_stream\"\nend_of_stream_from = [{}]\nduration_s = 200", ends.join(", ")),
+        &procs,
+        LONG,
+    );
+    let log = run.log();
+    assert!(!log.contains("ExceedsMaxSupportedSubscribers"), "{log}");
+    for name in ["monitor", "slam", "buoy", "sync", "fusion", "map", "ingest", "rec1", "rec2"] {
+        assert_eq!(s["processes"][name]["state"], "done", "{name}: {:#}", s["processes"][name]);
+    }
+    for rec in ["rec1", "rec2"] {
+        let r = &part(&run, rec)["recorder"];
+        assert_eq!(r["not_recorded"], serde_json::json!({}), "{rec}: {r:#}");
+        for service in
+            ["pipeline/sensors/cloud", "pipeline/map/voxels", "pipeline/fusion/pose", "pipeline/slam/landmarks"]
+        {
+            assert!(r["messages"][service].as_u64().unwrap_or(0) > 0, "{rec} recorded no {service}: {r:#}");
+        }
+        // Sensor data waits for every subscriber in a replay: the recorders lose none of it.
+        assert_eq!(r["missed"]["pipeline/sensors/cloud"].as_u64(), Some(0), "{rec}: {r:#}");
+    }
+    // The mapper inserted every cloud the recorders saw.
+    let clouds = part(&run, "rec1")["recorder"]["messages"]["pipeline/sensors/cloud"].as_u64().unwrap();
+    assert_eq!(s["octree_mapper"]["counters"]["clouds_inserted"].as_u64(), Some(clouds), "{:#}", s["octree_mapper"]);
+}
+
+#[test]
+fn a_third_watcher_needs_extra_subscribers_and_says_so() {
+    // Without room: the recorders, started after the pipeline's consumers, fill the cloud
+    // service's two free slots and the third cannot tap it; it names the key to raise.
+    let mut run = TestRun::new("watch3");
+    let (procs, ends) = default_graph_with(&["rec1", "rec2", "rec3"], false);
+    let run_extra = format!("end = \"end_of_stream\"\nend_of_stream_from = [{}]\nduration_s = 200", ends.join(", "));
+    let s = run.run_to_end(&run_extra, &procs, LONG);
+    // Which of the three lost the race for the last slot depends on start-up order.
+    let losers: Vec<serde_json::Value> = ["rec1", "rec2", "rec3"]
+        .iter()
+        .map(|r| part(&run, r)["recorder"]["not_recorded"]["pipeline/sensors/cloud"].clone())
+        .filter(|v| !v.is_null())
+        .collect();
+    assert_eq!(losers.len(), 1, "one recorder without the clouds: {losers:?}");
+    let cloud = losers[0].as_str().unwrap();
+    assert!(cloud.contains("run.extra_subscribers"), "{cloud}");
+    // The pipeline's own consumers started after the recorders and still got their inputs.
+    for name in ["monitor", "slam", "buoy", "sync", "fusion", "map", "ingest"] {
+        assert_eq!(s["processes"][name]["state"], "done", "{name}: {:#}", s["processes"][name]);
+    }
+
+    // With one extra subscriber per service all three record everything.
+    let mut run = TestRun::new("watch3x");
+    let s = run.run_to_end(&format!("{run_extra}\nextra_subscribers = 1"), &procs, LONG);
+    for rec in ["rec1", "rec2", "rec3"] {
+        let r = &part(&run, rec)["recorder"];
+        assert_eq!(r["not_recorded"], serde_json::json!({}), "{rec}: {r:#}");
+    }
+    assert_eq!(s["processes"]["map"]["state"], "done");
+}
