@@ -517,16 +517,35 @@ impl Supervisor {
     }
 
     fn start_due(&mut self, now: Instant) {
+        // A dependency no longer holds a process back once it is ready, or has ended (done, or
+        // failed for good: then the process starts without it, with a warning, instead of the
+        // run waiting for it until `run.duration_s`).
         let ready: BTreeSet<String> =
             self.children.iter().filter(|c| c.state == ProcState::Ready).map(|c| c.plan.name.clone()).collect();
+        let failed: BTreeSet<String> = self
+            .children
+            .iter()
+            .filter(|c| matches!(c.state, ProcState::Failed(_)))
+            .map(|c| c.plan.name.clone())
+            .collect();
+        let done: BTreeSet<String> =
+            self.children.iter().filter(|c| c.state == ProcState::Done).map(|c| c.plan.name.clone()).collect();
         for i in 0..self.children.len() {
             let due = match self.children[i].state {
                 ProcState::Pending => true,
                 ProcState::Backoff { until } => now >= until,
                 _ => false,
             };
-            if !due || !self.children[i].plan.config.after.iter().all(|d| ready.contains(d)) {
+            let after = &self.children[i].plan.config.after;
+            if !due || !after.iter().all(|d| ready.contains(d) || failed.contains(d) || done.contains(d)) {
                 continue;
+            }
+            let missing: Vec<&String> = after.iter().filter(|d| failed.contains(*d)).collect();
+            if !missing.is_empty() && self.children[i].state == ProcState::Pending {
+                tracing::warn!(
+                    process = %self.children[i].plan.name,
+                    "starting without {missing:?} (in its `after`), which failed for good"
+                );
             }
             if let Err(e) = self.spawn(i) {
                 let c = &mut self.children[i];
