@@ -383,7 +383,7 @@ class VoxelSetHeader(ctypes.Structure):
         ("msg", MsgHeader),
         ("resolution_m", ctypes.c_double),
         ("frame", ctypes.c_uint32),
-        ("_reserved", ctypes.c_uint32),
+        ("kind", ctypes.c_uint32),
     ]
 
     @staticmethod

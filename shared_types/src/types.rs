@@ -431,7 +431,7 @@ wire_type! {
         pub size_m: f32,
         /// Occupancy probability.
         pub occupancy: f32,
-        /// 0 occupied, 1 navigable, 2 obstacle.
+        /// 0 occupied, 1 navigable, 2 obstacle; in a delta also [`VOXEL_CLASS_REMOVED`].
         pub class: u32,
     }
 }
@@ -446,10 +446,21 @@ wire_type! {
         pub resolution_m: f64,
         /// Frame of the voxels (3 world, 2 local map).
         pub frame: u32,
-        /// Zero.
-        pub _reserved: u32,
+        /// [`VOXELS_FULL`] (0): the payload is every occupied voxel of the map; [`VOXELS_DELTA`]
+        /// (1): only the voxels changed since the previous message (new, or a changed occupancy or
+        /// class; one no longer occupied comes with class [`VOXEL_CLASS_REMOVED`]). A consumer
+        /// that missed a message waits for the next full one (sent periodically and on
+        /// [`COMMAND_VOXEL_SNAPSHOT`]).
+        pub kind: u32,
     }
 }
+
+/// `VoxelSetHeader::kind`: every occupied voxel of the map.
+pub const VOXELS_FULL: u32 = 0;
+/// `VoxelSetHeader::kind`: the voxels changed since the previous message.
+pub const VOXELS_DELTA: u32 = 1;
+/// `Voxel::class` in a delta: the voxel is no longer occupied (drop it).
+pub const VOXEL_CLASS_REMOVED: u32 = 255;
 
 /// `LaserScanHeader::flags` bit: ranges at or above `range_max_m` mean "no return".
 pub const LASER_MAX_IS_NO_RETURN: u32 = 1;
@@ -616,6 +627,9 @@ wire_type! {
 pub const COMMAND_NEW_SEGMENT: u32 = 1;
 /// `ControlCommand::command`: write a checkpoint of the process's state / outputs.
 pub const COMMAND_CHECKPOINT: u32 = 2;
+/// `ControlCommand::command`: the octree mapper sends a full voxel set with its next message
+/// (a viewer that joined late or missed a delta).
+pub const COMMAND_VOXEL_SNAPSHOT: u32 = 3;
 
 wire_type! {
     /// A command to one process (`pipeline/control/command`).
@@ -623,7 +637,7 @@ wire_type! {
     pub struct ControlCommand {
         /// Target process name, UTF-8, NUL-padded (all zero = every process).
         pub target: [u8; 32],
-        /// 1 new segment, 2 checkpoint.
+        /// 1 new segment, 2 checkpoint, 3 voxel snapshot.
         pub command: u32,
         /// Zero.
         pub _reserved: u32,

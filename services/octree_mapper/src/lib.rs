@@ -6,6 +6,7 @@
 //! line.
 
 pub mod stage;
+pub mod voxels;
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -136,6 +137,9 @@ pub struct MapperSettings {
     pub stats_rate_hz: f64,
     /// `pipeline/map/voxels` rate (occupied leaves with their class), Hz; 0 = only at the end.
     pub voxels_rate_hz: f64,
+    /// A full voxel set at least this often, s; the messages between carry only the voxels
+    /// that changed ([`voxels`]); 0 = every message is a full set.
+    pub voxels_full_interval_s: f64,
     /// Navigable space and obstacles.
     pub nsd: NsdConfig,
     /// Obstacles of each scan are associated with the obstacle landmarks of the earlier scans
@@ -173,6 +177,7 @@ impl Default for MapperSettings {
             ray_threads: 2,
             stats_rate_hz: 1.0,
             voxels_rate_hz: 0.2,
+            voxels_full_interval_s: 10.0,
             nsd: NsdConfig::default(),
             obstacle_max_bhattacharyya: 1.0,
             end_after: vec!["ingest".into(), "fusion".into()],
@@ -197,7 +202,11 @@ impl ProcessSettings for MapperSettings {
         for (k, v) in [("pose_wait_s", self.pose_wait_s), ("max_pose_gap_s", self.max_pose_gap_s)] {
             issues.check(v.is_finite() && v >= 0.0, format!("{key}.{k}"), "must be >= 0");
         }
-        for (k, v) in [("stats_rate_hz", self.stats_rate_hz), ("voxels_rate_hz", self.voxels_rate_hz)] {
+        for (k, v) in [
+            ("stats_rate_hz", self.stats_rate_hz),
+            ("voxels_rate_hz", self.voxels_rate_hz),
+            ("voxels_full_interval_s", self.voxels_full_interval_s),
+        ] {
             issues.check(v.is_finite() && v >= 0.0, format!("{key}.{k}"), "must be >= 0");
         }
         issues.check(self.ray_threads >= 1, format!("{key}.ray_threads"), "must be >= 1");

@@ -13,6 +13,7 @@ const CHECKPOINT: &str = "map.bt";
 use shared_types::services::{CLOUD, COMMAND, FUSION_POSE, GRID_SLAM_POSE3D, MAP_STATS, MAP_VOXELS, SLAM_POSE};
 use shared_types::*;
 
+use crate::voxels::VoxelStream;
 use crate::{MapperSettings, MapperState, PendingCloud, PoseSource};
 
 fn percentile(v: &[f64], q: f64) -> f64 {
@@ -60,22 +61,38 @@ fn build_voxels(st: &MapperState, classes: Option<&navigable::Discovery>) -> Vec
         .collect()
 }
 
-/// Publishes voxels on `pipeline/map/voxels`.
+/// Publishes the map's voxels on `pipeline/map/voxels`: a full set or the changes since the
+/// last message (`stream`).
 fn send_voxels(
     out: &mut Output<[Voxel], VoxelSetHeader>,
-    voxels: &[Voxel],
+    stream: &mut VoxelStream,
+    voxels: Vec<Voxel>,
+    force_full: bool,
     resolution_m: f64,
     stamp_ns: u64,
 ) -> Result<(), StageError> {
-    let mut s = out.loan_slice_uninit(voxels.len())?.write_from_slice(voxels);
-    *s.user_header_mut() = VoxelSetHeader {
-        msg: MsgHeader { stamp_ns, ..Default::default() },
-        resolution_m,
-        frame: FRAME_WORLD,
-        _reserved: 0,
-    };
+    let (kind, payload) = stream.next(voxels, Instant::now(), force_full);
+    let mut s = out.loan_slice_uninit(payload.len())?.write_from_slice(&payload);
+    *s.user_header_mut() =
+        VoxelSetHeader { msg: MsgHeader { stamp_ns, ..Default::default() }, resolution_m, frame: FRAME_WORLD, kind };
     out.send(s)?;
     Ok(())
+}
+
+/// summary.json `octree_mapper.voxel_stream`: messages and MB of full sets and deltas, and the
+/// MB a stream of full sets only would have taken at the same rate (each delta's moment's map).
+fn voxel_stream_summary(s: &VoxelStream) -> serde_json::Value {
+    let c = &s.counters;
+    let mb = |b: u64| b as f64 / 1e6;
+    serde_json::json!({
+        "full_messages": c.full_messages,
+        "delta_messages": c.delta_messages,
+        "full_mb": mb(c.full_bytes),
+        "delta_mb": mb(c.delta_bytes),
+        "removed_voxels": c.removed,
+        "snapshots_requested": c.snapshots_requested,
+        "full_sets_only_mb": mb(c.full_only_bytes),
+    })
 }
 
 /// The end-of-run work (map.bt, navigable space, PLY layers, the classified voxels) on a worker
@@ -160,6 +177,7 @@ pub struct OctreeMapperStage {
     commands: Input<ControlCommand, MsgHeader>,
     stats_out: Output<MapStats, MsgHeader>,
     voxels_out: Output<[Voxel], VoxelSetHeader>,
+    voxel_stream: VoxelStream,
     stats_every: Option<Duration>,
     voxels_every: Option<Duration>,
     last_stats: Instant,
@@ -189,6 +207,10 @@ impl Stage for OctreeMapperStage {
             commands: rt.input(COMMAND)?,
             stats_out: rt.output(MAP_STATS)?,
             voxels_out: rt.output_slice(MAP_VOXELS, 16 * 1024)?,
+            voxel_stream: VoxelStream::new(
+                (settings.voxels_full_interval_s > 0.0)
+                    .then(|| Duration::from_secs_f64(settings.voxels_full_interval_s)),
+            ),
             stats_every: every(settings.stats_rate_hz),
             voxels_every: every(settings.voxels_rate_hz),
             last_stats: Instant::now(),
@@ -232,6 +254,7 @@ impl Stage for OctreeMapperStage {
             commands,
             stats_out,
             voxels_out,
+            voxel_stream,
             stats_every,
             voxels_every,
             last_stats,
@@ -289,6 +312,9 @@ impl Stage for OctreeMapperStage {
         while let Some(s) = commands.receive()? {
             let c = s.payload();
             let target = name_from32(&c.target);
+            if (target.is_empty() || target == rt.name()) && c.command == COMMAND_VOXEL_SNAPSHOT {
+                voxel_stream.request_snapshot();
+            }
             if (target.is_empty() || target == rt.name()) && c.command == COMMAND_CHECKPOINT {
                 let path = out_dir.join("map.bt");
                 std::fs::create_dir_all(&*out_dir)?;
@@ -325,7 +351,7 @@ impl Stage for OctreeMapperStage {
         if voxels_every.is_some_and(|e| last_voxels.elapsed() >= e) {
             *last_voxels = Instant::now();
             let voxels = build_voxels(st, None);
-            send_voxels(voxels_out, &voxels, st.tree.resolution(), *last_stamp)?;
+            send_voxels(voxels_out, voxel_stream, voxels, false, st.tree.resolution(), *last_stamp)?;
         }
         Ok(if queue_empty && st.pending.is_empty() { Step::Idle } else { Step::Pending })
     }
@@ -381,7 +407,15 @@ impl Stage for OctreeMapperStage {
             }
             let header = MsgHeader { stamp_ns: self.last_stamp, ..Default::default() };
             self.stats_out.send_value(header, stats_msg(st, d.regions.len() as u32, d.obstacles.len() as u32))?;
-            send_voxels(&mut self.voxels_out, &voxels, st.tree.resolution(), self.last_stamp)?;
+            send_voxels(
+                &mut self.voxels_out,
+                &mut self.voxel_stream,
+                voxels,
+                true,
+                st.tree.resolution(),
+                self.last_stamp,
+            )?;
+            part["octree_mapper"]["voxel_stream"] = voxel_stream_summary(&self.voxel_stream);
             return Ok(part);
         }
         // Stopped before the end of stream: the map so far (the navigable-space layers take
