@@ -53,11 +53,6 @@ compression = "lz4"
     (procs, ends)
 }
 
-fn part(run: &TestRun, name: &str) -> serde_json::Value {
-    let p = run.out_dir().join("parts").join(format!("{name}.json"));
-    serde_json::from_slice(&std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))).expect("JSON")
-}
-
 #[test]
 fn the_main_job_leaves_room_for_a_viewer_and_a_recorder_on_every_service() {
     let mut run = TestRun::new("watch");
@@ -73,7 +68,7 @@ fn the_main_job_leaves_room_for_a_viewer_and_a_recorder_on_every_service() {
         assert_eq!(s["processes"][name]["state"], "done", "{name}: {:#}", s["processes"][name]);
     }
     for rec in ["rec1", "rec2"] {
-        let r = &part(&run, rec)["recorder"];
+        let r = &s["recorders"][rec];
         assert_eq!(r["not_recorded"], serde_json::json!({}), "{rec}: {r:#}");
         for service in
             ["pipeline/sensors/cloud", "pipeline/map/voxels", "pipeline/fusion/pose", "pipeline/slam/landmarks"]
@@ -84,7 +79,7 @@ fn the_main_job_leaves_room_for_a_viewer_and_a_recorder_on_every_service() {
         assert_eq!(r["missed"]["pipeline/sensors/cloud"].as_u64(), Some(0), "{rec}: {r:#}");
     }
     // The mapper inserted every cloud the recorders saw.
-    let clouds = part(&run, "rec1")["recorder"]["messages"]["pipeline/sensors/cloud"].as_u64().unwrap();
+    let clouds = s["recorders"]["rec1"]["messages"]["pipeline/sensors/cloud"].as_u64().unwrap();
     assert_eq!(s["octree_mapper"]["counters"]["clouds_inserted"].as_u64(), Some(clouds), "{:#}", s["octree_mapper"]);
 }
 
@@ -99,7 +94,7 @@ fn a_third_watcher_needs_extra_subscribers_and_says_so() {
     // Which of the three lost the race for the last slot depends on start-up order.
     let losers: Vec<serde_json::Value> = ["rec1", "rec2", "rec3"]
         .iter()
-        .map(|r| part(&run, r)["recorder"]["not_recorded"]["pipeline/sensors/cloud"].clone())
+        .map(|r| s["recorders"][r]["not_recorded"]["pipeline/sensors/cloud"].clone())
         .filter(|v| !v.is_null())
         .collect();
     assert_eq!(losers.len(), 1, "one recorder without the clouds: {losers:?}");
@@ -114,7 +109,7 @@ fn a_third_watcher_needs_extra_subscribers_and_says_so() {
     let mut run = TestRun::new("watch3x");
     let s = run.run_to_end(&format!("{run_extra}\nextra_subscribers = 1"), &procs, LONG);
     for rec in ["rec1", "rec2", "rec3"] {
-        let r = &part(&run, rec)["recorder"];
+        let r = &s["recorders"][rec];
         assert_eq!(r["not_recorded"], serde_json::json!({}), "{rec}: {r:#}");
     }
     assert_eq!(s["processes"]["map"]["state"], "done");

@@ -201,7 +201,7 @@ impl Stage for RecorderStage {
         Ok(Step::Idle)
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
         let why = match ending {
             Ending::EndOfStream => "end of stream",
             Ending::Stopped => "stopped",
@@ -239,7 +239,9 @@ impl Stage for RecorderStage {
         let per_topic = |f: fn(&Counts) -> u64| -> BTreeMap<&str, u64> {
             self.topics.iter().zip(&self.counts).map(|(t, c)| (t.service, f(c))).collect()
         };
-        Ok(serde_json::json!({ "recorder": {
+        // Under `recorder` (one recorder per run, as before) and under `recorders.<name>`: with
+        // several recorders in a run the first is merged from all of them, the second is each one's.
+        let part = serde_json::json!({
             "file": self.path.display().to_string(),
             "earlier_parts": self.earlier_parts,
             "ended_by": why,
@@ -254,7 +256,8 @@ impl Stage for RecorderStage {
             "messages_per_s": total as f64 / active_s.max(1e-9),
             "max_queued": r.max_queued,
             "wall_s": self.started.elapsed().as_secs_f64(),
-        }}))
+        });
+        Ok(serde_json::json!({ "recorder": part.clone(), "recorders": { rt.name(): part } }))
     }
 
     fn end_of_stream(&self) -> (u64, u64) {
