@@ -115,6 +115,48 @@ struct OutRoute {
     /// Whether a subscriber on the other side matches the key (kept by a matching listener).
     matched: Arc<AtomicBool>,
     _matching: zenoh::matching::MatchingListener<()>,
+    /// Send buffers, reused (a fresh multi-megabyte allocation per message costs its page faults).
+    buffers: SendBuffers,
+}
+
+/// Buffers that messages are copied into for Zenoh, returned when Zenoh drops them.
+#[derive(Clone, Default)]
+struct SendBuffers(Arc<Mutex<Vec<Vec<u8>>>>);
+
+/// A send buffer on loan to Zenoh: returns itself to its pool when dropped.
+struct SendBuffer {
+    data: Vec<u8>,
+    pool: SendBuffers,
+}
+
+impl AsRef<[u8]> for SendBuffer {
+    fn as_ref(&self) -> &[u8] {
+        &self.data
+    }
+}
+
+impl Drop for SendBuffer {
+    fn drop(&mut self) {
+        let mut pool = lock(&self.pool.0);
+        // Zenoh drops a put's payload once it is serialized, so one or two are in use at a time.
+        if pool.len() < 4 {
+            pool.push(std::mem::take(&mut self.data));
+        }
+    }
+}
+
+impl SendBuffers {
+    /// `parts` copied, one after the other, into a reused buffer.
+    fn payload(&self, parts: &[&[u8]]) -> zenoh::bytes::ZBytes {
+        let len = parts.iter().map(|p| p.len()).sum();
+        let mut data = lock(&self.0).pop().unwrap_or_default();
+        data.clear();
+        data.reserve(len);
+        for p in parts {
+            data.extend_from_slice(p);
+        }
+        bytes::Bytes::from_owner(SendBuffer { data, pool: self.clone() }).into()
+    }
 }
 
 /// Counters of one `in` route.
@@ -344,6 +386,22 @@ impl Inbox {
     }
 }
 
+/// The first 32 bytes of a message held in pieces (its [`shared_types::MsgHeader`]), fewer if
+/// it is shorter.
+fn gather_head(parts: &[&[u8]]) -> [u8; 32] {
+    let mut head = [0u8; 32];
+    let mut at = 0;
+    for p in parts {
+        let n = p.len().min(32 - at);
+        head[at..at + n].copy_from_slice(&p[..n]);
+        at += n;
+        if at == 32 {
+            break;
+        }
+    }
+    head
+}
+
 /// The `bridge` stage.
 pub struct BridgeStage {
     settings: BridgeSettings,
@@ -459,6 +517,7 @@ impl BridgeStage {
                 warned,
                 topic,
                 matched,
+                buffers,
                 ..
             } = o;
             total += tap.drain(&mut |r| {
@@ -478,9 +537,7 @@ impl BridgeStage {
                     }
                     *next_send = Some(now + dt);
                 }
-                let mut data = Vec::with_capacity(r.header.len() + r.payload.len());
-                data.extend_from_slice(r.header);
-                data.extend_from_slice(r.payload);
+                let data = buffers.payload(&[r.header, r.payload]);
                 if !matched.load(Ordering::Relaxed) {
                     counts.no_subscriber += 1;
                     tap.count_dropped("no subscriber on the other side", 1);
@@ -554,10 +611,12 @@ impl BridgeStage {
                         }
                         continue;
                     }
-                    // Borrowed when Zenoh holds the message in one piece (then the only copy is
-                    // into the loaned sample).
-                    let bytes = payload.to_bytes();
-                    if let Err(e) = r.topic.check_len(bytes.len()) {
+                    // Zenoh's pieces as they are (a large message arrives as the fragments' buffers):
+                    // the only copy is each piece into the loaned sample.
+                    let parts: Vec<&[u8]> = payload.slices().collect();
+                    let len = payload.len();
+                    let head = gather_head(&parts);
+                    if let Err(e) = r.topic.check_len(len) {
                         r.counts.bad_length += 1;
                         self.emitters[r.emitter].count_dropped("not a message of the service's types", 1);
                         if !r.warned {
@@ -566,7 +625,7 @@ impl BridgeStage {
                         }
                         continue;
                     }
-                    if let Some(h) = bytes.get(..32).and_then(shared_types::MsgHeader::from_bytes) {
+                    if let Some(h) = shared_types::MsgHeader::from_bytes(&head) {
                         if let Some(last) = r.last_seq
                             && h.seq > last + 1
                         {
@@ -589,9 +648,9 @@ impl BridgeStage {
                         }
                     }
                     let (reached, registered) =
-                        self.emitters[r.emitter].send_bytes(&bytes, origin.unwrap_or(Origin::Keep))?;
+                        self.emitters[r.emitter].send_parts(&parts, origin.unwrap_or(Origin::Keep))?;
                     r.counts.published += 1;
-                    r.counts.digest = fold(r.counts.digest, &[&bytes]);
+                    r.counts.digest = fold(r.counts.digest, &parts);
                     self.published += 1;
                     if reached < registered {
                         r.counts.undelivered += (registered - reached) as u64;
@@ -728,6 +787,7 @@ impl Stage for BridgeStage {
             outs.push(OutRoute {
                 matched,
                 _matching: matching,
+                buffers: SendBuffers::default(),
                 topic: t,
                 tap: t.tap(rt)?,
                 publisher,
@@ -1035,6 +1095,32 @@ impl Stage for BridgeStage {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_head_of_a_message_in_pieces_is_its_first_32_bytes() {
+        let data: Vec<u8> = (0..40u8).collect();
+        let mut expected = [0u8; 32];
+        expected.copy_from_slice(&data[..32]);
+        assert_eq!(gather_head(&[&data]), expected);
+        assert_eq!(gather_head(&[&data[..3], &[], &data[3..31], &data[31..]]), expected);
+        let mut short = [0u8; 32];
+        short[..10].copy_from_slice(&data[..10]);
+        assert_eq!(gather_head(&[&data[..4], &data[4..10]]), short);
+    }
+
+    #[test]
+    fn send_buffers_hold_the_parts_in_order_and_are_reused() {
+        let pool = SendBuffers::default();
+        let z = pool.payload(&[b"head", b"", b"payload"]);
+        assert_eq!(&*z.to_bytes(), b"headpayload");
+        assert!(lock(&pool.0).is_empty());
+        drop(z);
+        let kept = lock(&pool.0).first().map(|b| b.capacity()).unwrap_or(0);
+        assert!(kept >= 11, "the buffer went back to the pool");
+        let again = pool.payload(&[b"x"]);
+        assert_eq!(&*again.to_bytes(), b"x");
+        assert!(lock(&pool.0).is_empty(), "the kept buffer was taken");
+    }
 
     #[test]
     fn digest_folds_parts_as_one_message_and_depends_on_order() {
