@@ -534,7 +534,7 @@ class EndOfStream(ctypes.Structure):
         ("last_seq", ctypes.c_uint64),
         ("messages_sent", ctypes.c_uint64),
         ("status", ctypes.c_uint32),
-        ("_reserved", ctypes.c_uint32),
+        ("outputs", ctypes.c_uint32),
     ]
 
     @staticmethod

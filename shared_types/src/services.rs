@@ -261,6 +261,17 @@ pub fn service_spec(name: &str) -> Option<&'static ServiceSpec> {
     SERVICES.iter().find(|s| s.name == name)
 }
 
+/// The bit of a data service in `EndOfStream::outputs` (its index in [`SERVICES`]); `None` for
+/// the control and statistics services and for names outside the contract.
+pub fn data_service_bit(name: &str) -> Option<u32> {
+    if name.starts_with("pipeline/control/") || name.starts_with(STATS_PREFIX) {
+        return None;
+    }
+    SERVICES.iter().position(|s| s.name == name).map(|i| 1u32 << i)
+}
+
+const _: () = assert!(SERVICES.len() <= 31, "EndOfStream::outputs has 31 service bits");
+
 /// The statistics service of a process.
 pub fn stats_service(process: &str) -> String {
     format!("{STATS_PREFIX}{process}")

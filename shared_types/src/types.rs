@@ -618,10 +618,17 @@ wire_type! {
         pub messages_sent: u64,
         /// `EOS_COMPLETE` (0) or `EOS_FAILED`.
         pub status: u32,
-        /// Zero.
-        pub _reserved: u32,
+        /// The data services the process published: bit i for `services::SERVICES[i]`
+        /// ([`crate::services::data_service_bit`]), with [`EOS_OUTPUTS_KNOWN`] set. 0 = not
+        /// known (a producer that does not say): every stage takes it for one of its upstreams.
+        /// A stage that ends with its first upstream process ends only on the end of a process
+        /// that published one of its inputs.
+        pub outputs: u32,
     }
 }
+
+/// `EndOfStream::outputs`: set when the other bits list the data services the process published.
+pub const EOS_OUTPUTS_KNOWN: u32 = 1 << 31;
 
 /// `ControlCommand::command`: start a new local map (segment).
 pub const COMMAND_NEW_SEGMENT: u32 = 1;

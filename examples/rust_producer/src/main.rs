@@ -310,7 +310,8 @@ fn run(args: &Args) -> anyhow::Result<()> {
             last_seq: odo.seq.saturating_sub(1),
             messages_sent: sent,
             status: shared_types::EOS_COMPLETE,
-            _reserved: 0,
+            // 0: the services it published are not said (every stage takes it for an upstream).
+            outputs: 0,
         },
     )?;
     println!("SENT good odometry={} buoy_ranges={} clouds={} stereo={} bad={bad}", good[0], good[1], good[2], good[3]);

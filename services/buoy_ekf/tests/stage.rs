@@ -33,3 +33,25 @@ fn ranges_to_too_few_buoys_leave_the_filter_waiting_and_the_summary_says_why() {
     let why = b["last_waiting_reason"].as_str().unwrap_or_default();
     assert!(why.contains("2 distinct buoys") && why.contains("4 needed"), "names the reason: {why}");
 }
+
+#[test]
+fn only_the_end_of_a_process_that_feeds_it_ends_the_stage() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/default.toml");
+    let mut h = StageHarness::<BuoyEkfStage>::from_config_file(&config, "buoy", dir.path()).expect("opens");
+    let header = MsgHeader { stamp_ns: 1_000_000_000, ..Default::default() };
+    let ranges = [BuoyRange { buoy_id: 0, _reserved: 0, range_m: 20.0, sigma_m: 0.3 }];
+    h.feed_slice::<BuoyRange, MsgHeader>(BUOY_RANGES, header, &ranges).unwrap();
+    h.wake().unwrap();
+    // A recorder (publishes nothing) and the mapper (none of the EKF's inputs) end, or fail:
+    // the EKF goes on.
+    h.end_of_process_publishing("rec", &[]).unwrap();
+    h.end_of_process_publishing("map", &[shared_types::services::MAP_VOXELS]).unwrap();
+    for _ in 0..3 {
+        assert!(h.wake().unwrap().is_some(), "the buoy EKF ended on the end of a process that fed it nothing");
+    }
+    // The source of its ranges ends: so does the EKF.
+    h.end_of_process_publishing("ingest", &[BUOY_RANGES, shared_types::services::DEPTH]).unwrap();
+    let part = h.run_to_end(Duration::from_secs(5)).unwrap();
+    assert!(part["buoy_ekf"].is_object(), "{part:#}");
+}

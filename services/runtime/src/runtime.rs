@@ -523,7 +523,7 @@ impl Runtime {
             last_seq,
             messages_sent,
             status: shared_types::EOS_COMPLETE,
-            _reserved: 0,
+            outputs: shared_types::EOS_OUTPUTS_KNOWN | self.data_service_bits(false),
         };
         let now = monotonic_ns();
         let header = MsgHeader { stamp_ns: now, origin_ns: now, ..Default::default() };
@@ -541,6 +541,12 @@ impl Runtime {
     /// returned like the others, so that its consumers finish with what they have, and is warned
     /// about and listed in [`Runtime::failed_upstream`].
     pub fn ended_upstream(&self, eos: &Input<EndOfStream, MsgHeader>) -> Result<Vec<String>, PortError> {
+        Ok(self.ends_upstream(eos)?.into_iter().map(|(name, _)| name).collect())
+    }
+
+    /// As [`Runtime::ended_upstream`], with each process's `EndOfStream::outputs` (the data
+    /// services it published; see [`Runtime::feeds_inputs`]).
+    pub fn ends_upstream(&self, eos: &Input<EndOfStream, MsgHeader>) -> Result<Vec<(String, u32)>, PortError> {
         let mut ended = vec![];
         while let Some(s) = eos.receive()? {
             let from = shared_types::name_from32(&s.payload().process);
@@ -554,10 +560,26 @@ impl Runtime {
                          finishing with what it sent"
                     );
                 }
-                ended.push(from);
+                ended.push((from, s.payload().outputs));
             }
         }
         Ok(ended)
+    }
+
+    /// The `EndOfStream::outputs` bits of the data services this process opened as inputs
+    /// (`input`) or outputs.
+    pub fn data_service_bits(&self, input: bool) -> u32 {
+        self.ports
+            .iter()
+            .filter(|p| p.borrow().input == input)
+            .filter_map(|p| shared_types::services::data_service_bit(&p.borrow().service))
+            .fold(0, |a, b| a | b)
+    }
+
+    /// Whether a process that ended with `outputs` (`EndOfStream::outputs`) fed this process:
+    /// it published one of this process's inputs, or did not say what it published.
+    pub fn feeds_inputs(&self, outputs: u32) -> bool {
+        outputs & shared_types::EOS_OUTPUTS_KNOWN == 0 || outputs & self.data_service_bits(true) != 0
     }
 
     /// The processes whose stream ended because they failed for good (`EOS_FAILED`), as seen by

@@ -59,7 +59,8 @@ pub enum Ending {
 /// When a stage's inputs are over.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum EndAfter {
-    /// When the first upstream process ends.
+    /// When the first upstream process ends: one that published one of the stage's inputs (the
+    /// end of a process that feeds it nothing, a recorder say, does not end it).
     FirstUpstream,
     /// When every process named has ended.
     All(Vec<String>),
@@ -73,10 +74,11 @@ impl EndAfter {
         if list.is_empty() { EndAfter::FirstUpstream } else { EndAfter::All(list.to_vec()) }
     }
 
-    /// True when the inputs are over, given the upstream processes that `ended`.
-    pub fn inputs_ended(&self, ended: &BTreeSet<String>) -> bool {
+    /// True when the inputs are over, given the other processes that `ended` and those of them
+    /// that `fed` the stage (published one of its inputs, or did not say what they published).
+    pub fn inputs_ended(&self, ended: &BTreeSet<String>, fed: &BTreeSet<String>) -> bool {
         match self {
-            EndAfter::FirstUpstream => !ended.is_empty(),
+            EndAfter::FirstUpstream => !fed.is_empty(),
             EndAfter::All(names) => names.iter().all(|n| ended.contains(n)),
             EndAfter::Itself => false,
         }
@@ -146,6 +148,8 @@ pub(crate) struct Driver {
     eos: Input<EndOfStream, MsgHeader>,
     end_after: EndAfter,
     ended: BTreeSet<String>,
+    /// Of `ended`, the processes that fed this stage's inputs.
+    fed: BTreeSet<String>,
     /// The summary part, once the stage has finished.
     pub(crate) part: Option<serde_json::Value>,
     out_dir: std::path::PathBuf,
@@ -184,6 +188,7 @@ impl Driver {
             eos: rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?,
             end_after: stage.end_after(),
             ended: BTreeSet::new(),
+            fed: BTreeSet::new(),
             part: None,
             out_dir: ctx.out_dir.clone(),
             name: ctx.name.clone(),
@@ -215,8 +220,16 @@ impl Driver {
         if self.done() {
             return Ok(None);
         }
-        self.ended.extend(rt.ended_upstream(&self.eos)?); // before the data: see Runtime::ended_upstream
-        let over = self.end_after.inputs_ended(&self.ended);
+        for (name, outputs) in rt.ends_upstream(&self.eos)? {
+            // (before the data: see Runtime::ended_upstream)
+            if rt.feeds_inputs(outputs) {
+                self.fed.insert(name.clone());
+            } else if self.end_after == EndAfter::FirstUpstream {
+                tracing::info!(process = %name, "`{name}` ended; it published none of this stage's inputs: going on");
+            }
+            self.ended.insert(name);
+        }
+        let over = self.end_after.inputs_ended(&self.ended, &self.fed);
         let step = stage.step(rt, wake, over)?;
         rt.state().flush()?;
         if step == Step::Busy {
@@ -281,14 +294,17 @@ mod tests {
     #[test]
     fn one_rule_for_the_end_of_the_inputs() {
         let ended = |names: &[&str]| names.iter().map(|s| s.to_string()).collect::<BTreeSet<_>>();
+        let none = ended(&[]);
         let all = EndAfter::from_list(&["slam".to_string(), "buoy".to_string()]);
-        assert!(!all.inputs_ended(&ended(&[])));
-        assert!(!all.inputs_ended(&ended(&["slam"])));
-        assert!(all.inputs_ended(&ended(&["buoy", "slam", "other"])));
+        assert!(!all.inputs_ended(&none, &none));
+        assert!(!all.inputs_ended(&ended(&["slam"]), &ended(&["slam"])));
+        assert!(all.inputs_ended(&ended(&["buoy", "slam", "other"]), &none), "named processes, fed or not");
         let first = EndAfter::from_list(&[]);
         assert_eq!(first, EndAfter::FirstUpstream, "an empty list waits for the first upstream end");
-        assert!(!first.inputs_ended(&ended(&[])));
-        assert!(first.inputs_ended(&ended(&["ingest"])));
-        assert!(!EndAfter::Itself.inputs_ended(&ended(&["ingest", "slam"])), "a source ends itself");
+        assert!(!first.inputs_ended(&none, &none));
+        assert!(!first.inputs_ended(&ended(&["recorder"]), &none), "a process that fed nothing");
+        assert!(first.inputs_ended(&ended(&["recorder", "ingest"]), &ended(&["ingest"])));
+        let both = ended(&["ingest", "slam"]);
+        assert!(!EndAfter::Itself.inputs_ended(&both, &both), "a source ends itself");
     }
 }

@@ -206,19 +206,30 @@ impl<S: Stage> StageHarness<S> {
         Ok(())
     }
 
-    fn end_of(&self, process: &str, status: u32) -> Result<(), TestError> {
-        let eos = EndOfStream { process: name32(process), last_seq: 0, messages_sent: 0, status, _reserved: 0 };
+    fn end_of(&self, process: &str, status: u32, outputs: u32) -> Result<(), TestError> {
+        let eos = EndOfStream { process: name32(process), last_seq: 0, messages_sent: 0, status, outputs };
         self.feed(END_OF_STREAM, MsgHeader::default(), eos)
+    }
+
+    /// Queues the end of stream of process `process` (it completed) that says it published
+    /// `services` (`EndOfStream::outputs`; [`StageHarness::end_upstream`] says nothing, so the
+    /// stage takes it for an upstream whatever it subscribes to).
+    pub fn end_of_process_publishing(&self, process: &str, services: &[&str]) -> Result<(), TestError> {
+        let outputs = services
+            .iter()
+            .filter_map(|s| shared_types::services::data_service_bit(s))
+            .fold(shared_types::EOS_OUTPUTS_KNOWN, |a, b| a | b);
+        self.end_of(process, EOS_COMPLETE, outputs)
     }
 
     /// Queues the end of stream of upstream process `process` (it completed).
     pub fn end_upstream(&self, process: &str) -> Result<(), TestError> {
-        self.end_of(process, EOS_COMPLETE)
+        self.end_of(process, EOS_COMPLETE, 0)
     }
 
     /// Queues the end of stream the supervisor sends for `process` when it gave up on it.
     pub fn fail_upstream(&self, process: &str) -> Result<(), TestError> {
-        self.end_of(process, EOS_FAILED)
+        self.end_of(process, EOS_FAILED, 0)
     }
 
     /// One wake-up with data (as when an input was notified); `None` once the stage finished.

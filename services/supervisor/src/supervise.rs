@@ -464,12 +464,26 @@ impl Supervisor {
             .values()
             .flat_map(|r| r.ports.iter().filter(|p| !p.input))
             .fold((0, 0), |(seq, n), p| (seq.max(p.count.saturating_sub(1)), n + p.count));
+        // What it published, as its reports say (a process reports its ports from the start of
+        // its loop, when every port is open). Without any report (it never got that far: a
+        // source that cannot read its file, say) not known: every consumer takes it for an
+        // upstream and ends with what it has.
+        let reports = &self.children[i].reports;
+        let outputs = if reports.is_empty() {
+            0
+        } else {
+            reports
+                .values()
+                .flat_map(|r| r.ports.iter().filter(|p| !p.input))
+                .filter_map(|p| shared_types::services::data_service_bit(&p.service))
+                .fold(shared_types::EOS_OUTPUTS_KNOWN, |a, b| a | b)
+        };
         let eos = EndOfStream {
             process: shared_types::name32(&name),
             last_seq,
             messages_sent,
             status: shared_types::EOS_FAILED,
-            _reserved: 0,
+            outputs,
         };
         tracing::error!(
             process = %name,
