@@ -15,6 +15,12 @@ fi
 if ! python3 -c 'import mcap.reader' >/dev/null 2>&1; then
     python3 -m pip install --quiet mcap
 fi
+# Python test dependencies: tests/tests/viewer.rs connects tests/python/foxglove_ws_client.py (a
+# Foxglove WebSocket client: `websockets`, decoding with the advertised schemas: `protobuf`) to the
+# live viewer. Installed only when missing.
+if ! python3 -c 'import websockets.sync.client, google.protobuf.message_factory' >/dev/null 2>&1; then
+    python3 -m pip install --quiet 'websockets>=13' protobuf
+fi
 # Debian test dependency: tests/tests/octree_tools.rs runs OctoMap's convert_octree and
 # compare_octrees (package octomap-tools) on the .bt files of the octree crate. Installed only when
 # missing (as root, or through sudo); if that is impossible the test fails naming the package.

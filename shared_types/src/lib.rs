@@ -11,6 +11,7 @@ pub mod convert;
 pub mod layout;
 pub mod services;
 mod types;
+pub mod voxel_stream;
 
 pub use layout::{FieldLayout, TypeLayout, WireType};
 pub use types::*;

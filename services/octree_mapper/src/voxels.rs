@@ -3,22 +3,14 @@
 //! occupied with class [`VOXEL_CLASS_REMOVED`]), with a full set again every
 //! `voxels_full_interval_s` and when a [`shared_types::COMMAND_VOXEL_SNAPSHOT`] asks for one. A
 //! viewer then follows the map at the voxel rate with a stream that grows with what changes, not
-//! with the map. [`apply`] is what a consumer does with a message.
+//! with the map. [`apply`] (in `shared_types::voxel_stream`) is what a consumer does with a message.
 
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
 use shared_types::{VOXEL_CLASS_REMOVED, VOXELS_DELTA, VOXELS_FULL, Voxel};
 
-/// A voxel's identity: its cell at its own size (centre / size, floored) and the size's bits.
-pub type VoxelKey = (i32, i32, i32, u32);
-
-/// The key of `v`.
-pub fn key(v: &Voxel) -> VoxelKey {
-    let s = v.size_m;
-    let cell = |c: f32| (c / s).floor() as i32;
-    (cell(v.center_m[0]), cell(v.center_m[1]), cell(v.center_m[2]), s.to_bits())
-}
+pub use shared_types::voxel_stream::{VoxelKey, apply, key};
 
 /// What the voxel stream has sent, in messages and bytes (payload), per kind.
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
@@ -105,25 +97,6 @@ impl VoxelStream {
         self.counters.delta_bytes += bytes(delta.len());
         (VOXELS_DELTA, delta)
     }
-}
-
-/// A consumer's side: applies one message to the voxels it holds. Returns false for a delta with
-/// no full set before it (`map` is then left empty: wait for the next full set).
-pub fn apply(map: &mut HashMap<VoxelKey, Voxel>, have_full: &mut bool, kind: u32, voxels: &[Voxel]) -> bool {
-    if kind == VOXELS_FULL {
-        map.clear();
-        *have_full = true;
-    } else if !*have_full {
-        return false;
-    }
-    for v in voxels {
-        if v.class == VOXEL_CLASS_REMOVED {
-            map.remove(&key(v));
-        } else {
-            map.insert(key(v), *v);
-        }
-    }
-    true
 }
 
 #[cfg(test)]

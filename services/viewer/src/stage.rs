@@ -1,0 +1,671 @@
+//! The viewer as a [`Stage`]: its inputs drained on every wake-up into what it shows, and the
+//! Foxglove channels logged when a client subscribes to them and their rate allows.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use foxglove::schemas::packed_element_field::NumericType;
+use foxglove::schemas::{
+    Grid, Log, PackedElementField, PointCloud, Pose, PoseInFrame, PosesInFrame, Quaternion, Timestamp, Vector2, Vector3,
+};
+use foxglove::{Channel, Context, WebSocketServerHandle};
+use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
+use pipeline_runtime::{Input, Output, ProcessContext, Runtime, StageError, Wake};
+use shared_types::services::{self, CONTROL_QOS};
+use shared_types::voxel_stream::{VoxelKey, apply};
+use shared_types::*;
+
+use crate::ViewerSettings;
+
+/// The world frame every channel is in.
+const FRAME: &str = "world";
+
+fn stamp(ns: u64) -> Option<Timestamp> {
+    Some(Timestamp::new((ns / 1_000_000_000) as u32, (ns % 1_000_000_000) as u32))
+}
+
+fn pose_of(position_m: [f64; 3], q_xyzw: [f64; 4]) -> Pose {
+    Pose {
+        position: Some(Vector3 { x: position_m[0], y: position_m[1], z: position_m[2] }),
+        orientation: Some(Quaternion { x: q_xyzw[0], y: q_xyzw[1], z: q_xyzw[2], w: q_xyzw[3] }),
+    }
+}
+
+/// `float32` fields at 4-byte offsets, in order.
+fn f32_fields(names: &[&str]) -> Vec<PackedElementField> {
+    names
+        .iter()
+        .enumerate()
+        .map(|(i, n)| PackedElementField {
+            name: (*n).into(),
+            offset: 4 * i as u32,
+            r#type: NumericType::Float32 as i32,
+        })
+        .collect()
+}
+
+/// A point cloud of `rows` (each the same number of `float32` fields, named `fields`).
+fn cloud_of(
+    ns: u64,
+    pose: Pose,
+    fields: &[&str],
+    rows: impl Iterator<Item = impl IntoIterator<Item = f32>>,
+) -> PointCloud {
+    let mut data = Vec::new();
+    for row in rows {
+        for v in row {
+            data.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    PointCloud {
+        timestamp: stamp(ns),
+        frame_id: FRAME.into(),
+        pose: Some(pose),
+        point_stride: 4 * fields.len() as u32,
+        fields: f32_fields(fields),
+        data: data.into(),
+    }
+}
+
+fn identity() -> Pose {
+    pose_of([0.0; 3], [0.0, 0.0, 0.0, 1.0])
+}
+
+/// A rate limit: `due` at most once per `period`.
+struct Every {
+    period: Duration,
+    last: Option<Instant>,
+}
+
+impl Every {
+    fn hz(hz: f64) -> Self {
+        Self { period: Duration::from_secs_f64(1.0 / hz), last: None }
+    }
+
+    fn due(&mut self) -> bool {
+        let now = Instant::now();
+        if self.last.is_some_and(|t| now - t < self.period) {
+            return false;
+        }
+        self.last = Some(now);
+        true
+    }
+}
+
+/// Per channel: messages received for it, logged to Foxglove, skipped (over its rate, or
+/// nobody subscribed).
+#[derive(Debug, Default, Clone, Copy, serde::Serialize)]
+struct Counts {
+    received: u64,
+    logged: u64,
+    skipped_rate: u64,
+    skipped_unwatched: u64,
+}
+
+/// One trajectory: its poses, thinned when full, and its channel.
+struct Path {
+    poses: Vec<Pose>,
+    last_ns: u64,
+    channel: Channel<PosesInFrame>,
+    dirty: bool,
+    thinned: u64,
+}
+
+impl Path {
+    fn push(&mut self, ns: u64, pose: Pose, max: usize) {
+        if self.poses.len() >= max {
+            // Every second pose of the older half: the shape stays, the length is bounded.
+            let half = self.poses.len() / 2;
+            let mut kept: Vec<Pose> = self.poses[..half].iter().step_by(2).copied().collect();
+            self.thinned += (half - kept.len()) as u64;
+            kept.extend_from_slice(&self.poses[half..]);
+            self.poses = kept;
+        }
+        self.poses.push(pose);
+        self.last_ns = ns;
+        self.dirty = true;
+    }
+}
+
+/// The `viewer` stage.
+pub struct ViewerStage {
+    settings: ViewerSettings,
+    server: Option<WebSocketServerHandle>,
+    port: u16,
+    _context: Arc<Context>,
+    slam_pose: Option<Input<PoseEstimate, MsgHeader>>,
+    buoy_fix: Option<Input<BuoyFix, MsgHeader>>,
+    fused_pose: Option<Input<FusedPose, MsgHeader>>,
+    grid_pose: Option<Input<PoseEstimate, MsgHeader>>,
+    cloud: Option<Input<[CloudPoint], CloudHeader>>,
+    fusion_map: Option<Input<[Landmark], LandmarkMapHeader>>,
+    slam_landmarks: Option<Input<[Landmark], LandmarkMapHeader>>,
+    voxels: Option<Input<[Voxel], VoxelSetHeader>>,
+    grid: Option<Input<[OccupancyCell], OccupancyGridHeader>>,
+    heartbeats: Option<Input<Heartbeat, MsgHeader>>,
+    /// Asks the octree mapper for a full voxel set when a client watches `/octree` and none is held.
+    commands: Option<Output<ControlCommand, MsgHeader>>,
+    snapshot_asked: Option<Instant>,
+    snapshots_asked: u64,
+    /// Inputs that could not be opened (the service full, say), with why.
+    not_shown: BTreeMap<String, String>,
+    paths: BTreeMap<&'static str, Path>,
+    fused_now: Channel<PoseInFrame>,
+    cloud_ch: Channel<PointCloud>,
+    landmarks_ch: Channel<PointCloud>,
+    octree_ch: Channel<PointCloud>,
+    grid_ch: Channel<Grid>,
+    processes_ch: Channel<Log>,
+    counts: BTreeMap<&'static str, Counts>,
+    cloud_every: Every,
+    landmarks_every: Every,
+    octree_every: Every,
+    grid_every: Every,
+    path_every: Every,
+    processes_every: Every,
+    /// The octree as the voxel stream says (held only while someone watches `/octree`).
+    octree: HashMap<VoxelKey, Voxel>,
+    octree_full: bool,
+    octree_dirty: bool,
+    octree_stamp: u64,
+    /// Deltas that came before a full set (the map is shown from the next full set).
+    octree_waiting: u64,
+    /// Latest heartbeat per process.
+    processes: BTreeMap<String, Heartbeat>,
+    clients_max: usize,
+    started: Instant,
+}
+
+/// Opens an input, or says why not (the viewer shows the rest).
+fn open<T>(
+    not_shown: &mut BTreeMap<String, String>,
+    service: &str,
+    r: Result<T, pipeline_runtime::runtime::RuntimeError>,
+) -> Option<T> {
+    match r {
+        Ok(i) => Some(i),
+        Err(e) => {
+            tracing::warn!(service, "not shown: {e}");
+            not_shown.insert(service.into(), e.to_string());
+            None
+        }
+    }
+}
+
+impl ViewerStage {
+    fn count(&mut self, channel: &'static str) -> &mut Counts {
+        self.counts.entry(channel).or_default()
+    }
+
+    /// Whether a message for `channel` is to be converted now: someone subscribes and its rate
+    /// allows. Counts the skip otherwise.
+    fn wanted(counts: &mut Counts, watched: bool, every: &mut Every) -> bool {
+        counts.received += 1;
+        if !watched {
+            counts.skipped_unwatched += 1;
+            false
+        } else if !every.due() {
+            counts.skipped_rate += 1;
+            false
+        } else {
+            counts.logged += 1;
+            true
+        }
+    }
+
+    fn drain_poses(&mut self) -> Result<(), StageError> {
+        let max = self.settings.path_max_poses;
+        let add =
+            |paths: &mut BTreeMap<&'static str, Path>, counts: &mut BTreeMap<&'static str, Counts>, name, ns, pose| {
+                counts.entry(name).or_default().received += 1;
+                if let Some(p) = paths.get_mut(name) {
+                    p.push(ns, pose, max);
+                }
+            };
+        if let Some(i) = &self.slam_pose {
+            while let Some(s) = i.receive()? {
+                let p = s.payload();
+                add(
+                    &mut self.paths,
+                    &mut self.counts,
+                    "/slam/path",
+                    s.user_header().stamp_ns,
+                    pose_of(p.position_m, p.orientation_xyzw),
+                );
+            }
+        }
+        if let Some(i) = &self.grid_pose {
+            while let Some(s) = i.receive()? {
+                let p = s.payload();
+                add(
+                    &mut self.paths,
+                    &mut self.counts,
+                    "/grid_slam/path",
+                    s.user_header().stamp_ns,
+                    pose_of(p.position_m, p.orientation_xyzw),
+                );
+            }
+        }
+        if let Some(i) = &self.buoy_fix {
+            while let Some(s) = i.receive()? {
+                let p = s.payload();
+                add(
+                    &mut self.paths,
+                    &mut self.counts,
+                    "/buoy/path",
+                    s.user_header().stamp_ns,
+                    pose_of(p.position_m, [0.0, 0.0, 0.0, 1.0]),
+                );
+            }
+        }
+        if let Some(i) = &self.fused_pose {
+            let mut latest = None;
+            while let Some(s) = i.receive()? {
+                let p = s.payload();
+                // The mapper's choice: refined poses (and those never predicted) make the path;
+                // the live pose is the newest of any kind.
+                let pose = pose_of(p.pose.position_m, p.pose.orientation_xyzw);
+                latest = Some((s.user_header().stamp_ns, pose));
+                if p.flags & FUSED_PREDICTED == 0 {
+                    add(&mut self.paths, &mut self.counts, "/fused/path", s.user_header().stamp_ns, pose);
+                }
+            }
+            if let Some((ns, pose)) = latest {
+                let c = self.counts.entry("/fused/pose").or_default();
+                c.received += 1;
+                if self.fused_now.has_sinks() {
+                    c.logged += 1;
+                    self.fused_now.log(&PoseInFrame { timestamp: stamp(ns), frame_id: FRAME.into(), pose: Some(pose) });
+                } else {
+                    c.skipped_unwatched += 1;
+                }
+            }
+        }
+        if self.path_every.due() {
+            for (name, p) in &mut self.paths {
+                if !p.dirty {
+                    continue;
+                }
+                p.dirty = false;
+                if p.channel.has_sinks() {
+                    self.counts.entry(name).or_default().logged += 1;
+                    p.channel.log(&PosesInFrame {
+                        timestamp: stamp(p.last_ns),
+                        frame_id: FRAME.into(),
+                        poses: p.poses.clone(),
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn drain_cloud(&mut self) -> Result<(), StageError> {
+        let Some(i) = &self.cloud else { return Ok(()) };
+        let watched = self.cloud_ch.has_sinks();
+        let mut latest = None;
+        while let Some(s) = i.receive()? {
+            let c = self.counts.entry("/cloud").or_default();
+            if Self::wanted(c, watched, &mut self.cloud_every) {
+                let h = *s.user_header();
+                let pose = if h.flags & CLOUD_HAS_POSE != 0 {
+                    pose_of(h.sensor_origin_m, h.orientation_xyzw)
+                } else {
+                    identity()
+                };
+                latest = Some(cloud_of(
+                    h.msg.stamp_ns,
+                    pose,
+                    &["x", "y", "z"],
+                    s.payload().iter().map(|p| [p.x_m, p.y_m, p.z_m]),
+                ));
+            }
+        }
+        if let Some(m) = latest {
+            self.cloud_ch.log(&m);
+        }
+        Ok(())
+    }
+
+    fn drain_landmarks(&mut self) -> Result<(), StageError> {
+        let watched = self.landmarks_ch.has_sinks();
+        // The fused global map when there is one, else SLAM's best particle's map.
+        for input in [&self.fusion_map, &self.slam_landmarks].into_iter().flatten() {
+            let mut latest = None;
+            while let Some(s) = input.receive()? {
+                let c = self.counts.entry("/landmarks").or_default();
+                if Self::wanted(c, watched, &mut self.landmarks_every) {
+                    latest = Some(cloud_of(
+                        s.user_header().msg.stamp_ns,
+                        identity(),
+                        &["x", "y", "z", "observations"],
+                        s.payload().iter().map(|l| {
+                            [l.mean_m[0] as f32, l.mean_m[1] as f32, l.mean_m[2] as f32, l.observation_count as f32]
+                        }),
+                    ));
+                }
+            }
+            if let Some(m) = latest {
+                self.landmarks_ch.log(&m);
+            }
+            if self.fusion_map.is_some() && self.counts.get("/landmarks").is_some_and(|c| c.received > 0) {
+                // Once the fused map comes, SLAM's is not shown (it is drained all the same).
+                if let Some(i) = &self.slam_landmarks {
+                    while i.receive()?.is_some() {}
+                }
+                break;
+            }
+        }
+        Ok(())
+    }
+
+    fn drain_octree(&mut self) -> Result<(), StageError> {
+        let Some(i) = &self.voxels else { return Ok(()) };
+        let watched = self.octree_ch.has_sinks();
+        while let Some(s) = i.receive()? {
+            let c = self.counts.entry("/octree").or_default();
+            c.received += 1;
+            if !watched {
+                // Nobody looks: hold nothing (the view starts from the next full set).
+                c.skipped_unwatched += 1;
+                self.octree.clear();
+                self.octree_full = false;
+                continue;
+            }
+            let h = *s.user_header();
+            if apply(&mut self.octree, &mut self.octree_full, h.kind, s.payload()) {
+                self.octree_dirty = true;
+                self.octree_stamp = h.msg.stamp_ns;
+            } else {
+                self.octree_waiting += 1;
+            }
+        }
+        if watched && !self.octree_full && self.snapshot_asked.is_none_or(|t| t.elapsed() > Duration::from_secs(5)) {
+            // A client came (or the held map was dropped while nobody looked): ask for a full set
+            // now rather than wait for the mapper's next periodic one.
+            if let Some(out) = &mut self.commands {
+                let now = pipeline_runtime::monotonic_ns();
+                out.send_value(
+                    MsgHeader { stamp_ns: now, origin_ns: now, ..Default::default() },
+                    ControlCommand { target: [0; 32], command: COMMAND_VOXEL_SNAPSHOT, _reserved: 0, arg: 0 },
+                )?;
+                self.snapshot_asked = Some(Instant::now());
+                self.snapshots_asked += 1;
+            }
+        }
+        if self.octree_dirty && watched && self.octree_every.due() {
+            self.octree_dirty = false;
+            self.count("/octree").logged += 1;
+            let m = cloud_of(
+                self.octree_stamp,
+                identity(),
+                &["x", "y", "z", "occupancy", "class", "size"],
+                self.octree
+                    .values()
+                    .map(|v| [v.center_m[0], v.center_m[1], v.center_m[2], v.occupancy, v.class as f32, v.size_m]),
+            );
+            self.octree_ch.log(&m);
+        }
+        Ok(())
+    }
+
+    fn drain_grid(&mut self) -> Result<(), StageError> {
+        let Some(i) = &self.grid else { return Ok(()) };
+        let watched = self.grid_ch.has_sinks();
+        let mut latest = None;
+        while let Some(s) = i.receive()? {
+            let c = self.counts.entry("/grid").or_default();
+            if Self::wanted(c, watched, &mut self.grid_every) {
+                let h = *s.user_header();
+                let data: Vec<u8> = s.payload().iter().map(|c| c.value as u8).collect();
+                latest = Some(Grid {
+                    timestamp: stamp(h.msg.stamp_ns),
+                    frame_id: FRAME.into(),
+                    pose: Some(pose_of([h.origin_m[0], h.origin_m[1], 0.0], [0.0, 0.0, 0.0, 1.0])),
+                    column_count: h.width,
+                    cell_size: Some(Vector2 { x: h.resolution_m, y: h.resolution_m }),
+                    row_stride: h.width,
+                    cell_stride: 1,
+                    fields: vec![PackedElementField {
+                        name: "occupancy".into(),
+                        offset: 0,
+                        r#type: NumericType::Int8 as i32,
+                    }],
+                    data: data.into(),
+                });
+            }
+        }
+        if let Some(m) = latest {
+            self.grid_ch.log(&m);
+        }
+        Ok(())
+    }
+
+    fn drain_processes(&mut self) -> Result<(), StageError> {
+        if let Some(i) = &self.heartbeats {
+            while let Some(s) = i.receive()? {
+                let hb = *s.payload();
+                self.processes.insert(name_from32(&hb.process), hb);
+            }
+        }
+        if self.processes_every.due() && self.processes_ch.has_sinks() {
+            let now = pipeline_runtime::monotonic_ns();
+            for (name, hb) in &self.processes {
+                let state = match hb.state {
+                    1 => "starting",
+                    2 => "ready",
+                    3 => "stopping",
+                    _ => "unknown",
+                };
+                self.processes_ch.log(&Log {
+                    timestamp: stamp(now),
+                    level: 2, // INFO
+                    message: format!(
+                        "{name}: {state}, up {:.1} s, {} messages in, {} out (pid {})",
+                        hb.uptime_ns as f64 / 1e9,
+                        hb.messages_in,
+                        hb.messages_out,
+                        hb.pid
+                    ),
+                    name: name.clone(),
+                    file: String::new(),
+                    line: 0,
+                });
+                self.counts.entry("/processes").or_default().logged += 1;
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Stage for ViewerStage {
+    type Settings = ViewerSettings;
+
+    fn open(ctx: &ProcessContext, settings: ViewerSettings, rt: &mut Runtime) -> Result<Self, StageError> {
+        let context = Context::new();
+        let mut not_shown = BTreeMap::new();
+        let ns = &mut not_shown;
+        let slam_pose = open(ns, services::SLAM_POSE, rt.input(services::SLAM_POSE));
+        let buoy_fix = open(ns, services::BUOY_FIX, rt.input(services::BUOY_FIX));
+        let fused_pose = open(ns, services::FUSION_POSE, rt.input(services::FUSION_POSE));
+        let grid_pose = open(ns, services::GRID_SLAM_POSE3D, rt.input(services::GRID_SLAM_POSE3D));
+        let cloud = open(ns, services::CLOUD, rt.input(services::CLOUD));
+        let fusion_map = open(ns, services::FUSION_MAP, rt.input(services::FUSION_MAP));
+        let slam_landmarks = open(ns, services::SLAM_LANDMARKS, rt.input(services::SLAM_LANDMARKS));
+        let voxels = open(ns, services::MAP_VOXELS, rt.input(services::MAP_VOXELS));
+        let grid = open(ns, services::GRID_SLAM_GRID, rt.input(services::GRID_SLAM_GRID));
+        let heartbeats = open(ns, services::HEARTBEAT, rt.input_with_qos(services::HEARTBEAT, &CONTROL_QOS));
+        let commands = match &voxels {
+            Some(_) => open(ns, services::COMMAND, rt.output::<ControlCommand, MsgHeader>(services::COMMAND)),
+            None => None,
+        };
+        let path = |topic: &str| Path {
+            poses: vec![],
+            last_ns: 0,
+            channel: context.channel_builder(topic).build(),
+            dirty: false,
+            thinned: 0,
+        };
+        let paths = BTreeMap::from([
+            ("/slam/path", path("/slam/path")),
+            ("/buoy/path", path("/buoy/path")),
+            ("/fused/path", path("/fused/path")),
+            ("/grid_slam/path", path("/grid_slam/path")),
+        ]);
+        let fused_now = context.channel_builder("/fused/pose").build();
+        let cloud_ch = context.channel_builder("/cloud").build();
+        let landmarks_ch = context.channel_builder("/landmarks").build();
+        let octree_ch = context.channel_builder("/octree").build();
+        let grid_ch = context.channel_builder("/grid").build();
+        let processes_ch = context.channel_builder("/processes").build();
+        let server = context
+            .websocket_server()
+            .name(format!("slam pipeline: {}", ctx.name))
+            .bind(settings.host.clone(), settings.port)
+            .message_backlog_size(settings.client_backlog)
+            .start_blocking()
+            .map_err(|e| {
+                StageError::msg(format!(
+                    "the Foxglove WebSocket server cannot listen on {}:{} (processes.{}.settings.host / port): {e}",
+                    settings.host, settings.port, ctx.name
+                ))
+            })?;
+        let port = server.port();
+        tracing::info!(
+            url = %format!("ws://{}:{port}", settings.host),
+            "live view: in Foxglove, Open connection → Foxglove WebSocket → ws://<this host>:{port}"
+        );
+        Ok(Self {
+            cloud_every: Every::hz(settings.cloud_max_hz),
+            landmarks_every: Every::hz(settings.map_max_hz),
+            octree_every: Every::hz(settings.map_max_hz),
+            grid_every: Every::hz(settings.map_max_hz),
+            path_every: Every::hz(settings.path_max_hz),
+            processes_every: Every::hz(1.0),
+            settings,
+            server: Some(server),
+            port,
+            _context: context,
+            slam_pose,
+            buoy_fix,
+            fused_pose,
+            grid_pose,
+            cloud,
+            fusion_map,
+            slam_landmarks,
+            voxels,
+            grid,
+            heartbeats,
+            commands,
+            snapshot_asked: None,
+            snapshots_asked: 0,
+            not_shown,
+            paths,
+            fused_now,
+            cloud_ch,
+            landmarks_ch,
+            octree_ch,
+            grid_ch,
+            processes_ch,
+            counts: BTreeMap::new(),
+            octree: HashMap::new(),
+            octree_full: false,
+            octree_dirty: false,
+            octree_stamp: 0,
+            octree_waiting: 0,
+            processes: BTreeMap::new(),
+            clients_max: 0,
+            started: Instant::now(),
+        })
+    }
+
+    fn end_after(&self) -> EndAfter {
+        if self.settings.end_after.is_empty() {
+            EndAfter::Itself // shows the run until it is stopped
+        } else {
+            EndAfter::All(self.settings.end_after.clone())
+        }
+    }
+
+    fn tick(&self) -> Option<Duration> {
+        // Paths and process states go out even when no message comes.
+        Some(Duration::from_millis(200))
+    }
+
+    fn step(&mut self, _rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> Result<Step, StageError> {
+        if let Some(s) = &self.server {
+            self.clients_max = self.clients_max.max(s.client_count());
+        }
+        self.drain_poses()?;
+        self.drain_cloud()?;
+        self.drain_landmarks()?;
+        self.drain_octree()?;
+        self.drain_grid()?;
+        self.drain_processes()?;
+        Ok(Step::Idle)
+    }
+
+    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+        if let Some(s) = self.server.take() {
+            s.stop().wait_blocking();
+        }
+        let thinned: BTreeMap<&str, u64> = self.paths.iter().map(|(k, p)| (*k, p.thinned)).collect();
+        Ok(serde_json::json!({
+            "viewer": {
+                "ending": format!("{ending:?}"),
+                "host": self.settings.host,
+                "port": self.port,
+                "clients_max": self.clients_max,
+                "channels": self.counts,
+                "not_shown": self.not_shown,
+                "path_poses_thinned": thinned,
+                "octree_deltas_before_a_full_set": self.octree_waiting,
+                "octree_snapshots_asked": self.snapshots_asked,
+                "seconds": self.started.elapsed().as_secs_f64(),
+            }
+        }))
+    }
+
+    fn end_of_stream(&self) -> (u64, u64) {
+        (0, 0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_full_path_thins_its_older_half_and_keeps_the_newest_poses() {
+        let ctx = Context::new();
+        let mut p =
+            Path { poses: vec![], last_ns: 0, channel: ctx.channel_builder("/p").build(), dirty: false, thinned: 0 };
+        for k in 0..1000u64 {
+            p.push(k, pose_of([k as f64, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]), 100);
+            assert!(p.poses.len() <= 100);
+        }
+        let xs: Vec<f64> = p.poses.iter().map(|q| q.position.unwrap().x).collect();
+        assert_eq!(*xs.first().unwrap(), 0.0, "the start stays");
+        assert_eq!(*xs.last().unwrap(), 999.0, "the newest pose is last");
+        assert!(xs.windows(2).all(|w| w[0] < w[1]), "in order");
+        assert_eq!(p.thinned as usize + p.poses.len(), 1000);
+        assert_eq!(p.last_ns, 999);
+    }
+
+    #[test]
+    fn a_point_cloud_packs_its_rows_as_float32_fields() {
+        let m = cloud_of(
+            1_500_000_000,
+            identity(),
+            &["x", "y", "z", "w"],
+            [[1.0f32, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0]].into_iter(),
+        );
+        assert_eq!(m.point_stride, 16);
+        assert_eq!(m.data.len(), 32);
+        assert_eq!(m.fields.iter().map(|f| f.offset).collect::<Vec<_>>(), [0, 4, 8, 12]);
+        assert_eq!(f32::from_le_bytes(m.data[20..24].try_into().unwrap()), 6.0);
+        let t = m.timestamp.unwrap();
+        assert_eq!((t.sec(), t.nsec()), (1, 500_000_000));
+    }
+}

@@ -1,0 +1,146 @@
+#!/usr/bin/env python3
+"""A Foxglove WebSocket client, as the Foxglove app is one (protocol foxglove.websocket.v1; the
+Foxglove SDK's server names it `foxglove.sdk.v1`, with inline schemas: both are offered).
+
+Connects to a viewer (retrying until it listens), subscribes to every advertised channel,
+decodes each message with the protobuf schema the server advertised for its channel (no
+Foxglove package: the schema comes over the wire, as the app takes it) and prints one JSON
+object: per topic, the schema name, how many messages were decoded and what the last one held.
+Stops when every topic named with --want has had a message (and --min-messages of each), or at
+--timeout-s (then exits 1 naming the topics that never came).
+
+Needs the PyPI packages `websockets` and `protobuf` (scripts/test.sh installs them).
+"""
+
+import argparse
+import base64
+import json
+import math
+import struct
+import sys
+import time
+
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+OP_MESSAGE_DATA = 1
+
+
+def message_class(channel, pools):
+    """The protobuf class of a channel, from its advertised FileDescriptorSet."""
+    if channel.get("encoding") != "protobuf" or channel.get("schemaEncoding") != "protobuf":
+        raise ValueError(f"{channel['topic']}: not a protobuf channel: {channel}")
+    fds = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"]))
+    pool = descriptor_pool.DescriptorPool()
+    for f in fds.file:
+        pool.Add(f)
+    pools.append(pool)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
+
+
+def vec(v):
+    return [v.x, v.y, v.z]
+
+
+def summary(schema, m):
+    """What a decoded message held, in a few numbers."""
+    if schema == "foxglove.PointCloud":
+        n = len(m.data) // m.point_stride if m.point_stride else 0
+        names = [f.name for f in m.fields]
+        first = list(struct.unpack_from(f"<{len(names)}f", m.data, 0)) if n else []
+        return {
+            "points": n,
+            "fields": names,
+            "frame_id": m.frame_id,
+            "first": first,
+            "finite": all(math.isfinite(x) for x in first),
+        }
+    if schema == "foxglove.PosesInFrame":
+        last = vec(m.poses[-1].position) if m.poses else []
+        return {"poses": len(m.poses), "frame_id": m.frame_id, "last": last,
+                "finite": all(math.isfinite(x) for x in last)}
+    if schema == "foxglove.PoseInFrame":
+        p = vec(m.pose.position)
+        return {"position": p, "frame_id": m.frame_id, "finite": all(math.isfinite(x) for x in p)}
+    if schema == "foxglove.Log":
+        return {"name": m.name, "message": m.message}
+    if schema == "foxglove.Grid":
+        return {"columns": m.column_count, "cells": len(m.data)}
+    return {}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--url", required=True)
+    ap.add_argument("--want", action="append", default=[], help="a topic that must deliver (repeatable)")
+    ap.add_argument("--min-messages", type=int, default=1)
+    ap.add_argument("--timeout-s", type=float, default=120.0)
+    args = ap.parse_args()
+
+    deadline = time.monotonic() + args.timeout_s
+    ws = None
+    while ws is None:
+        try:
+            ws = connect(args.url, subprotocols=SUBPROTOCOLS, max_size=None, open_timeout=5)
+        except OSError:
+            if time.monotonic() > deadline:
+                print(f"could not connect to {args.url}", file=sys.stderr)
+                return 1
+            time.sleep(0.2)
+    if ws.subprotocol not in SUBPROTOCOLS:
+        print(f"server chose subprotocol {ws.subprotocol!r}", file=sys.stderr)
+        return 1
+
+    pools = []
+    channels = {}  # channel id -> (topic, schema name, class)
+    subs = {}  # subscription id -> channel id
+    seen = {}  # topic -> {"schema", "count", "last"}
+    server_name = None
+    closed = False
+    with ws:
+        while time.monotonic() < deadline:
+            done = all(seen.get(t, {}).get("count", 0) >= args.min_messages for t in args.want)
+            if args.want and done:
+                break
+            try:
+                frame = ws.recv(timeout=max(0.1, deadline - time.monotonic()))
+            except TimeoutError:
+                break
+            except ConnectionClosed:
+                closed = True  # the run ended: report what came
+                break
+            if isinstance(frame, str):
+                msg = json.loads(frame)
+                if msg.get("op") == "serverInfo":
+                    server_name = msg.get("name")
+                elif msg.get("op") == "advertise":
+                    new = []
+                    for c in msg["channels"]:
+                        channels[c["id"]] = (c["topic"], c["schemaName"], message_class(c, pools))
+                        sub = len(subs) + 1
+                        subs[sub] = c["id"]
+                        new.append({"id": sub, "channelId": c["id"]})
+                    ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                continue
+            if not frame or frame[0] != OP_MESSAGE_DATA:
+                continue
+            sub, _log_time = struct.unpack_from("<IQ", frame, 1)
+            topic, schema, cls = channels[subs[sub]]
+            m = cls.FromString(frame[13:])
+            s = seen.setdefault(topic, {"schema": schema, "count": 0})
+            s["count"] += 1
+            s["last"] = summary(schema, m)
+
+    out = {"server": server_name, "subprotocol": ws.subprotocol, "closed_by_server": closed, "advertised": sorted(t for t, _, _ in channels.values()), "topics": seen}
+    print(json.dumps(out))
+    missing = [t for t in args.want if seen.get(t, {}).get("count", 0) < args.min_messages]
+    if missing:
+        print(f"no message on: {', '.join(missing)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,102 @@
+//! The live view (issue 17): the main job's graph (config/default.toml on a short mission) with a
+//! `viewer` process; a real client of the `foxglove.websocket.v1` protocol
+//! (tests/python/foxglove_ws_client.py, Python `websockets` + `protobuf`, decoding with the
+//! schemas the server advertises, as the Foxglove app does) connects while the run goes on,
+//! subscribes to every channel and decodes the trajectories, the live pose, the cloud, the
+//! landmarks, the octree and the process states. The pipeline loses nothing to the viewer: the
+//! mapper inserts every cloud, and the viewer saw every one.
+
+use std::path::PathBuf;
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+use pipeline_tests::TestRun;
+
+const LONG: Duration = Duration::from_secs(300);
+
+/// The `[processes.*]` tables of config/default.toml on a 30 s mission at 4x real time with 10
+/// particles (these debug-built runs are about the view, not accuracy), a viewer on `port`,
+/// started before ingest.
+fn default_graph_with_viewer(port: u16) -> String {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../config/default.toml");
+    let text = std::fs::read_to_string(&path).expect("config/default.toml");
+    let start = text.find("[processes.").expect("a process table");
+    let mut procs = text[start..].to_string();
+    let after = r#"after = ["monitor", "slam", "buoy", "map"]"#;
+    assert!(procs.contains(after), "ingest's `after` in config/default.toml changed: update this test");
+    procs = procs.replace(after, r#"after = ["monitor", "slam", "buoy", "map", "view"]"#);
+    let sim = "[processes.ingest.settings.sim]\nseed = 1";
+    assert!(procs.contains(sim), "ingest's sim table in config/default.toml changed: update this test");
+    procs = procs.replace(sim, &format!("{sim}\n[processes.ingest.settings.sim.mission]\nmax_duration_s = 30.0"));
+    // Paced at 4x real time, as a live robot would be (a few seconds for the client to join).
+    let pace = "real_time_factor = 0.0";
+    assert!(procs.contains(pace), "ingest's real_time_factor in config/default.toml changed: update this test");
+    procs = procs.replace(pace, "real_time_factor = 4.0");
+    let particles = "particles = 100";
+    assert!(procs.contains(particles), "fastslam's particles in config/default.toml changed: update this test");
+    procs = procs.replace(particles, "particles = 10");
+    procs.push_str(&format!("\n[processes.view]\nkind = \"viewer\"\n[processes.view.settings]\nport = {port}\n"));
+    procs
+}
+
+#[test]
+fn a_foxglove_client_follows_the_main_job_live_and_the_pipeline_loses_nothing() {
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let mut run = TestRun::new("view");
+    let ends = r#"end = "end_of_stream"
+end_of_stream_from = ["monitor", "slam", "buoy", "sync", "fusion", "map"]
+duration_s = 200"#;
+    let cfg = run.write_config(ends, &default_graph_with_viewer(port));
+    run.start_supervisor(&cfg, &[]);
+    let client = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("python/foxglove_ws_client.py");
+    let mut cmd = Command::new("python3");
+    cmd.arg(&client).args(["--url", &format!("ws://127.0.0.1:{port}"), "--timeout-s", "150", "--min-messages", "2"]);
+    for topic in
+        ["/slam/path", "/buoy/path", "/fused/path", "/fused/pose", "/cloud", "/landmarks", "/octree", "/processes"]
+    {
+        cmd.args(["--want", topic]);
+    }
+    let out = cmd.stderr(Stdio::piped()).output().expect("python3 runs the client");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "client: {stderr}\n{stdout}\nrun log:\n{}", run.log());
+    let seen: serde_json::Value = serde_json::from_str(stdout.trim()).expect("the client's JSON");
+    let t = &seen["topics"];
+    // Foxglove's own schemas, decoded with what the server advertised.
+    for (topic, schema) in [
+        ("/slam/path", "foxglove.PosesInFrame"),
+        ("/fused/pose", "foxglove.PoseInFrame"),
+        ("/cloud", "foxglove.PointCloud"),
+        ("/octree", "foxglove.PointCloud"),
+        ("/processes", "foxglove.Log"),
+    ] {
+        assert_eq!(t[topic]["schema"], schema, "{topic}: {seen:#}");
+    }
+    for topic in ["/slam/path", "/buoy/path", "/fused/path"] {
+        assert!(t[topic]["last"]["poses"].as_u64().unwrap_or(0) >= 2, "{topic}: {seen:#}");
+        assert_eq!(t[topic]["last"]["finite"], true, "{topic}: {seen:#}");
+        assert_eq!(t[topic]["last"]["frame_id"], "world", "{topic}: {seen:#}");
+    }
+    let cloud = &t["/cloud"]["last"];
+    assert!(cloud["points"].as_u64().unwrap_or(0) >= 1, "{seen:#}");
+    assert_eq!(cloud["fields"], serde_json::json!(["x", "y", "z"]), "{seen:#}");
+    assert_eq!(cloud["finite"], true, "{seen:#}");
+    let octree = &t["/octree"]["last"];
+    assert!(octree["points"].as_u64().unwrap_or(0) >= 100, "the octree's voxels: {seen:#}");
+    assert_eq!(octree["fields"][3], "occupancy", "{seen:#}");
+    assert!(t["/landmarks"]["last"]["points"].as_u64().unwrap_or(0) >= 1, "{seen:#}");
+    let state = t["/processes"]["last"]["message"].as_str().unwrap_or_default();
+    assert!(state.contains("messages in"), "{state}");
+
+    let status = run.wait_supervisor(LONG).expect("the run ends");
+    assert_eq!(status.code(), Some(0), "{}", run.log());
+    assert_eq!(run.leftovers(), Vec::<PathBuf>::new(), "iceoryx2 files left behind");
+    let s = run.summary();
+    let v = &s["viewer"];
+    assert!(v["clients_max"].as_u64().unwrap_or(0) >= 1, "{v:#}");
+    assert_eq!(v["not_shown"], serde_json::json!({}), "{v:#}");
+    // The viewer saw every cloud and the mapper inserted every one: nothing lost to the view.
+    let inserted = s["octree_mapper"]["counters"]["clouds_inserted"].as_u64().unwrap();
+    assert_eq!(v["channels"]["/cloud"]["received"].as_u64(), Some(inserted), "{v:#}\n{:#}", s["octree_mapper"]);
+    assert!(v["channels"]["/cloud"]["logged"].as_u64().unwrap_or(0) >= 1, "{v:#}");
+}
