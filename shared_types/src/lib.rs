@@ -8,6 +8,8 @@
 //! and from nalgebra ([`convert`]).
 
 pub mod convert;
+#[cfg(feature = "foxglove")]
+pub mod foxglove;
 pub mod layout;
 pub mod services;
 mod types;

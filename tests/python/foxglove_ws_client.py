@@ -15,60 +15,18 @@ Needs the PyPI packages `websockets` and `protobuf` (scripts/test.sh installs th
 import argparse
 import base64
 import json
-import math
+import os
 import struct
 import sys
 import time
 
-from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from foxglove_decode import message_class, summary  # noqa: E402
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 OP_MESSAGE_DATA = 1
-
-
-def message_class(channel, pools):
-    """The protobuf class of a channel, from its advertised FileDescriptorSet."""
-    if channel.get("encoding") != "protobuf" or channel.get("schemaEncoding") != "protobuf":
-        raise ValueError(f"{channel['topic']}: not a protobuf channel: {channel}")
-    fds = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"]))
-    pool = descriptor_pool.DescriptorPool()
-    for f in fds.file:
-        pool.Add(f)
-    pools.append(pool)
-    return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
-
-
-def vec(v):
-    return [v.x, v.y, v.z]
-
-
-def summary(schema, m):
-    """What a decoded message held, in a few numbers."""
-    if schema == "foxglove.PointCloud":
-        n = len(m.data) // m.point_stride if m.point_stride else 0
-        names = [f.name for f in m.fields]
-        first = list(struct.unpack_from(f"<{len(names)}f", m.data, 0)) if n else []
-        return {
-            "points": n,
-            "fields": names,
-            "frame_id": m.frame_id,
-            "first": first,
-            "finite": all(math.isfinite(x) for x in first),
-        }
-    if schema == "foxglove.PosesInFrame":
-        last = vec(m.poses[-1].position) if m.poses else []
-        return {"poses": len(m.poses), "frame_id": m.frame_id, "last": last,
-                "finite": all(math.isfinite(x) for x in last)}
-    if schema == "foxglove.PoseInFrame":
-        p = vec(m.pose.position)
-        return {"position": p, "frame_id": m.frame_id, "finite": all(math.isfinite(x) for x in p)}
-    if schema == "foxglove.Log":
-        return {"name": m.name, "message": m.message}
-    if schema == "foxglove.Grid":
-        return {"columns": m.column_count, "cells": len(m.data)}
-    return {}
 
 
 def main():
@@ -118,7 +76,10 @@ def main():
                 elif msg.get("op") == "advertise":
                     new = []
                     for c in msg["channels"]:
-                        channels[c["id"]] = (c["topic"], c["schemaName"], message_class(c, pools))
+                        if c.get("encoding") != "protobuf" or c.get("schemaEncoding") != "protobuf":
+                            raise ValueError(f"{c['topic']}: not a protobuf channel: {c}")
+                        cls = message_class(base64.b64decode(c["schema"]), c["schemaName"], pools)
+                        channels[c["id"]] = (c["topic"], c["schemaName"], cls)
                         sub = len(subs) + 1
                         subs[sub] = c["id"]
                         new.append({"id": sub, "channelId": c["id"]})

@@ -81,6 +81,37 @@ fn the_main_job_leaves_room_for_a_viewer_and_a_recorder_on_every_service() {
     // The mapper inserted every cloud the recorders saw.
     let clouds = s["recorders"]["rec1"]["messages"]["pipeline/sensors/cloud"].as_u64().unwrap();
     assert_eq!(s["octree_mapper"]["counters"]["clouds_inserted"].as_u64(), Some(clouds), "{:#}", s["octree_mapper"]);
+
+    // The recording opens in Foxglove: Python's mcap reader finds Foxglove's schemas next to the
+    // raw channels and decodes a cloud, the poses and the octree with the schemas in the file.
+    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("python/mcap_foxglove.py");
+    let out = std::process::Command::new("python3")
+        .arg(&script)
+        .arg(run.out_dir().join("rec1.mcap"))
+        .output()
+        .expect("python3 runs tests/python/mcap_foxglove.py");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let fox: serde_json::Value = serde_json::from_slice(&out.stdout).expect("its JSON");
+    let rec = &s["recorders"]["rec1"];
+    for (topic, schema, service) in [
+        ("/cloud", "foxglove.PointCloud", "pipeline/sensors/cloud"),
+        ("/fused/pose", "foxglove.PoseInFrame", "pipeline/fusion/pose"),
+        ("/slam/pose", "foxglove.PoseInFrame", "pipeline/slam/pose"),
+        ("/buoy/pose", "foxglove.PoseInFrame", "pipeline/buoy/fix"),
+        ("/landmarks", "foxglove.PointCloud", "pipeline/fusion/map"),
+    ] {
+        assert_eq!(fox[topic]["schema"], schema, "{topic}: {fox:#}");
+        // One Foxglove message per raw one, counted the same by the recorder and Python.
+        assert_eq!(fox[topic]["count"], rec["messages"][service], "{topic}: {fox:#}\n{rec:#}");
+        assert_eq!(fox[topic]["count"], rec["foxglove_messages"][topic], "{topic}: {rec:#}");
+    }
+    assert_eq!(fox["/fused/pose"]["last"]["finite"], true, "{fox:#}");
+    assert_eq!(fox["/fused/pose"]["last"]["frame_id"], "world", "{fox:#}");
+    assert!(fox["/cloud"]["last"]["points"].as_u64().unwrap_or(0) > 0, "{fox:#}");
+    // The octree: its full voxel sets (not the deltas), with the voxels' fields.
+    assert_eq!(fox["/octree"]["schema"], "foxglove.PointCloud", "{fox:#}");
+    assert!(fox["/octree"]["last"]["points"].as_u64().unwrap_or(0) > 100, "{fox:#}");
+    assert_eq!(fox["/octree"]["last"]["fields"][3], "occupancy", "{fox:#}");
 }
 
 #[test]

@@ -67,6 +67,11 @@ pub struct RecorderSettings {
     /// Also write `<service>/json` channels (JSON schema, `json` encoding) for the slam pose,
     /// buoy fix and fused pose, which Foxglove can plot.
     pub json_mirror: bool,
+    /// Also write channels with Foxglove's own schemas (protobuf) next to the raw ones, so that
+    /// Foxglove's 3D panel shows the recording: poses (`/slam/pose`, `/buoy/pose`, `/fused/pose`,
+    /// `/grid_slam/pose`), `/cloud`, `/slam/landmarks`, `/landmarks`, `/octree` (the full voxel
+    /// sets) and `/grid` (see `shared_types::foxglove::mirror_of`).
+    pub foxglove_channels: bool,
 }
 
 impl Default for RecorderSettings {
@@ -82,6 +87,7 @@ impl Default for RecorderSettings {
             flush_interval_s: 1.0,
             queue_messages: 1024,
             json_mirror: true,
+            foxglove_channels: true,
         }
     }
 }
@@ -162,6 +168,8 @@ pub struct SinkReport {
     pub max_queued: usize,
     /// log_time of the first and last message, ns.
     pub log_time_range_ns: Option<(u64, u64)>,
+    /// Messages written per Foxglove-schema channel (by topic).
+    pub foxglove_messages: BTreeMap<String, u64>,
 }
 
 enum Job {
@@ -182,6 +190,8 @@ pub struct SinkOptions {
     pub queue: usize,
     /// Write JSON mirror channels.
     pub json_mirror: bool,
+    /// Write Foxglove-schema channels.
+    pub foxglove_channels: bool,
 }
 
 /// What recording can fail with; each names the file or the service.
@@ -278,6 +288,7 @@ impl McapSink {
             .map_err(mcap_err)?;
         let mut channels = vec![];
         let mut mirrors = vec![];
+        let mut foxglove = vec![];
         for t in topics {
             let schema = serde_json::to_vec_pretty(&t.schema_json())?;
             let schema_id = writer.add_schema(t.payload_type_name(), SCHEMA_ENCODING, &schema).map_err(mcap_err)?;
@@ -301,6 +312,18 @@ impl McapSink {
                 _ => None,
             };
             mirrors.push(mirror);
+            let fox = match shared_types::foxglove::mirror_of(t.service) {
+                Some(m) if options.foxglove_channels => {
+                    let sid =
+                        writer.add_schema(&m.schema.name, &m.schema.encoding, &m.schema.data).map_err(mcap_err)?;
+                    Some((
+                        m.topic,
+                        writer.add_channel(sid, m.topic, &m.message_encoding, &BTreeMap::new()).map_err(mcap_err)?,
+                    ))
+                }
+                _ => None,
+            };
+            foxglove.push(fox);
         }
         writer.write_metadata(&mcap::records::Metadata { name: "slam_pipeline".into(), metadata }).map_err(mcap_err)?;
         let services: Vec<&'static str> = topics.iter().map(|t| t.service).collect();
@@ -311,7 +334,7 @@ impl McapSink {
         let p = path.to_path_buf();
         let thread = std::thread::Builder::new()
             .name("mcap-writer".into())
-            .spawn(move || write_loop(writer, rx, &services, &channels, &mirrors, flush_interval, &q, &p))
+            .spawn(move || write_loop(writer, rx, &services, &channels, &mirrors, &foxglove, flush_interval, &q, &p))
             .map_err(io("starting the writer thread of"))?;
         Ok(Self { path: path.to_path_buf(), tx: Some(tx), queued, thread: Some(thread) })
     }
@@ -365,6 +388,7 @@ fn write_loop(
     services: &[&'static str],
     channels: &[u16],
     mirrors: &[Option<u16>],
+    foxglove: &[Option<(&'static str, u16)>],
     flush_interval: Option<Duration>,
     queued: &std::sync::atomic::AtomicUsize,
     path: &Path,
@@ -372,6 +396,7 @@ fn write_loop(
     let mut report = SinkReport::default();
     let mut sequence = vec![0u32; channels.len()];
     let mut mirror_sequence = vec![0u32; channels.len()];
+    let mut foxglove_sequence = vec![0u32; channels.len()];
     let mut last_flush = Instant::now();
     let mut unflushed = false;
     let wait = flush_interval.unwrap_or(Duration::from_secs(3600));
@@ -408,6 +433,19 @@ fn write_loop(
                         };
                         mirror_sequence[topic] = mirror_sequence[topic].wrapping_add(1);
                         writer.write_to_known_channel(&h, json.to_string().as_bytes()).map_err(err)?;
+                    }
+                    if let Some(Some((fox_topic, fox_channel))) = foxglove.get(topic)
+                        && let Some(bytes) = shared_types::foxglove::encode_recorded(service, &data)
+                    {
+                        let h = mcap::records::MessageHeader {
+                            channel_id: *fox_channel,
+                            sequence: foxglove_sequence[topic],
+                            // The raw message's log and publish times.
+                            ..header
+                        };
+                        foxglove_sequence[topic] = foxglove_sequence[topic].wrapping_add(1);
+                        writer.write_to_known_channel(&h, &bytes).map_err(err)?;
+                        *report.foxglove_messages.entry(fox_topic.to_string()).or_default() += 1;
                     }
                     *report.messages.entry(service.to_string()).or_default() += 1;
                     *report.bytes.entry(service.to_string()).or_default() += data.len() as u64;
@@ -545,6 +583,7 @@ mod tests {
             flush_interval: None,
             queue: 4,
             json_mirror: true,
+            foxglove_channels: true,
         };
         let sink = McapSink::create(&path, &topics, &opts, BTreeMap::from([("k".into(), "v".into())])).unwrap();
         let mut sent = vec![];

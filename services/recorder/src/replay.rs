@@ -411,6 +411,7 @@ mod tests {
             flush_interval: None,
             queue: 8,
             json_mirror: false,
+            foxglove_channels: false,
         };
         let sink = McapSink::create(path, &topics, &opts, BTreeMap::new()).unwrap();
         for (t, log, publish, data) in items {

@@ -142,6 +142,7 @@ impl Stage for RecorderStage {
                 .then(|| Duration::from_secs_f64(settings.flush_interval_s)),
             queue: settings.queue_messages,
             json_mirror: settings.json_mirror,
+            foxglove_channels: settings.foxglove_channels,
         };
         Ok(Self {
             counts: vec![Counts::default(); topics.len()],
@@ -255,6 +256,7 @@ impl Stage for RecorderStage {
             "active_s": active_s,
             "messages_per_s": total as f64 / active_s.max(1e-9),
             "max_queued": r.max_queued,
+            "foxglove_messages": r.foxglove_messages,
             "wall_s": self.started.elapsed().as_secs_f64(),
         });
         Ok(serde_json::json!({ "recorder": part.clone(), "recorders": { rt.name(): part } }))

@@ -5,72 +5,16 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use foxglove::schemas::packed_element_field::NumericType;
-use foxglove::schemas::{
-    Grid, Log, PackedElementField, PointCloud, Pose, PoseInFrame, PosesInFrame, Quaternion, Timestamp, Vector2, Vector3,
-};
-use foxglove::{Channel, Context, WebSocketServerHandle};
+use ::foxglove::messages::{Grid, Log, PointCloud, Pose, PoseInFrame, PosesInFrame};
+use ::foxglove::{Channel, Context, WebSocketServerHandle};
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
 use pipeline_runtime::{Input, Output, ProcessContext, Runtime, StageError, Wake};
+use shared_types::foxglove::{self as fx, FRAME, pose as pose_of, stamp};
 use shared_types::services::{self, CONTROL_QOS};
 use shared_types::voxel_stream::{VoxelKey, apply};
 use shared_types::*;
 
 use crate::ViewerSettings;
-
-/// The world frame every channel is in.
-const FRAME: &str = "world";
-
-fn stamp(ns: u64) -> Option<Timestamp> {
-    Some(Timestamp::new((ns / 1_000_000_000) as u32, (ns % 1_000_000_000) as u32))
-}
-
-fn pose_of(position_m: [f64; 3], q_xyzw: [f64; 4]) -> Pose {
-    Pose {
-        position: Some(Vector3 { x: position_m[0], y: position_m[1], z: position_m[2] }),
-        orientation: Some(Quaternion { x: q_xyzw[0], y: q_xyzw[1], z: q_xyzw[2], w: q_xyzw[3] }),
-    }
-}
-
-/// `float32` fields at 4-byte offsets, in order.
-fn f32_fields(names: &[&str]) -> Vec<PackedElementField> {
-    names
-        .iter()
-        .enumerate()
-        .map(|(i, n)| PackedElementField {
-            name: (*n).into(),
-            offset: 4 * i as u32,
-            r#type: NumericType::Float32 as i32,
-        })
-        .collect()
-}
-
-/// A point cloud of `rows` (each the same number of `float32` fields, named `fields`).
-fn cloud_of(
-    ns: u64,
-    pose: Pose,
-    fields: &[&str],
-    rows: impl Iterator<Item = impl IntoIterator<Item = f32>>,
-) -> PointCloud {
-    let mut data = Vec::new();
-    for row in rows {
-        for v in row {
-            data.extend_from_slice(&v.to_le_bytes());
-        }
-    }
-    PointCloud {
-        timestamp: stamp(ns),
-        frame_id: FRAME.into(),
-        pose: Some(pose),
-        point_stride: 4 * fields.len() as u32,
-        fields: f32_fields(fields),
-        data: data.into(),
-    }
-}
-
-fn identity() -> Pose {
-    pose_of([0.0; 3], [0.0, 0.0, 0.0, 1.0])
-}
 
 /// A rate limit: `due` at most once per `period`.
 struct Every {
@@ -276,7 +220,7 @@ impl ViewerStage {
                 c.received += 1;
                 if self.fused_now.has_sinks() {
                     c.logged += 1;
-                    self.fused_now.log(&PoseInFrame { timestamp: stamp(ns), frame_id: FRAME.into(), pose: Some(pose) });
+                    self.fused_now.log(&fx::pose_in_frame(ns, pose));
                 } else {
                     c.skipped_unwatched += 1;
                 }
@@ -308,18 +252,7 @@ impl ViewerStage {
         while let Some(s) = i.receive()? {
             let c = self.counts.entry("/cloud").or_default();
             if Self::wanted(c, watched, &mut self.cloud_every) {
-                let h = *s.user_header();
-                let pose = if h.flags & CLOUD_HAS_POSE != 0 {
-                    pose_of(h.sensor_origin_m, h.orientation_xyzw)
-                } else {
-                    identity()
-                };
-                latest = Some(cloud_of(
-                    h.msg.stamp_ns,
-                    pose,
-                    &["x", "y", "z"],
-                    s.payload().iter().map(|p| [p.x_m, p.y_m, p.z_m]),
-                ));
+                latest = Some(fx::cloud(s.user_header(), s.payload()));
             }
         }
         if let Some(m) = latest {
@@ -336,14 +269,7 @@ impl ViewerStage {
             while let Some(s) = input.receive()? {
                 let c = self.counts.entry("/landmarks").or_default();
                 if Self::wanted(c, watched, &mut self.landmarks_every) {
-                    latest = Some(cloud_of(
-                        s.user_header().msg.stamp_ns,
-                        identity(),
-                        &["x", "y", "z", "observations"],
-                        s.payload().iter().map(|l| {
-                            [l.mean_m[0] as f32, l.mean_m[1] as f32, l.mean_m[2] as f32, l.observation_count as f32]
-                        }),
-                    ));
+                    latest = Some(fx::landmarks(s.user_header(), s.payload()));
                 }
             }
             if let Some(m) = latest {
@@ -397,14 +323,7 @@ impl ViewerStage {
         if self.octree_dirty && watched && self.octree_every.due() {
             self.octree_dirty = false;
             self.count("/octree").logged += 1;
-            let m = cloud_of(
-                self.octree_stamp,
-                identity(),
-                &["x", "y", "z", "occupancy", "class", "size"],
-                self.octree
-                    .values()
-                    .map(|v| [v.center_m[0], v.center_m[1], v.center_m[2], v.occupancy, v.class as f32, v.size_m]),
-            );
+            let m = fx::voxels(self.octree_stamp, self.octree.values());
             self.octree_ch.log(&m);
         }
         Ok(())
@@ -417,23 +336,7 @@ impl ViewerStage {
         while let Some(s) = i.receive()? {
             let c = self.counts.entry("/grid").or_default();
             if Self::wanted(c, watched, &mut self.grid_every) {
-                let h = *s.user_header();
-                let data: Vec<u8> = s.payload().iter().map(|c| c.value as u8).collect();
-                latest = Some(Grid {
-                    timestamp: stamp(h.msg.stamp_ns),
-                    frame_id: FRAME.into(),
-                    pose: Some(pose_of([h.origin_m[0], h.origin_m[1], 0.0], [0.0, 0.0, 0.0, 1.0])),
-                    column_count: h.width,
-                    cell_size: Some(Vector2 { x: h.resolution_m, y: h.resolution_m }),
-                    row_stride: h.width,
-                    cell_stride: 1,
-                    fields: vec![PackedElementField {
-                        name: "occupancy".into(),
-                        offset: 0,
-                        r#type: NumericType::Int8 as i32,
-                    }],
-                    data: data.into(),
-                });
+                latest = Some(fx::grid(s.user_header(), s.payload()));
             }
         }
         if let Some(m) = latest {
@@ -651,21 +554,5 @@ mod tests {
         assert!(xs.windows(2).all(|w| w[0] < w[1]), "in order");
         assert_eq!(p.thinned as usize + p.poses.len(), 1000);
         assert_eq!(p.last_ns, 999);
-    }
-
-    #[test]
-    fn a_point_cloud_packs_its_rows_as_float32_fields() {
-        let m = cloud_of(
-            1_500_000_000,
-            identity(),
-            &["x", "y", "z", "w"],
-            [[1.0f32, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0]].into_iter(),
-        );
-        assert_eq!(m.point_stride, 16);
-        assert_eq!(m.data.len(), 32);
-        assert_eq!(m.fields.iter().map(|f| f.offset).collect::<Vec<_>>(), [0, 4, 8, 12]);
-        assert_eq!(f32::from_le_bytes(m.data[20..24].try_into().unwrap()), 6.0);
-        let t = m.timestamp.unwrap();
-        assert_eq!((t.sec(), t.nsec()), (1, 500_000_000));
     }
 }
