@@ -63,6 +63,11 @@ pub struct FastSlamSettings {
     pub frontend: FrontEndConfig,
     /// Rate of the best particle's landmark map on `pipeline/slam/landmarks`, Hz (0 = only at the end).
     pub landmarks_rate_hz: f64,
+    /// Stereo frames its input holds (1 to the service's 8): a replay as fast as possible is then
+    /// at most this many frames ahead of SLAM (the frame-to-pose latency stays near one frame's
+    /// work instead of a queue of them); a live source drops frames (counted) when SLAM falls
+    /// this far behind.
+    pub stereo_queue: usize,
     /// Ground truth to evaluate against at the end (TUM; relative to the output directory);
     /// skipped when missing.
     pub ground_truth: String,
@@ -76,6 +81,7 @@ impl Default for FastSlamSettings {
             camera: CameraMount::default(),
             frontend: FrontEndConfig::default(),
             landmarks_rate_hz: 1.0,
+            stereo_queue: 2,
             ground_truth: "ground_truth.tum".into(),
         }
     }
@@ -89,6 +95,13 @@ impl ProcessSettings for FastSlamSettings {
         for (k, m) in self.frontend.validate() {
             issues.push(format!("{key}.frontend.{k}"), m);
         }
+        let max =
+            shared_types::services::service_spec(shared_types::services::STEREO).map_or(1, |s| s.qos.subscriber_buffer);
+        issues.check(
+            (1..=max).contains(&self.stereo_queue),
+            format!("{key}.stereo_queue"),
+            format!("must be 1..={max} (the stereo service's subscriber buffer), got {}", self.stereo_queue),
+        );
         issues.check(
             self.landmarks_rate_hz.is_finite() && self.landmarks_rate_hz >= 0.0,
             format!("{key}.landmarks_rate_hz"),

@@ -111,7 +111,7 @@ impl Stage for FastSlamStage {
             FastSlam::new(settings.filter.clone()).map_err(|p| StageError::Settings(format!("filter: {p:?}")))?;
         let body_from_camera = settings.body_from_camera();
         let odometry = rt.input(ODOMETRY)?;
-        let stereo = rt.input(STEREO)?;
+        let stereo = rt.input_with_buffer(STEREO, settings.stereo_queue)?;
         let commands = rt.input(COMMAND)?;
         let out = Outputs {
             pose: rt.output(SLAM_POSE)?,

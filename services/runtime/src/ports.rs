@@ -674,16 +674,18 @@ enum InLink<P: Payload + ?Sized, H: Header> {
 }
 
 impl<P: Payload + ?Sized, H: Header> Input<P, H> {
-    /// Creates a subscriber on `name` with `qos`, named after its node (the consumer a
-    /// publisher counts dropped samples for).
+    /// Creates a subscriber on `name` with `qos` holding at most `buffer` samples (at most the
+    /// service's `qos.subscriber_buffer`), named after its node (the consumer a publisher counts
+    /// dropped samples for).
     pub fn create(
         node: &Node<ipc::Service>,
         name: &str,
         qos: &Qos,
+        buffer: usize,
         stats: Rc<RefCell<PortStats>>,
     ) -> Result<Self, PortError> {
         let factory = P::open_service::<H>(node, name, qos)?;
-        let mut builder = factory.subscriber_builder().buffer_size(qos.subscriber_buffer);
+        let mut builder = factory.subscriber_builder().buffer_size(buffer.clamp(1, qos.subscriber_buffer));
         if let Ok(port_name) = iceoryx2::port::port_name::PortName::new(node.name().as_str()) {
             builder = builder.name(&port_name);
         }

@@ -499,9 +499,31 @@ impl Runtime {
         service: &str,
         qos: &Qos,
     ) -> Result<Input<P, H>, RuntimeError> {
+        self.input_with_buffer_qos(service, qos, qos.subscriber_buffer)
+    }
+
+    /// Subscriber on a service of the contract that holds at most `buffer` samples (1 up to the
+    /// service's subscriber buffer): a replaying source that waits for its subscribers is then at
+    /// most `buffer` messages ahead of this one (its latency through the queue stays short),
+    /// and a live source drops (counted) when this process falls `buffer` messages behind.
+    pub fn input_with_buffer<P: crate::ports::Payload + ?Sized, H: Header>(
+        &mut self,
+        service: &str,
+        buffer: usize,
+    ) -> Result<Input<P, H>, RuntimeError> {
+        let qos = qos_of(service)?;
+        self.input_with_buffer_qos(service, &qos, buffer)
+    }
+
+    fn input_with_buffer_qos<P: crate::ports::Payload + ?Sized, H: Header>(
+        &mut self,
+        service: &str,
+        qos: &Qos,
+        buffer: usize,
+    ) -> Result<Input<P, H>, RuntimeError> {
         let stats = self.port_stats(service, true);
         let input = match self.node_or_local(service) {
-            Ok(node) => Input::create(node, service, qos, stats)?,
+            Ok(node) => Input::create(node, service, qos, buffer, stats)?,
             Err(bus) => Input::local(service, bus.queue(service, Side::Input)?, stats),
         };
         self.listeners.extend(input.listener());
