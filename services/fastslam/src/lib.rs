@@ -355,3 +355,19 @@ impl SlamState {
         out
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_stereo_queue_outside_the_services_buffer_is_refused_naming_its_key() {
+        for (q, ok) in [(0, false), (1, true), (2, true), (8, true), (9, false)] {
+            let s = FastSlamSettings { stereo_queue: q, ..Default::default() };
+            let mut issues = Issues::default();
+            s.validate("processes.slam.settings", &mut issues);
+            let text = format!("{issues:?}");
+            assert_eq!(!text.contains("processes.slam.settings.stereo_queue"), ok, "{q}: {text}");
+        }
+    }
+}
