@@ -181,6 +181,36 @@ mod tests {
     }
 
     #[test]
+    fn an_occupancy_grid_keeps_its_cells_rows_origin_and_resolution() {
+        let h = OccupancyGridHeader {
+            resolution_m: 0.05,
+            origin_m: [-2.0, 3.0],
+            width: 3,
+            height: 2,
+            ..Default::default()
+        };
+        let cells: Vec<OccupancyCell> =
+            [-1i8, 0, 100, 50, -1, 7].iter().map(|&value| OccupancyCell { value }).collect();
+        let g = grid(&h, &cells);
+        assert_eq!((g.column_count, g.row_stride, g.cell_stride), (3, 3, 1));
+        assert_eq!(g.data.iter().map(|&b| b as i8).collect::<Vec<_>>(), [-1, 0, 100, 50, -1, 7]);
+        assert_eq!(g.cell_size.unwrap().x, 0.05);
+        let at = g.pose.unwrap().position.unwrap();
+        assert_eq!((at.x, at.y, at.z), (-2.0, 3.0, 0.0));
+        assert_eq!(g.fields[0].r#type, NumericType::Int8 as i32);
+    }
+
+    #[test]
+    fn landmarks_become_points_with_their_observation_counts() {
+        let l = Landmark { mean_m: [1.5, -2.5, 30.0], observation_count: 12, ..Default::default() };
+        let c = landmarks(&LandmarkMapHeader::default(), &[l, l]);
+        assert_eq!(c.point_stride, 16);
+        assert_eq!(c.data.len(), 32);
+        assert_eq!(f32::from_le_bytes(c.data[12..16].try_into().unwrap()), 12.0);
+        assert_eq!(f32::from_le_bytes(c.data[4..8].try_into().unwrap()), -2.5);
+    }
+
+    #[test]
     fn recorded_bytes_become_elements_or_nothing() {
         let pts = [CloudPoint { x_m: 1.0, y_m: 2.0, z_m: 3.0 }, CloudPoint { x_m: 4.0, y_m: 5.0, z_m: 6.0 }];
         let bytes: Vec<u8> = pts.iter().flat_map(|p| p.as_bytes().to_vec()).collect();
