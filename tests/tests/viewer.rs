@@ -2,7 +2,7 @@
 //! `viewer` process; a real client of the `foxglove.websocket.v1` protocol
 //! (tests/python/foxglove_ws_client.py, Python `websockets` + `protobuf`, decoding with the
 //! schemas the server advertises, as the Foxglove app does) connects while the run goes on,
-//! subscribes to every channel and decodes the trajectories, the live pose, the cloud, the
+//! subscribes to every channel and decodes the trajectories (ground truth included), the live pose, the cloud, the
 //! landmarks, the octree and the process states. The pipeline loses nothing to the viewer: the
 //! mapper inserts every cloud, and the viewer saw every one.
 
@@ -72,7 +72,7 @@ duration_s = 200"#;
     ] {
         assert_eq!(t[topic]["schema"], schema, "{topic}: {seen:#}");
     }
-    for topic in ["/slam/path", "/buoy/path", "/fused/path"] {
+    for topic in ["/ground_truth/path", "/slam/path", "/buoy/path", "/fused/path"] {
         assert!(t[topic]["last"]["poses"].as_u64().unwrap_or(0) >= 2, "{topic}: {seen:#}");
         assert_eq!(t[topic]["last"]["finite"], true, "{topic}: {seen:#}");
         assert_eq!(t[topic]["last"]["frame_id"], "world", "{topic}: {seen:#}");

@@ -5,7 +5,7 @@
 //!
 //! | topic | schema | what |
 //! |---|---|---|
-//! | `/slam/path`, `/buoy/path`, `/fused/path`, `/grid_slam/path` | `foxglove.PosesInFrame` | the trajectories so far (world frame) |
+//! | `/ground_truth/path`, `/slam/path`, `/buoy/path`, `/fused/path`, `/grid_slam/path` | `foxglove.PosesInFrame` | the trajectories so far (world frame; ground truth from `<out_dir>/ground_truth.tum` as the source writes it) |
 //! | `/fused/pose` | `foxglove.PoseInFrame` | the latest fused pose |
 //! | `/cloud` | `foxglove.PointCloud` | the current point cloud (x, y, z float32; placed at the sensor pose when it has one) |
 //! | `/landmarks` | `foxglove.PointCloud` | the landmark map (the fused global map, else SLAM's) |

@@ -72,6 +72,59 @@ impl Path {
     }
 }
 
+/// `<out_dir>/ground_truth.tum` read as the source writes it (whole lines, as it learns the
+/// truth; a restarted source truncates it and the path starts over).
+struct TruthTail {
+    path: std::path::PathBuf,
+    offset: u64,
+    partial: String,
+    /// The file's first bytes as last read: a file written anew (a stale one from an earlier run
+    /// replaced by this run's source) starts differently.
+    head: Vec<u8>,
+    /// Lines that are not a TUM pose (counted).
+    bad_lines: u64,
+}
+
+impl TruthTail {
+    /// The poses (stamp ns, pose) written since the last call; `reset` is set when the file
+    /// was truncated.
+    fn read_new(&mut self, reset: &mut bool) -> Vec<(u64, Pose)> {
+        use std::io::{Read, Seek, SeekFrom};
+        let Ok(mut f) = std::fs::File::open(&self.path) else { return vec![] };
+        let len = f.metadata().map(|m| m.len()).unwrap_or(0);
+        let mut head = vec![0u8; len.min(64) as usize];
+        if f.read_exact(&mut head).is_err() {
+            return vec![];
+        }
+        let same = head.iter().zip(&self.head).all(|(a, b)| a == b);
+        self.head = head;
+        if len < self.offset || !same {
+            *reset = true;
+            self.offset = 0;
+            self.partial.clear();
+        }
+        if len == self.offset || f.seek(SeekFrom::Start(self.offset)).is_err() {
+            return vec![];
+        }
+        let mut text = String::new();
+        let Ok(n) = f.take(len - self.offset).read_to_string(&mut text) else { return vec![] };
+        self.offset += n as u64;
+        self.partial.push_str(&text);
+        let Some(end) = self.partial.rfind('\n') else { return vec![] };
+        let complete: String = self.partial.drain(..=end).collect();
+        let mut out = vec![];
+        for line in complete.lines().map(str::trim).filter(|l| !l.is_empty() && !l.starts_with('#')) {
+            let v: Vec<f64> = line.split_whitespace().filter_map(|x| x.parse().ok()).collect();
+            if v.len() != 8 || v.iter().any(|x| !x.is_finite()) || v[0] < 0.0 {
+                self.bad_lines += 1;
+                continue;
+            }
+            out.push(((v[0] * 1e9).round() as u64, pose_of([v[1], v[2], v[3]], [v[4], v[5], v[6], v[7]])));
+        }
+        out
+    }
+}
+
 /// The `viewer` stage.
 pub struct ViewerStage {
     settings: ViewerSettings,
@@ -95,6 +148,7 @@ pub struct ViewerStage {
     /// Inputs that could not be opened (the service full, say), with why.
     not_shown: BTreeMap<String, String>,
     paths: BTreeMap<&'static str, Path>,
+    truth: TruthTail,
     fused_now: Channel<PoseInFrame>,
     cloud_ch: Channel<PointCloud>,
     landmarks_ch: Channel<PointCloud>,
@@ -202,6 +256,13 @@ impl ViewerStage {
                     pose_of(p.position_m, [0.0, 0.0, 0.0, 1.0]),
                 );
             }
+        }
+        let mut reset = false;
+        for (ns, pose) in self.truth.read_new(&mut reset) {
+            add(&mut self.paths, &mut self.counts, "/ground_truth/path", ns, pose);
+        }
+        if reset && let Some(p) = self.paths.get_mut("/ground_truth/path") {
+            p.poses.clear(); // the source restarted: its ground truth starts over
         }
         if let Some(i) = &self.fused_pose {
             let mut latest = None;
@@ -415,6 +476,7 @@ impl Stage for ViewerStage {
             ("/buoy/path", path("/buoy/path")),
             ("/fused/path", path("/fused/path")),
             ("/grid_slam/path", path("/grid_slam/path")),
+            ("/ground_truth/path", path("/ground_truth/path")),
         ]);
         let fused_now = context.channel_builder("/fused/pose").build();
         let cloud_ch = context.channel_builder("/cloud").build();
@@ -465,6 +527,13 @@ impl Stage for ViewerStage {
             snapshots_asked: 0,
             not_shown,
             paths,
+            truth: TruthTail {
+                path: ctx.out_dir.join("ground_truth.tum"),
+                offset: 0,
+                partial: String::new(),
+                head: vec![],
+                bad_lines: 0,
+            },
             fused_now,
             cloud_ch,
             landmarks_ch,
@@ -525,6 +594,7 @@ impl Stage for ViewerStage {
                 "path_poses_thinned": thinned,
                 "octree_deltas_before_a_full_set": self.octree_waiting,
                 "octree_snapshots_asked": self.snapshots_asked,
+                "ground_truth_bad_lines": self.truth.bad_lines,
                 "seconds": self.started.elapsed().as_secs_f64(),
             }
         }))
@@ -554,5 +624,37 @@ mod tests {
         assert!(xs.windows(2).all(|w| w[0] < w[1]), "in order");
         assert_eq!(p.thinned as usize + p.poses.len(), 1000);
         assert_eq!(p.last_ns, 999);
+    }
+}
+
+#[cfg(test)]
+mod truth_tests {
+    use super::*;
+    use std::io::Write;
+
+    #[test]
+    fn the_ground_truth_file_is_followed_as_it_grows_and_started_over_when_rewritten() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("ground_truth.tum");
+        let mut t = TruthTail { path: path.clone(), offset: 0, partial: String::new(), head: vec![], bad_lines: 0 };
+        let mut reset = false;
+        assert!(t.read_new(&mut reset).is_empty(), "no file yet");
+        let mut f = std::fs::File::create(&path).unwrap();
+        write!(f, "1.0 1 2 3 0 0 0 1\n2.5 4 5 6 0 0 0 1\n3.0 7 8").unwrap();
+        let got = t.read_new(&mut reset);
+        assert_eq!(got.iter().map(|(ns, _)| *ns).collect::<Vec<_>>(), [1_000_000_000, 2_500_000_000]);
+        assert_eq!(got[1].1.position.unwrap().y, 5.0);
+        write!(f, " 9 0 0 0 1\nnot a pose\n").unwrap();
+        let got = t.read_new(&mut reset);
+        assert_eq!(got.len(), 1, "the line completed");
+        assert_eq!(got[0].1.position.unwrap().z, 9.0);
+        assert_eq!(t.bad_lines, 1);
+        assert!(!reset);
+        // Written anew (a restarted source, or this run's replacing an earlier run's file).
+        std::fs::write(&path, "5.0 0 0 0 0 0 0 1\n6.0 1 1 1 0 0 0 1\n7.0 2 2 2 0 0 0 1\n8.0 3 3 3 0 0 0 1\n").unwrap();
+        let got = t.read_new(&mut reset);
+        assert!(reset);
+        assert_eq!(got.len(), 4);
+        assert_eq!(got[0].0, 5_000_000_000);
     }
 }
