@@ -1,5 +1,5 @@
 //! Runs FastSLAM on the simulated mission without IPC and prints accuracy and speed:
-//! `cargo run --release -p fastslam --example fastslam_sim -- [particles] [motion|optimal] [legs]`.
+//! `cargo run --release -p fastslam --example fastslam_sim -- [particles] [motion|optimal] [legs] [threads]`.
 
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -22,11 +22,13 @@ fn main() {
     }
     let mut sim = Simulator::new(sc).unwrap();
     let body_from_cam = sim.body_from_stereo();
-    let cfg = FastSlamConfig { particles, proposal, ..Default::default() };
+    let threads = args.get(4).and_then(|s| s.parse().ok()).unwrap_or(0);
+    let cfg = FastSlamConfig { particles, proposal, threads, ..Default::default() };
     let mut f = FastSlam::new(cfg).unwrap();
     let mut traj = vec![];
     let mut origins = BTreeMap::from([(0u32, 0.0)]);
     let (mut frames, mut update_s, mut matched, mut segs) = (0usize, 0.0, 0usize, vec![]);
+    let mut update_ms: Vec<f64> = vec![];
     let mut last_t = 0.0;
     for e in sim.by_ref() {
         match e {
@@ -51,6 +53,7 @@ fn main() {
                 let t0 = Instant::now();
                 let r = f.update(&obs);
                 update_s += t0.elapsed().as_secs_f64();
+                update_ms.push(t0.elapsed().as_secs_f64() * 1e3);
                 frames += 1;
                 matched += r.matched;
                 if let Some(reason) = r.new_segment {
@@ -86,6 +89,9 @@ fn main() {
     for s in &segs {
         println!("{s}");
     }
+    update_ms.sort_by(f64::total_cmp);
+    let q = |p: f64| update_ms.get(((update_ms.len() as f64 - 1.0) * p) as usize).copied().unwrap_or(f64::NAN);
+    println!("update per frame: p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms", q(0.5), q(0.99), q(1.0));
     println!(
         "{particles} particles, {proposal:?}: ATE {:.3} m over {} segments, mean NEES {:.1}, position NEES {:.2} ({:.0}% in the 95% interval); {frames} frames, {:.2} ms/frame, {:.1} matched/frame",
         overall_ate(&scores),

@@ -111,7 +111,8 @@ pub struct FastSlamConfig {
     pub association: AssociationConfig,
     /// Local maps.
     pub segments: SegmentConfig,
-    /// Worker threads for the particle updates (0 = available cores).
+    /// Threads for the particle updates (0 = automatic: one below
+    /// [`crate::filter::AUTO_THREADS_FROM_PARTICLES`] particles, every core from there).
     pub threads: usize,
     /// Seed of the particle noise.
     pub seed: u64,

@@ -70,14 +70,14 @@ fn invalid_observations_are_errors_not_panics() {
     assert!(FastSlam::new(FastSlamConfig { particles: 0, ..Default::default() }).is_err());
 }
 
-fn short_run(proposal: Proposal) -> (Vec<fastslam::eval::SegmentScore>, usize) {
+fn short_run(proposal: Proposal, threads: usize) -> (Vec<fastslam::eval::SegmentScore>, usize) {
     let mut sc = SimConfig::default();
     sc.mission.legs = 1;
     sc.mission.leg_length_m = 40.0;
     sc.sensors.depth_camera.rate_hz = 0.0;
     let mut sim = Simulator::new(sc).unwrap();
     let body_from_cam = sim.body_from_stereo();
-    let mut f = FastSlam::new(FastSlamConfig { particles: 50, proposal, threads: 2, ..Default::default() }).unwrap();
+    let mut f = FastSlam::new(FastSlamConfig { particles: 50, proposal, threads, ..Default::default() }).unwrap();
     let mut traj = vec![];
     let mut origins = BTreeMap::from([(0u32, 0.0)]);
     let mut matched = 0;
@@ -121,7 +121,12 @@ fn short_run(proposal: Proposal) -> (Vec<fastslam::eval::SegmentScore>, usize) {
 #[test]
 fn a_short_simulated_run_stays_within_bounds() {
     for proposal in [Proposal::Motion, Proposal::Optimal] {
-        let (scores, matched) = short_run(proposal);
+        let (scores, matched) = short_run(proposal, 2);
+        // The particles' work split over threads or not gives the same filter (each particle
+        // has its own noise stream; results are gathered in particle order).
+        let (one_thread, matched_one) = short_run(proposal, 1);
+        assert_eq!(matched, matched_one, "{proposal:?}");
+        assert_eq!(format!("{scores:?}"), format!("{one_thread:?}"), "{proposal:?}");
         assert!(matched > 1000, "{proposal:?}: associations happen ({matched})");
         let longest = scores.iter().max_by_key(|s| s.samples).unwrap();
         assert!(longest.samples > 100, "{scores:?}");

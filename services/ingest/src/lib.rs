@@ -11,6 +11,7 @@
 pub mod carmen;
 pub mod indoor;
 pub mod progress;
+pub mod reorder;
 pub mod settings;
 pub mod sources;
 pub mod stage;

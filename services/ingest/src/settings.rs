@@ -48,6 +48,11 @@ pub struct IngestSettings {
     /// do not wait). Replaying as fast as possible, a restart then loses only what the dead
     /// instance had not processed, not everything published while it restarted.
     pub resubscribe_wait_s: f64,
+    /// With factor 0: each depth cloud is published after the other messages up to this much
+    /// later in data time, s (0 = strict data order). A mapper that holds the source back
+    /// while it inserts a cloud then does not hold back the odometry a SLAM frame published
+    /// just before is waiting for. Real-time replays keep the data order.
+    pub cloud_lag_s: f64,
     /// Period of the progress log line, s (0 = off).
     pub progress_interval_s: f64,
     /// Wait this long after creating the publishers before the first message, s, waking the
@@ -80,6 +85,7 @@ impl Default for IngestSettings {
             backpressure_max_wait_s: 0.0,
             resubscribe_wait_s: 10.0,
             progress_interval_s: 5.0,
+            cloud_lag_s: 0.1,
             connect_grace_s: 1.0,
             sim: sim::SimConfig::default(),
             plaza2: Plaza2Settings::default(),
@@ -251,6 +257,11 @@ impl ProcessSettings for IngestSettings {
             self.connect_grace_s.is_finite() && self.connect_grace_s >= 0.0,
             format!("{key}.connect_grace_s"),
             "must be >= 0",
+        );
+        issues.check(
+            self.cloud_lag_s.is_finite() && (0.0..=10.0).contains(&self.cloud_lag_s),
+            format!("{key}.cloud_lag_s"),
+            "must be 0..=10 s (0 = strict data order)",
         );
         issues.check(self.progress_interval_s >= 0.0, format!("{key}.progress_interval_s"), "must be >= 0");
         match self.source {

@@ -35,6 +35,8 @@ pub struct IngestStage {
     outputs: Outputs,
     pacer: Pacer,
     pending: Option<Item>,
+    /// Clouds a little after the rest (factor 0, `cloud_lag_s`).
+    reorder: crate::reorder::CloudLag,
     out_dir: std::path::PathBuf,
     progress_every: Option<Duration>,
     last_progress: Instant,
@@ -158,9 +160,12 @@ impl IngestStage {
 
     /// The next item of the source, its ground truth written first.
     fn next_item(&mut self) -> Result<Option<Item>, StageError> {
-        let item = self.source.next_item()?;
-        self.truth.update(&*self.source)?;
-        Ok(item)
+        let (source, truth) = (&mut self.source, &mut self.truth);
+        self.reorder.next(|| {
+            let item = source.next_item()?;
+            truth.update(&**source)?;
+            Ok::<_, StageError>(item)
+        })
     }
 
     /// This process's part of summary.json: at the end of the source, or what was published
@@ -374,6 +379,11 @@ impl Stage for IngestStage {
             truth,
             outputs,
             pacer: Pacer::new(settings.real_time_factor),
+            reorder: crate::reorder::CloudLag::new(if settings.real_time_factor == 0.0 {
+                (settings.cloud_lag_s * 1e9) as u64
+            } else {
+                0
+            }),
             pending: None,
             out_dir: ctx.out_dir.clone(),
             progress_every: (settings.progress_interval_s > 0.0)
