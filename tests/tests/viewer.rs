@@ -35,6 +35,10 @@ fn default_graph_with_viewer(port: u16) -> String {
     let particles = "particles = 100";
     assert!(procs.contains(particles), "fastslam's particles in config/default.toml changed: update this test");
     procs = procs.replace(particles, "particles = 10");
+    // Voxels twice a second, a full set every second: the client sees both kinds.
+    let map = "[processes.map.settings]\n";
+    assert!(procs.contains(map), "the mapper's settings table in config/default.toml changed: update this test");
+    procs = procs.replace(map, &format!("{map}voxels_rate_hz = 2.0\nvoxels_full_interval_s = 1.0\n"));
     procs.push_str(&format!("\n[processes.view]\nkind = \"viewer\"\n[processes.view.settings]\nport = {port}\n"));
     procs
 }
@@ -99,4 +103,6 @@ duration_s = 200"#;
     let inserted = s["octree_mapper"]["counters"]["clouds_inserted"].as_u64().unwrap();
     assert_eq!(v["channels"]["/cloud"]["received"].as_u64(), Some(inserted), "{v:#}\n{:#}", s["octree_mapper"]);
     assert!(v["channels"]["/cloud"]["logged"].as_u64().unwrap_or(0) >= 1, "{v:#}");
+    let vs = &s["octree_mapper"]["voxel_stream"];
+    assert!(vs["delta_messages"].as_u64().unwrap_or(0) >= 2, "{vs:#}");
 }

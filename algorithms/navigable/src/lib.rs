@@ -450,30 +450,57 @@ pub struct MapVoxel {
 /// over `points` (the voxel of `points` at the leaf's centre); without `classes` all are
 /// [`MapVoxelClass::Occupied`].
 pub fn occupied_voxels(tree: &octree::OcTree, points: &PointAccumulator, classes: Option<&Discovery>) -> Vec<MapVoxel> {
-    let res = tree.resolution();
     let obstacle: std::collections::HashSet<VoxelKey> =
         classes.map(|d| d.obstacles.iter().flat_map(|o| o.voxels.iter().copied()).collect()).unwrap_or_default();
-    tree.leaves()
-        .filter(|l| tree.is_occupied_log_odds(l.log_odds))
-        .map(|l| {
-            let c = tree.key_to_coord(l.key);
-            let size = res * l.edge_voxels() as f64;
-            let center_m = if l.depth >= 16 {
-                c
-            } else {
-                // A pruned leaf: the centre of its cube.
-                let m = tree.key_to_coord(l.min_key());
-                [m[0] - 0.5 * res + 0.5 * size, m[1] - 0.5 * res + 0.5 * size, m[2] - 0.5 * res + 0.5 * size]
-            };
+    tree.leaves().filter_map(|l| leaf_voxel(tree, points, classes, &obstacle, l)).collect()
+}
+
+/// The occupied voxels of one region of the tree (see [`octree::OcTree::leaves_in_region`]:
+/// the leaves at least as deep as the region), unclassified ([`MapVoxelClass::Occupied`]): what
+/// a follower of [`octree::OcTree::take_changes`] re-reads for a changed region.
+pub fn occupied_voxels_in_region(
+    tree: &octree::OcTree,
+    points: &PointAccumulator,
+    region_depth: u8,
+    region: [u16; 3],
+) -> Vec<MapVoxel> {
+    let none = std::collections::HashSet::new();
+    tree.leaves_in_region(region_depth, region).filter_map(|l| leaf_voxel(tree, points, None, &none, l)).collect()
+}
+
+/// One leaf as a [`MapVoxel`] when it is occupied.
+fn leaf_voxel(
+    tree: &octree::OcTree,
+    points: &PointAccumulator,
+    classes: Option<&Discovery>,
+    obstacle: &std::collections::HashSet<VoxelKey>,
+    l: octree::Leaf,
+) -> Option<MapVoxel> {
+    if !tree.is_occupied_log_odds(l.log_odds) {
+        return None;
+    }
+    let res = tree.resolution();
+    let c = tree.key_to_coord(l.key);
+    let size = res * l.edge_voxels() as f64;
+    let center_m = if l.depth >= 16 {
+        c
+    } else {
+        // A pruned leaf: the centre of its cube.
+        let m = tree.key_to_coord(l.min_key());
+        [m[0] - 0.5 * res + 0.5 * size, m[1] - 0.5 * res + 0.5 * size, m[2] - 0.5 * res + 0.5 * size]
+    };
+    let class = match classes {
+        None => MapVoxelClass::Occupied,
+        Some(d) => {
             let k = points.key(&Vector3::from(c));
-            let class = match classes.and_then(|d| d.classes.get(&k)) {
+            match d.classes.get(&k) {
                 Some(VoxelClass::Navigable(_)) => MapVoxelClass::Navigable,
                 _ if obstacle.contains(&k) => MapVoxelClass::Obstacle,
                 _ => MapVoxelClass::Occupied,
-            };
-            MapVoxel { center_m, size_m: size, occupancy: octree::probability(l.log_odds as f64), class }
-        })
-        .collect()
+            }
+        }
+    };
+    Some(MapVoxel { center_m, size_m: size, occupancy: octree::probability(l.log_odds as f64), class })
 }
 
 /// An obstacle landmark: a Gaussian over the points of the scans' obstacles associated with it.

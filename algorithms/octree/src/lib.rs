@@ -32,7 +32,7 @@ mod tree;
 pub use io::BINARY_FILE_HEADER;
 pub use key::{OcTreeKey, TREE_DEPTH, TREE_MAX_VAL};
 pub use raycast::compute_ray_keys;
-pub use tree::{InsertStats, Leaf, Leaves, OcTree, Point3Like, SensorModel, logodds, probability};
+pub use tree::{InsertStats, Leaf, Leaves, MapChanges, OcTree, Point3Like, SensorModel, logodds, probability};
 
 /// Errors of the octree: invalid parameters and malformed `.bt` input.
 #[derive(Debug, thiserror::Error)]

@@ -179,6 +179,42 @@ pub struct OcTree {
     threads: usize,
     scratch: Vec<RayScratch>,
     codes: Vec<u64>,
+    changes: Option<Box<ChangeTracker>>,
+}
+
+/// Which parts of the occupied map changed since [`OcTree::take_changes`] was last called (see
+/// [`OcTree::track_changes`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct MapChanges {
+    /// Depth of the regions (their edge is `2^(16 - depth)` finest voxels).
+    pub region_depth: u8,
+    /// Every region whose occupied leaves may have changed: region index per axis, `key >> (16 -
+    /// region_depth)`, each once, in no particular order.
+    pub regions: Vec<[u16; 3]>,
+    /// The occupied map may have changed anywhere (tracking just started, the tree was cleared
+    /// or pruned as a whole, or an occupied leaf larger than a region was split or merged):
+    /// compare everything.
+    pub all: bool,
+}
+
+#[derive(Debug, Clone)]
+struct ChangeTracker {
+    region_depth: u8,
+    regions: std::collections::HashSet<u64>,
+    /// The region recorded last (updates come in Morton order: most repeat it).
+    last: u64,
+    all: bool,
+}
+
+impl ChangeTracker {
+    #[inline]
+    fn record(&mut self, morton: u64) {
+        let r = morton >> (3 * (TREE_DEPTH - self.region_depth as u32));
+        if r != self.last || self.regions.is_empty() {
+            self.last = r;
+            self.regions.insert(r);
+        }
+    }
 }
 
 impl OcTree {
@@ -219,6 +255,7 @@ impl OcTree {
             threads,
             scratch: Vec::new(),
             codes: Vec::new(),
+            changes: None,
         })
     }
 
@@ -254,6 +291,98 @@ impl OcTree {
         self.nodes.resize(8, Node::ABSENT);
         self.free_blocks.clear();
         self.num_nodes = 0;
+        self.changed_everywhere();
+    }
+
+    // ------------------------------------------------------------------ change tracking
+
+    /// Starts (or restarts) recording which regions of the occupied map change, for a consumer
+    /// that follows the map without comparing all of it each time (voxel deltas). Regions are the
+    /// cubes of the tree at `region_depth` (1..=16; edge `2^(16 - region_depth)` finest voxels).
+    /// A leaf update is recorded when the leaf was or becomes occupied (a free leaf that stays
+    /// free changes nothing a consumer of occupied voxels sees); splitting or merging an occupied
+    /// leaf larger than a region marks everything. The first [`OcTree::take_changes`] after this
+    /// says `all`. Costs one hash insert per occupied update (the updates are in Morton order, so
+    /// consecutive ones in one region are recorded once).
+    pub fn track_changes(&mut self, region_depth: u8) -> Result<()> {
+        if !(1..=TREE_DEPTH as u8).contains(&region_depth) {
+            return Err(OctreeError::InvalidParameter(format!("region depth must be 1..=16, got {region_depth}")));
+        }
+        self.changes = Some(Box::new(ChangeTracker {
+            region_depth,
+            regions: std::collections::HashSet::new(),
+            last: 0,
+            all: true,
+        }));
+        Ok(())
+    }
+
+    /// What changed since the last call (or since [`OcTree::track_changes`]); `None` when changes
+    /// are not tracked.
+    pub fn take_changes(&mut self) -> Option<MapChanges> {
+        let c = self.changes.as_mut()?;
+        let shift = TREE_DEPTH - c.region_depth as u32;
+        let regions =
+            c.regions.drain().map(|r| OcTreeKey::from_morton(r << (3 * shift)).0.map(|k| k >> shift)).collect();
+        Some(MapChanges { region_depth: c.region_depth, regions, all: std::mem::take(&mut c.all) })
+    }
+
+    fn changed_everywhere(&mut self) {
+        if let Some(c) = self.changes.as_mut() {
+            c.all = true;
+            c.regions.clear();
+        }
+    }
+
+    /// A leaf at `depth` holding `value` is split or merged: a consumer must look beyond one
+    /// region when it is occupied and larger than a region.
+    #[inline]
+    fn leaf_reshaped(&mut self, depth: usize, value: f32) {
+        if let Some(c) = self.changes.as_mut()
+            && value >= self.occ_log
+            && depth < c.region_depth as usize
+        {
+            c.all = true;
+        }
+    }
+
+    /// The leaves inside one region (index per axis `key >> (16 - region_depth)`, as
+    /// [`MapChanges::regions`] gives it), in leaf-iterator order. Leaves larger than the region
+    /// are not reported (none when the region lies inside one; [`MapChanges::all`] covers
+    /// changes to those).
+    pub fn leaves_in_region(&self, region_depth: u8, region: [u16; 3]) -> Leaves<'_> {
+        let mut stack = Vec::with_capacity(64);
+        let depth = (region_depth as u32).min(TREE_DEPTH);
+        let shift = TREE_DEPTH - depth;
+        if self.root_exists() && depth >= 1 {
+            let min = OcTreeKey(region.map(|r| ((r as u32) << shift) as u16));
+            let m = min.morton();
+            let mut node = 0usize;
+            let mut found = true;
+            for d in 0..depth {
+                let b = self.nodes[node].children as usize;
+                if b == 0 {
+                    found = false; // a leaf above the region's depth
+                    break;
+                }
+                let c = b * 8 + ((m >> (3 * (TREE_DEPTH - 1 - d))) & 7) as usize;
+                if !self.nodes[c].exists() {
+                    found = false;
+                    break;
+                }
+                node = c;
+            }
+            if found {
+                // The centre key of a node at `depth`, as the leaf iterator computes it.
+                let key = if depth >= TREE_DEPTH {
+                    min
+                } else {
+                    OcTreeKey(min.0.map(|k| k.wrapping_add((TREE_MAX_VAL >> depth) as u16)))
+                };
+                stack.push((node as u32, depth as u8, key));
+            }
+        }
+        Leaves { tree: self, stack }
     }
 
     // ------------------------------------------------------------------ keys
@@ -364,11 +493,13 @@ impl OcTree {
     /// Eager bookkeeping of an inner node after an update below it: prune it, or set its
     /// log-odds to the maximum of its children.
     #[inline]
-    fn finalize(&mut self, node: usize) {
+    fn finalize(&mut self, node: usize, depth: usize) {
         if self.nodes[node].children == 0 {
             return;
         }
-        if !self.prune_node(node) {
+        if self.prune_node(node) {
+            self.leaf_reshaped(depth, self.nodes[node].value);
+        } else {
             self.nodes[node].value = self.max_child(node);
         }
     }
@@ -444,6 +575,7 @@ impl OcTree {
             threads: self.threads,
             scratch: Vec::new(),
             codes: Vec::new(),
+            changes: None,
         }
     }
 
@@ -517,7 +649,7 @@ impl OcTree {
             for d in (start + 1..path_len).rev() {
                 if dirty[d] {
                     if !lazy {
-                        self.finalize(path[d]);
+                        self.finalize(path[d], d);
                     }
                     dirty[d] = false;
                 }
@@ -534,9 +666,15 @@ impl OcTree {
             loop {
                 if d == depth {
                     if created || !self.aborts(node, delta) {
+                        let before = self.nodes[node].value;
                         self.update_log_odds(node, delta);
                         applied += 1;
                         dirty[..depth].fill(true);
+                        if let Some(c) = self.changes.as_mut()
+                            && ((!created && before >= self.occ_log) || self.nodes[node].value >= self.occ_log)
+                        {
+                            c.record(m);
+                        }
                     }
                     break;
                 }
@@ -558,6 +696,7 @@ impl OcTree {
                         break;
                     }
                     let v = self.nodes[node].value;
+                    self.leaf_reshaped(d, v);
                     let nb = self.alloc_block(Node { value: v, children: 0 });
                     self.nodes[node].children = nb;
                     self.num_nodes += 8;
@@ -570,7 +709,7 @@ impl OcTree {
         }
         for d in (0..path_len).rev() {
             if dirty[d] && !lazy {
-                self.finalize(path[d]);
+                self.finalize(path[d], d);
             }
         }
         self.codes = codes;
@@ -632,6 +771,7 @@ impl OcTree {
         if !self.root_exists() {
             return;
         }
+        self.changed_everywhere();
         for max_depth in (1..TREE_DEPTH).rev() {
             if self.prune_recurs(0, 0, max_depth) == 0 {
                 break;
@@ -661,6 +801,7 @@ impl OcTree {
     /// occupied, else to the lower clamp. [`OcTree::write_binary`] does not need it (it writes
     /// the max-likelihood tree without changing `self`).
     pub fn to_max_likelihood(&mut self) {
+        self.changed_everywhere();
         let (occ, lo, hi) = (self.occ_log, self.clamp_min_log, self.clamp_max_log);
         for n in self.nodes.iter_mut().filter(|n| n.exists()) {
             n.value = if n.value >= occ { hi } else { lo };

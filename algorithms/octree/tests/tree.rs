@@ -1,6 +1,6 @@
 //! Update rules, pruning, eager/lazy equivalence and a voxel-map reference model.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 
 use octree::{OcTree, OcTreeKey, compute_ray_keys, logodds};
 use proptest::prelude::*;
@@ -238,6 +238,28 @@ proptest! {
         prop_assert_eq!(before, after);
     }
 
+    /// A consumer that re-reads only the regions [`OcTree::take_changes`] names (everything when
+    /// it says `all`) holds every occupied leaf, value included, after every scan: eager
+    /// insertion with pruning, for regions of 1, 4 and 16 finest voxels' edge and the root's.
+    #[test]
+    fn following_the_changed_regions_keeps_every_occupied_leaf(
+        scans in cloud_strategy(),
+        max_range in prop_oneof![Just(-1.0f64), 0.3f64..1.2],
+        region_depth in prop_oneof![Just(16u8), Just(14u8), Just(12u8), Just(1u8)],
+        repeat in 1usize..4,
+    ) {
+        let mut t = tree();
+        t.track_changes(region_depth).unwrap();
+        let mut held = BTreeMap::new();
+        for (o, pts) in &scans {
+            for _ in 0..repeat {
+                t.insert_point_cloud(pts, *o, max_range, false).unwrap();
+                follow(&mut t, &mut held);
+                prop_assert_eq!(&held, &occupied_leaves(&t));
+            }
+        }
+    }
+
     /// The map does not depend on the number of ray-casting threads.
     #[test]
     fn thread_count_does_not_matter(seed in 0u64..1000) {
@@ -278,4 +300,73 @@ fn leaf_iteration_counts_and_keys() {
     assert_eq!(keys.len(), leaves.len());
     assert!(t.num_nodes() > leaves.len());
     assert!(t.memory_usage_bytes() >= t.num_nodes() * 8);
+}
+
+/// Every occupied leaf: (lowest key, depth) -> log-odds bits.
+fn occupied_leaves(t: &OcTree) -> BTreeMap<([u16; 3], u8), u32> {
+    t.leaves()
+        .filter(|l| t.is_occupied_log_odds(l.log_odds))
+        .map(|l| ((l.min_key().0, l.depth), l.log_odds.to_bits()))
+        .collect()
+}
+
+/// What a consumer of the changes does: re-reads the named regions, or everything.
+fn follow(t: &mut OcTree, held: &mut BTreeMap<([u16; 3], u8), u32>) {
+    let c = t.take_changes().expect("tracking");
+    if c.all {
+        *held = occupied_leaves(t);
+        return;
+    }
+    let shift = 16 - c.region_depth as u32;
+    for r in &c.regions {
+        held.retain(|(k, d), _| !(*d >= c.region_depth && k.map(|x| x >> shift) == *r));
+        for l in t.leaves_in_region(c.region_depth, *r) {
+            assert!(l.depth >= c.region_depth);
+            assert_eq!(l.min_key().0.map(|x| x >> shift), *r, "a leaf of the region");
+            if t.is_occupied_log_odds(l.log_odds) {
+                held.insert((l.min_key().0, l.depth), l.log_odds.to_bits());
+            }
+        }
+    }
+}
+
+/// Blocks hit until they are pruned into leaves larger than a region, then carved by rays
+/// through them (split again), then cleared: the consumer follows every step, and a region
+/// inside a larger leaf lists no leaves.
+#[test]
+fn change_tracking_through_pruning_splitting_and_clearing() {
+    let mut t = tree();
+    assert_eq!(t.take_changes(), None, "not tracking");
+    assert!(t.track_changes(0).is_err() && t.track_changes(17).is_err());
+    t.track_changes(15).unwrap();
+    let mut held = BTreeMap::new();
+    // A 0.8 m cube of points (8^3 voxels), hit from above until clamped: pruned to one leaf
+    // of depth 13.
+    let cube: Vec<[f32; 3]> = (0..512)
+        .map(|i| [0.05 + 0.1 * (i % 8) as f32, 0.05 + 0.1 * (i / 8 % 8) as f32, 0.05 + 0.1 * (i / 64) as f32])
+        .collect();
+    let mut saw_all_after_start = false;
+    for step in 0..12 {
+        t.insert_point_cloud(&cube, [0.35f32, 0.35, 5.0], -1.0, false).unwrap();
+        let c = t.clone().take_changes().unwrap();
+        if step > 0 && c.all {
+            saw_all_after_start = true;
+        }
+        follow(&mut t, &mut held);
+        assert_eq!(held, occupied_leaves(&t), "step {step}");
+    }
+    assert!(held.keys().any(|(_, d)| *d < 15), "pruned into a leaf larger than a region: {held:?}");
+    assert!(saw_all_after_start, "merging an occupied leaf larger than a region says all");
+    let big = *held.keys().find(|(_, d)| *d < 15).unwrap();
+    assert_eq!(t.leaves_in_region(15, big.0.map(|x| x >> 1)).count(), 0, "inside a larger leaf");
+    // Rays through the cube from the side: the big leaf splits, inner voxels turn free.
+    let far: Vec<[f32; 3]> = (0..64).map(|i| [3.0, 0.05 + 0.1 * (i % 8) as f32, 0.05 + 0.1 * (i / 8) as f32]).collect();
+    for step in 0..6 {
+        t.insert_point_cloud(&far, [-2.0f32, 0.35, 0.35], -1.0, false).unwrap();
+        follow(&mut t, &mut held);
+        assert_eq!(held, occupied_leaves(&t), "carving {step}");
+    }
+    t.clear();
+    follow(&mut t, &mut held);
+    assert!(held.is_empty());
 }

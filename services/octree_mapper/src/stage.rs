@@ -46,32 +46,21 @@ fn stats_msg(st: &MapperState, regions: u32, obstacles: u32) -> MapStats {
 
 /// The occupied leaves with their class (navigable, obstacle, or just occupied), in wire form.
 fn build_voxels(st: &MapperState, classes: Option<&navigable::Discovery>) -> Vec<Voxel> {
-    navigable::occupied_voxels(&st.tree, &st.points, classes)
-        .into_iter()
-        .map(|v| Voxel {
-            center_m: v.center_m.map(|x| x as f32),
-            size_m: v.size_m as f32,
-            occupancy: v.occupancy as f32,
-            class: match v.class {
-                navigable::MapVoxelClass::Occupied => 0,
-                navigable::MapVoxelClass::Navigable => 1,
-                navigable::MapVoxelClass::Obstacle => 2,
-            },
-        })
-        .collect()
+    crate::voxels::all_voxels(st, classes)
 }
 
 /// Publishes the map's voxels on `pipeline/map/voxels`: a full set or the changes since the
 /// last message (`stream`).
+/// `classified`: the end of the run's full set with classes (see [`crate::voxels::next_message`]).
 fn send_voxels(
     out: &mut Output<[Voxel], VoxelSetHeader>,
     stream: &mut VoxelStream,
-    voxels: Vec<Voxel>,
-    force_full: bool,
-    resolution_m: f64,
+    st: &mut MapperState,
+    classified: Option<Vec<Voxel>>,
     stamp_ns: u64,
 ) -> Result<(), StageError> {
-    let (kind, payload) = stream.next(voxels, Instant::now(), force_full);
+    let resolution_m = st.tree.resolution();
+    let (kind, payload) = crate::voxels::next_message(stream, st, classified, Instant::now())?;
     let mut s = out.loan_slice_uninit(payload.len())?.write_from_slice(&payload);
     *s.user_header_mut() =
         VoxelSetHeader { msg: MsgHeader { stamp_ns, ..Default::default() }, resolution_m, frame: FRAME_WORLD, kind };
@@ -92,6 +81,11 @@ fn voxel_stream_summary(s: &VoxelStream) -> serde_json::Value {
         "removed_voxels": c.removed,
         "snapshots_requested": c.snapshots_requested,
         "full_sets_only_mb": mb(c.full_only_bytes),
+        "mb_per_s": if c.span_s > 0.0 { mb(c.full_bytes + c.delta_bytes) / c.span_s } else { 0.0 },
+        "whole_map_reads": c.whole_map_reads,
+        "regions_read": c.regions_read,
+        "region_voxels_read": c.region_voxels_read,
+        "build_s": c.build_s,
     })
 }
 
@@ -208,6 +202,10 @@ impl Stage for OctreeMapperStage {
             stats_out: rt.output(MAP_STATS)?,
             voxels_out: rt.output_slice(MAP_VOXELS, 16 * 1024)?,
             voxel_stream: VoxelStream::new(
+                crate::voxels::RegionGrid {
+                    resolution_m: settings.resolution_m,
+                    depth: crate::voxels::VOXEL_REGION_DEPTH,
+                },
                 (settings.voxels_full_interval_s > 0.0)
                     .then(|| Duration::from_secs_f64(settings.voxels_full_interval_s)),
             ),
@@ -350,8 +348,7 @@ impl Stage for OctreeMapperStage {
         }
         if voxels_every.is_some_and(|e| last_voxels.elapsed() >= e) {
             *last_voxels = Instant::now();
-            let voxels = build_voxels(st, None);
-            send_voxels(voxels_out, voxel_stream, voxels, false, st.tree.resolution(), *last_stamp)?;
+            send_voxels(voxels_out, voxel_stream, st, None, *last_stamp)?;
         }
         Ok(if queue_empty && st.pending.is_empty() { Step::Idle } else { Step::Pending })
     }
@@ -399,25 +396,18 @@ impl Stage for OctreeMapperStage {
                 Err(e) => tracing::warn!("no rebuild: {e}"),
             }
         }
-        let st = &self.st;
         if ending == Ending::EndOfStream {
-            let (d, voxels, mut part) = end_of_run(rt, st, &self.out_dir)?;
+            let (d, voxels, mut part) = end_of_run(rt, &self.st, &self.out_dir)?;
             if !rebuild.is_null() {
                 part["octree_mapper"]["rebuild"] = rebuild;
             }
             let header = MsgHeader { stamp_ns: self.last_stamp, ..Default::default() };
-            self.stats_out.send_value(header, stats_msg(st, d.regions.len() as u32, d.obstacles.len() as u32))?;
-            send_voxels(
-                &mut self.voxels_out,
-                &mut self.voxel_stream,
-                voxels,
-                true,
-                st.tree.resolution(),
-                self.last_stamp,
-            )?;
+            self.stats_out.send_value(header, stats_msg(&self.st, d.regions.len() as u32, d.obstacles.len() as u32))?;
+            send_voxels(&mut self.voxels_out, &mut self.voxel_stream, &mut self.st, Some(voxels), self.last_stamp)?;
             part["octree_mapper"]["voxel_stream"] = voxel_stream_summary(&self.voxel_stream);
             return Ok(part);
         }
+        let st = &self.st;
         // Stopped before the end of stream: the map so far (the navigable-space layers take
         // seconds on a large map and are written only at the end of stream).
         std::fs::create_dir_all(&self.out_dir)?;
