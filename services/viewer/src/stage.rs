@@ -172,6 +172,10 @@ pub struct ViewerStage {
     /// Latest heartbeat per process.
     processes: BTreeMap<String, Heartbeat>,
     clients_max: usize,
+    /// The SDK's "outbox for client ... full" log events (it dropped the oldest messages for a
+    /// slow client; it reports that at most every 30 s and does not say how many).
+    sdk_outbox_full: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    sdk_outbox_full_warned: u64,
     started: Instant,
 }
 
@@ -548,6 +552,8 @@ impl Stage for ViewerStage {
             octree_waiting: 0,
             processes: BTreeMap::new(),
             clients_max: 0,
+            sdk_outbox_full: pipeline_runtime::logging::count_events("foxglove", "outbox for client"),
+            sdk_outbox_full_warned: 0,
             started: Instant::now(),
         })
     }
@@ -569,6 +575,16 @@ impl Stage for ViewerStage {
         if let Some(s) = &self.server {
             self.clients_max = self.clients_max.max(s.client_count());
         }
+        let reports = self.sdk_outbox_full.load(std::sync::atomic::Ordering::Relaxed);
+        if reports > self.sdk_outbox_full_warned {
+            self.sdk_outbox_full_warned = reports;
+            tracing::warn!(
+                reports,
+                client_backlog = self.settings.client_backlog,
+                "a client reads slower than the view is sent: the Foxglove SDK dropped its oldest queued messages \
+                 (it says so at most every 30 s, not how many); raise client_backlog or lower the *_max_hz rates"
+            );
+        }
         self.drain_poses()?;
         self.drain_cloud()?;
         self.drain_landmarks()?;
@@ -589,6 +605,7 @@ impl Stage for ViewerStage {
                 "host": self.settings.host,
                 "port": self.port,
                 "clients_max": self.clients_max,
+                "sdk_outbox_full_reports": self.sdk_outbox_full.load(std::sync::atomic::Ordering::Relaxed),
                 "channels": self.counts,
                 "not_shown": self.not_shown,
                 "path_poses_thinned": thinned,
