@@ -3,7 +3,7 @@
 //!
 //! ```sh
 //! cargo run --release -p pipeline_bench --bin octree_bench -- [--quick] [--res 0.10,0.05]
-//!     [--threads 2] [--reps 3] [--octomap-bench DIR] [--work-dir DIR]
+//!     [--threads 2] [--reps 3] [--octomap-bench DIR] [--work-dir DIR] [--track-changes]
 //! ```
 //!
 //! Steps: copy the bench folder to the work dir (default `target/octree_bench/`), generate the
@@ -69,6 +69,10 @@ struct Args {
     /// Smoke run: 1 repetition, 0.10 m only.
     #[arg(long)]
     quick: bool,
+    /// Our tree records the changed regions as the octree mapper's does (for its voxel deltas,
+    /// `OcTree::track_changes` at depth 11), taken after every scan.
+    #[arg(long)]
+    track_changes: bool,
 }
 
 /// A prerequisite is missing (exit code 2); the message says what and how to install it.
@@ -174,7 +178,7 @@ fn run(mut args: Args) -> anyhow::Result<()> {
                     cpp_runs[i].push(c);
                 } else {
                     eprintln!("{tag}: ours ({} ray threads) ...", args.threads);
-                    let (o, tree) = run_ours(&scans, res.value, args.threads, &queries)?;
+                    let (o, tree) = run_ours(&scans, res.value, args.threads, args.track_changes, &queries)?;
                     eprintln!(
                         "{tag}: ours insert {:.3} s (CPU {:.3} s), {:.0} k points/s, query {:.1} ns",
                         o.insert_s,
@@ -504,14 +508,21 @@ fn run_ours(
     scans: &bench_data::ScanFile,
     res: f64,
     threads: usize,
+    track_changes: bool,
     queries: &[[f32; 3]],
 ) -> anyhow::Result<(OurRun, OcTree)> {
     let mut tree = OcTree::new(res)?;
     tree.set_ray_threads(threads);
+    if track_changes {
+        tree.track_changes(11)?;
+    }
     let cpu0 = process_cpu_s();
     let t0 = Instant::now();
     for f in &scans.frames {
         tree.insert_point_cloud(&f.points, f.origin, MAX_RANGE, false)?;
+        if track_changes {
+            std::hint::black_box(tree.take_changes());
+        }
     }
     let insert_s = t0.elapsed().as_secs_f64();
     let insert_cpu_s = process_cpu_s() - cpu0;
