@@ -39,7 +39,11 @@ fn default_graph_with_viewer(port: u16) -> String {
     let map = "[processes.map.settings]\n";
     assert!(procs.contains(map), "the mapper's settings table in config/default.toml changed: update this test");
     procs = procs.replace(map, &format!("{map}voxels_rate_hz = 2.0\nvoxels_full_interval_s = 1.0\n"));
-    procs.push_str(&format!("\n[processes.view]\nkind = \"viewer\"\n[processes.view.settings]\nport = {port}\n"));
+    // A small backlog per client, clouds at their full rate: a client that stops reading soon
+    // fills its outbox.
+    procs.push_str(&format!(
+        "\n[processes.view]\nkind = \"viewer\"\n[processes.view.settings]\nport = {port}\nclient_backlog = 4\ncloud_max_hz = 100.0\n"
+    ));
     procs
 }
 
@@ -52,6 +56,15 @@ end_of_stream_from = ["monitor", "slam", "buoy", "sync", "fusion", "map"]
 duration_s = 200"#;
     let cfg = run.write_config(ends, &default_graph_with_viewer(port));
     run.start_supervisor(&cfg, &[]);
+    // A second client subscribes to everything and stops reading: the SDK drops for it (and
+    // says so in its log, which the viewer counts), the pipeline does not wait.
+    let stalled = Command::new("python3")
+        .arg(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("python/foxglove_stalled_client.py"))
+        .args(["--url", &format!("ws://127.0.0.1:{port}"), "--stall-s", "8"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("python3 runs the stalled client");
     let client = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("python/foxglove_ws_client.py");
     let mut cmd = Command::new("python3");
     cmd.arg(&client).args(["--url", &format!("ws://127.0.0.1:{port}"), "--timeout-s", "150", "--min-messages", "2"]);
@@ -92,6 +105,8 @@ duration_s = 200"#;
     let state = t["/processes"]["last"]["message"].as_str().unwrap_or_default();
     assert!(state.contains("messages in"), "{state}");
 
+    let stalled = stalled.wait_with_output().expect("the stalled client ends");
+    assert!(stalled.status.success(), "stalled client: {}", String::from_utf8_lossy(&stalled.stderr));
     let status = run.wait_supervisor(LONG).expect("the run ends");
     assert_eq!(status.code(), Some(0), "{}", run.log());
     assert_eq!(run.leftovers(), Vec::<PathBuf>::new(), "iceoryx2 files left behind");
@@ -103,6 +118,9 @@ duration_s = 200"#;
     let inserted = s["octree_mapper"]["counters"]["clouds_inserted"].as_u64().unwrap();
     assert_eq!(v["channels"]["/cloud"]["received"].as_u64(), Some(inserted), "{v:#}\n{:#}", s["octree_mapper"]);
     assert!(v["channels"]["/cloud"]["logged"].as_u64().unwrap_or(0) >= 1, "{v:#}");
+    // The stalled client lost messages: the SDK's reports of it were counted and warned about.
+    assert!(v["sdk_outbox_full_reports"].as_u64().unwrap_or(0) >= 1, "{v:#}");
+    assert!(run.log().contains("the Foxglove SDK dropped its oldest queued messages"), "{}", run.log());
     let vs = &s["octree_mapper"]["voxel_stream"];
     assert!(vs["delta_messages"].as_u64().unwrap_or(0) >= 2, "{vs:#}");
 }

@@ -40,8 +40,11 @@ pub fn init(name: &str, format: LogFormat) -> Option<tracing::span::EnteredSpan>
             .with_span_list(false)
             .boxed(),
     };
-    // The counters see every event the filter lets through, as the log does.
-    let result = tracing_subscriber::registry().with(layer.and_then(Counting).with_filter(filter)).try_init();
+    // The counters see their libraries' events at INFO and above whatever RUST_LOG says.
+    let counted = tracing_subscriber::filter::Targets::new()
+        .with_targets(COUNTED_TARGETS.iter().map(|t| (*t, tracing::Level::INFO)));
+    let result =
+        tracing_subscriber::registry().with(layer.with_filter(filter)).with(Counting.with_filter(counted)).try_init();
     PROCESS_NAME.get_or_init(|| name.to_string());
     match (format, result) {
         (LogFormat::Json, Ok(())) => Some(tracing::info_span!("process", process = name).entered()),
@@ -74,8 +77,12 @@ impl<'w> tracing_subscriber::fmt::FormatFields<'w> for NamedFields {
 /// Foxglove SDK's "outbox for client ... full": it dropped messages for a slow client).
 static COUNTERS: std::sync::Mutex<Vec<(String, String, Arc<AtomicU64>)>> = std::sync::Mutex::new(Vec::new());
 
-/// A counter of the log events whose target starts with `target_prefix` and whose message
-/// contains `needle` (events the log's filter lets through, from now on). The count is of the
+/// The libraries whose log events [`count_events`] can count (INFO and above, whatever the log's
+/// own filter).
+pub const COUNTED_TARGETS: &[&str] = &["foxglove"];
+
+/// A counter of the log events whose target starts with `target_prefix` (under one of
+/// [`COUNTED_TARGETS`]) and whose message contains `needle`, from now on. The count is of the
 /// events, which a library may throttle: it says that something happened and how often it was
 /// reported, not how many items it concerned.
 pub fn count_events(target_prefix: &str, needle: &str) -> Arc<AtomicU64> {
@@ -128,6 +135,8 @@ mod tests {
         tracing::info!(target: "foxglove::websocket::connected_client::send_lossy", "outbox for client 127.0.0.1:5 full");
         tracing::info!(target: "foxglove::websocket::server", "client connected");
         tracing::info!("outbox for client in our own crate");
+        // Counted whatever the log's filter (RUST_LOG) lets through; below INFO not.
+        tracing::debug!(target: "foxglove::websocket", "outbox for client at debug");
         assert_eq!(full.load(Ordering::Relaxed), 1);
         assert_eq!(other.load(Ordering::Relaxed), 0);
     }

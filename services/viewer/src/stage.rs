@@ -596,7 +596,17 @@ impl Stage for ViewerStage {
 
     fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
         if let Some(s) = self.server.take() {
-            s.stop().wait_blocking();
+            // A client that stopped reading can hold the server's close up: wait a second at
+            // most (the summary part must reach the supervisor before its stop timeout).
+            let handle = s.stop();
+            let (tx, rx) = std::sync::mpsc::channel();
+            std::thread::spawn(move || {
+                handle.wait_blocking();
+                let _ = tx.send(());
+            });
+            if rx.recv_timeout(Duration::from_secs(1)).is_err() {
+                tracing::warn!("a client did not close within 1 s; the viewer stops without waiting for it");
+            }
         }
         let thinned: BTreeMap<&str, u64> = self.paths.iter().map(|(k, p)| (*k, p.thinned)).collect();
         Ok(serde_json::json!({
