@@ -111,8 +111,8 @@ pub struct FastSlamConfig {
     pub association: AssociationConfig,
     /// Local maps.
     pub segments: SegmentConfig,
-    /// Threads for the particle updates (0 = automatic: one below
-    /// [`crate::filter::AUTO_THREADS_FROM_PARTICLES`] particles, every core from there).
+    /// Threads for the particle updates (0 = every core; 1 = on the calling thread, no worker
+    /// threads).
     pub threads: usize,
     /// Seed of the particle noise.
     pub seed: u64,

@@ -449,11 +449,7 @@ impl FastSlam {
         }
         let n = cfg.particles;
         let threads = if cfg.threads == 0 {
-            if n >= AUTO_THREADS_FROM_PARTICLES {
-                std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
-            } else {
-                1
-            }
+            std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
         } else {
             cfg.threads
         };
@@ -1428,13 +1424,6 @@ enum Decision {
     Rejected,
     New,
 }
-
-/// With `threads = 0`, the particle updates use every core from this many particles on, one
-/// thread below. Measured on the default mission (2 cores shared with the other stages, 100
-/// particles): each call to a second thread costs a wake-up that waits for a core, so the frame
-/// update took p50 3.6 / p99 17 ms on two threads against 2.2 / 9.7 ms on one, and the stereo
-/// frame -> first fused pose p99 went from 28 to 18 ms.
-pub const AUTO_THREADS_FROM_PARTICLES: usize = 1000;
 
 /// Applies `f` to every item on up to `threads` threads (contiguous chunks; the first chunk on
 /// the calling thread, the others on scoped workers, none with one thread); results in item order.
