@@ -777,6 +777,21 @@ impl Model {
     }
 }
 
+/// The position-heading covariance `c` (m·rad) of a start, shrunk if needed so that with the
+/// position covariance `cov` (its x, y block) and the heading variance `var` the joint covariance
+/// stays positive definite (squared correlation at most 0.998).
+fn position_heading_cov(cov: &Matrix3<f64>, var: f64, c: &nalgebra::Vector2<f64>) -> nalgebra::Vector2<f64> {
+    const MAX_RHO2: f64 = 0.998;
+    let Some(inv) = cov.fixed_view::<2, 2>(0, 0).into_owned().try_inverse() else {
+        return nalgebra::Vector2::zeros();
+    };
+    let rho2 = c.dot(&(inv * c)) / var;
+    if !rho2.is_finite() || var <= 0.0 {
+        return nalgebra::Vector2::zeros();
+    }
+    if rho2 > MAX_RHO2 { c * (MAX_RHO2 / rho2).sqrt() } else { *c }
+}
+
 fn symmetrise(P: &mut DMatrix<f64>) {
     let t = P.transpose();
     *P += t;
@@ -1407,7 +1422,15 @@ impl BuoyEkf {
         match fix.heading_rad {
             Some(h) => {
                 g.x[l.psi] = h;
-                g.P[(l.psi, l.psi)] = fix.heading_sigma_rad.max(1f64.to_radians()).powi(2);
+                // The heading's σ scaled like the position's; with their correlation.
+                let scale = fix.normalised_rms.max(1.0).powi(2);
+                let var = (fix.heading_sigma_rad.powi(2) * scale).max(1f64.to_radians().powi(2));
+                g.P[(l.psi, l.psi)] = var;
+                let c = position_heading_cov(&cov, var, &(fix.position_heading_cov_m_rad * scale));
+                for a in 0..2 {
+                    g.P[(a, l.psi)] = c[a];
+                    g.P[(l.psi, a)] = c[a];
+                }
                 self.heading_known = true;
                 self.phase = Phase::Single(g);
             }

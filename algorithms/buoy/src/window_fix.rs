@@ -106,6 +106,12 @@ pub struct WindowFix {
     pub heading_rad: Option<f64>,
     /// σ of the heading, rad (π when not observable).
     pub heading_sigma_rad: f64,
+    /// Covariance of the position (x, y) with the heading, m·rad (zero when the heading is not
+    /// observable). The window fixes where the path was better than where it ends: a heading
+    /// error swings the newest position about the window's middle, so the two are correlated,
+    /// and a filter started without this term corrects the heading later but keeps the
+    /// position the wrong heading put it at.
+    pub position_heading_cov_m_rad: Vector2<f64>,
     /// Which of the window's ranges are inliers, in window order.
     pub inliers: Vec<bool>,
     /// Distinct buoys among the inliers.
@@ -389,6 +395,11 @@ pub fn window_fix(obs: &[WindowRange], limits: &WindowLimits) -> Result<WindowFi
         covariance_m2,
         heading_rad: heading_observable.then_some(psi),
         heading_sigma_rad: if heading_observable { cov[(2, 2)].max(0.0).sqrt() } else { std::f64::consts::PI },
+        position_heading_cov_m_rad: if heading_observable {
+            Vector2::new(cov[(0, 2)], cov[(1, 2)])
+        } else {
+            Vector2::zeros()
+        },
         inliers,
         buoys: inlier_ids.len(),
         normalised_rms: rms,
@@ -448,6 +459,61 @@ mod tests {
             assert_eq!(*inl, !bad.contains(&i), "range {i}");
         }
         assert_eq!(fix.buoys, 3);
+    }
+
+    #[test]
+    fn the_position_heading_covariance_matches_the_spread_of_fixes() {
+        // Many noise draws of one short arc (σ 0.1 m, no odometry error, so no drift allowance):
+        // the fix's claimed position-heading covariance is the spread's, sign and size.
+        let limits = WindowLimits { drift_fraction: 0.0, ambiguity_margin: 0.0, ..WindowLimits::default() };
+        let mut draw = Draw(7);
+        let mut gauss = || {
+            let u1 = (draw.below(1 << 30) as f64 + 0.5) / (1u64 << 30) as f64;
+            let u2 = draw.below(1 << 30) as f64 / (1u64 << 30) as f64;
+            (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+        };
+        let (clean, truth, psi) = window(&[], true);
+        let n = 400;
+        let (mut errors, mut claimed) = (Vec::new(), Vector3::zeros());
+        for _ in 0..n {
+            let mut w = clean.clone();
+            for o in &mut w {
+                o.range_m += 0.1 * gauss();
+            }
+            let fix = window_fix(&w, &limits).unwrap();
+            let e = Vector3::new(
+                fix.position_m.x - truth.x,
+                fix.position_m.y - truth.y,
+                wrap_angle(fix.heading_rad.unwrap() - psi),
+            );
+            errors.push(e);
+            claimed += Vector3::new(
+                fix.position_heading_cov_m_rad.x,
+                fix.position_heading_cov_m_rad.y,
+                fix.heading_sigma_rad.powi(2),
+            ) / n as f64;
+        }
+        let mean = errors.iter().sum::<Vector3<f64>>() / n as f64;
+        let cov = |a: usize, b: usize| {
+            errors.iter().map(|e| (e[a] - mean[a]) * (e[b] - mean[b])).sum::<f64>() / (n - 1) as f64
+        };
+        let var_psi = cov(2, 2);
+        assert!((claimed.z / var_psi - 1.0).abs() < 0.3, "heading variance {} claimed, {var_psi} seen", claimed.z);
+        for a in 0..2 {
+            let seen = cov(a, 2);
+            // Relative to the scale of the terms (σ_a σ_ψ): the correlation coefficients agree.
+            let unit = (cov(a, a) * var_psi).sqrt();
+            assert!(
+                ((claimed[a] - seen) / unit).abs() < 0.15,
+                "axis {a}: position-heading covariance {} claimed, {seen} seen (unit {unit})",
+                claimed[a]
+            );
+        }
+        // The arc makes them strongly correlated: the test would catch a dropped term.
+        assert!(
+            (cov(0, 2) / (cov(0, 0) * var_psi).sqrt()).abs() > 0.3
+                || (cov(1, 2) / (cov(1, 1) * var_psi).sqrt()).abs() > 0.3
+        );
     }
 
     #[test]
