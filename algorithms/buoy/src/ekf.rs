@@ -1377,6 +1377,7 @@ impl BuoyEkf {
             min_inliers: i.odometry_window_min_inliers,
             min_inlier_fraction: i.odometry_window_min_inlier_fraction,
             drift_fraction: i.odometry_drift_fraction,
+            ambiguity_margin: i.odometry_window_ambiguity_margin,
             ..WindowLimits::default()
         };
         window_fix(&obs, &limits)
@@ -2066,6 +2067,12 @@ mod tests {
         cfg.range.gate_probability = 2.0;
         match BuoyEkf::new(cfg, 0.0) {
             Err(BuoyError::InvalidConfig(p)) => assert_eq!(p[0].0, "range.gate_probability"),
+            other => panic!("{other:?}"),
+        }
+        let mut cfg = planar_config(BiasMode::Global);
+        cfg.init.odometry_window_ambiguity_margin = -1.0;
+        match BuoyEkf::new(cfg, 0.0) {
+            Err(BuoyError::InvalidConfig(p)) => assert_eq!(p[0].0, "init.odometry_window_ambiguity_margin"),
             other => panic!("{other:?}"),
         }
     }

@@ -86,7 +86,7 @@ impl Default for WindowLimits {
             heading_steps: 72,
             samples_per_heading: 48,
             min_travel_for_heading_m: 1.0,
-            ambiguity_margin: 2.0,
+            ambiguity_margin: 1.0,
         }
     }
 }
