@@ -76,7 +76,11 @@ pub struct RangeConfig {
     /// covariance). Without this a gross error soon after the start, while the bias prior is
     /// still wide (1 m), passes the gate and teaches the bias a metre; with it, calibration is
     /// learned from ranges that agree with the position and only drifts as the evidence builds
-    /// up. 0 turns it off.
+    /// up. A gross error does not repeat, a calibration error does: when the previous range to
+    /// the same buoy (within 5 s) was held too and the two innovations agree within k·√2 range
+    /// σ, the second one teaches the calibration (else a scale learned wrong from a near buoy
+    /// right after a start would be locked in by the far buoys' large innovations). 0 turns it
+    /// off.
     pub calibration_k: f64,
     /// The range scale and bias states are learned only while the accepted ranges of the last
     /// `observability_window_s` determine them: with the estimated path over that window taken

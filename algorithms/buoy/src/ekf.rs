@@ -533,7 +533,7 @@ impl Model {
         gate: f64,
         huber_k: f64,
     ) -> Result<UpdateInfo, BuoyError> {
-        self.update_holding(g, H, nu, R, gate, huber_k, &[])
+        self.update_holding(g, H, nu, R, gate, huber_k, &[], false)
     }
 
     /// As [`Self::update`]; the states in `hold` are not learned from it, and when the normalised
@@ -550,6 +550,7 @@ impl Model {
         gate: f64,
         huber_k: f64,
         hold: &[usize],
+        systematic: bool,
     ) -> Result<UpdateInfo, BuoyError> {
         let mut info = self.gate(g, H, nu, R, gate, huber_k)?;
         if info.accepted {
@@ -563,7 +564,7 @@ impl Model {
             }
             let Sn = &Hn * &g.P * Hn.transpose() + R;
             let nis_known = Sn.cholesky().map_or(f64::INFINITY, |c| nu.dot(&c.solve(nu)));
-            info.held = calibration_k > 0.0 && nis_known > calibration_k * calibration_k;
+            info.held = calibration_k > 0.0 && nis_known > calibration_k * calibration_k && !systematic;
             let held: &[usize] = if info.held { &cal } else { hold };
             self.apply(g, H, nu, &(R / info.weight), held)?;
         }
@@ -711,11 +712,12 @@ impl Model {
         r: f64,
         sigma: f64,
         hold: &[usize],
+        systematic: bool,
     ) -> Result<UpdateInfo, BuoyError> {
         let (h, H, _) = self.range_model(&g.x, j);
         let nu = DVector::from_element(1, r - h);
         let R = DMatrix::from_element(1, 1, sigma * sigma);
-        self.update_holding(g, &H, &nu, &R, self.gate1, self.cfg.range.huber_k, hold)
+        self.update_holding(g, &H, &nu, &R, self.gate1, self.cfg.range.huber_k, hold, systematic)
     }
 
     fn depth_update(&self, g: &mut Gaussian, z: f64, sigma: f64) -> Result<UpdateInfo, BuoyError> {
@@ -856,7 +858,15 @@ pub struct BuoyEkf {
     recent: VecDeque<bool>,
     /// Accepted ranges of the last `range.observability_window_s`, oldest first.
     seen: VecDeque<SeenRange>,
+    /// Per buoy: the time and innovation of its last accepted range that the calibration was
+    /// held on (cleared by one it learned from).
+    held_nu: Vec<Option<(f64, f64)>>,
 }
+
+/// Two ranges to a buoy within this many seconds whose innovations agree (within
+/// `range.calibration_k`·√2 σ) show a systematic error, not an outlier: the second one teaches the
+/// calibration even when its innovation is large against the position's uncertainty alone.
+const SYSTEMATIC_WITHIN_S: f64 = 5.0;
 
 fn finite(x: f64, what: &'static str) -> Result<f64, BuoyError> {
     if x.is_finite() { Ok(x) } else { Err(BuoyError::NonFinite(what)) }
@@ -894,6 +904,7 @@ impl BuoyEkf {
             cfg: config,
         };
         let ids: Vec<u32> = model.cfg.buoys.iter().map(|b| b.id).collect();
+        let n_buoys = ids.len();
         let counters = Counters {
             per_buoy: ids
                 .iter()
@@ -912,6 +923,7 @@ impl BuoyEkf {
             last_depth: None,
             counters,
             rejection_run_nu2: 0.0,
+            held_nu: vec![None; n_buoys],
             fix_run: 0,
             odo: None,
             window: VecDeque::new(),
@@ -1201,7 +1213,20 @@ impl BuoyEkf {
         let z_sigma = self.last_depth.filter(|&(t, _, _)| self.t_s - t <= self.model.cfg.range.observability_window_s);
         let anchor = self.path_anchor();
         let unobservable = self.model.unobservable_calibration(&self.seen, &next, z_sigma.map(|(_, _, s)| s), anchor);
-        let info = self.for_each_hypothesis(|m, g| m.range_update(g, j, range_m, sigma_m, &unobservable))?;
+        let nu_pre = match &self.phase {
+            Phase::Single(g) => range_m - self.model.range_model(&g.x, j).0,
+            Phase::Mixture(h) => range_m - self.model.range_model(&self.model.moment_match(h).x, j).0,
+            Phase::Waiting => 0.0,
+        };
+        let ck = self.model.cfg.range.calibration_k;
+        let systematic = self.held_nu[j].is_some_and(|(t, nu)| {
+            self.t_s - t <= SYSTEMATIC_WITHIN_S && (nu_pre - nu).abs() <= ck * std::f64::consts::SQRT_2 * sigma_m
+        });
+        let info =
+            self.for_each_hypothesis(|m, g| m.range_update(g, j, range_m, sigma_m, &unobservable, systematic))?;
+        if info.accepted {
+            self.held_nu[j] = info.held.then_some((self.t_s, nu_pre));
+        }
         let checks = self.model.cfg.recovery.check_ranges;
         self.recent.push_back(!info.accepted);
         while self.recent.len() > checks {
@@ -1444,6 +1469,7 @@ impl BuoyEkf {
         }
         self.init_ranges.clear();
         self.recent.clear();
+        self.held_nu.iter_mut().for_each(|h| *h = None);
     }
 
     /// Squared Mahalanobis distance between the planar positions of `g` and `fix`.
@@ -2286,6 +2312,39 @@ mod tests {
         assert_eq!(ekf.update_position_fix(&far, &cov).unwrap(), FixOutcome::Reset);
         assert_eq!(ekf.estimate().unwrap().position_m, far);
         assert_eq!(ekf.counters().fixes_rejected, 2);
+    }
+
+    #[test]
+    fn a_calibration_error_two_ranges_agree_on_is_learned_and_an_outlier_is_not() {
+        // Started at the true position (σ 0.1 m) with the range scale 3 % off: a range to the buoy
+        // 71 m away reads 2.1 m shorter than predicted, too much for the position alone, so the
+        // calibration is held on it; a second range to that buoy agreeing with it shows a
+        // systematic error and teaches the scale; after a gross error the next range does not.
+        let mut cfg = planar_config(BiasMode::Global);
+        cfg.range.observable_sigma_fraction = 0.0;
+        let start = Vector3::new(10.0, 10.0, 0.0);
+        let d = (Vector2::new(60.0, 60.0) - start.xy()).norm();
+        let run = |ranges: &[f64]| {
+            let mut ekf = BuoyEkf::new(cfg.clone(), 0.0).unwrap();
+            ekf.update_position_fix(&start, &(Matrix3::identity() * 0.01)).unwrap();
+            let k = ekf.model.lay.scale.unwrap();
+            let Phase::Single(g) = &mut ekf.phase else { panic!("a fix starts a single filter") };
+            g.x[k] = 0.03;
+            let mut scales = Vec::new();
+            for &r in ranges {
+                let outcome = ekf.update_range(12, r, 0.3).unwrap();
+                assert!(matches!(outcome, RangeOutcome::Accepted { .. }), "{outcome:?}");
+                scales.push(ekf.estimate().unwrap().range_scale.unwrap().0);
+            }
+            (scales, ekf.counters().calibration_held)
+        };
+        let (scales, held) = run(&[d, d]);
+        assert!((scales[0] - 0.03).abs() < 1e-9, "the first range holds the scale: {scales:?}");
+        assert!(scales[1] < 0.015, "the second, agreeing, teaches it: {scales:?}");
+        assert_eq!(held, 1);
+        let (scales, held) = run(&[d - 5.0, d]);
+        assert!(scales.iter().all(|s| (s - 0.03).abs() < 1e-9), "an outlier confirms nothing: {scales:?}");
+        assert_eq!(held, 2);
     }
 
     #[test]
