@@ -82,6 +82,16 @@ pub struct RangeConfig {
     /// right after a start would be locked in by the far buoys' large innovations). 0 turns it
     /// off.
     pub calibration_k: f64,
+    /// A range accepted at more than this many σ (normalised innovation |ν|/√S) is doubtful:
+    /// the filter takes it (down-weighted by Huber) and runs on alongside a copy that left it
+    /// out, both fed the same inputs and ranges; when the ranges after it make the copy 19 times
+    /// as likely (the likelihood of each range under each branch, truncated at the gate), the
+    /// filter goes on from the copy (`outlier_branch_switches` counts it), else after 12 ranges
+    /// or at 19:1 the other way the copy is dropped. One copy at a time. A gross error of 1-2 m
+    /// that lands at 2.5-3σ while the filter is itself half a metre off is what it is for: taken,
+    /// it turns the heading and the position drifts a metre over the next seconds. 0 turns it
+    /// off.
+    pub doubtful_sigma: f64,
     /// The range scale and bias states are learned only while the accepted ranges of the last
     /// `observability_window_s` determine them: with the estimated path over that window taken
     /// as right up to a common offset, a state whose σ from those ranges alone (no prior; the
@@ -114,6 +124,7 @@ impl Default for RangeConfig {
             gate_probability: 0.999,
             huber_k: 1.345,
             calibration_k: 3.0,
+            doubtful_sigma: 2.0,
             observable_sigma_fraction: 5.0,
             observability_window_s: 30.0,
             bias: BiasMode::Global,
@@ -362,6 +373,11 @@ impl BuoyConfig {
         let r = &self.range;
         check(r.gate_probability > 0.0 && r.gate_probability < 1.0, "range.gate_probability", "must be in (0, 1)");
         check(r.huber_k == 0.0 || (pos(r.huber_k) && r.huber_k >= 1.0), "range.huber_k", "must be 0 (off) or >= 1");
+        check(
+            r.doubtful_sigma == 0.0 || (pos(r.doubtful_sigma) && r.doubtful_sigma >= 1.0),
+            "range.doubtful_sigma",
+            "must be 0 (off) or >= 1",
+        );
         check(
             r.calibration_k == 0.0 || (pos(r.calibration_k) && r.calibration_k >= 1.0),
             "range.calibration_k",

@@ -194,6 +194,9 @@ pub struct Counters {
     pub recoveries: u64,
     /// Re-starts of a lost filter from a robust window fix (see `recovery.check_rejected_share`).
     pub reinitialisations: u64,
+    /// Doubtful ranges (taken at more than `range.doubtful_sigma`) that the ranges after them showed to be wrong:
+    /// the filter went on from the branch that left them out.
+    pub outlier_branch_switches: u64,
     /// Lost-filter checks whose window gave no fix (the filter went on as it was).
     pub lost_checks_without_fix: u64,
     /// Accepted ranges from which the range scale and bias states did not learn (normalised
@@ -861,12 +864,30 @@ pub struct BuoyEkf {
     /// Per buoy: the time and innovation of its last accepted range that the calibration was
     /// held on (cleared by one it learned from).
     held_nu: Vec<Option<(f64, f64)>>,
+    /// The filter without a doubtful range it took, run alongside until the ranges after it
+    /// tell which is right.
+    shadow: Option<Shadow>,
+}
+
+/// The branch that left out a doubtful range.
+#[derive(Debug, Clone, PartialEq)]
+struct Shadow {
+    g: Gaussian,
+    /// log p(shadow) − log p(filter), from the ranges since.
+    log_odds: f64,
+    ranges: u32,
 }
 
 /// Two ranges to a buoy within this many seconds whose innovations agree (within
 /// `range.calibration_k`·√2 σ) show a systematic error, not an outlier: the second one teaches the
 /// calibration even when its innovation is large against the position's uncertainty alone.
 const SYSTEMATIC_WITHIN_S: f64 = 5.0;
+
+/// The branches of a doubtful range (`range.doubtful_sigma`) are decided at these log odds
+/// (19:1) ...
+const SHADOW_DECIDE: f64 = 2.944;
+/// ... or after this many ranges (the filter's branch kept).
+const SHADOW_RANGES: u32 = 12;
 
 fn finite(x: f64, what: &'static str) -> Result<f64, BuoyError> {
     if x.is_finite() { Ok(x) } else { Err(BuoyError::NonFinite(what)) }
@@ -924,6 +945,7 @@ impl BuoyEkf {
             counters,
             rejection_run_nu2: 0.0,
             held_nu: vec![None; n_buoys],
+            shadow: None,
             fix_run: 0,
             odo: None,
             window: VecDeque::new(),
@@ -1013,7 +1035,12 @@ impl BuoyEkf {
         };
         match &mut self.phase {
             Phase::Waiting => {}
-            Phase::Single(g) => step(g),
+            Phase::Single(g) => {
+                step(g);
+                if let Some(sh) = &mut self.shadow {
+                    step(&mut sh.g);
+                }
+            }
             Phase::Mixture(hyps) => hyps.iter_mut().for_each(|h| step(&mut h.g)),
         }
     }
@@ -1222,8 +1249,31 @@ impl BuoyEkf {
         let systematic = self.held_nu[j].is_some_and(|(t, nu)| {
             self.t_s - t <= SYSTEMATIC_WITHIN_S && (nu_pre - nu).abs() <= ck * std::f64::consts::SQRT_2 * sigma_m
         });
+        let before = match &self.phase {
+            Phase::Single(g) if self.shadow.is_none() && self.model.cfg.range.doubtful_sigma > 0.0 => Some(g.clone()),
+            _ => None,
+        };
         let info =
             self.for_each_hypothesis(|m, g| m.range_update(g, j, range_m, sigma_m, &unobservable, systematic))?;
+        if let Some(mut sh) = self.shadow.take()
+            && matches!(self.phase, Phase::Single(_))
+        {
+            if let Ok(si) = self.model.range_update(&mut sh.g, j, range_m, sigma_m, &unobservable, systematic) {
+                sh.log_odds += si.log_lik - info.log_lik;
+                sh.ranges += 1;
+                if sh.log_odds >= SHADOW_DECIDE {
+                    self.phase = Phase::Single(sh.g);
+                    self.counters.outlier_branch_switches += 1;
+                } else if sh.log_odds > -SHADOW_DECIDE && sh.ranges < SHADOW_RANGES {
+                    self.shadow = Some(sh);
+                }
+            }
+        } else if let Some(g) = before
+            && info.accepted
+            && info.nis > self.model.cfg.range.doubtful_sigma.powi(2)
+        {
+            self.shadow = Some(Shadow { g, log_odds: 0.0, ranges: 0 });
+        }
         if info.accepted {
             self.held_nu[j] = info.held.then_some((self.t_s, nu_pre));
         }
@@ -1470,6 +1520,7 @@ impl BuoyEkf {
         self.init_ranges.clear();
         self.recent.clear();
         self.held_nu.iter_mut().for_each(|h| *h = None);
+        self.shadow = None;
     }
 
     /// Squared Mahalanobis distance between the planar positions of `g` and `fix`.
@@ -1519,6 +1570,7 @@ impl BuoyEkf {
     }
 
     fn inflate_after_rejections(&mut self, mean_nu2: f64, heading_sigma: f64) {
+        self.shadow = None;
         let l = self.model.lay;
         let heading_known = self.heading_known;
         if let Phase::Single(g) = &mut self.phase {
@@ -1536,6 +1588,7 @@ impl BuoyEkf {
 
     fn reset_bias(&mut self, j: usize) {
         let Some(i) = self.model.lay.bias_of(j) else { return };
+        self.shadow = None;
         let var = self.model.cfg.range.bias_prior_sigma_m.powi(2);
         if let Phase::Single(g) = &mut self.phase {
             g.P.row_mut(i).fill(0.0);
@@ -1653,6 +1706,11 @@ impl BuoyEkf {
             return Ok(FixOutcome::Stored);
         }
         let info = self.for_each_hypothesis(|m, g| m.depth_update(g, -depth_m, sigma_m))?;
+        if let Some(sh) = &mut self.shadow
+            && self.model.depth_update(&mut sh.g, -depth_m, sigma_m).is_err()
+        {
+            self.shadow = None;
+        }
         if info.accepted {
             Ok(FixOutcome::Accepted { nis: info.nis })
         } else {
@@ -1682,6 +1740,8 @@ impl BuoyEkf {
             self.split_if_heading_unknown();
             return Ok(FixOutcome::Initialised);
         }
+        // A position fix settles the position: no branch is kept past it.
+        self.shadow = None;
         let info = self.for_each_hypothesis(|m, g| m.fix_update(g, position_m, covariance_m2))?;
         if info.accepted {
             self.fix_run = 0;
@@ -1950,6 +2010,54 @@ mod tests {
     }
 
     #[test]
+    fn a_doubtful_range_the_next_ranges_contradict_is_undone() {
+        // Known calibration, a position known to 0.5 m: a range 3σ off its prediction is taken
+        // (down-weighted) and moves the position ~1 m toward buoy 10. Ranges from where the
+        // vehicle really is then decide between the filter and its copy without that range.
+        let mut cfg = planar_config(BiasMode::None);
+        cfg.range.estimate_scale = false;
+        let start = Vector3::new(20.0, 30.0, 0.0);
+        let range_from = |ekf: &BuoyEkf, j: usize, p: &Vector3<f64>| {
+            let mut x = DVector::zeros(ekf.model.lay.n);
+            x[0] = p.x;
+            x[1] = p.y;
+            ekf.model.range_model(&x, j).0
+        };
+        let run = |cfg: &BuoyConfig, truth: Vector3<f64>| {
+            let mut ekf = BuoyEkf::new(cfg.clone(), 0.0).unwrap();
+            ekf.update_position_fix(&start, &(Matrix3::identity() * 0.25)).unwrap();
+            let sd = (0.25f64 + 0.09).sqrt();
+            let doubtful = range_from(&ekf, 0, &start) - 3.0 * sd;
+            let outcome = ekf.update_range(10, doubtful, 0.3).unwrap();
+            assert!(matches!(outcome, RangeOutcome::Accepted { weight, .. } if weight < 0.5), "{outcome:?}");
+            let moved = (ekf.estimate().unwrap().position_m - start).norm();
+            assert!(moved > 0.8, "the doubtful range moved the position {moved} m");
+            for k in 0..6 {
+                let j = [0, 2, 1, 3, 0, 4][k];
+                let r = range_from(&ekf, j, &truth);
+                ekf.update_range(10 + j as u32, r, 0.3).unwrap();
+            }
+            let error = (ekf.estimate().unwrap().position_m - truth).norm();
+            (ekf.counters().outlier_branch_switches, error, ekf.shadow.as_ref().map(|c| c.log_odds))
+        };
+        // The vehicle is where the fix put it: the range was a gross error.
+        let (switches, error, _) = run(&cfg, start);
+        assert_eq!(switches, 1);
+        assert!(error < 0.05, "after the switch: {error} m off");
+        let mut off = cfg.clone();
+        off.range.doubtful_sigma = 0.0;
+        let (switches, error_without, _) = run(&off, start);
+        assert_eq!(switches, 0);
+        assert!(error_without > 4.0 * error.max(0.02), "without the copy: {error_without} m off");
+        // The vehicle is where the doubtful range put it: no switch, the odds are for the filter.
+        let toward = start - start.normalize() * 1.0;
+        let (switches, error, copy) = run(&cfg, toward);
+        assert_eq!(switches, 0);
+        assert!(copy.is_none_or(|log_odds| log_odds < -1.0), "log odds of the copy {copy:?}");
+        assert!(error < 0.3, "{error} m off");
+    }
+
+    #[test]
     fn a_filter_started_far_off_recovers_through_the_rejection_counter() {
         let s = Sim { seconds: 120.0, scale: 0.0, biases: vec![0.0; 5], ..Sim::default() };
         let mut cfg = planar_config(BiasMode::None);
@@ -2099,6 +2207,12 @@ mod tests {
         cfg.init.odometry_window_ambiguity_margin = -1.0;
         match BuoyEkf::new(cfg, 0.0) {
             Err(BuoyError::InvalidConfig(p)) => assert_eq!(p[0].0, "init.odometry_window_ambiguity_margin"),
+            other => panic!("{other:?}"),
+        }
+        let mut cfg = planar_config(BiasMode::Global);
+        cfg.range.doubtful_sigma = 0.5;
+        match BuoyEkf::new(cfg, 0.0) {
+            Err(BuoyError::InvalidConfig(p)) => assert_eq!(p[0].0, "range.doubtful_sigma"),
             other => panic!("{other:?}"),
         }
     }

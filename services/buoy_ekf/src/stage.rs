@@ -154,6 +154,7 @@ fn summary(
         "ranges_rejected": counters.rejected,
         "recoveries": counters.recoveries,
         "reinitialisations": counters.reinitialisations,
+        "outlier_branch_switches": counters.outlier_branch_switches,
         "lost_checks_without_fix": counters.lost_checks_without_fix,
         "bias_resets": counters.bias_resets,
         "calibration_held": counters.calibration_held,
