@@ -175,7 +175,7 @@ pub struct BuoyCounters {
     pub id: u32,
     /// Ranges accepted.
     pub accepted: u64,
-    /// Ranges rejected by the gate.
+    /// Ranges rejected by the gate, or taken and undone (`outlier_branch_switches`).
     pub rejected: u64,
     /// Ranges rejected in a row (reset by an accepted one).
     pub consecutive_rejected: u32,
@@ -186,7 +186,7 @@ pub struct BuoyCounters {
 pub struct Counters {
     /// Ranges accepted.
     pub accepted: u64,
-    /// Ranges rejected by the gate.
+    /// Ranges rejected by the gate, or taken and undone (`outlier_branch_switches`).
     pub rejected: u64,
     /// Ranges rejected in a row, any buoy (reset by an accepted one).
     pub consecutive_rejected: u32,
@@ -876,6 +876,8 @@ struct Shadow {
     /// log p(shadow) − log p(filter), from the ranges since.
     log_odds: f64,
     ranges: u32,
+    /// The buoy of the range it left out.
+    buoy: usize,
 }
 
 /// Two ranges to a buoy within this many seconds whose innovations agree (within
@@ -1263,7 +1265,14 @@ impl BuoyEkf {
                 sh.ranges += 1;
                 if sh.log_odds >= SHADOW_DECIDE {
                     self.phase = Phase::Single(sh.g);
-                    self.counters.outlier_branch_switches += 1;
+                    // The range it left out counts as rejected after all.
+                    let c = &mut self.counters;
+                    c.outlier_branch_switches += 1;
+                    c.accepted = c.accepted.saturating_sub(1);
+                    c.rejected += 1;
+                    let b = &mut c.per_buoy[sh.buoy];
+                    b.accepted = b.accepted.saturating_sub(1);
+                    b.rejected += 1;
                 } else if sh.log_odds > -SHADOW_DECIDE && sh.ranges < SHADOW_RANGES {
                     self.shadow = Some(sh);
                 }
@@ -1272,7 +1281,7 @@ impl BuoyEkf {
             && info.accepted
             && info.nis > self.model.cfg.range.doubtful_sigma.powi(2)
         {
-            self.shadow = Some(Shadow { g, log_odds: 0.0, ranges: 0 });
+            self.shadow = Some(Shadow { g, log_odds: 0.0, ranges: 0, buoy: j });
         }
         if info.accepted {
             self.held_nu[j] = info.held.then_some((self.t_s, nu_pre));
@@ -2038,7 +2047,12 @@ mod tests {
                 ekf.update_range(10 + j as u32, r, 0.3).unwrap();
             }
             let error = (ekf.estimate().unwrap().position_m - truth).norm();
-            (ekf.counters().outlier_branch_switches, error, ekf.shadow.as_ref().map(|c| c.log_odds))
+            let c = ekf.counters();
+            // Undone, the doubtful range counts as rejected.
+            let undone = c.outlier_branch_switches;
+            assert_eq!((c.accepted, c.rejected), (7 - undone, undone));
+            assert_eq!(c.buoy(10).unwrap().rejected, undone);
+            (undone, error, ekf.shadow.as_ref().map(|c| c.log_odds))
         };
         // The vehicle is where the fix put it: the range was a gross error.
         let (switches, error, _) = run(&cfg, start);

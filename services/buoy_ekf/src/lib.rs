@@ -369,6 +369,7 @@ impl BuoyState {
         let mut waiting = 0;
         let mut reason = None;
         let restarts_before = ekf.counters().reinitialisations;
+        let switches_before = ekf.counters().outlier_branch_switches;
         for b in &r.ranges {
             match ekf.update_range(b.buoy_id, b.range_m, b.sigma_m) {
                 Ok(RangeOutcome::Accepted { .. } | RangeOutcome::Initialised) => used += 1,
@@ -390,6 +391,14 @@ impl BuoyState {
                 restarts = ekf.counters().reinitialisations,
                 "the buoy EKF was lost (too many ranges rejected) and re-started from a robust fix over its \
                  odometry window (`ekf.recovery.check_rejected_share`, `ekf.init.odometry_window_s`)"
+            );
+        }
+        if ekf.counters().outlier_branch_switches > switches_before {
+            tracing::warn!(
+                data_time_s = t,
+                undone = ekf.counters().outlier_branch_switches,
+                "the buoy EKF undid a range it had taken as doubtful: the ranges since fit the filter without it \
+                 (counted as rejected; `ekf.range.doubtful_sigma`)"
             );
         }
         self.waiting += waiting;
