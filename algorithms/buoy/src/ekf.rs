@@ -34,7 +34,9 @@
 //! learn from a range whose innovation is more than `range.calibration_k` σ of what they cannot
 //! explain (position uncertainty and range noise): its gain rows for them are zeroed (a
 //! Schmidt update; counted as `calibration_held`), so a gross error accepted while the bias
-//! prior is still wide moves the position a little instead of the bias a lot. Nor do they learn
+//! prior is still wide moves the position a little instead of the bias a lot; but the second of
+//! two such ranges to a buoy within 5 s whose innovations agree (a calibration error repeats, a
+//! gross error does not) does teach them. Nor do they learn
 //! what the recent ranges cannot determine (`range.observable_sigma_fraction`,
 //! [`Model::unobservable_calibration`]: the ranges of the last `range.observability_window_s`,
 //! along the odometry's path, with the position's offset and the other calibration states
@@ -43,7 +45,10 @@
 //!
 //! # Gating and recovery
 //! A range whose normalised innovation ν²/S exceeds the χ²₁ quantile of `range.gate_probability`
-//! is rejected and counted (total and per buoy); depth uses the same χ²₁ gate and a position fix
+//! is rejected and counted (total and per buoy). One accepted at more than `range.doubtful_sigma`
+//! is taken while a copy of the filter without it runs alongside; the ranges after it decide
+//! (their likelihoods under each, 19:1), and a range the copy wins on is undone and counted as
+//! rejected (`outlier_branch_switches`); depth uses the same χ²₁ gate and a position fix
 //! the χ²_D one. A filter that has gone wrong rejects everything, so rejections in a row trigger
 //! recovery: after `recovery.consecutive_rejections` ranges in a row rejected (no range accepted
 //! in between) the position covariance grows by the run's mean squared innovation on every axis
