@@ -605,8 +605,11 @@ rate_hz = 0.0
     assert!(base.log().contains("messages lost across the bridge"), "warned");
     // The robot's side knows what it sent while nobody on the other side subscribed: counted as
     // dropped, in the status line and summary.json like any other loss.
+    // The sender learns of the new subscriber through Zenoh's matching status, a moment after
+    // the subscriber exists: the message or two sent in between count as unmatched on this side
+    // and arrive on the other (seen in CI: 310 unmatched, 309 lost).
     let unmatched = rb["out"][s]["counts"]["no_subscriber"].as_u64().unwrap();
-    assert!(unmatched > 0 && unmatched <= lost, "{unmatched} sent unmatched, {lost} lost: {rb:#}");
+    assert!(unmatched > 0 && unmatched <= lost + 2, "{unmatched} sent unmatched, {lost} lost: {rb:#}");
     let dropped = r["dropped"].as_array().expect("dropped list");
     assert!(
         dropped.iter().any(|d| d["process"] == "link" && d["reason"] == "no subscriber on the other side"),
