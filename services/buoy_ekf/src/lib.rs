@@ -117,6 +117,11 @@ pub struct BuoyState {
     newest_odometry_ns: Option<u64>,
     /// Newest stamp of any input, ns.
     newest_stamp_ns: Option<u64>,
+    /// `newest_stamp_ns` as it was at the previous [`BuoyState::step`]: the data-time evidence
+    /// that odometry has stalled. The stage receives odometry first and ranges after, so ranges
+    /// received in this round may be newer than odometry that was published before them but
+    /// after the odometry was received; by the next round that odometry has been received too.
+    settled_newest_ns: Option<u64>,
     /// Every odometry input applied, with its stamp (for dead reckoning).
     pub inputs: Vec<(f64, ProcessInput)>,
     /// The estimate after every odometry input and every ranges message once initialised:
@@ -161,6 +166,7 @@ impl BuoyState {
             depth: VecDeque::new(),
             newest_odometry_ns: None,
             newest_stamp_ns: None,
+            settled_newest_ns: None,
             inputs: vec![],
             trajectory: vec![],
             invalid: Default::default(),
@@ -231,7 +237,9 @@ impl BuoyState {
 
     /// The process's `step`: applies the queued messages in stamp order and returns the fixes
     /// to publish. A ranges message waits for odometry up to its stamp (unless `flush`, at the
-    /// end of the stream, or it has waited `odometry_wait_s`).
+    /// end of the stream, or it has waited `odometry_wait_s`). Called once per round of
+    /// receiving (odometry first); the data-time evidence that odometry stalled is taken from
+    /// the rounds before this one.
     pub fn step(&mut self, flush: bool, now: Instant) -> Vec<Fix> {
         let mut out = vec![];
         // Everything up to the horizon is applied in stamp order: the newest odometry stamp, or
@@ -239,7 +247,8 @@ impl BuoyState {
         // Data time: ranges that other inputs have left `odometry_wait_s` behind. Wall time:
         // ranges that have waited `odometry_stall_s` (every input stalled).
         let wait_ns = (self.settings.odometry_wait_s * 1e9) as u64;
-        let newest = self.newest_stamp_ns.unwrap_or(0);
+        let newest = self.settled_newest_ns.unwrap_or(0);
+        self.settled_newest_ns = self.newest_stamp_ns;
         let stall = Duration::from_secs_f64(self.settings.odometry_stall_s);
         let waited_out = self
             .ranges
@@ -503,6 +512,10 @@ mod tests {
         st.push_ranges(2_400_000_000, 0, &ranges_at(p, &s), now);
         assert!(st.step(false, now).is_empty(), "0.4 s of data time is not enough");
         st.push_ranges(2_500_000_000, 0, &ranges_at(p, &s), now);
+        // Not in the round that received the later ranges: odometry published before them may
+        // have been published after the odometry was received (a fast replay); the next round
+        // has received it.
+        assert!(st.step(false, now).is_empty(), "the round that received the evidence waits");
         assert_eq!(st.step(false, now).len(), 1, "0.5 s of data time past the first ranges");
         // ... or once it has waited odometry_stall_s of wall time (every input stalled).
         assert_eq!(st.next_deadline(), Some(now + Duration::from_secs(5)));

@@ -114,6 +114,11 @@ pub struct PendingScan {
 pub struct ScanQueue {
     odometry: VecDeque<(u64, Pose2)>,
     scans: VecDeque<PendingScan>,
+    /// Newest scan stamp pushed, ns.
+    newest_scan_ns: Option<u64>,
+    /// `newest_scan_ns` at the last [`ScanQueue::settle`]: the data-time evidence that odometry
+    /// has stalled.
+    settled_scan_ns: Option<u64>,
     /// Rejected inputs by kind.
     pub rejected: BTreeMap<&'static str, u64>,
 }
@@ -165,8 +170,18 @@ impl ScanQueue {
             self.reject("scan_stamp_not_increasing");
             return false;
         }
+        self.newest_scan_ns = Some(scan.stamp_ns);
         self.scans.push_back(scan);
         true
+    }
+
+    /// Takes the scans pushed so far as evidence for the data-time rule of [`ScanQueue::pop`];
+    /// call it before receiving odometry. A source replaying in stamp order as fast as it can
+    /// publishes between the two receives: scans received after the odometry may run ahead of
+    /// odometry that was published before them, but after the odometry was received. Scans
+    /// received before the odometry cannot: the odometry up to them has arrived with it.
+    pub fn settle(&mut self) {
+        self.settled_scan_ns = self.newest_scan_ns;
     }
 
     /// Scans waiting.
@@ -175,14 +190,14 @@ impl ScanQueue {
     }
 
     /// The next scan that can go, with its odometry: when the odometry has reached its stamp
-    /// (interpolated), or — with `flush` (the inputs ended) or once a later scan is `wait_ns`
-    /// past it — with the latest odometry (counted as `scans_with_stale_odometry`). A scan before
+    /// (interpolated), or — with `flush` (the inputs ended) or once a later scan known at the
+    /// last [`ScanQueue::settle`] is `wait_ns` past it — with the latest odometry (counted as `scans_with_stale_odometry`). A scan before
     /// the first odometry sample, or with none at all when it must go, is dropped (counted).
     pub fn pop(&mut self, wait_ns: u64, flush: bool) -> Option<(PendingScan, Pose2)> {
         loop {
             let scan = self.scans.front()?;
             let t = scan.stamp_ns;
-            let newest_scan = self.scans.back().map_or(t, |s| s.stamp_ns);
+            let newest_scan = self.settled_scan_ns.unwrap_or(t).max(t);
             let i = self.odometry.partition_point(|(s, _)| *s < t);
             let pose = if let Some(b) = self.odometry.get(i) {
                 if b.0 == t {
@@ -254,6 +269,8 @@ mod tests {
         q.push_scan(scan(250));
         assert_eq!(q.pop(100, false), None);
         q.push_scan(scan(300));
+        assert_eq!(q.pop(100, false), None, "300 came after the odometry was received: not yet evidence");
+        q.settle();
         assert_eq!(q.pop(100, false).map(|(s, p)| (s.stamp_ns, p.x_m)), Some((200, 1.0)));
         assert!(!q.push_scan(scan(300)), "a repeated stamp");
         assert!(!q.push_odometry(50, at(0.0)), "odometry going back");

@@ -84,6 +84,8 @@ impl GridSlamStage {
     }
 
     fn receive(&mut self) -> Result<(), StageError> {
+        // The scans received up to now were published before the odometry received next.
+        self.queue.settle();
         while let Some(s) = self.odometry.receive()? {
             let (h, o) = (s.user_header(), s.payload());
             let pose = Pose2 { x_m: o.position_m[0], y_m: o.position_m[1], theta_rad: o.yaw_rad };
