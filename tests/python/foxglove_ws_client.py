@@ -6,8 +6,9 @@ Connects to a viewer (retrying until it listens), subscribes to every advertised
 decodes each message with the protobuf schema the server advertised for its channel (no
 Foxglove package: the schema comes over the wire, as the app takes it) and prints one JSON
 object: per topic, the schema name, how many messages were decoded and what the last one held.
-Stops when every topic named with --want has had a message (and --min-messages of each), or at
---timeout-s (then exits 1 naming the topics that never came).
+Stops when every topic named with --want has had a message (and --min-messages of each) and
+every --at-least condition holds on its topic's last message, or at --timeout-s (then exits 1
+naming the topics that never came or whose condition never held).
 
 Needs the PyPI packages `websockets` and `protobuf` (scripts/test.sh installs them).
 """
@@ -35,7 +36,24 @@ def main():
     ap.add_argument("--want", action="append", default=[], help="a topic that must deliver (repeatable)")
     ap.add_argument("--min-messages", type=int, default=1)
     ap.add_argument("--timeout-s", type=float, default=120.0)
+    ap.add_argument(
+        "--at-least",
+        nargs=3,
+        action="append",
+        default=[],
+        metavar=("TOPIC", "FIELD", "N"),
+        help="wait until TOPIC's last message has FIELD (a number in its summary, e.g. points) >= N (repeatable)",
+    )
     args = ap.parse_args()
+    at_least = [(t, f, float(n)) for t, f, n in args.at_least]
+
+    def unmet(seen):
+        missing = [t for t in args.want if seen.get(t, {}).get("count", 0) < args.min_messages]
+        for t, f, n in at_least:
+            v = seen.get(t, {}).get("last", {}).get(f)
+            if not isinstance(v, (int, float)) or v < n:
+                missing.append(f"{t} ({f} >= {n:g}; last: {v})")
+        return missing
 
     deadline = time.monotonic() + args.timeout_s
     ws = None
@@ -59,8 +77,7 @@ def main():
     closed = False
     with ws:
         while time.monotonic() < deadline:
-            done = all(seen.get(t, {}).get("count", 0) >= args.min_messages for t in args.want)
-            if args.want and done:
+            if (args.want or at_least) and not unmet(seen):
                 break
             try:
                 frame = ws.recv(timeout=max(0.1, deadline - time.monotonic()))
@@ -96,7 +113,7 @@ def main():
 
     out = {"server": server_name, "subprotocol": ws.subprotocol, "closed_by_server": closed, "advertised": sorted(t for t, _, _ in channels.values()), "topics": seen}
     print(json.dumps(out))
-    missing = [t for t in args.want if seen.get(t, {}).get("count", 0) < args.min_messages]
+    missing = unmet(seen)
     if missing:
         print(f"no message on: {', '.join(missing)}", file=sys.stderr)
         return 1

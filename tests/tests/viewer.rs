@@ -73,6 +73,19 @@ duration_s = 200"#;
     {
         cmd.args(["--want", topic]);
     }
+    // The mapper fills its map only once fused poses come (later on a loaded machine): the client
+    // waits for what the assertions below read rather than stop at the first empty full sets.
+    for (topic, field, n) in [
+        ("/octree", "points", "100"),
+        ("/cloud", "points", "1"),
+        ("/landmarks", "points", "1"),
+        ("/ground_truth/path", "poses", "2"),
+        ("/slam/path", "poses", "2"),
+        ("/buoy/path", "poses", "2"),
+        ("/fused/path", "poses", "2"),
+    ] {
+        cmd.args(["--at-least", topic, field, n]);
+    }
     let out = cmd.stderr(Stdio::piped()).output().expect("python3 runs the client");
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
