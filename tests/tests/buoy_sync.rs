@@ -147,3 +147,38 @@ fn invalid_buoy_ekf_and_synchronizer_settings_name_their_keys() {
         assert!(run.log().contains(&format!("`{key}`")), "must name `{key}`:\n{}", run.log());
     }
 }
+
+#[test]
+fn the_heavy_outlier_mission_stays_within_1_2x_of_the_same_mission_with_the_outliers_removed() {
+    // config/buoy_outliers.toml as committed (3 buoys, 15 % gross errors of 1-10 m of either
+    // sign, sim seed 1), and the same mission with those ranges left out: every other range is
+    // the same (`outliers_removed`), so the ratio is what the outliers cost the filter.
+    let path = format!("{}/../config/buoy_outliers.toml", env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(&path).expect("config/buoy_outliers.toml");
+    let procs = &text[text.find("\n[processes.").expect("a [processes.*] table")..];
+    assert!(procs.contains("outliers_both_signs = true\n"), "config/buoy_outliers.toml changed: update this test");
+    let removed_procs =
+        procs.replace("outliers_both_signs = true\n", "outliers_both_signs = true\noutliers_removed = true\n");
+    let mut summaries = vec![];
+    for (tag, p) in [("buoyout", procs.to_string()), ("buoyrem", removed_procs)] {
+        let mut run = TestRun::new(tag);
+        summaries.push(run_to_end(&mut run, &p, "\"buoy\""));
+    }
+    let ate = |s: &serde_json::Value| s["ate_m"]["buoy_ekf"].as_f64().expect("ate_m.buoy_ekf");
+    let (with, removed) = (ate(&summaries[0]), ate(&summaries[1]));
+    assert!(with <= 1.2 * removed, "ATE {with} m with the outliers, {removed} m with them removed");
+    assert!(with < 0.5, "ATE {with} m: {:#}", summaries[0]);
+    // The outliers are rejected and said so per buoy; with them removed next to nothing is.
+    for (s, lo, hi) in [(&summaries[0], 0.08, 0.25), (&summaries[1], 0.0, 0.05)] {
+        let b = &s["buoy_ekf"];
+        assert_eq!(b["initialised"], true, "{b:#}");
+        let per_buoy = b["per_buoy"].as_array().expect("per_buoy");
+        assert_eq!(per_buoy.len(), 3, "{b:#}");
+        for p in per_buoy {
+            let share = p["rejected_share"].as_f64().unwrap();
+            assert!((lo..=hi).contains(&share), "rejected share {share} outside {lo}-{hi}: {b:#}");
+        }
+        assert!(b["start_checks"].as_u64().unwrap() >= 1, "{b:#}");
+        assert_eq!(b["invalid_inputs"], serde_json::json!({}), "{b:#}");
+    }
+}

@@ -284,6 +284,18 @@ pub struct RecoveryConfig {
     /// a robust fix; a fix that disagrees with the filter (χ²₂ gate of the position difference)
     /// re-starts it there (counted as `reinitialisations`).
     pub check_rejected_share: f64,
+    /// A start from the odometry window's fix is provisional: the first fix comes from the
+    /// fewest ranges and the shortest path that allow one, and with 3 buoys a range bias the
+    /// fix does not model can pull it metres off while the filter, starting there, takes its
+    /// calibration states along and accepts what follows. Every `confirm_every_ranges` ranges
+    /// after a start the window (grown since) is solved again and compared with the filter
+    /// (χ²₂ gate of the position difference); when neither its fix of the raw ranges nor that
+    /// of the ranges corrected by the filter's calibration agrees, the filter re-starts at the
+    /// first with the calibration at its prior (counted as `start_corrections`). The start holds
+    /// once this many checks in a row agree. 0: no checks.
+    pub confirm_checks: u32,
+    /// Ranges between those checks.
+    pub confirm_every_ranges: u32,
 }
 
 impl Default for RecoveryConfig {
@@ -295,6 +307,8 @@ impl Default for RecoveryConfig {
             fix_rejections: 2,
             check_ranges: 20,
             check_rejected_share: 0.4,
+            confirm_checks: 3,
+            confirm_every_ranges: 5,
         }
     }
 }
@@ -466,6 +480,11 @@ impl BuoyConfig {
             c.check_rejected_share > 0.0 && c.check_rejected_share <= 1.0,
             "recovery.check_rejected_share",
             "must be in (0, 1]",
+        );
+        check(
+            c.confirm_checks == 0 || c.confirm_every_ranges >= 1,
+            "recovery.confirm_every_ranges",
+            "must be >= 1 (or recovery.confirm_checks = 0)",
         );
         v
     }

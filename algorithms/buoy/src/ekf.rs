@@ -65,6 +65,14 @@
 //! solved (`reinitialisations`); a check without a fix is counted (`lost_checks_without_fix`)
 //! and the covariance inflation above applies as before.
 //!
+//! A start from the window's fix is provisional (`recovery.confirm_checks`): the first fix comes
+//! from the fewest ranges and the shortest path that allow one, and a range bias it does not
+//! model can fit there as a wrong heading, metres off with a confident covariance. Every
+//! `recovery.confirm_every_ranges` ranges after a start the grown window is solved again, from
+//! the raw ranges and from the ranges corrected by the filter's calibration; when neither fix
+//! agrees with the filter (χ²₂ gate) it re-starts at the first with the calibration at its
+//! prior (`start_corrections`); `confirm_checks` agreeing checks in a row end the checking.
+//!
 //! # Initialisation
 //! `init.method = "trilateration"`: ranges are buffered for `init.window_s`; once they reach
 //! `init.min_buoys` distinct buoys (default 4: one spare, so a wrong range shows in the residual)
@@ -204,6 +212,11 @@ pub struct Counters {
     pub outlier_branch_switches: u64,
     /// Lost-filter checks whose window gave no fix (the filter went on as it was).
     pub lost_checks_without_fix: u64,
+    /// Starts from a window fix that a later fix of the grown window disagreed with: the
+    /// filter re-started there (see `recovery.confirm_checks`).
+    pub start_corrections: u64,
+    /// Checks of a start against the grown window (see `recovery.confirm_checks`), with a fix.
+    pub start_checks: u64,
     /// Accepted ranges from which the range scale and bias states did not learn (normalised
     /// innovation beyond `range.calibration_k`).
     pub calibration_held: u64,
@@ -872,6 +885,15 @@ pub struct BuoyEkf {
     /// The filter without a doubtful range it took, run alongside until the ranges after it
     /// tell which is right.
     shadow: Option<Shadow>,
+    /// A start from a window fix not yet confirmed (`recovery.confirm_checks`).
+    confirming: Option<Confirming>,
+}
+
+/// A provisional start: ranges since the last check, and checks in a row that agreed.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+struct Confirming {
+    ranges: u32,
+    agreed: u32,
 }
 
 /// The branch that left out a doubtful range.
@@ -953,6 +975,7 @@ impl BuoyEkf {
             rejection_run_nu2: 0.0,
             held_nu: vec![None; n_buoys],
             shadow: None,
+            confirming: None,
             fix_run: 0,
             odo: None,
             window: VecDeque::new(),
@@ -1310,7 +1333,9 @@ impl BuoyEkf {
             while self.seen.front().is_some_and(|r| self.t_s - r.t_s > window) {
                 self.seen.pop_front();
             }
-            self.check_lost(false);
+            if !self.confirm_start() {
+                self.check_lost(false);
+            }
             return Ok(RangeOutcome::Accepted { innovation_m: info.nu0, nis: info.nis, weight: info.weight });
         }
         c.rejected += 1;
@@ -1338,6 +1363,9 @@ impl BuoyEkf {
             }
         } else {
             self.check_lost(false);
+        }
+        if !recovery {
+            self.confirm_start();
         }
         Ok(RangeOutcome::Rejected { innovation_m: info.nu0, nis: info.nis, recovery })
     }
@@ -1535,6 +1563,44 @@ impl BuoyEkf {
         self.recent.clear();
         self.held_nu.iter_mut().for_each(|h| *h = None);
         self.shadow = None;
+        self.confirming = (self.model.cfg.recovery.confirm_checks > 0).then(Confirming::default);
+    }
+
+    /// The check of a provisional start (see `recovery.confirm_checks`), after each range:
+    /// every `recovery.confirm_every_ranges` ranges the window is solved again, as at the start
+    /// (raw ranges) and with the ranges corrected by the filter's calibration; when both
+    /// disagree with the filter it re-starts at the first with the calibration at its prior.
+    /// Returns whether it re-started.
+    fn confirm_start(&mut self) -> bool {
+        let rc = &self.model.cfg.recovery;
+        let (every, needed) = (rc.confirm_every_ranges, rc.confirm_checks);
+        let Some(mut c) = self.confirming else { return false };
+        c.ranges += 1;
+        self.confirming = Some(c);
+        if c.ranges < every || !self.window_enabled() {
+            return false;
+        }
+        c.ranges = 0;
+        self.confirming = Some(c);
+        let g = match &self.phase {
+            Phase::Single(g) => g.clone(),
+            Phase::Mixture(h) => self.model.moment_match(h),
+            Phase::Waiting => return false,
+        };
+        let Ok(fix) = self.window_fix_with(None) else { return false };
+        self.counters.start_checks += 1;
+        // The raw fix is off by what the calibration learned since the start (a scale, a
+        // bias): a filter that agrees with the fix of the ranges corrected by its own
+        // calibration holds too.
+        let agrees = |f: &WindowFix| self.position_distance2(&g, f) <= self.model.gate_fix;
+        if agrees(&fix) || self.window_fix_with(Some(&g)).is_ok_and(|f| agrees(&f)) {
+            c.agreed += 1;
+            self.confirming = (c.agreed < needed).then_some(c);
+            return false;
+        }
+        self.start_from_fix(&fix, None);
+        self.counters.start_corrections += 1;
+        true
     }
 
     /// Squared Mahalanobis distance between the planar positions of `g` and `fix`.
@@ -1889,6 +1955,11 @@ mod tests {
 
     /// Runs the filter; returns it and its track.
     fn simulate(cfg: BuoyConfig, s: &Sim) -> (BuoyEkf, Track) {
+        simulate_with(cfg, s, |_, _| {})
+    }
+
+    /// [`simulate`], calling `hook` with the time and the filter after every range.
+    fn simulate_with(cfg: BuoyConfig, s: &Sim, mut hook: impl FnMut(f64, &mut BuoyEkf)) -> (BuoyEkf, Track) {
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(s.seed);
         let n01 = Normal::new(0.0, 1.0).unwrap();
         let (speed_sigma, turn_sigma, dt) = (0.05, 0.002, 0.1);
@@ -1911,6 +1982,7 @@ mod tests {
                 let r = (1.0 + s.scale) * d + s.biases[j] + s.range_sigma * n01.sample(&mut rng);
                 ekf.predict_to(t_range).unwrap();
                 ekf.update_range(10 + j as u32, r, s.range_sigma).unwrap();
+                hook(t_range, &mut ekf);
                 let est = ekf.estimate().ok().map(|e| e.position_m.xy());
                 out.push((t_range, Vector2::new(xr, yr), est));
             }
@@ -2098,6 +2170,52 @@ mod tests {
         assert_eq!(ekf.counters().reinitialisations, 0);
         assert!(ekf.counters().rejected >= 8);
         assert!(rmse_after(&track, 60.0) < 0.5, "RMSE {}", rmse_after(&track, 60.0));
+    }
+
+    #[test]
+    fn a_start_the_grown_window_disagrees_with_is_corrected() {
+        // The filter (re)starts at 20 s from a fix 3 m off with a confident 0.3 m σ, the heading
+        // right: as a first fix from a short window can be. The checks of the start solve the
+        // grown window again and re-start it where the vehicle is. (Ranges with a 0.3 m bias,
+        // no scale error.)
+        let s = Sim { seconds: 60.0, scale: 0.0, biases: vec![0.3; 5], ..Sim::default() };
+        let run = |cfg: &BuoyConfig| {
+            let mut started = false;
+            simulate_with(cfg.clone(), &s, |t, ekf| {
+                if t >= 20.0 && !started {
+                    started = true;
+                    let e = ekf.estimate().unwrap();
+                    let wrong = WindowFix {
+                        position_m: e.position_m + Vector3::new(2.0, -2.2, 0.0),
+                        covariance_m2: Matrix3::from_diagonal(&Vector3::new(0.09, 0.09, 0.0)),
+                        heading_rad: e.heading_rad,
+                        heading_sigma_rad: 0.02,
+                        position_heading_cov_m_rad: Vector2::zeros(),
+                        inliers: vec![],
+                        buoys: 3,
+                        normalised_rms: 1.0,
+                    };
+                    ekf.start_from_fix(&wrong, None);
+                }
+            })
+        };
+        let cfg = planar_config(BiasMode::Global);
+        let (ekf, track) = run(&cfg);
+        let c = ekf.counters();
+        assert_eq!(c.start_corrections, 1, "{c:?}");
+        assert!(c.start_checks >= u64::from(cfg.recovery.confirm_checks) + 1, "{c:?}");
+        // Corrected within the first check (5 ranges, 1.25 s) of the wrong start.
+        let error_at = |t0: f64| track.iter().find(|r| r.0 >= t0).map(|r| (r.2.unwrap() - r.1).norm()).unwrap();
+        assert!(error_at(21.5) < 0.7, "{} m off at 21.5 s", error_at(21.5));
+        let mut off = cfg.clone();
+        off.recovery.confirm_checks = 0;
+        let (ekf, track_off) = run(&off);
+        assert_eq!((ekf.counters().start_corrections, ekf.counters().start_checks), (0, 0));
+        let error_off = |t0: f64| track_off.iter().find(|r| r.0 >= t0).map(|r| (r.2.unwrap() - r.1).norm()).unwrap();
+        assert!(error_off(21.5) > 1.5, "without the checks: {} m off at 21.5 s", error_off(21.5));
+        let (with, without) = (rmse_after(&track, 20.0), rmse_after(&track_off, 20.0));
+        eprintln!("RMSE after 20 s: {with:.3} m with the checks, {without:.3} m without");
+        assert!(with < 0.7 * without, "RMSE after 20 s: {with} with the checks, {without} without");
     }
 
     #[test]

@@ -229,6 +229,10 @@ pub struct BuoyConfig {
     /// Outliers read long or short with equal odds (multipath locks and non-line-of-sight
     /// paths), instead of only long (a range that would go below 0.05 m reads long).
     pub outliers_both_signs: bool,
+    /// The ranges that would be outliers are left out instead (a reference: "the same mission
+    /// with the outliers removed", what a perfect outlier detector would leave). Every random
+    /// number is drawn as with the outliers, so the other ranges are the same, noise and all.
+    pub outliers_removed: bool,
     /// Probability that a range is missing.
     pub dropout_probability: f64,
 }
@@ -243,6 +247,7 @@ impl Default for BuoyConfig {
             outlier_min_m: 0.0,
             outlier_max_m: 12.0,
             outliers_both_signs: false,
+            outliers_removed: false,
             dropout_probability: 0.1,
         }
     }

@@ -483,7 +483,7 @@ impl Simulator {
             let noise = n.sample(rng);
             // Only drawn when asked for, so the default sequence stays as it was.
             let short = b.outliers_both_signs && rng.random_bool(0.5);
-            if drop {
+            if drop || (outlier && b.outliers_removed) {
                 continue;
             }
             let mut range_m = (p - Vector3::from(*pos)).norm() + b.bias_m + noise;

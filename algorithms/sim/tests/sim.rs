@@ -180,6 +180,47 @@ fn buoy_ranges_carry_the_configured_bias_noise_outliers_and_dropouts() {
 }
 
 #[test]
+fn outliers_removed_leaves_the_other_ranges_exactly_as_they_were() {
+    let mut c = SimConfig::default();
+    c.mission.legs = 2;
+    c.sensors.depth_camera.rate_hz = 0.0;
+    c.sensors.stereo.rate_hz = 0.0;
+    c.sensors.buoys.outlier_probability = 0.2;
+    c.sensors.buoys.outlier_min_m = 3.0;
+    c.sensors.buoys.outliers_both_signs = true;
+    let ranges = |c: SimConfig| {
+        let (events, _) = run(c);
+        events.into_iter().filter_map(|e| if let SimEvent::Buoys(r) = e { Some(r) } else { None }).collect::<Vec<_>>()
+    };
+    let with = ranges(c.clone());
+    c.sensors.buoys.outliers_removed = true;
+    let removed = ranges(c.clone());
+    c.sensors.buoys.outlier_probability = 0.0;
+    let clean = ranges(c);
+    assert_eq!(with.len(), removed.len());
+    let (mut kept, mut left_out) = (0, 0);
+    for ((w, r), k) in with.iter().zip(&removed).zip(&clean) {
+        assert_eq!(w.t_s, r.t_s);
+        // Every range of the clean run is either an outlier (3 m or more off) in the run with
+        // them, and missing from the run with them removed, or the same range in all three.
+        let mut rs = r.ranges.iter();
+        for (x, y) in w.ranges.iter().zip(&k.ranges) {
+            assert_eq!(x.buoy_id, y.buoy_id);
+            if (x.range_m - y.range_m).abs() >= 3.0 - 1e-9 {
+                left_out += 1;
+            } else {
+                assert_eq!(x.range_m, y.range_m);
+                assert_eq!(rs.next().map(|z| (z.buoy_id, z.range_m)), Some((x.buoy_id, x.range_m)));
+                kept += 1;
+            }
+        }
+        assert!(rs.next().is_none(), "a range in the removed run that is not in the clean run");
+    }
+    let share = left_out as f64 / (kept + left_out) as f64;
+    assert!((share - 0.2).abs() < 0.04, "{left_out} left out of {}", kept + left_out);
+}
+
+#[test]
 fn depth_clouds_lie_on_the_scene_surfaces() {
     let (events, s) = run(short());
     let mut checked = 0;

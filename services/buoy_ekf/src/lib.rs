@@ -379,6 +379,7 @@ impl BuoyState {
         let mut reason = None;
         let restarts_before = ekf.counters().reinitialisations;
         let switches_before = ekf.counters().outlier_branch_switches;
+        let corrections_before = ekf.counters().start_corrections;
         for b in &r.ranges {
             match ekf.update_range(b.buoy_id, b.range_m, b.sigma_m) {
                 Ok(RangeOutcome::Accepted { .. } | RangeOutcome::Initialised) => used += 1,
@@ -400,6 +401,14 @@ impl BuoyState {
                 restarts = ekf.counters().reinitialisations,
                 "the buoy EKF was lost (too many ranges rejected) and re-started from a robust fix over its \
                  odometry window (`ekf.recovery.check_rejected_share`, `ekf.init.odometry_window_s`)"
+            );
+        }
+        if ekf.counters().start_corrections > corrections_before {
+            tracing::info!(
+                data_time_s = t,
+                corrections = ekf.counters().start_corrections,
+                "the buoy EKF's start did not hold: the grown odometry window's fix disagrees with it, so it \
+                 re-started there (`ekf.recovery.confirm_checks`)"
             );
         }
         if ekf.counters().outlier_branch_switches > switches_before {

@@ -156,6 +156,8 @@ fn summary(
         "reinitialisations": counters.reinitialisations,
         "outlier_branch_switches": counters.outlier_branch_switches,
         "lost_checks_without_fix": counters.lost_checks_without_fix,
+        "start_checks": counters.start_checks,
+        "start_corrections": counters.start_corrections,
         "bias_resets": counters.bias_resets,
         "calibration_held": counters.calibration_held,
         "calibration_unobservable": counters.calibration_unobservable,
