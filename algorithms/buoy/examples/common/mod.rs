@@ -153,7 +153,8 @@ pub fn report(gt: &[Stamped], run: &Run, dr: &[Stamped], t0_s: f64) -> Result<()
     let per_buoy: Vec<String> = c.per_buoy.iter().map(|b| format!("{}:{}", b.id, b.rejected)).collect();
     println!(
         "ranges accepted {}, rejected {} (per beacon {}), recoveries {}, bias resets {}, re-starts from the window {} \
-         (lost checks without a fix {}), updates with the calibration held {} (not determined by the last ranges {})",
+         (lost checks without a fix {}), start checks {} (corrected {}), updates with the calibration held {} \
+         (not determined by the last ranges {})",
         c.accepted,
         c.rejected,
         per_buoy.join(" "),
@@ -161,6 +162,8 @@ pub fn report(gt: &[Stamped], run: &Run, dr: &[Stamped], t0_s: f64) -> Result<()
         c.bias_resets,
         c.reinitialisations,
         c.lost_checks_without_fix,
+        c.start_checks,
+        c.start_corrections,
         c.calibration_held,
         c.calibration_unobservable
     );
