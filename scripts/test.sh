@@ -21,6 +21,12 @@ fi
 if ! python3 -c 'import websockets.sync.client, google.protobuf.message_factory' >/dev/null 2>&1; then
     python3 -m pip install --quiet 'websockets>=13' protobuf
 fi
+# Python test dependency: tests/tests/ros2_bags.rs writes and reads rosbag2 bags with `rosbags`
+# (PyPI; with numpy), an implementation of ROS 2 bags and CDR that no one here wrote. Installed only
+# when missing.
+if ! python3 -c 'import rosbags.rosbag2, rosbags.highlevel, numpy' >/dev/null 2>&1; then
+    python3 -m pip install --quiet 'rosbags>=0.10'
+fi
 # Debian test dependency: tests/tests/octree_tools.rs runs OctoMap's convert_octree and
 # compare_octrees (package octomap-tools) on the .bt files of the octree crate. Installed only when
 # missing (as root, or through sudo); if that is impossible the test fails naming the package.

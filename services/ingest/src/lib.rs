@@ -12,6 +12,7 @@ pub mod carmen;
 pub mod indoor;
 pub mod progress;
 pub mod reorder;
+pub mod rosbag2;
 pub mod settings;
 pub mod sources;
 pub mod stage;

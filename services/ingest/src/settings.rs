@@ -28,6 +28,8 @@ pub enum SourceKind {
     Carmen,
     /// The simulated indoor mission of the omni-directional robot (`indoor` table).
     Indoor,
+    /// A ROS 2 bag (rosbag2, MCAP storage): routed topics (`rosbag2` table).
+    Rosbag2,
 }
 
 /// Ingest settings.
@@ -75,6 +77,8 @@ pub struct IngestSettings {
     pub carmen: crate::carmen::CarmenSettings,
     /// Indoor simulator settings.
     pub indoor: sim::indoor::IndoorConfig,
+    /// rosbag2 replay settings.
+    pub rosbag2: crate::rosbag2::Rosbag2Settings,
 }
 
 impl Default for IngestSettings {
@@ -95,6 +99,7 @@ impl Default for IngestSettings {
             depth_images: DepthImageSettings::default(),
             carmen: crate::carmen::CarmenSettings::default(),
             indoor: sim::indoor::IndoorConfig::default(),
+            rosbag2: crate::rosbag2::Rosbag2Settings::default(),
         }
     }
 }
@@ -292,6 +297,7 @@ impl ProcessSettings for IngestSettings {
                 issues.check(self.clouds.repeat >= 1, format!("{key}.clouds.repeat"), "must be >= 1");
             }
             SourceKind::Carmen => self.carmen.validate(&format!("{key}.carmen"), issues),
+            SourceKind::Rosbag2 => self.rosbag2.validate(&format!("{key}.rosbag2"), issues),
             SourceKind::Indoor => {
                 for (k, m) in self.indoor.validate() {
                     issues.push(format!("{key}.indoor.{k}"), m);
@@ -326,6 +332,11 @@ impl ProcessSettings for IngestSettings {
             SourceKind::Clouds => 400_000,
             SourceKind::Indoor => (self.indoor.depth.width_px * self.indoor.depth.height_px) as usize,
             SourceKind::DepthImages => 640 * 480,
+            SourceKind::Rosbag2
+                if self.rosbag2.routes.iter().any(|r| r.service == ros2_interop::route::InService::Cloud) =>
+            {
+                300_000
+            }
             _ => 0,
         };
         let qos = service_spec(CLOUD).expect("cloud service is in the contract").qos;

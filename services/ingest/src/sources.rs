@@ -163,6 +163,11 @@ pub trait Source {
     fn warts(&self) -> std::collections::BTreeMap<&'static str, u64> {
         Default::default()
     }
+    /// More about the source for summary.json (an object merged into `ingest`; per-route counts
+    /// of a bag, say). The default is nothing.
+    fn details(&self) -> serde_json::Value {
+        serde_json::Value::Null
+    }
 }
 
 /// `ground_truth.tum`, written while the source advances: a run stopped early (or a crash) leaves
@@ -348,6 +353,7 @@ pub fn file_source(
         Clouds => Box::new(CloudFileSource::new(config_dir, &settings.clouds)?),
         Carmen => Box::new(crate::carmen::CarmenSource::load(config_dir, &settings.carmen)?),
         DepthImages => Box::new(DepthImageSource::new(config_dir, &settings.depth_images)?),
+        Rosbag2 => Box::new(crate::rosbag2::Rosbag2Source::open(config_dir, &settings.rosbag2)?),
     })
 }
 
@@ -360,6 +366,7 @@ pub fn initial_cloud_len(settings: &crate::IngestSettings) -> usize {
         }
         crate::SourceKind::DepthImages => 640 * 480,
         crate::SourceKind::Clouds => 100_000,
+        crate::SourceKind::Rosbag2 => 65_536,
         crate::SourceKind::Indoor => {
             let d = &settings.indoor.depth;
             (d.width_px * d.height_px) as usize
@@ -373,6 +380,7 @@ pub fn initial_laser_len(settings: &crate::IngestSettings) -> usize {
     match settings.source {
         crate::SourceKind::Carmen => 361,
         crate::SourceKind::Indoor => settings.indoor.laser.beams,
+        crate::SourceKind::Rosbag2 => 1081,
         _ => 1,
     }
 }

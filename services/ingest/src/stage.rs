@@ -172,7 +172,7 @@ impl IngestStage {
     /// so far when the run is stopped first (`completed: false`).
     fn part(&self, rt: &Runtime, completed: bool) -> serde_json::Value {
         let data_s = self.first_last_stamp.map_or(0.0, |(a, b)| (b - a) as f64 / 1e9);
-        serde_json::json!({ "ingest": {
+        let mut part = serde_json::json!({ "ingest": {
             "source": self.source.describe(),
             "completed": completed,
             "progress": self.source.progress(),
@@ -185,7 +185,13 @@ impl IngestStage {
             "data_duration_s": data_s,
             "wall_duration_s": self.started.elapsed().as_secs_f64(),
             "backpressure_wait_s": rt.backpressure_waited().as_secs_f64(),
-        }})
+        }});
+        if let serde_json::Value::Object(more) = self.source.details() {
+            for (k, v) in more {
+                part["ingest"][k] = v;
+            }
+        }
+        part
     }
 
     fn subscribers(&self, k: usize) -> usize {

@@ -1,0 +1,319 @@
+//! Routes from ROS 2 topics into the pipeline: which topic feeds which pipeline input, and how
+//! its messages become wire values ([`InRoute::decode`]). The same table serves a rosbag2 replay
+//! (ingest's `rosbag2` source) and the `ros2` gateway.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+use shared_types::{BuoyRange, DepthReading, HeadingReading, LaserScanHeader, OdometryInput, PlanarOdometry};
+
+use crate::cdr::{self, CdrError};
+use crate::convert::{self, ConvertError, HeadingNoise, OdometryIncrements, OdometryNoise, PressureToDepth};
+use crate::msgs::{FluidPressure, Imu, LaserScan, Message, Odometry, PointCloud2, Range};
+
+/// The pipeline input a route feeds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InService {
+    /// `pipeline/sensors/laser` from `sensor_msgs/LaserScan`.
+    Laser,
+    /// `pipeline/sensors/planar_odometry` from `nav_msgs/Odometry`.
+    PlanarOdometry,
+    /// `pipeline/sensors/odometry` (increments) from `nav_msgs/Odometry`.
+    Odometry,
+    /// `pipeline/sensors/cloud` from `sensor_msgs/PointCloud2`.
+    Cloud,
+    /// `pipeline/sensors/heading` from `sensor_msgs/Imu`.
+    Heading,
+    /// `pipeline/sensors/depth` from `sensor_msgs/FluidPressure`.
+    Depth,
+    /// `pipeline/sensors/buoy_ranges` from `sensor_msgs/Range`.
+    BuoyRanges,
+}
+
+impl InService {
+    /// The ROS 2 type the route's topic must carry.
+    pub fn ros_type(self) -> &'static str {
+        match self {
+            InService::Laser => LaserScan::TYPE_NAME,
+            InService::PlanarOdometry | InService::Odometry => Odometry::TYPE_NAME,
+            InService::Cloud => PointCloud2::TYPE_NAME,
+            InService::Heading => Imu::TYPE_NAME,
+            InService::Depth => FluidPressure::TYPE_NAME,
+            InService::BuoyRanges => Range::TYPE_NAME,
+        }
+    }
+
+    /// The pipeline service it feeds.
+    pub fn service(self) -> &'static str {
+        use shared_types::services::*;
+        match self {
+            InService::Laser => LASER,
+            InService::PlanarOdometry => PLANAR_ODOMETRY,
+            InService::Odometry => ODOMETRY,
+            InService::Cloud => CLOUD,
+            InService::Heading => HEADING,
+            InService::Depth => DEPTH,
+            InService::BuoyRanges => BUOY_RANGES,
+        }
+    }
+}
+
+/// One topic into the pipeline (`[[...routes]]`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InRoute {
+    /// The ROS topic (`/scan`).
+    pub topic: String,
+    /// The pipeline input it feeds.
+    pub service: InService,
+    /// Laser: where the laser sits on the robot, `body_from_laser` (x m, y m, yaw rad).
+    #[serde(default)]
+    pub body_from_laser: [f64; 3],
+    /// Odometry (increments): σ of the forward speed where the twist covariance gives none, m/s.
+    #[serde(default = "default_speed_sigma")]
+    pub speed_sigma_mps: f64,
+    /// Odometry (increments): σ of each rotation increment where the twist covariance gives
+    /// none, rad.
+    #[serde(default = "default_turn_sigma")]
+    pub turn_sigma_rad: f64,
+    /// Heading: σ of the yaw where the IMU's covariance gives none, rad.
+    #[serde(default = "default_heading_sigma")]
+    pub heading_sigma_rad: f64,
+    /// Depth: pressure at the surface, Pa.
+    #[serde(default = "default_surface")]
+    pub surface_pa: f64,
+    /// Depth: water density, kg/m³.
+    #[serde(default = "default_density")]
+    pub density_kg_m3: f64,
+    /// Depth: σ where the message's variance is 0, m.
+    #[serde(default = "default_depth_sigma")]
+    pub depth_sigma_m: f64,
+    /// Buoy ranges: `header.frame_id` → buoy id (a frame not listed gives the number it ends
+    /// with: `buoy_3` → 3).
+    #[serde(default)]
+    pub beacon_ids: BTreeMap<String, u32>,
+    /// Buoy ranges: σ where the message's variance is 0, m.
+    #[serde(default = "default_range_sigma")]
+    pub range_sigma_m: f64,
+}
+
+fn default_speed_sigma() -> f64 {
+    0.1
+}
+fn default_turn_sigma() -> f64 {
+    0.01
+}
+fn default_heading_sigma() -> f64 {
+    0.05
+}
+fn default_surface() -> f64 {
+    PressureToDepth::default().surface_pa
+}
+fn default_density() -> f64 {
+    PressureToDepth::default().density_kg_m3
+}
+fn default_depth_sigma() -> f64 {
+    PressureToDepth::default().default_sigma_m
+}
+fn default_range_sigma() -> f64 {
+    1.0
+}
+
+impl InRoute {
+    /// A route with every option at its default.
+    pub fn new(topic: &str, service: InService) -> Self {
+        Self {
+            topic: topic.to_string(),
+            service,
+            body_from_laser: [0.0; 3],
+            speed_sigma_mps: default_speed_sigma(),
+            turn_sigma_rad: default_turn_sigma(),
+            heading_sigma_rad: default_heading_sigma(),
+            surface_pa: default_surface(),
+            density_kg_m3: default_density(),
+            depth_sigma_m: default_depth_sigma(),
+            beacon_ids: BTreeMap::new(),
+            range_sigma_m: default_range_sigma(),
+        }
+    }
+
+    /// Problems with the route's values, as (key under the route, what is wrong).
+    pub fn validate(&self) -> Vec<(&'static str, String)> {
+        let mut out = vec![];
+        if !self.topic.starts_with('/') || self.topic.len() < 2 || self.topic.contains(char::is_whitespace) {
+            out.push(("topic", format!("`{}` is not an absolute ROS topic name (`/scan`)", self.topic)));
+        }
+        if !self.body_from_laser.iter().all(|v| v.is_finite()) {
+            out.push(("body_from_laser", "must be finite".into()));
+        }
+        for (k, v) in [
+            ("speed_sigma_mps", self.speed_sigma_mps),
+            ("turn_sigma_rad", self.turn_sigma_rad),
+            ("heading_sigma_rad", self.heading_sigma_rad),
+            ("density_kg_m3", self.density_kg_m3),
+            ("depth_sigma_m", self.depth_sigma_m),
+            ("range_sigma_m", self.range_sigma_m),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                out.push((k, format!("{v}: must be > 0")));
+            }
+        }
+        if !self.surface_pa.is_finite() || self.surface_pa < 0.0 {
+            out.push(("surface_pa", format!("{}: must be >= 0", self.surface_pa)));
+        }
+        out
+    }
+}
+
+/// A message of a route as wire values.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Decoded {
+    /// A laser scan (ranges on the wire's convention: [`convert::laser_range`]).
+    Laser {
+        /// ns.
+        stamp_ns: u64,
+        /// The scan's geometry.
+        header: LaserScanHeader,
+        /// Ranges, m.
+        ranges: Vec<f32>,
+    },
+    /// Planar odometry.
+    PlanarOdometry {
+        /// ns.
+        stamp_ns: u64,
+        /// The odometry.
+        odometry: PlanarOdometry,
+    },
+    /// An odometry increment (none for a route's first message).
+    Odometry {
+        /// ns.
+        stamp_ns: u64,
+        /// The input.
+        input: OdometryInput,
+    },
+    /// A cloud's finite points in the sensor frame (`frame_id` of the message).
+    Cloud {
+        /// ns.
+        stamp_ns: u64,
+        /// Points, m.
+        points: Vec<[f32; 3]>,
+        /// Points left out (NaN / Inf in a non-dense cloud).
+        non_finite: usize,
+    },
+    /// A heading.
+    Heading {
+        /// ns.
+        stamp_ns: u64,
+        /// The reading.
+        reading: HeadingReading,
+    },
+    /// A pressure depth.
+    Depth {
+        /// ns.
+        stamp_ns: u64,
+        /// The reading.
+        reading: DepthReading,
+    },
+    /// One buoy range.
+    BuoyRange {
+        /// ns.
+        stamp_ns: u64,
+        /// The range.
+        range: BuoyRange,
+    },
+    /// The first odometry message of an increments route: nothing to publish yet.
+    Nothing,
+}
+
+/// Why a route's message was not used.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum InError {
+    /// It does not decode as the route's type.
+    #[error(transparent)]
+    Cdr(#[from] CdrError),
+    /// It decodes, but a field breaks what the pipeline input needs.
+    #[error(transparent)]
+    Invalid(#[from] ConvertError),
+}
+
+impl InError {
+    /// A short name of the kind, for counters (`undecodable`, `invalid`).
+    pub fn kind(&self) -> &'static str {
+        match self {
+            InError::Cdr(_) => "undecodable",
+            InError::Invalid(_) => "invalid",
+        }
+    }
+}
+
+/// Decodes a route's messages; keeps what a route needs between them (odometry increments).
+#[derive(Debug, Clone)]
+pub struct RouteDecoder {
+    /// The route.
+    pub route: InRoute,
+    increments: OdometryIncrements,
+}
+
+impl RouteDecoder {
+    /// A decoder for `route`.
+    pub fn new(route: InRoute) -> Self {
+        Self { route, increments: OdometryIncrements::default() }
+    }
+
+    /// Decodes one encapsulated-CDR message of the route's topic.
+    pub fn decode(&mut self, data: &[u8]) -> Result<Decoded, InError> {
+        let r = &self.route;
+        let ty = r.service.ros_type();
+        Ok(match r.service {
+            InService::Laser => {
+                let msg: LaserScan = cdr::decode(data, ty)?;
+                let (stamp_ns, header) = convert::laser_scan(&msg, r.body_from_laser)?;
+                let ranges = msg.ranges.iter().map(|x| convert::laser_range(*x, msg.range_max)).collect();
+                Decoded::Laser { stamp_ns, header, ranges }
+            }
+            InService::PlanarOdometry => {
+                let msg: Odometry = cdr::decode(data, ty)?;
+                let (stamp_ns, odometry) = convert::planar_odometry(&msg)?;
+                Decoded::PlanarOdometry { stamp_ns, odometry }
+            }
+            InService::Odometry => {
+                let msg: Odometry = cdr::decode(data, ty)?;
+                let noise = OdometryNoise { speed_sigma_mps: r.speed_sigma_mps, turn_sigma_rad: r.turn_sigma_rad };
+                match self.increments.push(&msg, noise)? {
+                    Some((stamp_ns, input)) => Decoded::Odometry { stamp_ns, input },
+                    None => Decoded::Nothing,
+                }
+            }
+            InService::Cloud => {
+                let msg: PointCloud2<'_> = cdr::decode(data, ty)?;
+                let stamp_ns = convert::stamp_ns(&msg.header)?;
+                let layout = convert::CloudLayout::of(&msg)?;
+                let points: Vec<[f32; 3]> = layout.finite_points(msg.data.as_slice()).collect();
+                Decoded::Cloud { stamp_ns, non_finite: layout.len() - points.len(), points }
+            }
+            InService::Heading => {
+                let msg: Imu = cdr::decode(data, ty)?;
+                let (stamp_ns, reading) =
+                    convert::heading(&msg, HeadingNoise { default_sigma_rad: r.heading_sigma_rad })?;
+                Decoded::Heading { stamp_ns, reading }
+            }
+            InService::Depth => {
+                let msg: FluidPressure = cdr::decode(data, ty)?;
+                let p = PressureToDepth {
+                    surface_pa: r.surface_pa,
+                    density_kg_m3: r.density_kg_m3,
+                    default_sigma_m: r.depth_sigma_m,
+                    ..PressureToDepth::default()
+                };
+                let (stamp_ns, reading) = convert::depth(&msg, p)?;
+                Decoded::Depth { stamp_ns, reading }
+            }
+            InService::BuoyRanges => {
+                let msg = cdr::decode_range(data)?;
+                let (stamp_ns, range) = convert::buoy_range(&msg, &r.beacon_ids, r.range_sigma_m)?;
+                Decoded::BuoyRange { stamp_ns, range }
+            }
+        })
+    }
+}

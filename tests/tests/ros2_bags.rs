@@ -1,0 +1,351 @@
+//! ROS 2 bags against an implementation no one here wrote: Python `rosbags` (PyPI) writes
+//! rosbag2 MCAP bags (tests/python/rosbags_interop.py), the pipeline replays them (ingest's
+//! `rosbag2` source), and damaged copies of them are counted and skipped, not fatal.
+//!
+//! - The Freiburg 079 CARMEN log (../shared/data/carmen) as /scan + /odom: grid SLAM on the bag
+//!   scores the benchmark's relations as on the file replay of the same scans (within 10 %).
+//! - One message of each type the pipeline reads, with the values rosbags was given, and bad
+//!   ones (another type on a route's topic, a truncated message, a NaN field, a cloud without z).
+//! - A corrupt chunk and a truncated file: named, counted, the rest replayed.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Duration;
+
+use pipeline_tests::TestRun;
+use ros2_interop::route::{Decoded, InRoute, InService, RouteDecoder};
+use ros2_interop::{BagReader, BagWarts};
+
+fn script() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("python/rosbags_interop.py")
+}
+
+fn carmen_log() -> (String, String) {
+    let data = format!("{}/../../shared/data/carmen", env!("CARGO_MANIFEST_DIR"));
+    let log = format!("{data}/freiburg-079-corrected.log.gz");
+    assert!(
+        Path::new(&log).is_file(),
+        "{log} is missing: the project's shared/ folder (with data/carmen) belongs beside the repository"
+    );
+    (data, log)
+}
+
+/// Runs the rosbags helper; returns its JSON output.
+fn rosbags(args: &[&str]) -> serde_json::Value {
+    let o = Command::new("python3").arg(script()).args(args).output().expect("python3 runs");
+    assert!(
+        o.status.success(),
+        "rosbags_interop.py {args:?} failed (the test command installs `rosbags` from PyPI):\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    serde_json::from_slice(&o.stdout).expect("the helper prints JSON")
+}
+
+const SCANS: usize = 600;
+
+fn grid_slam_on(run: &mut TestRun, data: &str, source: &str) -> serde_json::Value {
+    let processes = format!(
+        r#"
+[processes.slam2d]
+kind = "grid_slam"
+[processes.slam2d.settings]
+relations = "{data}/fr079.relations"
+relations_offset_s = 1211.38
+grid_every_s = 30.0
+[processes.slam2d.settings.filter]
+particles = 8
+threads = 1
+
+[processes.ingest]
+kind = "ingest"
+after = ["slam2d"]
+[processes.ingest.settings]
+real_time_factor = 0.0
+{source}
+"#
+    );
+    run.run_to_end("end = \"end_of_stream\"\nend_of_stream_from = [\"slam2d\"]", &processes, Duration::from_secs(300))
+}
+
+#[test]
+fn a_bag_rosbags_wrote_from_the_fr079_log_maps_as_the_file_replay_does() {
+    let (data, log) = carmen_log();
+    let mut bag_run = TestRun::new("ros2bag");
+    let bag = bag_run.dir.path().join("fr079");
+    let written = rosbags(&["carmen", &log, bag.to_str().unwrap(), "--max-scans", &SCANS.to_string()]);
+    assert_eq!(written["scans"], SCANS);
+    let from_bag = grid_slam_on(
+        &mut bag_run,
+        &data,
+        &format!(
+            r#"source = "rosbag2"
+[processes.ingest.settings.rosbag2]
+path = "{}"
+routes = [{{ topic = "/scan", service = "laser" }}, {{ topic = "/odom", service = "planar_odometry" }}]"#,
+            bag.display()
+        ),
+    );
+    let ingest = &from_bag["ingest"];
+    assert_eq!(ingest["messages"]["laser"], SCANS, "{ingest}");
+    assert_eq!(ingest["messages"]["planar_odometry"], SCANS, "{ingest}");
+    assert_eq!(ingest["rosbag2"]["routes"]["/scan"]["published"], SCANS, "{ingest}");
+    assert!(ingest["data_warts"].as_object().is_none_or(|w| w.is_empty()), "a clean bag: {ingest}");
+    let g = &from_bag["grid_slam"];
+    assert_eq!(g["scans"], SCANS, "every scan of the bag is mapped: {g}");
+
+    let mut file_run = TestRun::new("ros2file");
+    let from_file = grid_slam_on(
+        &mut file_run,
+        &data,
+        &format!(
+            r#"source = "carmen"
+[processes.ingest.settings.carmen]
+file = "{log}"
+odometry = "laser_lines"
+max_scans = {SCANS}"#
+        ),
+    );
+    assert_eq!(from_file["grid_slam"]["scans"], SCANS);
+    let (a, b) = (&from_bag["grid_slam"]["relations"], &from_file["grid_slam"]["relations"]);
+    eprintln!("relations: bag {a}\nfile {b}");
+    assert_eq!(a["scored"], b["scored"], "the same relations are scored");
+    assert!(a["scored"].as_u64().unwrap() > 100, "{a}");
+    for k in ["trans_mean_m", "rot_mean_deg"] {
+        let (x, y) = (a[k].as_f64().unwrap(), b[k].as_f64().unwrap());
+        // The issue asks for 10 %; the same scans decode to the same inputs, so they agree to 1e-6 here.
+        assert!((x - y).abs() <= 0.01 * y.max(1e-3), "{k}: bag {x} vs file {y}: not within 1 %");
+    }
+}
+
+fn samples_bag(dir: &Path) -> (PathBuf, serde_json::Value) {
+    let bag = dir.join("samples");
+    let expect = rosbags(&["samples", bag.to_str().unwrap()]);
+    (bag, expect)
+}
+
+fn route(topic: &str, service: InService) -> InRoute {
+    let mut r = InRoute::new(topic, service);
+    r.range_sigma_m = 1.0;
+    r
+}
+
+#[test]
+fn every_input_type_rosbags_wrote_decodes_to_the_values_it_was_given() {
+    let dir = tempfile::tempdir().unwrap();
+    let (bag, expect) = samples_bag(dir.path());
+    let mut decoders: Vec<RouteDecoder> = [
+        ("/scan", InService::Laser),
+        ("/odom", InService::PlanarOdometry),
+        ("/cloud", InService::Cloud),
+        ("/imu", InService::Heading),
+        ("/pressure", InService::Depth),
+        ("/ranges", InService::BuoyRanges),
+        ("/odom_wrong", InService::PlanarOdometry),
+    ]
+    .into_iter()
+    .map(|(t, s)| RouteDecoder::new(route(t, s)))
+    .collect();
+    let mut reader = BagReader::open(&bag).unwrap();
+    let mut ok = vec![];
+    let mut errors = vec![];
+    while let Some(m) = reader.next_message().unwrap() {
+        let d = decoders.iter_mut().find(|d| *d.route.topic == *m.topic).expect("a route per topic");
+        if *m.type_name != *d.route.service.ros_type() {
+            errors.push((m.topic.to_string(), "wrong_type".to_string()));
+            continue;
+        }
+        match d.decode(&m.data) {
+            Ok(v) => ok.push(v),
+            Err(e) => errors.push((m.topic.to_string(), e.to_string())),
+        }
+    }
+    assert_eq!(reader.warts(), &BagWarts::default());
+    assert_eq!(ok.len(), 6, "{ok:?}");
+    for v in &ok {
+        match v {
+            Decoded::Laser { stamp_ns, header, ranges } => {
+                assert_eq!(*stamp_ns, expect["scan"]["stamp_ns"].as_u64().unwrap());
+                assert_eq!(header.beams, 4);
+                assert_eq!(ranges[..3], [1.0, 2.0, 30.0], "+Inf is no return (range_max)");
+                assert!(ranges[3].is_nan());
+            }
+            Decoded::PlanarOdometry { odometry, .. } => {
+                assert_eq!(odometry.position_m, [1.5, -2.0]);
+                assert!((odometry.yaw_rad - 0.5).abs() < 1e-12);
+            }
+            Decoded::Cloud { points, non_finite, .. } => {
+                assert_eq!(points, &vec![[1.0, 3.0, 5.0], [2.0, 4.0, 6.0]]);
+                assert_eq!(*non_finite, 1);
+            }
+            Decoded::Heading { reading, .. } => {
+                assert!((reading.yaw_rad + 0.25).abs() < 1e-12 && (reading.sigma_rad - 0.02).abs() < 1e-12);
+            }
+            Decoded::Depth { reading, .. } => assert!((reading.depth_m - 12.0).abs() < 1e-9),
+            Decoded::BuoyRange { range, .. } => {
+                assert_eq!(range.buoy_id, 2);
+                assert!((range.range_m - 42.5).abs() < 1e-6 && (range.sigma_m - 0.3).abs() < 1e-6);
+            }
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    let msg = |topic: &str, needle: &str| errors.iter().any(|(t, e)| t == topic && e.contains(needle));
+    assert!(msg("/scan", "angle_increment") && msg("/scan", "not finite"), "{errors:?}");
+    assert!(msg("/scan", "not a sensor_msgs/msg/LaserScan"), "the truncated scan: {errors:?}");
+    assert!(msg("/odom_wrong", "wrong_type"), "{errors:?}");
+    assert!(msg("/cloud", "no field `z`"), "{errors:?}");
+    assert_eq!(errors.len(), 4, "{errors:?}");
+}
+
+#[test]
+fn a_bag_of_every_input_type_is_replayed_and_what_is_bad_is_counted_per_route() {
+    let mut run = TestRun::new("ros2samples");
+    let (bag, _) = samples_bag(run.dir.path());
+    let processes = format!(
+        r#"
+[processes.monitor]
+kind = "sensor_monitor"
+[processes.monitor.settings]
+known_buoy_ids = [2]
+
+[processes.ingest]
+kind = "ingest"
+after = ["monitor"]
+[processes.ingest.settings]
+source = "rosbag2"
+real_time_factor = 0.0
+[processes.ingest.settings.rosbag2]
+path = "{}"
+routes = [
+  {{ topic = "/scan", service = "laser" }},
+  {{ topic = "/cloud", service = "cloud" }},
+  {{ topic = "/imu", service = "heading" }},
+  {{ topic = "/pressure", service = "depth" }},
+  {{ topic = "/ranges", service = "buoy_ranges" }},
+  {{ topic = "/odom_wrong", service = "planar_odometry" }},
+]
+"#,
+        bag.display()
+    );
+    let s = run.run_to_end(
+        "end = \"end_of_stream\"\nend_of_stream_from = [\"monitor\"]",
+        &processes,
+        Duration::from_secs(60),
+    );
+    let ingest = &s["ingest"];
+    let routes = &ingest["rosbag2"]["routes"];
+    assert_eq!(routes["/scan"]["published"], 1, "{ingest}");
+    assert_eq!(routes["/scan"]["invalid"], 1, "{ingest}");
+    assert_eq!(routes["/scan"]["undecodable"], 1, "{ingest}");
+    assert_eq!(routes["/cloud"]["invalid"], 1, "{ingest}");
+    assert_eq!(routes["/cloud"]["non_finite_points"], 1, "{ingest}");
+    assert_eq!(routes["/odom_wrong"]["wrong_type"], 1, "{ingest}");
+    assert_eq!(ingest["rosbag2"]["unrouted_messages"]["/odom"], 1, "a topic without a route is counted: {ingest}");
+    let w = &ingest["data_warts"];
+    assert_eq!(
+        (&w["invalid_messages"], &w["undecodable_messages"], &w["wrong_type_messages"]),
+        (&2.into(), &1.into(), &1.into()),
+        "{w}"
+    );
+    let m = &s["sensor_monitor"];
+    for service in ["cloud", "heading", "depth", "buoy_ranges"] {
+        let s = &m[format!("pipeline/sensors/{service}")];
+        assert_eq!((&s["accepted"], &s["rejected"]), (&1.into(), &serde_json::json!({})), "{service}: {m}");
+    }
+    assert_eq!(m["cloud_points"], 2, "the cloud's two finite points: {m}");
+    let log = run.log();
+    for needle in
+        ["`/odom_wrong` is sensor_msgs/msg/FluidPressure in the bag", "no field `z`", "a topic without a route"]
+    {
+        assert!(log.contains(needle), "`{needle}` is not in the log");
+    }
+}
+
+/// Offsets of the top-level chunk records of an MCAP file.
+fn chunk_offsets(bytes: &[u8]) -> Vec<usize> {
+    let mut at = 8;
+    let mut out = vec![];
+    while at + 9 <= bytes.len() {
+        let len = u64::from_le_bytes(bytes[at + 1..at + 9].try_into().unwrap()) as usize;
+        if bytes[at] == 0x06 {
+            out.push(at);
+        }
+        if bytes[at] == 0x0f {
+            break;
+        }
+        at += 9 + len;
+    }
+    out
+}
+
+#[test]
+fn a_corrupt_chunk_and_a_truncated_file_are_named_counted_and_the_rest_replayed() {
+    let (_, log) = carmen_log();
+    let dir = tempfile::tempdir().unwrap();
+    let bag = dir.path().join("fr");
+    rosbags(&["carmen", &log, bag.to_str().unwrap(), "--max-scans", &SCANS.to_string()]);
+    let file = bag.join("fr.mcap");
+    let clean = std::fs::read(&file).unwrap();
+    let count = |path: &Path| {
+        let mut r = BagReader::open(path).unwrap();
+        let mut n = 0;
+        while r.next_message().unwrap().is_some() {
+            n += 1;
+        }
+        (n, r.warts().clone(), r.take_problems())
+    };
+    let (all, warts, _) = count(&bag);
+    assert_eq!((all, warts), (2 * SCANS, BagWarts::default()));
+
+    // Overwrite the length of the first record inside the first chunk: its inner framing breaks
+    // (the chunk holds the schemas and channels too; the reader has them from the summary).
+    let chunks = chunk_offsets(&clean);
+    assert!(chunks.len() >= 2, "rosbags wrote {} chunk(s)", chunks.len());
+    let mut bad = clean.clone();
+    let records = chunks[0] + 9 + 8 + 8 + 8 + 4 + 4 + 8; // past the chunk header: times, size, crc, "", length
+    for b in &mut bad[records + 1..records + 9] {
+        *b = 0xff;
+    }
+    std::fs::write(&file, &bad).unwrap();
+    let (n, warts, problems) = count(&bag);
+    assert_eq!(warts.corrupt_chunks, 1, "{warts:?}");
+    assert!(n > 0 && n < all, "the other chunks are read: {n} of {all}");
+    assert!(
+        problems.iter().any(|p| p.contains(&format!("@{}", chunks[0])) && p.contains("corrupt chunk")),
+        "named with its offset: {problems:?}"
+    );
+
+    // Cut the file in the middle of its second chunk.
+    std::fs::write(&file, &clean[..chunks[1] + 1000]).unwrap();
+    let (n, warts, problems) = count(&bag);
+    assert_eq!(warts.truncated_files, 1, "{warts:?}");
+    assert!(n > 0 && n < all, "{n} of {all}");
+    assert!(problems.iter().any(|p| p.contains(&format!("@{}", chunks[1])) && p.contains("truncated")), "{problems:?}");
+
+    // Through the pipeline: the run ends cleanly and says what it lost.
+    std::fs::write(&file, &bad).unwrap();
+    let mut run = TestRun::new("ros2corrupt");
+    let processes = format!(
+        r#"
+[processes.monitor]
+kind = "sensor_monitor"
+
+[processes.ingest]
+kind = "ingest"
+after = ["monitor"]
+[processes.ingest.settings]
+source = "rosbag2"
+real_time_factor = 0.0
+[processes.ingest.settings.rosbag2]
+path = "{}"
+routes = [{{ topic = "/scan", service = "laser" }}]
+"#,
+        bag.display()
+    );
+    let s = run.run_to_end(
+        "end = \"end_of_stream\"\nend_of_stream_from = [\"monitor\"]",
+        &processes,
+        Duration::from_secs(60),
+    );
+    assert_eq!(s["ingest"]["data_warts"]["corrupt_chunks"], 1, "{}", s["ingest"]);
+    assert!(run.log().contains("corrupt chunk"), "warned in the log");
+}
