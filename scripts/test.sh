@@ -27,6 +27,12 @@ fi
 if ! python3 -c 'import rosbags.rosbag2, rosbags.highlevel, numpy' >/dev/null 2>&1; then
     python3 -m pip install --quiet 'rosbags>=0.10'
 fi
+# Python test dependency: tests/tests/ros2_gateway.rs talks to the `ros2` gateway through Eclipse
+# Cyclone DDS (`cyclonedds` from PyPI: a wheel with the C library inside), a DDS implementation no
+# one here wrote. Installed only when missing.
+if ! python3 -c 'import cyclonedds.domain, cyclonedds.idl' >/dev/null 2>&1; then
+    python3 -m pip install --quiet cyclonedds
+fi
 # Debian test dependency: tests/tests/octree_tools.rs runs OctoMap's convert_octree and
 # compare_octrees (package octomap-tools) on the .bt files of the octree crate. Installed only when
 # missing (as root, or through sudo); if that is impossible the test fails naming the package.

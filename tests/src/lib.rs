@@ -252,3 +252,63 @@ impl Drop for TestRun {
         let _ = self.scope.remove_all_resources();
     }
 }
+
+/// A network namespace of its own with only loopback (up, multicast on, the multicast range
+/// routed to it), deleted on drop: DDS discovery inside it reaches nothing outside the
+/// namespace. `None` when this user may not make one (not root, or `ip netns` failed).
+pub struct NetNs {
+    /// The namespace's name.
+    pub name: String,
+}
+
+fn ip_ok(args: &[&str]) -> bool {
+    Command::new("ip").args(args).stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok_and(|s| s.success())
+}
+
+impl NetNs {
+    /// Makes the namespace `<tag><pid>`.
+    pub fn new(tag: &str) -> Option<Self> {
+        // SAFETY: geteuid has no preconditions and cannot fail.
+        if unsafe { libc::geteuid() } != 0 {
+            return None;
+        }
+        let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+        let name = format!("{tag}{}n{n}", std::process::id() % 100_000);
+        if !ip_ok(&["netns", "add", &name]) {
+            return None;
+        }
+        let ns = Self { name };
+        let ok = ip_ok(&["-n", &ns.name, "link", "set", "lo", "up"])
+            && ip_ok(&["-n", &ns.name, "link", "set", "lo", "multicast", "on"])
+            && ip_ok(&["-n", &ns.name, "route", "add", "224.0.0.0/4", "dev", "lo"]);
+        ok.then_some(ns)
+    }
+
+    /// Like [`NetNs::new`], but panics with what is needed when the namespace cannot be made.
+    pub fn required(tag: &str) -> Self {
+        Self::new(tag).unwrap_or_else(|| {
+            panic!(
+                "this test needs a network namespace of its own (DDS discovery must not reach the machine's \
+                 interfaces): run the tests as root with iproute2 (`ip netns add` failed or is not permitted)"
+            )
+        })
+    }
+
+    /// The command prefix that runs a program inside the namespace.
+    pub fn wrapper(&self) -> Vec<String> {
+        vec!["ip".into(), "netns".into(), "exec".into(), self.name.clone()]
+    }
+
+    /// A command that runs `program` inside the namespace.
+    pub fn command(&self, program: &str) -> Command {
+        let mut c = Command::new("ip");
+        c.args(["netns", "exec", &self.name, program]);
+        c
+    }
+}
+
+impl Drop for NetNs {
+    fn drop(&mut self) {
+        ip_ok(&["netns", "del", &self.name]);
+    }
+}

@@ -6,8 +6,6 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::msgs::{Range, RangeHumble};
-
 /// Why bytes are not a message of the expected type.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum CdrError {
@@ -41,7 +39,8 @@ pub enum CdrError {
 /// Representation id of little-endian plain CDR.
 pub const CDR_LE: [u8; 4] = [0, 1, 0, 0];
 
-fn representation(bytes: &[u8]) -> Result<bool, CdrError> {
+/// The encapsulation of `bytes`: true for little-endian CDR, false for big-endian.
+pub fn representation(bytes: &[u8]) -> Result<bool, CdrError> {
     if bytes.len() < 4 {
         return Err(CdrError::TooShort { len: bytes.len() });
     }
@@ -76,28 +75,6 @@ pub fn decode<'a, T: Deserialize<'a>>(bytes: &'a [u8], type_name: &'static str) 
     r.map(|(t, _)| t).map_err(|e| CdrError::Body { type_name, reason: e.to_string() })
 }
 
-/// Decodes a `sensor_msgs/Range` of either layout: Jazzy's (with `variance`) or Humble's
-/// (without: `variance` is then 0, "unknown").
-pub fn decode_range(bytes: &[u8]) -> Result<Range, CdrError> {
-    use crate::msgs::Message;
-    match decode::<Range>(bytes, Range::TYPE_NAME) {
-        Ok(r) => Ok(r),
-        Err(e @ CdrError::Body { .. }) => match decode::<RangeHumble>(bytes, Range::TYPE_NAME) {
-            Ok(h) => Ok(Range {
-                header: h.header,
-                radiation_type: h.radiation_type,
-                field_of_view: h.field_of_view,
-                min_range: h.min_range,
-                max_range: h.max_range,
-                range: h.range,
-                variance: 0.0,
-            }),
-            Err(_) => Err(e),
-        },
-        Err(e) => Err(e),
-    }
-}
-
 /// Encodes `msg` as little-endian CDR with its encapsulation header, appending to `out`.
 pub fn encode_into<T: Serialize>(msg: &T, out: &mut Vec<u8>) -> Result<(), CdrError> {
     out.extend_from_slice(&CDR_LE);
@@ -112,4 +89,41 @@ pub fn encode<T: Serialize>(msg: &T) -> Result<Vec<u8>, CdrError> {
     let mut out = Vec::new();
     encode_into(msg, &mut out)?;
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::Message;
+    use crate::msgs::*;
+
+    #[test]
+    fn a_humble_range_without_variance_decodes_with_variance_unknown() {
+        let h = RangeHumble {
+            header: crate::convert::header(5, "buoy_1"),
+            range: 12.5,
+            max_range: 100.0,
+            ..Default::default()
+        };
+        let r: Range = decode(&encode(&h).unwrap(), Range::TYPE_NAME).unwrap();
+        assert_eq!((r.range, r.max_range, r.variance, r.header.frame_id.as_str()), (12.5, 100.0, 0.0, "buoy_1"));
+        let j = Range { variance: 0.25, ..r.clone() };
+        assert_eq!(decode::<Range>(&encode(&j).unwrap(), Range::TYPE_NAME).unwrap(), j);
+    }
+
+    #[test]
+    fn big_endian_cdr_decodes_and_other_encapsulations_are_named() {
+        let scan = LaserScan { ranges: vec![1.0, 2.5], angle_increment: 0.25, ..Default::default() };
+        let mut be = vec![0, 0, 0, 0];
+        be.extend(cdr_encoding::to_vec::<_, byteorder::BigEndian>(&scan).unwrap());
+        assert_eq!(decode::<LaserScan>(&be, LaserScan::TYPE_NAME).unwrap(), scan);
+        let mut x2 = encode(&scan).unwrap();
+        x2[1] = 7;
+        let e = decode::<LaserScan>(&x2, LaserScan::TYPE_NAME).unwrap_err().to_string();
+        assert!(e.contains("XCDR2"), "{e}");
+        assert!(matches!(decode::<LaserScan>(&[0, 1], "x"), Err(CdrError::TooShort { len: 2 })));
+        let full = encode(&scan).unwrap();
+        let e = decode::<LaserScan>(&full[..full.len() - 3], LaserScan::TYPE_NAME).unwrap_err();
+        assert!(matches!(e, CdrError::Body { .. }), "{e}");
+    }
 }

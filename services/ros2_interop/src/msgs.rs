@@ -555,9 +555,9 @@ pub struct FluidPressure {
 }
 message!(FluidPressure, "sensor_msgs/msg/FluidPressure");
 
-/// `sensor_msgs/msg/Range` as in Jazzy (with `variance`); a Humble one without it is read by
-/// [`crate::cdr::decode_range`].
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+/// `sensor_msgs/msg/Range` as in Jazzy (with `variance`); one of Humble's layout (without it)
+/// decodes too, with `variance` 0 ("unknown").
+#[derive(Debug, Clone, PartialEq, Default, Serialize)]
 pub struct Range {
     /// Time and the sensor's frame (the beacon id, for buoy ranges).
     pub header: Header,
@@ -576,7 +576,34 @@ pub struct Range {
 }
 message!(Range, "sensor_msgs/msg/Range");
 
-/// `sensor_msgs/msg/Range` before Jazzy (no `variance`).
+impl<'de> Deserialize<'de> for Range {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = Range;
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                f.write_str("a sensor_msgs/Range")
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Range, A::Error> {
+                let next = |i: usize| de::Error::invalid_length(i, &"6 or 7 fields");
+                let header = seq.next_element()?.ok_or_else(|| next(0))?;
+                let radiation_type = seq.next_element()?.ok_or_else(|| next(1))?;
+                let field_of_view = seq.next_element()?.ok_or_else(|| next(2))?;
+                let min_range = seq.next_element()?.ok_or_else(|| next(3))?;
+                let max_range = seq.next_element()?.ok_or_else(|| next(4))?;
+                let range = seq.next_element()?.ok_or_else(|| next(5))?;
+                // Humble's layout ends here: reading past its end is the absent `variance`.
+                let variance = seq.next_element().ok().flatten().unwrap_or(0.0);
+                Ok(Range { header, radiation_type, field_of_view, min_range, max_range, range, variance })
+            }
+        }
+        const FIELDS: &[&str] =
+            &["header", "radiation_type", "field_of_view", "min_range", "max_range", "range", "variance"];
+        d.deserialize_struct("Range", FIELDS, V)
+    }
+}
+
+/// `sensor_msgs/msg/Range` before Jazzy (no `variance`): what a Humble peer sends.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct RangeHumble {
     /// Time and frame.

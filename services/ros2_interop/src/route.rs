@@ -5,6 +5,7 @@
 use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
+
 use shared_types::{BuoyRange, DepthReading, HeadingReading, LaserScanHeader, OdometryInput, PlanarOdometry};
 
 use crate::cdr::{self, CdrError};
@@ -247,6 +248,15 @@ impl InError {
     }
 }
 
+macro_rules! try_convert {
+    ($e:expr) => {
+        match $e {
+            Ok(v) => v,
+            Err(e) => return Ok(Err(e)),
+        }
+    };
+}
+
 /// Decodes a route's messages; keeps what a route needs between them (odometry increments).
 #[derive(Debug, Clone)]
 pub struct RouteDecoder {
@@ -263,57 +273,73 @@ impl RouteDecoder {
 
     /// Decodes one encapsulated-CDR message of the route's topic.
     pub fn decode(&mut self, data: &[u8]) -> Result<Decoded, InError> {
+        let ty = self.route.service.ros_type();
+        let body = |e: cdr_encoding::Error| InError::Cdr(CdrError::Body { type_name: ty, reason: e.to_string() });
+        let r = if cdr::representation(data)? {
+            self.decode_from(&mut cdr_encoding::CdrDeserializer::<byteorder::LittleEndian>::new(&data[4..]))
+        } else {
+            self.decode_from(&mut cdr_encoding::CdrDeserializer::<byteorder::BigEndian>::new(&data[4..]))
+        };
+        Ok(r.map_err(body)??)
+    }
+
+    /// Decodes one message of the route's type from a deserializer (the gateway's DDS reader
+    /// hands one over): a deserializer error is the outer one, a field that breaks what the
+    /// pipeline input needs the inner.
+    pub fn decode_from<'de, D: serde::Deserializer<'de>>(
+        &mut self,
+        d: D,
+    ) -> Result<Result<Decoded, ConvertError>, D::Error> {
         let r = &self.route;
-        let ty = r.service.ros_type();
-        Ok(match r.service {
+        Ok(Ok(match r.service {
             InService::Laser => {
-                let msg: LaserScan = cdr::decode(data, ty)?;
-                let (stamp_ns, header) = convert::laser_scan(&msg, r.body_from_laser)?;
+                let msg = LaserScan::deserialize(d)?;
+                let (stamp_ns, header) = try_convert!(convert::laser_scan(&msg, r.body_from_laser));
                 let ranges = msg.ranges.iter().map(|x| convert::laser_range(*x, msg.range_max)).collect();
                 Decoded::Laser { stamp_ns, header, ranges }
             }
             InService::PlanarOdometry => {
-                let msg: Odometry = cdr::decode(data, ty)?;
-                let (stamp_ns, odometry) = convert::planar_odometry(&msg)?;
+                let msg = Odometry::deserialize(d)?;
+                let (stamp_ns, odometry) = try_convert!(convert::planar_odometry(&msg));
                 Decoded::PlanarOdometry { stamp_ns, odometry }
             }
             InService::Odometry => {
-                let msg: Odometry = cdr::decode(data, ty)?;
+                let msg = Odometry::deserialize(d)?;
                 let noise = OdometryNoise { speed_sigma_mps: r.speed_sigma_mps, turn_sigma_rad: r.turn_sigma_rad };
-                match self.increments.push(&msg, noise)? {
+                match try_convert!(self.increments.push(&msg, noise)) {
                     Some((stamp_ns, input)) => Decoded::Odometry { stamp_ns, input },
                     None => Decoded::Nothing,
                 }
             }
             InService::Cloud => {
-                let msg: PointCloud2<'_> = cdr::decode(data, ty)?;
-                let stamp_ns = convert::stamp_ns(&msg.header)?;
-                let layout = convert::CloudLayout::of(&msg)?;
+                let msg = PointCloud2::deserialize(d)?;
+                let stamp_ns = try_convert!(convert::stamp_ns(&msg.header));
+                let layout = try_convert!(convert::CloudLayout::of(&msg));
                 let points: Vec<[f32; 3]> = layout.finite_points(msg.data.as_slice()).collect();
                 Decoded::Cloud { stamp_ns, non_finite: layout.len() - points.len(), points }
             }
             InService::Heading => {
-                let msg: Imu = cdr::decode(data, ty)?;
+                let msg = Imu::deserialize(d)?;
                 let (stamp_ns, reading) =
-                    convert::heading(&msg, HeadingNoise { default_sigma_rad: r.heading_sigma_rad })?;
+                    try_convert!(convert::heading(&msg, HeadingNoise { default_sigma_rad: r.heading_sigma_rad }));
                 Decoded::Heading { stamp_ns, reading }
             }
             InService::Depth => {
-                let msg: FluidPressure = cdr::decode(data, ty)?;
+                let msg = FluidPressure::deserialize(d)?;
                 let p = PressureToDepth {
                     surface_pa: r.surface_pa,
                     density_kg_m3: r.density_kg_m3,
                     default_sigma_m: r.depth_sigma_m,
                     ..PressureToDepth::default()
                 };
-                let (stamp_ns, reading) = convert::depth(&msg, p)?;
+                let (stamp_ns, reading) = try_convert!(convert::depth(&msg, p));
                 Decoded::Depth { stamp_ns, reading }
             }
             InService::BuoyRanges => {
-                let msg = cdr::decode_range(data)?;
-                let (stamp_ns, range) = convert::buoy_range(&msg, &r.beacon_ids, r.range_sigma_m)?;
+                let msg = Range::deserialize(d)?;
+                let (stamp_ns, range) = try_convert!(convert::buoy_range(&msg, &r.beacon_ids, r.range_sigma_m));
                 Decoded::BuoyRange { stamp_ns, range }
             }
-        })
+        }))
     }
 }

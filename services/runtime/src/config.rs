@@ -276,12 +276,61 @@ pub struct PipelineConfig {
 }
 
 /// Reads and parses a pipeline config (stage one: syntax, unknown keys, types).
+///
+/// A config may start from another: `extends = "default.toml"` (a file name relative to this
+/// config's directory) takes that config and then this one's keys over it, tables merged key by
+/// key (a process's `settings` too), any other value replaced. Relative paths in either resolve
+/// against the extending config's directory: keep them in one directory.
 pub fn load_pipeline_config(path: &Path) -> Result<PipelineConfig, ConfigError> {
     let text =
         std::fs::read_to_string(path).map_err(|source| ConfigError::Read { file: path.to_path_buf(), source })?;
-    let mut cfg: PipelineConfig = parse_toml_str(&text, path)?;
+    let table: toml::Table = parse_toml_str(&text, path)?;
+    let mut cfg: PipelineConfig = if table.contains_key("extends") {
+        let merged = extended(path, table, 0)?;
+        serde_path_to_error::deserialize(toml::Value::Table(merged)).map_err(|e| ConfigError::Parse {
+            file: path.to_path_buf(),
+            line: 0,
+            key: e.path().to_string(),
+            message: e.into_inner().to_string(),
+        })?
+    } else {
+        parse_toml_str(&text, path)?
+    };
     cfg.source = path.to_path_buf();
     Ok(cfg)
+}
+
+/// Longest chain of configs extending one another.
+const MAX_EXTENDS: usize = 4;
+
+/// `table` (of the config at `path`) over the config it `extends`, recursively.
+fn extended(path: &Path, mut table: toml::Table, depth: usize) -> Result<toml::Table, ConfigError> {
+    let Some(ext) = table.remove("extends") else { return Ok(table) };
+    let bad =
+        |message: String| ConfigError::Parse { file: path.to_path_buf(), line: 0, key: "extends".into(), message };
+    let name = ext.as_str().ok_or_else(|| bad("must name another config file".into()))?;
+    if depth >= MAX_EXTENDS {
+        return Err(bad(format!("more than {MAX_EXTENDS} configs extend one another (a loop?)")));
+    }
+    let base_path = path.parent().unwrap_or(Path::new(".")).join(name);
+    let text =
+        std::fs::read_to_string(&base_path).map_err(|source| ConfigError::Read { file: base_path.clone(), source })?;
+    let base: toml::Table = parse_toml_str(&text, &base_path)?;
+    let mut base = extended(&base_path, base, depth + 1)?;
+    merge_tables(&mut base, table);
+    Ok(base)
+}
+
+/// `over`'s keys into `base`: tables merged, anything else replaced.
+fn merge_tables(base: &mut toml::Table, over: toml::Table) {
+    for (k, v) in over {
+        match (base.get_mut(&k), v) {
+            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => merge_tables(b, o),
+            (_, v) => {
+                base.insert(k, v);
+            }
+        }
+    }
 }
 
 /// Parses TOML text into `T`, naming the dotted key and line of any error.
@@ -572,5 +621,26 @@ mod tests {
         let t: toml::Table = toml::from_str("rate_hz = \"fast\"").unwrap();
         let e = parse_settings::<S>("p", &t).unwrap_err();
         assert_eq!(e.key, "processes.p.settings.rate_hz");
+    }
+
+    #[test]
+    fn a_config_extends_another_and_overrides_it_key_by_key() {
+        let dir = tempfile::tempdir().unwrap();
+        let base = "[run]\nout_dir = \"out/a\"\nduration_s = 5.0\n[processes.p]\nkind = \"k\"\n[processes.p.settings]\nx = 1\ny = 2\n";
+        std::fs::write(dir.path().join("base.toml"), base).unwrap();
+        let top = "extends = \"base.toml\"\n[run]\nout_dir = \"out/b\"\n[processes.p.settings]\ny = 3\n[processes.q]\nkind = \"k2\"\n";
+        std::fs::write(dir.path().join("top.toml"), top).unwrap();
+        let cfg = load_pipeline_config(&dir.path().join("top.toml")).unwrap();
+        assert_eq!(cfg.run.out_dir, std::path::PathBuf::from("out/b"));
+        assert_eq!(cfg.run.duration_s, 5.0);
+        let s = &cfg.processes["p"].settings;
+        assert_eq!((s["x"].as_integer(), s["y"].as_integer()), (Some(1), Some(3)));
+        assert_eq!(cfg.processes["q"].kind.as_deref(), Some("k2"));
+        std::fs::write(dir.path().join("loop.toml"), "extends = \"loop.toml\"\n").unwrap();
+        let e = load_pipeline_config(&dir.path().join("loop.toml")).unwrap_err().to_string();
+        assert!(e.contains("extends") && e.contains("loop"), "{e}");
+        std::fs::write(dir.path().join("bad.toml"), "extends = \"base.toml\"\n[run]\nout_dirr = 1\n").unwrap();
+        let e = load_pipeline_config(&dir.path().join("bad.toml")).unwrap_err();
+        assert!(e.to_string().contains("out_dirr"), "{e}");
     }
 }

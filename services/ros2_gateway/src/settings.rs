@@ -1,0 +1,477 @@
+//! The gateway's settings (`[processes.<name>.settings]` with `kind = "ros2"`).
+
+use std::net::IpAddr;
+
+use pipeline_runtime::config::{Issues, ProcessSettings};
+use ros2_interop::route::InRoute;
+use serde::Deserialize;
+
+/// The `ros2` gateway's settings.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Ros2Settings {
+    /// The DDS domain (`ROS_DOMAIN_ID`); default: the environment's `ROS_DOMAIN_ID`, else 0.
+    #[serde(default)]
+    pub domain_id: Option<u16>,
+    /// The ROS node's name.
+    #[serde(default = "default_node")]
+    pub node_name: String,
+    /// The node's namespace (`/`: none); relative topic names are resolved in it.
+    #[serde(default = "default_namespace")]
+    pub namespace: String,
+    /// Advertise only these local addresses in DDS discovery (e.g. `["127.0.0.1"]` for one
+    /// host); empty: every interface, as any ROS 2 node.
+    #[serde(default)]
+    pub only_networks: Vec<IpAddr>,
+    /// Frame ids of what the gateway publishes.
+    #[serde(default)]
+    pub frames: Frames,
+    /// ROS 2 topics into the pipeline.
+    #[serde(default, rename = "in")]
+    pub inbound: Vec<GatewayIn>,
+    /// Pipeline outputs to ROS 2 topics.
+    #[serde(default)]
+    pub out: Vec<GatewayOut>,
+    /// Fixed transforms published once on `/tf_static` (the sensor mounts).
+    #[serde(default)]
+    pub static_transforms: Vec<StaticTransform>,
+    /// Processes whose end ends the gateway's `out` direction (empty: the first upstream process
+    /// to end). A gateway with only `in` routes runs until it is stopped.
+    #[serde(default)]
+    pub end_after: Vec<String>,
+    /// A gateway with only `in` routes ends its stream when nothing has come for this long
+    /// after the first message, s (0: never; it runs until it is stopped, as for a live robot).
+    #[serde(default)]
+    pub end_when_idle_s: f64,
+    /// At the end, keep the node up this long so that reliable subscribers get the last
+    /// messages, s.
+    #[serde(default = "default_linger")]
+    pub linger_s: f64,
+}
+
+fn default_linger() -> f64 {
+    1.0
+}
+
+fn default_node() -> String {
+    "slam_pipeline".into()
+}
+fn default_namespace() -> String {
+    "/".into()
+}
+
+/// Frame ids (REP 105).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Frames {
+    /// The world-fixed frame of the fused and grid-SLAM poses.
+    pub map: String,
+    /// The odometry frame.
+    pub odom: String,
+    /// The robot's body.
+    pub base_link: String,
+    /// The frame of FastSLAM's local-map poses (`pipeline/slam/pose`).
+    pub local_map: String,
+}
+
+impl Default for Frames {
+    fn default() -> Self {
+        Self {
+            map: "map".into(),
+            odom: "odom".into(),
+            base_link: "base_link".into(),
+            local_map: "slam_local_map".into(),
+        }
+    }
+}
+
+/// Reliability of a topic.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Reliability {
+    /// Resent until acknowledged.
+    Reliable,
+    /// Sent once.
+    BestEffort,
+}
+
+/// Durability of a topic.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Durability {
+    /// Only for subscribers present at the time.
+    Volatile,
+    /// The last `depth` messages kept for late subscribers (a latched map).
+    TransientLocal,
+}
+
+/// A topic's QoS (the rest as ROS 2's defaults: keep last, automatic liveliness).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TopicQos {
+    /// Reliability.
+    pub reliability: Reliability,
+    /// Durability.
+    pub durability: Durability,
+    /// History depth (keep last).
+    pub depth: u32,
+}
+
+impl TopicQos {
+    /// ROS 2's sensor-data profile (`rmw_qos_profile_sensor_data`): best effort, volatile, 5.
+    pub const SENSOR_DATA: TopicQos =
+        TopicQos { reliability: Reliability::BestEffort, durability: Durability::Volatile, depth: 5 };
+    /// ROS 2's default profile: reliable, volatile, 10.
+    pub const DEFAULT: TopicQos =
+        TopicQos { reliability: Reliability::Reliable, durability: Durability::Volatile, depth: 10 };
+    /// A map as map_server publishes it: reliable, transient local, 1.
+    pub const MAP: TopicQos =
+        TopicQos { reliability: Reliability::Reliable, durability: Durability::TransientLocal, depth: 1 };
+}
+
+/// A ROS 2 topic into the pipeline: the route (topic, pipeline input and its options, as in a
+/// bag replay) and the subscription's QoS (default: the sensor-data profile).
+#[derive(Debug, Clone)]
+pub struct GatewayIn {
+    /// QoS of the subscription.
+    pub qos: Option<TopicQos>,
+    /// When the pipeline input's subscriber queue is full: `drop` (default: a live sensor never
+    /// holds the gateway back; what is dropped is counted) or `wait` (lossless: the gateway
+    /// waits, and a reliable ROS publisher is slowed down through DDS).
+    pub when_full: WhenFull,
+    /// The route.
+    pub route: InRoute,
+}
+
+/// The gateway's own keys (`qos`, `when_full`), then the route's (an unknown key is refused by
+/// the route: serde's `flatten` would let it through).
+impl<'de> Deserialize<'de> for GatewayIn {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        use serde::de::Error;
+        let mut m = serde_json::Map::<String, serde_json::Value>::deserialize(d)?;
+        let qos = m
+            .remove("qos")
+            .map(serde_json::from_value)
+            .transpose()
+            .map_err(|e| D::Error::custom(format!("qos: {e}")))?;
+        let when_full = m
+            .remove("when_full")
+            .map(serde_json::from_value)
+            .transpose()
+            .map_err(|e| D::Error::custom(format!("when_full: {e}")))?
+            .unwrap_or_default();
+        let route = serde_json::from_value(serde_json::Value::Object(m)).map_err(D::Error::custom)?;
+        Ok(Self { qos, when_full, route })
+    }
+}
+
+/// What an `in` route does when the pipeline input is full.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum WhenFull {
+    /// Drop the message for that subscriber (counted).
+    #[default]
+    Drop,
+    /// Wait for room.
+    Wait,
+}
+
+/// What an out route publishes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Deserialize, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OutKind {
+    /// `pipeline/fusion/pose` (refined estimates) as `nav_msgs/Odometry` in `frames.map`.
+    FusedOdometry,
+    /// `pipeline/fusion/pose` as `geometry_msgs/PoseWithCovarianceStamped`.
+    FusedPose,
+    /// `pipeline/fusion/pose` accumulated as `nav_msgs/Path`.
+    FusedPath,
+    /// `pipeline/slam/pose` as `nav_msgs/Odometry` in `frames.local_map`.
+    SlamOdometry,
+    /// `pipeline/slam/pose` accumulated as `nav_msgs/Path`.
+    SlamPath,
+    /// `pipeline/grid_slam/pose` as `nav_msgs/Odometry` in `frames.map`.
+    GridSlamOdometry,
+    /// `pipeline/grid_slam/pose` as `geometry_msgs/PoseWithCovarianceStamped`.
+    GridSlamPose,
+    /// `pipeline/grid_slam/pose` accumulated as `nav_msgs/Path`.
+    GridSlamPath,
+    /// `pipeline/grid_slam/grid` as `nav_msgs/OccupancyGrid` (transient local, as map_server).
+    Map,
+    /// `pipeline/map/voxels` (full sets and deltas) as the occupied voxels' centres,
+    /// `sensor_msgs/PointCloud2` (as octomap_server's centres cloud).
+    Voxels,
+    /// `pipeline/fusion/map` as a `visualization_msgs/MarkerArray` of spheres.
+    Landmarks,
+    /// The obstacle voxels of `pipeline/map/voxels` as a `visualization_msgs/MarkerArray` of cubes.
+    Obstacles,
+    /// `/tf`: `map → odom → base_link` from the fused pose (`from = "fused"`) or grid SLAM's
+    /// (`from = "grid_slam"`); with `odom = "planar_odometry"` the odometry gives `odom →
+    /// base_link` and the pose `map → odom`, else `map → odom` is the identity (on `/tf_static`).
+    Tf,
+}
+
+impl OutKind {
+    /// The topic it is published on unless the route names one.
+    pub fn default_topic(self) -> &'static str {
+        match self {
+            OutKind::FusedOdometry => "/slam/fused/odometry",
+            OutKind::FusedPose => "/slam/fused/pose",
+            OutKind::FusedPath => "/slam/fused/path",
+            OutKind::SlamOdometry => "/slam/local/odometry",
+            OutKind::SlamPath => "/slam/local/path",
+            OutKind::GridSlamOdometry => "/slam/grid/odometry",
+            OutKind::GridSlamPose => "/slam/grid/pose",
+            OutKind::GridSlamPath => "/slam/grid/path",
+            OutKind::Map => "/map",
+            OutKind::Voxels => "/octomap_point_cloud_centers",
+            OutKind::Landmarks => "/slam/landmarks",
+            OutKind::Obstacles => "/slam/obstacles",
+            OutKind::Tf => "/tf",
+        }
+    }
+
+    /// The QoS it is published with unless the route says.
+    pub fn default_qos(self) -> TopicQos {
+        match self {
+            OutKind::Map | OutKind::Voxels | OutKind::Landmarks | OutKind::Obstacles => TopicQos::MAP,
+            OutKind::Tf => TopicQos { depth: 100, ..TopicQos::DEFAULT },
+            _ => TopicQos::DEFAULT,
+        }
+    }
+
+    /// The ROS 2 type it publishes.
+    pub fn ros_type(self) -> &'static str {
+        use ros2_interop::Message;
+        use ros2_interop::msgs::*;
+        match self {
+            OutKind::FusedOdometry | OutKind::SlamOdometry | OutKind::GridSlamOdometry => Odometry::TYPE_NAME,
+            OutKind::FusedPose | OutKind::GridSlamPose => PoseWithCovarianceStamped::TYPE_NAME,
+            OutKind::FusedPath | OutKind::SlamPath | OutKind::GridSlamPath => Path::TYPE_NAME,
+            OutKind::Map => OccupancyGrid::TYPE_NAME,
+            OutKind::Voxels => PointCloud2::TYPE_NAME,
+            OutKind::Landmarks | OutKind::Obstacles => MarkerArray::TYPE_NAME,
+            OutKind::Tf => TFMessage::TYPE_NAME,
+        }
+    }
+}
+
+/// Where `/tf` takes its pose from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum TfFrom {
+    /// `pipeline/fusion/pose` (refined).
+    #[default]
+    Fused,
+    /// `pipeline/grid_slam/pose`.
+    GridSlam,
+}
+
+/// Where `/tf` takes `odom → base_link` from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum TfOdom {
+    /// No odometry frame of its own: `map → odom` is the identity.
+    #[default]
+    None,
+    /// `pipeline/sensors/planar_odometry`.
+    PlanarOdometry,
+}
+
+/// A pipeline output published on a ROS 2 topic.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GatewayOut {
+    /// What is published.
+    pub what: OutKind,
+    /// The topic (default: [`OutKind::default_topic`]).
+    #[serde(default)]
+    pub topic: Option<String>,
+    /// QoS (default: [`OutKind::default_qos`]).
+    #[serde(default)]
+    pub qos: Option<TopicQos>,
+    /// Most messages per second (0: every one). Paths, voxel clouds and markers are snapshots:
+    /// a skipped one is replaced by the next; poses and transforms are not limited by default.
+    #[serde(default)]
+    pub max_rate_hz: f64,
+    /// `tf`: the pose it comes from.
+    #[serde(default)]
+    pub from: TfFrom,
+    /// `tf`: the odometry frame's source.
+    #[serde(default)]
+    pub odom: TfOdom,
+}
+
+impl GatewayOut {
+    /// The topic name.
+    pub fn topic(&self) -> &str {
+        self.topic.as_deref().unwrap_or(self.what.default_topic())
+    }
+    /// The QoS.
+    pub fn qos(&self) -> TopicQos {
+        self.qos.unwrap_or(self.what.default_qos())
+    }
+}
+
+/// A fixed transform (`parent_from_child`).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StaticTransform {
+    /// Parent frame.
+    pub parent: String,
+    /// Child frame.
+    pub child: String,
+    /// Translation (x, y, z), m.
+    #[serde(default)]
+    pub xyz_m: [f64; 3],
+    /// Rotation as roll, pitch, yaw (fixed axes x, y, z), rad.
+    #[serde(default)]
+    pub rpy_rad: [f64; 3],
+}
+
+fn topic_ok(t: &str) -> bool {
+    !t.is_empty()
+        && !t.contains(char::is_whitespace)
+        && !t.contains("//")
+        && t.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '/' || c == '~')
+        && !t.starts_with(|c: char| c.is_ascii_digit())
+}
+
+impl ProcessSettings for Ros2Settings {
+    fn validate(&self, key: &str, issues: &mut Issues) {
+        issues.check(
+            ros2_client::NodeName::new(&self.namespace, &self.node_name).is_ok(),
+            format!("{key}.node_name"),
+            format!("`{}` in namespace `{}` is not a ROS 2 node name", self.node_name, self.namespace),
+        );
+        if let Some(d) = self.domain_id {
+            issues.check(d <= 232, format!("{key}.domain_id"), format!("{d}: a ROS 2 domain id is 0-232"));
+        }
+        issues.check(
+            !self.inbound.is_empty() || !self.out.is_empty() || !self.static_transforms.is_empty(),
+            format!("{key}.in"),
+            "no routes: give `in` or `out` routes",
+        );
+        let mut topics = std::collections::BTreeSet::new();
+        for (i, r) in self.inbound.iter().enumerate() {
+            for (k, m) in r.route.validate() {
+                issues.push(format!("{key}.in[{i}].{k}"), m);
+            }
+            issues.check(topics.insert(r.route.topic.clone()), format!("{key}.in[{i}].topic"), "routed twice");
+            if let Some(q) = r.qos {
+                issues.check(q.depth >= 1, format!("{key}.in[{i}].qos.depth"), "must be >= 1");
+            }
+        }
+        for (i, r) in self.out.iter().enumerate() {
+            issues.check(
+                topic_ok(r.topic()),
+                format!("{key}.out[{i}].topic"),
+                format!("`{}` is not a ROS topic name", r.topic()),
+            );
+            issues.check(topics.insert(r.topic().to_string()), format!("{key}.out[{i}].topic"), "used twice");
+            issues.check(r.qos().depth >= 1, format!("{key}.out[{i}].qos.depth"), "must be >= 1");
+            issues.check(
+                r.max_rate_hz.is_finite() && r.max_rate_hz >= 0.0,
+                format!("{key}.out[{i}].max_rate_hz"),
+                "must be >= 0",
+            );
+        }
+        for (i, s) in self.static_transforms.iter().enumerate() {
+            issues.check(
+                !s.parent.is_empty() && !s.child.is_empty() && s.parent != s.child,
+                format!("{key}.static_transforms[{i}]"),
+                "needs two different frames",
+            );
+            issues.check(
+                s.xyz_m.iter().chain(&s.rpy_rad).all(|v| v.is_finite()),
+                format!("{key}.static_transforms[{i}]"),
+                "must be finite",
+            );
+        }
+        for (k, v) in [("end_when_idle_s", self.end_when_idle_s), ("linger_s", self.linger_s)] {
+            issues.check(v.is_finite() && v >= 0.0, format!("{key}.{k}"), "must be >= 0 s");
+        }
+        let f = &self.frames;
+        for (k, v) in [("map", &f.map), ("odom", &f.odom), ("base_link", &f.base_link), ("local_map", &f.local_map)] {
+            issues.check(
+                !v.is_empty() && !v.contains(char::is_whitespace),
+                format!("{key}.frames.{k}"),
+                "not a frame id",
+            );
+        }
+    }
+}
+
+impl Ros2Settings {
+    /// The DDS domain: the setting, else `ROS_DOMAIN_ID`, else 0.
+    pub fn domain(&self) -> Result<u16, String> {
+        if let Some(d) = self.domain_id {
+            return Ok(d);
+        }
+        match std::env::var("ROS_DOMAIN_ID") {
+            Ok(v) if !v.trim().is_empty() => v
+                .trim()
+                .parse::<u16>()
+                .ok()
+                .filter(|d| *d <= 232)
+                .ok_or_else(|| format!("ROS_DOMAIN_ID `{v}` is not 0-232")),
+            _ => Ok(0),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> Result<Ros2Settings, String> {
+        toml::from_str(text).map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn routes_parse_with_their_defaults_and_a_misspelt_key_is_refused() {
+        let s = parse(
+            r#"
+[[in]]
+topic = "/scan"
+service = "laser"
+body_from_laser = [0.1, 0.0, 0.0]
+qos = { reliability = "reliable", durability = "volatile", depth = 10 }
+[[out]]
+what = "map"
+[[out]]
+what = "tf"
+from = "grid_slam"
+odom = "planar_odometry"
+"#,
+        )
+        .unwrap();
+        assert_eq!(s.inbound[0].route.body_from_laser, [0.1, 0.0, 0.0]);
+        assert_eq!(s.inbound[0].qos.unwrap().depth, 10);
+        assert_eq!(s.out[0].topic(), "/map");
+        assert_eq!(s.out[0].qos(), TopicQos::MAP);
+        assert_eq!((s.out[1].from, s.out[1].odom), (TfFrom::GridSlam, TfOdom::PlanarOdometry));
+        let mut issues = Issues::default();
+        s.validate("s", &mut issues);
+        assert!(issues.0.is_empty(), "{issues:?}");
+        let e = parse("[[in]]\ntopic = \"/scan\"\nservice = \"laser\"\nbody_from_lasr = [0, 0, 0]\n").unwrap_err();
+        assert!(e.contains("body_from_lasr"), "{e}");
+        let e = parse("[[out]]\nwhat = \"maps\"\n").unwrap_err();
+        assert!(e.contains("maps"), "{e}");
+    }
+
+    #[test]
+    fn bad_values_are_named_by_key() {
+        let s = parse(
+            "domain_id = 300\n[[in]]\ntopic = \"scan\"\nservice = \"laser\"\n[[out]]\nwhat = \"map\"\ntopic = \"/my map\"\n",
+        )
+        .unwrap();
+        let mut issues = Issues::default();
+        s.validate("s", &mut issues);
+        let keys: Vec<&str> = issues.0.iter().map(|i| i.key.as_str()).collect();
+        assert!(
+            keys.contains(&"s.domain_id") && keys.contains(&"s.in[0].topic") && keys.contains(&"s.out[0].topic"),
+            "{keys:?}"
+        );
+    }
+}

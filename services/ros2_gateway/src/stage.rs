@@ -1,0 +1,203 @@
+//! The gateway as a [`Stage`]: its ROS 2 node, the `in` routes' readers (woken by
+//! [`crate::dds::DdsWaker`]) and the `out` routes' publishers.
+
+use std::cell::RefCell;
+use std::time::{Duration, Instant};
+
+use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
+use pipeline_runtime::{ProcessContext, Runtime, StageError, Wake};
+use ros2_client::Publisher;
+use ros2_interop::convert;
+use ros2_interop::msgs::{Message, TFMessage};
+
+use crate::dds::{DdsWaker, RosNode, err};
+use crate::inbound::{InPorts, InRoute, Taken};
+use crate::outbound::Outbound;
+use crate::settings::{OutKind, Ros2Settings, TfOdom, TopicQos};
+
+/// The `ros2` gateway stage.
+pub struct Ros2Stage {
+    name: String,
+    settings: Ros2Settings,
+    node: RosNode,
+    ins: Vec<InRoute>,
+    ports: RefCell<InPorts>,
+    out: Outbound,
+    _waker: Option<DdsWaker>,
+    _static_tf: Option<Publisher<TFMessage>>,
+    static_transforms: usize,
+    last_in: Option<Instant>,
+}
+
+fn stage_err(e: crate::dds::DdsError) -> StageError {
+    StageError::stage(e)
+}
+
+impl Ros2Stage {
+    /// `/tf_static`: the configured mounts, and `map → odom` = identity when a `tf` route has
+    /// no odometry of its own.
+    fn static_tf(node: &mut RosNode, s: &Ros2Settings) -> Result<(Option<Publisher<TFMessage>>, usize), StageError> {
+        let mut transforms = vec![];
+        for t in &s.static_transforms {
+            let [r, p, y] = t.rpy_rad;
+            let iso = Isometry3::from_parts(
+                Translation3::new(t.xyz_m[0], t.xyz_m[1], t.xyz_m[2]),
+                UnitQuaternion::from_euler_angles(r, p, y),
+            );
+            transforms.push(convert::transform(0, &t.parent, &t.child, &iso));
+        }
+        if s.out.iter().any(|o| o.what == OutKind::Tf && o.odom == TfOdom::None) {
+            transforms.push(convert::transform(0, &s.frames.map, &s.frames.odom, &Isometry3::identity()));
+        }
+        if transforms.is_empty() {
+            return Ok((None, 0));
+        }
+        let topic = node.topic("/tf_static", TFMessage::TYPE_NAME, TopicQos::MAP).map_err(stage_err)?;
+        let publisher: Publisher<TFMessage> =
+            node.node.create_publisher(&topic, None).map_err(|e| stage_err(err("publisher on `/tf_static`")(&e)))?;
+        let n = transforms.len();
+        publisher.publish(TFMessage { transforms }).map_err(|e| stage_err(err("publishing `/tf_static`")(&e)))?;
+        Ok((Some(publisher), n))
+    }
+}
+
+impl Stage for Ros2Stage {
+    type Settings = Ros2Settings;
+
+    fn open(ctx: &ProcessContext, settings: Ros2Settings, rt: &mut Runtime) -> Result<Self, StageError> {
+        let mut node = RosNode::create(&settings).map_err(stage_err)?;
+        let ports = RefCell::new(InPorts::open(rt, &settings.inbound)?);
+        let mut ins = vec![];
+        for r in &settings.inbound {
+            let qos = r.qos.unwrap_or(TopicQos::SENSOR_DATA);
+            let topic = node.topic(&r.route.topic, r.route.service.ros_type(), qos).map_err(stage_err)?;
+            let sub = node
+                .node
+                .create_subscription::<Taken>(&topic, None)
+                .map_err(|e| stage_err(err(format!("subscription to `{}`", r.route.topic))(&e)))?;
+            ins.push(InRoute::new(r, sub));
+        }
+        let waker = if ins.is_empty() {
+            None
+        } else {
+            let mut subs: Vec<&mut ros2_client::Subscription<Taken>> = ins.iter_mut().map(|r| &mut r.sub).collect();
+            Some(DdsWaker::start(&mut subs, rt.waker()?).map_err(stage_err)?)
+        };
+        let out = Outbound::open(rt, &mut node, &settings.out, &settings.frames)?;
+        let (static_tf, static_transforms) = Self::static_tf(&mut node, &settings)?;
+        let ins_text: Vec<String> = ins.iter().map(|r| format!("{} → {}", r.topic, r.counts.service)).collect();
+        let outs_text: Vec<String> =
+            out.routes.iter().map(|r| format!("{:?} → {}", r.cfg.what, r.cfg.topic())).collect();
+        tracing::info!(
+            domain_id = node.domain,
+            "ROS 2 node `{}` (namespace `{}`): in [{}]; out [{}]; {} static transform(s)",
+            settings.node_name,
+            settings.namespace,
+            ins_text.join(", "),
+            outs_text.join(", "),
+            static_transforms
+        );
+        rt.wake_at(Instant::now());
+        Ok(Self {
+            name: ctx.name.clone(),
+            settings,
+            node,
+            ins,
+            ports,
+            out,
+            _waker: waker,
+            _static_tf: static_tf,
+            static_transforms,
+            last_in: None,
+        })
+    }
+
+    fn end_after(&self) -> EndAfter {
+        if self.settings.out.is_empty() { EndAfter::Itself } else { EndAfter::from_list(&self.settings.end_after) }
+    }
+
+    fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
+        let mut got = 0;
+        for r in &mut self.ins {
+            got += r.drain(&self.ports);
+        }
+        if got > 0 {
+            self.last_in = Some(Instant::now());
+        }
+        if let Some(due) = self.out.pump()? {
+            rt.wake_at(due);
+        }
+        if self.out.is_empty()
+            && self.settings.end_when_idle_s > 0.0
+            && let Some(last) = self.last_in
+        {
+            let idle = Duration::from_secs_f64(self.settings.end_when_idle_s);
+            if last.elapsed() >= idle {
+                tracing::info!("nothing from ROS 2 for {} s: ending the stream", self.settings.end_when_idle_s);
+                return Ok(Step::Done);
+            }
+            rt.wake_at(last + idle);
+        }
+        if inputs_ended {
+            self.out.flush_all();
+        }
+        Ok(Step::Idle)
+    }
+
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+        for r in &mut self.ins {
+            r.drain(&self.ports);
+        }
+        self.out.pump()?;
+        self.out.flush_all();
+        // Reliable subscribers acknowledge what was sent last while the node stays up.
+        let end = Instant::now() + Duration::from_secs_f64(self.settings.linger_s);
+        while Instant::now() < end {
+            rt.keep_alive();
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        self.out.subscribers(&self.node.node);
+        for r in &mut self.ins {
+            r.counts.publishers = r.sub.get_publisher_count(&self.node.node);
+        }
+        let ins: serde_json::Map<String, serde_json::Value> =
+            self.ins.iter().map(|r| (r.topic.clone(), r.summary())).collect();
+        let outs: serde_json::Map<String, serde_json::Value> = self
+            .out
+            .routes
+            .iter()
+            .map(|r| {
+                let mut v = serde_json::to_value(&r.counts).unwrap_or_default();
+                v["type"] = r.cfg.what.ros_type().into();
+                (r.cfg.topic().to_string(), v)
+            })
+            .collect();
+        let lost: u64 = self
+            .ins
+            .iter()
+            .map(|r| r.counts.undecodable + r.counts.invalid + r.counts.lost_in_dds + r.counts.port_failed)
+            .sum::<u64>()
+            + self.out.routes.iter().map(|r| r.counts.failed).sum::<u64>();
+        if lost > 0 {
+            tracing::warn!("ROS 2 gateway: {lost} message(s) not carried (per route in summary.json `ros2`)");
+        }
+        Ok(serde_json::json!({ "ros2": { &self.name: {
+            "completed": ending == Ending::EndOfStream,
+            "node": format!("{}/{}", self.settings.namespace.trim_end_matches('/'), self.settings.node_name),
+            "domain_id": self.node.domain,
+            "in": ins,
+            "out": outs,
+            "static_transforms": self.static_transforms,
+            "pipeline_messages_taken": self.out.taken,
+            "voxel_messages_missed": self.out.voxel_gaps().0,
+            "voxel_deltas_waiting_for_a_full_set": self.out.voxel_gaps().1,
+            "not_carried": lost,
+        }}}))
+    }
+
+    fn end_of_stream(&self) -> (u64, u64) {
+        let sent = self.ports.borrow().sent();
+        (sent.saturating_sub(1), sent)
+    }
+}
