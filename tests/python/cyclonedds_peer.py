@@ -15,7 +15,8 @@ does. Run it inside the test's network namespace (CYCLONEDDS_URI confines it to 
       (0: as fast as the link takes them). Prints {"scans": N}.
   bad SECONDS
       Publishes what the gateway must refuse: a LaserScan with a NaN angle_increment, an
-      Odometry whose quaternion is zero, a PointCloud2 without z.
+      Odometry whose quaternion is zero, a PointCloud2 without z; a best-effort writer on
+      /scan_be and an Odometry writer on /scan_typed.
 """
 import gzip
 import json
@@ -415,6 +416,11 @@ def bad(args):
     scan_w = DataWriter(dp, Topic(dp, "rt/scan", LaserScan, qos=q), qos=q)
     odom_w = DataWriter(dp, Topic(dp, "rt/odom", Odometry, qos=q), qos=q)
     cloud_w = DataWriter(dp, Topic(dp, "rt/cloud", PointCloud2, qos=q), qos=q)
+    # A best-effort writer where the gateway's route asks for reliable; an Odometry writer on a
+    # LaserScan route's topic. Discovery tells the gateway; nothing of theirs can arrive.
+    be = qos(depth=10, best_effort=True)
+    be_w = DataWriter(dp, Topic(dp, "rt/scan_be", LaserScan, qos=be), qos=be)
+    typed_w = DataWriter(dp, Topic(dp, "rt/scan_typed", Odometry, qos=q), qos=q)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and not (scan_w.get_matched_subscriptions() and cloud_w.get_matched_subscriptions()):
         time.sleep(0.05)
@@ -426,8 +432,10 @@ def bad(args):
     odom_w.write(Odometry(header=h, pose=PoseWithCovariance(pose=Pose(orientation=Quaternion(w=0.0)))))
     xy = [PointField(name="x", offset=0, datatype=7, count=1), PointField(name="y", offset=4, datatype=7, count=1)]
     cloud_w.write(PointCloud2(header=h, height=1, width=1, fields=xy, point_step=8, row_step=8, data=[0] * 8))
+    be_w.write(LaserScan(header=h, angle_increment=0.5, range_min=0.1, range_max=30.0, ranges=[1.0]))
+    typed_w.write(Odometry(header=h))
     time.sleep(seconds)
-    print(json.dumps({"sent": 4}))
+    print(json.dumps({"sent": 6}))
     return 0
 
 

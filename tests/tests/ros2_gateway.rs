@@ -215,6 +215,8 @@ in = [
   { topic = "/scan", service = "laser", qos = { reliability = "reliable", durability = "volatile", depth = 100 } },
   { topic = "/odom", service = "planar_odometry", qos = { reliability = "reliable", durability = "volatile", depth = 100 } },
   { topic = "/cloud", service = "cloud", qos = { reliability = "reliable", durability = "volatile", depth = 100 } },
+  { topic = "/scan_be", service = "laser", qos = { reliability = "reliable", durability = "volatile", depth = 10 } },
+  { topic = "/scan_typed", service = "laser", qos = { reliability = "reliable", durability = "volatile", depth = 10 } },
 ]
 "#,
     );
@@ -229,8 +231,18 @@ in = [
     assert_eq!(r["/odom"]["counts"]["invalid"], 1, "{r}");
     assert_eq!(r["/cloud"]["counts"]["invalid"], 1, "{r}");
     assert_eq!(s["ros2"]["ros_in"]["not_carried"], 3);
+    assert_eq!(r["/scan_be"]["counts"]["qos_incompatible"], 1, "a best-effort publisher, a reliable route: {r}");
+    assert_eq!(r["/scan_typed"]["counts"]["type_mismatch"], 1, "an Odometry publisher on a LaserScan route: {r}");
+    assert_eq!((&r["/scan_be"]["counts"]["received"], &r["/scan_typed"]["counts"]["received"]), (&0.into(), &0.into()));
+    assert_eq!(s["ros2"]["ros_in"]["endpoints_unmatched"], 2);
     let log = run.log();
-    for needle in ["angle_increment", "not a rotation", "no field `z`"] {
+    for needle in [
+        "angle_increment",
+        "not a rotation",
+        "no field `z`",
+        "cannot match the route's",
+        "nav_msgs::msg::dds_::Odometry_",
+    ] {
         assert!(log.contains(needle), "`{needle}` is not warned about");
     }
 }

@@ -53,6 +53,8 @@ pub struct RosNode {
     pub node: ros2_client::Node,
     /// Its DDS domain.
     pub domain: u16,
+    /// The participant's discovery and matching events (QoS mismatches, remote endpoints).
+    pub status: rustdds::DomainParticipantStatusListener,
 }
 
 impl RosNode {
@@ -64,12 +66,13 @@ impl RosNode {
             b = b.with_only_networks(s.only_networks.iter().copied());
         }
         let dp = b.build().map_err(|e| err(format!("participant in domain {domain}"))(&e))?;
+        let status = dp.status_listener();
         let ctx = ros2_client::Context::from_domain_participant(dp).map_err(|e| err("context")(&e))?;
         let name = NodeName::new(&s.namespace, &s.node_name).map_err(|e| err("node name")(&e))?;
         let node = ctx
             .new_node(name, NodeOptions::new().enable_rosout(false))
             .map_err(|e| err(format!("node `{}`", s.node_name))(&e))?;
-        Ok(Self { node, domain })
+        Ok(Self { node, domain, status })
     }
 
     /// A topic of ROS 2 type `ros_type` (`pkg/msg/Type`) with `qos`.
@@ -95,16 +98,26 @@ pub struct DdsWaker {
     thread: Option<JoinHandle<()>>,
 }
 
+/// A poll to register DDS readers with before [`DdsWaker::start`].
+pub fn new_poll() -> Result<Poll, DdsError> {
+    Poll::new().map_err(|e| err("poll")(&e))
+}
+
+/// Registers `source` with `poll` (`what` names it in an error).
+pub fn register(
+    poll: &Poll,
+    source: &mut impl rustdds::mio1::event::Source,
+    token: usize,
+    what: &str,
+) -> Result<(), DdsError> {
+    poll.registry()
+        .register(source, Token(token), Interest::READABLE)
+        .map_err(|e| err(format!("registering {what}"))(&e))
+}
+
 impl DdsWaker {
-    /// Registers `sources` (token = index) and starts the thread.
-    pub fn start<S: rustdds::mio1::event::Source>(
-        sources: &mut [&mut S],
-        waker: pipeline_runtime::Waker,
-    ) -> Result<Self, DdsError> {
-        let poll = Poll::new().map_err(|e| err("poll")(&e))?;
-        for (i, s) in sources.iter_mut().enumerate() {
-            poll.registry().register(*s, Token(i), Interest::READABLE).map_err(|e| err("registering a reader")(&e))?;
-        }
+    /// Starts the thread on a poll with everything registered.
+    pub fn start(poll: Poll, waker: pipeline_runtime::Waker) -> Result<Self, DdsError> {
         let stop = Arc::new(AtomicBool::new(false));
         let stop2 = stop.clone();
         let thread = std::thread::Builder::new()

@@ -277,6 +277,10 @@ pub struct InCounts {
     pub non_finite_points: u64,
     /// ROS publishers matched at the end.
     pub publishers: usize,
+    /// Remote publishers whose QoS cannot match this route's (nothing of theirs arrives).
+    pub qos_incompatible: u64,
+    /// Remote publishers on this topic of another type (nothing of theirs arrives).
+    pub type_mismatch: u64,
 }
 
 /// One `in` route.
@@ -365,6 +369,27 @@ impl InRoute {
                     self.warn_once("undecodable", &what);
                 }
             }
+        }
+    }
+
+    /// A remote publisher whose QoS cannot match (discovery said so).
+    pub fn qos_incompatible(&mut self, requested: &str, offered: &str) {
+        self.counts.qos_incompatible += 1;
+        let what = format!(
+            "a publisher offers QoS ({offered}) that cannot match the route's ({requested}): nothing of it arrives"
+        );
+        self.warn_once("qos_incompatible", &what);
+    }
+
+    /// A remote publisher on the topic, of DDS type `dds_type`.
+    pub fn remote_type(&mut self, dds_type: &str) {
+        let want = ros2_interop::msgs::dds_type_name(self.counts_type());
+        if dds_type != want {
+            self.counts.type_mismatch += 1;
+            let what = format!(
+                "a publisher of type `{dds_type}` on this topic; the route takes `{want}`: nothing of it arrives"
+            );
+            self.warn_once("type_mismatch", &what);
         }
     }
 

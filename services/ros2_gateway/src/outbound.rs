@@ -66,6 +66,10 @@ pub struct OutCounts {
     pub failed: u64,
     /// Subscribers matched at the end.
     pub subscribers: usize,
+    /// Remote subscribers whose QoS cannot match this route's (they get nothing).
+    pub qos_incompatible: u64,
+    /// Remote subscribers on this topic of another type (they get nothing).
+    pub type_mismatch: u64,
 }
 
 /// The state a snapshot route sends.
@@ -126,6 +130,40 @@ impl OutRoute {
             path: vec![],
             warned: false,
         })
+    }
+
+    /// The DDS writer's GUID.
+    pub fn guid(&self) -> ros2_client::dds::rustdds::GUID {
+        match &self.publisher {
+            OutPub::Odometry(p) => p.guid(),
+            OutPub::Pose(p) => p.guid(),
+            OutPub::Path(p) => p.guid(),
+            OutPub::Grid(p) => p.guid(),
+            OutPub::Cloud(p) => p.guid(),
+            OutPub::Markers(p) => p.guid(),
+            OutPub::Tf(p) => p.guid(),
+        }
+    }
+
+    /// A remote subscriber whose QoS cannot match (discovery said so).
+    pub fn qos_incompatible(&mut self, requested: &str, offered: &str) {
+        self.counts.qos_incompatible += 1;
+        tracing::warn!(
+            topic = %self.cfg.topic(),
+            "a subscriber requests QoS ({requested}) this route does not offer ({offered}): it gets nothing (counted in summary.json)"
+        );
+    }
+
+    /// A remote subscriber on the topic, of DDS type `dds_type`.
+    pub fn remote_type(&mut self, dds_type: &str) {
+        let want = ros2_interop::msgs::dds_type_name(self.cfg.what.ros_type());
+        if dds_type != want {
+            self.counts.type_mismatch += 1;
+            tracing::warn!(
+                topic = %self.cfg.topic(),
+                "a subscriber of type `{dds_type}` on this topic; the route publishes `{want}`: it gets nothing (counted in summary.json)"
+            );
+        }
     }
 
     fn failed(&mut self, e: impl std::fmt::Debug) {

@@ -62,6 +62,46 @@ impl Ros2Stage {
     }
 }
 
+impl Ros2Stage {
+    /// Discovery's verdicts on the routes' topics: a remote endpoint whose QoS cannot match
+    /// (best effort offered where reliable is requested, volatile where transient local is), or
+    /// one of another type on a route's topic. Counted per route and warned once.
+    fn discovery(&mut self) {
+        use ros2_client::dds::rustdds::{DomainParticipantStatusEvent as E, StatusEvented};
+        while let Some(ev) = self.node.status.try_recv_status() {
+            match ev {
+                E::RemoteWriterQosIncompatible { local_reader, requested_qos, offered_qos, .. } => {
+                    if let Some(r) = self.ins.iter_mut().find(|r| r.sub.guid() == local_reader) {
+                        r.qos_incompatible(&qos_text(&requested_qos), &qos_text(&offered_qos));
+                    }
+                }
+                E::RemoteReaderQosIncompatible { local_writer, requested_qos, offered_qos, .. } => {
+                    if let Some(r) = self.out.routes.iter_mut().find(|r| r.guid() == local_writer) {
+                        r.qos_incompatible(&qos_text(&requested_qos), &qos_text(&offered_qos));
+                    }
+                }
+                E::WriterDetected { writer } => {
+                    if let Some(r) = self.ins.iter_mut().find(|r| writer.topic_name == format!("rt{}", r.topic)) {
+                        r.remote_type(&writer.type_name);
+                    }
+                }
+                E::ReaderDetected { reader } => {
+                    if let Some(r) =
+                        self.out.routes.iter_mut().find(|r| reader.topic_name == format!("rt{}", r.cfg.topic()))
+                    {
+                        r.remote_type(&reader.type_name);
+                    }
+                }
+                _ => {}
+            }
+        }
+    }
+}
+
+fn qos_text(q: &ros2_client::dds::rustdds::QosPolicies) -> String {
+    format!("{:?}, {:?}", q.reliability(), q.durability())
+}
+
 impl Stage for Ros2Stage {
     type Settings = Ros2Settings;
 
@@ -78,13 +118,13 @@ impl Stage for Ros2Stage {
                 .map_err(|e| stage_err(err(format!("subscription to `{}`", r.route.topic))(&e)))?;
             ins.push(InRoute::new(r, sub));
         }
-        let waker = if ins.is_empty() {
-            None
-        } else {
-            let mut subs: Vec<&mut ros2_client::Subscription<Taken>> = ins.iter_mut().map(|r| &mut r.sub).collect();
-            Some(DdsWaker::start(&mut subs, rt.waker()?).map_err(stage_err)?)
-        };
         let out = Outbound::open(rt, &mut node, &settings.out, &settings.frames)?;
+        let poll = crate::dds::new_poll().map_err(stage_err)?;
+        for (i, r) in ins.iter_mut().enumerate() {
+            crate::dds::register(&poll, &mut r.sub, i, &format!("the reader of `{}`", r.topic)).map_err(stage_err)?;
+        }
+        crate::dds::register(&poll, &mut node.status, ins.len(), "discovery events").map_err(stage_err)?;
+        let waker = Some(DdsWaker::start(poll, rt.waker()?).map_err(stage_err)?);
         let (static_tf, static_transforms) = Self::static_tf(&mut node, &settings)?;
         let ins_text: Vec<String> = ins.iter().map(|r| format!("{} → {}", r.topic, r.counts.service)).collect();
         let outs_text: Vec<String> =
@@ -118,6 +158,7 @@ impl Stage for Ros2Stage {
     }
 
     fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
+        self.discovery();
         let mut got = 0;
         for r in &mut self.ins {
             got += r.drain(&self.ports);
@@ -146,6 +187,7 @@ impl Stage for Ros2Stage {
     }
 
     fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+        self.discovery();
         for r in &mut self.ins {
             r.drain(&self.ports);
         }
@@ -179,6 +221,13 @@ impl Stage for Ros2Stage {
             .map(|r| r.counts.undecodable + r.counts.invalid + r.counts.lost_in_dds + r.counts.port_failed)
             .sum::<u64>()
             + self.out.routes.iter().map(|r| r.counts.failed).sum::<u64>();
+        let unmatched: u64 = self.ins.iter().map(|r| r.counts.qos_incompatible + r.counts.type_mismatch).sum::<u64>()
+            + self.out.routes.iter().map(|r| r.counts.qos_incompatible + r.counts.type_mismatch).sum::<u64>();
+        if unmatched > 0 {
+            tracing::warn!(
+                "ROS 2 gateway: {unmatched} remote endpoint(s) could not match a route (QoS or type; per route in summary.json `ros2`)"
+            );
+        }
         if lost > 0 {
             tracing::warn!("ROS 2 gateway: {lost} message(s) not carried (per route in summary.json `ros2`)");
         }
@@ -193,6 +242,7 @@ impl Stage for Ros2Stage {
             "voxel_messages_missed": self.out.voxel_gaps().0,
             "voxel_deltas_waiting_for_a_full_set": self.out.voxel_gaps().1,
             "not_carried": lost,
+            "endpoints_unmatched": unmatched,
         }}}))
     }
 
