@@ -322,4 +322,22 @@ fn the_main_jobs_outputs_reach_a_cyclone_subscriber_near_the_ground_truth() {
     let statics = heard["/tf_static"]["last"]["transforms"].as_array().unwrap().len();
     assert_eq!(statics, 5, "four mounts and map -> odom: {heard}");
     assert_eq!(heard["/tf"]["last"]["transforms"][0][0], "odom");
+
+    // The gateway's ROS 2 bag (`record_bag`), read by Python `rosbags`: every message it
+    // published, each decoded.
+    let bag = run.out_dir().join("ros2_bag");
+    let o = Command::new("python3")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("python/rosbags_interop.py"))
+        .arg("read")
+        .arg(&bag)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "rosbags cannot read {}: {}", bag.display(), String::from_utf8_lossy(&o.stderr));
+    let read: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    for (topic, r) in gw["out"].as_object().unwrap() {
+        assert_eq!(read[topic]["count"], r["published"], "{topic}: {read}");
+        assert_eq!(read[topic]["type"], r["type"], "{topic}");
+    }
+    assert_eq!(read["/tf_static"]["first"]["transforms"].as_array().unwrap().len(), 5, "{read}");
+    assert_eq!(read["/slam/fused/odometry"]["last"]["frame_id"], "map");
 }

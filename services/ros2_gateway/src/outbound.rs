@@ -3,7 +3,9 @@
 //! state the gateway keeps, sent at most `max_rate_hz` (a snapshot not sent is replaced by the
 //! next, and the last is always sent at the end).
 
+use std::cell::RefCell;
 use std::collections::{BTreeMap, HashMap};
+use std::rc::Rc;
 use std::time::{Duration, Instant};
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
@@ -11,6 +13,7 @@ use pipeline_runtime::{Input, Output, Runtime, StageError};
 use ros2_client::Publisher;
 use ros2_interop::convert;
 use ros2_interop::msgs::*;
+use ros2_interop::{BagQos, BagWriter};
 use serde::Serialize;
 use shared_types::services::*;
 use shared_types::voxel_stream::{self, VoxelKey};
@@ -50,6 +53,16 @@ fn publisher<T: Serialize>(
     node.node.create_publisher::<T>(topic, None).map_err(|e| err(format!("publisher on `{name}`"))(&e))
 }
 
+/// Publishes `m`; with `record`, also returns its CDR bytes for the ROS 2 bag.
+fn send<T: Serialize>(record: bool, p: &Publisher<T>, m: T) -> (Result<(), String>, Option<Vec<u8>>) {
+    let bytes = if record { ros2_interop::cdr::encode(&m).ok() } else { None };
+    (p.publish(m).map_err(|e| e.to_string()), bytes)
+}
+
+fn unix_ns() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0)
+}
+
 /// Counters of an `out` route (summary.json `ros2.out.<topic>`).
 #[derive(Debug, Default, Serialize)]
 pub struct OutCounts {
@@ -64,6 +77,8 @@ pub struct OutCounts {
     pub coalesced: u64,
     /// Publishing failed (DDS refused or timed out): lost.
     pub failed: u64,
+    /// Published but not written into the ROS 2 bag (`record_bag`).
+    pub not_recorded: u64,
     /// Subscribers matched at the end.
     pub subscribers: usize,
     /// Remote subscribers whose QoS cannot match this route's (they get nothing).
@@ -93,6 +108,8 @@ pub struct OutRoute {
     pending: Snapshot,
     path: Vec<PoseStamped>,
     warned: bool,
+    /// The ROS 2 bag the route's messages are also written into.
+    bag: Option<Rc<RefCell<BagWriter>>>,
 }
 
 impl OutRoute {
@@ -129,6 +146,7 @@ impl OutRoute {
             pending: Snapshot::None,
             path: vec![],
             warned: false,
+            bag: None,
         })
     }
 
@@ -175,18 +193,38 @@ impl OutRoute {
     }
 
     fn publish_now(&mut self, snap: Snapshot) {
-        let r = match (&self.publisher, snap) {
-            (OutPub::Path(p), Snapshot::Path(m)) => p.publish(m).map_err(|e| format!("{e:?}")),
-            (OutPub::Grid(p), Snapshot::Grid(m)) => p.publish(m).map_err(|e| format!("{e:?}")),
-            (OutPub::Cloud(p), Snapshot::Cloud(m)) => p.publish(m).map_err(|e| format!("{e:?}")),
-            (OutPub::Markers(p), Snapshot::Markers(m)) => p.publish(m).map_err(|e| format!("{e:?}")),
+        let (r, bytes) = match (&self.publisher, snap) {
+            (OutPub::Path(p), Snapshot::Path(m)) => send(self.bag.is_some(), p, m),
+            (OutPub::Grid(p), Snapshot::Grid(m)) => send(self.bag.is_some(), p, m),
+            (OutPub::Cloud(p), Snapshot::Cloud(m)) => send(self.bag.is_some(), p, m),
+            (OutPub::Markers(p), Snapshot::Markers(m)) => send(self.bag.is_some(), p, m),
             (_, Snapshot::None) => return,
-            _ => Err("snapshot of another type".to_string()),
+            _ => (Err("snapshot of another type".to_string()), None),
         };
         self.last_sent = Some(Instant::now());
+        self.done(r, bytes);
+    }
+
+    /// Counts a publish (and records what was published).
+    fn done(&mut self, r: Result<(), String>, bytes: Option<Vec<u8>>) {
+        if let Some(bytes) = bytes {
+            self.record_bytes(&bytes);
+        } else if self.bag.is_some() {
+            self.counts.not_recorded += 1;
+        }
         match r {
             Ok(()) => self.counts.published += 1,
             Err(e) => self.failed(e),
+        }
+    }
+
+    fn record_bytes(&mut self, bytes: &[u8]) {
+        let Some(bag) = &self.bag else { return };
+        if let Err(e) = bag.borrow_mut().write(self.cfg.topic(), unix_ns(), bytes) {
+            self.counts.not_recorded += 1;
+            if self.counts.not_recorded == 1 {
+                tracing::warn!(topic = %self.cfg.topic(), "writing the ROS 2 bag failed: {e} (counted in summary.json; warned once)");
+            }
         }
     }
 
@@ -227,28 +265,22 @@ impl OutRoute {
 
     fn publish_odometry(&mut self, m: Odometry) {
         if let OutPub::Odometry(p) = &self.publisher {
-            match p.publish(m) {
-                Ok(()) => self.counts.published += 1,
-                Err(e) => self.failed(e),
-            }
+            let (r, bytes) = send(self.bag.is_some(), p, m);
+            self.done(r, bytes);
         }
     }
 
     fn publish_pose(&mut self, m: PoseWithCovarianceStamped) {
         if let OutPub::Pose(p) = &self.publisher {
-            match p.publish(m) {
-                Ok(()) => self.counts.published += 1,
-                Err(e) => self.failed(e),
-            }
+            let (r, bytes) = send(self.bag.is_some(), p, m);
+            self.done(r, bytes);
         }
     }
 
     fn publish_tf(&mut self, m: TFMessage) {
         if let OutPub::Tf(p) = &self.publisher {
-            match p.publish(m) {
-                Ok(()) => self.counts.published += 1,
-                Err(e) => self.failed(e),
-            }
+            let (r, bytes) = send(self.bag.is_some(), p, m);
+            self.done(r, bytes);
         }
     }
 
@@ -328,6 +360,8 @@ pub struct Outbound {
     odometry: BTreeMap<u64, Isometry3<f64>>,
     /// Pipeline messages read.
     pub taken: u64,
+    /// The ROS 2 bag every out route's messages are also written into (`record_bag`).
+    pub bag: Option<Rc<RefCell<BagWriter>>>,
 }
 
 fn planar_iso(x: f64, y: f64, yaw: f64) -> Isometry3<f64> {
@@ -378,7 +412,29 @@ impl Outbound {
             voxels: VoxelMap::default(),
             odometry: BTreeMap::new(),
             taken: 0,
+            bag: None,
         })
+    }
+
+    /// Records every route's messages into a new ROS 2 bag at `dir` (each topic declared with
+    /// the route's type and QoS).
+    pub fn record_into(&mut self, dir: &std::path::Path) -> Result<(), ros2_interop::BagError> {
+        let mut bag = BagWriter::create(dir)?;
+        for r in &self.routes {
+            let q = r.cfg.qos();
+            let qos = BagQos {
+                reliable: q.reliability == crate::settings::Reliability::Reliable,
+                transient_local: q.durability == crate::settings::Durability::TransientLocal,
+                depth: q.depth,
+            };
+            bag.add_topic(r.cfg.topic(), r.cfg.what.ros_type(), qos)?;
+        }
+        let bag = Rc::new(RefCell::new(bag));
+        for r in &mut self.routes {
+            r.bag = Some(bag.clone());
+        }
+        self.bag = Some(bag);
+        Ok(())
     }
 
     /// True when no route reads the pipeline.

@@ -43,6 +43,11 @@ pub struct Ros2Settings {
     /// after the first message, s (0: never; it runs until it is stopped, as for a live robot).
     #[serde(default)]
     pub end_when_idle_s: f64,
+    /// Also write every `out` route's messages (the bytes published) into a rosbag2 MCAP bag
+    /// directory of this name under the run's output directory, which `ros2 bag info / play` and
+    /// Python `rosbags` read; empty: no bag.
+    #[serde(default)]
+    pub record_bag: String,
     /// At the end, keep the node up this long so that reliable subscribers get the last
     /// messages, s.
     #[serde(default = "default_linger")]

@@ -30,6 +30,10 @@ pub struct Ros2Stage {
     last_in: Option<Instant>,
 }
 
+fn unix_now_ns() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0)
+}
+
 fn stage_err(e: crate::dds::DdsError) -> StageError {
     StageError::stage(e)
 }
@@ -37,7 +41,11 @@ fn stage_err(e: crate::dds::DdsError) -> StageError {
 impl Ros2Stage {
     /// `/tf_static`: the configured mounts, and `map → odom` = identity when a `tf` route has
     /// no odometry of its own.
-    fn static_tf(node: &mut RosNode, s: &Ros2Settings) -> Result<(Option<Publisher<TFMessage>>, usize), StageError> {
+    fn static_tf(
+        node: &mut RosNode,
+        s: &Ros2Settings,
+        bag: Option<&std::rc::Rc<RefCell<ros2_interop::BagWriter>>>,
+    ) -> Result<(Option<Publisher<TFMessage>>, usize), StageError> {
         let mut transforms = vec![];
         for t in &s.static_transforms {
             let [r, p, y] = t.rpy_rad;
@@ -57,7 +65,15 @@ impl Ros2Stage {
         let publisher: Publisher<TFMessage> =
             node.node.create_publisher(&topic, None).map_err(|e| stage_err(err("publisher on `/tf_static`")(&e)))?;
         let n = transforms.len();
-        publisher.publish(TFMessage { transforms }).map_err(|e| stage_err(err("publishing `/tf_static`")(&e)))?;
+        let msg = TFMessage { transforms };
+        if let Some(bag) = bag {
+            let mut bag = bag.borrow_mut();
+            let latched = ros2_interop::BagQos { reliable: true, transient_local: true, depth: 1 };
+            bag.add_topic("/tf_static", TFMessage::TYPE_NAME, latched).map_err(StageError::stage)?;
+            let bytes = ros2_interop::cdr::encode(&msg).map_err(StageError::stage)?;
+            bag.write("/tf_static", unix_now_ns(), &bytes).map_err(StageError::stage)?;
+        }
+        publisher.publish(msg).map_err(|e| stage_err(err("publishing `/tf_static`")(&e)))?;
         Ok((Some(publisher), n))
     }
 }
@@ -118,14 +134,26 @@ impl Stage for Ros2Stage {
                 .map_err(|e| stage_err(err(format!("subscription to `{}`", r.route.topic))(&e)))?;
             ins.push(InRoute::new(r, sub));
         }
-        let out = Outbound::open(rt, &mut node, &settings.out, &settings.frames)?;
+        let mut out = Outbound::open(rt, &mut node, &settings.out, &settings.frames)?;
+        if !settings.record_bag.is_empty() {
+            let dir = ctx.out_dir.join(&settings.record_bag);
+            if dir.exists() {
+                // A restarted instance, or a run into the same directory: keep what is there.
+                let mut n = 1;
+                while ctx.out_dir.join(format!("{}.part{n}", settings.record_bag)).exists() {
+                    n += 1;
+                }
+                std::fs::rename(&dir, ctx.out_dir.join(format!("{}.part{n}", settings.record_bag)))?;
+            }
+            out.record_into(&dir).map_err(StageError::stage)?;
+        }
         let poll = crate::dds::new_poll().map_err(stage_err)?;
         for (i, r) in ins.iter_mut().enumerate() {
             crate::dds::register(&poll, &mut r.sub, i, &format!("the reader of `{}`", r.topic)).map_err(stage_err)?;
         }
         crate::dds::register(&poll, &mut node.status, ins.len(), "discovery events").map_err(stage_err)?;
         let waker = Some(DdsWaker::start(poll, rt.waker()?).map_err(stage_err)?);
-        let (static_tf, static_transforms) = Self::static_tf(&mut node, &settings)?;
+        let (static_tf, static_transforms) = Self::static_tf(&mut node, &settings, out.bag.as_ref())?;
         let ins_text: Vec<String> = ins.iter().map(|r| format!("{} → {}", r.topic, r.counts.service)).collect();
         let outs_text: Vec<String> =
             out.routes.iter().map(|r| format!("{:?} → {}", r.cfg.what, r.cfg.topic())).collect();
@@ -200,6 +228,14 @@ impl Stage for Ros2Stage {
             std::thread::sleep(Duration::from_millis(50));
         }
         self.out.subscribers(&self.node.node);
+        let bag = match &self.out.bag {
+            Some(b) => {
+                let mut b = b.borrow_mut();
+                let dir = b.finish().map_err(StageError::stage)?;
+                serde_json::json!({ "dir": dir, "messages": b.counts() })
+            }
+            None => serde_json::Value::Null,
+        };
         for r in &mut self.ins {
             r.counts.publishers = r.sub.get_publisher_count(&self.node.node);
         }
@@ -243,6 +279,7 @@ impl Stage for Ros2Stage {
             "voxel_deltas_waiting_for_a_full_set": self.out.voxel_gaps().1,
             "not_carried": lost,
             "endpoints_unmatched": unmatched,
+            "bag": bag,
         }}}))
     }
 
