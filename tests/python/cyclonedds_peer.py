@@ -210,6 +210,41 @@ class PointCloud2(IdlStruct, typename=T("sensor_msgs/msg/PointCloud2")):
 
 
 @dataclass
+class Image(IdlStruct, typename=T("sensor_msgs/msg/Image")):
+    header: Header = field(default_factory=Header)
+    height: uint32 = 0
+    width: uint32 = 0
+    encoding: str = ""
+    is_bigendian: uint8 = 0
+    step: uint32 = 0
+    data: sequence[uint8] = field(default_factory=list)
+
+
+@dataclass
+class RegionOfInterest(IdlStruct, typename=T("sensor_msgs/msg/RegionOfInterest")):
+    x_offset: uint32 = 0
+    y_offset: uint32 = 0
+    height: uint32 = 0
+    width: uint32 = 0
+    do_rectify: bool = False
+
+
+@dataclass
+class CameraInfo(IdlStruct, typename=T("sensor_msgs/msg/CameraInfo")):
+    header: Header = field(default_factory=Header)
+    height: uint32 = 0
+    width: uint32 = 0
+    distortion_model: str = ""
+    d: sequence[float64] = field(default_factory=list)
+    k: array[float64, 9] = field(default_factory=lambda: [0.0] * 9)
+    r: array[float64, 9] = field(default_factory=lambda: [0.0] * 9)
+    p: array[float64, 12] = field(default_factory=lambda: [0.0] * 12)
+    binning_x: uint32 = 0
+    binning_y: uint32 = 0
+    roi: RegionOfInterest = field(default_factory=RegionOfInterest)
+
+
+@dataclass
 class CompressedImage(IdlStruct, typename=T("sensor_msgs/msg/CompressedImage")):
     header: Header = field(default_factory=Header)
     format: str = ""
@@ -421,6 +456,8 @@ def bad(args):
     be = qos(depth=10, best_effort=True)
     be_w = DataWriter(dp, Topic(dp, "rt/scan_be", LaserScan, qos=be), qos=be)
     typed_w = DataWriter(dp, Topic(dp, "rt/scan_typed", Odometry, qos=q), qos=q)
+    info_w = DataWriter(dp, Topic(dp, "rt/camera_info", CameraInfo, qos=q), qos=q)
+    depth_w = DataWriter(dp, Topic(dp, "rt/depth", Image, qos=q), qos=q)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and not (scan_w.get_matched_subscriptions() and cloud_w.get_matched_subscriptions()):
         time.sleep(0.05)
@@ -433,9 +470,16 @@ def bad(args):
     xy = [PointField(name="x", offset=0, datatype=7, count=1), PointField(name="y", offset=4, datatype=7, count=1)]
     cloud_w.write(PointCloud2(header=h, height=1, width=1, fields=xy, point_step=8, row_step=8, data=[0] * 8))
     be_w.write(LaserScan(header=h, angle_increment=0.5, range_min=0.1, range_max=30.0, ranges=[1.0]))
+    # A good 4x2 depth image (16UC1, mm) after its camera info: two points.
+    info_w.write(CameraInfo(header=h, height=2, width=4, k=[100.0, 0, 2.0, 0, 100.0, 1.0, 0, 0, 1.0]))
+    time.sleep(0.3)
+    depth = [0] * 16
+    depth[0:2] = list((2000).to_bytes(2, "little"))
+    depth[14:16] = list((1000).to_bytes(2, "little"))
+    depth_w.write(Image(header=h, height=2, width=4, encoding="16UC1", step=8, data=depth))
     typed_w.write(Odometry(header=h))
     time.sleep(seconds)
-    print(json.dumps({"sent": 6}))
+    print(json.dumps({"sent": 8}))
     return 0
 
 

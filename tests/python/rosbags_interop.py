@@ -154,6 +154,21 @@ def samples(bag):
                                      max_range=500.0, range=42.5, variance=0.09)
     put("/ranges", "sensor_msgs/msg/Range", rng, int(t * 1e9))
     out["range"] = {"buoy_id": 2, "range_m": 42.5, "sigma_m": 0.3}
+    # A 4×2 depth image (16UC1, mm) and its camera info: fx = fy = 100, cx = 2, cy = 1.
+    info = g["sensor_msgs/msg/CameraInfo"](
+        header=header(t, "depth_optical"), height=2, width=4, distortion_model="plumb_bob", d=np.zeros(5),
+        k=np.array([100.0, 0, 2.0, 0, 100.0, 1.0, 0, 0, 1.0]), r=np.eye(3).flatten(),
+        p=np.array([100.0, 0, 2.0, 0, 0, 100.0, 1.0, 0, 0, 0, 1.0, 0]), binning_x=0, binning_y=0,
+        roi=g["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+    )
+    put("/camera_info", "sensor_msgs/msg/CameraInfo", info, int(t * 1e9))
+    depth = np.zeros(8, dtype="<u2")
+    depth[0], depth[7] = 2000, 1000
+    # Half a second after the cloud: both feed pipeline/sensors/cloud, whose stamps must increase.
+    img = g["sensor_msgs/msg/Image"](header=header(t + 0.5, "depth_optical"), height=2, width=4, encoding="16UC1",
+                                     is_bigendian=0, step=8, data=np.frombuffer(depth.tobytes(), dtype=np.uint8))
+    put("/depth", "sensor_msgs/msg/Image", img, int((t + 0.5) * 1e9))
+    out["depth"] = {"points": [[-0.04, -0.02, 2.0], [0.01, 0.0, 1.0]]}
     # Bad ones.
     put("/scan", "sensor_msgs/msg/LaserScan", laser_scan(t + 1, [1.0, 2.0], 30.0, angle_increment=float("nan")), int((t + 1) * 1e9))
     good = TS.serialize_cdr(laser_scan(t + 2, [1.0] * 50, 30.0), "sensor_msgs/msg/LaserScan")

@@ -13,8 +13,9 @@ use std::process::Command;
 use std::time::Duration;
 
 use pipeline_tests::TestRun;
+use ros2_interop::msgs::CameraInfo;
 use ros2_interop::route::{Decoded, InRoute, InService, RouteDecoder};
-use ros2_interop::{BagReader, BagWarts};
+use ros2_interop::{BagReader, BagWarts, Message};
 
 fn script() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("python/rosbags_interop.py")
@@ -141,14 +142,25 @@ fn every_input_type_rosbags_wrote_decodes_to_the_values_it_was_given() {
         ("/pressure", InService::Depth),
         ("/ranges", InService::BuoyRanges),
         ("/odom_wrong", InService::PlanarOdometry),
+        ("/depth", InService::DepthImage),
     ]
     .into_iter()
-    .map(|(t, s)| RouteDecoder::new(route(t, s)))
+    .map(|(t, s)| {
+        let mut r = route(t, s);
+        r.camera_info = "/camera_info".into();
+        r.stride = 1;
+        RouteDecoder::new(r)
+    })
     .collect();
     let mut reader = BagReader::open(&bag).unwrap();
     let mut ok = vec![];
     let mut errors = vec![];
     while let Some(m) = reader.next_message().unwrap() {
+        if &*m.topic == "/camera_info" {
+            let info = ros2_interop::decode::<CameraInfo>(&m.data, CameraInfo::TYPE_NAME).unwrap();
+            decoders.iter_mut().find(|d| d.route.service == InService::DepthImage).unwrap().set_camera_info(info);
+            continue;
+        }
         let d = decoders.iter_mut().find(|d| *d.route.topic == *m.topic).expect("a route per topic");
         if *m.type_name != *d.route.service.ros_type() {
             errors.push((m.topic.to_string(), "wrong_type".to_string()));
@@ -160,7 +172,7 @@ fn every_input_type_rosbags_wrote_decodes_to_the_values_it_was_given() {
         }
     }
     assert_eq!(reader.warts(), &BagWarts::default());
-    assert_eq!(ok.len(), 6, "{ok:?}");
+    assert_eq!(ok.len(), 7, "{ok:?}");
     for v in &ok {
         match v {
             Decoded::Laser { stamp_ns, header, ranges } => {
@@ -172,6 +184,14 @@ fn every_input_type_rosbags_wrote_decodes_to_the_values_it_was_given() {
             Decoded::PlanarOdometry { odometry, .. } => {
                 assert_eq!(odometry.position_m, [1.5, -2.0]);
                 assert!((odometry.yaw_rad - 0.5).abs() < 1e-12);
+            }
+            Decoded::Cloud { points, non_finite, .. } if points.len() == 2 && points[0][2] == 2.0 => {
+                // The depth image: (u 0, v 0) at 2 m and (3, 1) at 1 m through K.
+                let want = [[-0.04, -0.02, 2.0], [0.01, 0.0, 1.0]];
+                for (p, w) in points.iter().zip(want) {
+                    assert!(p.iter().zip(w).all(|(a, b)| (a - b).abs() < 1e-6), "{points:?}");
+                }
+                assert_eq!(*non_finite, 6, "the zero pixels");
             }
             Decoded::Cloud { points, non_finite, .. } => {
                 assert_eq!(points, &vec![[1.0, 3.0, 5.0], [2.0, 4.0, 6.0]]);
@@ -222,6 +242,7 @@ routes = [
   {{ topic = "/pressure", service = "depth" }},
   {{ topic = "/ranges", service = "buoy_ranges" }},
   {{ topic = "/odom_wrong", service = "planar_odometry" }},
+  {{ topic = "/depth", service = "depth_image", camera_info = "/camera_info", stride = 1 }},
 ]
 "#,
         bag.display()
@@ -247,11 +268,12 @@ routes = [
         "{w}"
     );
     let m = &s["sensor_monitor"];
-    for service in ["cloud", "heading", "depth", "buoy_ranges"] {
+    for (service, n) in [("cloud", 2), ("heading", 1), ("depth", 1), ("buoy_ranges", 1)] {
         let s = &m[format!("pipeline/sensors/{service}")];
-        assert_eq!((&s["accepted"], &s["rejected"]), (&1.into(), &serde_json::json!({})), "{service}: {m}");
+        assert_eq!((&s["accepted"], &s["rejected"]), (&n.into(), &serde_json::json!({})), "{service}: {m}");
     }
-    assert_eq!(m["cloud_points"], 2, "the cloud's two finite points: {m}");
+    assert_eq!(m["cloud_points"], 4, "the cloud's two finite points and the depth image's two: {m}");
+    assert_eq!(routes["/depth"]["camera_infos"], 1, "{ingest}");
     let log = run.log();
     for needle in
         ["`/odom_wrong` is sensor_msgs/msg/FluidPressure in the bag", "no field `z`", "a topic without a route"]

@@ -84,6 +84,7 @@ threads = 1
 [processes.ros_out]
 kind = "ros2"
 [processes.ros_out.settings]
+insecure = true
 node_name = "slam_out"
 end_after = ["slam2d"]
 out = [
@@ -98,6 +99,7 @@ static_transforms = [{{ parent = "base_link", child = "laser", xyz_m = [0.1, 0.0
 kind = "ros2"
 after = ["slam2d", "ros_out"]
 [processes.ros_in.settings]
+insecure = true
 node_name = "slam_in"
 end_when_idle_s = 3.0
 in = [
@@ -210,6 +212,7 @@ kind = "sensor_monitor"
 kind = "ros2"
 after = ["monitor"]
 [processes.ros_in.settings]
+insecure = true
 end_when_idle_s = 2.0
 in = [
   { topic = "/scan", service = "laser", qos = { reliability = "reliable", durability = "volatile", depth = 100 } },
@@ -217,6 +220,7 @@ in = [
   { topic = "/cloud", service = "cloud", qos = { reliability = "reliable", durability = "volatile", depth = 100 } },
   { topic = "/scan_be", service = "laser", qos = { reliability = "reliable", durability = "volatile", depth = 10 } },
   { topic = "/scan_typed", service = "laser", qos = { reliability = "reliable", durability = "volatile", depth = 10 } },
+  { topic = "/depth", service = "depth_image", camera_info = "/camera_info", stride = 1, qos = { reliability = "reliable", durability = "volatile", depth = 10 } },
 ]
 "#,
     );
@@ -235,6 +239,9 @@ in = [
     assert_eq!(r["/scan_typed"]["counts"]["type_mismatch"], 1, "an Odometry publisher on a LaserScan route: {r}");
     assert_eq!((&r["/scan_be"]["counts"]["received"], &r["/scan_typed"]["counts"]["received"]), (&0.into(), &0.into()));
     assert_eq!(s["ros2"]["ros_in"]["endpoints_unmatched"], 2);
+    let d = &r["/depth"]["counts"];
+    assert_eq!((&d["camera_infos"], &d["published"], &d["invalid"]), (&1.into(), &1.into(), &0.into()), "{d}");
+    assert_eq!(s["sensor_monitor"]["cloud_points"], 2, "the depth image's two points: {}", s["sensor_monitor"]);
     let log = run.log();
     for needle in [
         "angle_increment",

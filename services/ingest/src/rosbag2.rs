@@ -14,7 +14,9 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 use pipeline_runtime::Issues;
-use ros2_interop::route::{Decoded, InRoute, RouteDecoder};
+use ros2_interop::Message;
+use ros2_interop::msgs::CameraInfo;
+use ros2_interop::route::{Decoded, InRoute, InService, RouteDecoder};
 use ros2_interop::{BagMessage, BagReader};
 use serde::{Deserialize, Serialize};
 
@@ -75,6 +77,7 @@ struct RouteCounts {
     undecodable: u64,
     invalid: u64,
     non_finite_points: u64,
+    camera_infos: u64,
 }
 
 /// The `rosbag2` source.
@@ -133,6 +136,25 @@ impl Rosbag2Source {
     /// The item of one bag message, or `None` when it is skipped (and counted).
     fn item(&mut self, msg: &BagMessage) -> Option<Item> {
         let topic: &str = &msg.topic;
+        // A depth-image route's CameraInfo: kept by that route's decoder.
+        if let Some((decoder, counts)) = self
+            .routes
+            .values_mut()
+            .find(|(d, _)| d.route.service == InService::DepthImage && d.route.camera_info == topic)
+        {
+            match ros2_interop::cdr::decode::<CameraInfo>(&msg.data, CameraInfo::TYPE_NAME) {
+                Ok(info) => {
+                    counts.camera_infos += 1;
+                    decoder.set_camera_info(info);
+                }
+                Err(e) => {
+                    counts.undecodable += 1;
+                    let what = format!("`{topic}`: {e}");
+                    self.warn_once(topic, "undecodable", msg, &what);
+                }
+            }
+            return None;
+        }
         let Some((decoder, counts)) = self.routes.get_mut(topic) else {
             let n = self.unrouted.entry(topic.to_string()).or_default();
             *n += 1;

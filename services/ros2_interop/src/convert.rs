@@ -286,23 +286,70 @@ impl CloudLayout {
         self.len() == 0
     }
 
-    /// Point `i` (row-major) of `data`, m.
+    /// Byte offset of point `i` (row-major).
+    #[inline]
+    fn base(&self, i: usize) -> usize {
+        if self.height <= 1 {
+            i * self.point_step
+        } else {
+            (i / self.width) * self.row_step + (i % self.width) * self.point_step
+        }
+    }
+
+    /// Point `i` (row-major) of `data`, m (`data` as checked by [`CloudLayout::of`]).
     #[inline]
     pub fn point(&self, data: &[u8], i: usize) -> [f32; 3] {
-        let (row, col) = (i / self.width, i % self.width);
-        let base = row * self.row_step + col * self.point_step;
-        let mut p = [0f32; 3];
-        for (k, o) in self.offsets.iter().enumerate() {
-            let at = base + o;
-            p[k] = if self.float64 {
-                let b: [u8; 8] = data[at..at + 8].try_into().unwrap_or_default();
-                (if self.big_endian { f64::from_be_bytes(b) } else { f64::from_le_bytes(b) }) as f32
-            } else {
-                let b: [u8; 4] = data[at..at + 4].try_into().unwrap_or_default();
-                if self.big_endian { f32::from_be_bytes(b) } else { f32::from_le_bytes(b) }
-            };
+        let b = self.base(i);
+        let [ox, oy, oz] = self.offsets;
+        match (self.float64, self.big_endian) {
+            (false, false) => {
+                let r = |o: usize| f32::from_le_bytes(data[b + o..b + o + 4].try_into().unwrap_or_default());
+                [r(ox), r(oy), r(oz)]
+            }
+            (false, true) => {
+                let r = |o: usize| f32::from_be_bytes(data[b + o..b + o + 4].try_into().unwrap_or_default());
+                [r(ox), r(oy), r(oz)]
+            }
+            (true, big) => {
+                let r = |o: usize| {
+                    let v: [u8; 8] = data[b + o..b + o + 8].try_into().unwrap_or_default();
+                    (if big { f64::from_be_bytes(v) } else { f64::from_le_bytes(v) }) as f32
+                };
+                [r(ox), r(oy), r(oz)]
+            }
         }
-        p
+    }
+
+    /// Reads the points of `data` in order, one call per point (`data` as checked by
+    /// [`CloudLayout::of`]): the fast path of an unordered little-endian FLOAT32 cloud walks the
+    /// bytes point by point; any other layout indexes [`CloudLayout::point`].
+    pub fn reader<'d>(&self, data: &'d [u8]) -> impl FnMut() -> [f32; 3] + 'd + use<'d> {
+        let me = *self;
+        let fast = !me.float64 && !me.big_endian && me.height <= 1;
+        let (mut i, mut off) = (0usize, 0usize);
+        let [ox, oy, oz] = me.offsets;
+        move || {
+            if fast {
+                let p = &data[off..off + me.point_step];
+                off += me.point_step;
+                let f = |o: usize| f32::from_le_bytes([p[o], p[o + 1], p[o + 2], p[o + 3]]);
+                [f(ox), f(oy), f(oz)]
+            } else {
+                i += 1;
+                me.point(data, i - 1)
+            }
+        }
+    }
+
+    /// How many points of `data` are finite.
+    pub fn count_finite(&self, data: &[u8]) -> usize {
+        let mut next = self.reader(data);
+        (0..self.len()).filter(|_| next().iter().all(|v| v.is_finite())).count()
+    }
+
+    /// The indices of the finite points of `data`.
+    pub fn finite_indices(&self, data: &[u8]) -> Vec<u32> {
+        (0..self.len() as u32).filter(|&i| self.point(data, i as usize).iter().all(|v| v.is_finite())).collect()
     }
 
     /// The finite points of `data`, in order (NaN / Inf points of a non-dense cloud skipped).
@@ -399,6 +446,77 @@ pub fn buoy_range(
     let sigma_m =
         if msg.variance.is_finite() && msg.variance > 0.0 { (msg.variance as f64).sqrt() } else { default_sigma_m };
     Ok((stamp, BuoyRange { buoy_id, range_m: msg.range as f64, sigma_m, ..Default::default() }))
+}
+
+/// How a depth image becomes points.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DepthImageSampling {
+    /// Use every `stride`-th pixel in both directions (≥ 1).
+    pub stride: u32,
+    /// Depths below this are dropped, m.
+    pub min_depth_m: f32,
+    /// Depths above this are dropped, m.
+    pub max_depth_m: f32,
+}
+
+/// A depth `sensor_msgs/Image` (`16UC1` / `mono16` in mm, `32FC1` in m, REP 118) with its
+/// `sensor_msgs/CameraInfo` → points in the camera's optical frame (x right, y down, z forward),
+/// back-projected through K: x = (u − cx)·z/fx, y = (v − cy)·z/fy. Zero, NaN and out-of-range
+/// depths are dropped; their number is returned with the points.
+pub fn depth_image_points(
+    img: &Image<'_>,
+    info: &CameraInfo,
+    s: DepthImageSampling,
+) -> Result<(u64, Vec<[f32; 3]>, usize), ConvertError> {
+    let stamp = stamp_ns(&img.header)?;
+    let (fx, fy, cx, cy) = (info.k[0], info.k[4], info.k[2], info.k[5]);
+    finite("camera_info.k", &[fx, fy, cx, cy])?;
+    if fx <= 0.0 || fy <= 0.0 {
+        return Err(invalid("camera_info.k", format!("focal lengths fx {fx}, fy {fy} must be > 0")));
+    }
+    if info.width != 0 && (info.width != img.width || info.height != img.height) {
+        return Err(invalid(
+            "width",
+            format!("image {}×{} but camera_info {}×{}", img.width, img.height, info.width, info.height),
+        ));
+    }
+    let (bytes_pp, mm) = match img.encoding.as_str() {
+        "16UC1" | "mono16" => (2usize, true),
+        "32FC1" => (4usize, false),
+        other => return Err(invalid("encoding", format!("`{other}`: a depth image is 16UC1 (mm) or 32FC1 (m)"))),
+    };
+    let (w, h, step) = (img.width as usize, img.height as usize, img.step as usize);
+    if step < w * bytes_pp {
+        return Err(invalid("step", format!("{step} < width {w} × {bytes_pp} bytes")));
+    }
+    let data = img.data.as_slice();
+    if h > 0 && data.len() < step * (h - 1) + w * bytes_pp {
+        return Err(invalid("data", format!("{} bytes for {h} rows of {step} (truncated?)", data.len())));
+    }
+    let big = img.is_bigendian != 0;
+    let stride = s.stride.max(1) as usize;
+    let mut points = Vec::with_capacity((w / stride + 1) * (h / stride + 1));
+    let mut dropped = 0;
+    for v in (0..h).step_by(stride) {
+        for u in (0..w).step_by(stride) {
+            let at = v * step + u * bytes_pp;
+            let z = if mm {
+                let b = [data[at], data[at + 1]];
+                (if big { u16::from_be_bytes(b) } else { u16::from_le_bytes(b) }) as f32 * 0.001
+            } else {
+                let b = [data[at], data[at + 1], data[at + 2], data[at + 3]];
+                if big { f32::from_be_bytes(b) } else { f32::from_le_bytes(b) }
+            };
+            if !(z.is_finite() && z > 0.0 && z >= s.min_depth_m && z <= s.max_depth_m) {
+                dropped += 1;
+                continue;
+            }
+            let x = ((u as f64 - cx) * z as f64 / fx) as f32;
+            let y = ((v as f64 - cy) * z as f64 / fy) as f32;
+            points.push([x, y, z]);
+        }
+    }
+    Ok((stamp, points, dropped))
 }
 
 /// A header at `stamp_ns` in `frame_id`.
@@ -644,6 +762,50 @@ mod tests {
         assert!((h.yaw_rad + 0.7).abs() < 1e-12 && (h.sigma_rad - 0.02).abs() < 1e-12);
         imu.orientation_covariance[0] = -1.0;
         assert!(heading(&imu, HeadingNoise { default_sigma_rad: 0.1 }).is_err());
+    }
+
+    #[test]
+    fn a_depth_image_is_back_projected_through_its_camera_info() {
+        let mut info = CameraInfo { width: 4, height: 2, ..Default::default() };
+        info.k = [100.0, 0.0, 2.0, 0.0, 100.0, 1.0, 0.0, 0.0, 1.0];
+        // 16UC1 in mm: (u=0,v=0) 2000 mm, (3,1) 1000 mm, one zero and the rest 0.
+        let mut mm = [0u16; 8];
+        mm[0] = 2000;
+        mm[7] = 1000;
+        let bytes: Vec<u8> = mm.iter().flat_map(|d| d.to_le_bytes()).collect();
+        let img = Image {
+            header: header(9, "cam"),
+            width: 4,
+            height: 2,
+            encoding: "16UC1".into(),
+            step: 8,
+            data: Bytes::owned(bytes),
+            ..Default::default()
+        };
+        let s = DepthImageSampling { stride: 1, min_depth_m: 0.1, max_depth_m: 10.0 };
+        let (t, pts, dropped) = depth_image_points(&img, &info, s).unwrap();
+        assert_eq!((t, dropped), (9, 6));
+        assert_eq!(pts, vec![[-0.04, -0.02, 2.0], [0.01, 0.0, 1.0]]);
+        // 32FC1 in m, big-endian, padded rows.
+        let mut be = vec![0u8; 2 * 20];
+        be[..4].copy_from_slice(&1.5f32.to_be_bytes());
+        be[4..8].copy_from_slice(&f32::NAN.to_be_bytes());
+        let img = Image {
+            header: header(9, "cam"),
+            width: 4,
+            height: 2,
+            encoding: "32FC1".into(),
+            is_bigendian: 1,
+            step: 20,
+            data: Bytes::owned(be),
+        };
+        let (_, pts, dropped) = depth_image_points(&img, &info, s).unwrap();
+        assert_eq!((pts.len(), dropped), (1, 7));
+        assert!((pts[0][2] - 1.5).abs() < 1e-6);
+        let bad = Image { encoding: "rgb8".into(), ..img.clone() };
+        assert!(depth_image_points(&bad, &info, s).unwrap_err().to_string().contains("rgb8"));
+        info.width = 640;
+        assert!(depth_image_points(&img, &info, s).unwrap_err().to_string().contains("camera_info 640"));
     }
 
     #[test]

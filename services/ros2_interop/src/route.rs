@@ -9,8 +9,10 @@ use serde::{Deserialize, Serialize};
 use shared_types::{BuoyRange, DepthReading, HeadingReading, LaserScanHeader, OdometryInput, PlanarOdometry};
 
 use crate::cdr::{self, CdrError};
-use crate::convert::{self, ConvertError, HeadingNoise, OdometryIncrements, OdometryNoise, PressureToDepth};
-use crate::msgs::{FluidPressure, Imu, LaserScan, Message, Odometry, PointCloud2, Range};
+use crate::convert::{
+    self, ConvertError, DepthImageSampling, HeadingNoise, OdometryIncrements, OdometryNoise, PressureToDepth,
+};
+use crate::msgs::{CameraInfo, FluidPressure, Image, Imu, LaserScan, Message, Odometry, PointCloud2, Range};
 
 /// The pipeline input a route feeds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
@@ -30,6 +32,9 @@ pub enum InService {
     Depth,
     /// `pipeline/sensors/buoy_ranges` from `sensor_msgs/Range`.
     BuoyRanges,
+    /// `pipeline/sensors/cloud` from a depth `sensor_msgs/Image` and the `sensor_msgs/CameraInfo`
+    /// of the route's `camera_info` topic.
+    DepthImage,
 }
 
 impl InService {
@@ -42,6 +47,7 @@ impl InService {
             InService::Heading => Imu::TYPE_NAME,
             InService::Depth => FluidPressure::TYPE_NAME,
             InService::BuoyRanges => Range::TYPE_NAME,
+            InService::DepthImage => Image::TYPE_NAME,
         }
     }
 
@@ -52,7 +58,7 @@ impl InService {
             InService::Laser => LASER,
             InService::PlanarOdometry => PLANAR_ODOMETRY,
             InService::Odometry => ODOMETRY,
-            InService::Cloud => CLOUD,
+            InService::Cloud | InService::DepthImage => CLOUD,
             InService::Heading => HEADING,
             InService::Depth => DEPTH,
             InService::BuoyRanges => BUOY_RANGES,
@@ -97,6 +103,28 @@ pub struct InRoute {
     /// Buoy ranges: σ where the message's variance is 0, m.
     #[serde(default = "default_range_sigma")]
     pub range_sigma_m: f64,
+    /// Depth images: the topic of their `sensor_msgs/CameraInfo` (the latest one is used).
+    #[serde(default)]
+    pub camera_info: String,
+    /// Depth images: use every `stride`-th pixel in both directions.
+    #[serde(default = "default_stride")]
+    pub stride: u32,
+    /// Depth images: depths below this are dropped, m.
+    #[serde(default = "default_min_depth")]
+    pub min_depth_m: f32,
+    /// Depth images: depths above this are dropped, m.
+    #[serde(default = "default_max_depth")]
+    pub max_depth_m: f32,
+}
+
+fn default_stride() -> u32 {
+    2
+}
+fn default_min_depth() -> f32 {
+    0.1
+}
+fn default_max_depth() -> f32 {
+    20.0
 }
 
 fn default_speed_sigma() -> f64 {
@@ -136,6 +164,10 @@ impl InRoute {
             depth_sigma_m: default_depth_sigma(),
             beacon_ids: BTreeMap::new(),
             range_sigma_m: default_range_sigma(),
+            camera_info: String::new(),
+            stride: default_stride(),
+            min_depth_m: default_min_depth(),
+            max_depth_m: default_max_depth(),
         }
     }
 
@@ -158,6 +190,17 @@ impl InRoute {
         ] {
             if !(v.is_finite() && v > 0.0) {
                 out.push((k, format!("{v}: must be > 0")));
+            }
+        }
+        if self.service == InService::DepthImage {
+            if !self.camera_info.starts_with('/') {
+                out.push(("camera_info", "a depth image route needs the absolute topic of its CameraInfo".into()));
+            }
+            if self.stride == 0 {
+                out.push(("stride", "must be >= 1".into()));
+            }
+            if !(self.min_depth_m >= 0.0 && self.max_depth_m > self.min_depth_m) {
+                out.push(("max_depth_m", "needs 0 <= min_depth_m < max_depth_m".into()));
             }
         }
         if !self.surface_pa.is_finite() || self.surface_pa < 0.0 {
@@ -263,12 +306,21 @@ pub struct RouteDecoder {
     /// The route.
     pub route: InRoute,
     increments: OdometryIncrements,
+    /// The latest CameraInfo of a depth-image route.
+    camera_info: Option<CameraInfo>,
+    /// Depth images that came before any CameraInfo.
+    pub images_without_camera_info: u64,
 }
 
 impl RouteDecoder {
     /// A decoder for `route`.
     pub fn new(route: InRoute) -> Self {
-        Self { route, increments: OdometryIncrements::default() }
+        Self { route, increments: OdometryIncrements::default(), camera_info: None, images_without_camera_info: 0 }
+    }
+
+    /// The CameraInfo a depth-image route back-projects with (the latest one wins).
+    pub fn set_camera_info(&mut self, info: CameraInfo) {
+        self.camera_info = Some(info);
     }
 
     /// Decodes one encapsulated-CDR message of the route's topic.
@@ -334,6 +386,19 @@ impl RouteDecoder {
                 };
                 let (stamp_ns, reading) = try_convert!(convert::depth(&msg, p));
                 Decoded::Depth { stamp_ns, reading }
+            }
+            InService::DepthImage => {
+                let msg = Image::deserialize(d)?;
+                let Some(info) = &self.camera_info else {
+                    self.images_without_camera_info += 1;
+                    return Ok(Err(ConvertError::Invalid {
+                        field: "camera_info",
+                        why: format!("no CameraInfo on `{}` yet", r.camera_info),
+                    }));
+                };
+                let s = DepthImageSampling { stride: r.stride, min_depth_m: r.min_depth_m, max_depth_m: r.max_depth_m };
+                let (stamp_ns, points, non_finite) = try_convert!(convert::depth_image_points(&msg, info, s));
+                Decoded::Cloud { stamp_ns, points, non_finite }
             }
             InService::BuoyRanges => {
                 let msg = Range::deserialize(d)?;

@@ -79,7 +79,7 @@ pub struct OutCounts {
     pub failed: u64,
     /// Published but not written into the ROS 2 bag (`record_bag`).
     pub not_recorded: u64,
-    /// Subscribers matched at the end.
+    /// Subscribers matched at the end (from DDS discovery's matching events).
     pub subscribers: usize,
     /// Remote subscribers whose QoS cannot match this route's (they get nothing).
     pub qos_incompatible: u64,
@@ -110,6 +110,12 @@ pub struct OutRoute {
     warned: bool,
     /// The ROS 2 bag the route's messages are also written into.
     bag: Option<Rc<RefCell<BagWriter>>>,
+    /// `publish_ns` of the pipeline message the next ROS message comes from.
+    source_publish_ns: u64,
+    /// Pipeline publish → ROS publish, per message.
+    pub latency: crate::inbound::Hist,
+    /// The remote readers matched to the writer now.
+    pub remotes: std::collections::BTreeSet<ros2_client::dds::rustdds::GUID>,
 }
 
 impl OutRoute {
@@ -147,6 +153,9 @@ impl OutRoute {
             path: vec![],
             warned: false,
             bag: None,
+            source_publish_ns: 0,
+            latency: Default::default(),
+            remotes: Default::default(),
         })
     }
 
@@ -213,7 +222,12 @@ impl OutRoute {
             self.counts.not_recorded += 1;
         }
         match r {
-            Ok(()) => self.counts.published += 1,
+            Ok(()) => {
+                self.counts.published += 1;
+                if self.source_publish_ns > 0 {
+                    self.latency.record_ns(pipeline_runtime::monotonic_ns() as i64 - self.source_publish_ns as i64);
+                }
+            }
             Err(e) => self.failed(e),
         }
     }
@@ -360,6 +374,8 @@ pub struct Outbound {
     odometry: BTreeMap<u64, Isometry3<f64>>,
     /// Pipeline messages read.
     pub taken: u64,
+    /// `publish_ns` of the pipeline message being turned into ROS messages.
+    source_publish_ns: u64,
     /// The ROS 2 bag every out route's messages are also written into (`record_bag`).
     pub bag: Option<Rc<RefCell<BagWriter>>>,
 }
@@ -412,6 +428,7 @@ impl Outbound {
             voxels: VoxelMap::default(),
             odometry: BTreeMap::new(),
             taken: 0,
+            source_publish_ns: 0,
             bag: None,
         })
     }
@@ -445,6 +462,7 @@ impl Outbound {
     fn for_routes(&mut self, pick: impl Fn(&GatewayOut) -> bool, mut f: impl FnMut(&mut OutRoute, &Frames)) {
         for r in self.routes.iter_mut().filter(|r| pick(&r.cfg)) {
             r.counts.taken += 1;
+            r.source_publish_ns = self.source_publish_ns;
             f(r, &self.frames);
         }
     }
@@ -456,11 +474,12 @@ impl Outbound {
         let mut odo = vec![];
         if let Some(i) = &self.inputs.odometry {
             while let Some(r) = i.receive()? {
-                odo.push((r.user_header().stamp_ns, *r.payload()));
+                odo.push((r.user_header().stamp_ns, r.user_header().publish_ns, *r.payload()));
             }
         }
-        for (stamp, o) in odo {
+        for (stamp, published, o) in odo {
             self.taken += 1;
+            self.source_publish_ns = published;
             let odom_from_body = planar_iso(o.position_m[0], o.position_m[1], o.yaw_rad);
             self.odometry.insert(stamp, odom_from_body);
             while self.odometry.len() > 4096 {
@@ -478,11 +497,12 @@ impl Outbound {
         let mut fused = vec![];
         if let Some(i) = &self.inputs.fused {
             while let Some(r) = i.receive()? {
-                fused.push((r.user_header().stamp_ns, *r.payload()));
+                fused.push((r.user_header().stamp_ns, r.user_header().publish_ns, *r.payload()));
             }
         }
-        for (stamp, p) in fused {
+        for (stamp, published, p) in fused {
             self.taken += 1;
+            self.source_publish_ns = published;
             if p.flags & FUSED_REFINED == 0 {
                 continue; // a prediction: its refined estimate follows
             }
@@ -491,11 +511,12 @@ impl Outbound {
         let mut slam = vec![];
         if let Some(i) = &self.inputs.slam {
             while let Some(r) = i.receive()? {
-                slam.push((r.user_header().stamp_ns, *r.payload()));
+                slam.push((r.user_header().stamp_ns, r.user_header().publish_ns, *r.payload()));
             }
         }
-        for (stamp, p) in slam {
+        for (stamp, published, p) in slam {
             self.taken += 1;
+            self.source_publish_ns = published;
             let frame =
                 if p.frame == FRAME_LOCAL_MAP { self.frames.local_map.clone() } else { self.frames.map.clone() };
             self.for_routes(
@@ -508,11 +529,12 @@ impl Outbound {
         let mut grid_poses = vec![];
         if let Some(i) = &self.inputs.grid_pose {
             while let Some(r) = i.receive()? {
-                grid_poses.push((r.user_header().stamp_ns, *r.payload()));
+                grid_poses.push((r.user_header().stamp_ns, r.user_header().publish_ns, *r.payload()));
             }
         }
-        for (stamp, p) in grid_poses {
+        for (stamp, published, p) in grid_poses {
             self.taken += 1;
+            self.source_publish_ns = published;
             let pwc = convert::planar_pose(&p);
             self.for_routes(
                 |c| c.what == GridSlamOdometry,
@@ -542,6 +564,7 @@ impl Outbound {
         }
         for (h, cells) in grids {
             self.taken += 1;
+            self.source_publish_ns = h.msg.publish_ns;
             self.for_routes(
                 |c| c.what == Map,
                 |r, f| r.offer(Snapshot::Grid(convert::occupancy_grid(h.msg.stamp_ns, &f.map, &h, &cells))),
@@ -553,6 +576,7 @@ impl Outbound {
             while let Some(r) = i.receive()? {
                 voxel_msgs += 1;
                 voxel_stamp = r.user_header().msg.stamp_ns;
+                self.source_publish_ns = r.user_header().msg.publish_ns;
                 self.voxels.apply(r.user_header(), r.payload());
             }
         }
@@ -604,6 +628,7 @@ impl Outbound {
         }
         for (h, pts) in maps {
             self.taken += 1;
+            self.source_publish_ns = h.msg.publish_ns;
             let frame_of = |f: &Frames| if h.frame == FRAME_LOCAL_MAP { f.local_map.clone() } else { f.map.clone() };
             self.for_routes(
                 |c| c.what == Landmarks,
@@ -671,21 +696,6 @@ impl Outbound {
     pub fn flush_all(&mut self) {
         for r in &mut self.routes {
             r.flush(true);
-        }
-    }
-
-    /// Fills in each route's matched subscribers.
-    pub fn subscribers(&mut self, node: &ros2_client::Node) {
-        for r in &mut self.routes {
-            r.counts.subscribers = match &r.publisher {
-                OutPub::Odometry(p) => p.get_subscription_count(node),
-                OutPub::Pose(p) => p.get_subscription_count(node),
-                OutPub::Path(p) => p.get_subscription_count(node),
-                OutPub::Grid(p) => p.get_subscription_count(node),
-                OutPub::Cloud(p) => p.get_subscription_count(node),
-                OutPub::Markers(p) => p.get_subscription_count(node),
-                OutPub::Tf(p) => p.get_subscription_count(node),
-            };
         }
     }
 }

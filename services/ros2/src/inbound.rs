@@ -10,7 +10,7 @@ use std::fmt;
 use pipeline_runtime::{Delivery, Output, PortError, Runtime, StageError};
 use ros2_client::Subscription;
 use ros2_interop::convert::{self, CloudLayout, ConvertError};
-use ros2_interop::msgs::PointCloud2;
+use ros2_interop::msgs::{CameraInfo, PointCloud2};
 use ros2_interop::route::{Decoded, InService, RouteDecoder};
 use serde::de::{DeserializeSeed, Deserializer};
 use serde::{Deserialize, Serialize};
@@ -93,7 +93,7 @@ impl InPorts {
                 InService::Odometry if p.odometry.is_none() => {
                     p.odometry = Some(rt.output_with_qos(ODOMETRY, &qos(ODOMETRY)?, delivery)?)
                 }
-                InService::Cloud if p.cloud.is_none() => {
+                InService::Cloud | InService::DepthImage if p.cloud.is_none() => {
                     p.cloud = Some(rt.output_slice_with_qos(CLOUD, &qos(CLOUD)?, 65_536, delivery)?)
                 }
                 InService::Heading if p.heading.is_none() => {
@@ -149,7 +149,20 @@ impl InPorts {
                 *s.user_header_mut() = header(stamp_ns);
                 o.send(s)?;
             }
-            Decoded::Cloud { .. } | Decoded::Nothing => return Ok(false),
+            Decoded::Cloud { stamp_ns, points, .. } => {
+                if points.is_empty() {
+                    return Ok(false);
+                }
+                let o = self.cloud.as_mut().ok_or_else(|| missing(CLOUD))?;
+                let mut s = o.loan_slice_uninit(points.len())?.write_from_fn(|i| CloudPoint {
+                    x_m: points[i][0],
+                    y_m: points[i][1],
+                    z_m: points[i][2],
+                });
+                *s.user_header_mut() = CloudHeader { msg: header(stamp_ns), frame: FRAME_SENSOR, ..Default::default() };
+                o.send(s)?;
+            }
+            Decoded::Nothing => return Ok(false),
         }
         Ok(true)
     }
@@ -165,17 +178,40 @@ impl InPorts {
             Err(e) => return Ok(Err(e)),
         };
         let data = msg.data.as_slice();
-        let n = layout.finite_points(data).count();
+        let o = self.cloud.as_mut().ok_or_else(|| missing(CLOUD))?;
+        let header = CloudHeader { msg: header(stamp_ns), frame: FRAME_SENSOR, ..Default::default() };
+        if msg.is_dense && !layout.is_empty() {
+            // Declared without invalid points: one pass, checked as it goes; a cloud that breaks
+            // its word is not sent and takes the two-pass path below.
+            let mut all_finite = true;
+            let mut next = layout.reader(data);
+            let mut s = o.loan_slice_uninit(layout.len())?.write_from_fn(|_| {
+                let p = next();
+                all_finite &= p.iter().all(|v| v.is_finite());
+                CloudPoint { x_m: p[0], y_m: p[1], z_m: p[2] }
+            });
+            if all_finite {
+                *s.user_header_mut() = header;
+                o.send(s)?;
+                return Ok(Ok(0));
+            }
+        }
+        let n = layout.count_finite(data);
         if n == 0 {
             return Ok(Err(ConvertError::Invalid { field: "data", why: "no finite point".into() }));
         }
-        let o = self.cloud.as_mut().ok_or_else(|| missing(CLOUD))?;
-        let mut points = layout.finite_points(data);
-        let mut s = o.loan_slice_uninit(n)?.write_from_fn(|_| {
-            let p = points.next().unwrap_or([f32::NAN; 3]);
+        let point = |i: usize| {
+            let p = layout.point(data, i);
             CloudPoint { x_m: p[0], y_m: p[1], z_m: p[2] }
-        });
-        *s.user_header_mut() = CloudHeader { msg: header(stamp_ns), frame: FRAME_SENSOR, ..Default::default() };
+        };
+        let loan = o.loan_slice_uninit(n)?;
+        let mut s = if n == layout.len() {
+            loan.write_from_fn(point)
+        } else {
+            let keep = layout.finite_indices(data);
+            loan.write_from_fn(|i| point(keep[i] as usize))
+        };
+        *s.user_header_mut() = header;
         o.send(s)?;
         Ok(Ok(layout.len() - n))
     }
@@ -214,7 +250,8 @@ impl<'de> DeserializeSeed<'de> for Seed<'_> {
     }
 }
 
-/// Latency percentiles of a route, ms.
+/// Latency percentiles of a route, ms (from the pipeline's publish for an out route: with a
+/// snapshot's coalescing).
 #[derive(Debug, Clone, Serialize)]
 pub struct LatencyMs {
     /// Samples.
@@ -273,9 +310,11 @@ pub struct InCounts {
     pub lost_in_dds: u64,
     /// The pipeline port failed.
     pub port_failed: u64,
-    /// Cloud points left out (NaN / Inf).
+    /// Cloud points left out (NaN / Inf; a depth image's zero or out-of-range pixels).
     pub non_finite_points: u64,
-    /// ROS publishers matched at the end.
+    /// CameraInfo messages taken (a depth-image route).
+    pub camera_infos: u64,
+    /// ROS publishers matched at the end (from DDS discovery's matching events).
     pub publishers: usize,
     /// Remote publishers whose QoS cannot match this route's (nothing of theirs arrives).
     pub qos_incompatible: u64,
@@ -290,28 +329,39 @@ pub struct InRoute {
     decoder: RefCell<RouteDecoder>,
     /// Its DDS reader.
     pub sub: Subscription<Taken>,
+    /// A depth-image route's CameraInfo reader.
+    pub info_sub: Option<Subscription<CameraInfo>>,
+    /// The remote writers matched to the reader now.
+    pub remotes: std::collections::BTreeSet<ros2_client::dds::rustdds::GUID>,
     /// Its counters.
     pub counts: InCounts,
     last_seq: HashMap<String, i64>,
     warned: std::collections::BTreeSet<&'static str>,
     /// DDS source timestamp → DDS receive (the transport).
     pub transport: Hist,
-    /// DDS receive → sent into shared memory (what the gateway adds).
+    /// DDS receive → sent into shared memory (what the gateway adds: its wake-up, the
+    /// decode, the copy into shared memory, the send; for a fragmented sample also RustDDS's
+    /// reassembly after the first fragment, whose arrival stamps the sample).
     pub gateway: Hist,
+    /// The take → sent into shared memory (the decode, the one copy, the send).
+    pub convert: Hist,
 }
 
 impl InRoute {
     /// A route over its reader.
-    pub fn new(cfg: &GatewayIn, sub: Subscription<Taken>) -> Self {
+    pub fn new(cfg: &GatewayIn, sub: Subscription<Taken>, info_sub: Option<Subscription<CameraInfo>>) -> Self {
         Self {
             topic: cfg.route.topic.clone(),
             decoder: RefCell::new(RouteDecoder::new(cfg.route.clone())),
             sub,
+            info_sub,
+            remotes: Default::default(),
             counts: InCounts { service: cfg.route.service.service(), ..Default::default() },
             last_seq: HashMap::new(),
             warned: Default::default(),
             transport: Hist::default(),
             gateway: Hist::default(),
+            convert: Hist::default(),
         }
     }
 
@@ -324,8 +374,25 @@ impl InRoute {
     /// Takes every sample waiting on the reader; returns how many.
     pub fn drain(&mut self, ports: &RefCell<InPorts>) -> usize {
         let mut n = 0;
+        if let Some(info) = self.info_sub.take() {
+            loop {
+                match info.take() {
+                    Ok(Some((ci, _))) => {
+                        self.counts.camera_infos += 1;
+                        self.decoder.borrow_mut().set_camera_info(ci);
+                    }
+                    Ok(None) => break,
+                    Err(e) => {
+                        self.counts.undecodable += 1;
+                        self.warn_once("undecodable", &format!("a CameraInfo that does not decode: {e:?}"));
+                    }
+                }
+            }
+            self.info_sub = Some(info);
+        }
         loop {
             let seed = Seed { decoder: &self.decoder, ports };
+            let taken_at = unix_ns();
             let r = self.sub.take_seed(seed);
             match r {
                 Ok(None) => return n,
@@ -348,6 +415,7 @@ impl InRoute {
                             if let (Some(src), Some(rcv)) = (info.source_timestamp(), info.received_timestamp()) {
                                 self.transport.record_ns(rcv.to_nanos() - src.to_nanos());
                                 self.gateway.record_ns(sent_unix_ns - rcv.to_nanos());
+                                self.convert.record_ns(sent_unix_ns - taken_at);
                             }
                         }
                         Taken::Nothing => {}
@@ -402,7 +470,11 @@ impl InRoute {
         serde_json::json!({
             "type": self.counts_type(),
             "counts": self.counts,
-            "latency_ms": { "dds_transport": self.transport.ms(), "gateway": self.gateway.ms() },
+            "latency_ms": {
+                "dds_transport": self.transport.ms(),
+                "gateway": self.gateway.ms(),
+                "take_to_sent": self.convert.ms(),
+            },
         })
     }
 }

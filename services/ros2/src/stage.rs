@@ -9,7 +9,8 @@ use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
 use pipeline_runtime::{ProcessContext, Runtime, StageError, Wake};
 use ros2_client::Publisher;
 use ros2_interop::convert;
-use ros2_interop::msgs::{Message, TFMessage};
+use ros2_interop::msgs::{CameraInfo, Message, TFMessage};
+use ros2_interop::route::InService;
 
 use crate::dds::{DdsWaker, RosNode, err};
 use crate::inbound::{InPorts, InRoute, Taken};
@@ -96,6 +97,26 @@ impl Ros2Stage {
                         r.qos_incompatible(&qos_text(&requested_qos), &qos_text(&offered_qos));
                     }
                 }
+                E::RemoteWriterMatched { local_reader, remote_writer } => {
+                    if let Some(r) = self.ins.iter_mut().find(|r| r.sub.guid() == local_reader) {
+                        r.remotes.insert(remote_writer);
+                    }
+                }
+                E::RemoteReaderMatched { local_writer, remote_reader } => {
+                    if let Some(r) = self.out.routes.iter_mut().find(|r| r.guid() == local_writer) {
+                        r.remotes.insert(remote_reader);
+                    }
+                }
+                E::WriterLost { guid, .. } => {
+                    for r in &mut self.ins {
+                        r.remotes.remove(&guid);
+                    }
+                }
+                E::ReaderLost { guid, .. } => {
+                    for r in &mut self.out.routes {
+                        r.remotes.remove(&guid);
+                    }
+                }
                 E::WriterDetected { writer } => {
                     if let Some(r) = self.ins.iter_mut().find(|r| writer.topic_name == format!("rt{}", r.topic)) {
                         r.remote_type(&writer.type_name);
@@ -132,7 +153,17 @@ impl Stage for Ros2Stage {
                 .node
                 .create_subscription::<Taken>(&topic, None)
                 .map_err(|e| stage_err(err(format!("subscription to `{}`", r.route.topic))(&e)))?;
-            ins.push(InRoute::new(r, sub));
+            let info_sub = if r.route.service == InService::DepthImage {
+                let t = node.topic(&r.route.camera_info, CameraInfo::TYPE_NAME, qos).map_err(stage_err)?;
+                Some(
+                    node.node
+                        .create_subscription::<CameraInfo>(&t, None)
+                        .map_err(|e| stage_err(err(format!("subscription to `{}`", r.route.camera_info))(&e)))?,
+                )
+            } else {
+                None
+            };
+            ins.push(InRoute::new(r, sub, info_sub));
         }
         let mut out = Outbound::open(rt, &mut node, &settings.out, &settings.frames)?;
         if !settings.record_bag.is_empty() {
@@ -148,15 +179,25 @@ impl Stage for Ros2Stage {
             out.record_into(&dir).map_err(StageError::stage)?;
         }
         let poll = crate::dds::new_poll().map_err(stage_err)?;
-        for (i, r) in ins.iter_mut().enumerate() {
-            crate::dds::register(&poll, &mut r.sub, i, &format!("the reader of `{}`", r.topic)).map_err(stage_err)?;
+        let mut token = 0;
+        for r in ins.iter_mut() {
+            crate::dds::register(&poll, &mut r.sub, token, &format!("the reader of `{}`", r.topic))
+                .map_err(stage_err)?;
+            token += 1;
+            if let Some(s) = &mut r.info_sub {
+                crate::dds::register(&poll, s, token, "a CameraInfo reader").map_err(stage_err)?;
+                token += 1;
+            }
         }
-        crate::dds::register(&poll, &mut node.status, ins.len(), "discovery events").map_err(stage_err)?;
+        crate::dds::register(&poll, &mut node.status, token, "discovery events").map_err(stage_err)?;
         let waker = Some(DdsWaker::start(poll, rt.waker()?).map_err(stage_err)?);
         let (static_tf, static_transforms) = Self::static_tf(&mut node, &settings, out.bag.as_ref())?;
         let ins_text: Vec<String> = ins.iter().map(|r| format!("{} → {}", r.topic, r.counts.service)).collect();
         let outs_text: Vec<String> =
             out.routes.iter().map(|r| format!("{:?} → {}", r.cfg.what, r.cfg.topic())).collect();
+        tracing::warn!(
+            "plain DDS (insecure = true): anyone on this node's networks can read its topics and publish into its routes"
+        );
         tracing::info!(
             domain_id = node.domain,
             "ROS 2 node `{}` (namespace `{}`): in [{}]; out [{}]; {} static transform(s)",
@@ -227,7 +268,9 @@ impl Stage for Ros2Stage {
             rt.keep_alive();
             std::thread::sleep(Duration::from_millis(50));
         }
-        self.out.subscribers(&self.node.node);
+        for r in &mut self.out.routes {
+            r.counts.subscribers = r.remotes.len();
+        }
         let bag = match &self.out.bag {
             Some(b) => {
                 let mut b = b.borrow_mut();
@@ -237,7 +280,7 @@ impl Stage for Ros2Stage {
             None => serde_json::Value::Null,
         };
         for r in &mut self.ins {
-            r.counts.publishers = r.sub.get_publisher_count(&self.node.node);
+            r.counts.publishers = r.remotes.len();
         }
         let ins: serde_json::Map<String, serde_json::Value> =
             self.ins.iter().map(|r| (r.topic.clone(), r.summary())).collect();
@@ -248,6 +291,7 @@ impl Stage for Ros2Stage {
             .map(|r| {
                 let mut v = serde_json::to_value(&r.counts).unwrap_or_default();
                 v["type"] = r.cfg.what.ros_type().into();
+                v["latency_ms"] = serde_json::to_value(r.latency.ms()).unwrap_or_default();
                 (r.cfg.topic().to_string(), v)
             })
             .collect();
@@ -269,6 +313,7 @@ impl Stage for Ros2Stage {
         }
         Ok(serde_json::json!({ "ros2": { &self.name: {
             "completed": ending == Ending::EndOfStream,
+            "insecure": true,
             "node": format!("{}/{}", self.settings.namespace.trim_end_matches('/'), self.settings.node_name),
             "domain_id": self.node.domain,
             "in": ins,

@@ -10,6 +10,12 @@ use serde::Deserialize;
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Ros2Settings {
+    /// Run on plain DDS, as ROS 2 does without SROS2: anyone on the network can read the
+    /// gateway's topics and publish into its routes. Required (DDS-Security is not supported
+    /// yet): the gateway refuses to start without it. Confine it with `only_networks` or a
+    /// network namespace.
+    #[serde(default)]
+    pub insecure: bool,
     /// The DDS domain (`ROS_DOMAIN_ID`); default: the environment's `ROS_DOMAIN_ID`, else 0.
     #[serde(default)]
     pub domain_id: Option<u16>,
@@ -345,6 +351,13 @@ fn topic_ok(t: &str) -> bool {
 impl ProcessSettings for Ros2Settings {
     fn validate(&self, key: &str, issues: &mut Issues) {
         issues.check(
+            self.insecure,
+            format!("{key}.insecure"),
+            "the gateway speaks plain DDS (DDS-Security / SROS2 is not supported yet): anyone on the network can \
+             read its topics and publish into its routes; set `insecure = true` to run it anyway (and confine it \
+             with `only_networks` or a network namespace)",
+        );
+        issues.check(
             ros2_client::NodeName::new(&self.namespace, &self.node_name).is_ok(),
             format!("{key}.node_name"),
             format!("`{}` in namespace `{}` is not a ROS 2 node name", self.node_name, self.namespace),
@@ -437,6 +450,7 @@ mod tests {
     fn routes_parse_with_their_defaults_and_a_misspelt_key_is_refused() {
         let s = parse(
             r#"
+insecure = true
 [[in]]
 topic = "/scan"
 service = "laser"
@@ -468,7 +482,7 @@ odom = "planar_odometry"
     #[test]
     fn bad_values_are_named_by_key() {
         let s = parse(
-            "domain_id = 300\n[[in]]\ntopic = \"scan\"\nservice = \"laser\"\n[[out]]\nwhat = \"map\"\ntopic = \"/my map\"\n",
+            "insecure = true\ndomain_id = 300\n[[in]]\ntopic = \"scan\"\nservice = \"laser\"\n[[out]]\nwhat = \"map\"\ntopic = \"/my map\"\n",
         )
         .unwrap();
         let mut issues = Issues::default();
