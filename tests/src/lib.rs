@@ -312,3 +312,44 @@ impl Drop for NetNs {
         ip_ok(&["netns", "del", &self.name]);
     }
 }
+
+/// A `grid_slam` process named `slam2d`, scored against the Freiburg 079 relations of `data`
+/// (the shared `data/carmen` folder), with `particles` on `threads`, publishing its grid every
+/// `grid_every_s` of data time.
+pub fn fr079_grid_slam(data: &str, particles: u32, threads: u32, grid_every_s: f64) -> String {
+    format!(
+        r#"
+[processes.slam2d]
+kind = "grid_slam"
+[processes.slam2d.settings]
+relations = "{data}/fr079.relations"
+relations_offset_s = 1211.38
+grid_every_s = {grid_every_s:?}
+[processes.slam2d.settings.filter]
+particles = {particles}
+threads = {threads}
+"#
+    )
+}
+
+/// An `ingest` process started after `slam2d`, replaying as fast as possible; `source` holds the
+/// source's settings lines (`source = ...` and its table).
+pub fn ingest_after_slam2d(source: &str) -> String {
+    format!(
+        r#"
+[processes.ingest]
+kind = "ingest"
+after = ["slam2d"]
+[processes.ingest.settings]
+real_time_factor = 0.0
+{source}
+"#
+    )
+}
+
+/// The first `max_scans` scans of the CARMEN `log`, the laser lines' odometry as it is.
+pub fn carmen_source(log: &str, max_scans: usize) -> String {
+    format!(
+        "source = \"carmen\"\n[processes.ingest.settings.carmen]\nfile = \"{log}\"\nodometry = \"laser_lines\"\nmax_scans = {max_scans}\n"
+    )
+}

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use pipeline_tests::TestRun;
+use pipeline_tests::{TestRun, carmen_source, fr079_grid_slam, ingest_after_slam2d};
 use ros2_interop::msgs::CameraInfo;
 use ros2_interop::route::{Decoded, InRoute, InService, RouteDecoder};
 use ros2_interop::{BagReader, BagWarts, Message};
@@ -45,26 +45,7 @@ fn rosbags(args: &[&str]) -> serde_json::Value {
 const SCANS: usize = 600;
 
 fn grid_slam_on(run: &mut TestRun, data: &str, source: &str) -> serde_json::Value {
-    let processes = format!(
-        r#"
-[processes.slam2d]
-kind = "grid_slam"
-[processes.slam2d.settings]
-relations = "{data}/fr079.relations"
-relations_offset_s = 1211.38
-grid_every_s = 30.0
-[processes.slam2d.settings.filter]
-particles = 8
-threads = 1
-
-[processes.ingest]
-kind = "ingest"
-after = ["slam2d"]
-[processes.ingest.settings]
-real_time_factor = 0.0
-{source}
-"#
-    );
+    let processes = format!("{}{}", fr079_grid_slam(data, 8, 1, 30.0), ingest_after_slam2d(source));
     run.run_to_end("end = \"end_of_stream\"\nend_of_stream_from = [\"slam2d\"]", &processes, Duration::from_secs(300))
 }
 
@@ -95,17 +76,7 @@ routes = [{{ topic = "/scan", service = "laser" }}, {{ topic = "/odom", service 
     assert_eq!(g["scans"], SCANS, "every scan of the bag is mapped: {g}");
 
     let mut file_run = TestRun::new("ros2file");
-    let from_file = grid_slam_on(
-        &mut file_run,
-        &data,
-        &format!(
-            r#"source = "carmen"
-[processes.ingest.settings.carmen]
-file = "{log}"
-odometry = "laser_lines"
-max_scans = {SCANS}"#
-        ),
-    );
+    let from_file = grid_slam_on(&mut file_run, &data, &carmen_source(&log, SCANS));
     assert_eq!(from_file["grid_slam"]["scans"], SCANS);
     let (a, b) = (&from_bag["grid_slam"]["relations"], &from_file["grid_slam"]["relations"]);
     eprintln!("relations: bag {a}\nfile {b}");

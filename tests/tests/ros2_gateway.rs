@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-use pipeline_tests::{NetNs, TestRun};
+use pipeline_tests::{NetNs, TestRun, carmen_source, fr079_grid_slam, ingest_after_slam2d};
 
 /// Cyclone on the namespace's loopback, multicast on (its default skips loopback).
 const CYCLONE: &str = "<CycloneDDS><Domain><General><Interfaces><NetworkInterface name=\"lo\" multicast=\"true\"/>\
@@ -70,17 +70,7 @@ fn a_cyclone_dds_robot_feeds_grid_slam_through_the_gateway_and_gets_the_map_and_
     let cfg = run.write_config(
         "end = \"end_of_stream\"\nend_of_stream_from = [\"slam2d\", \"ros_out\"]",
         &format!(
-            r#"
-[processes.slam2d]
-kind = "grid_slam"
-[processes.slam2d.settings]
-relations = "{data}/fr079.relations"
-relations_offset_s = 1211.38
-grid_every_s = 10.0
-[processes.slam2d.settings.filter]
-particles = 8
-threads = 1
-
+            r#"{}
 [processes.ros_out]
 kind = "ros2"
 [processes.ros_out.settings]
@@ -106,7 +96,8 @@ in = [
   {{ topic = "/scan", service = "laser", {RELIABLE_IN} }},
   {{ topic = "/odom", service = "planar_odometry", {RELIABLE_IN} }},
 ]
-"#
+"#,
+            fr079_grid_slam(&data, 8, 1, 10.0)
         ),
     );
     run.start_supervisor_in(&ns.wrapper(), &cfg, &[]);
@@ -167,28 +158,7 @@ in = [
     let mut file_run = TestRun::new("ros2gwfile");
     let from_file = file_run.run_to_end(
         "end = \"end_of_stream\"\nend_of_stream_from = [\"slam2d\"]",
-        &format!(
-            r#"
-[processes.slam2d]
-kind = "grid_slam"
-[processes.slam2d.settings]
-relations = "{data}/fr079.relations"
-relations_offset_s = 1211.38
-[processes.slam2d.settings.filter]
-particles = 8
-threads = 1
-[processes.ingest]
-kind = "ingest"
-after = ["slam2d"]
-[processes.ingest.settings]
-source = "carmen"
-real_time_factor = 0.0
-[processes.ingest.settings.carmen]
-file = "{log}"
-odometry = "laser_lines"
-max_scans = {SCANS}
-"#
-        ),
+        &format!("{}{}", fr079_grid_slam(&data, 8, 1, 10.0), ingest_after_slam2d(&carmen_source(&log, SCANS))),
         Duration::from_secs(120),
     );
     let (a, b) = (&s["grid_slam"]["relations"], &from_file["grid_slam"]["relations"]);
