@@ -137,7 +137,25 @@ fn now_ns() -> u64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0)
 }
 
+/// Removes what this run's iceoryx2 prefix left in /dev/shm (a run that failed and was killed).
+fn clean_shm() {
+    let prefix = format!("r2bench{}_", std::process::id());
+    if let Ok(rd) = std::fs::read_dir("/dev/shm") {
+        for e in rd.flatten() {
+            if e.file_name().to_string_lossy().starts_with(&prefix) {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
+}
+
 fn run(cli: &Cli) -> anyhow::Result<()> {
+    let r = run_inner(cli);
+    clean_shm();
+    r
+}
+
+fn run_inner(cli: &Cli) -> anyhow::Result<()> {
     let dir = tempfile::Builder::new().prefix("ros2-bench-").tempdir()?;
     let cfg = dir.path().join("bench.toml");
     std::fs::write(&cfg, config(dir.path(), cli))?;
