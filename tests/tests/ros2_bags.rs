@@ -49,6 +49,24 @@ fn grid_slam_on(run: &mut TestRun, data: &str, source: &str) -> serde_json::Valu
     run.run_to_end("end = \"end_of_stream\"\nend_of_stream_from = [\"slam2d\"]", &processes, Duration::from_secs(300))
 }
 
+/// A recorder that writes grid SLAM's outputs as a ROS 2 bag (`ros2_bag` in the run's output
+/// directory) and nothing else; ingest starts after it and slam2d.
+const ROS2_RECORDER: &str = r#"
+[processes.rec]
+kind = "recorder"
+[processes.rec.settings]
+services = ["pipeline/grid_slam/pose"]
+end_after = ["slam2d"]
+send_end_of_stream = true
+[processes.rec.settings.ros2]
+out = [
+  { what = "map" },
+  { what = "grid_slam_odometry" },
+  { what = "grid_slam_path" },
+  { what = "tf", from = "grid_slam", odom = "planar_odometry" },
+]
+"#;
+
 #[test]
 fn a_bag_rosbags_wrote_from_the_fr079_log_maps_as_the_file_replay_does() {
     let (data, log) = carmen_log();
@@ -56,16 +74,23 @@ fn a_bag_rosbags_wrote_from_the_fr079_log_maps_as_the_file_replay_does() {
     let bag = bag_run.dir.path().join("fr079");
     let written = rosbags(&["carmen", &log, bag.to_str().unwrap(), "--max-scans", &SCANS.to_string()]);
     assert_eq!(written["scans"], SCANS);
-    let from_bag = grid_slam_on(
-        &mut bag_run,
-        &data,
-        &format!(
-            r#"source = "rosbag2"
+    let source = format!(
+        r#"source = "rosbag2"
 [processes.ingest.settings.rosbag2]
 path = "{}"
 routes = [{{ topic = "/scan", service = "laser" }}, {{ topic = "/odom", service = "planar_odometry" }}]"#,
-            bag.display()
-        ),
+        bag.display()
+    );
+    // The recorder writes what grid SLAM makes of it as a ROS 2 bag, read back below by rosbags.
+    let processes = format!(
+        "{}{ROS2_RECORDER}{}",
+        fr079_grid_slam(&data, 8, 1, 30.0),
+        ingest_after_slam2d(&source).replace(r#"after = ["slam2d"]"#, r#"after = ["slam2d", "rec"]"#)
+    );
+    let from_bag = bag_run.run_to_end(
+        "end = \"end_of_stream\"\nend_of_stream_from = [\"slam2d\", \"rec\"]",
+        &processes,
+        Duration::from_secs(300),
     );
     let ingest = &from_bag["ingest"];
     assert_eq!(ingest["messages"]["laser"], SCANS, "{ingest}");
@@ -74,6 +99,25 @@ routes = [{{ topic = "/scan", service = "laser" }}, {{ topic = "/odom", service 
     assert!(ingest["data_warts"].as_object().is_none_or(|w| w.is_empty()), "a clean bag: {ingest}");
     let g = &from_bag["grid_slam"];
     assert_eq!(g["scans"], SCANS, "every scan of the bag is mapped: {g}");
+
+    // The recorder's ROS 2 bag, read by rosbags: every message decodes, one per grid SLAM output.
+    let rec = &from_bag["recorder"]["ros2_bag"];
+    assert_eq!(rec["undecodable"], 0, "{rec}");
+    let out = rosbags(&["read", rec["dir"].as_str().expect("the bag's directory")]);
+    let (poses, grids) = (g["poses_published"].as_u64().unwrap(), g["grids_published"].as_u64().unwrap());
+    assert!(poses >= SCANS as u64 / 2 && grids >= 1, "{g}");
+    assert_eq!(out["/slam/grid/odometry"]["count"], poses, "{out}");
+    assert_eq!(out["/slam/grid/odometry"]["type"], "nav_msgs/msg/Odometry");
+    assert_eq!(out["/map"]["count"], grids, "{out}");
+    let map = &out["/map"]["last"];
+    assert_eq!(map["frame_id"], "map");
+    assert!((map["resolution"].as_f64().unwrap() - g["grid"]["resolution_m"].as_f64().unwrap()).abs() < 1e-6, "{map}");
+    assert_eq!(map["cells"].as_u64().unwrap(), map["width"].as_u64().unwrap() * map["height"].as_u64().unwrap());
+    assert_eq!(out["/slam/grid/path"]["last"]["poses"], poses, "the last path holds every pose: {out}");
+    // /tf: odom → base_link per odometry message and map → odom per pose (after the first odometry).
+    let tf = out["/tf"]["count"].as_u64().unwrap();
+    assert!(tf >= SCANS as u64 + poses - 1 && tf <= SCANS as u64 + poses, "{tf}: {out}");
+    assert!(out.get("/tf_static").is_none(), "odom comes from odometry: no identity map → odom");
 
     let mut file_run = TestRun::new("ros2file");
     let from_file = grid_slam_on(&mut file_run, &data, &carmen_source(&log, SCANS));

@@ -5,12 +5,15 @@
 //! inputs. `pipeline_runtime::topics` is the table of recordable services with their wire types
 //! (re-exported here), [`record`] the
 //! recorder's settings and MCAP sink, [`replay`] the replayer's settings, file checks and order.
-//! The binaries (`src/bin/`) are the wiring around them.
+//! The binaries (`src/bin/`) are the wiring around them. [`ros2`] is the recorder's optional
+//! ROS 2 bag (rosbag2 MCAP) of the pipeline's outputs.
 
 pub mod record;
 pub mod replay;
+pub mod ros2;
 pub mod stage;
 
 pub use pipeline_runtime::topics::{self, Emit, TOPICS, Tap, Topic, TopicError, topic};
 pub use record::{Compression, McapSink, RecorderError, RecorderSettings, SinkOptions, SinkReport};
 pub use replay::{Replay, ReplayError, Replayed, ReplayerSettings, ScanReport, Selection, scan};
+pub use ros2::{Ros2Recording, Ros2Report, Ros2Sink};

@@ -72,6 +72,12 @@ pub struct RecorderSettings {
     /// `/grid_slam/pose`), `/cloud`, `/slam/landmarks`, `/landmarks`, `/octree` (the full voxel
     /// sets) and `/grid` (see `shared_types::foxglove::mirror_of`).
     pub foxglove_channels: bool,
+    /// Also write the pipeline's outputs as ROS 2 messages into a rosbag2 bag (MCAP storage,
+    /// `cdr`; `ros2 bag info / play` and Python `rosbags` read it): `[...settings.ros2]` with
+    /// `dir` (default `ros2_bag`, under the run's output directory), `out` routes as the `ros2`
+    /// gateway's (README "ROS 2"), `frames` and `static_transforms`. The services the routes
+    /// are made from are read whether or not they are recorded into the MCAP file.
+    pub ros2: Option<crate::ros2::Ros2Recording>,
 }
 
 impl Default for RecorderSettings {
@@ -88,6 +94,7 @@ impl Default for RecorderSettings {
             queue_messages: 1024,
             json_mirror: true,
             foxglove_channels: true,
+            ros2: None,
         }
     }
 }
@@ -127,6 +134,11 @@ impl ProcessSettings for RecorderSettings {
             format!("{key}.send_end_of_stream"),
             "needs `end_after` (without it the recording ends only on a signal)",
         );
+        if let Some(r) = &self.ros2 {
+            for (k, m) in r.check() {
+                issues.push(format!("{key}.ros2.{k}"), m);
+            }
+        }
     }
 
     fn shm_estimate_bytes(&self) -> u64 {

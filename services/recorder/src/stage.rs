@@ -34,8 +34,19 @@ pub struct RecorderStage {
     to_create: Option<(SinkOptions, BTreeMap<String, String>)>,
     /// Files of killed instances, kept under another name.
     earlier_parts: Vec<String>,
+    /// The services recorded into the MCAP file (its channel order).
     topics: Vec<&'static Topic>,
+    /// One per service read: the recorded ones, then those only the ROS 2 bag reads.
     taps: Vec<Box<dyn Tap>>,
+    /// Per tap: its channel in the MCAP file (`None`: read for the ROS 2 bag only).
+    channel: Vec<Option<usize>>,
+    /// Per tap: the ROS 2 bag reads it.
+    to_ros2: Vec<bool>,
+    /// The ROS 2 bag (`ros2`), created with the file; its directory until then.
+    ros2: Option<crate::Ros2Sink>,
+    ros2_dir: Option<PathBuf>,
+    /// Directories of killed instances' ROS 2 bags, kept under another name.
+    earlier_ros2_parts: Vec<String>,
     skipped: BTreeMap<String, String>,
     counts: Vec<Counts>,
     /// Last sequence number per (topic, publisher): a gap is counted as missed.
@@ -51,6 +62,11 @@ impl RecorderStage {
     /// Creates the file (once).
     fn create(&mut self) -> Result<(), StageError> {
         if let Some((options, metadata)) = self.to_create.take() {
+            if let (Some(dir), Some(r)) = (&self.ros2_dir, &self.settings.ros2) {
+                let sink = crate::Ros2Sink::create(dir, r, self.settings.queue_messages)?;
+                tracing::info!(dir = %dir.display(), topics = r.out.len(), "recording a ROS 2 bag");
+                self.ros2 = Some(sink);
+            }
             self.sink = Some(McapSink::create(&self.path, &self.topics, &options, metadata)?);
             tracing::info!(
                 file = %self.path.display(),
@@ -65,10 +81,12 @@ impl RecorderStage {
     /// Drains every tap into the sink; returns how many messages there were.
     fn drain(&mut self) -> Result<usize, StageError> {
         let mut total = 0;
-        let Self { sink, taps, counts, last_seq, .. } = self;
+        let Self { sink, taps, counts, last_seq, channel, to_ros2, ros2, .. } = self;
         let Some(sink) = sink.as_ref() else { return Ok(0) };
         let mut failed = None;
         for (index, tap) in taps.iter().enumerate() {
+            let (channel, to_ros2) = (channel[index], to_ros2[index]);
+            let service = tap.service();
             total += tap
                 .drain(&mut |r| {
                     let c = &mut counts[index];
@@ -81,7 +99,15 @@ impl RecorderStage {
                     let mut data = Vec::with_capacity(r.header.len() + r.payload.len());
                     data.extend_from_slice(r.header);
                     data.extend_from_slice(r.payload);
-                    match sink.write(index, monotonic_ns(), r.msg.publish_ns, data) {
+                    let mut result = Ok(());
+                    if to_ros2 && let Some(ros2) = ros2.as_ref() {
+                        let copy = if channel.is_some() { data.clone() } else { std::mem::take(&mut data) };
+                        result = ros2.write(service, crate::ros2::unix_ns(), copy);
+                    }
+                    if let (Ok(()), Some(channel)) = (&result, channel) {
+                        result = sink.write(channel, monotonic_ns(), r.msg.publish_ns, data);
+                    }
+                    match result {
                         Ok(()) => std::ops::ControlFlow::Continue(()),
                         Err(e) => {
                             failed = Some(e);
@@ -109,11 +135,15 @@ impl Stage for RecorderStage {
     fn open(ctx: &ProcessContext, settings: RecorderSettings, rt: &mut Runtime) -> Result<Self, StageError> {
         let mut topics: Vec<&'static Topic> = vec![];
         let mut taps = vec![];
+        let (mut channel, mut to_ros2) = (vec![], vec![]);
         let mut skipped = BTreeMap::new();
+        let ros2_services = settings.ros2.as_ref().map(|r| r.services()).unwrap_or_default();
         for t in settings.topics() {
             match t.tap(rt) {
                 Ok(tap) => {
                     taps.push(tap);
+                    channel.push(Some(topics.len()));
+                    to_ros2.push(ros2_services.contains(&t.service));
                     topics.push(t);
                 }
                 Err(e) => {
@@ -121,6 +151,21 @@ impl Stage for RecorderStage {
                     skipped.insert(t.service.to_string(), e.to_string());
                 }
             }
+        }
+        // What the ROS 2 bag is made from and the MCAP file leaves out.
+        for service in &ros2_services {
+            if topics.iter().any(|t| t.service == *service) {
+                continue;
+            }
+            let t = crate::topic(service).ok_or_else(|| {
+                StageError::stage(crate::RecorderError::Message {
+                    service: service.to_string(),
+                    what: "not a recordable service".into(),
+                })
+            })?;
+            taps.push(t.tap(rt)?);
+            channel.push(None);
+            to_ros2.push(true);
         }
         let path = settings.path(&ctx.out_dir);
         let config_text = std::fs::read_to_string(&ctx.config.source).unwrap_or_default();
@@ -144,8 +189,14 @@ impl Stage for RecorderStage {
             json_mirror: settings.json_mirror,
             foxglove_channels: settings.foxglove_channels,
         };
+        let ros2_dir = settings.ros2.as_ref().map(|r| r.path(&ctx.out_dir));
         Ok(Self {
-            counts: vec![Counts::default(); topics.len()],
+            counts: vec![Counts::default(); taps.len()],
+            channel,
+            to_ros2,
+            ros2: None,
+            ros2_dir,
+            earlier_ros2_parts: vec![],
             settings,
             path,
             sink: None,
@@ -193,6 +244,16 @@ impl Stage for RecorderStage {
             );
             self.earlier_parts.push(part.display().to_string());
         }
+        if let Some(dir) = self.ros2_dir.as_ref().filter(|d| d.exists()) {
+            let name = dir.file_name().and_then(|s| s.to_str()).unwrap_or("ros2_bag").to_string();
+            let part = (1..)
+                .map(|k| dir.with_file_name(format!("{name}.part{k}")))
+                .find(|p| !p.exists())
+                .expect("some part number is free");
+            std::fs::rename(dir, &part)?;
+            tracing::warn!(dir = %part.display(), "restarted: the killed instance's ROS 2 bag is kept as {}", part.display());
+            self.earlier_ros2_parts.push(part.display().to_string());
+        }
         Ok(0)
     }
 
@@ -213,12 +274,27 @@ impl Stage for RecorderStage {
         {
             tracing::warn!("last drain: {e:#}");
         }
+        let ros2 = match self.ros2.take().map(|s| s.finish()).transpose()? {
+            Some(r) => {
+                if r.undecodable > 0 {
+                    tracing::warn!(
+                        undecodable = r.undecodable,
+                        "ROS 2 bag: messages not of their service's type were left out"
+                    );
+                }
+                tracing::info!(dir = %r.dir.display(), messages = r.messages.values().sum::<u64>(), "ROS 2 bag written");
+                let mut v = serde_json::to_value(&r)?;
+                v["earlier_parts"] = serde_json::to_value(&self.earlier_ros2_parts)?;
+                v
+            }
+            None => serde_json::Value::Null,
+        };
         let Some(sink) = self.sink.take() else { return Ok(serde_json::json!({})) };
         let counts: BTreeMap<String, String> = self
-            .topics
+            .taps
             .iter()
             .zip(&self.counts)
-            .map(|(t, c)| (t.service.to_string(), format!("received={} missed={}", c.received, c.missed)))
+            .map(|(t, c)| (t.service().to_string(), format!("received={} missed={}", c.received, c.missed)))
             .collect();
         sink.metadata("recorder_counts", counts)?;
         let r = sink.finish()?;
@@ -238,7 +314,7 @@ impl Stage for RecorderStage {
             total as f64 / active_s.max(1e-9)
         );
         let per_topic = |f: fn(&Counts) -> u64| -> BTreeMap<&str, u64> {
-            self.topics.iter().zip(&self.counts).map(|(t, c)| (t.service, f(c))).collect()
+            self.taps.iter().zip(&self.counts).map(|(t, c)| (t.service(), f(c))).collect()
         };
         // Under `recorder` (one recorder per run, as before) and under `recorders.<name>`: with
         // several recorders in a run the first is merged from all of them, the second is each one's.
@@ -258,6 +334,7 @@ impl Stage for RecorderStage {
             "max_queued": r.max_queued,
             "foxglove_messages": r.foxglove_messages,
             "wall_s": self.started.elapsed().as_secs_f64(),
+            "ros2_bag": ros2,
         });
         Ok(serde_json::json!({ "recorder": part.clone(), "recorders": { rt.name(): part } }))
     }

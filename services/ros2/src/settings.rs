@@ -3,6 +3,9 @@
 use std::net::IpAddr;
 
 use pipeline_runtime::config::{Issues, ProcessSettings};
+pub use ros2_interop::out::{
+    Durability, Frames, OutKind, OutRoute as GatewayOut, Reliability, StaticTransform, TfFrom, TfOdom, TopicQos,
+};
 use ros2_interop::route::InRoute;
 use serde::Deserialize;
 
@@ -71,75 +74,6 @@ fn default_namespace() -> String {
     "/".into()
 }
 
-/// Frame ids (REP 105).
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct Frames {
-    /// The world-fixed frame of the fused and grid-SLAM poses.
-    pub map: String,
-    /// The odometry frame.
-    pub odom: String,
-    /// The robot's body.
-    pub base_link: String,
-    /// The frame of FastSLAM's local-map poses (`pipeline/slam/pose`).
-    pub local_map: String,
-}
-
-impl Default for Frames {
-    fn default() -> Self {
-        Self {
-            map: "map".into(),
-            odom: "odom".into(),
-            base_link: "base_link".into(),
-            local_map: "slam_local_map".into(),
-        }
-    }
-}
-
-/// Reliability of a topic.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Reliability {
-    /// Resent until acknowledged.
-    Reliable,
-    /// Sent once.
-    BestEffort,
-}
-
-/// Durability of a topic.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Durability {
-    /// Only for subscribers present at the time.
-    Volatile,
-    /// The last `depth` messages kept for late subscribers (a latched map).
-    TransientLocal,
-}
-
-/// A topic's QoS (the rest as ROS 2's defaults: keep last, automatic liveliness).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct TopicQos {
-    /// Reliability.
-    pub reliability: Reliability,
-    /// Durability.
-    pub durability: Durability,
-    /// History depth (keep last).
-    pub depth: u32,
-}
-
-impl TopicQos {
-    /// ROS 2's sensor-data profile (`rmw_qos_profile_sensor_data`): best effort, volatile, 5.
-    pub const SENSOR_DATA: TopicQos =
-        TopicQos { reliability: Reliability::BestEffort, durability: Durability::Volatile, depth: 5 };
-    /// ROS 2's default profile: reliable, volatile, 10.
-    pub const DEFAULT: TopicQos =
-        TopicQos { reliability: Reliability::Reliable, durability: Durability::Volatile, depth: 10 };
-    /// A map as map_server publishes it: reliable, transient local, 1.
-    pub const MAP: TopicQos =
-        TopicQos { reliability: Reliability::Reliable, durability: Durability::TransientLocal, depth: 1 };
-}
-
 /// A ROS 2 topic into the pipeline: the route (topic, pipeline input and its options, as in a
 /// bag replay) and the subscription's QoS (default: the sensor-data profile).
 #[derive(Debug, Clone)]
@@ -187,167 +121,6 @@ pub enum WhenFull {
     Wait,
 }
 
-/// What an out route publishes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Deserialize, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum OutKind {
-    /// `pipeline/fusion/pose` (refined estimates) as `nav_msgs/Odometry` in `frames.map`.
-    FusedOdometry,
-    /// `pipeline/fusion/pose` as `geometry_msgs/PoseWithCovarianceStamped`.
-    FusedPose,
-    /// `pipeline/fusion/pose` accumulated as `nav_msgs/Path`.
-    FusedPath,
-    /// `pipeline/slam/pose` as `nav_msgs/Odometry` in `frames.local_map`.
-    SlamOdometry,
-    /// `pipeline/slam/pose` accumulated as `nav_msgs/Path`.
-    SlamPath,
-    /// `pipeline/grid_slam/pose` as `nav_msgs/Odometry` in `frames.map`.
-    GridSlamOdometry,
-    /// `pipeline/grid_slam/pose` as `geometry_msgs/PoseWithCovarianceStamped`.
-    GridSlamPose,
-    /// `pipeline/grid_slam/pose` accumulated as `nav_msgs/Path`.
-    GridSlamPath,
-    /// `pipeline/grid_slam/grid` as `nav_msgs/OccupancyGrid` (transient local, as map_server).
-    Map,
-    /// `pipeline/map/voxels` (full sets and deltas) as the occupied voxels' centres,
-    /// `sensor_msgs/PointCloud2` (as octomap_server's centres cloud).
-    Voxels,
-    /// `pipeline/fusion/map` as a `visualization_msgs/MarkerArray` of spheres.
-    Landmarks,
-    /// The obstacle voxels of `pipeline/map/voxels` as a `visualization_msgs/MarkerArray` of cubes.
-    Obstacles,
-    /// `/tf`: `map → odom → base_link` from the fused pose (`from = "fused"`) or grid SLAM's
-    /// (`from = "grid_slam"`); with `odom = "planar_odometry"` the odometry gives `odom →
-    /// base_link` and the pose `map → odom`, else `map → odom` is the identity (on `/tf_static`).
-    Tf,
-}
-
-impl OutKind {
-    /// The topic it is published on unless the route names one.
-    pub fn default_topic(self) -> &'static str {
-        match self {
-            OutKind::FusedOdometry => "/slam/fused/odometry",
-            OutKind::FusedPose => "/slam/fused/pose",
-            OutKind::FusedPath => "/slam/fused/path",
-            OutKind::SlamOdometry => "/slam/local/odometry",
-            OutKind::SlamPath => "/slam/local/path",
-            OutKind::GridSlamOdometry => "/slam/grid/odometry",
-            OutKind::GridSlamPose => "/slam/grid/pose",
-            OutKind::GridSlamPath => "/slam/grid/path",
-            OutKind::Map => "/map",
-            OutKind::Voxels => "/octomap_point_cloud_centers",
-            OutKind::Landmarks => "/slam/landmarks",
-            OutKind::Obstacles => "/slam/obstacles",
-            OutKind::Tf => "/tf",
-        }
-    }
-
-    /// The QoS it is published with unless the route says.
-    pub fn default_qos(self) -> TopicQos {
-        match self {
-            OutKind::Map | OutKind::Voxels | OutKind::Landmarks | OutKind::Obstacles => TopicQos::MAP,
-            OutKind::Tf => TopicQos { depth: 100, ..TopicQos::DEFAULT },
-            _ => TopicQos::DEFAULT,
-        }
-    }
-
-    /// The ROS 2 type it publishes.
-    pub fn ros_type(self) -> &'static str {
-        use ros2_interop::Message;
-        use ros2_interop::msgs::*;
-        match self {
-            OutKind::FusedOdometry | OutKind::SlamOdometry | OutKind::GridSlamOdometry => Odometry::TYPE_NAME,
-            OutKind::FusedPose | OutKind::GridSlamPose => PoseWithCovarianceStamped::TYPE_NAME,
-            OutKind::FusedPath | OutKind::SlamPath | OutKind::GridSlamPath => Path::TYPE_NAME,
-            OutKind::Map => OccupancyGrid::TYPE_NAME,
-            OutKind::Voxels => PointCloud2::TYPE_NAME,
-            OutKind::Landmarks | OutKind::Obstacles => MarkerArray::TYPE_NAME,
-            OutKind::Tf => TFMessage::TYPE_NAME,
-        }
-    }
-}
-
-/// Where `/tf` takes its pose from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum TfFrom {
-    /// `pipeline/fusion/pose` (refined).
-    #[default]
-    Fused,
-    /// `pipeline/grid_slam/pose`.
-    GridSlam,
-}
-
-/// Where `/tf` takes `odom → base_link` from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum TfOdom {
-    /// No odometry frame of its own: `map → odom` is the identity.
-    #[default]
-    None,
-    /// `pipeline/sensors/planar_odometry`.
-    PlanarOdometry,
-}
-
-/// A pipeline output published on a ROS 2 topic.
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct GatewayOut {
-    /// What is published.
-    pub what: OutKind,
-    /// The topic (default: [`OutKind::default_topic`]).
-    #[serde(default)]
-    pub topic: Option<String>,
-    /// QoS (default: [`OutKind::default_qos`]).
-    #[serde(default)]
-    pub qos: Option<TopicQos>,
-    /// Most messages per second (0: every one). Paths, voxel clouds and markers are snapshots:
-    /// a skipped one is replaced by the next; poses and transforms are not limited by default.
-    #[serde(default)]
-    pub max_rate_hz: f64,
-    /// `tf`: the pose it comes from.
-    #[serde(default)]
-    pub from: TfFrom,
-    /// `tf`: the odometry frame's source.
-    #[serde(default)]
-    pub odom: TfOdom,
-}
-
-impl GatewayOut {
-    /// The topic name.
-    pub fn topic(&self) -> &str {
-        self.topic.as_deref().unwrap_or(self.what.default_topic())
-    }
-    /// The QoS.
-    pub fn qos(&self) -> TopicQos {
-        self.qos.unwrap_or(self.what.default_qos())
-    }
-}
-
-/// A fixed transform (`parent_from_child`).
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct StaticTransform {
-    /// Parent frame.
-    pub parent: String,
-    /// Child frame.
-    pub child: String,
-    /// Translation (x, y, z), m.
-    #[serde(default)]
-    pub xyz_m: [f64; 3],
-    /// Rotation as roll, pitch, yaw (fixed axes x, y, z), rad.
-    #[serde(default)]
-    pub rpy_rad: [f64; 3],
-}
-
-fn topic_ok(t: &str) -> bool {
-    !t.is_empty()
-        && !t.contains(char::is_whitespace)
-        && !t.contains("//")
-        && t.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '/' || c == '~')
-        && !t.starts_with(|c: char| c.is_ascii_digit())
-}
-
 impl ProcessSettings for Ros2Settings {
     fn validate(&self, key: &str, issues: &mut Issues) {
         issues.check(
@@ -380,42 +153,11 @@ impl ProcessSettings for Ros2Settings {
                 issues.check(q.depth >= 1, format!("{key}.in[{i}].qos.depth"), "must be >= 1");
             }
         }
-        for (i, r) in self.out.iter().enumerate() {
-            issues.check(
-                topic_ok(r.topic()),
-                format!("{key}.out[{i}].topic"),
-                format!("`{}` is not a ROS topic name", r.topic()),
-            );
-            issues.check(topics.insert(r.topic().to_string()), format!("{key}.out[{i}].topic"), "used twice");
-            issues.check(r.qos().depth >= 1, format!("{key}.out[{i}].qos.depth"), "must be >= 1");
-            issues.check(
-                r.max_rate_hz.is_finite() && r.max_rate_hz >= 0.0,
-                format!("{key}.out[{i}].max_rate_hz"),
-                "must be >= 0",
-            );
-        }
-        for (i, s) in self.static_transforms.iter().enumerate() {
-            issues.check(
-                !s.parent.is_empty() && !s.child.is_empty() && s.parent != s.child,
-                format!("{key}.static_transforms[{i}]"),
-                "needs two different frames",
-            );
-            issues.check(
-                s.xyz_m.iter().chain(&s.rpy_rad).all(|v| v.is_finite()),
-                format!("{key}.static_transforms[{i}]"),
-                "must be finite",
-            );
+        for (k, m) in ros2_interop::out::validate(&self.out, &self.frames, &self.static_transforms, &mut topics) {
+            issues.push(format!("{key}.{k}"), m);
         }
         for (k, v) in [("end_when_idle_s", self.end_when_idle_s), ("linger_s", self.linger_s)] {
             issues.check(v.is_finite() && v >= 0.0, format!("{key}.{k}"), "must be >= 0 s");
-        }
-        let f = &self.frames;
-        for (k, v) in [("map", &f.map), ("odom", &f.odom), ("base_link", &f.base_link), ("local_map", &f.local_map)] {
-            issues.check(
-                !v.is_empty() && !v.contains(char::is_whitespace),
-                format!("{key}.frames.{k}"),
-                "not a frame id",
-            );
         }
     }
 }

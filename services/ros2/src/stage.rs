@@ -4,18 +4,16 @@
 use std::cell::RefCell;
 use std::time::{Duration, Instant};
 
-use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
 use pipeline_runtime::{ProcessContext, Runtime, StageError, Wake};
 use ros2_client::Publisher;
-use ros2_interop::convert;
 use ros2_interop::msgs::{CameraInfo, Message, TFMessage};
 use ros2_interop::route::InService;
 
 use crate::dds::{DdsWaker, RosNode, err};
 use crate::inbound::{InPorts, InRoute, Taken};
 use crate::outbound::Outbound;
-use crate::settings::{OutKind, Ros2Settings, TfOdom, TopicQos};
+use crate::settings::{Ros2Settings, TopicQos};
 
 /// The `ros2` gateway stage.
 pub struct Ros2Stage {
@@ -47,26 +45,13 @@ impl Ros2Stage {
         s: &Ros2Settings,
         bag: Option<&std::rc::Rc<RefCell<ros2_interop::BagWriter>>>,
     ) -> Result<(Option<Publisher<TFMessage>>, usize), StageError> {
-        let mut transforms = vec![];
-        for t in &s.static_transforms {
-            let [r, p, y] = t.rpy_rad;
-            let iso = Isometry3::from_parts(
-                Translation3::new(t.xyz_m[0], t.xyz_m[1], t.xyz_m[2]),
-                UnitQuaternion::from_euler_angles(r, p, y),
-            );
-            transforms.push(convert::transform(0, &t.parent, &t.child, &iso));
-        }
-        if s.out.iter().any(|o| o.what == OutKind::Tf && o.odom == TfOdom::None) {
-            transforms.push(convert::transform(0, &s.frames.map, &s.frames.odom, &Isometry3::identity()));
-        }
-        if transforms.is_empty() {
+        let Some(msg) = ros2_interop::out::static_tf(&s.static_transforms, &s.out, &s.frames) else {
             return Ok((None, 0));
-        }
+        };
         let topic = node.topic("/tf_static", TFMessage::TYPE_NAME, TopicQos::MAP).map_err(stage_err)?;
         let publisher: Publisher<TFMessage> =
             node.node.create_publisher(&topic, None).map_err(|e| stage_err(err("publisher on `/tf_static`")(&e)))?;
-        let n = transforms.len();
-        let msg = TFMessage { transforms };
+        let n = msg.transforms.len();
         if let Some(bag) = bag {
             let mut bag = bag.borrow_mut();
             let latched = ros2_interop::BagQos { reliable: true, transient_local: true, depth: 1 };
@@ -319,7 +304,7 @@ impl Stage for Ros2Stage {
             "in": ins,
             "out": outs,
             "static_transforms": self.static_transforms,
-            "pipeline_messages_taken": self.out.taken,
+            "pipeline_messages_taken": self.out.taken(),
             "voxel_messages_missed": self.out.voxel_gaps().0,
             "voxel_deltas_waiting_for_a_full_set": self.out.voxel_gaps().1,
             "not_carried": lost,
