@@ -184,13 +184,14 @@ impl InPorts {
             // Declared without invalid points: one pass, checked as it goes; a cloud that breaks
             // its word is not sent and takes the two-pass path below.
             let mut all_finite = true;
-            let mut next = layout.reader(data);
-            let mut s = o.loan_slice_uninit(layout.len())?.write_from_fn(|_| {
-                let p = next();
-                all_finite &= p.iter().all(|v| v.is_finite());
-                CloudPoint { x_m: p[0], y_m: p[1], z_m: p[2] }
+            let mut loan = o.loan_slice_uninit(layout.len())?;
+            let written = layout.fill(data, loan.payload_mut(), |slot, p| {
+                all_finite &= p[0].is_finite() & p[1].is_finite() & p[2].is_finite();
+                slot.write(CloudPoint { x_m: p[0], y_m: p[1], z_m: p[2] });
             });
-            if all_finite {
+            if all_finite && written == layout.len() {
+                // SAFETY: `fill` wrote every one of the loan's `layout.len()` elements.
+                let mut s = unsafe { loan.assume_init() };
                 *s.user_header_mut() = header;
                 o.send(s)?;
                 return Ok(Ok(0));

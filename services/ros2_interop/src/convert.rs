@@ -216,6 +216,15 @@ impl OdometryIncrements {
     }
 }
 
+/// A little-endian f32 at byte `o` of a point (NaN when it lies outside: not for a checked layout).
+#[inline(always)]
+fn read_f32(p: &[u8], o: usize) -> f32 {
+    match p.get(o..o + 4) {
+        Some(b) => f32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+        None => f32::NAN,
+    }
+}
+
 /// Where x, y and z are in a `PointCloud2`'s points.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct CloudLayout {
@@ -320,36 +329,70 @@ impl CloudLayout {
         }
     }
 
-    /// Reads the points of `data` in order, one call per point (`data` as checked by
-    /// [`CloudLayout::of`]): the fast path of an unordered little-endian FLOAT32 cloud walks the
-    /// bytes point by point; any other layout indexes [`CloudLayout::point`].
-    pub fn reader<'d>(&self, data: &'d [u8]) -> impl FnMut() -> [f32; 3] + 'd + use<'d> {
-        let me = *self;
-        let fast = !me.float64 && !me.big_endian && me.height <= 1;
-        let (mut i, mut off) = (0usize, 0usize);
-        let [ox, oy, oz] = me.offsets;
-        move || {
-            if fast {
-                let p = &data[off..off + me.point_step];
-                off += me.point_step;
-                let f = |o: usize| f32::from_le_bytes([p[o], p[o + 1], p[o + 2], p[o + 3]]);
-                [f(ox), f(oy), f(oz)]
-            } else {
-                i += 1;
-                me.point(data, i - 1)
+    /// Writes every point of `data` into `out` (as many as both hold); returns how many.
+    pub fn read_into<T: From<[f32; 3]>>(&self, data: &[u8], out: &mut [T]) -> usize {
+        self.fill(data, out, |o, p| *o = T::from(p))
+    }
+
+    /// Calls `put(slot, point)` for every point of `data` with its slot of `out`, in order, as
+    /// many as both hold (every point of a cloud checked by [`CloudLayout::of`] when `out` holds
+    /// [`CloudLayout::len`]); returns how many. The fast path walks an unordered little-endian
+    /// FLOAT32 cloud's bytes in fixed steps; any other layout indexes [`CloudLayout::point`].
+    #[inline]
+    pub fn fill<T>(&self, data: &[u8], out: &mut [T], mut put: impl FnMut(&mut T, [f32; 3])) -> usize {
+        let n = self.len().min(out.len());
+        if self.is_fast() {
+            let [ox, oy, oz] = self.offsets;
+            let mut written = 0;
+            for (slot, p) in out[..n].iter_mut().zip(data.chunks_exact(self.point_step)) {
+                put(slot, [read_f32(p, ox), read_f32(p, oy), read_f32(p, oz)]);
+                written += 1;
+            }
+            written
+        } else {
+            for (i, slot) in out[..n].iter_mut().enumerate() {
+                put(slot, self.point(data, i));
+            }
+            n
+        }
+    }
+
+    /// Calls `f(index, point)` for every point of `data`, in order.
+    #[inline]
+    pub fn for_each_point(&self, data: &[u8], mut f: impl FnMut(usize, [f32; 3])) {
+        if self.is_fast() {
+            let [ox, oy, oz] = self.offsets;
+            for (i, p) in data.chunks_exact(self.point_step).take(self.len()).enumerate() {
+                f(i, [read_f32(p, ox), read_f32(p, oy), read_f32(p, oz)]);
+            }
+        } else {
+            for i in 0..self.len() {
+                f(i, self.point(data, i));
             }
         }
     }
 
+    /// An unordered little-endian FLOAT32 cloud (walked in fixed steps).
+    fn is_fast(&self) -> bool {
+        !self.float64 && !self.big_endian && self.height <= 1 && self.point_step > 0
+    }
+
     /// How many points of `data` are finite.
     pub fn count_finite(&self, data: &[u8]) -> usize {
-        let mut next = self.reader(data);
-        (0..self.len()).filter(|_| next().iter().all(|v| v.is_finite())).count()
+        let mut n = 0;
+        self.for_each_point(data, |_, p| n += usize::from(p.iter().all(|v| v.is_finite())));
+        n
     }
 
     /// The indices of the finite points of `data`.
     pub fn finite_indices(&self, data: &[u8]) -> Vec<u32> {
-        (0..self.len() as u32).filter(|&i| self.point(data, i as usize).iter().all(|v| v.is_finite())).collect()
+        let mut keep = Vec::with_capacity(self.len());
+        self.for_each_point(data, |i, p| {
+            if p.iter().all(|v| v.is_finite()) {
+                keep.push(i as u32);
+            }
+        });
+        keep
     }
 
     /// The finite points of `data`, in order (NaN / Inf points of a non-dense cloud skipped).
@@ -696,6 +739,25 @@ mod tests {
         assert_eq!(layout.len(), 4);
         let pts: Vec<_> = layout.finite_points(msg.data.as_slice()).collect();
         assert_eq!(pts, vec![[0.0, 10.0, 20.0], [1.0, 11.0, 21.0], [3.0, 13.0, 23.0]]);
+        assert_eq!(
+            (layout.count_finite(msg.data.as_slice()), layout.finite_indices(msg.data.as_slice())),
+            (3, vec![0, 1, 3])
+        );
+        // The same points as one unordered row (the one-pass path): `fill` reads what `point` does.
+        let mut flat = vec![0u8; 80];
+        for i in 0..4 {
+            let src = (i / 2) * 48 + (i % 2) * 20;
+            flat[i * 20..i * 20 + 20].copy_from_slice(&msg.data.as_slice()[src..src + 20]);
+        }
+        let row = PointCloud2 { height: 1, width: 4, row_step: 80, data: Bytes::owned(flat), ..msg.clone() };
+        let l = CloudLayout::of(&row).unwrap();
+        let mut out = vec![[0f32; 3]; 4];
+        assert_eq!(l.fill(row.data.as_slice(), &mut out, |o, p| *o = p), 4);
+        for (i, o) in out.iter().enumerate() {
+            let p = layout.point(msg.data.as_slice(), i);
+            assert!(o.iter().zip(&p).all(|(a, b)| a == b || a.is_nan() && b.is_nan()), "{i}: {o:?} vs {p:?}");
+        }
+        assert_eq!(l.count_finite(row.data.as_slice()), 3);
         msg.data = Bytes::owned(vec![0; 60]);
         assert!(CloudLayout::of(&msg).unwrap_err().to_string().contains("truncated"));
         msg.fields.pop();

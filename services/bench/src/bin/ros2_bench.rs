@@ -14,6 +14,9 @@
 //!   sample, the send);
 //! - **hop**: sent → the consumer took it (iceoryx2, from the run's latency.csv).
 //!
+//! A second gateway in the run publishes grid SLAM's `/map`, pose and `/tf` back on ROS 2; for
+//! each it prints pipeline publish → DDS publish (the target: `/map` within 100 ms of the grid).
+//!
 //! All clocks are this machine's. Everything runs in a network namespace of its own (needs root):
 //! DDS discovery never reaches the machine's interfaces.
 
@@ -97,7 +100,7 @@ out_dir = "{out}"
 iceoryx_prefix = "r2bench{pid}_"
 iceoryx_root = "{out}/iox"
 end = "end_of_stream"
-end_of_stream_from = ["slam2d", "monitor"]
+end_of_stream_from = ["slam2d", "monitor", "ros_out"]
 status_interval_s = 5.0
 
 [processes.slam2d]
@@ -121,6 +124,22 @@ in = [
   {{ topic = "/scan", service = "laser" }},
   {{ topic = "/odom", service = "planar_odometry" }},
   {{ topic = "/cloud", service = "cloud", {reliable} }},
+]
+
+# Grid SLAM's outputs back out on ROS 2, as config/ros2_laser.toml publishes them: the time from
+# the grid (the pose) being published in the pipeline to the ROS 2 message being published.
+[processes.ros_out]
+kind = "ros2"
+after = ["slam2d"]
+[processes.ros_out.settings]
+insecure = true
+node_name = "slam_pipeline_out"
+end_after = ["slam2d"]
+linger_s = 0.2
+out = [
+  {{ what = "map" }},
+  {{ what = "grid_slam_pose" }},
+  {{ what = "tf", from = "grid_slam", odom = "planar_odometry" }},
 ]
 "#,
         out = dir.join("out").display(),
@@ -347,6 +366,21 @@ fn run_inner(cli: &Cli) -> anyhow::Result<()> {
             c["counts"]["port_failed"],
         );
     }
+    println!("\npipeline → ROS 2 (grid SLAM's outputs; pipeline publish → DDS publish, ms)");
+    println!("{:<16} {:>9} {:>8} {:>8} {:>8} {:>6}", "topic", "published", "p50", "p99", "max", "lost");
+    for (topic, c) in summary["ros2"]["ros_out"]["out"].as_object().into_iter().flatten() {
+        let l = &c["latency_ms"];
+        let ms = |v: &serde_json::Value| format!("{:.3}", v.as_f64().unwrap_or(f64::NAN));
+        println!(
+            "{topic:<16} {:>9} {:>8} {:>8} {:>8} {:>6}",
+            c["published"],
+            ms(&l["p50"]),
+            ms(&l["p99"]),
+            ms(&l["max"]),
+            c["failed"].as_u64().unwrap_or(0) + c["not_recorded"].as_u64().unwrap_or(0)
+        );
+    }
+    println!("grids grid SLAM published: {}", summary["grid_slam"]["grids_published"]);
     let p = &summary["processes"]["ros_in"];
     println!(
         "pipeline inputs the gateway could not deliver to a consumer (full queue / not yet connected): {}",
