@@ -7,7 +7,8 @@ does. Run it inside the test's network namespace (CYCLONEDDS_URI confines it to 
   listen SECONDS TOPIC:KIND [TOPIC:KIND ...] [--until TOPIC=N ...]
       Subscribes (reliable; transient local for /map, /tf_static and the marker and voxel topics)
       and prints, as JSON, per topic the count and the main fields of the first and last messages.
-      KIND: odometry, pose, path, tf, map, cloud, markers. Ends after SECONDS, once every
+      KIND: odometry, pose, path, tf, map, cloud, markers, nodes (the DDS topic ros_discovery_info,
+      what `ros2 node list` reads: every ROS node seen, with its readers and writers). Ends after SECONDS, once every
       --until topic has N messages, or on SIGINT / SIGTERM.
   carmen LOG [--max-scans N] [--rate-x K]
       Publishes a CARMEN log's FLASER lines as /scan (sensor_msgs/LaserScan) and /odom
@@ -291,7 +292,28 @@ class MarkerArray(IdlStruct, typename=T("visualization_msgs/msg/MarkerArray")):
     markers: sequence[Marker] = field(default_factory=list)
 
 
+@dataclass
+class Gid(IdlStruct, typename=T("rmw_dds_common/msg/Gid")):
+    data: array[uint8, 16] = field(default_factory=lambda: [0] * 16)
+
+
+@dataclass
+class NodeEntitiesInfo(IdlStruct, typename=T("rmw_dds_common/msg/NodeEntitiesInfo")):
+    node_namespace: str = ""
+    node_name: str = ""
+    reader_gid_seq: sequence[Gid] = field(default_factory=list)
+    writer_gid_seq: sequence[Gid] = field(default_factory=list)
+
+
+@dataclass
+class ParticipantEntitiesInfo(IdlStruct, typename=T("rmw_dds_common/msg/ParticipantEntitiesInfo")):
+    """What `ros2 node list` reads: each participant's ROS nodes (DDS topic `ros_discovery_info`)."""
+    gid: Gid = field(default_factory=Gid)
+    node_entities_info_seq: sequence[NodeEntitiesInfo] = field(default_factory=list)
+
+
 KINDS = {
+    "nodes": ParticipantEntitiesInfo,
     "odometry": Odometry,
     "pose": PoseWithCovarianceStamped,
     "path": Path,
@@ -300,7 +322,7 @@ KINDS = {
     "cloud": PointCloud2,
     "markers": MarkerArray,
 }
-LATCHED = {"map", "cloud", "markers"}
+LATCHED = {"map", "cloud", "markers", "nodes"}
 
 
 def qos(latched=False, depth=10, best_effort=False):
@@ -339,6 +361,9 @@ def brief(kind, m):
                 "fields": [[f.name, f.offset, f.datatype] for f in m.fields], "bytes": len(m.data)}
     if kind == "markers":
         return {"markers": [[mk.ns, mk.type, len(mk.points), mk.header.frame_id] for mk in m.markers]}
+    if kind == "nodes":
+        return {"nodes": [[n.node_namespace, n.node_name, len(n.reader_gid_seq), len(n.writer_gid_seq)]
+                          for n in m.node_entities_info_seq]}
     return {}
 
 
@@ -360,8 +385,12 @@ def listen(args):
     for name, kind in specs:
         cls = KINDS[kind]
         latched = kind in LATCHED or name == "/tf_static"
-        topic = Topic(dp, "rt" + name, cls, qos=qos(latched=latched, depth=1 if latched else 100))
-        readers.append((name, kind, DataReader(dp, topic, qos=qos(latched=latched, depth=1 if latched else 100))))
+        # ROS topics are `rt/<name>` on DDS; `ros_discovery_info` (kind nodes) is a DDS topic as is.
+        dds_name = name if kind == "nodes" else "rt" + name
+        # One participant per gateway publishes on the keyless ros_discovery_info: keep them all.
+        depth = 1 if latched and kind != "nodes" else 100
+        topic = Topic(dp, dds_name, cls, qos=qos(latched=latched, depth=depth))
+        readers.append((name, kind, DataReader(dp, topic, qos=qos(latched=latched, depth=depth))))
     out = {name: {"count": 0} for name, _, _ in readers}
     end = time.monotonic() + seconds
     stop = []
@@ -379,6 +408,11 @@ def listen(args):
                 b = brief(kind, m)
                 o.setdefault("first", b)
                 o["last"] = b
+                if kind == "nodes":  # every node seen, with its most readers and writers
+                    seen = o.setdefault("nodes", {})
+                    for ns, n, r, w in b["nodes"]:
+                        k = ns.rstrip("/") + "/" + n
+                        seen[k] = [max(r, seen.get(k, [0, 0])[0]), max(w, seen.get(k, [0, 0])[1])]
         if until and all(out[t]["count"] >= n for t, n in until.items()):
             break
         if not got:

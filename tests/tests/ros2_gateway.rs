@@ -111,6 +111,7 @@ in = [
             "/slam/grid/path:path",
             "/tf:tf",
             "/tf_static:tf",
+            "ros_discovery_info:nodes",
         ],
     );
     let pid = run.spawn(&mut { listen }).id();
@@ -153,6 +154,11 @@ in = [
     assert_eq!(tf, 2 * SCANS as u64, "{heard}");
     let statics = &heard["/tf_static"]["last"]["transforms"][0];
     assert_eq!((&statics[0], &statics[1]), (&"base_link".into(), &"laser".into()), "{heard}");
+    // Both gateways are ROS nodes as `ros2 node list` finds them (rmw's ros_discovery_info), with
+    // their DDS endpoints: slam_out's 4 routes and /tf_static, slam_in's 2 readers.
+    let nodes = &heard["ros_discovery_info"]["nodes"];
+    assert!(nodes["/slam_out"][1].as_u64().unwrap_or(0) >= 5, "{nodes}");
+    assert!(nodes["/slam_in"][0].as_u64().unwrap_or(0) >= 2, "{nodes}");
 
     // The same scans from the file: the same relations score (the issue allows 10 %).
     let mut file_run = TestRun::new("ros2gwfile");
