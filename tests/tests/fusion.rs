@@ -61,8 +61,18 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     let inserted = c["clouds_inserted"].as_u64().unwrap();
     let dropped = c["clouds_dropped_behind"].as_u64().unwrap() + c["clouds_dropped_no_pose"].as_u64().unwrap();
     let sent = s["ingest"]["messages"]["cloud"].as_u64().unwrap();
-    assert_eq!(c["clouds_missed"], 0, "{m:#}");
-    assert_eq!(inserted + dropped, sent, "every cloud inserted or counted as dropped: {m:#}");
+    // On failure: the mapper's process record (restarts, last exit) and what the log says of it.
+    let why = || {
+        let log: Vec<String> =
+            t.log().lines().filter(|l| l.contains("[map]") || l.contains("process=map")).map(String::from).collect();
+        format!(
+            "{m:#}\nprocess: {:#}\nlog (map, last 40 lines):\n{}",
+            s["processes"]["map"],
+            log[log.len().saturating_sub(40)..].join("\n")
+        )
+    };
+    assert_eq!(c["clouds_missed"], 0, "{}", why());
+    assert_eq!(inserted + dropped, sent, "every cloud inserted or counted as dropped: {}", why());
     assert!(inserted * 100 >= sent * 98, "{inserted} of {sent} clouds inserted: {m:#}");
     let listed: u64 = s["dropped"]
         .as_array()
