@@ -314,6 +314,7 @@ impl Stage for OctreeMapperStage {
                 voxel_stream.request_snapshot();
             }
             if (target.is_empty() || target == rt.name()) && c.command == COMMAND_CHECKPOINT {
+                let _alive = rt.hold_heartbeat(); // writing a large tree: seconds, not a hang
                 let path = out_dir.join("map.bt");
                 std::fs::create_dir_all(&*out_dir)?;
                 st.tree.write_binary_file(&path).map_err(StageError::stage)?;
@@ -340,7 +341,11 @@ impl Stage for OctreeMapperStage {
         }
         if checkpoint_every.is_some_and(|e| last_checkpoint.elapsed() >= e) && !inputs_ended {
             *last_checkpoint = Instant::now();
-            rt.state().snapshot(CHECKPOINT, &st.checkpoint()?)?;
+            // Serialising and writing the whole tree takes seconds on a large map on a loaded
+            // machine: bounded work, not a hang, so the heartbeat goes on meanwhile.
+            let _alive = rt.hold_heartbeat();
+            let bytes = st.checkpoint()?;
+            rt.state().snapshot(CHECKPOINT, &bytes)?;
         }
         if stats_every.is_some_and(|e| last_stats.elapsed() >= e) {
             *last_stats = Instant::now();
@@ -348,6 +353,7 @@ impl Stage for OctreeMapperStage {
         }
         if voxels_every.is_some_and(|e| last_voxels.elapsed() >= e) {
             *last_voxels = Instant::now();
+            let _alive = rt.hold_heartbeat(); // a full set walks the whole tree
             send_voxels(voxels_out, voxel_stream, st, None, *last_stamp)?;
         }
         Ok(if queue_empty && st.pending.is_empty() { Step::Idle } else { Step::Pending })
@@ -363,7 +369,9 @@ impl Stage for OctreeMapperStage {
                 ),
                 Ok(traj) if !traj.is_empty() => {
                     std::fs::create_dir_all(&self.out_dir)?;
+                    let alive = rt.hold_heartbeat();
                     self.st.tree.write_binary_file(self.out_dir.join("map_live.bt")).map_err(StageError::stage)?;
+                    drop(alive);
                     let t0 = Instant::now();
                     let (st, name) = (&mut self.st, &self.settings.rebuild_from);
                     // Heartbeats go on while the clouds are re-inserted (seconds on a long run).
@@ -403,6 +411,7 @@ impl Stage for OctreeMapperStage {
             }
             let header = MsgHeader { stamp_ns: self.last_stamp, ..Default::default() };
             self.stats_out.send_value(header, stats_msg(&self.st, d.regions.len() as u32, d.obstacles.len() as u32))?;
+            let _alive = rt.hold_heartbeat();
             send_voxels(&mut self.voxels_out, &mut self.voxel_stream, &mut self.st, Some(voxels), self.last_stamp)?;
             part["octree_mapper"]["voxel_stream"] = voxel_stream_summary(&self.voxel_stream);
             return Ok(part);
@@ -411,7 +420,9 @@ impl Stage for OctreeMapperStage {
         // Stopped before the end of stream: the map so far (the navigable-space layers take
         // seconds on a large map and are written only at the end of stream).
         std::fs::create_dir_all(&self.out_dir)?;
+        let alive = rt.hold_heartbeat();
         st.tree.write_binary_file(self.out_dir.join("map.bt")).map_err(StageError::stage)?;
+        drop(alive);
         let (occ, free) = st.tree.num_occupied_free_leaves();
         tracing::info!(clouds = st.counters.clouds_inserted, "stopped early: map.bt written");
         Ok(serde_json::json!({ "octree_mapper": {
