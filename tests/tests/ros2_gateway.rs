@@ -82,6 +82,7 @@ out = [
   {{ what = "grid_slam_odometry", topic = "/slam/grid/odometry" }},
   {{ what = "grid_slam_path" }},
   {{ what = "tf", from = "grid_slam", odom = "planar_odometry" }},
+  {{ what = "grid_slam_pose", topic = "/pose" }},
 ]
 static_transforms = [{{ parent = "base_link", child = "laser", xyz_m = [0.1, 0.0, 0.3] }}]
 
@@ -137,6 +138,8 @@ in = [
     assert_eq!(out["/slam/grid/odometry"]["published"], SCANS, "{out}");
     assert_eq!(out["/tf"]["published"], 2 * SCANS, "odom -> base_link and map -> odom per scan: {out}");
     assert_eq!(s["ros2"]["ros_out"]["not_carried"], 0);
+    // Nobody subscribes to /pose: nothing is published on it, every pose is counted.
+    assert_eq!((&out["/pose"]["published"], &out["/pose"]["no_subscriber"]), (&0.into(), &SCANS.into()), "{out}");
 
     // What Cyclone received.
     assert_eq!(heard["/slam/grid/odometry"]["count"], SCANS, "{heard}");
@@ -239,7 +242,8 @@ fn the_main_jobs_outputs_reach_a_cyclone_subscriber_near_the_ground_truth() {
     let cfg = run.write_config(
         "end = \"end_of_stream\"\nend_of_stream_from = [\"monitor\", \"slam\", \"buoy\", \"sync\", \"fusion\", \"map\", \"ros\"]",
         &format!(
-            "extends = \"{}\"\n[processes.ingest.settings.sim.mission]\nmax_duration_s = 40.0\n",
+            "extends = \"{}\"\n[processes.ingest.settings.sim.mission]\nmax_duration_s = 40.0\n\
+             [processes.ros.settings]\nrecord_bag = \"ros2_bag\"\nrecord_bag_compression = \"lz4\"\n",
             ros2.canonicalize().unwrap().display()
         ),
     );
@@ -306,8 +310,8 @@ fn the_main_jobs_outputs_reach_a_cyclone_subscriber_near_the_ground_truth() {
     assert_eq!(statics, 5, "four mounts and map -> odom: {heard}");
     assert_eq!(heard["/tf"]["last"]["transforms"][0][0], "odom");
 
-    // The gateway's ROS 2 bag (`record_bag`), read by Python `rosbags`: every message it
-    // published, each decoded.
+    // The gateway's ROS 2 bag (`record_bag`, LZ4 chunks), read by Python `rosbags`: every
+    // message it published, each decoded.
     let bag = run.out_dir().join("ros2_bag");
     let o = Command::new("python3")
         .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("python/rosbags_interop.py"))
@@ -318,7 +322,9 @@ fn the_main_jobs_outputs_reach_a_cyclone_subscriber_near_the_ground_truth() {
     assert!(o.status.success(), "rosbags cannot read {}: {}", bag.display(), String::from_utf8_lossy(&o.stderr));
     let read: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     for (topic, r) in gw["out"].as_object().unwrap() {
-        assert_eq!(read[topic]["count"], r["published"], "{topic}: {read}");
+        // Published, or (nobody subscribed yet, or at all: /slam/local/path) only written.
+        let routed = r["published"].as_u64().unwrap() + r["no_subscriber"].as_u64().unwrap();
+        assert_eq!(read[topic]["count"], routed, "{topic}: {read}");
         assert_eq!(read[topic]["type"], r["type"], "{topic}");
     }
     assert_eq!(read["/tf_static"]["first"]["transforms"].as_array().unwrap().len(), 5, "{read}");

@@ -14,7 +14,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use ros2_interop::out::{Emitted, Frames, OutRoute, StaticTransform, Translator};
-use ros2_interop::{BagWriter, Message, msgs::TFMessage};
+use ros2_interop::{BagCompression, BagWriter, Message, msgs::TFMessage};
 use serde::{Deserialize, Serialize};
 use shared_types::services::*;
 use shared_types::{
@@ -40,6 +40,9 @@ pub struct Ros2Recording {
     /// Fixed transforms written once on `/tf_static` (the sensor mounts).
     #[serde(default)]
     pub static_transforms: Vec<StaticTransform>,
+    /// Chunk compression of the bag: "zstd" (level 1, as `ros2 bag record`), "lz4" or "none".
+    #[serde(default)]
+    pub compression: BagCompression,
 }
 
 fn default_dir() -> String {
@@ -135,7 +138,7 @@ impl Ros2Sink {
             service: dir.display().to_string(),
             what: e.to_string(),
         };
-        let mut bag = BagWriter::create(dir).map_err(bag_err)?;
+        let mut bag = BagWriter::create_with(dir, s.compression).map_err(bag_err)?;
         for r in &s.out {
             bag.add_topic(r.topic(), r.what.ros_type(), r.qos().bag()).map_err(bag_err)?;
         }

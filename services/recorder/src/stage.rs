@@ -63,6 +63,16 @@ impl RecorderStage {
     fn create(&mut self) -> Result<(), StageError> {
         if let Some((options, metadata)) = self.to_create.take() {
             if let (Some(dir), Some(r)) = (&self.ros2_dir, &self.settings.ros2) {
+                // A restarted instance moved the killed one's bag aside in `restore`.
+                if !pipeline_runtime::restart::is_restart()
+                    && let ros2_interop::NewBag::ReplacedEarlierRun { removed } =
+                        ros2_interop::prepare_bag_dir(dir, false).map_err(|e| crate::RecorderError::Message {
+                            service: dir.display().to_string(),
+                            what: e.to_string(),
+                        })?
+                {
+                    tracing::info!(dir = %dir.display(), "replacing an earlier run's ROS 2 bag ({} directory(ies) removed)", removed.len());
+                }
                 let sink = crate::Ros2Sink::create(dir, r, self.settings.queue_messages)?;
                 tracing::info!(dir = %dir.display(), topics = r.out.len(), "recording a ROS 2 bag");
                 self.ros2 = Some(sink);
@@ -244,13 +254,10 @@ impl Stage for RecorderStage {
             );
             self.earlier_parts.push(part.display().to_string());
         }
-        if let Some(dir) = self.ros2_dir.as_ref().filter(|d| d.exists()) {
-            let name = dir.file_name().and_then(|s| s.to_str()).unwrap_or("ros2_bag").to_string();
-            let part = (1..)
-                .map(|k| dir.with_file_name(format!("{name}.part{k}")))
-                .find(|p| !p.exists())
-                .expect("some part number is free");
-            std::fs::rename(dir, &part)?;
+        if let Some(dir) = self.ros2_dir.as_ref()
+            && let ros2_interop::NewBag::KeptKilledInstance { part } = ros2_interop::prepare_bag_dir(dir, true)
+                .map_err(|e| StageError::stage(crate::RecorderError::Message { service: dir.display().to_string(), what: e.to_string() }))?
+        {
             tracing::warn!(dir = %part.display(), "restarted: the killed instance's ROS 2 bag is kept as {}", part.display());
             self.earlier_ros2_parts.push(part.display().to_string());
         }

@@ -3,13 +3,11 @@
 //! cloud and marker arrays as snapshots at most `max_rate_hz`), which each route publishes on DDS
 //! and, with `record_bag`, writes into a rosbag2 bag.
 
-use std::cell::RefCell;
-use std::rc::Rc;
 use std::time::Instant;
 
 use pipeline_runtime::{Input, Output, Runtime, StageError};
 use ros2_client::Publisher;
-use ros2_interop::BagWriter;
+use ros2_interop::{BagCompression, BagSink, BagWriter};
 use ros2_interop::msgs::*;
 use ros2_interop::out::{Emitted, RosOut, Translator};
 use serde::Serialize;
@@ -69,6 +67,10 @@ pub struct OutCounts {
     pub failed: u64,
     /// Published but not written into the ROS 2 bag (`record_bag`).
     pub not_recorded: u64,
+    /// Not published because no subscriber was matched (DDS would have delivered them to
+    /// nobody; a snapshot route publishes its newest at once when one comes). With a bag they
+    /// are still written into it.
+    pub no_subscriber: u64,
     /// Subscribers matched at the end (from DDS discovery's matching events).
     pub subscribers: usize,
     /// Remote subscribers whose QoS cannot match this route's (they get nothing).
@@ -89,6 +91,10 @@ pub struct OutRoute {
     pub latency: crate::inbound::Hist,
     /// The remote readers matched to the writer now.
     pub remotes: std::collections::BTreeSet<ros2_client::dds::rustdds::GUID>,
+    /// Whether a reader was matched at the last look (a new one gets the newest snapshot).
+    was_heard: bool,
+    /// Messages written into the bag but not published: no reader matched.
+    bag_only: u64,
 }
 
 impl OutRoute {
@@ -116,6 +122,8 @@ impl OutRoute {
             warned: false,
             latency: Default::default(),
             remotes: Default::default(),
+            was_heard: false,
+            bag_only: 0,
         })
     }
 
@@ -154,18 +162,23 @@ impl OutRoute {
     }
 
     /// Publishes what the translator emitted for this route (and writes it into the bag).
-    fn publish(&mut self, e: Emitted, bag: Option<&Rc<RefCell<BagWriter>>>) {
+    fn publish(&mut self, e: Emitted, bag: Option<&mut BagSink>) {
         if let Some(bag) = bag {
             let written = e
                 .msg
                 .encode()
                 .map_err(|e| e.to_string())
-                .and_then(|b| bag.borrow_mut().write(self.cfg.topic(), unix_ns(), &b).map_err(|e| e.to_string()));
+                .and_then(|b| bag.write(self.cfg.topic(), unix_ns(), b).map_err(|e| e.to_string()));
             if let Err(why) = written {
                 self.counts.not_recorded += 1;
                 if self.counts.not_recorded == 1 {
                     tracing::warn!(topic = %self.cfg.topic(), "writing the ROS 2 bag failed: {why} (counted in summary.json; warned once)");
                 }
+            }
+            if self.remotes.is_empty() {
+                // In the bag, and to nobody on DDS: RustDDS would keep it in the writer's history.
+                self.bag_only += 1;
+                return;
             }
         }
         let r = match (&self.publisher, e.msg) {
@@ -215,6 +228,10 @@ struct OutInputs {
     commands: Option<Output<ControlCommand, MsgHeader>>,
 }
 
+/// Bytes of messages that may wait for the bag writer thread (about 20 of the main job's full
+/// voxel clouds); a message beyond is not written and is counted (`bag.refused`).
+pub const BAG_QUEUE_BYTES: usize = 256 << 20;
+
 /// The whole `out` direction.
 pub struct Outbound {
     /// The routes.
@@ -222,8 +239,9 @@ pub struct Outbound {
     inputs: OutInputs,
     translator: Translator,
     emitted: Vec<Emitted>,
-    /// The ROS 2 bag every out route's messages are also written into (`record_bag`).
-    pub bag: Option<Rc<RefCell<BagWriter>>>,
+    /// The ROS 2 bag every out route's messages are also written into (`record_bag`), on a
+    /// thread of its own.
+    pub bag: Option<BagSink>,
 }
 
 impl Outbound {
@@ -262,13 +280,23 @@ impl Outbound {
     }
 
     /// Records every route's messages into a new ROS 2 bag at `dir` (each topic declared with
-    /// the route's type and QoS).
-    pub fn record_into(&mut self, dir: &std::path::Path) -> Result<(), ros2_interop::BagError> {
-        let mut bag = BagWriter::create(dir)?;
+    /// the route's type and QoS, and `/tf_static` when `static_tf`), written on a thread of its
+    /// own with at most [`BAG_QUEUE_BYTES`] waiting for it.
+    pub fn record_into(
+        &mut self,
+        dir: &std::path::Path,
+        compression: BagCompression,
+        static_tf: bool,
+    ) -> Result<(), ros2_interop::BagError> {
+        let mut bag = BagWriter::create_with(dir, compression)?;
         for r in &self.routes {
             bag.add_topic(r.cfg.topic(), r.cfg.what.ros_type(), r.cfg.qos().bag())?;
         }
-        self.bag = Some(Rc::new(RefCell::new(bag)));
+        if static_tf {
+            let latched = ros2_interop::BagQos { reliable: true, transient_local: true, depth: 1 };
+            bag.add_topic("/tf_static", ros2_interop::msgs::TFMessage::TYPE_NAME, latched)?;
+        }
+        self.bag = Some(BagSink::spawn(bag, BAG_QUEUE_BYTES)?);
         Ok(())
     }
 
@@ -286,17 +314,36 @@ impl Outbound {
     fn publish_emitted(&mut self) {
         for e in self.emitted.drain(..) {
             if let Some(r) = self.routes.get_mut(e.route) {
-                r.publish(e, self.bag.as_ref());
+                r.publish(e, self.bag.as_mut());
             }
         }
         for (i, r) in self.routes.iter_mut().enumerate() {
             r.counts.taken = self.translator.route_taken(i);
             r.counts.coalesced = self.translator.route_coalesced(i);
+            r.counts.no_subscriber = self.translator.route_not_emitted_unheard(i) + r.bag_only;
+        }
+    }
+
+    /// Tells the translator which routes anybody listens to: a route with a matched subscriber,
+    /// or every route while a bag is written. A route nobody listens to builds and publishes
+    /// nothing (as a ROS node that checks its subscriber count); this also keeps RustDDS from
+    /// holding every sample of a writer that has no reader (it frees a writer's history only
+    /// as readers acknowledge it).
+    fn listeners(&mut self) {
+        let bag = self.bag.is_some();
+        for (i, r) in self.routes.iter_mut().enumerate() {
+            let heard = !r.remotes.is_empty();
+            if heard && !r.was_heard {
+                self.translator.resend(i);
+            }
+            r.was_heard = heard;
+            self.translator.set_listened(i, bag || heard);
         }
     }
 
     /// Reads every input and publishes; returns the earliest time a kept snapshot is due.
     pub fn pump(&mut self) -> Result<Option<Instant>, StageError> {
+        self.listeners();
         let (t, out) = (&mut self.translator, &mut self.emitted);
         // Odometry first: a pose's `map → odom` needs the odometry of its stamp.
         if let Some(i) = &self.inputs.odometry {

@@ -57,6 +57,10 @@ pub struct Ros2Settings {
     /// Python `rosbags` read; empty: no bag.
     #[serde(default)]
     pub record_bag: String,
+    /// The bag's chunk compression: "zstd" (level 1, as `ros2 bag record`), "lz4" (faster, larger)
+    /// or "none".
+    #[serde(default)]
+    pub record_bag_compression: ros2_interop::BagCompression,
     /// At the end, keep the node up this long so that reliable subscribers get the last
     /// messages, s.
     #[serde(default = "default_linger")]

@@ -43,7 +43,7 @@ impl Ros2Stage {
     fn static_tf(
         node: &mut RosNode,
         s: &Ros2Settings,
-        bag: Option<&std::rc::Rc<RefCell<ros2_interop::BagWriter>>>,
+        bag: Option<&mut ros2_interop::BagSink>,
     ) -> Result<(Option<Publisher<TFMessage>>, usize), StageError> {
         let Some(msg) = ros2_interop::out::static_tf(&s.static_transforms, &s.out, &s.frames) else {
             return Ok((None, 0));
@@ -53,11 +53,8 @@ impl Ros2Stage {
             node.node.create_publisher(&topic, None).map_err(|e| stage_err(err("publisher on `/tf_static`")(&e)))?;
         let n = msg.transforms.len();
         if let Some(bag) = bag {
-            let mut bag = bag.borrow_mut();
-            let latched = ros2_interop::BagQos { reliable: true, transient_local: true, depth: 1 };
-            bag.add_topic("/tf_static", TFMessage::TYPE_NAME, latched).map_err(StageError::stage)?;
             let bytes = ros2_interop::cdr::encode(&msg).map_err(StageError::stage)?;
-            bag.write("/tf_static", unix_now_ns(), &bytes).map_err(StageError::stage)?;
+            bag.write("/tf_static", unix_now_ns(), bytes).map_err(StageError::stage)?;
         }
         publisher.publish(msg).map_err(|e| stage_err(err("publishing `/tf_static`")(&e)))?;
         Ok((Some(publisher), n))
@@ -153,15 +150,19 @@ impl Stage for Ros2Stage {
         let mut out = Outbound::open(rt, &mut node, &settings.out, &settings.frames)?;
         if !settings.record_bag.is_empty() {
             let dir = ctx.out_dir.join(&settings.record_bag);
-            if dir.exists() {
-                // A restarted instance, or a run into the same directory: keep what is there.
-                let mut n = 1;
-                while ctx.out_dir.join(format!("{}.part{n}", settings.record_bag)).exists() {
-                    n += 1;
+            match ros2_interop::prepare_bag_dir(&dir, pipeline_runtime::restart::is_restart())
+                .map_err(StageError::stage)?
+            {
+                ros2_interop::NewBag::Fresh => {}
+                ros2_interop::NewBag::ReplacedEarlierRun { removed } => {
+                    tracing::info!(dir = %dir.display(), "replacing an earlier run's ROS 2 bag ({} directory(ies) removed)", removed.len())
                 }
-                std::fs::rename(&dir, ctx.out_dir.join(format!("{}.part{n}", settings.record_bag)))?;
+                ros2_interop::NewBag::KeptKilledInstance { part } => {
+                    tracing::warn!(dir = %part.display(), "restarted: the killed instance's ROS 2 bag is kept as {}", part.display())
+                }
             }
-            out.record_into(&dir).map_err(StageError::stage)?;
+            let static_tf = ros2_interop::out::static_tf(&settings.static_transforms, &settings.out, &settings.frames).is_some();
+            out.record_into(&dir, settings.record_bag_compression, static_tf).map_err(StageError::stage)?;
         }
         let poll = crate::dds::new_poll().map_err(stage_err)?;
         let mut token = 0;
@@ -176,7 +177,7 @@ impl Stage for Ros2Stage {
         }
         crate::dds::register(&poll, &mut node.status, token, "discovery events").map_err(stage_err)?;
         let waker = Some(DdsWaker::start(poll, rt.waker()?).map_err(stage_err)?);
-        let (static_tf, static_transforms) = Self::static_tf(&mut node, &settings, out.bag.as_ref())?;
+        let (static_tf, static_transforms) = Self::static_tf(&mut node, &settings, out.bag.as_mut())?;
         let ins_text: Vec<String> = ins.iter().map(|r| format!("{} → {}", r.topic, r.counts.service)).collect();
         let outs_text: Vec<String> =
             out.routes.iter().map(|r| format!("{:?} → {}", r.cfg.what, r.cfg.topic())).collect();
@@ -256,11 +257,19 @@ impl Stage for Ros2Stage {
         for r in &mut self.out.routes {
             r.counts.subscribers = r.remotes.len();
         }
-        let bag = match &self.out.bag {
+        let bag = match self.out.bag.take() {
             Some(b) => {
-                let mut b = b.borrow_mut();
-                let dir = b.finish().map_err(StageError::stage)?;
-                serde_json::json!({ "dir": dir, "messages": b.counts() })
+                let report = b.finish().map_err(StageError::stage)?;
+                let refused: u64 = report.refused.values().sum();
+                if refused + report.write_errors > 0 {
+                    tracing::warn!(
+                        "ROS 2 bag {}: {refused} message(s) refused (the writer behind), {} not written ({}) (summary.json `bag`)",
+                        report.dir.display(),
+                        report.write_errors,
+                        report.first_error.as_deref().unwrap_or("-")
+                    );
+                }
+                serde_json::to_value(&report).unwrap_or_default()
             }
             None => serde_json::Value::Null,
         };

@@ -9,7 +9,8 @@
 //! - a file cut short ends where the cut is ([`BagWarts::truncated_files`]);
 //! - a message on a channel never declared, or not CDR-encoded, is skipped and counted.
 //!
-//! **Writing** ([`BagWriter`]): a bag directory with one zstd-chunked `.mcap` file (schemas as
+//! **Writing** ([`BagWriter`]): a bag directory with one chunked `.mcap` file (zstd at level 1 by
+//! default, as `ros2 bag record`'s MCAP writer; [`BagCompression`]; schemas as
 //! `ros2msg` from [`crate::schema`], messages `cdr`, the `ros2` profile, each channel's
 //! `offered_qos_profiles`) and its `metadata.yaml`, which `ros2 bag info` / `ros2 bag play`
 //! and Python `rosbags` read.
@@ -515,6 +516,32 @@ struct TopicCount {
     count: u64,
 }
 
+/// Chunk compression of a written bag. Each is one MCAP defines, read by `ros2 bag` and
+/// `rosbags`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BagCompression {
+    /// zstd at level 1: what `ros2 bag record -s mcap` writes by default (the MCAP library's
+    /// default level): faster than zstd's own default level 3, for somewhat more bytes.
+    #[default]
+    Zstd,
+    /// LZ4 frames: faster again than zstd level 1, for more bytes (README "ROS 2" has both
+    /// measured on the main job's bag).
+    Lz4,
+    /// Uncompressed chunks (CRC-checked).
+    None,
+}
+
+impl BagCompression {
+    fn mcap(self) -> (Option<mcap::Compression>, u32) {
+        match self {
+            BagCompression::Zstd => (Some(mcap::Compression::Zstd), 1),
+            BagCompression::Lz4 => (Some(mcap::Compression::Lz4), 0),
+            BagCompression::None => (None, 0),
+        }
+    }
+}
+
 /// Writes a rosbag2 MCAP bag directory (see the module docs).
 pub struct BagWriter {
     dir: PathBuf,
@@ -529,8 +556,13 @@ pub struct BagWriter {
 
 impl BagWriter {
     /// Creates the bag directory `dir` (it must not exist, as with `ros2 bag record -o`) with
-    /// `<dir name>_0.mcap` in it.
+    /// `<dir name>_0.mcap` in it, zstd-compressed (as `ros2 bag record`).
     pub fn create(dir: &Path) -> Result<Self, BagError> {
+        Self::create_with(dir, BagCompression::default())
+    }
+
+    /// [`BagWriter::create`] with the chunk compression given.
+    pub fn create_with(dir: &Path, compression: BagCompression) -> Result<Self, BagError> {
         if dir.exists() {
             return Err(BagError::NotABag {
                 path: dir.to_path_buf(),
@@ -545,7 +577,8 @@ impl BagWriter {
         let writer = mcap::WriteOptions::new()
             .profile("ros2")
             .library("slam_pipeline ros2_interop")
-            .compression(Some(mcap::Compression::Zstd))
+            .compression(compression.mcap().0)
+            .compression_level(compression.mcap().1)
             .create(BufWriter::with_capacity(1 << 20, file))
             .map_err(|source| BagError::Mcap { path: path.clone(), source })?;
         Ok(Self {
@@ -562,6 +595,11 @@ impl BagWriter {
 
     fn path(&self) -> PathBuf {
         self.dir.join(&self.file_name)
+    }
+
+    /// The bag directory.
+    pub fn dir(&self) -> &Path {
+        &self.dir
     }
 
     /// Declares `topic` of ROS 2 type `type_name` (its schema from [`crate::schema`]) with the

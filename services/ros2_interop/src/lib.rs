@@ -13,6 +13,7 @@
 //! recorder's ROS 2 bag and the `ros2` gateway are the processes that use it.
 
 pub mod bag;
+pub mod bag_sink;
 pub mod cdr;
 pub mod convert;
 pub mod msgs;
@@ -20,7 +21,8 @@ pub mod out;
 pub mod route;
 pub mod schema;
 
-pub use bag::{BagError, BagMessage, BagQos, BagReader, BagWarts, BagWriter};
+pub use bag::{BagCompression, BagError, BagMessage, BagQos, BagReader, BagWarts, BagWriter};
+pub use bag_sink::{BagReport, BagSink, NewBag, prepare_bag_dir};
 pub use cdr::{CdrError, decode, encode};
 pub use convert::ConvertError;
 pub use msgs::Message;

@@ -439,6 +439,10 @@ struct RouteState {
     taken: u64,
     coalesced: u64,
     emitted: u64,
+    /// False while nobody listens (no subscriber matched, no bag): nothing is emitted.
+    unheard: bool,
+    /// Messages not emitted because nobody listened.
+    not_emitted_unheard: u64,
 }
 
 /// The occupied voxels as the stream's full sets and deltas build them
@@ -585,15 +589,49 @@ impl Translator {
 
     /// Marks a snapshot route updated.
     fn touch(s: &mut RouteState) {
-        if s.due {
+        if s.due && !s.unheard {
             s.coalesced += 1;
         }
         s.due = true;
     }
 
     fn emit(out: &mut Vec<Emitted>, route: usize, s: &mut RouteState, msg: RosOut) {
+        if s.unheard {
+            s.not_emitted_unheard += 1;
+            return;
+        }
         s.emitted += 1;
         out.push(Emitted { route, msg, source_publish_ns: s.source_publish_ns });
+    }
+
+    /// Says whether anybody listens to route `route` (a subscriber matched, a bag written).
+    /// While nobody does, its messages are not emitted (counted,
+    /// [`Translator::route_not_emitted_unheard`]) and its snapshots are not built, as a ROS node
+    /// that checks its subscriber count; paths and maps are still kept, so the first listener
+    /// gets the newest snapshot at once.
+    pub fn set_listened(&mut self, route: usize, listened: bool) {
+        let is_snapshot = self.routes.get(route).is_some_and(|r| r.what.is_snapshot());
+        let Some(s) = self.state.get_mut(route) else { return };
+        if s.unheard && listened && is_snapshot {
+            s.due = true;
+            s.last_sent = None;
+        }
+        s.unheard = !listened;
+    }
+
+    /// Emits route `route`'s newest snapshot at the next [`Translator::flush`], whatever its
+    /// rate (a new subscriber came); nothing for a route of poses.
+    pub fn resend(&mut self, route: usize) {
+        let is_snapshot = self.routes.get(route).is_some_and(|r| r.what.is_snapshot());
+        if let Some(s) = self.state.get_mut(route).filter(|_| is_snapshot) {
+            s.due = true;
+            s.last_sent = None;
+        }
+    }
+
+    /// Messages of route `route` not emitted because nobody listened.
+    pub fn route_not_emitted_unheard(&self, route: usize) -> u64 {
+        self.state.get(route).map_or(0, |s| s.not_emitted_unheard)
     }
 
     /// `pipeline/sensors/planar_odometry` (`odom_from_body`): `/tf` `odom → base_link` on the
@@ -818,7 +856,7 @@ impl Translator {
         let mut next: Option<Instant> = None;
         for i in 0..self.routes.len() {
             let s = &self.state[i];
-            if !s.due {
+            if !s.due || s.unheard {
                 continue;
             }
             let due_at = match (s.period, s.last_sent) {
@@ -908,6 +946,30 @@ mod tests {
         assert_eq!((p.poses.len(), p.header.stamp.to_ns()), (3, Some(4)));
         assert_eq!(t.route_coalesced(1), 1, "the second update folded into the third");
         assert_eq!((t.route_taken(0), t.route_taken(1), t.taken()), (3, 3, 4));
+    }
+
+    #[test]
+    fn an_unheard_route_emits_nothing_keeps_its_path_and_its_first_listener_gets_it_at_once() {
+        let routes = [OutRoute::of(OutKind::FusedOdometry), OutRoute::of(OutKind::FusedPath)];
+        let mut t = Translator::new(&routes, &Frames::default());
+        t.set_listened(0, false);
+        t.set_listened(1, false);
+        let mut out = vec![];
+        for k in 1..=5 {
+            t.fused(k, k * 10, &fused(k as f64, true), &mut out);
+        }
+        assert!(t.flush(false, &mut out).is_none());
+        assert!(out.is_empty(), "{out:?}");
+        assert_eq!((t.route_not_emitted_unheard(0), t.route_coalesced(1)), (5, 0));
+        t.set_listened(1, true);
+        t.flush(false, &mut out);
+        let [Emitted { route: 1, msg: RosOut::Path(p), .. }] = &out[..] else { panic!("{out:?}") };
+        assert_eq!(p.poses.len(), 5, "the whole path so far");
+        out.clear();
+        t.set_listened(0, true);
+        t.fused(6, 60, &fused(6.0, true), &mut out);
+        assert_eq!(out.len(), 1, "odometry again once heard; the path is due later");
+        assert_eq!(t.route_not_emitted_unheard(0), 5);
     }
 
     #[test]

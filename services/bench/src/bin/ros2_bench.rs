@@ -206,12 +206,24 @@ fn run_inner(cli: &Cli) -> anyhow::Result<()> {
     let odom_p = node.create_publisher::<Odometry>(&odom_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
     let cloud_p =
         node.create_publisher::<PointCloud2<'static>>(&cloud_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    // Subscribers to the second gateway's outputs, as RViz would be: a route with no subscriber
+    // publishes nothing.
+    let map_t = topic(&mut node, "/map", OccupancyGrid::TYPE_NAME)?;
+    let pose_t = topic(&mut node, "/slam/grid/pose", PoseWithCovarianceStamped::TYPE_NAME)?;
+    let tf_t = topic(&mut node, "/tf", TFMessage::TYPE_NAME)?;
+    let _map_s = node
+        .create_subscription::<OccupancyGrid<'static>>(&map_t, None)
+        .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    let _pose_s =
+        node.create_subscription::<PoseWithCovarianceStamped>(&pose_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    let _tf_s = node.create_subscription::<TFMessage>(&tf_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
     let t0 = Instant::now();
-    // The gateway's readers, as DDS discovery knows them (ros2-client's matched counts need its
-    // spinner, which neither side runs).
+    // The gateways' readers and writers, as DDS discovery knows them (ros2-client's matched
+    // counts need its spinner, which neither side runs).
     while node.subscription_count("/scan") == 0
         || node.subscription_count("/odom") == 0
         || (cli.cloud_hz > 0.0 && node.subscription_count("/cloud") == 0)
+        || ["/map", "/slam/grid/pose", "/tf"].iter().any(|t| node.publisher_count(t) == 0)
     {
         if t0.elapsed() > Duration::from_secs(60) || sup.try_wait()?.is_some() {
             let _ = sup.kill();
