@@ -256,7 +256,12 @@ impl Stage for RecorderStage {
         }
         if let Some(dir) = self.ros2_dir.as_ref()
             && let ros2_interop::NewBag::KeptKilledInstance { part } = ros2_interop::prepare_bag_dir(dir, true)
-                .map_err(|e| StageError::stage(crate::RecorderError::Message { service: dir.display().to_string(), what: e.to_string() }))?
+                .map_err(|e| {
+                    StageError::stage(crate::RecorderError::Message {
+                        service: dir.display().to_string(),
+                        what: e.to_string(),
+                    })
+                })?
         {
             tracing::warn!(dir = %part.display(), "restarted: the killed instance's ROS 2 bag is kept as {}", part.display());
             self.earlier_ros2_parts.push(part.display().to_string());

@@ -7,9 +7,9 @@ use std::time::Instant;
 
 use pipeline_runtime::{Input, Output, Runtime, StageError};
 use ros2_client::Publisher;
-use ros2_interop::{BagCompression, BagSink, BagWriter};
 use ros2_interop::msgs::*;
 use ros2_interop::out::{Emitted, RosOut, Translator};
+use ros2_interop::{BagCompression, BagSink, BagWriter};
 use serde::Serialize;
 use shared_types::services::*;
 use shared_types::{

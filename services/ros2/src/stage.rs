@@ -161,7 +161,8 @@ impl Stage for Ros2Stage {
                     tracing::warn!(dir = %part.display(), "restarted: the killed instance's ROS 2 bag is kept as {}", part.display())
                 }
             }
-            let static_tf = ros2_interop::out::static_tf(&settings.static_transforms, &settings.out, &settings.frames).is_some();
+            let static_tf =
+                ros2_interop::out::static_tf(&settings.static_transforms, &settings.out, &settings.frames).is_some();
             out.record_into(&dir, settings.record_bag_compression, static_tf).map_err(StageError::stage)?;
         }
         let poll = crate::dds::new_poll().map_err(stage_err)?;

@@ -175,7 +175,15 @@ impl BagSink {
             .name("bag-writer".into())
             .spawn(move || write_all(rx, bag, q))
             .map_err(|source| BagError::Io { path: dir.clone(), source })?;
-        Ok(Self { dir, tx: Some(tx), queued_bytes, max_queued_bytes, topics, refused: BTreeMap::new(), thread: Some(thread) })
+        Ok(Self {
+            dir,
+            tx: Some(tx),
+            queued_bytes,
+            max_queued_bytes,
+            topics,
+            refused: BTreeMap::new(),
+            thread: Some(thread),
+        })
     }
 
     /// The bag directory.
@@ -267,7 +275,8 @@ mod tests {
 
     fn bag_at(dir: &Path) {
         let mut w = BagWriter::create(dir).unwrap();
-        w.add_topic("/a", "tf2_msgs/msg/TFMessage", BagQos { reliable: true, transient_local: false, depth: 10 }).unwrap();
+        w.add_topic("/a", "tf2_msgs/msg/TFMessage", BagQos { reliable: true, transient_local: false, depth: 10 })
+            .unwrap();
         w.finish().unwrap();
     }
 
@@ -306,7 +315,8 @@ mod tests {
         let root = tmp("sink");
         let dir = root.join("b");
         let mut w = BagWriter::create_with(&dir, crate::BagCompression::Lz4).unwrap();
-        w.add_topic("/a", "tf2_msgs/msg/TFMessage", BagQos { reliable: true, transient_local: false, depth: 10 }).unwrap();
+        w.add_topic("/a", "tf2_msgs/msg/TFMessage", BagQos { reliable: true, transient_local: false, depth: 10 })
+            .unwrap();
         let mut sink = BagSink::spawn(w, 1000).unwrap();
         let msg = crate::cdr::encode(&crate::msgs::TFMessage::default()).unwrap();
         for i in 0..50 {

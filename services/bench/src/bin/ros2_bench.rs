@@ -211,9 +211,8 @@ fn run_inner(cli: &Cli) -> anyhow::Result<()> {
     let map_t = topic(&mut node, "/map", OccupancyGrid::TYPE_NAME)?;
     let pose_t = topic(&mut node, "/slam/grid/pose", PoseWithCovarianceStamped::TYPE_NAME)?;
     let tf_t = topic(&mut node, "/tf", TFMessage::TYPE_NAME)?;
-    let _map_s = node
-        .create_subscription::<OccupancyGrid<'static>>(&map_t, None)
-        .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    let _map_s =
+        node.create_subscription::<OccupancyGrid<'static>>(&map_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
     let _pose_s =
         node.create_subscription::<PoseWithCovarianceStamped>(&pose_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
     let _tf_s = node.create_subscription::<TFMessage>(&tf_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
