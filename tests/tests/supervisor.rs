@@ -72,6 +72,13 @@ fn end_of_stream_ends_the_run_with_every_frame_verified() {
     assert_eq!(c["frames_ok"], 30, "{c}");
     assert_eq!(c["frames_missed"], 0, "{c}");
     assert_eq!(s["processes"]["producer"]["messages_out"], 31, "30 clouds + end of stream: {s:#}");
+    // The kernel's accounting of each reaped child: some CPU time, a resident set of a real
+    // process (more than 1 MiB, less than 1 GiB for this pair).
+    for p in ["producer", "consumer"] {
+        let (cpu, rss) = (&s["processes"][p]["cpu_s"], &s["processes"][p]["peak_rss_mib"]);
+        assert!(cpu.as_f64().is_some_and(|c| c > 0.0 && c < 60.0), "{p} cpu_s {cpu}");
+        assert!(rss.as_f64().is_some_and(|m| m > 1.0 && m < 1024.0), "{p} peak_rss_mib {rss}");
+    }
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
 }
 

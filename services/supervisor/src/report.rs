@@ -29,6 +29,8 @@ pub struct ProcessRow<'a> {
     pub last_exit: Option<&'a ExitInfo>,
     /// Latest statistics of each instance (by pid).
     pub reports: Vec<&'a StatsReport>,
+    /// CPU time and peak memory of its ended instances.
+    pub usage: crate::supervise::Usage,
 }
 
 /// What each process's outputs did not deliver, summed over its instances: (publisher,
@@ -137,6 +139,8 @@ pub fn summary(plan: &Plan, rows: &[ProcessRow<'_>], end: &EndReason, exit_code:
                     "last_exit": r.last_exit,
                     "messages_in": counts.0,
                     "messages_out": counts.1,
+                    "cpu_s": r.usage.cpu_s,
+                    "peak_rss_mib": r.usage.peak_rss_mib,
                 }),
             )
         })

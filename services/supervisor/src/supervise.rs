@@ -127,6 +127,38 @@ struct Child {
     rate: f64,
     reports: BTreeMap<u32, StatsReport>,
     stats_in: Input<[u8], MsgHeader>,
+    usage: Usage,
+}
+
+/// CPU time and peak memory of a process's ended instances, as the kernel accounts them when
+/// the supervisor reaps each one (`wait4`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct Usage {
+    /// User + system CPU time, s, summed over the instances.
+    pub cpu_s: f64,
+    /// The largest resident set size of any instance, MiB.
+    pub peak_rss_mib: f64,
+}
+
+/// `waitpid(pid, WNOHANG)` that also returns the child's resource usage once it has ended.
+fn wait_with_usage(pid: Pid) -> nix::Result<(WaitStatus, Usage)> {
+    let mut status: libc::c_int = 0;
+    // SAFETY: an all-zero rusage is a valid value of the plain C struct that wait4 fills.
+    let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: wait4 writes only into `status` and `ru`, both valid for the call.
+    let r = unsafe { libc::wait4(pid.as_raw(), &mut status, libc::WNOHANG, &mut ru) };
+    if r < 0 {
+        return Err(nix::errno::Errno::last());
+    }
+    if r == 0 {
+        return Ok((WaitStatus::StillAlive, Usage::default()));
+    }
+    let secs = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    let usage = Usage {
+        cpu_s: secs(ru.ru_utime) + secs(ru.ru_stime),
+        peak_rss_mib: ru.ru_maxrss as f64 / 1024.0, // KiB on Linux
+    };
+    Ok((WaitStatus::from_raw(pid, status)?, usage))
 }
 
 /// Why the run ended.
@@ -202,6 +234,7 @@ impl Supervisor {
                 rate: 0.0,
                 reports: BTreeMap::new(),
                 stats_in,
+                usage: Usage::default(),
             });
         }
         Ok(Self {
@@ -291,6 +324,7 @@ impl Supervisor {
                 restarts: c.restarts,
                 last_exit: c.last_exit.as_ref(),
                 reports: c.reports.values().collect(),
+                usage: c.usage,
             })
             .collect()
     }
@@ -389,8 +423,8 @@ impl Supervisor {
         let mut exited = false;
         for i in 0..self.children.len() {
             let Some(pid) = self.children[i].pid else { continue };
-            let status = match waitpid(pid, Some(WaitPidFlag::WNOHANG)) {
-                Ok(WaitStatus::StillAlive) => continue,
+            let (status, usage) = match wait_with_usage(pid) {
+                Ok((WaitStatus::StillAlive, _)) => continue,
                 Ok(s) => s,
                 Err(e) => {
                     tracing::error!(process = %self.children[i].plan.name, "waitpid: {e}");
@@ -398,6 +432,10 @@ impl Supervisor {
                 }
             };
             let c = &mut self.children[i];
+            if !matches!(status, WaitStatus::Stopped(..) | WaitStatus::Continued(_)) {
+                c.usage.cpu_s += usage.cpu_s;
+                c.usage.peak_rss_mib = c.usage.peak_rss_mib.max(usage.peak_rss_mib);
+            }
             let Some(info) = ExitInfo::from_status(status, c.kill_reason.take()) else { continue };
             c.pid = None;
             exited = true;
