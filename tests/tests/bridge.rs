@@ -29,6 +29,43 @@ fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0").expect("bind").local_addr().expect("addr").port()
 }
 
+/// The bridge's log lines above INFO (for a failure's message).
+fn link_lines(run: &TestRun) -> String {
+    run.log().lines().filter(|l| l.contains("[link]") && !l.contains(" INFO ")).collect::<Vec<_>>().join("\n")
+}
+
+/// Certificates made by `supervisor certs` (a CA and one per name) in a directory of the test's
+/// own, removed on drop.
+struct Certs(tempfile::TempDir);
+
+impl Certs {
+    fn new(names: &[&str], sans: &[&str]) -> Self {
+        let dir = tempfile::tempdir().expect("tmp");
+        let mut cmd = std::process::Command::new(pipeline_tests::bin("supervisor"));
+        cmd.arg("certs").arg("--dir").arg(dir.path()).args(["--days", "1"]);
+        for n in names {
+            cmd.args(["--name", n]);
+        }
+        for s in sans {
+            cmd.args(["--san", s]);
+        }
+        let out = cmd.output().expect("supervisor certs runs");
+        assert!(out.status.success(), "supervisor certs: {}", String::from_utf8_lossy(&out.stderr));
+        Self(dir)
+    }
+
+    /// `name`'s `tls` inline table (`extra`: more keys, e.g. `, receivers = ["base"]`).
+    fn tls(&self, name: &str, extra: &str) -> String {
+        let d = self.0.path();
+        format!(
+            "tls = {{ ca_certificate = {:?}, certificate = {:?}, private_key = {:?}{extra} }}",
+            d.join("ca.pem"),
+            d.join(format!("{name}.pem")),
+            d.join(format!("{name}.key"))
+        )
+    }
+}
+
 /// Messages of `topic` in an MCAP file: (origin_ns, publish_ns, user header after `MsgHeader` +
 /// payload).
 fn messages(path: &Path, topic: &str) -> Vec<(u64, u64, Vec<u8>)> {
@@ -67,7 +104,7 @@ send_end_of_stream = true
 kind = "bridge"
 after = ["rec"]
 [processes.link.settings]
-zenoh = {{ listen = ["tcp/127.0.0.1:{port}"] }}
+zenoh = {{ listen = ["tcp/127.0.0.1:{port}"], insecure = true }}
 in = [{ins}]
 "#
         ),
@@ -113,7 +150,7 @@ kind = "bridge"
 [processes.link.settings]
 robot = "r1"
 end_after = ["ingest"]
-zenoh = {{ connect = ["tcp/127.0.0.1:{port}"] }}
+zenoh = {{ connect = ["tcp/127.0.0.1:{port}"], insecure = true }}
 out = [{outs}]
 
 [processes.ingest]
@@ -141,6 +178,9 @@ rate_hz = 0.0
     }
     let (r, b) = (robot.summary(), base.summary());
     let (rb, bb) = (&r["bridge"], &b["bridge"]);
+    // Plain TCP only because the config says so, and the summary says it too.
+    assert_eq!(rb["security"]["mode"], "insecure", "{rb}");
+    assert_eq!(bb["security"]["mode"], "insecure", "{bb}");
     eprintln!("robot bridge {rb:#}\nbase bridge {bb:#}");
     assert_eq!(rb["end_acknowledged"], true, "{rb:#}");
     assert_eq!(bb["ends_received"], serde_json::json!(["r1"]), "{bb:#}");
@@ -296,6 +336,9 @@ fn a_robot_in_one_network_namespace_feeds_a_base_stations_map_in_another_through
             (vec![], vec![], format!("127.0.0.1:{}", free_port()))
         }
     };
+    // Mutual TLS: the base station's certificate names the address the robot dials.
+    let certs = Certs::new(&["base", "auv"], &[base_addr.split(':').next().expect("ip")]);
+    let (tls_base, tls_auv) = (certs.tls("base", ""), certs.tls("auv", ", receivers = [\"base\"]"));
     let mut base = TestRun::new("brmapbase");
     let base_cfg = base.write_config(
         "end = \"end_of_stream\"\nend_of_stream_from = [\"map\", \"link\"]\nduration_s = 300",
@@ -313,7 +356,7 @@ kind = "bridge"
 after = ["map"]
 restart = "never"
 [processes.link.settings]
-zenoh = {{ listen = ["tcp/{base_addr}"] }}
+zenoh = {{ listen = ["tls/{base_addr}"], {tls_base} }}
 in = [{{ from = "auv", service = "pipeline/sensors/cloud" }}, {{ from = "auv", service = "pipeline/fusion/pose" }}]
 "#
         ),
@@ -340,7 +383,7 @@ restart = "never"
 [processes.link.settings]
 robot = "auv"
 end_after = ["ingest", "fusion"]
-zenoh = {{ connect = ["tcp/{base_addr}"] }}
+zenoh = {{ connect = ["tls/{base_addr}"], {tls_auv} }}
 out = [{{ service = "pipeline/sensors/cloud" }}, {{ service = "pipeline/fusion/pose" }}]
 
 [processes.ingest]
@@ -379,6 +422,9 @@ height_px = 36
     }
     let (r, b) = (robot.summary(), base.summary());
     let (rb, bb) = (&r["bridge"], &b["bridge"]);
+    assert_eq!(bb["security"]["mode"], "mutual_tls", "{bb}");
+    assert_eq!(bb["security"]["certificate"]["common_name"], "base", "{bb}");
+    assert_eq!(rb["security"]["certificate"]["common_name"], "auv", "{rb}");
     eprintln!(
         "link cut for 2 s during the run: {cut_during_run}\nrobot bridge {rb:#}\nbase bridge {bb:#}\nrobot map {:#}\nbase map {:#}",
         r["octree_mapper"]["counters"], b["octree_mapper"]["counters"]
@@ -388,7 +434,13 @@ height_px = 36
         let (out, inn) = (&rb["out"][s]["counts"], &bb["in"][s]["counts"]);
         assert!(out["sent"].as_u64().unwrap() > 3, "{s}: {out}");
         assert_eq!(out["missed_locally"].as_u64(), Some(0), "{s}: {out}");
-        assert_eq!(inn["published"], out["sent"], "{s}: {inn} against {out}");
+        assert_eq!(
+            inn["published"],
+            out["sent"],
+            "{s}: {inn} against {out}\nrobot's link:\n{}\nbase's link:\n{}",
+            link_lines(&robot),
+            link_lines(&base)
+        );
         assert_eq!(inn["digest"], out["digest"], "{s}: the same bytes arrived, in order");
         assert_eq!(bb["in"][s]["lost_on_the_way"].as_u64(), Some(0), "{s}");
     }
@@ -404,6 +456,8 @@ height_px = 36
 #[test]
 fn two_robots_feed_one_base_station_their_fixes_kept_apart_and_their_clouds_in_one_map() {
     let port = free_port();
+    let certs = Certs::new(&["base", "r1", "r2"], &[]);
+    let tls_base = certs.tls("base", "");
     let mut base = TestRun::new("br2base");
     let base_cfg = base.write_config(
         "end = \"end_of_stream\"\nend_of_stream_from = [\"map\", \"link\"]\nduration_s = 300",
@@ -421,7 +475,7 @@ kind = "bridge"
 after = ["map"]
 restart = "never"
 [processes.link.settings]
-zenoh = {{ listen = ["tcp/127.0.0.1:{port}"] }}
+zenoh = {{ listen = ["tls/127.0.0.1:{port}"], {tls_base} }}
 clock = "measure"
 in = [
     {{ from = "r1", service = "pipeline/buoy/fix", local = "r1/pipeline/buoy/fix" }},
@@ -435,6 +489,7 @@ in = [
     base.start_supervisor(&base_cfg, &[]);
     base.wait_for_log("zenoh session open", 1, Duration::from_secs(60));
     let robot = |name: &str, seed: u32| {
+        let tls_robot = certs.tls(name, "");
         let mut run = TestRun::new(&format!("br2{name}"));
         let cfg = run.write_config(
             "end = \"end_of_stream\"\nend_of_stream_from = [\"link\", \"buoy\"]\nduration_s = 300",
@@ -458,7 +513,7 @@ restart = "never"
 [processes.link.settings]
 robot = "{name}"
 end_after = ["ingest", "buoy"]
-zenoh = {{ connect = ["tcp/127.0.0.1:{port}"] }}
+zenoh = {{ connect = ["tls/127.0.0.1:{port}"], {tls_robot} }}
 out = [{{ service = "pipeline/buoy/fix" }}, {{ service = "pipeline/sensors/cloud" }}]
 
 [processes.ingest]
@@ -501,7 +556,13 @@ height_px = 24
         let out = &r["bridge"]["out"];
         let fix = &bb["in"][format!("{name}/pipeline/buoy/fix")]["counts"];
         assert!(out["pipeline/buoy/fix"]["counts"]["sent"].as_u64().unwrap() > 3, "{out:#}");
-        assert_eq!(fix["published"], out["pipeline/buoy/fix"]["counts"]["sent"], "{name}: {fix}");
+        assert_eq!(
+            fix["published"],
+            out["pipeline/buoy/fix"]["counts"]["sent"],
+            "{name}: {fix}\nits link:\n{}\nthe base's link:\n{}",
+            link_lines(run),
+            link_lines(&base)
+        );
         assert_eq!(fix["digest"], out["pipeline/buoy/fix"]["counts"]["digest"], "{name}: its own fixes, apart");
         digests.push(fix["digest"].clone());
         let cloud = &bb["in"][format!("{name}:pipeline/sensors/cloud")]["counts"];
@@ -527,6 +588,8 @@ height_px = 24
 #[test]
 fn a_base_station_bridge_killed_mid_run_is_restarted_reconnects_and_counts_what_it_lost() {
     let port = free_port();
+    let certs = Certs::new(&["base", "r1"], &[]);
+    let (tls_base, tls_robot) = (certs.tls("base", ""), certs.tls("r1", ""));
     let mut base = TestRun::new("brkbase");
     let base_cfg = base.write_config(
         "end = \"end_of_stream\"\nend_of_stream_from = [\"link\"]\nduration_s = 300",
@@ -537,7 +600,7 @@ kind = "bridge"
 restart = "on-failure"
 backoff_initial_s = 0.2
 [processes.link.settings]
-zenoh = {{ listen = ["tcp/127.0.0.1:{port}"] }}
+zenoh = {{ listen = ["tls/127.0.0.1:{port}"], {tls_base} }}
 in = [{{ from = "r1", service = "pipeline/sensors/odometry" }}]
 "#
         ),
@@ -557,7 +620,7 @@ nice = 7
 robot = "r1"
 end_after = ["ingest"]
 end_ack_timeout_s = 20.0
-zenoh = {{ connect = ["tcp/127.0.0.1:{port}"] }}
+zenoh = {{ connect = ["tls/127.0.0.1:{port}"], {tls_robot} }}
 out = [{{ service = "pipeline/sensors/odometry" }}]
 
 [processes.ingest]
@@ -623,6 +686,8 @@ rate_hz = 0.0
 #[test]
 fn a_robots_bridge_killed_mid_run_is_restarted_and_counts_on_from_the_killed_ones_counts() {
     let port = free_port();
+    let certs = Certs::new(&["base", "r1"], &[]);
+    let (tls_base, tls_robot) = (certs.tls("base", ""), certs.tls("r1", ""));
     let mut base = TestRun::new("brsbase");
     let base_cfg = base.write_config(
         "end = \"end_of_stream\"\nend_of_stream_from = [\"link\"]\nduration_s = 300",
@@ -632,7 +697,7 @@ fn a_robots_bridge_killed_mid_run_is_restarted_and_counts_on_from_the_killed_one
 kind = "bridge"
 restart = "never"
 [processes.link.settings]
-zenoh = {{ listen = ["tcp/127.0.0.1:{port}"] }}
+zenoh = {{ listen = ["tls/127.0.0.1:{port}"], {tls_base} }}
 in = [{{ from = "r1", service = "pipeline/sensors/odometry" }}]
 "#
         ),
@@ -652,7 +717,7 @@ backoff_initial_s = 0.2
 robot = "r1"
 end_after = ["ingest"]
 end_ack_timeout_s = 20.0
-zenoh = {{ connect = ["tcp/127.0.0.1:{port}"] }}
+zenoh = {{ connect = ["tls/127.0.0.1:{port}"], {tls_robot} }}
 out = [{{ service = "pipeline/sensors/odometry" }}]
 
 [processes.ingest]

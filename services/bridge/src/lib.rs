@@ -115,6 +115,41 @@ pub struct ZenohSettings {
     /// endpoints instead).
     #[serde(default)]
     pub multicast_scouting: bool,
+    /// Mutual TLS (README "Security"): every link is encrypted, and only hosts whose certificate
+    /// the CA signed get in, each only under its own name. Required unless `insecure`.
+    #[serde(default)]
+    pub tls: Option<TlsSettings>,
+    /// Plain TCP links: anyone on the network may read them, connect, and publish under any
+    /// robot's name. Only with this set (warned at start and in summary.json).
+    #[serde(default)]
+    pub insecure: bool,
+}
+
+/// The certificates of a bridge's mutual TLS (made by `supervisor certs`; PEM files, relative
+/// paths from the working directory).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TlsSettings {
+    /// The CA that signed every host's certificate: a peer whose certificate it did not sign
+    /// cannot connect.
+    pub ca_certificate: std::path::PathBuf,
+    /// This host's certificate, signed by the CA; its common name is this host's name (an `out`
+    /// bridge's `robot`).
+    pub certificate: std::path::PathBuf,
+    /// This host's private key.
+    pub private_key: std::path::PathBuf,
+    /// When connecting, check that the listener's certificate names the address dialled (its
+    /// subject alternative names: `supervisor certs --san`).
+    #[serde(default = "yes")]
+    pub verify_name: bool,
+    /// The hosts (certificate common names) that may subscribe to this bridge's `out` routes;
+    /// empty: any host whose certificate the CA signed.
+    #[serde(default)]
+    pub receivers: Vec<String>,
+}
+
+fn yes() -> bool {
+    true
 }
 
 fn default_mode() -> String {
@@ -123,7 +158,14 @@ fn default_mode() -> String {
 
 impl Default for ZenohSettings {
     fn default() -> Self {
-        Self { mode: default_mode(), listen: vec![], connect: vec![], multicast_scouting: false }
+        Self {
+            mode: default_mode(),
+            listen: vec![],
+            connect: vec![],
+            multicast_scouting: false,
+            tls: None,
+            insecure: false,
+        }
     }
 }
 
@@ -236,11 +278,148 @@ fn topics_list() -> String {
     TOPICS.iter().map(|t| t.service).collect::<Vec<_>>().join(", ")
 }
 
-/// Checks an endpoint `<protocol>/<address>`.
+/// Checks an endpoint `<protocol>/<address>` (the transports built in: TCP and TLS).
 fn endpoint_ok(e: &str) -> bool {
     match e.split_once('/') {
-        Some((proto, addr)) => ["tcp", "udp", "tls", "quic", "ws"].contains(&proto) && !addr.is_empty(),
+        Some((proto, addr)) => ["tcp", "tls"].contains(&proto) && !addr.is_empty(),
         None => false,
+    }
+}
+
+/// What a host's certificate says (README "Security").
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct CertificateInfo {
+    /// Its subject's common name: the host's name.
+    pub common_name: String,
+    /// Valid from (Unix time, s).
+    pub not_before_unix_s: i64,
+    /// Valid until (Unix time, s).
+    pub not_after_unix_s: i64,
+}
+
+/// Reads the first certificate of a PEM file.
+pub fn read_certificate(path: &std::path::Path) -> Result<CertificateInfo, String> {
+    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let (_, pem) = x509_parser::pem::parse_x509_pem(&bytes)
+        .map_err(|e| format!("{}: not a PEM certificate ({e})", path.display()))?;
+    let cert = pem.parse_x509().map_err(|e| format!("{}: not an X.509 certificate ({e})", path.display()))?;
+    let common_name =
+        cert.subject().iter_common_name().next().and_then(|c| c.as_str().ok()).unwrap_or_default().to_string();
+    let v = cert.validity();
+    Ok(CertificateInfo {
+        common_name,
+        not_before_unix_s: v.not_before.timestamp(),
+        not_after_unix_s: v.not_after.timestamp(),
+    })
+}
+
+/// Zenoh message kinds an access control rule may name (all of them: a rule of this bridge
+/// allows everything on the keys it names, nothing elsewhere).
+const ACL_MESSAGES: [&str; 9] = [
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "declare_queryable",
+    "reply",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+];
+
+/// The Zenoh access control of a TLS bridge (`access_control` of its session): everything not
+/// allowed is denied. A robot `r` this bridge receives from (an `in` route's `from`) may exchange
+/// only keys under `<namespace>/r/` and only over a link authenticated by the certificate named
+/// `r`; the keys of this bridge's own `robot` (its `out` routes, end markers, clock) go only to
+/// `receivers` (their certificates' names; none named: any host the CA signed, i.e. any TLS
+/// link). So a host cannot publish under another robot's name, and one the config does not name
+/// gets nothing.
+pub fn access_control(s: &BridgeSettings) -> serde_json::Value {
+    let mut rules = vec![];
+    let mut subjects = vec![];
+    let mut policies = vec![];
+    let mut from: Vec<&str> = s.inbound.iter().map(|r| r.from.as_str()).collect();
+    from.sort_unstable();
+    from.dedup();
+    for r in from {
+        let id = format!("robot {r}");
+        rules.push(serde_json::json!({
+            "id": id, "permission": "allow", "flows": ["ingress", "egress"],
+            "messages": ACL_MESSAGES, "key_exprs": [format!("{}/{r}/**", s.namespace)],
+        }));
+        subjects.push(serde_json::json!({ "id": id, "cert_common_names": [r] }));
+        policies.push(serde_json::json!({ "rules": [id], "subjects": [id] }));
+    }
+    if !s.robot.is_empty() && !s.out.is_empty() {
+        let id = format!("receivers of {}", s.robot);
+        rules.push(serde_json::json!({
+            "id": id, "permission": "allow", "flows": ["ingress", "egress"],
+            "messages": ACL_MESSAGES, "key_exprs": [format!("{}/{}/**", s.namespace, s.robot)],
+        }));
+        let receivers = s.zenoh.tls.as_ref().map(|t| t.receivers.clone()).unwrap_or_default();
+        subjects.push(if receivers.is_empty() {
+            serde_json::json!({ "id": id, "link_protocols": ["tls"] })
+        } else {
+            serde_json::json!({ "id": id, "cert_common_names": receivers })
+        });
+        policies.push(serde_json::json!({ "rules": [id], "subjects": [id] }));
+    }
+    serde_json::json!({
+        "enabled": true,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    })
+}
+
+fn unix_now_s() -> i64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs() as i64).unwrap_or(0)
+}
+
+/// Checks the `tls` settings: endpoints, files, the certificate's name against `robot`.
+fn validate_tls(s: &BridgeSettings, t: &TlsSettings, key: &str, issues: &mut Issues) {
+    let z = &s.zenoh;
+    for (field, list) in [("listen", &z.listen), ("connect", &z.connect)] {
+        for (i, e) in list.iter().enumerate() {
+            issues.check(
+                !e.starts_with("tcp/"),
+                format!("{key}.zenoh.{field}[{i}]"),
+                format!("`{e}` is plain TCP but `tls` is set: write tls/{}", e.trim_start_matches("tcp/")),
+            );
+        }
+    }
+    let now = unix_now_s();
+    for (field, path) in [("ca_certificate", &t.ca_certificate), ("certificate", &t.certificate)] {
+        match read_certificate(path) {
+            Err(e) => issues.push(format!("{key}.zenoh.tls.{field}"), format!("{e} (make one: supervisor certs)")),
+            Ok(c) => {
+                issues.check(
+                    c.not_after_unix_s > now,
+                    format!("{key}.zenoh.tls.{field}"),
+                    format!("{} expired (CN {}): make a new one (supervisor certs)", path.display(), c.common_name),
+                );
+                if field == "certificate" && !s.out.is_empty() {
+                    issues.check(
+                        c.common_name == s.robot,
+                        format!("{key}.zenoh.tls.certificate"),
+                        format!(
+                            "{} is `{}`'s certificate, but this bridge sends as robot `{}`: receivers accept a robot's \
+                             keys only over a link authenticated by that robot's own certificate",
+                            path.display(),
+                            c.common_name,
+                            s.robot
+                        ),
+                    );
+                }
+            }
+        }
+    }
+    if let Err(e) = std::fs::File::open(&t.private_key) {
+        issues.push(format!("{key}.zenoh.tls.private_key"), format!("cannot read {}: {e}", t.private_key.display()));
+    }
+    for (i, r) in t.receivers.iter().enumerate() {
+        issues.check(is_chunk(r), format!("{key}.zenoh.tls.receivers[{i}]"), "a host's name (letters, digits, _ - .)");
     }
 }
 
@@ -278,6 +457,29 @@ impl ProcessSettings for BridgeSettings {
                     format!("{key}.zenoh.{field}[{i}]"),
                     format!("`{e}`: an endpoint is <protocol>/<address>, e.g. tcp/192.168.1.2:7447"),
                 );
+            }
+        }
+        match (&z.tls, z.insecure) {
+            (None, false) => issues.push(
+                format!("{key}.zenoh.tls"),
+                "a link between hosts must be authenticated and encrypted: give `tls` (certificates made by \
+                 `supervisor certs`, README \"Security\"), or set `insecure = true` for plain TCP that anyone \
+                 on the network may read and publish into",
+            ),
+            (Some(_), true) => {
+                issues.push(format!("{key}.zenoh.insecure"), "`insecure = true` and `tls` together: choose one")
+            }
+            (Some(t), false) => validate_tls(self, t, key, issues),
+            (None, true) => {
+                for (field, list) in [("listen", &z.listen), ("connect", &z.connect)] {
+                    for (i, e) in list.iter().enumerate() {
+                        issues.check(
+                            !e.starts_with("tls/"),
+                            format!("{key}.zenoh.{field}[{i}]"),
+                            format!("`{e}` is TLS but no `tls` certificates are given"),
+                        );
+                    }
+                }
             }
         }
         if z.mode == "client" {
@@ -375,7 +577,7 @@ mod tests {
     fn settings_errors_name_the_key() {
         let ok = r#"
 robot = "r1"
-zenoh = { listen = ["tcp/127.0.0.1:7447"] }
+zenoh = { listen = ["tcp/127.0.0.1:7447"], insecure = true }
 out = [{ service = "pipeline/fusion/pose" }, { service = "pipeline/sensors/cloud", policy = "drop_oldest", max_rate_hz = 2.0 }]
 in = [{ from = "r2", service = "pipeline/fusion/pose", local = "r2/pipeline/fusion/pose" }]
 "#;

@@ -432,7 +432,7 @@ fn zenoh_err(what: impl std::fmt::Display, e: impl std::fmt::Display) -> StageEr
 }
 
 /// The Zenoh configuration of `settings` (errors name the key).
-fn zenoh_config(s: &BridgeSettings) -> Result<zenoh::Config, StageError> {
+pub fn zenoh_config(s: &BridgeSettings) -> Result<zenoh::Config, StageError> {
     let mut c = zenoh::Config::default();
     let json = |v: &dyn erased::Json| v.json();
     let set = |c: &mut zenoh::Config, k: &str, v: String| {
@@ -444,6 +444,21 @@ fn zenoh_config(s: &BridgeSettings) -> Result<zenoh::Config, StageError> {
     set(&mut c, "scouting/multicast/enabled", s.zenoh.multicast_scouting.to_string())?;
     // Keep trying the peers named in `connect` if they are not up yet (or go away).
     set(&mut c, "connect/exit_on_failure", "false".into())?;
+    if let Some(t) = &s.zenoh.tls {
+        let path = |p: &std::path::Path| json(&std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf()));
+        // Mutual TLS on both sides; TLS only (no plain link is accepted); a link closes when the
+        // peer's certificate expires (it cannot come back with it).
+        set(&mut c, "transport/link/protocols", json(&["tls"]))?;
+        set(&mut c, "transport/link/tls/enable_mtls", "true".into())?;
+        set(&mut c, "transport/link/tls/root_ca_certificate", path(&t.ca_certificate))?;
+        for role in ["listen", "connect"] {
+            set(&mut c, &format!("transport/link/tls/{role}_certificate"), path(&t.certificate))?;
+            set(&mut c, &format!("transport/link/tls/{role}_private_key"), path(&t.private_key))?;
+        }
+        set(&mut c, "transport/link/tls/verify_name_on_connect", t.verify_name.to_string())?;
+        set(&mut c, "transport/link/tls/close_link_on_expiration", "true".into())?;
+        set(&mut c, "access_control", crate::access_control(s).to_string())?;
+    }
     Ok(c)
 }
 
@@ -762,6 +777,16 @@ impl Stage for BridgeStage {
         })?;
         tracing::info!(zid = %session.zid(), mode = %settings.zenoh.mode, listen = ?settings.zenoh.listen,
             connect = ?settings.zenoh.connect, "zenoh session open");
+        match &settings.zenoh.tls {
+            None => tracing::warn!(
+                "insecure: the link is plain TCP: anyone on the network reads it, connects, and publishes under any robot's name"
+            ),
+            Some(t) => match crate::read_certificate(&t.certificate) {
+                Ok(c) => tracing::info!(name = %c.common_name, not_after_unix_s = c.not_after_unix_s,
+                    "mutual TLS: only hosts whose certificate the CA signed get in, each only under its own name"),
+                Err(e) => tracing::warn!("mutual TLS, but the certificate cannot be read back: {e}"),
+            },
+        }
         let ns = settings.namespace.clone();
         let mut outs = vec![];
         for r in &settings.out {
@@ -1032,7 +1057,17 @@ impl Stage for BridgeStage {
         if !missing_ends.is_empty() {
             tracing::warn!(?missing_ends, "no end of stream came from these robots");
         }
+        let security = match &self.settings.zenoh.tls {
+            None => serde_json::json!({ "mode": "insecure" }),
+            Some(t) => serde_json::json!({
+                "mode": "mutual_tls",
+                "certificate": crate::read_certificate(&t.certificate).ok(),
+                "receivers": t.receivers,
+                "access_control": crate::access_control(&self.settings),
+            }),
+        };
         Ok(serde_json::json!({ "bridge": {
+            "security": security,
             "namespace": self.settings.namespace,
             "robot": self.settings.robot,
             "zid": self.session.zid().to_string(),

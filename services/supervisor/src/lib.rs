@@ -2,6 +2,7 @@
 //! dependency order, watches and restarts them, ends the run, stops everything in reverse order,
 //! removes the run's iceoryx2 resources and writes `summary.json`.
 
+pub mod certs;
 pub mod doctor;
 pub mod kinds;
 pub mod plan;
@@ -63,6 +64,26 @@ pub enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// Makes the certificates of the bridge's mutual TLS (README "Security"): a CA in `--dir`
+    /// (made on the first call, reused after) and one certificate per `--name`.
+    Certs {
+        /// Directory of `ca.pem`/`ca.key` and the `<name>.pem`/`<name>.key` pairs.
+        #[arg(long, default_value = "certs")]
+        dir: PathBuf,
+        /// A host's name: a robot's `robot`, or the base station's (repeat for several).
+        #[arg(long = "name", required = true)]
+        names: Vec<String>,
+        /// An address or DNS name other hosts dial this host by (repeat; 127.0.0.1, ::1 and
+        /// localhost are always in).
+        #[arg(long = "san")]
+        sans: Vec<String>,
+        /// Validity of the certificates, days.
+        #[arg(long, default_value_t = 365.0)]
+        days: f64,
+        /// Validity of a new CA, days.
+        #[arg(long, default_value_t = 3650.0)]
+        ca_days: f64,
+    },
 }
 
 /// Exit code for an invalid config or a failed pre-flight check (nothing was started).
@@ -79,6 +100,18 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
         let r = doctor::report(config.as_deref());
         print!("{}", r.render());
         return Ok(r.exit_code());
+    }
+    if let Some(Command::Certs { dir, names, sans, days, ca_days }) = &cli.command {
+        let req = certs::CertsRequest {
+            dir: dir.clone(),
+            names: names.clone(),
+            sans: sans.clone(),
+            days: *days,
+            ca_days: *ca_days,
+        };
+        let r = certs::make(&req).map_err(SetupError)?;
+        print!("{}", r.render());
+        return Ok(0);
     }
     if let Some(Command::Status { config, out }) = &cli.command {
         let out_dir = match out {

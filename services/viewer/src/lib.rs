@@ -27,8 +27,13 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ViewerSettings {
-    /// Address the WebSocket server listens on (`0.0.0.0` for other machines).
+    /// Address the WebSocket server listens on. The Foxglove WebSocket protocol has neither
+    /// authentication nor encryption: any address but loopback (`127.0.0.1`, `::1`) lets anyone
+    /// who reaches it watch the run, and needs `insecure = true`. From another machine, keep
+    /// loopback and tunnel: `ssh -L 8765:127.0.0.1:8765 <this host>` (README "Security").
     pub host: String,
+    /// Allow a `host` other than loopback (warned at start and in summary.json).
+    pub insecure: bool,
     /// Its port (Foxglove's default is 8765; 0 = any free port, written to the log and the summary).
     pub port: u16,
     /// Largest rate of `/cloud`, Hz (the latest cloud is shown; the others are counted as skipped).
@@ -49,6 +54,7 @@ impl Default for ViewerSettings {
     fn default() -> Self {
         Self {
             host: "127.0.0.1".into(),
+            insecure: false,
             port: 8765,
             cloud_max_hz: 5.0,
             map_max_hz: 1.0,
@@ -67,6 +73,18 @@ impl ProcessSettings for ViewerSettings {
             format!("{key}.host"),
             format!("must be an IP address (e.g. 127.0.0.1 or 0.0.0.0), got `{}`", self.host),
         );
+        if let Ok(ip) = self.host.parse::<std::net::IpAddr>() {
+            issues.check(
+                ip.is_loopback() || self.insecure,
+                format!("{key}.host"),
+                format!(
+                    "`{}` lets anyone who reaches it watch the run (the viewer has no authentication or \
+                     encryption): keep 127.0.0.1 and tunnel (ssh -L 8765:127.0.0.1:8765 <host>), or set \
+                     `insecure = true`",
+                    self.host
+                ),
+            );
+        }
         for (field, v) in
             [("cloud_max_hz", self.cloud_max_hz), ("map_max_hz", self.map_max_hz), ("path_max_hz", self.path_max_hz)]
         {
@@ -105,6 +123,13 @@ mod tests {
         }
         let mut issues = Issues::default();
         ViewerSettings::default().validate("k", &mut issues);
+        assert!(issues.is_empty(), "{issues:?}");
+        let open = ViewerSettings { host: "0.0.0.0".into(), ..Default::default() };
+        let mut issues = Issues::default();
+        open.validate("k", &mut issues);
+        assert!(format!("{issues:?}").contains("insecure = true"), "{issues:?}");
+        let mut issues = Issues::default();
+        ViewerSettings { insecure: true, ..open }.validate("k", &mut issues);
         assert!(issues.is_empty(), "{issues:?}");
     }
 }

@@ -501,6 +501,10 @@ impl Stage for ViewerStage {
                 ))
             })?;
         let port = server.port();
+        if settings.insecure && !settings.host.parse::<std::net::IpAddr>().is_ok_and(|ip| ip.is_loopback()) {
+            tracing::warn!(host = %settings.host, port,
+                "insecure: the live view has no authentication or encryption, and anyone who reaches this address watches the run");
+        }
         tracing::info!(
             url = %format!("ws://{}:{port}", settings.host),
             "live view: in Foxglove, Open connection → Foxglove WebSocket → ws://<this host>:{port}"
@@ -613,6 +617,7 @@ impl Stage for ViewerStage {
             "viewer": {
                 "ending": format!("{ending:?}"),
                 "host": self.settings.host,
+                "insecure": self.settings.insecure,
                 "port": self.port,
                 "clients_max": self.clients_max,
                 "sdk_outbox_full_reports": self.sdk_outbox_full.load(std::sync::atomic::Ordering::Relaxed),

@@ -357,7 +357,7 @@ fn bridged(
         &format!("a{n}"),
         &a,
         &format!(
-            "robot = \"r\"\nend_ack_timeout_s = 0\nzenoh = {{ connect = [\"tcp/{host}:{port}\"] }}\n\
+            "robot = \"r\"\nend_ack_timeout_s = 0\nzenoh = {{ connect = [\"tcp/{host}:{port}\"], insecure = true }}\n\
              out = [{{ service = \"{CLOUD}\" }}]"
         ),
     )?;
@@ -365,7 +365,9 @@ fn bridged(
         dir,
         &format!("b{n}"),
         &b,
-        &format!("zenoh = {{ listen = [\"tcp/{host}:{port}\"] }}\nin = [{{ from = \"r\", service = \"{CLOUD}\" }}]"),
+        &format!(
+            "zenoh = {{ listen = [\"tcp/{host}:{port}\"], insecure = true }}\nin = [{{ from = \"r\", service = \"{CLOUD}\" }}]"
+        ),
     )?;
     let spawn = |cfg: &std::path::Path, net: &Net| -> anyhow::Result<Killed> {
         Ok(Killed(

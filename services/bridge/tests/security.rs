@@ -1,0 +1,187 @@
+//! The bridge's Zenoh sessions as its TLS settings make them (`stage::zenoh_config`), on loopback
+//! only, with certificates made here (rcgen): a base station that receives `auv1`'s poses gets
+//! them from `auv1` and from nobody else:
+//! - `auv2`, whose certificate the same CA signed, connects but cannot publish under `auv1`, nor
+//!   under its own name (the base station's config does not receive from it);
+//! - a peer without a certificate, one with a certificate named `auv1` from another CA, and one
+//!   speaking plain TCP to the TLS port never get in;
+//! - `auv1`'s link closes when its certificate expires, and it cannot come back with it.
+
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use bridge_stage::BridgeSettings;
+use rcgen::{
+    BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, Issuer, KeyPair, KeyUsagePurpose,
+};
+use zenoh::Wait;
+
+const POSE: &str = "pipeline/fusion/pose";
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").expect("bind").local_addr().expect("addr").port()
+}
+
+struct Ca {
+    issuer: Issuer<'static, KeyPair>,
+    dir: PathBuf,
+}
+
+impl Ca {
+    fn new(dir: &Path, tag: &str) -> Self {
+        let key = KeyPair::generate().unwrap();
+        let mut p = CertificateParams::new(Vec::<String>::new()).unwrap();
+        p.is_ca = IsCa::Ca(BasicConstraints::Constrained(0));
+        p.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::DigitalSignature];
+        p.distinguished_name.push(DnType::CommonName, format!("test CA {tag}"));
+        let cert = p.self_signed(&key).unwrap();
+        let dir = dir.join(tag);
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("ca.pem"), cert.pem()).unwrap();
+        Self { issuer: Issuer::new(p, key), dir }
+    }
+
+    /// Writes `<name>.pem`/`.key`, valid for `valid` from now; returns the TOML `tls` table.
+    fn host(&self, name: &str, valid: Duration) -> String {
+        let mut p = CertificateParams::new(vec![name.to_string(), "127.0.0.1".into()]).unwrap();
+        p.distinguished_name.push(DnType::CommonName, name);
+        p.key_usages = vec![KeyUsagePurpose::DigitalSignature];
+        p.extended_key_usages = vec![ExtendedKeyUsagePurpose::ServerAuth, ExtendedKeyUsagePurpose::ClientAuth];
+        p.not_before = time::OffsetDateTime::now_utc() - time::Duration::minutes(5);
+        p.not_after = time::OffsetDateTime::now_utc() + valid;
+        let key = KeyPair::generate().unwrap();
+        let cert = p.signed_by(&key, &self.issuer).unwrap();
+        let (c, k) = (self.dir.join(format!("{name}.pem")), self.dir.join(format!("{name}.key")));
+        std::fs::write(&c, cert.pem()).unwrap();
+        std::fs::write(&k, key.serialize_pem()).unwrap();
+        format!("tls = {{ ca_certificate = {:?}, certificate = {c:?}, private_key = {k:?} }}", self.dir.join("ca.pem"))
+    }
+}
+
+fn settings(text: &str) -> BridgeSettings {
+    let s: BridgeSettings = toml::from_str(text).unwrap_or_else(|e| panic!("{e}\n{text}"));
+    let mut issues = pipeline_runtime::config::Issues::default();
+    pipeline_runtime::config::ProcessSettings::validate(&s, "link", &mut issues);
+    assert!(issues.0.is_empty(), "{:?}\n{text}", issues.0.iter().map(|i| &i.message).collect::<Vec<_>>());
+    s
+}
+
+fn open(s: &BridgeSettings) -> zenoh::Session {
+    zenoh::open(bridge_stage::stage::zenoh_config(s).expect("config")).wait().expect("session")
+}
+
+/// A robot's session: connects to the base station with `tls` and puts on `robot`'s pose key.
+fn robot(robot: &str, tls: &str, port: u16) -> zenoh::Session {
+    open(&settings(&format!(
+        "robot = \"{robot}\"\nout = [{{ service = \"{POSE}\" }}]\n[zenoh]\nconnect = [\"tls/127.0.0.1:{port}\"]\n{tls}\n"
+    )))
+}
+
+fn put(s: &zenoh::Session, key: &str, n: usize) {
+    for _ in 0..n {
+        s.put(key, vec![1u8; 8]).wait().expect("put");
+    }
+}
+
+fn wait_until(what: &str, limit: Duration, mut f: impl FnMut() -> bool) {
+    let t0 = Instant::now();
+    while !f() {
+        assert!(t0.elapsed() < limit, "{what}: not within {limit:?}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn peers(s: &zenoh::Session) -> usize {
+    s.info().peers_zid().wait().count()
+}
+
+#[test]
+fn only_the_robot_named_by_its_certificate_publishes_under_its_name() {
+    let root = tempfile::tempdir().unwrap();
+    let ca = Ca::new(root.path(), "ours");
+    let other = Ca::new(root.path(), "theirs");
+    let port = free_port();
+    let base = open(&settings(&format!(
+        "in = [{{ from = \"auv1\", service = \"{POSE}\" }}]\n[zenoh]\nlisten = [\"tls/127.0.0.1:{port}\"]\n{}\n",
+        ca.host("base", Duration::from_secs(3600))
+    )));
+    let got: Arc<Mutex<Vec<String>>> = Arc::default();
+    let mut subs = vec![];
+    for r in ["auv1", "auv2"] {
+        let g = got.clone();
+        subs.push(
+            base.declare_subscriber(format!("slam/{r}/{POSE}"))
+                .callback(move |s| g.lock().unwrap().push(s.key_expr().to_string()))
+                .wait()
+                .unwrap(),
+        );
+    }
+    let count = |r: &str| got.lock().unwrap().iter().filter(|k| k.starts_with(&format!("slam/{r}/"))).count();
+
+    // A rogue host whose certificate the same CA signed, for another robot.
+    let auv2 = robot("auv2", &ca.host("auv2", Duration::from_secs(3600)), port);
+    wait_until("auv2 connects (its certificate is valid)", Duration::from_secs(20), || peers(&auv2) == 1);
+    put(&auv2, &format!("slam/auv1/{POSE}"), 50);
+    put(&auv2, &format!("slam/auv2/{POSE}"), 50);
+
+    // Hosts that never get in: no certificate, a certificate named auv1 from another CA, plain TCP.
+    let no_cert = {
+        let mut c = zenoh::Config::default();
+        c.insert_json5("mode", "\"peer\"").unwrap();
+        c.insert_json5("scouting/multicast/enabled", "false").unwrap();
+        c.insert_json5("connect/endpoints", &format!("[\"tls/127.0.0.1:{port}\"]")).unwrap();
+        c.insert_json5("connect/exit_on_failure", "false").unwrap();
+        c.insert_json5("transport/link/tls/root_ca_certificate", &format!("{:?}", ca.dir.join("ca.pem"))).unwrap();
+        zenoh::open(c).wait().expect("session")
+    };
+    let forged = robot(
+        "auv1",
+        &other
+            .host("auv1", Duration::from_secs(3600))
+            .replace(&format!("{:?}", other.dir.join("ca.pem")), &format!("{:?}", ca.dir.join("ca.pem"))),
+        port,
+    );
+    let plain = {
+        let mut c = zenoh::Config::default();
+        c.insert_json5("mode", "\"peer\"").unwrap();
+        c.insert_json5("scouting/multicast/enabled", "false").unwrap();
+        c.insert_json5("connect/endpoints", &format!("[\"tcp/127.0.0.1:{port}\"]")).unwrap();
+        c.insert_json5("connect/exit_on_failure", "false").unwrap();
+        zenoh::open(c).wait().expect("session")
+    };
+
+    // The robot itself, with a certificate that expires in 10 s.
+    let auv1 = robot("auv1", &ca.host("auv1", Duration::from_secs(10)), port);
+    wait_until("auv1 connects", Duration::from_secs(20), || peers(&auv1) == 1);
+    wait_until("auv1's 20 poses arrive", Duration::from_secs(20), || {
+        put(&auv1, &format!("slam/auv1/{POSE}"), 1);
+        count("auv1") >= 20
+    });
+    for (who, s) in [("no certificate", &no_cert), ("auv1 from another CA", &forged), ("plain TCP", &plain)] {
+        put(s, &format!("slam/auv1/{POSE}"), 20);
+        assert_eq!(peers(s), 0, "{who} got in");
+    }
+    put(&auv2, &format!("slam/auv1/{POSE}"), 50);
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(count("auv2"), 0, "auv2 published under its own name, which the base does not receive");
+    // Every pose under auv1 came from auv1 (it put one at a time until 20 arrived).
+    let from_auv1 = count("auv1");
+    assert!((20..=25).contains(&from_auv1), "{from_auv1} poses under auv1: some came from another host");
+    assert_eq!(peers(&base), 2, "the base station is linked to auv1 and auv2 only");
+
+    // auv1's certificate expires: the base station closes its link, and it cannot reconnect.
+    wait_until("the base closes auv1's link when its certificate expires", Duration::from_secs(30), || {
+        peers(&base) == 1
+    });
+    std::thread::sleep(Duration::from_secs(3));
+    assert_eq!(peers(&auv1), 0, "auv1 came back with an expired certificate");
+    let before = count("auv1");
+    put(&auv1, &format!("slam/auv1/{POSE}"), 20);
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(count("auv1"), before);
+    drop(subs);
+    for s in [auv1, auv2, no_cert, forged, plain, base] {
+        s.close().wait().unwrap();
+    }
+}
