@@ -33,10 +33,24 @@ fi
 if ! python3 -c 'import cyclonedds.domain, cyclonedds.idl' >/dev/null 2>&1; then
     python3 -m pip install --quiet cyclonedds
 fi
-# Debian test dependency: tests/tests/octree_tools.rs runs OctoMap's convert_octree and
-# compare_octrees (package octomap-tools) on the .bt files of the octree crate. Installed only when
-# missing (as root, or through sudo); if that is impossible the test fails naming the package.
+# Python test dependency: tests/tests/security.rs attacks the base station with a rogue peer
+# written with Eclipse Zenoh's own Python API (`eclipse-zenoh` from PyPI, the version of our zenoh
+# crate). Installed only when missing.
+if ! python3 -c 'import importlib.metadata as m, sys; sys.exit(m.version("eclipse-zenoh") != "1.10.2")' >/dev/null 2>&1; then
+    python3 -m pip install --quiet eclipse-zenoh==1.10.2
+fi
+# Debian test dependencies: tests/tests/octree_tools.rs runs OctoMap's convert_octree and
+# compare_octrees (package octomap-tools) on the .bt files of the octree crate; tests/tests/security.rs
+# captures the bridge's link with tcpdump. Installed only when missing (as root, or through sudo);
+# if that is impossible the tests fail naming the package.
+debs=()
 if ! command -v convert_octree >/dev/null 2>&1 || ! command -v compare_octrees >/dev/null 2>&1; then
+    debs+=(octomap-tools)
+fi
+if ! command -v tcpdump >/dev/null 2>&1 && [ ! -x /usr/bin/tcpdump ] && [ ! -x /usr/sbin/tcpdump ]; then
+    debs+=(tcpdump)
+fi
+if [ ${#debs[@]} -gt 0 ]; then
     apt=()
     if [ "$(id -u)" -eq 0 ]; then
         apt=(env DEBIAN_FRONTEND=noninteractive apt-get)
@@ -45,16 +59,16 @@ if ! command -v convert_octree >/dev/null 2>&1 || ! command -v compare_octrees >
         apt=("${sudo_[@]}" env DEBIAN_FRONTEND=noninteractive apt-get)
     fi
     if [ ${#apt[@]} -eq 0 ]; then
-        echo "test.sh: octomap-tools is missing and cannot be installed (not root, no sudo):" \
-            "run 'apt-get install -y --no-install-recommends octomap-tools' as root" >&2
+        echo "test.sh: ${debs[*]} missing and cannot be installed (not root, no sudo):" \
+            "run 'apt-get install -y --no-install-recommends ${debs[*]}' as root" >&2
     else
-        echo "test.sh: installing octomap-tools (apt-get)" >&2
+        echo "test.sh: installing ${debs[*]} (apt-get)" >&2
         # A fresh machine may have no package lists yet: update once and retry.
-        if ! "${apt[@]}" install -y -qq --no-install-recommends octomap-tools >/dev/null 2>&1 \
+        if ! "${apt[@]}" install -y -qq --no-install-recommends "${debs[@]}" >/dev/null 2>&1 \
             && ! { "${apt[@]}" update -qq >/dev/null \
-                && "${apt[@]}" install -y -qq --no-install-recommends octomap-tools >/dev/null; }; then
-            echo "test.sh: could not install octomap-tools: run 'apt-get install -y --no-install-recommends" \
-                "octomap-tools' as root (tests/tests/octree_tools.rs fails without it)" >&2
+                && "${apt[@]}" install -y -qq --no-install-recommends "${debs[@]}" >/dev/null; }; then
+            echo "test.sh: could not install ${debs[*]}: run 'apt-get install -y --no-install-recommends" \
+                "${debs[*]}' as root (tests/tests/octree_tools.rs and security.rs fail without them)" >&2
         fi
     fi
 fi
