@@ -12,6 +12,9 @@
 //!   So the bridge row has two processes and two iceoryx2 hops more than the bare row: what a
 //!   pipeline pays to reach another host.
 //!
+//! - **tls**: the bridge row again over mutual TLS (certificates made by `supervisor certs`,
+//!   README "Security"); `tls/tcp` is its ratio to the plain-TCP bridge row of the same size.
+//!
 //! One message in flight at `--rate-hz` for latency; then a burst of messages back to back
 //! (reliable: Zenoh congestion control `Block` on both rows) for throughput. Both clocks are this
 //! machine's, so one-way latency is exact.
@@ -337,6 +340,7 @@ fn bridged(
     dir: &std::path::Path,
     n: usize,
     net: &Net,
+    tls: Option<&std::path::Path>,
 ) -> anyhow::Result<(Seen, usize)> {
     let port = free_port()?;
     let host = &net.host;
@@ -352,21 +356,34 @@ fn bridged(
     if !bin.exists() {
         bail!("{} is missing: build it (cargo build --release --workspace --bins)", bin.display());
     }
+    // Plain TCP (`insecure`), or mutual TLS with the certificates in `tls`.
+    let link = |name: &str| match tls {
+        None => "insecure = true".to_string(),
+        Some(d) => format!(
+            "tls = {{ ca_certificate = {:?}, certificate = {:?}, private_key = {:?} }}",
+            d.join("ca.pem"),
+            d.join(format!("{name}.pem")),
+            d.join(format!("{name}.key"))
+        ),
+    };
+    let proto = if tls.is_some() { "tls" } else { "tcp" };
     let ca = bridge_config(
         dir,
-        &format!("a{n}"),
+        &format!("a{n}{proto}"),
         &a,
         &format!(
-            "robot = \"r\"\nend_ack_timeout_s = 0\nzenoh = {{ connect = [\"tcp/{host}:{port}\"], insecure = true }}\n\
-             out = [{{ service = \"{CLOUD}\" }}]"
+            "robot = \"r\"\nend_ack_timeout_s = 0\nzenoh = {{ connect = [\"{proto}/{host}:{port}\"], {} }}\n\
+             out = [{{ service = \"{CLOUD}\" }}]",
+            link("r")
         ),
     )?;
     let cb = bridge_config(
         dir,
-        &format!("b{n}"),
+        &format!("b{n}{proto}"),
         &b,
         &format!(
-            "zenoh = {{ listen = [\"tcp/{host}:{port}\"], insecure = true }}\nin = [{{ from = \"r\", service = \"{CLOUD}\" }}]"
+            "zenoh = {{ listen = [\"{proto}/{host}:{port}\"], {} }}\nin = [{{ from = \"r\", service = \"{CLOUD}\" }}]",
+            link("base")
         ),
     )?;
     let spawn = |cfg: &std::path::Path, net: &Net| -> anyhow::Result<Killed> {
@@ -481,20 +498,47 @@ fn main() -> anyhow::Result<()> {
         }
     }
     let loopback = Net::loopback();
+    // Certificates for the TLS row, made by `supervisor certs` (the address dialled in their SANs).
+    let certs = dir.path().join("certs");
+    let supervisor = std::env::current_exe()?.parent().context("bin dir")?.join("supervisor");
+    let mut made = Command::new(&supervisor);
+    made.args(["certs", "--days", "1", "--name", "r", "--name", "base", "--dir"]).arg(&certs);
+    for sh in links.iter().filter_map(|(_, s)| s.as_ref()) {
+        made.args(["--san", &sh.net.host]);
+    }
+    let out =
+        made.output().with_context(|| format!("{} certs (build the workspace's binaries)", supervisor.display()))?;
+    if !out.status.success() {
+        bail!("supervisor certs: {}", String::from_utf8_lossy(&out.stderr));
+    }
     for (l, (what, shaped)) in links.iter().enumerate() {
         let net = shaped.as_ref().map_or(&loopback, |s| &s.net);
-        println!("link: {what}");
+        println!("link: {what}; bridge = plain TCP (insecure), tls = the bridge over mutual TLS");
         println!(
-            "{:>9} | {:>9} {:>9} {:>8} | {:>10} {:>9} {:>8} {:>9} | {:>6}",
-            "bytes", "zenoh p50", "p99", "MB/s", "bridge p50", "p99", "MB/s", "last hop", "p50 x"
+            "{:>9} | {:>9} {:>9} {:>8} | {:>10} {:>9} {:>8} {:>9} | {:>6} | {:>8} {:>9} {:>8} | {:>11} {:>9}",
+            "bytes",
+            "zenoh p50",
+            "p99",
+            "MB/s",
+            "bridge p50",
+            "p99",
+            "MB/s",
+            "last hop",
+            "p50 x",
+            "tls p50",
+            "p99",
+            "MB/s",
+            "tls/tcp p50",
+            "MB/s"
         );
         for (n, &size) in cli.sizes.iter().enumerate() {
             let burst = (cli.burst_bytes / size.max(1)).clamp(20, 20_000);
             let z = bare(size, &cli, burst, net)?;
-            let (b, sent_size) = bridged(size, &cli, burst, dir.path(), l * 100 + n, net)?;
+            let (b, sent_size) = bridged(size, &cli, burst, dir.path(), l * 100 + n, net, None)?;
+            let (t, _) = bridged(size, &cli, burst, dir.path(), l * 100 + n, net, Some(&certs))?;
             let mbs = |s: &Seen, bytes: usize| s.burst_messages as f64 * bytes as f64 / 1e6 / s.burst_s.max(1e-9);
             println!(
-                "{:>9} | {:>9.0} {:>9.0} {:>8.1} | {:>10.0} {:>9.0} {:>8.1} {:>9.0} | {:>6.2}",
+                "{:>9} | {:>9.0} {:>9.0} {:>8.1} | {:>10.0} {:>9.0} {:>8.1} {:>9.0} | {:>6.2} | {:>8.0} {:>9.0} {:>8.1} | {:>11.2} {:>9.2}",
                 size,
                 pct(&z.latencies_us, 0.5),
                 pct(&z.latencies_us, 0.99),
@@ -503,8 +547,21 @@ fn main() -> anyhow::Result<()> {
                 pct(&b.latencies_us, 0.99),
                 mbs(&b, sent_size),
                 pct(&b.last_hop_us, 0.5),
-                pct(&b.latencies_us, 0.5) / pct(&z.latencies_us, 0.5)
+                pct(&b.latencies_us, 0.5) / pct(&z.latencies_us, 0.5),
+                pct(&t.latencies_us, 0.5),
+                pct(&t.latencies_us, 0.99),
+                mbs(&t, sent_size),
+                pct(&t.latencies_us, 0.5) / pct(&b.latencies_us, 0.5),
+                mbs(&t, sent_size) / mbs(&b, sent_size)
             );
+            if t.latencies_us.len() < cli.samples || t.burst_messages < burst {
+                println!(
+                    "          note: the tls row got {} of {} latency and {} of {burst} burst messages",
+                    t.latencies_us.len(),
+                    cli.samples,
+                    t.burst_messages
+                );
+            }
             if b.latencies_us.len() < cli.samples || b.burst_messages < burst || sent_size != size {
                 println!(
                     "          note: the bridge row sent {sent_size}-byte clouds; got {} of {} latency and {} of \
