@@ -32,6 +32,8 @@ def main() -> None:
     c.insert_json5("connect/endpoints", json.dumps([a.endpoint]))
     c.insert_json5("connect/exit_on_failure", "false")
     c.insert_json5("scouting/multicast/enabled", "false")
+    # The wheel is built with shared memory, which leaves a segment in /dev/shm: not wanted here.
+    c.insert_json5("transport/shared_memory/enabled", "false")
     if a.ca:
         tls = {"root_ca_certificate": a.ca, "verify_name_on_connect": False}
         if a.cert:
