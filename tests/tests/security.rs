@@ -170,6 +170,10 @@ rate_hz = 0.0
     assert_eq!(inn["bad_length"].as_u64(), Some(0), "{inn}");
     assert_eq!(b["recorder"]["messages"][ODOMETRY].as_u64(), Some(sent), "{:#}", b["recorder"]);
     assert_eq!(b["bridge"]["security"]["mode"], "mutual_tls");
+    // The rogue without a certificate and the plain-TCP one: each attempt refused and counted.
+    let refused = b["bridge"]["security"]["refused_handshakes"].as_u64().expect("refused_handshakes");
+    eprintln!("refused handshakes: {refused}");
+    assert!(refused >= 2, "refused_handshakes {refused}: {}", b["bridge"]["security"]);
     assert_eq!(b["run"]["end_reason"], "end_of_stream", "{}", b["run"]);
 
     // The capture holds the run's traffic, none of it readable: the wire signature travels with

@@ -425,7 +425,13 @@ pub struct BridgeStage {
     clocks: BTreeMap<String, ClockProbe>,
     /// When the counts were last kept for a restart, and the activity they had then.
     kept_at: Option<(Instant, u64)>,
+    /// Connection attempts the TLS listener refused (handshake failed: no certificate, another
+    /// CA's, an expired one, or not TLS), counted from Zenoh's warning for each.
+    refused_handshakes: Option<Arc<AtomicU64>>,
 }
+
+/// Zenoh's TLS listener warns once per failed accept (a refused handshake) with this text.
+const TLS_ACCEPT_FAILED: &str = "Hint: increase the system open file limit";
 
 fn zenoh_err(what: impl std::fmt::Display, e: impl std::fmt::Display) -> StageError {
     StageError::msg(format!("zenoh: {what}: {e}"))
@@ -766,6 +772,9 @@ impl Stage for BridgeStage {
 
     fn open(_ctx: &ProcessContext, settings: BridgeSettings, rt: &mut Runtime) -> Result<Self, StageError> {
         let config = zenoh_config(&settings)?;
+        // Counted from before the listener starts.
+        let refused_handshakes = (settings.zenoh.tls.is_some() && !settings.zenoh.listen.is_empty())
+            .then(|| pipeline_runtime::logging::count_events("zenoh_link_tls", TLS_ACCEPT_FAILED));
         let session = zenoh::open(config).wait().map_err(|e| {
             zenoh_err(
                 format!(
@@ -964,6 +973,7 @@ impl Stage for BridgeStage {
             _clock_queryable: clock_queryable,
             clocks,
             kept_at: None,
+            refused_handshakes,
         };
         stage.wait_for_remote();
         Ok(stage)
@@ -1057,10 +1067,19 @@ impl Stage for BridgeStage {
         if !missing_ends.is_empty() {
             tracing::warn!(?missing_ends, "no end of stream came from these robots");
         }
+        let refused = self.refused_handshakes.as_ref().map(|c| c.load(Ordering::Relaxed));
+        if let Some(n) = refused.filter(|&n| n > 0) {
+            tracing::warn!(
+                refused_handshakes = n,
+                "connection attempts refused at the TLS handshake (no certificate, another CA's, an expired one, or \
+                 not TLS): see Zenoh's warnings above"
+            );
+        }
         let security = match &self.settings.zenoh.tls {
             None => serde_json::json!({ "mode": "insecure" }),
             Some(t) => serde_json::json!({
                 "mode": "mutual_tls",
+                "refused_handshakes": refused,
                 "certificate": crate::read_certificate(&t.certificate).ok(),
                 "receivers": t.receivers,
                 "access_control": crate::access_control(&self.settings),

@@ -79,7 +79,7 @@ static COUNTERS: std::sync::Mutex<Vec<(String, String, Arc<AtomicU64>)>> = std::
 
 /// The libraries whose log events [`count_events`] can count (INFO and above, whatever the log's
 /// own filter).
-pub const COUNTED_TARGETS: &[&str] = &["foxglove"];
+pub const COUNTED_TARGETS: &[&str] = &["foxglove", "zenoh_link_tls"];
 
 /// A counter of the log events whose target starts with `target_prefix` (under one of
 /// [`COUNTED_TARGETS`]) and whose message contains `needle`, from now on. The count is of the
