@@ -35,6 +35,11 @@ pub unsafe trait WireType: Copy + Sized + 'static {
     /// Field layout in declaration order.
     fn fields() -> Vec<FieldLayout>;
 
+    /// The first field (in declaration order) holding a NaN or an infinity, nested values
+    /// included; `None` when every floating-point value is finite. What a receiver checks before
+    /// a message from elsewhere enters its pipeline.
+    fn non_finite_field(&self) -> Option<&'static str>;
+
     /// An all-zero value (valid for every wire type).
     fn zeroed() -> Self {
         // SAFETY: WireType guarantees every bit pattern, including all zeros, is a valid value.
@@ -54,6 +59,39 @@ pub unsafe trait WireType: Copy + Sized + 'static {
         }
         // SAFETY: length checked; every bit pattern is valid; read_unaligned has no alignment need.
         Some(unsafe { core::ptr::read_unaligned(bytes.as_ptr().cast::<Self>()) })
+    }
+}
+
+/// Values whose floating-point parts can be checked for NaN and infinity (the fields of a
+/// [`WireType`]).
+pub trait Finite {
+    /// Every floating-point value in `self` is finite (integers always are).
+    fn all_finite(&self) -> bool;
+}
+
+macro_rules! finite_always {
+    ($($t:ty),*) => { $(impl Finite for $t { #[inline] fn all_finite(&self) -> bool { true } })* };
+}
+finite_always!(u8, u16, u32, u64, u128, i8, i16, i32, i64, i128);
+
+impl Finite for f64 {
+    #[inline]
+    fn all_finite(&self) -> bool {
+        self.is_finite()
+    }
+}
+
+impl Finite for f32 {
+    #[inline]
+    fn all_finite(&self) -> bool {
+        self.is_finite()
+    }
+}
+
+impl<T: Finite, const N: usize> Finite for [T; N] {
+    #[inline]
+    fn all_finite(&self) -> bool {
+        self.iter().all(Finite::all_finite)
     }
 }
 
@@ -127,6 +165,22 @@ macro_rules! wire_type {
                     size: core::mem::size_of::<$fty>(),
                     doc: concat!($($fdoc, " "),*),
                 }),*]
+            }
+
+            fn non_finite_field(&self) -> Option<&'static str> {
+                $(
+                    if !$crate::layout::Finite::all_finite(&self.$field) {
+                        return Some(stringify!($field));
+                    }
+                )*
+                None
+            }
+        }
+
+        impl $crate::layout::Finite for $name {
+            #[inline]
+            fn all_finite(&self) -> bool {
+                <Self as $crate::layout::WireType>::non_finite_field(self).is_none()
             }
         }
 
@@ -289,4 +343,30 @@ pub fn render_python(types: &[TypeLayout], services: &[crate::services::ServiceS
     }
     let _ = writeln!(s, "}}");
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::WireType;
+    use crate::{CloudPoint, FusedPose, MsgHeader, SyncedPair};
+    use core::mem::size_of;
+
+    #[test]
+    fn the_first_non_finite_field_is_named_nested_values_included() {
+        let p = CloudPoint { x_m: 1.0, y_m: 2.0, z_m: 3.0 };
+        assert_eq!(p.non_finite_field(), None);
+        assert_eq!(CloudPoint { y_m: f32::NAN, ..p }.non_finite_field(), Some("y_m"));
+        assert_eq!(MsgHeader { stamp_ns: u64::MAX, ..Default::default() }.non_finite_field(), None);
+        let mut pair = SyncedPair::default();
+        assert_eq!(pair.non_finite_field(), None);
+        pair.buoy_covariance_m2[8] = f64::INFINITY;
+        assert_eq!(pair.non_finite_field(), Some("buoy_covariance_m2"));
+        assert_eq!(FusedPose::default().non_finite_field(), None);
+        let nan = FusedPose::from_bytes(&vec![0xffu8; size_of::<FusedPose>()]).unwrap();
+        assert!(nan.non_finite_field().is_some(), "all-ones bytes are NaNs");
+        // A NaN inside the nested pose.
+        let slam = crate::PoseEstimate::from_bytes(&vec![0xffu8; size_of::<crate::PoseEstimate>()]).unwrap();
+        let pair = SyncedPair { slam, ..Default::default() };
+        assert_eq!(pair.non_finite_field(), Some("slam"));
+    }
 }

@@ -15,7 +15,7 @@ pub mod services;
 mod types;
 pub mod voxel_stream;
 
-pub use layout::{FieldLayout, TypeLayout, WireType};
+pub use layout::{FieldLayout, Finite, TypeLayout, WireType};
 pub use types::*;
 
 /// Version of the wire contract, bumped on any change. A type whose layout changed carries the

@@ -23,11 +23,20 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from foxglove_decode import message_class, summary  # noqa: E402
-from websockets.exceptions import ConnectionClosed
+import ssl
+
+from websockets.exceptions import ConnectionClosed, InvalidMessage, InvalidStatus
 from websockets.sync.client import connect
 
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 OP_MESSAGE_DATA = 1
+
+
+def refused(args, why):
+    print(json.dumps({"refused": why}))
+    if not args.expect_refused:
+        print(f"refused: {why}", file=sys.stderr)
+    return 0 if args.expect_refused else 1
 
 
 def main():
@@ -44,6 +53,12 @@ def main():
         metavar=("TOPIC", "FIELD", "N"),
         help="wait until TOPIC's last message has FIELD (a number in its summary, e.g. points) >= N (repeatable)",
     )
+    ap.add_argument("--ca", help="trust this CA certificate (wss:// URLs)")
+    ap.add_argument(
+        "--expect-refused",
+        action="store_true",
+        help="the server must refuse the connection (HTTP status or TLS failure): print why and exit 0",
+    )
     args = ap.parse_args()
     at_least = [(t, f, float(n)) for t, f, n in args.at_least]
 
@@ -57,14 +72,28 @@ def main():
 
     deadline = time.monotonic() + args.timeout_s
     ws = None
+    ssl_ctx = None
+    if args.url.startswith("wss://"):
+        ssl_ctx = ssl.create_default_context(cafile=args.ca)
     while ws is None:
         try:
-            ws = connect(args.url, subprotocols=SUBPROTOCOLS, max_size=None, open_timeout=5)
+            ws = connect(args.url, subprotocols=SUBPROTOCOLS, max_size=None, open_timeout=5, ssl=ssl_ctx)
+        except InvalidStatus as e:
+            return refused(args, f"http {e.response.status_code}")
+        except ssl.SSLError as e:
+            return refused(args, f"tls: {e.reason or e}")
+        except (InvalidMessage, ConnectionClosed, EOFError) as e:
+            # A TLS server answering a plain ws:// request closes it.
+            return refused(args, f"closed: {type(e).__name__}")
         except OSError:
             if time.monotonic() > deadline:
                 print(f"could not connect to {args.url}", file=sys.stderr)
                 return 1
             time.sleep(0.2)
+    if args.expect_refused:
+        print(json.dumps({"refused": None}))
+        print("connected, but the server should have refused", file=sys.stderr)
+        return 1
     if ws.subprotocol not in SUBPROTOCOLS:
         print(f"server chose subprotocol {ws.subprotocol!r}", file=sys.stderr)
         return 1

@@ -29,6 +29,17 @@ pub fn bin(name: &str) -> PathBuf {
 
 static COUNTER: AtomicU32 = AtomicU32::new(0);
 
+static HEAVY: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+/// Holds the test binary's one "heavy" slot until dropped. The multi-process tests are one binary
+/// whose tests run side by side; a test that runs the whole main job (which alone keeps the two
+/// cores busy) or that asserts what arrives through a link cut or a kill takes this first, so that
+/// no two of them compete for the CPU and lighter tests still run beside them. A heavy test that
+/// failed does not block the others (the lock's poisoning is ignored).
+pub fn heavy() -> std::sync::MutexGuard<'static, ()> {
+    HEAVY.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 /// One isolated test run.
 pub struct TestRun {
     /// Temporary directory (config, outputs, logs).

@@ -49,8 +49,8 @@ rate_hz = 0.0
 #[test]
 fn camera_only_fastslam_runs_on_the_kitti_features_when_present() {
     let dir = format!("{}/../../shared/data/stereo_vo_large", env!("CARGO_MANIFEST_DIR"));
-    if !std::path::Path::new(&dir).join("VO_stereo_factors_large.txt").exists() {
-        eprintln!("skipped: {dir} not present (it may not be committed)");
+    let factors = std::path::Path::new(&dir).join("VO_stereo_factors_large.txt");
+    if !datasets::shared_data_present(factors, "camera_only_fastslam_runs_on_the_kitti_features_when_present") {
         return;
     }
     let mut run = TestRun::new("slamkitti");

@@ -1,7 +1,7 @@
 //! The fusion and octree-mapping stages end to end: the default config (config/default.toml, the processes exactly as
 //! the main job runs them) must end with a fused global path at most 0.8 of the buoy-only path's
 //! error and better than the SLAM path, with an honest SLAM covariance, and write every output the
-//! README lists.
+//! docs/fusion.md lists.
 
 use std::time::Duration;
 
@@ -9,6 +9,7 @@ use pipeline_tests::TestRun;
 
 #[test]
 fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
+    let _heavy = pipeline_tests::heavy();
     let path = format!("{}/../config/default.toml", env!("CARGO_MANIFEST_DIR"));
     let text = std::fs::read_to_string(&path).expect("config/default.toml");
     let config: toml::Table = text.parse().expect("valid TOML");

@@ -230,7 +230,7 @@ fn the_main_job_runs_stage_by_stage_in_one_process() -> anyhow::Result<()> {
     assert_eq!(fusion_part["fusion"]["predicted"].as_u64(), Some(predicted), "{fusion_part}");
 
     // Scores against the ground truth the ingest stage wrote (30 s of the mission: a short
-    // drive, so the bounds are loose; the full mission's numbers are in the README).
+    // drive, so the bounds are loose; the full mission's numbers are in docs/).
     let buoy_ate = ate(&part("buoy")?, "buoy_ekf");
     let slam_ate = ate(&part("slam")?, "slam");
     let fused_ate = ate(&part("fusion")?, "fused");

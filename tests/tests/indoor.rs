@@ -16,6 +16,7 @@ fn box_distance(p: [f64; 3], min: [f64; 3], max: [f64; 3]) -> f64 {
 
 #[test]
 fn the_indoor_mission_maps_in_2d_and_3d_at_the_grid_slam_poses() {
+    let _heavy = pipeline_tests::heavy();
     let mut run = TestRun::new("indoor");
     let processes = r#"
 [processes.slam2d]

@@ -163,8 +163,8 @@ fn depth_images_are_back_projected_into_clouds() {
 #[test]
 fn the_kitti_stereo_features_are_replayed_when_the_data_set_is_present() {
     let dir = repo("../shared/data/stereo_vo_large");
-    if !std::path::Path::new(&dir).join("VO_stereo_factors_large.txt").exists() {
-        eprintln!("skipped: {dir} not present (it may not be committed)");
+    let factors = std::path::Path::new(&dir).join("VO_stereo_factors_large.txt");
+    if !datasets::shared_data_present(factors, "the_kitti_stereo_features_are_replayed_when_the_data_set_is_present") {
         return;
     }
     let mut run = TestRun::new("stereovo");

@@ -86,6 +86,7 @@ fn read_tum(path: &Path, strict: bool) -> Vec<(f64, nalgebra::Isometry3<f64>)> {
 
 #[test]
 fn kill_9_of_each_stage_once_is_survived_with_complete_outputs() {
+    let _heavy = pipeline_tests::heavy();
     let path = format!("{}/../config/default.toml", env!("CARGO_MANIFEST_DIR"));
     let text = std::fs::read_to_string(&path).expect("config/default.toml");
     let config: toml::Table = text.parse().expect("valid TOML");
@@ -101,7 +102,12 @@ fn kill_9_of_each_stage_once_is_survived_with_complete_outputs() {
     // Progress every second, to spread the kills finely over the mission.
     let ingest = processes["ingest"].as_table_mut().expect("ingest table");
     let settings = ingest.entry("settings").or_insert_with(|| toml::Table::new().into());
-    settings.as_table_mut().expect("settings table").insert("progress_interval_s".into(), 1.0.into());
+    let settings = settings.as_table_mut().expect("settings table");
+    settings.insert("progress_interval_s".into(), 1.0.into());
+    // Two of the mission's four survey legs: every kill still lands mid-run, in half the time.
+    let sim = settings.entry("sim").or_insert_with(|| toml::Table::new().into());
+    let mission = sim.as_table_mut().expect("sim table").entry("mission").or_insert_with(|| toml::Table::new().into());
+    mission.as_table_mut().expect("mission table").insert("legs".into(), 2.into());
     let processes = toml::to_string(&toml::Table::from_iter([("processes".to_string(), processes.into())]))
         .expect("processes as TOML");
     let run_extra = format!(
@@ -147,7 +153,7 @@ fn kill_9_of_each_stage_once_is_survived_with_complete_outputs() {
     assert_eq!(exit.code(), Some(0), "{}", run.log());
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new(), "iceoryx2 files left behind");
 
-    // Each restarted stage took over what its killed instance had done (see README, Reliability):
+    // Each restarted stage took over what its killed instance had done (see docs/architecture.md, Restarts):
     // ingest resumed where the killed one was instead of replaying the mission (and held back
     // while a consumer of its services restarted), SLAM and the buoy EKF kept their trajectories,
     // fusion replayed its inputs, the mapper loaded its checkpoint.
@@ -174,7 +180,8 @@ fn kill_9_of_each_stage_once_is_survived_with_complete_outputs() {
     let out = run.out_dir();
     let truth = read_tum(&out.join("ground_truth.tum"), true);
     let (t_first, t_last) = (truth[0].0, truth[truth.len() - 1].0);
-    assert!(t_last - t_first > 300.0, "ground truth covers {:.0} s of the mission", t_last - t_first);
+    // The two-leg mission is ~260 s of data (2026-12-04): the restarted ingest wrote all of it.
+    assert!(t_last - t_first > 250.0, "ground truth covers {:.0} s of the mission", t_last - t_first);
     for f in [
         "slam_local.tum",
         "buoy_ekf.tum",

@@ -1,4 +1,4 @@
-//! The layering rules of the README ("What may depend on what"), checked on `cargo metadata`:
+//! The layering rules of the docs/architecture.md ("What may depend on what"), checked on `cargo metadata`:
 //! - an algorithm crate (algorithms/) depends on no iceoryx2, shared_types or anything under
 //!   services/ (the maths stays pure and testable without IPC);
 //! - a stage crate (services/ minus the runtime, the supervisor, the test kit and the bench)
@@ -82,7 +82,95 @@ fn algorithms_stages_and_the_supervisor_depend_only_on_what_the_readme_allows() 
     }
     assert!(
         violations.is_empty(),
-        "layering rules broken (README, What may depend on what):\n{}",
+        "layering rules broken (docs/architecture.md, What may depend on what):\n{}",
         violations.join("\n")
     );
+}
+
+/// Binaries and libraries that `cargo test` skips (`test = false`, `doctest = false` in their
+/// Cargo.toml, to save a compile and a link each: docs/benchmarks.md, Test time) must hold no test
+/// that would then never run.
+#[test]
+fn targets_that_cargo_test_skips_hold_no_tests() {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf();
+    let out = std::process::Command::new(cargo)
+        .args(["metadata", "--format-version", "1", "--no-deps", "--offline"])
+        .current_dir(&root)
+        .output()
+        .expect("cargo metadata runs");
+    assert!(out.status.success(), "cargo metadata: {}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let mut skipped = 0;
+    let mut violations = vec![];
+    for p in v["packages"].as_array().unwrap() {
+        for t in p["targets"].as_array().unwrap() {
+            let kinds: Vec<&str> = t["kind"].as_array().unwrap().iter().filter_map(|k| k.as_str()).collect();
+            let src = Path::new(t["src_path"].as_str().unwrap());
+            let name = t["name"].as_str().unwrap();
+            if kinds.contains(&"bin") && t["test"] == false {
+                skipped += 1;
+                // A binary's tests live in its own file (these declare no modules: checked too).
+                let text = std::fs::read_to_string(src).expect("a binary's source");
+                for needle in ["#[test]", "#[cfg(test)]", "\nmod ", "\npub mod "] {
+                    if text.contains(needle) {
+                        violations.push(format!(
+                            "bin {name} ({}) has test = false but contains `{}`",
+                            src.display(),
+                            needle.trim()
+                        ));
+                    }
+                }
+            }
+            if kinds.iter().any(|k| k.ends_with("lib")) && t["doctest"] == false {
+                skipped += 1;
+                // Every file of the library: a fenced example in a doc comment would be a doc test.
+                let dir = src.parent().unwrap();
+                let mut stack = vec![dir.to_path_buf()];
+                while let Some(d) = stack.pop() {
+                    for e in std::fs::read_dir(&d).expect("a source directory").flatten() {
+                        let path = e.path();
+                        if path.is_dir() {
+                            stack.push(path);
+                        } else if path.extension().is_some_and(|x| x == "rs") {
+                            let text = std::fs::read_to_string(&path).expect("a source file");
+                            if has_doc_test(&text) {
+                                violations.push(format!(
+                                    "lib {name} has doctest = false but {} has a fenced block in its docs",
+                                    path.display()
+                                ));
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    assert!(skipped > 10, "expected the stage binaries to be marked test = false, found {skipped} skipped targets");
+    assert!(violations.is_empty(), "tests that `cargo test` would never run:\n{}", violations.join("\n"));
+}
+
+/// Whether a file's doc comments hold a fenced block that rustdoc runs as a test: one whose info
+/// string is empty or names only Rust attributes (```` ```text ````, ```` ```json ```` are not run).
+fn has_doc_test(text: &str) -> bool {
+    let mut open = false;
+    for l in text.lines() {
+        let l = l.trim_start();
+        let Some(doc) = l.strip_prefix("///").or_else(|| l.strip_prefix("//!")) else { continue };
+        let Some(info) = doc.trim_start().strip_prefix("```") else { continue };
+        if open {
+            open = false;
+            continue;
+        }
+        open = true;
+        let rust = info.split(',').map(str::trim).all(|a| {
+            a.is_empty()
+                || ["rust", "no_run", "should_panic", "ignore", "compile_fail"].contains(&a)
+                || a.starts_with("edition")
+        });
+        if rust {
+            return true;
+        }
+    }
+    false
 }

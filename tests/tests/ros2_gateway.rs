@@ -235,6 +235,7 @@ in = [
 
 #[test]
 fn the_main_jobs_outputs_reach_a_cyclone_subscriber_near_the_ground_truth() {
+    let _heavy = pipeline_tests::heavy();
     let ns = NetNs::required("r2m");
     let mut run = TestRun::new("ros2main");
     let ros2 = Path::new(env!("CARGO_MANIFEST_DIR")).join("../config/ros2.toml");

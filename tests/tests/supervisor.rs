@@ -277,3 +277,62 @@ fn a_closed_stdout_and_stderr_neither_kill_the_supervisor_nor_leave_shared_memor
     assert_eq!(run.summary()["run"]["end_reason"], "end_of_stream");
     assert!(run.leftovers().is_empty(), "left behind: {:?}", run.leftovers());
 }
+
+/// In a terminal (a pseudo-terminal made by util-linux `script`), the run shows one live block:
+/// the sources' progress as a bar, a row per process; the full log goes to `<out>/run.log`
+/// (the supervisor's lines and every process's), not to the terminal; the summary follows.
+#[test]
+fn in_a_terminal_the_run_is_a_live_block_and_the_full_log_goes_to_run_log() {
+    let run = TestRun::new("live");
+    let procs = PAIR.replace("rate_hz = 50.0", "rate_hz = 40.0\nframes = 80");
+    let cfg = run.write_config("end = \"end_of_stream\"\nend_of_stream_from = [\"consumer\"]\nduration_s = 60", &procs);
+    let cmd = format!("{} --config {}", pipeline_tests::bin("supervisor").display(), cfg.display());
+    let mut child = std::process::Command::new("script")
+        .args(["-qefc", &cmd, "/dev/null"])
+        .env("RUST_LOG", "info")
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("util-linux `script` (package bsdutils) runs");
+    let mut terminal = String::new();
+    let reader = {
+        let mut out = child.stdout.take().expect("stdout");
+        std::thread::spawn(move || {
+            let mut s = String::new();
+            let _ = std::io::Read::read_to_string(&mut out, &mut s);
+            s
+        })
+    };
+    let end = std::time::Instant::now() + Duration::from_secs(60);
+    let status = loop {
+        if let Some(s) = child.try_wait().expect("try_wait") {
+            break s;
+        }
+        if std::time::Instant::now() > end {
+            let _ = child.kill();
+            panic!("the run under `script` did not end in 60 s; log:\n{}", run.log());
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    terminal.push_str(&reader.join().expect("reader"));
+    assert!(status.success(), "exit {status:?}; terminal:\n{terminal}");
+    // The block: header, a row per process, the bar at 100 % of the producer's frames.
+    for needle in ["process", "msg/s", "backlog", "dropped", "restarts", "producer", "consumer", "100% of the data"] {
+        assert!(terminal.contains(needle), "`{needle}` not on the terminal:\n{terminal}");
+    }
+    // The summary after it, and where the log is.
+    let log_path = run.out_dir().join("run.log");
+    assert!(terminal.contains(&format!("full log in {}", log_path.display())), "{terminal}");
+    assert!(terminal.contains("outputs in"), "{terminal}");
+    // Log lines are not on the terminal (no warnings in this run) but in run.log, with the
+    // processes' own lines.
+    assert!(!terminal.contains(" INFO "), "log lines on the terminal:\n{terminal}");
+    let log = std::fs::read_to_string(&log_path).expect("run.log");
+    for needle in ["[supervisor]", "starting pipeline", "[producer]", "[consumer]", "end of stream"] {
+        assert!(log.contains(needle), "`{needle}` not in run.log:\n{log}");
+    }
+    let s = run.summary();
+    assert_eq!(s["run"]["end_reason"], "end_of_stream", "{s:#}");
+    assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
+}

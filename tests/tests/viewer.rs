@@ -49,6 +49,7 @@ fn default_graph_with_viewer(port: u16) -> String {
 
 #[test]
 fn a_foxglove_client_follows_the_main_job_live_and_the_pipeline_loses_nothing() {
+    let _heavy = pipeline_tests::heavy();
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let mut run = TestRun::new("view");
     let ends = r#"end = "end_of_stream"
@@ -127,9 +128,26 @@ duration_s = 200"#;
     let v = &s["viewer"];
     assert!(v["clients_max"].as_u64().unwrap_or(0) >= 1, "{v:#}");
     assert_eq!(v["not_shown"], serde_json::json!({}), "{v:#}");
-    // The viewer saw every cloud and the mapper inserted every one: nothing lost to the view.
-    let inserted = s["octree_mapper"]["counters"]["clouds_inserted"].as_u64().unwrap();
-    assert_eq!(v["channels"]["/cloud"]["received"].as_u64(), Some(inserted), "{v:#}\n{:#}", s["octree_mapper"]);
+    // The viewer saw every cloud ingest sent: nothing lost to the view. The mapper, paced at 4x
+    // real time without back-pressure, may miss some on a loaded machine (CI: 16 and 15 of 17
+    // inserted): counted, and in summary.json's dropped list, never silent.
+    let sent = s["ingest"]["messages"]["cloud"].as_u64().unwrap();
+    assert_eq!(v["channels"]["/cloud"]["received"].as_u64(), Some(sent), "{v:#}\n{:#}", s["ingest"]);
+    let c = &s["octree_mapper"]["counters"];
+    let (inserted, missed) = (c["clouds_inserted"].as_u64().unwrap(), c["clouds_missed"].as_u64().unwrap());
+    let dropped = c["clouds_dropped_behind"].as_u64().unwrap() + c["clouds_dropped_no_pose"].as_u64().unwrap();
+    assert_eq!(inserted + missed + dropped, sent, "{c:#}");
+    // This test's mapper also sends its full voxel map every second (voxels_full_interval_s), so
+    // at 4x real time it misses some of the 17 clouds on a loaded machine (CI: 1 and 2).
+    assert!(inserted * 2 >= sent, "the mapper took most clouds: {c:#}");
+    let listed: u64 = s["dropped"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|d| d["process"] == "map")
+        .map(|d| d["messages"].as_u64().unwrap())
+        .sum();
+    assert_eq!(listed, missed + dropped, "the mapper's losses are listed: {:#}", s["dropped"]);
     assert!(v["channels"]["/cloud"]["logged"].as_u64().unwrap_or(0) >= 1, "{v:#}");
     // The stalled client lost messages: the SDK's reports of it were counted and warned about.
     assert!(v["sdk_outbox_full_reports"].as_u64().unwrap_or(0) >= 1, "{v:#}");

@@ -55,6 +55,7 @@ compression = "lz4"
 
 #[test]
 fn the_main_job_leaves_room_for_a_viewer_and_a_recorder_on_every_service() {
+    let _heavy = pipeline_tests::heavy();
     let mut run = TestRun::new("watch");
     let (procs, ends) = default_graph_with(&["rec1", "rec2"], true);
     let s = run.run_to_end(

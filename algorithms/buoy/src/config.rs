@@ -101,7 +101,7 @@ pub struct RangeConfig {
     /// the vehicle to move. The default 5 (the ranges give at least 1/25 of the prior's
     /// information) holds what the geometry leaves open, as in those examples; stricter values
     /// (1-2) also held the calibration in the first seconds of the indoor UWB data set's short
-    /// run and cost it 0.002-0.02 m of ATE (README). 0 turns the check off.
+    /// run and cost it 0.002-0.02 m of ATE (docs/buoy_ekf.md). 0 turns the check off.
     pub observable_sigma_fraction: f64,
     /// The window of accepted ranges for `observable_sigma_fraction`, s.
     pub observability_window_s: f64,

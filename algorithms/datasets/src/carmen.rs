@@ -425,8 +425,7 @@ mod tests {
     #[test]
     fn the_freiburg_079_log_reads_whole_when_present() {
         let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/carmen/freiburg-079-corrected.log.gz");
-        if !p.exists() {
-            eprintln!("skipped: {} is absent", p.display());
+        if !crate::shared_data_present(&p, "the_freiburg_079_log_reads_whole_when_present") {
             return;
         }
         let log = read_carmen(&p).expect("read");

@@ -29,3 +29,24 @@ pub use plaza2::Plaza2;
 pub use ply::{PlyFormat, read_ply, write_ply};
 pub use scan::{Pose6D, Scan, read_scan_file};
 pub use stereo_vo::{StereoFrame, StereoVo, group_by_frame};
+
+/// For tests: whether the shared data set file or directory `path` (under `../shared/data`) is
+/// present. When it is absent, under CI (the `CI` environment variable set to anything but
+/// `false` or empty, as `.ci/run` does: CI runs with `../shared` beside the clone) this panics
+/// naming the path, so that a test never passes without its data; elsewhere it prints that the
+/// test is skipped and returns false (a fresh clone may not have the data sets beside it).
+#[must_use]
+pub fn shared_data_present(path: impl AsRef<std::path::Path>, test: &str) -> bool {
+    let path = path.as_ref();
+    if path.exists() {
+        return true;
+    }
+    let ci = std::env::var("CI").is_ok_and(|v| !v.is_empty() && v != "false");
+    assert!(
+        !ci,
+        "{test}: {} is missing: CI runs with the shared data sets (../shared/data) beside the clone",
+        path.display()
+    );
+    eprintln!("{test} skipped: {} is absent (set CI=1 to make this a failure)", path.display());
+    false
+}

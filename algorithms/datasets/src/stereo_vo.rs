@@ -299,9 +299,8 @@ mod tests {
 
     #[test]
     fn full_data_set_if_present() {
-        let dir = PathBuf::from("/work/shared/data/stereo_vo_large");
-        if !dir.join(FACTORS_FILE).exists() {
-            println!("note: {} not present, skipping the full stereo VO test", dir.display());
+        let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/stereo_vo_large");
+        if !crate::shared_data_present(dir.join(FACTORS_FILE), "full_data_set_if_present") {
             return;
         }
         let vo = StereoVo::load(&dir).unwrap();

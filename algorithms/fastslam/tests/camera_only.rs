@@ -137,10 +137,13 @@ fn on_the_simulated_drive_the_filter_beats_its_own_front_end_and_its_covariance_
 #[test]
 fn on_the_real_kitti_features_the_track_agrees_with_the_data_sets_visual_odometry() {
     let dir = format!("{}/../../../shared/data/stereo_vo_large", env!("CARGO_MANIFEST_DIR"));
-    let Ok(vo) = datasets::StereoVo::load(&dir) else {
-        eprintln!("skipped: {dir} not present (it may not be committed)");
+    if !datasets::shared_data_present(
+        &dir,
+        "on_the_real_kitti_features_the_track_agrees_with_the_data_sets_visual_odometry",
+    ) {
         return;
-    };
+    }
+    let vo = datasets::StereoVo::load(&dir).expect("the KITTI stereo features load");
     let c = vo.calibration;
     let rig = geometry::StereoRig {
         f_px: c.fx_px,

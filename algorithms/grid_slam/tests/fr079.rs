@@ -13,8 +13,8 @@ use std::path::Path;
 fn fr079_relations_beat_the_drifting_odometry_and_the_published_gmapping_error() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/carmen");
     let (log_path, rel_path) = (dir.join("freiburg-079-corrected.log.gz"), dir.join("fr079.relations"));
-    if !log_path.exists() || !rel_path.exists() {
-        eprintln!("skipped: {} or its relations are absent", log_path.display());
+    let test = "fr079_relations_beat_the_drifting_odometry_and_the_published_gmapping_error";
+    if !datasets::shared_data_present(&log_path, test) || !datasets::shared_data_present(&rel_path, test) {
         return;
     }
     let log = read_carmen(&log_path).expect("read the log");

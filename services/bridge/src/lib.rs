@@ -26,6 +26,7 @@
 //! Everything is counted per route and direction in summary.json (`bridge.out`, `bridge.in`).
 
 pub mod clock;
+pub mod refusals;
 pub mod stage;
 
 use pipeline_runtime::config::{Issues, ProcessSettings};
@@ -62,13 +63,66 @@ pub struct BridgeSettings {
     /// After the end marker, wait this long for the other side's acknowledgement, s.
     #[serde(default = "default_ack")]
     pub end_ack_timeout_s: f64,
-    /// Received messages queued before they are published: when it is full, the link is held back
-    /// (for at most 5 s at a time, then the oldest is dropped and counted).
+    /// Received messages queued per `in` route before they are published: when a route's queue is
+    /// full (this many messages, or [`Accept::queue_mib`]), its link is held back (for at most
+    /// 5 s at a time, then the route's oldest message is dropped and counted). A flood on one
+    /// route never holds another's.
     #[serde(default = "default_queue")]
     pub queue_messages: usize,
+    /// What a message from an authenticated robot must pass before it enters this pipeline.
+    #[serde(default)]
+    pub accept: Accept,
     /// What becomes of a received message's `origin_ns` (stamped on the sender's clock).
     #[serde(default)]
     pub clock: ClockMode,
+}
+
+/// Defence in depth on what an `in` route publishes (docs/security.md): a message from a robot
+/// whose certificate the CA signed is still checked, and a flood is bounded. Every refusal is
+/// counted per route and reason in summary.json (`bridge.in.<route>.counts`) and warned once
+/// per route and reason, naming the robot.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Accept {
+    /// Most messages per second per `in` route (a token bucket holding one second's worth, so a
+    /// burst up to that is let through); more are dropped at once and counted (`rate_dropped`).
+    /// 0: no limit. A route's own `max_rate_hz` overrides it.
+    #[serde(default = "default_in_rate")]
+    pub max_rate_hz: f64,
+    /// Most bytes queued per `in` route, MiB (see `queue_messages`).
+    #[serde(default = "default_queue_mib")]
+    pub queue_mib: f64,
+    /// A message whose `origin_ns` (on this machine's clock, once the sender's clock is known) is
+    /// later than now by more than this is refused (`refused_time`), s.
+    #[serde(default = "default_future")]
+    pub max_future_s: f64,
+    /// A message whose `origin_ns` is older than this is refused (`refused_time`), s.
+    #[serde(default = "default_age")]
+    pub max_age_s: f64,
+}
+
+impl Default for Accept {
+    fn default() -> Self {
+        Self {
+            max_rate_hz: default_in_rate(),
+            queue_mib: default_queue_mib(),
+            max_future_s: default_future(),
+            max_age_s: default_age(),
+        }
+    }
+}
+
+fn default_in_rate() -> f64 {
+    1000.0
+}
+fn default_queue_mib() -> f64 {
+    256.0
+}
+fn default_future() -> f64 {
+    1.0
+}
+fn default_age() -> f64 {
+    120.0
 }
 
 /// How a receiving bridge maps the sender's `origin_ns` onto its own clock ([`clock`]).
@@ -115,7 +169,7 @@ pub struct ZenohSettings {
     /// endpoints instead).
     #[serde(default)]
     pub multicast_scouting: bool,
-    /// Mutual TLS (README "Security"): every link is encrypted, and only hosts whose certificate
+    /// Mutual TLS (docs/security.md): every link is encrypted, and only hosts whose certificate
     /// the CA signed get in, each only under its own name. Required unless `insecure`.
     #[serde(default)]
     pub tls: Option<TlsSettings>,
@@ -123,6 +177,19 @@ pub struct ZenohSettings {
     /// robot's name. Only with this set (warned at start and in summary.json).
     #[serde(default)]
     pub insecure: bool,
+    /// How long a link may stay silent before it is taken for dead and closed (Zenoh's lease,
+    /// announced to the peer), seconds. A reliable route's send waits for room as long as the
+    /// link lives (Zenoh's `wait_before_close` is set to the lease, not its 5 s default), so an
+    /// outage shorter than about half of it loses nothing: TCP's retransmission back-off can
+    /// make the silence up to twice the outage. A longer outage closes the link: what was in
+    /// flight is lost and counted (`lost_on_the_way` on the receiving side). Longer leases
+    /// notice a peer that died later.
+    #[serde(default = "default_lease_s")]
+    pub lease_s: f64,
+}
+
+fn default_lease_s() -> f64 {
+    10.0
 }
 
 /// The certificates of a bridge's mutual TLS (made by `supervisor certs`; PEM files, relative
@@ -146,6 +213,37 @@ pub struct TlsSettings {
     /// empty: any host whose certificate the CA signed.
     #[serde(default)]
     pub receivers: Vec<String>,
+    /// The revocation list (`supervisor certs --revoke`: one host name per line, `#` comments);
+    /// default `revoked.txt` next to `ca_certificate`; a missing file revokes nobody. A revoked
+    /// host gets nothing in or out (the access control leaves it out). The bridge watches the
+    /// file and restarts to apply a change (its restart policy must allow it: the default).
+    #[serde(default)]
+    pub revoked: Option<std::path::PathBuf>,
+}
+
+impl TlsSettings {
+    /// The revocation list's file.
+    pub fn revocation_list(&self) -> std::path::PathBuf {
+        self.revoked
+            .clone()
+            .unwrap_or_else(|| self.ca_certificate.parent().unwrap_or(std::path::Path::new(".")).join("revoked.txt"))
+    }
+
+    /// The revoked host names (none when the file does not exist).
+    pub fn read_revoked(&self) -> Result<std::collections::BTreeSet<String>, String> {
+        let path = self.revocation_list();
+        match std::fs::read_to_string(&path) {
+            Ok(text) => Ok(text
+                .lines()
+                .filter_map(|l| l.split('#').next())
+                .map(str::trim)
+                .filter(|l| !l.is_empty())
+                .map(String::from)
+                .collect()),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Default::default()),
+            Err(e) => Err(format!("{}: {e}", path.display())),
+        }
+    }
 }
 
 fn yes() -> bool {
@@ -165,6 +263,7 @@ impl Default for ZenohSettings {
             multicast_scouting: false,
             tls: None,
             insecure: false,
+            lease_s: default_lease_s(),
         }
     }
 }
@@ -213,6 +312,9 @@ pub struct InRoute {
     /// maps the sender sends `drop_oldest`).
     #[serde(default)]
     pub when_full: WhenFull,
+    /// Most messages per second taken on this route (overrides `accept.max_rate_hz`; 0: no limit).
+    #[serde(default)]
+    pub max_rate_hz: Option<f64>,
 }
 
 /// What an `in` route does when a local subscriber is full.
@@ -254,9 +356,14 @@ pub fn end_key(namespace: &str, robot: &str) -> String {
     format!("{namespace}/{robot}/_bridge/end")
 }
 
-/// The key on which `robot`'s bridge answers clock queries ([`clock`]).
-pub fn clock_key(namespace: &str, robot: &str) -> String {
-    format!("{namespace}/{robot}/_bridge/clock")
+/// The key on which receiving bridges ask `robot`'s bridge for its clock ([`clock`]).
+pub fn clock_ask_key(namespace: &str, robot: &str) -> String {
+    format!("{namespace}/{robot}/_bridge/clock/ask")
+}
+
+/// The key on which `robot`'s bridge answers ([`clock`]).
+pub fn clock_answer_key(namespace: &str, robot: &str) -> String {
+    format!("{namespace}/{robot}/_bridge/clock/answer")
 }
 
 /// The key of the acknowledgement of `robot`'s end marker.
@@ -286,7 +393,7 @@ fn endpoint_ok(e: &str) -> bool {
     }
 }
 
-/// What a host's certificate says (README "Security").
+/// What a host's certificate says (docs/security.md).
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct CertificateInfo {
     /// Its subject's common name: the host's name.
@@ -334,11 +441,20 @@ const ACL_MESSAGES: [&str; 9] = [
 /// `receivers` (their certificates' names; none named: any host the CA signed, i.e. any TLS
 /// link). So a host cannot publish under another robot's name, and one the config does not name
 /// gets nothing.
-pub fn access_control(s: &BridgeSettings) -> serde_json::Value {
+///
+/// A receiving bridge also denies everything to any TLS host explicitly ([`refusals_counted`]:
+/// unless it also sends to any host, whose rule that would override), except that its
+/// subscriptions to the `in` routes' keys are declared to every host: a host that publishes
+/// under a robot's key it may not use then sends, and Zenoh refuses the messages here and
+/// reports each with the host's identity, which the bridge counts ([`refusals`]).
+///
+/// A revoked host (`revoked`: [`TlsSettings::read_revoked`]) is left out of every rule: it
+/// matches only the catch-all, or nothing, and gets nothing in or out.
+pub fn access_control(s: &BridgeSettings, revoked: &std::collections::BTreeSet<String>) -> serde_json::Value {
     let mut rules = vec![];
     let mut subjects = vec![];
     let mut policies = vec![];
-    let mut from: Vec<&str> = s.inbound.iter().map(|r| r.from.as_str()).collect();
+    let mut from: Vec<&str> = s.inbound.iter().map(|r| r.from.as_str()).filter(|r| !revoked.contains(*r)).collect();
     from.sort_unstable();
     from.dedup();
     for r in from {
@@ -356,13 +472,41 @@ pub fn access_control(s: &BridgeSettings) -> serde_json::Value {
             "id": id, "permission": "allow", "flows": ["ingress", "egress"],
             "messages": ACL_MESSAGES, "key_exprs": [format!("{}/{}/**", s.namespace, s.robot)],
         }));
-        let receivers = s.zenoh.tls.as_ref().map(|t| t.receivers.clone()).unwrap_or_default();
-        subjects.push(if receivers.is_empty() {
-            serde_json::json!({ "id": id, "link_protocols": ["tls"] })
-        } else {
-            serde_json::json!({ "id": id, "cert_common_names": receivers })
-        });
-        policies.push(serde_json::json!({ "rules": [id], "subjects": [id] }));
+        let named = s.zenoh.tls.as_ref().map(|t| t.receivers.clone()).unwrap_or_default();
+        let receivers: Vec<String> = named.iter().filter(|r| !revoked.contains(*r)).cloned().collect();
+        // (Every receiver revoked: no subject, nobody gets the keys.)
+        if named.is_empty() || !receivers.is_empty() {
+            subjects.push(if named.is_empty() {
+                serde_json::json!({ "id": id, "link_protocols": ["tls"] })
+            } else {
+                serde_json::json!({ "id": id, "cert_common_names": receivers })
+            });
+            policies.push(serde_json::json!({ "rules": [id], "subjects": [id] }));
+        }
+    }
+    if refusals_counted(s) {
+        // Every TLS host: nothing in and nothing out (as by default), except that it learns what
+        // this bridge subscribes to, so that a host publishing under another robot's keys does
+        // send, and is refused here, counted (otherwise its Zenoh would keep the messages).
+        let id = "any other host";
+        let not_subscriptions: Vec<&str> =
+            ACL_MESSAGES.iter().copied().filter(|m| *m != "declare_subscriber").collect();
+        let mut keys: Vec<String> = s.inbound.iter().map(|r| key(&s.namespace, &r.from, &r.service)).collect();
+        keys.sort_unstable();
+        keys.dedup();
+        rules.push(serde_json::json!({
+            "id": "deny in", "permission": "deny", "flows": ["ingress"], "messages": ACL_MESSAGES, "key_exprs": ["**"],
+        }));
+        rules.push(serde_json::json!({
+            "id": "deny out", "permission": "deny", "flows": ["egress"], "messages": not_subscriptions,
+            "key_exprs": ["**"],
+        }));
+        rules.push(serde_json::json!({
+            "id": "subscriptions out", "permission": "allow", "flows": ["egress"], "messages": ["declare_subscriber"],
+            "key_exprs": keys,
+        }));
+        subjects.push(serde_json::json!({ "id": id, "link_protocols": ["tls"] }));
+        policies.push(serde_json::json!({ "rules": ["deny in", "deny out", "subscriptions out"], "subjects": [id] }));
     }
     serde_json::json!({
         "enabled": true,
@@ -373,8 +517,39 @@ pub fn access_control(s: &BridgeSettings) -> serde_json::Value {
     })
 }
 
+/// Whether a bridge counts the messages its access control refuses per host and route
+/// (`refused_wrong_robot`): it receives from robots, over TLS, and does not also send to every
+/// host (empty `receivers`: a rule for every TLS link, which a deny rule for every TLS link
+/// would cancel in Zenoh, where a subject's deny wins over its allow).
+pub fn refusals_counted(s: &BridgeSettings) -> bool {
+    let receivers = s.zenoh.tls.as_ref().map(|t| t.receivers.len());
+    !s.inbound.is_empty() && receivers.is_some() && !(receivers == Some(0) && !s.robot.is_empty() && !s.out.is_empty())
+}
+
 fn unix_now_s() -> i64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs() as i64).unwrap_or(0)
+}
+
+/// What is wrong with running under the revocation list `revoked` (see [`TlsSettings::revoked`]):
+/// this host's own certificate is revoked.
+pub fn revocation_problem(own_name: Option<&str>, revoked: &std::collections::BTreeSet<String>) -> Option<String> {
+    own_name
+        .filter(|n| revoked.contains(*n))
+        .map(|n| format!("this host's certificate (CN {n}) is revoked: make it a new name, or delete its line"))
+}
+
+/// Revoked hosts the access control cannot leave out: an `out` bridge whose `receivers` is empty
+/// sends to any host the CA signed (Zenoh's access control cannot say "every host but these").
+pub fn revocation_gap(s: &BridgeSettings, revoked: &std::collections::BTreeSet<String>) -> Option<String> {
+    let receivers_empty = s.zenoh.tls.as_ref().is_some_and(|t| t.receivers.is_empty());
+    (!revoked.is_empty() && receivers_empty && !s.out.is_empty()).then(|| {
+        format!(
+            "hosts are revoked ({}) but `receivers` is empty: any host the CA signed, revoked ones too, may subscribe \
+             to this robot's keys (Zenoh's access control cannot say \"every host but these\"): name the receivers \
+             (zenoh.tls.receivers) to keep them out",
+            revoked.iter().cloned().collect::<Vec<_>>().join(", ")
+        )
+    })
 }
 
 /// Checks the `tls` settings: endpoints, files, the certificate's name against `robot`.
@@ -421,6 +596,15 @@ fn validate_tls(s: &BridgeSettings, t: &TlsSettings, key: &str, issues: &mut Iss
     for (i, r) in t.receivers.iter().enumerate() {
         issues.check(is_chunk(r), format!("{key}.zenoh.tls.receivers[{i}]"), "a host's name (letters, digits, _ - .)");
     }
+    match t.read_revoked() {
+        Err(e) => issues.push(format!("{key}.zenoh.tls.revoked"), format!("cannot read the revocation list: {e}")),
+        Ok(revoked) => {
+            let own = read_certificate(&t.certificate).ok().map(|c| c.common_name);
+            if let Some(p) = revocation_problem(own.as_deref(), &revoked) {
+                issues.push(format!("{key}.zenoh.tls.revoked"), format!("{}: {p}", t.revocation_list().display()));
+            }
+        }
+    }
 }
 
 impl ProcessSettings for BridgeSettings {
@@ -459,11 +643,16 @@ impl ProcessSettings for BridgeSettings {
                 );
             }
         }
+        issues.check(
+            z.lease_s.is_finite() && (1.0..=3600.0).contains(&z.lease_s),
+            format!("{key}.zenoh.lease_s"),
+            format!("{}: seconds from 1 to 3600", z.lease_s),
+        );
         match (&z.tls, z.insecure) {
             (None, false) => issues.push(
                 format!("{key}.zenoh.tls"),
                 "a link between hosts must be authenticated and encrypted: give `tls` (certificates made by \
-                 `supervisor certs`, README \"Security\"), or set `insecure = true` for plain TCP that anyone \
+                 `supervisor certs`, docs/security.md), or set `insecure = true` for plain TCP that anyone \
                  on the network may read and publish into",
             ),
             (Some(_), true) => {
@@ -548,6 +737,9 @@ impl ProcessSettings for BridgeSettings {
                 ),
             );
             entry.1.push(r.from.as_str());
+            if let Some(hz) = r.max_rate_hz {
+                issues.check(hz.is_finite() && hz >= 0.0, format!("{key}.in[{i}].max_rate_hz"), "must be >= 0");
+            }
             issues.check(
                 !self.out.iter().any(|o| o.service == r.local_service()),
                 format!("{key}.in[{i}].local"),
@@ -559,6 +751,12 @@ impl ProcessSettings for BridgeSettings {
             issues.check(v.is_finite() && v >= 0.0, format!("{key}.{field}"), "must be >= 0");
         }
         issues.check(self.queue_messages >= 1, format!("{key}.queue_messages"), "must be at least 1");
+        let a = &self.accept;
+        for (field, v) in [("max_rate_hz", a.max_rate_hz), ("max_future_s", a.max_future_s), ("max_age_s", a.max_age_s)]
+        {
+            issues.check(v.is_finite() && v >= 0.0, format!("{key}.accept.{field}"), "must be >= 0");
+        }
+        issues.check(a.queue_mib.is_finite() && a.queue_mib > 0.0, format!("{key}.accept.queue_mib"), "must be > 0");
     }
 }
 
@@ -584,7 +782,7 @@ in = [{ from = "r2", service = "pipeline/fusion/pose", local = "r2/pipeline/fusi
         assert!(issues(ok).is_empty(), "{:?}", issues(ok));
         let bad = r#"
 robot = "r/1"
-zenoh = { mode = "mesh", connect = ["127.0.0.1:7447"] }
+zenoh = { mode = "mesh", connect = ["127.0.0.1:7447"], lease_s = 0.1 }
 out = [{ service = "pipeline/nope" }, { service = "pipeline/sensors/cloud", max_rate_hz = 2.0 }]
 in = [{ from = "r2", service = "pipeline/fusion/pose" }, { from = "r3", service = "pipeline/fusion/pose" },
       { from = "r2", service = "pipeline/fusion/pose" }, { from = "r4", service = "pipeline/slam/pose", local = "pipeline/fusion/pose" }]
@@ -594,6 +792,7 @@ in = [{ from = "r2", service = "pipeline/fusion/pose" }, { from = "r3", service 
             "processes.b.settings.robot",
             "processes.b.settings.zenoh.mode: `mesh`",
             "processes.b.settings.zenoh.connect[0]: `127.0.0.1:7447`",
+            "processes.b.settings.zenoh.lease_s: 0.1",
             "processes.b.settings.out[0].service: `pipeline/nope`",
             "processes.b.settings.out[1].max_rate_hz",
             "processes.b.settings.in[2].local: `pipeline/fusion/pose` is published by two routes of one robot",

@@ -19,7 +19,9 @@ use zenoh::Wait;
 use zenoh::qos::CongestionControl;
 
 use crate::clock::{ClockSample, OffsetEstimator, boot_id, decode_answer, encode_answer};
-use crate::{BridgeSettings, ClockMode, Policy, WhenFull, ack_key, clock_key, end_key, key, signature};
+use crate::{
+    BridgeSettings, ClockMode, Policy, WhenFull, ack_key, clock_answer_key, clock_ask_key, end_key, key, signature,
+};
 use pipeline_runtime::monotonic_ns;
 use pipeline_runtime::topics::Origin;
 
@@ -179,6 +181,23 @@ struct InCounts {
     /// Published with `origin_ns` on the sender's clock because the offset to another machine's
     /// clock was not measured yet (their end-to-end latency is off by that offset).
     origin_unaligned: u64,
+    /// Dropped on arrival: over the route's rate (`accept.max_rate_hz`), a flood.
+    #[serde(default)]
+    rate_dropped: u64,
+    /// Refused: a NaN or an infinity in the message.
+    #[serde(default)]
+    refused_non_finite: u64,
+    /// Refused: `origin_ns` unset, later than now by more than `accept.max_future_s`, or older
+    /// than `accept.max_age_s`.
+    #[serde(default)]
+    refused_time: u64,
+    /// Refused: a sequence number not after the last one (a repeated or replayed message).
+    #[serde(default)]
+    refused_going_back: u64,
+    /// The sender's sequence numbers started again from the beginning (its publisher restarted):
+    /// accepted, counted.
+    #[serde(default)]
+    sender_restarts: u64,
     /// XXH64 folded over the bytes of every message published, in order (as they came over the
     /// link): equal to the sender's `out.digest` when the same messages arrived.
     #[serde(serialize_with = "hex", deserialize_with = "unhex")]
@@ -202,14 +221,137 @@ struct InRoute {
     /// Index into the stage's emitters (routes of several robots may share one local service).
     emitter: usize,
     counts: InCounts,
-    last_seq: Option<u64>,
+    /// The last sequence number and stamp (see [`Order`]).
+    order: Order,
     warned: bool,
+    /// Reasons of refusal already warned about (once per route and reason).
+    warned_refusals: BTreeSet<&'static str>,
     /// The clock of the sending robot (`None` under `clock = "keep"`).
     clock: Option<Arc<Mutex<ClockState>>>,
     warned_clock: bool,
     /// Receive-queue drops of the killed instances before this one (restored counts).
     queue_dropped_before: u64,
+    /// Rate drops of the killed instances before this one (restored counts).
+    rate_dropped_before: u64,
+    /// Messages dropped here (rate, queue) not yet matched by a gap in the sequence numbers.
+    drop_credit: u64,
     _subscriber: zenoh::pubsub::Subscriber<()>,
+}
+
+/// A sequence number below this after a higher one: the sender's publisher restarted (its
+/// numbers start again from 0), not a replay.
+const RESTART_SEQ_BELOW: u64 = 64;
+
+impl InRoute {
+    /// Warns about a refusal of `reason`, once per route and reason.
+    fn warn_refusal(&mut self, reason: &'static str, detail: &str) {
+        if self.warned_refusals.insert(reason) {
+            tracing::warn!(from = %self.from, route = %self.route_name, reason = %reason,
+                "refused a message from the robot: {detail} (counted in summary.json bridge.in; warned once per route \
+                 and reason)");
+        }
+    }
+
+    /// The checks on a message's header before it is published ([`Order::admit`]): counts a
+    /// refusal and warns once; returns the messages missing before this one (a sequence gap), or
+    /// why it is dropped.
+    fn admit(
+        &mut self,
+        h: &shared_types::MsgHeader,
+        origin: Option<Origin>,
+        accept: &crate::Accept,
+    ) -> Result<u64, &'static str> {
+        let last = self.order.last_seq;
+        match self.order.admit(h, origin, accept, monotonic_ns()) {
+            Verdict::Accepted { gap, restarted } => {
+                if restarted {
+                    self.counts.sender_restarts += 1;
+                    tracing::warn!(from = %self.from, route = %self.route_name, seq = h.seq, ?last,
+                        "the sender's sequence numbers started again: its publisher restarted (counted in summary.json \
+                         bridge.in as sender_restarts)");
+                }
+                // Messages this bridge dropped itself (rate, queue) show as a gap too: not lost.
+                let dropped_here = gap.min(self.drop_credit);
+                self.drop_credit -= dropped_here;
+                let lost = gap - dropped_here;
+                self.counts.seq_gaps += lost;
+                Ok(lost)
+            }
+            Verdict::GoingBack(detail) => {
+                self.counts.refused_going_back += 1;
+                self.warn_refusal("going_back", &detail);
+                Err("refused: a sequence number not after the last")
+            }
+            Verdict::OutOfTime(detail) => {
+                self.counts.refused_time += 1;
+                self.warn_refusal("time", &detail);
+                Err("refused: origin_ns out of the accepted window")
+            }
+        }
+    }
+}
+
+/// The order of one route's messages: the last sequence number seen. (Not the stamps: a
+/// service may go back in `stamp_ns` by design, e.g. fusion's poses re-published for a past
+/// segment once it is aligned.)
+#[derive(Debug, Default, Clone, Copy, PartialEq)]
+struct Order {
+    last_seq: Option<u64>,
+}
+
+/// What [`Order::admit`] says of a message.
+#[derive(Debug, PartialEq)]
+enum Verdict {
+    /// Accepted, after `gap` missing messages; `restarted`: the sender's numbers started again.
+    Accepted { gap: u64, restarted: bool },
+    /// A sequence number not after the last (repeated or replayed).
+    GoingBack(String),
+    /// `origin_ns` unset or outside the accepted window.
+    OutOfTime(String),
+}
+
+impl Order {
+    /// Checks a message's header ([`crate::Accept`]): its sequence number goes forward (a repeat
+    /// or a step back is refused; a restart from below [`RESTART_SEQ_BELOW`] is accepted), and
+    /// its `origin_ns`, once on this machine's clock (`origin`), lies within `accept`'s window
+    /// around `now_ns`. The sequence number of a message refused for its time still counts (it
+    /// was sent; no gap after it).
+    fn admit(
+        &mut self,
+        h: &shared_types::MsgHeader,
+        origin: Option<Origin>,
+        accept: &crate::Accept,
+        now_ns: u64,
+    ) -> Verdict {
+        let (mut gap, mut restarted) = (0, false);
+        if let Some(last) = self.last_seq {
+            if h.seq <= last {
+                if h.seq < last && h.seq < RESTART_SEQ_BELOW {
+                    restarted = true;
+                } else {
+                    return Verdict::GoingBack(format!("sequence number {} after {last}: repeated or replayed", h.seq));
+                }
+            } else {
+                gap = h.seq - last - 1;
+            }
+        }
+        self.last_seq = Some(h.seq);
+        if let Some(o) = origin {
+            let at = match o {
+                Origin::Shift(d) => h.origin_ns.saturating_add_signed(d),
+                _ => h.origin_ns,
+            };
+            let ahead_s = (at as f64 - now_ns as f64) / 1e9;
+            if h.origin_ns == 0 {
+                return Verdict::OutOfTime("origin_ns is not set".into());
+            } else if ahead_s > accept.max_future_s {
+                return Verdict::OutOfTime(format!("origin_ns {ahead_s:.3} s in the future (accept.max_future_s)"));
+            } else if -ahead_s > accept.max_age_s {
+                return Verdict::OutOfTime(format!("origin_ns {:.1} s old (accept.max_age_s)", -ahead_s));
+            }
+        }
+        Verdict::Accepted { gap, restarted }
+    }
 }
 
 /// What is known of a sending robot's clock (kept by its [`ClockProbe`]).
@@ -252,28 +394,54 @@ struct ClockProbe {
     state: Arc<Mutex<ClockState>>,
     stop: Arc<AtomicBool>,
     thread: Option<std::thread::JoinHandle<()>>,
+    _answers: zenoh::pubsub::Subscriber<()>,
 }
 
+/// Nonces of different probes (of this process and, by the process id, of others) differ.
+static PROBES: AtomicU64 = AtomicU64::new(0);
+
 impl ClockProbe {
-    fn start(session: zenoh::Session, key: String, robot: String, mode: ClockMode) -> Result<Self, StageError> {
+    fn start(session: &zenoh::Session, namespace: &str, robot: String, mode: ClockMode) -> Result<Self, StageError> {
         let state = Arc::new(Mutex::new(ClockState { mode, ..Default::default() }));
         let stop = Arc::new(AtomicBool::new(false));
         let (st, sp) = (state.clone(), stop.clone());
         let local_boot = boot_id();
+        let (ask_k, answer_k) = (clock_ask_key(namespace, &robot), clock_answer_key(namespace, &robot));
+        // Answers (with the local time they came) go to the thread; the callback never waits.
+        let (tx, rx) = std::sync::mpsc::sync_channel::<(u64, zenoh::bytes::ZBytes)>(64);
+        let answers = session
+            .declare_subscriber(&answer_k)
+            .callback(move |s| {
+                let _ = tx.try_send((monotonic_ns(), s.payload().clone()));
+            })
+            .wait()
+            .map_err(|e| zenoh_err(format!("subscriber on {answer_k}"), e))?;
+        let ask = session
+            .declare_publisher(ask_k.clone())
+            .congestion_control(CongestionControl::Drop)
+            .express(true)
+            .wait()
+            .map_err(|e| zenoh_err(format!("publisher on {ask_k}"), e))?;
+        let probe = (u64::from(std::process::id()) << 16 | PROBES.fetch_add(1, Ordering::Relaxed) & 0xffff) << 32;
         let thread = std::thread::Builder::new()
             .name("clock".into())
             .spawn(move || {
                 let mut known = false;
                 let mut k = 0u32;
                 while !sp.load(Ordering::Relaxed) {
+                    let nonce = probe | u64::from(k);
                     let t0 = monotonic_ns();
                     lock(&st).asked += 1;
-                    if let Ok(replies) = session.get(&key).timeout(Duration::from_millis(500)).wait()
-                        && let Ok(reply) = replies.recv()
-                        && let Ok(sample) = reply.result()
-                    {
-                        let t1 = monotonic_ns();
-                        if let Some((remote, boot)) = decode_answer(&sample.payload().to_bytes()) {
+                    if ask.put(nonce.to_le_bytes().to_vec()).wait().is_ok() {
+                        let deadline = Instant::now() + Duration::from_millis(500);
+                        // Answers to other probes (or late ones to earlier asks) are skipped.
+                        while let Ok((t1, payload)) =
+                            rx.recv_timeout(deadline.saturating_duration_since(Instant::now()))
+                        {
+                            let Some((n, remote, boot)) = decode_answer(&payload.to_bytes()) else { continue };
+                            if n != nonce {
+                                continue;
+                            }
                             let mut s = lock(&st);
                             s.answered += 1;
                             s.same_machine = Some(!boot.is_empty() && boot == local_boot);
@@ -288,6 +456,7 @@ impl ClockProbe {
                                     "clock of the sending robot measured (its CLOCK_MONOTONIC minus ours)"
                                 );
                             }
+                            break;
                         }
                     }
                     k += 1;
@@ -299,7 +468,7 @@ impl ClockProbe {
                 }
             })
             .map_err(|e| StageError::Settings(format!("clock thread: {e}")))?;
-        Ok(Self { state, stop, thread: Some(thread) })
+        Ok(Self { state, stop, thread: Some(thread), _answers: answers })
     }
 }
 
@@ -332,13 +501,55 @@ enum Incoming {
 
 /// The queue between the Zenoh callbacks and the stage.
 struct Inbox {
-    queue: Mutex<VecDeque<Incoming>>,
+    queue: Mutex<Queue>,
     /// Signalled when the stage has taken the queue.
     space: std::sync::Condvar,
+    /// Most messages queued per route.
     capacity: usize,
-    /// Per `in` route: dropped because the queue stayed full for [`BLOCK_AT_MOST`].
+    /// Most bytes queued per route (a route always may queue one message).
+    max_bytes: usize,
+    /// Per `in` route: dropped because its queue stayed full for [`BLOCK_AT_MOST`].
     dropped: Vec<AtomicU64>,
+    /// Per `in` route: the rate limit ([`Bucket`]), `None`: none.
+    buckets: Vec<Option<Mutex<Bucket>>>,
+    /// Per `in` route: dropped on arrival over the rate limit.
+    rate_dropped: Vec<AtomicU64>,
     waker: Option<pipeline_runtime::Waker>,
+}
+
+/// What is queued, with each route's share.
+#[derive(Default)]
+struct Queue {
+    items: VecDeque<Incoming>,
+    /// Per route: messages and bytes queued.
+    count: Vec<usize>,
+    bytes: Vec<usize>,
+}
+
+/// A token bucket: `rate` tokens a second, holding at most one second's worth (at least one).
+struct Bucket {
+    rate: f64,
+    tokens: f64,
+    last: Instant,
+}
+
+impl Bucket {
+    fn new(rate: f64) -> Self {
+        Self { rate, tokens: rate.max(1.0), last: Instant::now() }
+    }
+
+    /// Takes a token if there is one.
+    fn take(&mut self, now: Instant) -> bool {
+        let dt = now.saturating_duration_since(self.last).as_secs_f64();
+        self.last = now;
+        self.tokens = (self.tokens + dt * self.rate).min(self.rate.max(1.0));
+        if self.tokens >= 1.0 {
+            self.tokens -= 1.0;
+            true
+        } else {
+            false
+        }
+    }
 }
 
 /// Longest a Zenoh callback waits for room in a full receive queue (back-pressure on the link)
@@ -347,28 +558,59 @@ struct Inbox {
 const BLOCK_AT_MOST: Duration = Duration::from_secs(5);
 
 impl Inbox {
-    /// Queues `item`; when the queue is full, waits (up to [`BLOCK_AT_MOST`]) for the stage to
-    /// take it, which holds the link back (a reliable sender blocks), then drops the oldest.
-    fn push(&self, item: Incoming) {
+    /// Queues a message of `route` unless it is over the route's rate (then it is dropped and
+    /// counted); when the route's queue is full, waits (up to [`BLOCK_AT_MOST`]) for the stage
+    /// to take it, which holds the link back (a reliable sender blocks), then drops the route's
+    /// oldest messages until it fits.
+    fn push_data(&self, route: usize, payload: zenoh::bytes::ZBytes, attachment: Option<zenoh::bytes::ZBytes>) {
+        if let Some(b) = &self.buckets[route]
+            && !lock(b).take(Instant::now())
         {
-            let mut q = self.queue.lock().unwrap_or_else(|p| p.into_inner());
+            self.rate_dropped[route].fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        let len = payload.len();
+        {
+            let mut q = lock(&self.queue);
             let t0 = Instant::now();
-            while q.len() >= self.capacity {
+            let full = |q: &Queue| {
+                q.count[route] > 0 && (q.count[route] >= self.capacity || q.bytes[route] + len > self.max_bytes)
+            };
+            while full(&q) {
                 let left = BLOCK_AT_MOST.saturating_sub(t0.elapsed());
                 if left.is_zero() {
-                    if let Some(pos) = q.iter().position(|i| matches!(i, Incoming::Data { .. }))
-                        && let Some(Incoming::Data { route, .. }) = q.remove(pos)
-                    {
+                    let Some(pos) =
+                        q.items.iter().position(|i| matches!(i, Incoming::Data { route: r, .. } if *r == route))
+                    else {
+                        break;
+                    };
+                    if let Some(Incoming::Data { payload, .. }) = q.items.remove(pos) {
+                        q.count[route] -= 1;
+                        q.bytes[route] -= payload.len();
                         self.dropped[route].fetch_add(1, Ordering::Relaxed);
                     }
-                    break;
+                    continue;
                 }
                 if let Some(w) = &self.waker {
                     w.wake();
                 }
                 q = self.space.wait_timeout(q, left).unwrap_or_else(|p| p.into_inner()).0;
             }
-            q.push_back(item);
+            q.count[route] += 1;
+            q.bytes[route] += len;
+            q.items.push_back(Incoming::Data { route, payload, attachment });
+        }
+        if let Some(w) = &self.waker {
+            w.wake();
+        }
+    }
+
+    /// Queues a robot's end marker (one per robot: a repeated one replaces the queued one).
+    fn push_end(&self, from: String, body: Vec<u8>) {
+        {
+            let mut q = lock(&self.queue);
+            q.items.retain(|i| !matches!(i, Incoming::End { from: f, .. } if *f == from));
+            q.items.push_back(Incoming::End { from, body });
         }
         if let Some(w) = &self.waker {
             w.wake();
@@ -376,13 +618,18 @@ impl Inbox {
     }
 
     fn take(&self) -> VecDeque<Incoming> {
-        let q = std::mem::take(&mut *self.queue.lock().unwrap_or_else(|p| p.into_inner()));
+        let items = {
+            let mut q = lock(&self.queue);
+            q.count.iter_mut().for_each(|c| *c = 0);
+            q.bytes.iter_mut().for_each(|b| *b = 0);
+            std::mem::take(&mut q.items)
+        };
         self.space.notify_all();
-        q
+        items
     }
 
     fn is_empty(&self) -> bool {
-        self.queue.lock().unwrap_or_else(|p| p.into_inner()).is_empty()
+        lock(&self.queue).items.is_empty()
     }
 }
 
@@ -419,8 +666,8 @@ pub struct BridgeStage {
     end_acknowledged: Option<bool>,
     published: u64,
     started: Instant,
-    /// Answers other bridges' clock queries (when this bridge sends).
-    _clock_queryable: Option<zenoh::query::Queryable<()>>,
+    /// Answers other bridges' clock asks (when this bridge sends).
+    _clock_answers: Option<zenoh::pubsub::Subscriber<()>>,
     /// Per robot received from: its clock (stopped before the session closes).
     clocks: BTreeMap<String, ClockProbe>,
     /// When the counts were last kept for a restart, and the activity they had then.
@@ -428,6 +675,71 @@ pub struct BridgeStage {
     /// Connection attempts the TLS listener refused (handshake failed: no certificate, another
     /// CA's, an expired one, or not TLS), counted from Zenoh's warning for each.
     refused_handshakes: Option<Arc<AtomicU64>>,
+    /// Messages the access control refused, per host and route (see [`crate::refusals`]).
+    refusals: Option<crate::refusals::Refusals>,
+    /// The revoked hosts this session's access control leaves out.
+    revoked: BTreeSet<String>,
+    /// Watches the revocation list for a change.
+    revocation_watch: Option<RevocationWatch>,
+}
+
+/// A thread that reads the revocation list every [`REVOCATION_POLL`] and flags a change.
+struct RevocationWatch {
+    changed: Arc<Mutex<Option<BTreeSet<String>>>>,
+    stop: Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+/// How often the revocation list is read.
+const REVOCATION_POLL: Duration = Duration::from_millis(500);
+
+impl RevocationWatch {
+    fn start(path: std::path::PathBuf, now: BTreeSet<String>) -> Result<Self, StageError> {
+        let changed = Arc::new(Mutex::new(None));
+        let stop = Arc::new(AtomicBool::new(false));
+        let (c, sp) = (changed.clone(), stop.clone());
+        let tls = crate::TlsSettings {
+            ca_certificate: std::path::PathBuf::new(),
+            certificate: std::path::PathBuf::new(),
+            private_key: std::path::PathBuf::new(),
+            verify_name: true,
+            receivers: vec![],
+            revoked: Some(path),
+        };
+        let thread = std::thread::Builder::new()
+            .name("revocations".into())
+            .spawn(move || {
+                let mut last = now;
+                while !sp.load(Ordering::Relaxed) {
+                    std::thread::sleep(REVOCATION_POLL);
+                    // An unreadable list keeps the one in force.
+                    match tls.read_revoked() {
+                        Ok(r) if r != last => {
+                            *lock(&c) = Some(r.clone());
+                            last = r;
+                        }
+                        Ok(_) => {}
+                        Err(e) => tracing::debug!("revocation list unreadable: {e}"),
+                    }
+                }
+            })
+            .map_err(|e| StageError::Settings(format!("revocation thread: {e}")))?;
+        Ok(Self { changed, stop, thread: Some(thread) })
+    }
+
+    /// The new list, when it changed since the last call.
+    fn changed(&self) -> Option<BTreeSet<String>> {
+        lock(&self.changed).take()
+    }
+}
+
+impl Drop for RevocationWatch {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
 }
 
 /// Zenoh's TLS listener warns once per failed accept (a refused handshake) with this text.
@@ -438,7 +750,10 @@ fn zenoh_err(what: impl std::fmt::Display, e: impl std::fmt::Display) -> StageEr
 }
 
 /// The Zenoh configuration of `settings` (errors name the key).
-pub fn zenoh_config(s: &BridgeSettings) -> Result<zenoh::Config, StageError> {
+pub fn zenoh_config(
+    s: &BridgeSettings,
+    revoked: &std::collections::BTreeSet<String>,
+) -> Result<zenoh::Config, StageError> {
     let mut c = zenoh::Config::default();
     let json = |v: &dyn erased::Json| v.json();
     let set = |c: &mut zenoh::Config, k: &str, v: String| {
@@ -450,6 +765,13 @@ pub fn zenoh_config(s: &BridgeSettings) -> Result<zenoh::Config, StageError> {
     set(&mut c, "scouting/multicast/enabled", s.zenoh.multicast_scouting.to_string())?;
     // Keep trying the peers named in `connect` if they are not up yet (or go away).
     set(&mut c, "connect/exit_on_failure", "false".into())?;
+    // A reliable send blocked by a link outage waits as long as the lease keeps the link: with
+    // Zenoh's default (5 s, half the default lease) a 2 s outage could close the link (TCP's
+    // retransmission back-off resumes the flow up to one outage after the link is back) and
+    // lose every message in flight.
+    let lease_ms = (s.zenoh.lease_s * 1e3).round() as u64;
+    set(&mut c, "transport/link/tx/lease", lease_ms.to_string())?;
+    set(&mut c, "transport/link/tx/queue/congestion_control/block/wait_before_close", (lease_ms * 1000).to_string())?;
     if let Some(t) = &s.zenoh.tls {
         let path = |p: &std::path::Path| json(&std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf()));
         // Mutual TLS on both sides; TLS only (no plain link is accepted); a link closes when the
@@ -463,7 +785,7 @@ pub fn zenoh_config(s: &BridgeSettings) -> Result<zenoh::Config, StageError> {
         }
         set(&mut c, "transport/link/tls/verify_name_on_connect", t.verify_name.to_string())?;
         set(&mut c, "transport/link/tls/close_link_on_expiration", "true".into())?;
-        set(&mut c, "access_control", crate::access_control(s).to_string())?;
+        set(&mut c, "access_control", crate::access_control(s, revoked).to_string())?;
     }
     Ok(c)
 }
@@ -591,19 +913,35 @@ impl BridgeStage {
     fn pump_in(&mut self, rt: &mut Runtime) -> Result<usize, StageError> {
         // Publishing may wait for a full local subscriber (when_full = wait), holding the link.
         let _hold = rt.hold_heartbeat();
-        for r in &mut self.ins {
-            let total = r.queue_dropped_before + self.inbox.dropped[r.index].load(Ordering::Relaxed);
-            if total > r.counts.queue_dropped {
-                self.emitters[r.emitter].count_dropped("receive queue full", total - r.counts.queue_dropped);
-                r.counts.queue_dropped = total;
-            }
-        }
         let mut n = 0;
         // Messages of routes that never wait first, then those that may wait for a full local
         // subscriber, then the ends of stream: a cloud waiting for the mapper must not hold back
         // the poses the mapper waits for (each route keeps its own order).
         let (mut quick, mut waiting, mut ends) = (vec![], vec![], vec![]);
-        for item in self.inbox.take() {
+        let taken = self.inbox.take();
+        // The drops counted after the take: every message dropped before one taken is in them
+        // (its gap in the sequence numbers is explained by them).
+        for r in &mut self.ins {
+            let total = r.queue_dropped_before + self.inbox.dropped[r.index].load(Ordering::Relaxed);
+            if total > r.counts.queue_dropped {
+                self.emitters[r.emitter].count_dropped("receive queue full", total - r.counts.queue_dropped);
+                r.drop_credit += total - r.counts.queue_dropped;
+                r.counts.queue_dropped = total;
+            }
+            let total = r.rate_dropped_before + self.inbox.rate_dropped[r.index].load(Ordering::Relaxed);
+            if total > r.counts.rate_dropped {
+                let n = total - r.counts.rate_dropped;
+                self.emitters[r.emitter].count_dropped("over the route's rate limit (accept.max_rate_hz)", n);
+                r.counts.rate_dropped = total;
+                r.drop_credit += n;
+                if r.warned_refusals.insert("rate") {
+                    tracing::warn!(from = %r.from, route = %r.route_name,
+                        "messages dropped on arrival: over the route's rate limit (accept.max_rate_hz; counted in \
+                         summary.json bridge.in as rate_dropped)");
+                }
+            }
+        }
+        for item in taken {
             match &item {
                 Incoming::Data { route, .. } if self.ins[*route].may_wait => waiting.push(item),
                 Incoming::Data { .. } => quick.push(item),
@@ -646,19 +984,19 @@ impl BridgeStage {
                         }
                         continue;
                     }
-                    if let Some(h) = shared_types::MsgHeader::from_bytes(&head) {
-                        if let Some(last) = r.last_seq
-                            && h.seq > last + 1
-                        {
-                            r.counts.seq_gaps += h.seq - last - 1;
-                            self.emitters[r.emitter].count_dropped("lost on the way", h.seq - last - 1);
-                        }
-                        r.last_seq = Some(h.seq);
-                    }
                     let origin = match &r.clock {
                         None => Some(Origin::Keep),
                         Some(c) => lock(c).origin(),
                     };
+                    let Some(h) = shared_types::MsgHeader::from_bytes(&head) else { continue };
+                    match r.admit(&h, origin, &self.settings.accept) {
+                        Ok(0) => {}
+                        Ok(gap) => self.emitters[r.emitter].count_dropped("lost on the way", gap),
+                        Err(reason) => {
+                            self.emitters[r.emitter].count_dropped(reason, 1);
+                            continue;
+                        }
+                    }
                     if origin.is_none() {
                         r.counts.origin_unaligned += 1;
                         if !r.warned_clock {
@@ -669,7 +1007,15 @@ impl BridgeStage {
                         }
                     }
                     let (reached, registered) =
-                        self.emitters[r.emitter].send_parts(&parts, origin.unwrap_or(Origin::Keep))?;
+                        match self.emitters[r.emitter].send_parts_finite(&parts, origin.unwrap_or(Origin::Keep))? {
+                            Ok(sent) => sent,
+                            Err(rejection) => {
+                                r.counts.refused_non_finite += 1;
+                                r.warn_refusal("non_finite", &rejection.detail);
+                                self.emitters[r.emitter].count_dropped("refused: a NaN or an infinity", 1);
+                                continue;
+                            }
+                        };
                     r.counts.published += 1;
                     r.counts.digest = fold(r.counts.digest, &parts);
                     self.published += 1;
@@ -719,7 +1065,7 @@ impl BridgeStage {
             inbound: self
                 .ins
                 .iter()
-                .map(|r| (r.route_name.clone(), KeptIn { counts: r.counts, last_seq: r.last_seq }))
+                .map(|r| (r.route_name.clone(), KeptIn { counts: r.counts, last_seq: r.order.last_seq }))
                 .collect(),
             ends: self.ends.clone(),
             published: self.published,
@@ -771,10 +1117,45 @@ impl Stage for BridgeStage {
     type Settings = BridgeSettings;
 
     fn open(_ctx: &ProcessContext, settings: BridgeSettings, rt: &mut Runtime) -> Result<Self, StageError> {
-        let config = zenoh_config(&settings)?;
+        // The revocation list as it is now; watched from here on (a change restarts the bridge).
+        let (revoked, revocation_watch) = match &settings.zenoh.tls {
+            None => (BTreeSet::new(), None),
+            Some(t) => {
+                let revoked = t.read_revoked().map_err(|e| StageError::Settings(format!("zenoh.tls.revoked: {e}")))?;
+                let own = crate::read_certificate(&t.certificate).ok().map(|c| c.common_name);
+                if let Some(p) = crate::revocation_problem(own.as_deref(), &revoked) {
+                    return Err(StageError::Settings(format!("{}: {p}", t.revocation_list().display())));
+                }
+                if let Some(gap) = crate::revocation_gap(&settings, &revoked) {
+                    tracing::warn!("{gap}");
+                }
+                if !revoked.is_empty() {
+                    tracing::warn!(?revoked, list = %t.revocation_list().display(),
+                        "revoked hosts: everything from them is refused, nothing goes to them");
+                }
+                (revoked.clone(), Some(RevocationWatch::start(t.revocation_list(), revoked)?))
+            }
+        };
+        let config = zenoh_config(&settings, &revoked)?;
         // Counted from before the listener starts.
         let refused_handshakes = (settings.zenoh.tls.is_some() && !settings.zenoh.listen.is_empty())
             .then(|| pipeline_runtime::logging::count_events("zenoh_link_tls", TLS_ACCEPT_FAILED));
+        // Watched from before the session opens.
+        let refusals = crate::refusals_counted(&settings).then(|| {
+            let revoked = settings.zenoh.tls.as_ref().and_then(|t| t.read_revoked().ok()).unwrap_or_default();
+            crate::refusals::Refusals::watch(
+                revoked,
+                settings.inbound.iter().map(|r| {
+                    let shared = settings.inbound.iter().filter(|o| o.local_service() == r.local_service()).count() > 1;
+                    let name = if shared {
+                        format!("{}:{}", r.from, r.local_service())
+                    } else {
+                        r.local_service().to_string()
+                    };
+                    (key(&settings.namespace, &r.from, &r.service), name)
+                }),
+            )
+        });
         let session = zenoh::open(config).wait().map_err(|e| {
             zenoh_err(
                 format!(
@@ -835,37 +1216,59 @@ impl Stage for BridgeStage {
             });
         }
         let waker = if settings.inbound.is_empty() { None } else { Some(rt.waker()?) };
+        let n_in = settings.inbound.len();
         let inbox = Arc::new(Inbox {
-            queue: Mutex::new(VecDeque::new()),
+            queue: Mutex::new(Queue { items: VecDeque::new(), count: vec![0; n_in], bytes: vec![0; n_in] }),
             space: std::sync::Condvar::new(),
             capacity: settings.queue_messages,
+            max_bytes: (settings.accept.queue_mib * 1024.0 * 1024.0) as usize,
             dropped: settings.inbound.iter().map(|_| AtomicU64::new(0)).collect(),
+            buckets: settings
+                .inbound
+                .iter()
+                .map(|r| {
+                    let hz = r.max_rate_hz.unwrap_or(settings.accept.max_rate_hz);
+                    (hz > 0.0).then(|| Mutex::new(Bucket::new(hz)))
+                })
+                .collect(),
+            rate_dropped: settings.inbound.iter().map(|_| AtomicU64::new(0)).collect(),
             waker,
         });
         // The clock of every robot received from (see crate::clock).
         let mut clocks = BTreeMap::new();
         if settings.clock != ClockMode::Keep {
             for from in settings.inbound.iter().map(|r| &r.from).collect::<BTreeSet<_>>() {
-                let probe = ClockProbe::start(session.clone(), clock_key(&ns, from), from.clone(), settings.clock)?;
+                let probe = ClockProbe::start(&session, &ns, from.clone(), settings.clock)?;
                 clocks.insert(from.clone(), probe);
             }
         }
-        let clock_queryable = if outs.is_empty() {
+        let clock_answers = if outs.is_empty() {
             None
         } else {
-            let (k, boot) = (clock_key(&ns, &settings.robot), boot_id());
-            let kq = k.clone();
+            let (ask_k, answer_k, boot) =
+                (clock_ask_key(&ns, &settings.robot), clock_answer_key(&ns, &settings.robot), boot_id());
+            let answer = session
+                .declare_publisher(answer_k.clone())
+                .congestion_control(CongestionControl::Drop)
+                .express(true)
+                .wait()
+                .map_err(|e| zenoh_err(format!("publisher on {answer_k}"), e))?;
             Some(
                 session
-                    .declare_queryable(k.clone())
-                    .callback(move |q| {
+                    .declare_subscriber(&ask_k)
+                    .callback(move |ask| {
                         let stamp = monotonic_ns();
-                        if let Err(e) = q.reply(kq.clone(), encode_answer(stamp, &boot)).wait() {
-                            tracing::debug!("clock query not answered: {e}");
+                        let Some(nonce) = ask.payload().to_bytes().get(..8).and_then(|b| b.try_into().ok()) else {
+                            return;
+                        };
+                        // `Drop`: on a congested link the answer is dropped at once (it would be
+                        // a wrong one), and Zenoh's receive thread that runs this goes on.
+                        if let Err(e) = answer.put(encode_answer(u64::from_le_bytes(nonce), stamp, &boot)).wait() {
+                            tracing::debug!("clock ask not answered: {e}");
                         }
                     })
                     .wait()
-                    .map_err(|e| zenoh_err(format!("queryable on {k}"), e))?,
+                    .map_err(|e| zenoh_err(format!("subscriber on {ask_k}"), e))?,
             )
         };
         let mut ins = vec![];
@@ -895,11 +1298,7 @@ impl Stage for BridgeStage {
             let subscriber = session
                 .declare_subscriber(k.clone())
                 .callback(move |sample| {
-                    inbox_cb.push(Incoming::Data {
-                        route: i,
-                        payload: sample.payload().clone(),
-                        attachment: sample.attachment().cloned(),
-                    });
+                    inbox_cb.push_data(i, sample.payload().clone(), sample.attachment().cloned());
                 })
                 .wait()
                 .map_err(|e| zenoh_err(format!("subscriber on {k}"), e))?;
@@ -915,11 +1314,14 @@ impl Stage for BridgeStage {
                 signature: signature(t).into_bytes(),
                 emitter,
                 counts: InCounts { digest: DIGEST0, ..Default::default() },
-                last_seq: None,
+                order: Order::default(),
                 warned: false,
+                warned_refusals: BTreeSet::new(),
                 clock: clocks.get(&r.from).map(|p: &ClockProbe| p.state.clone()),
                 warned_clock: false,
                 queue_dropped_before: 0,
+                rate_dropped_before: 0,
+                drop_credit: 0,
                 _subscriber: subscriber,
             });
         }
@@ -933,10 +1335,7 @@ impl Stage for BridgeStage {
                 session
                     .declare_subscriber(k.clone())
                     .callback(move |sample| {
-                        inbox_cb.push(Incoming::End {
-                            from: from_cb.clone(),
-                            body: sample.payload().to_bytes().into_owned(),
-                        });
+                        inbox_cb.push_end(from_cb.clone(), sample.payload().to_bytes().into_owned());
                     })
                     .wait()
                     .map_err(|e| zenoh_err(format!("subscriber on {k}"), e))?,
@@ -957,7 +1356,8 @@ impl Stage for BridgeStage {
             )
         };
         let stage = Self {
-            ends: robots.into_iter().map(|r| (r, None)).collect(),
+            // A revoked robot's end of stream cannot come (nothing from it gets in): not waited for.
+            ends: robots.into_iter().filter(|r| !revoked.contains(r)).map(|r| (r, None)).collect(),
             settings,
             session,
             outs,
@@ -970,10 +1370,13 @@ impl Stage for BridgeStage {
             end_acknowledged: None,
             published: 0,
             started: Instant::now(),
-            _clock_queryable: clock_queryable,
+            _clock_answers: clock_answers,
             clocks,
             kept_at: None,
             refused_handshakes,
+            refusals,
+            revoked,
+            revocation_watch,
         };
         stage.wait_for_remote();
         Ok(stage)
@@ -987,6 +1390,29 @@ impl Stage for BridgeStage {
         self.pump_out(rt)?;
         self.pump_in(rt)?;
         self.keep_counts(rt);
+        if let Some(r) = &self.refusals {
+            r.warn_new();
+        }
+        if let Some(new) = self.revocation_watch.as_ref().and_then(RevocationWatch::changed) {
+            if crate::access_control(&self.settings, &new) == crate::access_control(&self.settings, &self.revoked) {
+                // Nobody this bridge deals with: nothing to apply.
+                tracing::info!(revoked = ?new, "the revocation list changed: this bridge's access control stays as it is");
+                if let Some(gap) = crate::revocation_gap(&self.settings, &new) {
+                    tracing::warn!("{gap}");
+                }
+                self.revoked = new;
+            } else {
+                // Zenoh's access control is fixed when the session opens: a new session applies
+                // the list (this process exits and its restart opens it, counting on from the
+                // kept counts).
+                self.kept_at = None;
+                self.keep_counts(rt);
+                return Err(StageError::msg(format!(
+                    "the revocation list changed (now revoked: {:?}, before: {:?}): restarting to apply it",
+                    new, self.revoked
+                )));
+            }
+        }
         let ins_done = self.ins_done();
         if self.outs.is_empty() {
             return Ok(if ins_done { Step::Done } else { Step::Idle });
@@ -1020,47 +1446,69 @@ impl Stage for BridgeStage {
                 )
             })
             .collect();
+        if let Some(r) = &self.refusals {
+            r.warn_new();
+        }
+        let wrong_robot = self.refusals.as_ref().map(|r| r.per_route()).unwrap_or_default();
         let mut lost_total = 0u64;
-        let ins: BTreeMap<&str, serde_json::Value> =
-            self.ins
-                .iter()
-                .map(|r| {
-                    let c = r.counts;
-                    // What the other side said it sent, against what arrived here.
-                    let lost =
-                        self.ends.get(&r.from).and_then(|e| e.as_ref()).and_then(|sent| sent.get(&r.service)).map(
-                            |&sent| sent.saturating_sub(c.received + c.queue_dropped - c.wrong_type - c.bad_length),
-                        );
-                    // What went missing without a sequence gap here (lost before the end) is counted now.
-                    let unseen = lost.unwrap_or(0).saturating_sub(c.seq_gaps);
-                    self.emitters[r.emitter].count_dropped("lost on the way", unseen);
-                    lost_total += lost.unwrap_or(0) + c.wrong_type + c.bad_length + c.queue_dropped;
-                    (
-                        r.route_name.as_str(),
-                        serde_json::json!({
-                            "local": r.local,
-                            "from": r.from,
-                            "service": r.service,
-                            "key": key(&self.settings.namespace, &r.from, &r.service),
-                            "counts": c,
-                            "lost_on_the_way": lost,
-                        }),
-                    )
-                })
-                .collect();
+        let ins: BTreeMap<&str, serde_json::Value> = self
+            .ins
+            .iter()
+            .map(|r| {
+                let c = r.counts;
+                // What the other side said it sent, against what arrived here.
+                // (What arrived of the sender's: refused signatures and lengths may be anyone's.)
+                let arrived =
+                    (c.received + c.queue_dropped + c.rate_dropped).saturating_sub(c.wrong_type + c.bad_length);
+                let lost = self
+                    .ends
+                    .get(&r.from)
+                    .and_then(|e| e.as_ref())
+                    .and_then(|sent| sent.get(&r.service))
+                    .map(|&sent| sent.saturating_sub(arrived));
+                // What went missing without a sequence gap here (lost before the end) is counted now.
+                let unseen = lost.unwrap_or(0).saturating_sub(c.seq_gaps);
+                self.emitters[r.emitter].count_dropped("lost on the way", unseen);
+                lost_total += lost.unwrap_or(0)
+                    + c.wrong_type
+                    + c.bad_length
+                    + c.queue_dropped
+                    + c.rate_dropped
+                    + c.refused_non_finite
+                    + c.refused_time
+                    + c.refused_going_back;
+                (
+                    r.route_name.as_str(),
+                    serde_json::json!({
+                        "local": r.local,
+                        "from": r.from,
+                        "service": r.service,
+                        "key": key(&self.settings.namespace, &r.from, &r.service),
+                        "counts": c,
+                        "lost_on_the_way": lost,
+                        // Refused by the access control: sent under this route's key by a host that
+                        // is not the robot (they never reach the counts above).
+                        "refused_wrong_robot": self
+                            .refusals
+                            .as_ref()
+                            .map(|_| wrong_robot.get(&r.route_name).copied().unwrap_or(0)),
+                    }),
+                )
+            })
+            .collect();
         let out_dropped: u64 = self.outs.iter().map(|o| o.counts.rate_dropped + o.counts.send_errors).sum();
         if lost_total > 0 || out_dropped > 0 {
             tracing::warn!(
                 received_side_lost = lost_total,
                 send_side_dropped = out_dropped,
-                "messages lost across the bridge (per route in summary.json bridge)"
+                "messages lost or refused across the bridge (per route and reason in summary.json bridge)"
             );
         }
         for (robot, probe) in &self.clocks {
             let c = lock(&probe.state);
             if c.answered == 0 {
                 tracing::warn!(%robot, asked = c.asked,
-                    "the robot's bridge never answered a clock query: origin_ns of what came from it stayed on its clock");
+                    "the robot's bridge never answered a clock ask: origin_ns of what came from it stayed on its clock");
             }
         }
         let missing_ends: Vec<&String> = self.ends.iter().filter(|(_, e)| e.is_none()).map(|(r, _)| r).collect();
@@ -1070,7 +1518,7 @@ impl Stage for BridgeStage {
         let refused = self.refused_handshakes.as_ref().map(|c| c.load(Ordering::Relaxed));
         if let Some(n) = refused.filter(|&n| n > 0) {
             tracing::warn!(
-                refused_handshakes = n,
+                refused_unauthenticated = n,
                 "connection attempts refused at the TLS handshake (no certificate, another CA's, an expired one, or \
                  not TLS): see Zenoh's warnings above"
             );
@@ -1079,10 +1527,21 @@ impl Stage for BridgeStage {
             None => serde_json::json!({ "mode": "insecure" }),
             Some(t) => serde_json::json!({
                 "mode": "mutual_tls",
-                "refused_handshakes": refused,
+                // Connection attempts refused at the TLS handshake (no route: nothing got in).
+                "refused_unauthenticated": refused,
+                "refused": self.refusals.as_ref().map(|r| r.json()),
+                "accept": {
+                    "max_rate_hz": self.settings.accept.max_rate_hz,
+                    "queue_messages": self.settings.queue_messages,
+                    "queue_mib": self.settings.accept.queue_mib,
+                    "max_future_s": self.settings.accept.max_future_s,
+                    "max_age_s": self.settings.accept.max_age_s,
+                },
                 "certificate": crate::read_certificate(&t.certificate).ok(),
                 "receivers": t.receivers,
-                "access_control": crate::access_control(&self.settings),
+                "access_control": crate::access_control(&self.settings, &self.revoked),
+                "revoked": self.revoked,
+                "revocation_list": t.revocation_list(),
             }),
         };
         Ok(serde_json::json!({ "bridge": {
@@ -1124,9 +1583,10 @@ impl Stage for BridgeStage {
         for r in &mut self.ins {
             if let Some(k) = kept.inbound.get(&r.route_name) {
                 r.counts = k.counts;
-                r.last_seq = k.last_seq;
-                // This instance's receive queue counts its drops from 0.
+                r.order = Order { last_seq: k.last_seq };
+                // This instance's receive queue and rate limit count their drops from 0.
                 r.queue_dropped_before = k.counts.queue_dropped;
+                r.rate_dropped_before = k.counts.rate_dropped;
             }
         }
         for (robot, end) in kept.ends {
@@ -1160,6 +1620,64 @@ mod tests {
         let mut short = [0u8; 32];
         short[..10].copy_from_slice(&data[..10]);
         assert_eq!(gather_head(&[&data[..4], &data[4..10]]), short);
+    }
+
+    fn header(seq: u64, stamp_ns: u64, origin_ns: u64) -> shared_types::MsgHeader {
+        shared_types::MsgHeader { seq, stamp_ns, origin_ns, publish_ns: 0 }
+    }
+
+    #[test]
+    fn sequence_numbers_must_go_forward_but_a_restart_is_accepted() {
+        let (a, now) = (crate::Accept::default(), 1_000_000_000_000);
+        let mut o = Order::default();
+        let ok = |gap, restarted| Verdict::Accepted { gap, restarted };
+        assert_eq!(o.admit(&header(100, 10, now), Some(Origin::Keep), &a, now), ok(0, false));
+        assert_eq!(o.admit(&header(101, 11, now), Some(Origin::Keep), &a, now), ok(0, false));
+        assert_eq!(o.admit(&header(104, 11, now), Some(Origin::Keep), &a, now), ok(2, false), "a gap of 2");
+        assert!(matches!(o.admit(&header(104, 12, now), None, &a, now), Verdict::GoingBack(_)), "a repeat");
+        assert!(matches!(o.admit(&header(90, 12, now), None, &a, now), Verdict::GoingBack(_)), "a replay");
+        // Stamps may go back (a service re-publishing a past segment).
+        assert_eq!(o.admit(&header(105, 5, now), None, &a, now), ok(0, false));
+        // Refused for its time, its number still counts: no gap after it.
+        assert!(matches!(o.admit(&header(106, 6, now + 10 * now), Some(Origin::Keep), &a, now), Verdict::OutOfTime(_)));
+        assert_eq!(o.admit(&header(107, 7, now), Some(Origin::Keep), &a, now), ok(0, false));
+        // The publisher restarted: its numbers start again.
+        assert_eq!(o.admit(&header(0, 1, now), None, &a, now), ok(0, true));
+        assert_eq!(o.admit(&header(1, 2, now), None, &a, now), ok(0, false));
+    }
+
+    #[test]
+    fn origin_must_lie_in_the_accepted_window_once_on_this_clock() {
+        let a = crate::Accept { max_future_s: 1.0, max_age_s: 120.0, ..Default::default() };
+        let now = 1_000_000_000_000u64;
+        let s = 1_000_000_000u64;
+        let check = |origin_ns: u64, origin| {
+            let mut o = Order::default();
+            o.admit(&header(1, 1, origin_ns), origin, &a, now)
+        };
+        let ok = Verdict::Accepted { gap: 0, restarted: false };
+        assert_eq!(check(now - 100 * s, Some(Origin::Keep)), ok);
+        assert!(matches!(check(now - 121 * s, Some(Origin::Keep)), Verdict::OutOfTime(_)));
+        assert!(matches!(check(now + 2 * s, Some(Origin::Keep)), Verdict::OutOfTime(_)));
+        assert!(matches!(check(0, Some(Origin::Keep)), Verdict::OutOfTime(_)), "unset");
+        // On another machine's clock: shifted onto this one first.
+        assert_eq!(check(now + 500 * s, Some(Origin::Shift(-(500 * s as i64)))), ok);
+        assert!(matches!(check(now, Some(Origin::Shift(10 * s as i64))), Verdict::OutOfTime(_)));
+        // The offset not known yet: not checked.
+        assert_eq!(check(now + 500 * s, None), ok);
+    }
+
+    #[test]
+    fn a_token_bucket_lets_one_seconds_worth_through_then_the_rate() {
+        let mut b = Bucket::new(10.0);
+        let t0 = b.last;
+        assert_eq!((0..15).filter(|_| b.take(t0)).count(), 10);
+        assert!(!b.take(t0 + Duration::from_millis(50)));
+        assert!(b.take(t0 + Duration::from_millis(160)));
+        let mut slow = Bucket::new(0.5);
+        assert!(slow.take(t0));
+        assert!(!slow.take(t0 + Duration::from_secs(1)));
+        assert!(slow.take(t0 + Duration::from_secs(3)));
     }
 
     #[test]

@@ -68,7 +68,7 @@ fn settings(text: &str) -> BridgeSettings {
 }
 
 fn open(s: &BridgeSettings) -> zenoh::Session {
-    zenoh::open(bridge_stage::stage::zenoh_config(s).expect("config")).wait().expect("session")
+    zenoh::open(bridge_stage::stage::zenoh_config(s, &Default::default()).expect("config")).wait().expect("session")
 }
 
 /// A robot's session: connects to the base station with `tls` and puts on `robot`'s pose key.

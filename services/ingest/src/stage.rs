@@ -304,6 +304,9 @@ impl IngestStage {
             return Ok(Step::Idle);
         }
         let batch_end = Instant::now() + Duration::from_millis(20);
+        if let Some(p) = self.source.progress() {
+            rt.set_progress(p);
+        }
         loop {
             let now = Instant::now();
             if let Some(every) = self.progress_every

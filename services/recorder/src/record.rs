@@ -75,7 +75,7 @@ pub struct RecorderSettings {
     /// Also write the pipeline's outputs as ROS 2 messages into a rosbag2 bag (MCAP storage,
     /// `cdr`; `ros2 bag info / play` and Python `rosbags` read it): `[...settings.ros2]` with
     /// `dir` (default `ros2_bag`, under the run's output directory), `out` routes as the `ros2`
-    /// gateway's (README "ROS 2"), `frames` and `static_transforms`. The services the routes
+    /// gateway's (docs/ros2.md), `frames` and `static_transforms`. The services the routes
     /// are made from are read whether or not they are recorded into the MCAP file.
     pub ros2: Option<crate::ros2::Ros2Recording>,
 }

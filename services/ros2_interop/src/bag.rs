@@ -525,7 +525,7 @@ pub enum BagCompression {
     /// default level): faster than zstd's own default level 3, for somewhat more bytes.
     #[default]
     Zstd,
-    /// LZ4 frames: faster again than zstd level 1, for more bytes (README "ROS 2" has both
+    /// LZ4 frames: faster again than zstd level 1, for more bytes (docs/ros2.md has both
     /// measured on the main job's bag).
     Lz4,
     /// Uncompressed chunks (CRC-checked).

@@ -207,6 +207,8 @@ pub struct Runtime {
     failed_upstream: RefCell<std::collections::BTreeSet<String>>,
     last_heartbeat: Option<Instant>,
     last_stats: Option<Instant>,
+    /// The source's share of its input done ([`Runtime::set_progress`]).
+    progress: Option<f64>,
     wake_at: Option<Instant>,
     /// The stage's restart state (disabled until [`crate::stage::run_stage`] opens it).
     restart_state: crate::restart::StateStore,
@@ -315,6 +317,7 @@ impl Runtime {
             failed_upstream: RefCell::default(),
             last_heartbeat: None,
             last_stats: None,
+            progress: None,
             wake_at: None,
             restart_state: crate::restart::StateStore::disabled(),
         };
@@ -370,6 +373,7 @@ impl Runtime {
             failed_upstream: RefCell::default(),
             last_heartbeat: None,
             last_stats: None,
+            progress: None,
             wake_at: None,
             restart_state: crate::restart::StateStore::disabled(),
         }
@@ -717,12 +721,24 @@ impl Runtime {
     /// Builds this process's statistics report (cumulative since start).
     pub fn stats_report(&self) -> StatsReport {
         let borrowed: Vec<_> = self.ports.iter().map(|p| p.borrow()).collect();
-        StatsReport::from_ports(
+        let mut report = StatsReport::from_ports(
             &self.name,
             self.pid,
             self.started.elapsed().as_nanos() as u64,
             borrowed.iter().map(|b| &**b),
-        )
+        );
+        report.progress = self.progress;
+        report
+    }
+
+    /// Tells the supervisor how much of its input this process has done (0 to 1: a replay's share
+    /// of its data time, a simulation's share of its mission), in the next statistics report. The
+    /// supervisor's live view draws the run's progress bar and its ETA from it. Values outside
+    /// [0, 1] are clamped; a NaN is ignored.
+    pub fn set_progress(&mut self, fraction: f64) {
+        if !fraction.is_nan() {
+            self.progress = Some(fraction.clamp(0.0, 1.0));
+        }
     }
 
     fn publish_stats(&mut self) {

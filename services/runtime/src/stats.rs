@@ -110,6 +110,9 @@ pub struct StatsReport {
     pub uptime_ns: u64,
     /// Ports.
     pub ports: Vec<PortReport>,
+    /// How much of its input a source has done, 0 to 1 ([`crate::Runtime::set_progress`]); `None`
+    /// for a process that does not know (the supervisor's live view shows it as the run's progress).
+    pub progress: Option<f64>,
 }
 
 /// Errors of encoding or decoding stats.
@@ -164,6 +167,7 @@ impl StatsReport {
                     e2e: ser(&p.e2e),
                 })
                 .collect(),
+            progress: None,
         }
     }
 

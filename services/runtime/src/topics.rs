@@ -15,6 +15,7 @@ use iceoryx2::prelude::ZeroCopySend;
 
 use crate::ports::Header;
 use crate::runtime::RuntimeError;
+use crate::validate::Rejection;
 use crate::{Delivery, Input, Output, PortError, Runtime};
 use shared_types::services::{self, Qos};
 use shared_types::*;
@@ -299,6 +300,15 @@ pub trait Emit {
     /// message Zenoh reassembled from fragments): the pieces are copied straight into the loaned
     /// sample, without gathering them first.
     fn send_parts(&mut self, parts: &[&[u8]], origin: Origin) -> Result<(usize, usize), TopicError>;
+    /// As [`Emit::send_parts`], for a message from a source that is not trusted to be sound (a
+    /// bridge's link): a NaN or an infinity anywhere in the user header or the payload (checked
+    /// on the loaned sample, after the copy: no second pass over the pieces) and the message is
+    /// not sent: `Ok(Err(rejection))` (reason `non_finite`, naming the field and element).
+    fn send_parts_finite(
+        &mut self,
+        parts: &[&[u8]],
+        origin: Origin,
+    ) -> Result<Result<(usize, usize), Rejection>, TopicError>;
     /// Wakes the subscribers so that they attach before the first message.
     fn nudge(&self) -> Result<(), TopicError>;
     /// Counts `n` messages meant for this service that were dropped for `reason` (see
@@ -445,6 +455,27 @@ struct FixedEmit<T: WireType + Debug + ZeroCopySend, H: Header> {
     output: Output<T, H>,
 }
 
+/// A `non_finite` rejection of `what`.
+fn non_finite(what: String) -> Rejection {
+    Rejection { reason: "non_finite", detail: format!("{what} is NaN or infinite") }
+}
+
+impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> FixedEmit<T, H> {
+    /// The message's user header (stamped as `origin` says) and value.
+    fn split(&self, parts: &[&[u8]], origin: Origin) -> Result<(H, T), TopicError> {
+        let (header, pieces) = split_header::<H>(self.service, parts, origin)?;
+        let payload: std::borrow::Cow<'_, [u8]> = match pieces.as_slice() {
+            [one] => (*one).into(),
+            _ => pieces.concat().into(),
+        };
+        let value = T::from_bytes(&payload).ok_or_else(|| TopicError::Message {
+            service: self.service.into(),
+            what: format!("payload of {} bytes, the type has {}", payload.len(), size_of::<T>()),
+        })?;
+        Ok((header, value))
+    }
+}
+
 fn fixed_emit<T: WireType + Debug + ZeroCopySend, H: Header + WireType>(
     rt: &mut Runtime,
     service: &'static str,
@@ -460,18 +491,27 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for FixedEmi
     }
 
     fn send_parts(&mut self, parts: &[&[u8]], origin: Origin) -> Result<(usize, usize), TopicError> {
-        let (header, pieces) = split_header::<H>(self.service, parts, origin)?;
-        let payload: std::borrow::Cow<'_, [u8]> = match pieces.as_slice() {
-            [one] => (*one).into(),
-            _ => pieces.concat().into(),
-        };
-        let value = T::from_bytes(&payload).ok_or_else(|| TopicError::Message {
-            service: self.service.into(),
-            what: format!("payload of {} bytes, the type has {}", payload.len(), size_of::<T>()),
-        })?;
+        let (header, value) = self.split(parts, origin)?;
         let registered = self.output.subscribers();
         let reached = self.output.send_value(header, value)?;
         Ok((reached, registered))
+    }
+
+    fn send_parts_finite(
+        &mut self,
+        parts: &[&[u8]],
+        origin: Origin,
+    ) -> Result<Result<(usize, usize), Rejection>, TopicError> {
+        let (header, value) = self.split(parts, origin)?;
+        if let Some(field) = header.non_finite_field() {
+            return Ok(Err(non_finite(format!("user header field {field}"))));
+        }
+        if let Some(field) = value.non_finite_field() {
+            return Ok(Err(non_finite(format!("payload field {field}"))));
+        }
+        let registered = self.output.subscribers();
+        let reached = self.output.send_value(header, value)?;
+        Ok(Ok((reached, registered)))
     }
 
     fn nudge(&self) -> Result<(), TopicError> {
@@ -488,22 +528,9 @@ struct SliceEmit<T: WireType + Debug + ZeroCopySend, H: Header> {
     output: Output<[T], H>,
 }
 
-fn slice_emit<T: WireType + Debug + ZeroCopySend, H: Header + WireType>(
-    rt: &mut Runtime,
-    service: &'static str,
-    qos: &Qos,
-    delivery: Delivery,
-) -> Result<Box<dyn Emit>, RuntimeError> {
-    let output = rt.output_slice_with_qos::<T, H>(service, qos, qos.initial_slice_len.max(1), delivery)?;
-    Ok(Box::new(SliceEmit { service, output }))
-}
-
-impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for SliceEmit<T, H> {
-    fn service(&self) -> &'static str {
-        self.service
-    }
-
-    fn send_parts(&mut self, parts: &[&[u8]], origin: Origin) -> Result<(usize, usize), TopicError> {
+impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> SliceEmit<T, H> {
+    /// A loaned sample holding the message of `parts` (its user header stamped as `origin` says).
+    fn load(&mut self, parts: &[&[u8]], origin: Origin) -> Result<crate::ports::Loaned<[T], H>, TopicError> {
         let (header, pieces) = split_header::<H>(self.service, parts, origin)?;
         let len: usize = pieces.iter().map(|p| p.len()).sum();
         let size = size_of::<T>();
@@ -530,9 +557,48 @@ impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for SliceEmi
             loan.assume_init()
         };
         *sample.user_header_mut() = header;
+        Ok(sample)
+    }
+}
+
+fn slice_emit<T: WireType + Debug + ZeroCopySend, H: Header + WireType>(
+    rt: &mut Runtime,
+    service: &'static str,
+    qos: &Qos,
+    delivery: Delivery,
+) -> Result<Box<dyn Emit>, RuntimeError> {
+    let output = rt.output_slice_with_qos::<T, H>(service, qos, qos.initial_slice_len.max(1), delivery)?;
+    Ok(Box::new(SliceEmit { service, output }))
+}
+
+impl<T: WireType + Debug + ZeroCopySend, H: Header + WireType> Emit for SliceEmit<T, H> {
+    fn service(&self) -> &'static str {
+        self.service
+    }
+
+    fn send_parts(&mut self, parts: &[&[u8]], origin: Origin) -> Result<(usize, usize), TopicError> {
+        let sample = self.load(parts, origin)?;
         let registered = self.output.subscribers();
         let reached = self.output.send(sample)?;
         Ok((reached, registered))
+    }
+
+    fn send_parts_finite(
+        &mut self,
+        parts: &[&[u8]],
+        origin: Origin,
+    ) -> Result<Result<(usize, usize), Rejection>, TopicError> {
+        let sample = self.load(parts, origin)?;
+        if let Some(field) = sample.user_header().non_finite_field() {
+            return Ok(Err(non_finite(format!("user header field {field}"))));
+        }
+        if let Some((i, e)) = sample.payload().iter().enumerate().find(|(_, e)| e.non_finite_field().is_some()) {
+            let field = e.non_finite_field().unwrap_or("?");
+            return Ok(Err(non_finite(format!("element {i} field {field}"))));
+        }
+        let registered = self.output.subscribers();
+        let reached = self.output.send(sample)?;
+        Ok(Ok((reached, registered)))
     }
 
     fn nudge(&self) -> Result<(), TopicError> {

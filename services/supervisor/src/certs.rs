@@ -1,5 +1,5 @@
 //! `supervisor certs`: a certificate authority and one certificate per host for the bridge's
-//! mutual TLS (README "Security").
+//! mutual TLS (docs/security.md).
 //!
 //! - `ca.pem` / `ca.key`: the CA. Made on the first call, reused by the next ones (so robots
 //!   added later are signed by the CA the base station already trusts).
@@ -8,6 +8,12 @@
 //!   (extended key usage server and client auth). Its subject alternative names are `<name>`,
 //!   `localhost`, `127.0.0.1`, `::1` and every `--san` (the addresses other hosts dial: TLS checks
 //!   the address a peer connects to against them).
+//!
+//! - `revoked.txt`: the revocation list, one host name per line (`#` starts a comment), made
+//!   by `--revoke`. A bridge reads the list next to its `ca_certificate` (or the file its
+//!   `tls.revoked` names) and watches it: a revoked host's messages are refused and it gets
+//!   nothing, from the next second on (Zenoh has no certificate revocation of its own, so it is
+//!   done by name, in the access control).
 //!
 //! Private keys are ECDSA P-256 (PKCS#8 PEM), written with mode 0600.
 
@@ -25,6 +31,10 @@ pub struct CertsRequest {
     pub dir: PathBuf,
     /// One certificate per name (letters, digits, `_ - .`).
     pub names: Vec<String>,
+    /// Hosts to add to the revocation list.
+    pub revoke: Vec<String>,
+    /// Make a new live-view token (`viewer.token`).
+    pub viewer_token: bool,
     /// Extra subject alternative names (IP addresses or DNS names) of every certificate made.
     pub sans: Vec<String>,
     /// Validity of the certificates, days from now.
@@ -55,6 +65,83 @@ pub struct CertsReport {
     pub ca_created: bool,
     /// The host certificates.
     pub written: Vec<Written>,
+    /// The revocation list, when it was changed or a name made is on it.
+    pub revocations: Option<Revocations>,
+    /// The live-view token's file, when one was made.
+    pub viewer_token: Option<PathBuf>,
+}
+
+/// Writes a new random token (24 bytes from the kernel's generator, hex) to `<dir>/viewer.token`.
+fn make_token(dir: &Path) -> anyhow::Result<PathBuf> {
+    use std::io::Read as _;
+    let mut bytes = [0u8; 24];
+    std::fs::File::open("/dev/urandom")
+        .and_then(|mut f| f.read_exact(&mut bytes))
+        .context("reading /dev/urandom for the token")?;
+    let token: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+    let path = dir.join("viewer.token");
+    write_private(&path, &format!("{token}\n"))?;
+    Ok(path)
+}
+
+/// What `--revoke` did.
+#[derive(Debug, Clone)]
+pub struct Revocations {
+    /// The list's file.
+    pub path: PathBuf,
+    /// Names added now.
+    pub added: Vec<String>,
+    /// Names asked for that were on it already.
+    pub already: Vec<String>,
+    /// Certificates made now for names on the list (they stay refused).
+    pub made_but_revoked: Vec<String>,
+}
+
+/// The names on a revocation list's text (one per line, `#` comments).
+pub fn revoked_names(text: &str) -> Vec<String> {
+    text.lines()
+        .filter_map(|l| l.split('#').next())
+        .map(str::trim)
+        .filter(|l| !l.is_empty())
+        .map(String::from)
+        .collect()
+}
+
+/// Adds `names` to the revocation list `<dir>/revoked.txt` (made if absent).
+fn revoke(dir: &Path, names: &[String]) -> anyhow::Result<Revocations> {
+    let path = dir.join("revoked.txt");
+    let old = match std::fs::read_to_string(&path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            "# Hosts whose certificates are revoked: one name per line (supervisor certs --revoke NAME).\n\
+             # Bridges watch this file and refuse a listed host from the moment it changes; delete a\n\
+             # line to let the host in again.\n"
+                .to_string()
+        }
+        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+    };
+    let listed = revoked_names(&old);
+    let now =
+        time::OffsetDateTime::now_utc().format(&time::format_description::well_known::Rfc3339).unwrap_or_default();
+    let (mut added, mut already, mut text) = (vec![], vec![], old.clone());
+    for n in names {
+        if listed.contains(n) || added.contains(n) {
+            already.push(n.clone());
+        } else {
+            if !text.is_empty() && !text.ends_with('\n') {
+                text.push('\n');
+            }
+            text += &format!("{n}  # revoked {now}\n");
+            added.push(n.clone());
+        }
+    }
+    if text != old {
+        // Written whole and renamed into place: a bridge never reads half a list.
+        let tmp = dir.join(".revoked.txt.tmp");
+        std::fs::write(&tmp, &text).with_context(|| format!("writing {}", tmp.display()))?;
+        std::fs::rename(&tmp, &path).with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(Revocations { path, added, already, made_but_revoked: vec![] })
 }
 
 fn name_ok(n: &str) -> bool {
@@ -120,16 +207,45 @@ fn ca(dir: &Path, ca_days: f64) -> anyhow::Result<(Issuer<'static, KeyPair>, boo
 
 /// Makes (or reuses) the CA of `req.dir` and a certificate for each name.
 pub fn make(req: &CertsRequest) -> anyhow::Result<CertsReport> {
-    if req.names.is_empty() {
-        bail!("give at least one --name (the robots' `robot` names and the base station's)");
+    if req.names.is_empty() && req.revoke.is_empty() && !req.viewer_token {
+        bail!(
+            "give at least one --name (the robots' `robot` names and the base station's), --revoke or --viewer-token"
+        );
     }
-    for n in &req.names {
-        if !name_ok(n) {
-            bail!("--name `{n}`: letters, digits, _ - . only (and not `ca`)");
+    for (flag, list) in [("--name", &req.names), ("--revoke", &req.revoke)] {
+        for n in list {
+            if !name_ok(n) {
+                bail!("{flag} `{n}`: letters, digits, _ - . only (and not `ca`)");
+            }
         }
     }
-    let not_after = when(req.days)?;
     std::fs::create_dir_all(&req.dir).with_context(|| format!("creating {}", req.dir.display()))?;
+    let mut revocations = if req.revoke.is_empty() { None } else { Some(revoke(&req.dir, &req.revoke)?) };
+    let listed = match std::fs::read_to_string(req.dir.join("revoked.txt")) {
+        Ok(t) => revoked_names(&t),
+        Err(_) => vec![],
+    };
+    let made_but_revoked: Vec<String> = req.names.iter().filter(|n| listed.contains(n)).cloned().collect();
+    if !made_but_revoked.is_empty() {
+        let r = revocations.get_or_insert_with(|| Revocations {
+            path: req.dir.join("revoked.txt"),
+            added: vec![],
+            already: vec![],
+            made_but_revoked: vec![],
+        });
+        r.made_but_revoked = made_but_revoked;
+    }
+    let viewer_token = if req.viewer_token { Some(make_token(&req.dir)?) } else { None };
+    if req.names.is_empty() {
+        return Ok(CertsReport {
+            ca: req.dir.join("ca.pem"),
+            ca_created: false,
+            written: vec![],
+            revocations,
+            viewer_token,
+        });
+    }
+    let not_after = when(req.days)?;
     let (issuer, ca_created) = ca(&req.dir, req.ca_days)?;
     let mut written = vec![];
     for n in &req.names {
@@ -160,14 +276,17 @@ pub fn make(req: &CertsRequest) -> anyhow::Result<CertsReport> {
             not_after: not_after.format(&time::format_description::well_known::Rfc3339).unwrap_or_default(),
         });
     }
-    Ok(CertsReport { ca: req.dir.join("ca.pem"), ca_created, written })
+    Ok(CertsReport { ca: req.dir.join("ca.pem"), ca_created, written, revocations, viewer_token })
 }
 
 impl CertsReport {
     /// What was written, one line per file.
     pub fn render(&self) -> String {
-        let mut s =
-            format!("{} {}\n", if self.ca_created { "made the CA" } else { "signed with the CA" }, self.ca.display());
+        let mut s = if self.written.is_empty() {
+            String::new()
+        } else {
+            format!("{} {}\n", if self.ca_created { "made the CA" } else { "signed with the CA" }, self.ca.display())
+        };
         for w in &self.written {
             s += &format!(
                 "{} {} (CN {}, valid until {}; key {})\n",
@@ -177,6 +296,28 @@ impl CertsReport {
                 w.not_after,
                 w.path.with_extension("key").display()
             );
+        }
+        if let Some(t) = &self.viewer_token {
+            s += &format!(
+                "wrote {} (the live view's token: a viewer's token_file; clients connect with \
+                 wss://<host>:<port>/?token=<its content>)\n",
+                t.display()
+            );
+        }
+        if let Some(r) = &self.revocations {
+            for n in &r.added {
+                s += &format!("revoked {n} in {} (running bridges apply it within a second)\n", r.path.display());
+            }
+            for n in &r.already {
+                s += &format!("{n} was revoked already ({})\n", r.path.display());
+            }
+            for n in &r.made_but_revoked {
+                s += &format!(
+                    "warning: {n} is on the revocation list {}: its new certificate is refused too until its line \
+                     is deleted\n",
+                    r.path.display()
+                );
+            }
         }
         s
     }
@@ -192,6 +333,8 @@ mod tests {
         let req = |names: &[&str]| CertsRequest {
             dir: dir.path().to_path_buf(),
             names: names.iter().map(|s| s.to_string()).collect(),
+            revoke: vec![],
+            viewer_token: false,
             sans: vec!["10.0.0.2".into()],
             days: 2.0,
             ca_days: 10.0,
@@ -223,10 +366,49 @@ mod tests {
     }
 
     #[test]
+    fn revoking_appends_to_the_list_once_and_warns_about_new_certificates_of_revoked_names() {
+        let dir = tempfile::tempdir().unwrap();
+        let req = |names: &[&str], revoke: &[&str]| CertsRequest {
+            dir: dir.path().to_path_buf(),
+            names: names.iter().map(|s| s.to_string()).collect(),
+            revoke: revoke.iter().map(|s| s.to_string()).collect(),
+            viewer_token: false,
+            sans: vec![],
+            days: 1.0,
+            ca_days: 2.0,
+        };
+        make(&req(&["base", "auv1", "auv2"], &[])).unwrap();
+        assert!(!dir.path().join("revoked.txt").exists());
+        let r = make(&req(&[], &["auv2"])).unwrap();
+        assert!(r.written.is_empty());
+        assert!(r.render().contains("revoked auv2"), "{}", r.render());
+        let list = std::fs::read_to_string(dir.path().join("revoked.txt")).unwrap();
+        assert_eq!(revoked_names(&list), vec!["auv2"]);
+        let again = make(&req(&[], &["auv2", "auv1"])).unwrap().revocations.unwrap();
+        assert_eq!((again.added, again.already), (vec!["auv1".to_string()], vec!["auv2".to_string()]));
+        let list = std::fs::read_to_string(dir.path().join("revoked.txt")).unwrap();
+        assert_eq!(revoked_names(&list), vec!["auv2", "auv1"]);
+        let t = make(&CertsRequest { viewer_token: true, ..req(&[], &[]) }).unwrap().viewer_token.unwrap();
+        let token = std::fs::read_to_string(&t).unwrap();
+        assert_eq!(token.trim().len(), 48, "{token}");
+        let mode = std::os::unix::fs::PermissionsExt::mode(&std::fs::metadata(&t).unwrap().permissions());
+        assert_eq!(mode & 0o777, 0o600);
+        let remade = make(&req(&["auv2"], &[])).unwrap();
+        assert!(remade.render().contains("warning: auv2 is on the revocation list"), "{}", remade.render());
+    }
+
+    #[test]
     fn bad_requests_say_what_is_wrong() {
         let dir = tempfile::tempdir().unwrap();
-        let mut req =
-            CertsRequest { dir: dir.path().to_path_buf(), names: vec![], sans: vec![], days: 1.0, ca_days: 1.0 };
+        let mut req = CertsRequest {
+            dir: dir.path().to_path_buf(),
+            names: vec![],
+            revoke: vec![],
+            viewer_token: false,
+            sans: vec![],
+            days: 1.0,
+            ca_days: 1.0,
+        };
         assert!(make(&req).unwrap_err().to_string().contains("--name"));
         req.names = vec!["a/b".into()];
         assert!(make(&req).unwrap_err().to_string().contains("`a/b`"));

@@ -5,6 +5,7 @@
 pub mod certs;
 pub mod doctor;
 pub mod kinds;
+pub mod live;
 pub mod plan;
 pub mod report;
 pub mod status;
@@ -42,6 +43,18 @@ pub struct Cli {
     /// Only validate the config and check the machine; start nothing.
     #[arg(long)]
     pub check: bool,
+    /// No live status block even when stdout is a terminal: the log on stderr with a status line
+    /// every `run.status_interval_s`, as when stdout is a pipe or a file.
+    #[arg(long)]
+    pub no_live: bool,
+}
+
+impl Cli {
+    /// Whether this invocation runs a pipeline with the live status block ([`live`]): a run
+    /// (not a subcommand, not `--check`) whose stdout is a terminal, without `--no-live`.
+    pub fn live(&self) -> bool {
+        self.command.is_none() && !self.check && live::wanted(self.no_live)
+    }
 }
 
 /// Subcommands.
@@ -64,15 +77,24 @@ pub enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
     },
-    /// Makes the certificates of the bridge's mutual TLS (README "Security"): a CA in `--dir`
-    /// (made on the first call, reused after) and one certificate per `--name`.
+    /// Makes the certificates of the bridge's mutual TLS (docs/security.md): a CA in `--dir`
+    /// (made on the first call, reused after) and one certificate per `--name`; `--revoke` adds
+    /// a host to the revocation list (`<dir>/revoked.txt`), which running bridges apply at once.
     Certs {
         /// Directory of `ca.pem`/`ca.key` and the `<name>.pem`/`<name>.key` pairs.
         #[arg(long, default_value = "certs")]
         dir: PathBuf,
         /// A host's name: a robot's `robot`, or the base station's (repeat for several).
-        #[arg(long = "name", required = true)]
+        #[arg(long = "name", required_unless_present_any = ["revoke", "viewer_token"])]
         names: Vec<String>,
+        /// Revoke this host's certificates (repeat for several): bridges refuse everything from
+        /// it and send it nothing, from the moment the list changes (they restart to apply it).
+        #[arg(long = "revoke")]
+        revoke: Vec<String>,
+        /// Also make a token for the live view (`<dir>/viewer.token`, mode 0600; a viewer's
+        /// `token_file`): clients connect with `wss://<host>:<port>/?token=<token>`.
+        #[arg(long)]
+        viewer_token: bool,
         /// An address or DNS name other hosts dial this host by (repeat; 127.0.0.1, ::1 and
         /// localhost are always in).
         #[arg(long = "san")]
@@ -101,10 +123,12 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
         print!("{}", r.render());
         return Ok(r.exit_code());
     }
-    if let Some(Command::Certs { dir, names, sans, days, ca_days }) = &cli.command {
+    if let Some(Command::Certs { dir, names, revoke, viewer_token, sans, days, ca_days }) = &cli.command {
         let req = certs::CertsRequest {
             dir: dir.clone(),
             names: names.clone(),
+            revoke: revoke.clone(),
+            viewer_token: *viewer_token,
             sans: sans.clone(),
             days: *days,
             ca_days: *ca_days,
@@ -176,9 +200,21 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
     }
     let scope = plan.scope.clone();
     let out_dir = plan.out_dir.clone();
+    let live = if cli.live() {
+        let names: Vec<String> = plan.processes.iter().map(|p| p.name.clone()).collect();
+        let view = live::Live::start(&out_dir, &names)
+            .with_context(|| format!("opening {}", out_dir.join("run.log").display()))?;
+        Some(view)
+    } else {
+        None
+    };
+    let log_path = live.as_ref().map(|l| l.log_path().to_path_buf());
     let outcome = {
         let mut rt = Runtime::new("supervisor", &scope, supervise::Supervisor::runtime_options())?;
-        let sup = supervise::Supervisor::new(plan, &mut rt)?;
+        let mut sup = supervise::Supervisor::new(plan, &mut rt)?;
+        if let Some(l) = live {
+            sup.set_live(l);
+        }
         sup.run(&mut rt)?
     };
     // Every child is reaped and our own node is dropped: nothing of the run may remain.
@@ -194,6 +230,10 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
     let mut out = std::io::stdout().lock();
     let _ = write!(out, "{}", report::render(&outcome.summary))
         .and_then(|()| writeln!(out, "outputs in {}", out_dir.display()))
+        .and_then(|()| match &log_path {
+            Some(p) => writeln!(out, "full log in {}", p.display()),
+            None => Ok(()),
+        })
         .and_then(|()| out.flush());
     Ok(outcome.exit_code)
 }

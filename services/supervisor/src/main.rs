@@ -17,7 +17,12 @@ fn main() -> ExitCode {
             .map(|c| c.run.log_format)
             .unwrap_or_default()
     });
-    let _log = pipeline_runtime::logging::init("supervisor", format);
+    // With the live status block the log goes to <out>/run.log once the run knows its out_dir.
+    let _log = if cli.live() {
+        pipeline_runtime::logging::init_redirectable("supervisor", format)
+    } else {
+        pipeline_runtime::logging::init("supervisor", format)
+    };
     match supervisor::run(&cli) {
         Ok(code) => ExitCode::from(code),
         Err(e) => {

@@ -125,8 +125,9 @@ pub fn make_plan(config_path: &Path, overrides: &Overrides, bin_dir: &Path) -> R
                         format!("{key}.kind"),
                         format!(
                             "unknown kind `{kind_name}`: no executable `{}` (the binary of a kind is named after it \
-                             and sits next to the supervisor); build it (cargo build --release --workspace), set \
-                             {key}.binary, or use kind = \"external\" for a program not built on the runtime",
+                             and sits next to the supervisor); build it (cargo build --release --workspace; `cargo \
+                             build --release` builds only the main job's), set {key}.binary, or use kind = \
+                             \"external\" for a program not built on the runtime",
                             b.display()
                         ),
                     );

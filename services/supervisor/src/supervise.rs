@@ -193,6 +193,8 @@ pub struct Supervisor {
     started: Instant,
     last_status: Instant,
     end: Option<EndReason>,
+    /// The live status block, when stdout is a terminal ([`crate::live`]).
+    live: Option<crate::live::Live>,
 }
 
 /// The outcome of a run.
@@ -249,7 +251,14 @@ impl Supervisor {
             started: now,
             last_status: now,
             end: None,
+            live: None,
         })
+    }
+
+    /// Shows the run in a live status block (stdout a terminal): the processes' output goes to
+    /// `<out>/run.log` through it, and the periodic status line is no longer logged.
+    pub fn set_live(&mut self, live: crate::live::Live) {
+        self.live = Some(live);
     }
 
     /// Runtime options of the supervisor's own node (it publishes no heartbeat).
@@ -274,6 +283,11 @@ impl Supervisor {
         tracing::info!(?end, "stopping pipeline");
         self.stop_all();
         self.write_status(true);
+        if let Some(l) = self.live.take() {
+            self.read_final_stats();
+            let rows = self.live_rows();
+            l.finish(&rows);
+        }
         let failed = self.children.iter().any(|c| matches!(c.state, ProcState::Failed(_)));
         let exit_code = match &end {
             EndReason::Signal(s) => 128 + *s as u8,
@@ -344,8 +358,19 @@ impl Supervisor {
         if every > 0.0 && now - self.last_status >= Duration::from_secs_f64(every) {
             self.last_status = now;
             self.update_rates(now);
-            tracing::info!("{}", self.status_line());
+            if self.live.is_none() {
+                tracing::info!("{}", self.status_line());
+            } else {
+                // In run.log only: the block shows it on the terminal.
+                tracing::debug!("{}", self.status_line());
+            }
             self.write_status(false);
+        }
+        if self.live.is_some() {
+            let rows = self.live_rows();
+            if let Some(l) = &mut self.live {
+                l.draw(now, &rows);
+            }
         }
         Ok(Flow::Continue)
     }
@@ -648,7 +673,18 @@ impl Supervisor {
                 Ok(())
             });
         }
-        let child = cmd.spawn()?;
+        if self.live.is_some() {
+            cmd.stdout(Stdio::piped()).stderr(Stdio::piped());
+        }
+        let mut child = cmd.spawn()?;
+        if let Some(l) = &self.live {
+            if let Some(o) = child.stdout.take() {
+                l.forward(o);
+            }
+            if let Some(e) = child.stderr.take() {
+                l.forward(e);
+            }
+        }
         let pid = Pid::from_raw(child.id() as i32);
         drop(child); // reaped with waitpid by pid
         tracing::info!(process = %c.plan.name, pid = pid.as_raw(), restart = c.restarts, "started");
@@ -742,6 +778,55 @@ impl Supervisor {
         if let Err(e) = write {
             tracing::debug!("status.json not written: {e}");
         }
+    }
+
+    /// What the live block shows of each process: backlog = messages published on each of its
+    /// data inputs (over every publisher's instances, less what never reached it) minus what it
+    /// took; control services are left out.
+    fn live_rows(&self) -> Vec<crate::live::RowView> {
+        let mut published: BTreeMap<(&str, &str), u64> = BTreeMap::new(); // (service, consumer)
+        let mut total: BTreeMap<&str, u64> = BTreeMap::new();
+        for c in &self.children {
+            for r in c.reports.values() {
+                for port in r.ports.iter().filter(|p| !p.input) {
+                    *total.entry(port.service.as_str()).or_default() += port.count;
+                    for (consumer, n) in &port.undelivered_by {
+                        *published.entry((port.service.as_str(), consumer.as_str())).or_default() += *n;
+                    }
+                }
+            }
+        }
+        self.children
+            .iter()
+            .map(|c| {
+                let mut taken: BTreeMap<&str, u64> = BTreeMap::new();
+                for r in c.reports.values() {
+                    for port in r.ports.iter().filter(|p| p.input) {
+                        *taken.entry(port.service.as_str()).or_default() += port.count;
+                    }
+                }
+                // Control services (end of stream, commands) go to whoever listens, not to a queue.
+                let backlog = taken
+                    .iter()
+                    .filter(|(service, _)| !service.starts_with("pipeline/control/"))
+                    .map(|(service, got)| {
+                        let sent = total.get(service).copied().unwrap_or(0);
+                        let missed = published.get(&(*service, c.plan.name.as_str())).copied().unwrap_or(0);
+                        sent.saturating_sub(missed).saturating_sub(*got)
+                    })
+                    .sum();
+                let current = c.pid.and_then(|p| c.reports.get(&(p.as_raw() as u32)));
+                crate::live::RowView {
+                    name: c.plan.name.clone(),
+                    state: c.state.label().to_string(),
+                    messages: c.reports.values().flat_map(|r| &r.ports).map(|p| p.count).sum(),
+                    backlog,
+                    dropped: dropped_by(c).values().sum::<u64>() + undelivered_by(c).values().sum::<u64>(),
+                    restarts: c.restarts,
+                    progress: current.or_else(|| c.reports.values().last()).and_then(|r| r.progress),
+                }
+            })
+            .collect()
     }
 
     /// The one-line status: per process state, restarts, message rate, p50/p99 hop latency and

@@ -18,6 +18,7 @@
 //! and the SDK drops the oldest queued messages of a slow client. What it skips is counted in its
 //! summary part (`viewer`).
 
+pub mod gate;
 pub mod stage;
 
 use pipeline_runtime::config::{Issues, ProcessSettings};
@@ -28,12 +29,20 @@ use serde::{Deserialize, Serialize};
 #[serde(deny_unknown_fields, default)]
 pub struct ViewerSettings {
     /// Address the WebSocket server listens on. The Foxglove WebSocket protocol has neither
-    /// authentication nor encryption: any address but loopback (`127.0.0.1`, `::1`) lets anyone
-    /// who reaches it watch the run, and needs `insecure = true`. From another machine, keep
-    /// loopback and tunnel: `ssh -L 8765:127.0.0.1:8765 <this host>` (README "Security").
+    /// authentication nor encryption: any address but loopback (`127.0.0.1`, `::1`) needs `tls`
+    /// and `token_file` (a client then connects with `wss://<host>:<port>/?token=<token>`), or
+    /// `insecure = true` (anyone who reaches it watches the run). From another machine, loopback
+    /// and a tunnel work too: `ssh -L 8765:127.0.0.1:8765 <this host>` (docs/security.md).
     pub host: String,
-    /// Allow a `host` other than loopback (warned at start and in summary.json).
+    /// Allow a `host` other than loopback without TLS and a token (warned at start and in
+    /// summary.json).
     pub insecure: bool,
+    /// TLS for the view (`wss://`): this host's certificate and key (PEM; `supervisor certs`
+    /// makes them). Needs `token_file`.
+    pub tls: Option<ViewerTls>,
+    /// The file holding the token a client must give (`?token=<token>` in the URL, or
+    /// `Authorization: Bearer <token>`); `supervisor certs --viewer-token` makes one. Needs `tls`.
+    pub token_file: Option<std::path::PathBuf>,
     /// Its port (Foxglove's default is 8765; 0 = any free port, written to the log and the summary).
     pub port: u16,
     /// Largest rate of `/cloud`, Hz (the latest cloud is shown; the others are counted as skipped).
@@ -50,11 +59,40 @@ pub struct ViewerSettings {
     pub end_after: Vec<String>,
 }
 
+/// The view's TLS certificate and key.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ViewerTls {
+    /// This host's certificate (PEM), e.g. `certs/base.pem`.
+    pub certificate: std::path::PathBuf,
+    /// Its private key (PEM), e.g. `certs/base.key`.
+    pub private_key: std::path::PathBuf,
+}
+
+/// Shortest token accepted, characters.
+pub const MIN_TOKEN_LEN: usize = 16;
+
+/// Reads a token file: its first line, trimmed; errors name the file.
+pub fn read_token(path: &std::path::Path) -> Result<String, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let token = text.lines().next().unwrap_or_default().trim().to_string();
+    if token.len() < MIN_TOKEN_LEN || !token.chars().all(|c| c.is_ascii_alphanumeric() || "-_.~".contains(c)) {
+        return Err(format!(
+            "{}: the token must be at least {MIN_TOKEN_LEN} characters of A-Z a-z 0-9 - _ . ~ (make one: supervisor certs \
+             --viewer-token)",
+            path.display()
+        ));
+    }
+    Ok(token)
+}
+
 impl Default for ViewerSettings {
     fn default() -> Self {
         Self {
             host: "127.0.0.1".into(),
             insecure: false,
+            tls: None,
+            token_file: None,
             port: 8765,
             cloud_max_hz: 5.0,
             map_max_hz: 1.0,
@@ -73,17 +111,38 @@ impl ProcessSettings for ViewerSettings {
             format!("{key}.host"),
             format!("must be an IP address (e.g. 127.0.0.1 or 0.0.0.0), got `{}`", self.host),
         );
+        let secured = self.tls.is_some() && self.token_file.is_some();
         if let Ok(ip) = self.host.parse::<std::net::IpAddr>() {
             issues.check(
-                ip.is_loopback() || self.insecure,
+                ip.is_loopback() || self.insecure || secured,
                 format!("{key}.host"),
                 format!(
-                    "`{}` lets anyone who reaches it watch the run (the viewer has no authentication or \
-                     encryption): keep 127.0.0.1 and tunnel (ssh -L 8765:127.0.0.1:8765 <host>), or set \
-                     `insecure = true`",
+                    "`{}` would let anyone who reaches it watch the run: give `tls` and `token_file` (clients \
+                     connect with wss://...?token=...), or keep 127.0.0.1 and tunnel (ssh -L 8765:127.0.0.1:8765 \
+                     <host>), or set `insecure = true`",
                     self.host
                 ),
             );
+        }
+        issues.check(
+            self.tls.is_some() == self.token_file.is_some(),
+            format!("{key}.{}", if self.tls.is_some() { "token_file" } else { "tls" }),
+            "`tls` and `token_file` go together: TLS keeps the link private, the token keeps strangers out",
+        );
+        if let Some(t) = &self.tls {
+            for (field, p) in [("certificate", &t.certificate), ("private_key", &t.private_key)] {
+                if let Err(e) = std::fs::File::open(p) {
+                    issues.push(
+                        format!("{key}.tls.{field}"),
+                        format!("cannot read {}: {e} (make one: supervisor certs --name <this host>)", p.display()),
+                    );
+                }
+            }
+        }
+        if let Some(p) = &self.token_file
+            && let Err(e) = read_token(p)
+        {
+            issues.push(format!("{key}.token_file"), e);
         }
         for (field, v) in
             [("cloud_max_hz", self.cloud_max_hz), ("map_max_hz", self.map_max_hz), ("path_max_hz", self.path_max_hz)]
@@ -129,7 +188,25 @@ mod tests {
         open.validate("k", &mut issues);
         assert!(format!("{issues:?}").contains("insecure = true"), "{issues:?}");
         let mut issues = Issues::default();
-        ViewerSettings { insecure: true, ..open }.validate("k", &mut issues);
+        ViewerSettings { insecure: true, ..open.clone() }.validate("k", &mut issues);
         assert!(issues.is_empty(), "{issues:?}");
+        // TLS with a token opens any address; one without the other is an error.
+        let dir = tempfile::tempdir().unwrap();
+        let (cert, key, token) = (dir.path().join("c.pem"), dir.path().join("c.key"), dir.path().join("t"));
+        for p in [&cert, &key] {
+            std::fs::write(p, "x").unwrap();
+        }
+        std::fs::write(&token, "0123456789abcdef0123\n").unwrap();
+        let tls = Some(ViewerTls { certificate: cert.clone(), private_key: key.clone() });
+        let mut issues = Issues::default();
+        ViewerSettings { tls: tls.clone(), token_file: Some(token.clone()), ..open.clone() }.validate("k", &mut issues);
+        assert!(issues.is_empty(), "{issues:?}");
+        let mut issues = Issues::default();
+        ViewerSettings { tls: tls.clone(), ..open.clone() }.validate("k", &mut issues);
+        assert!(format!("{issues:?}").contains("k.token_file"), "{issues:?}");
+        std::fs::write(&token, "short\n").unwrap();
+        let mut issues = Issues::default();
+        ViewerSettings { tls, token_file: Some(token), ..open }.validate("k", &mut issues);
+        assert!(format!("{issues:?}").contains("at least 16"), "{issues:?}");
     }
 }

@@ -130,6 +130,8 @@ pub struct ViewerStage {
     settings: ViewerSettings,
     server: Option<WebSocketServerHandle>,
     port: u16,
+    /// The TLS and token gate in front of the server (with `tls`).
+    gate: Option<crate::gate::Gate>,
     _context: Arc<Context>,
     slam_pose: Option<Input<PoseEstimate, MsgHeader>>,
     buoy_fix: Option<Input<BuoyFix, MsgHeader>>,
@@ -488,27 +490,64 @@ impl Stage for ViewerStage {
         let octree_ch = context.channel_builder("/octree").build();
         let grid_ch = context.channel_builder("/grid").build();
         let processes_ch = context.channel_builder("/processes").build();
+        // With TLS, the SDK's server listens on loopback only, behind the gate (crate::gate).
+        let secured = settings.tls.as_ref().zip(settings.token_file.as_ref());
+        let (sdk_host, sdk_port) = match secured {
+            Some(_) => ("127.0.0.1".to_string(), 0),
+            None => (settings.host.clone(), settings.port),
+        };
         let server = context
             .websocket_server()
             .name(format!("slam pipeline: {}", ctx.name))
-            .bind(settings.host.clone(), settings.port)
+            .bind(sdk_host.clone(), sdk_port)
             .message_backlog_size(settings.client_backlog)
             .start_blocking()
             .map_err(|e| {
                 StageError::msg(format!(
-                    "the Foxglove WebSocket server cannot listen on {}:{} (processes.{}.settings.host / port): {e}",
-                    settings.host, settings.port, ctx.name
+                    "the Foxglove WebSocket server cannot listen on {sdk_host}:{sdk_port} (processes.{}.settings.host / \
+                     port): {e}",
+                    ctx.name
                 ))
             })?;
-        let port = server.port();
-        if settings.insecure && !settings.host.parse::<std::net::IpAddr>().is_ok_and(|ip| ip.is_loopback()) {
+        let mut port = server.port();
+        let gate = match secured {
+            None => None,
+            Some((tls, token_file)) => {
+                let name = &ctx.name;
+                let config = crate::gate::tls_config(&tls.certificate, &tls.private_key)
+                    .map_err(|e| StageError::Settings(format!("processes.{name}.settings.tls: {e}")))?;
+                let token = crate::read_token(token_file)
+                    .map_err(|e| StageError::Settings(format!("processes.{name}.settings.token_file: {e}")))?;
+                let ip: std::net::IpAddr = settings
+                    .host
+                    .parse()
+                    .map_err(|e| StageError::Settings(format!("processes.{name}.settings.host: {e}")))?;
+                let upstream = std::net::SocketAddr::from(([127, 0, 0, 1], port));
+                let gate = crate::gate::start((ip, settings.port).into(), upstream, config, token).map_err(|e| {
+                    StageError::msg(format!("the live view's TLS gate (processes.{name}.settings.host / port): {e}"))
+                })?;
+                port = gate.addr().port();
+                Some(gate)
+            }
+        };
+        if settings.insecure
+            && gate.is_none()
+            && !settings.host.parse::<std::net::IpAddr>().is_ok_and(|ip| ip.is_loopback())
+        {
             tracing::warn!(host = %settings.host, port,
                 "insecure: the live view has no authentication or encryption, and anyone who reaches this address watches the run");
         }
-        tracing::info!(
-            url = %format!("ws://{}:{port}", settings.host),
-            "live view: in Foxglove, Open connection → Foxglove WebSocket → ws://<this host>:{port}"
-        );
+        match &gate {
+            None => tracing::info!(
+                url = %format!("ws://{}:{port}", settings.host),
+                "live view: in Foxglove, Open connection → Foxglove WebSocket → ws://<this host>:{port}"
+            ),
+            Some(_) => tracing::info!(
+                url = %format!("wss://{}:{port}/?token=<token>", settings.host),
+                "live view over TLS with a token: in Foxglove, Open connection → Foxglove WebSocket → \
+                 wss://<this host>:{port}/?token=<the token in token_file> (the CA, certs/ca.pem, trusted by the browser)"
+            ),
+        }
         Ok(Self {
             cloud_every: Every::hz(settings.cloud_max_hz),
             landmarks_every: Every::hz(settings.map_max_hz),
@@ -519,6 +558,7 @@ impl Stage for ViewerStage {
             settings,
             server: Some(server),
             port,
+            gate,
             _context: context,
             slam_pose,
             buoy_fix,
@@ -619,6 +659,8 @@ impl Stage for ViewerStage {
                 "host": self.settings.host,
                 "insecure": self.settings.insecure,
                 "port": self.port,
+                "tls": self.gate.is_some(),
+                "gate": self.gate.as_ref().map(|g| g.counts().json()),
                 "clients_max": self.clients_max,
                 "sdk_outbox_full_reports": self.sdk_outbox_full.load(std::sync::atomic::Ordering::Relaxed),
                 "channels": self.counts,

@@ -13,7 +13,7 @@
 //!   pipeline pays to reach another host.
 //!
 //! - **tls**: the bridge row again over mutual TLS (certificates made by `supervisor certs`,
-//!   README "Security"); `tls/tcp` is its ratio to the plain-TCP bridge row of the same size.
+//!   docs/security.md); `tls/tcp` is its ratio to the plain-TCP bridge row of the same size.
 //!
 //! One message in flight at `--rate-hz` for latency; then a burst of messages back to back
 //! (reliable: Zenoh congestion control `Block` on both rows) for throughput. Both clocks are this
@@ -382,7 +382,8 @@ fn bridged(
         &format!("b{n}{proto}"),
         &b,
         &format!(
-            "zenoh = {{ listen = [\"{proto}/{host}:{port}\"], {} }}\nin = [{{ from = \"r\", service = \"{CLOUD}\" }}]",
+            "zenoh = {{ listen = [\"{proto}/{host}:{port}\"], {} }}\n\
+             accept = {{ max_rate_hz = 0 }}\nin = [{{ from = \"r\", service = \"{CLOUD}\" }}]",
             link("base")
         ),
     )?;

@@ -39,6 +39,9 @@ fn run(args: &ProcessArgs) -> anyhow::Result<pipeline_runtime::StopReason> {
             ..Default::default()
         };
         out.send(sample)?;
+        if settings.frames > 0 {
+            rt.set_progress(out.sent() as f64 / settings.frames as f64);
+        }
         if settings.frames > 0 && out.sent() >= settings.frames {
             rt.send_end_of_stream(seq, out.sent())?;
             done = true; // stay alive (publisher memory stays valid) until stopped
