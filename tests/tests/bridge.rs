@@ -8,7 +8,7 @@
 //!   robot's keys by a stranger, are counted and not published;
 //! - a robot with the estimators and a mapper in one network namespace, a base station with a
 //!   mapper in another, joined by a veth pair (loopback where namespaces are not permitted: the
-//!   test says so), the link cut for 2 s during the run: the base's map.bt equals the robot's
+//!   test says so), the link cut for 4 s during the run: the base's map.bt equals the robot's
 //!   byte for byte and the fused poses' digests are equal;
 //! - two robots and one base station: each robot's buoy fixes on their own local service, both
 //!   robots' clouds in one map;
@@ -81,9 +81,18 @@ fn messages(path: &Path, topic: &str) -> Vec<(u64, u64, Vec<u8>)> {
         .collect()
 }
 
-#[test]
-fn a_robots_streams_reach_a_base_station_byte_for_byte_and_its_end_of_stream_ends_the_base() {
+/// What reached the base station per service: the messages the robot sent, and their user
+/// headers after `MsgHeader` and payloads as the base station's recorder wrote them.
+type Reached = BTreeMap<&'static str, (u64, Vec<Vec<u8>>)>;
+
+/// A robot streams its sensors to a base station over plain TCP (`certs` `None`: `insecure`; a
+/// stranger's two bad messages are refused) or mutual TLS; everything arrives byte for byte.
+fn stream_to_base(certs: Option<&Certs>) -> Reached {
     let port = free_port();
+    let (proto, base_link, robot_link) = match certs {
+        None => ("tcp", "insecure = true".to_string(), "insecure = true".to_string()),
+        Some(c) => ("tls", c.tls("base", ""), c.tls("r1", "")),
+    };
     let services = SERVICES.iter().map(|s| format!("\"{s}\"")).collect::<Vec<_>>().join(", ");
     let ins = SERVICES.iter().map(|s| format!("{{ from = \"r1\", service = \"{s}\" }}")).collect::<Vec<_>>().join(", ");
     let outs = SERVICES.iter().map(|s| format!("{{ service = \"{s}\" }}")).collect::<Vec<_>>().join(", ");
@@ -104,7 +113,8 @@ send_end_of_stream = true
 kind = "bridge"
 after = ["rec"]
 [processes.link.settings]
-zenoh = {{ listen = ["tcp/127.0.0.1:{port}"], insecure = true }}
+zenoh = {{ listen = ["{proto}/127.0.0.1:{port}"], {base_link} }}
+accept = {{ max_rate_hz = 0 }}
 in = [{ins}]
 "#
         ),
@@ -113,8 +123,8 @@ in = [{ins}]
     base.wait_for_log("zenoh session open", 1, Duration::from_secs(60));
 
     // A stranger puts a message with another wire signature and one of a wrong length on the
-    // robot's odometry key: counted, not published.
-    {
+    // robot's odometry key: counted, not published. (Over TLS it cannot connect at all.)
+    if certs.is_none() {
         let mut c = zenoh::Config::default();
         c.insert_json5("mode", "\"peer\"").unwrap();
         c.insert_json5("connect/endpoints", &format!("[\"tcp/127.0.0.1:{port}\"]")).unwrap();
@@ -150,7 +160,7 @@ kind = "bridge"
 [processes.link.settings]
 robot = "r1"
 end_after = ["ingest"]
-zenoh = {{ connect = ["tcp/127.0.0.1:{port}"], insecure = true }}
+zenoh = {{ connect = ["{proto}/127.0.0.1:{port}"], {robot_link} }}
 out = [{outs}]
 
 [processes.ingest]
@@ -179,8 +189,9 @@ rate_hz = 0.0
     let (r, b) = (robot.summary(), base.summary());
     let (rb, bb) = (&r["bridge"], &b["bridge"]);
     // Plain TCP only because the config says so, and the summary says it too.
-    assert_eq!(rb["security"]["mode"], "insecure", "{rb}");
-    assert_eq!(bb["security"]["mode"], "insecure", "{bb}");
+    let mode = if certs.is_some() { "mutual_tls" } else { "insecure" };
+    assert_eq!(rb["security"]["mode"], mode, "{rb}");
+    assert_eq!(bb["security"]["mode"], mode, "{bb}");
     eprintln!("robot bridge {rb:#}\nbase bridge {bb:#}");
     assert_eq!(rb["end_acknowledged"], true, "{rb:#}");
     assert_eq!(bb["ends_received"], serde_json::json!(["r1"]), "{bb:#}");
@@ -193,7 +204,7 @@ rate_hz = 0.0
         let sent = out["sent"].as_u64().unwrap();
         assert!(sent > 5, "{s}: {out}");
         assert_eq!(out["received"].as_u64(), Some(sent), "{s}: {out}");
-        let extra = if s == SERVICES[0] { 2 } else { 0 }; // the stranger's two
+        let extra = if s == SERVICES[0] && certs.is_none() { 2 } else { 0 }; // the stranger's two
         assert_eq!(inn["received"].as_u64(), Some(sent + extra), "{s}: {inn}");
         assert_eq!(inn["published"].as_u64(), Some(sent), "{s}: {inn}");
         assert_eq!(bb["in"][s]["lost_on_the_way"].as_u64(), Some(0), "{s}: {bb:#}");
@@ -201,12 +212,15 @@ rate_hz = 0.0
         assert_eq!(b["recorder"]["messages"][s].as_u64(), Some(sent), "{s}: {:#}", b["recorder"]);
     }
     let odo = &bb["in"][SERVICES[0]]["counts"];
-    assert_eq!((odo["wrong_type"].as_u64(), odo["bad_length"].as_u64()), (Some(1), Some(1)), "{odo}");
-    assert!(base.log().contains("refused a message with another wire signature"), "warned");
+    if certs.is_none() {
+        assert_eq!((odo["wrong_type"].as_u64(), odo["bad_length"].as_u64()), (Some(1), Some(1)), "{odo}");
+        assert!(base.log().contains("refused a message with another wire signature"), "warned");
+    }
 
     // Payload for payload, with the same origin; published anew (later) on the base station.
     let ingest = &r["ingest"]["messages"];
     let mut compared = BTreeMap::new();
+    let mut reached = Reached::new();
     for (s, key) in SERVICES.iter().zip(["odometry", "depth", "buoy_ranges"]) {
         let here = messages(&robot.out_dir().join("recording.mcap"), s);
         let there = messages(&base.out_dir().join("recording.mcap"), s);
@@ -218,8 +232,24 @@ rate_hz = 0.0
             assert!(b.1 >= a.1, "{s}: published anew on the base station, after the robot");
         }
         compared.insert(*s, here.len());
+        let sent = rb["out"][s]["counts"]["sent"].as_u64().unwrap();
+        reached.insert(*s, (sent, there.into_iter().map(|m| m.2).collect()));
     }
     eprintln!("compared {compared:?}");
+    reached
+}
+
+#[test]
+fn a_robots_streams_reach_a_base_station_byte_for_byte_and_its_end_of_stream_ends_the_base() {
+    let plain = stream_to_base(None);
+    // The same mission over mutual TLS: the same messages, in the same order, to the byte.
+    let certs = Certs::new(&["base", "r1"], &[]);
+    let secure = stream_to_base(Some(&certs));
+    for s in SERVICES {
+        let (a, b) = (&plain[s], &secure[s]);
+        assert_eq!(a.0, b.0, "{s}: sent over plain TCP and over TLS");
+        assert!(a.1 == b.1, "{s}: the base station's messages differ between plain TCP and TLS");
+    }
 }
 
 /// Two network namespaces joined by a veth pair (deleted on drop), when this user may make them.
@@ -325,6 +355,7 @@ end_after = ["sync", "buoy", "slam"]
 
 #[test]
 fn a_robot_in_one_network_namespace_feeds_a_base_stations_map_in_another_through_a_link_cut() {
+    let _heavy = pipeline_tests::heavy();
     let net = NetPair::new();
     let (robot_wrap, base_wrap, base_addr) = match &net {
         Some(n) => (n.wrapper(0), n.wrapper(1), format!("{}:7447", n.addrs[1])),
@@ -357,6 +388,7 @@ after = ["map"]
 restart = "never"
 [processes.link.settings]
 zenoh = {{ listen = ["tls/{base_addr}"], {tls_base} }}
+accept = {{ max_rate_hz = 0 }}
 in = [{{ from = "auv", service = "pipeline/sensors/cloud" }}, {{ from = "auv", service = "pipeline/fusion/pose" }}]
 "#
         ),
@@ -409,7 +441,9 @@ height_px = 36
         robot.wait_for_log("process=ingest", 1, Duration::from_secs(120));
         std::thread::sleep(Duration::from_millis(500));
         n.set_link(false);
-        std::thread::sleep(Duration::from_secs(2));
+        // 4 s: under half of the bridge's 10 s lease (zenoh.lease_s), which an outage must be to
+        // lose nothing (TCP's back-off can make the silence twice as long).
+        std::thread::sleep(Duration::from_secs(4));
         cut_during_run = robot.wait_supervisor(Duration::ZERO).is_none();
         n.set_link(true);
     }
@@ -426,7 +460,7 @@ height_px = 36
     assert_eq!(bb["security"]["certificate"]["common_name"], "base", "{bb}");
     assert_eq!(rb["security"]["certificate"]["common_name"], "auv", "{rb}");
     eprintln!(
-        "link cut for 2 s during the run: {cut_during_run}\nrobot bridge {rb:#}\nbase bridge {bb:#}\nrobot map {:#}\nbase map {:#}",
+        "link cut for 4 s during the run: {cut_during_run}\nrobot bridge {rb:#}\nbase bridge {bb:#}\nrobot map {:#}\nbase map {:#}",
         r["octree_mapper"]["counters"], b["octree_mapper"]["counters"]
     );
     assert_eq!(rb["end_acknowledged"], true, "{rb:#}");
@@ -476,6 +510,7 @@ after = ["map"]
 restart = "never"
 [processes.link.settings]
 zenoh = {{ listen = ["tls/127.0.0.1:{port}"], {tls_base} }}
+accept = {{ max_rate_hz = 0 }}
 clock = "measure"
 in = [
     {{ from = "r1", service = "pipeline/buoy/fix", local = "r1/pipeline/buoy/fix" }},
@@ -587,6 +622,7 @@ height_px = 24
 
 #[test]
 fn a_base_station_bridge_killed_mid_run_is_restarted_reconnects_and_counts_what_it_lost() {
+    let _heavy = pipeline_tests::heavy();
     let port = free_port();
     let certs = Certs::new(&["base", "r1"], &[]);
     let (tls_base, tls_robot) = (certs.tls("base", ""), certs.tls("r1", ""));
@@ -601,6 +637,7 @@ restart = "on-failure"
 backoff_initial_s = 0.2
 [processes.link.settings]
 zenoh = {{ listen = ["tls/127.0.0.1:{port}"], {tls_base} }}
+accept = {{ max_rate_hz = 0 }}
 in = [{{ from = "r1", service = "pipeline/sensors/odometry" }}]
 "#
         ),
@@ -665,14 +702,21 @@ rate_hz = 0.0
     let lost = bb["in"][s]["lost_on_the_way"].as_u64().unwrap();
     assert!(got > 0 && lost > 0, "the new instance received the rest and counts the loss: {bb:#}");
     assert_eq!(got + lost, sent, "{bb:#}");
-    assert!(base.log().contains("messages lost across the bridge"), "warned");
+    assert!(base.log().contains("messages lost or refused across the bridge"), "warned");
     // The robot's side knows what it sent while nobody on the other side subscribed: counted as
     // dropped, in the status line and summary.json like any other loss.
     // The sender learns of the new subscriber through Zenoh's matching status, a moment after
-    // the subscriber exists: the message or two sent in between count as unmatched on this side
-    // and arrive on the other (seen in CI: 310 unmatched, 309 lost).
+    // the subscriber exists: what it sends in between counts as unmatched on this side and
+    // arrives on the other (seen in CI: 310 unmatched and 309 lost; under load 313 and 308, the
+    // status ~17 ms late at ~280 msg/s). Allowed: what the robot sends in a quarter of a second.
     let unmatched = rb["out"][s]["counts"]["no_subscriber"].as_u64().unwrap();
-    assert!(unmatched > 0 && unmatched <= lost + 2, "{unmatched} sent unmatched, {lost} lost: {rb:#}");
+    let wall_s = rb["wall_s"].as_f64().expect("the robot bridge's wall_s");
+    let lag = (sent as f64 / wall_s * 0.25).ceil() as u64;
+    assert!(
+        unmatched > 0 && unmatched <= lost + lag,
+        "{unmatched} sent unmatched, {lost} lost (allowed {lag} more, a quarter second's worth): {rb:#}"
+    );
+    assert!(unmatched + lag >= lost, "{unmatched} sent unmatched but {lost} lost: {rb:#}");
     let dropped = r["dropped"].as_array().expect("dropped list");
     assert!(
         dropped.iter().any(|d| d["process"] == "link" && d["reason"] == "no subscriber on the other side"),
@@ -698,6 +742,7 @@ kind = "bridge"
 restart = "never"
 [processes.link.settings]
 zenoh = {{ listen = ["tls/127.0.0.1:{port}"], {tls_base} }}
+accept = {{ max_rate_hz = 0 }}
 in = [{{ from = "r1", service = "pipeline/sensors/odometry" }}]
 "#
         ),

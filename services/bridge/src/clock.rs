@@ -2,8 +2,12 @@
 //! `origin_ns` (stamped on the sender's clock) can be put on the receiver's, and end-to-end latency
 //! spans both hosts.
 //!
-//! Every bridge that sends (`out`) answers queries on `<namespace>/<robot>/_bridge/clock` with its
-//! `CLOCK_MONOTONIC` and its boot id (`/proc/sys/kernel/random/boot_id`). A receiving bridge asks
+//! Every bridge that sends (`out`) answers the asks it gets on `<namespace>/<robot>/_bridge/clock/ask`
+//! (a nonce) on `<namespace>/<robot>/_bridge/clock/answer` with the nonce, its `CLOCK_MONOTONIC` and
+//! its boot id (`/proc/sys/kernel/random/boot_id`). Both are plain publications with congestion
+//! control `Drop` (a late answer is a wrong one): no Zenoh query, whose answer would be pushed
+//! from Zenoh's receive thread and block it on a congested link (after a link outage the link then
+//! stopped reading and never resumed: tests/tests/bridge.rs, the link cut). A receiving bridge asks
 //! each robot it receives from (every 200 ms for the first 2 s, then every second) and estimates
 //! the offset NTP-style: for a query sent at local `t0`, answered at remote `r` and received at
 //! local `t1`, `offset = r − (t0 + t1) / 2` with an error of at most half the round trip
@@ -60,18 +64,20 @@ pub fn boot_id() -> String {
     std::fs::read_to_string("/proc/sys/kernel/random/boot_id").map(|s| s.trim().to_string()).unwrap_or_default()
 }
 
-/// The answer to a clock query: the remote `CLOCK_MONOTONIC` (8 bytes, little-endian) and its
-/// boot id.
-pub fn encode_answer(monotonic_ns: u64, boot_id: &str) -> Vec<u8> {
-    let mut v = monotonic_ns.to_le_bytes().to_vec();
+/// The answer to the ask with `nonce`: the nonce and the remote `CLOCK_MONOTONIC` (8 bytes each,
+/// little-endian), then its boot id.
+pub fn encode_answer(nonce: u64, monotonic_ns: u64, boot_id: &str) -> Vec<u8> {
+    let mut v = nonce.to_le_bytes().to_vec();
+    v.extend_from_slice(&monotonic_ns.to_le_bytes());
     v.extend_from_slice(boot_id.as_bytes());
     v
 }
 
-/// Reads an answer made by [`encode_answer`].
-pub fn decode_answer(bytes: &[u8]) -> Option<(u64, String)> {
-    let stamp = u64::from_le_bytes(bytes.get(..8)?.try_into().ok()?);
-    Some((stamp, String::from_utf8_lossy(&bytes[8..]).into_owned()))
+/// Reads an answer made by [`encode_answer`]: (nonce, remote stamp, boot id).
+pub fn decode_answer(bytes: &[u8]) -> Option<(u64, u64, String)> {
+    let nonce = u64::from_le_bytes(bytes.get(..8)?.try_into().ok()?);
+    let stamp = u64::from_le_bytes(bytes.get(8..16)?.try_into().ok()?);
+    Some((nonce, stamp, String::from_utf8_lossy(&bytes[16..]).into_owned()))
 }
 
 #[cfg(test)]
@@ -108,9 +114,9 @@ mod tests {
 
     #[test]
     fn answers_round_trip() {
-        let a = encode_answer(123_456_789, "3f0c-boot");
-        assert_eq!(decode_answer(&a), Some((123_456_789, "3f0c-boot".to_string())));
-        assert_eq!(decode_answer(&a[..5]), None);
+        let a = encode_answer(7 << 32 | 3, 123_456_789, "3f0c-boot");
+        assert_eq!(decode_answer(&a), Some((7 << 32 | 3, 123_456_789, "3f0c-boot".to_string())));
+        assert_eq!(decode_answer(&a[..12]), None);
         assert!(!boot_id().contains('\n'));
     }
 }
