@@ -75,11 +75,15 @@ fi
 # Every binary the multi-process tests start; of the benchmarks only relations_score (the others
 # are run by hand: building them here cost ~50 s of a 2-core test run, 2026-12-04).
 cargo build --workspace --bins --exclude pipeline_bench
-cargo build -p pipeline_bench --bin relations_score
+# (--workspace: the features resolved as for the whole workspace, so nothing is built twice)
+cargo build --workspace --bin relations_score
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT
 status=0
-cargo test --workspace "$@" 2>&1 | tee "$log" || status=$?
+# Every target with tests (`--tests`: libraries, binaries with `test = true`, test files), then
+# the doc tests; not the examples, which a plain `cargo test` compiles and links (15 binaries no
+# test runs; clippy --all-targets in .ci/run still checks that they build).
+{ cargo test --workspace --tests "$@" && cargo test --workspace --doc "$@"; } 2>&1 | tee "$log" || status=$?
 passed=$(grep -Eo 'test result: [A-Za-z]+\. [0-9]+ passed' "$log" | awk '{s+=$4} END {print s+0}')
 failed=$(grep -Eo '[0-9]+ failed' "$log" | awk '{s+=$1} END {print s+0}')
 echo "tests: ${passed} passed, ${failed} failed"
