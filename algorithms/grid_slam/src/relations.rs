@@ -1,7 +1,10 @@
 //! The relations metric of Kümmerle et al. 2009 ("On measuring the accuracy of SLAM
-//! algorithms", SPEC §8): for each relation (t1, t2, δ), with δ the true motion from the pose at t1
+//! algorithms"): for each relation (t1, t2, δ), with δ the true motion from the pose at t1
 //! to the pose at t2 in the frame of t1, the error is e = (x_t1⁻¹ ⊕ x_t2) ⊖ δ; the score is the
-//! mean ± std of ‖e_xy‖ (m) and |e_θ| (deg) over the relations the trajectory covers.
+//! mean ± std of ‖e_xy‖ (m) and |e_θ| (deg) over the relations the trajectory covers. Relations
+//! that span more than [`LONG_SPAN_S`] test global consistency (a loop that is not closed fails
+//! exactly those), so their mean is reported apart, with the share of relations off by more
+//! than [`FAR_OFF_M`].
 
 use crate::GridSlamError;
 use omni::{Pose2, wrap_angle};
@@ -51,6 +54,13 @@ pub fn parse_relations(text: &str, source: &str) -> Result<Vec<Relation>, GridSl
     Ok(out)
 }
 
+/// Relations whose stamps are further apart than this, s, are the "long" ones: they span a
+/// loop, or most of one, and only a globally consistent trajectory gets them right.
+pub const LONG_SPAN_S: f64 = 60.0;
+
+/// A relation whose translation error is over this, m, counts as failed (`over_far_share`).
+pub const FAR_OFF_M: f64 = 0.5;
+
 /// The score of a trajectory against relations.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct RelationScore {
@@ -71,6 +81,12 @@ pub struct RelationScore {
     pub rot_std_deg: f64,
     /// Largest rotational error, deg.
     pub rot_max_deg: f64,
+    /// Relations scored that span more than [`LONG_SPAN_S`].
+    pub long_scored: usize,
+    /// Their mean translational error, m (NaN, written as null, when there are none).
+    pub long_trans_mean_m: f64,
+    /// Share of the scored relations whose translation error is over [`FAR_OFF_M`] (0..1).
+    pub over_far_share: f64,
 }
 
 /// The pose at `t_s` interpolated linearly (yaw along the shorter arc) between the two
@@ -100,7 +116,7 @@ pub fn pose_at(traj: &[(f64, Pose2)], t_s: f64, max_gap_s: f64) -> Option<Pose2>
 /// Scores `traj` (sorted by stamp; stamps on the trajectory's clock) against `relations`; a
 /// relation's stamps are mapped onto the trajectory's clock by subtracting `offset_s`.
 pub fn score(traj: &[(f64, Pose2)], relations: &[Relation], offset_s: f64, max_gap_s: f64) -> RelationScore {
-    let (mut et, mut er) = (Vec::new(), Vec::new());
+    let (mut et, mut er, mut long) = (Vec::new(), Vec::new(), Vec::new());
     let mut uncovered = 0;
     for r in relations {
         let (Some(a), Some(b)) =
@@ -114,6 +130,9 @@ pub fn score(traj: &[(f64, Pose2)], relations: &[Relation], offset_s: f64, max_g
         let e = rel.compose(&invert(&r.delta));
         et.push(e.x_m.hypot(e.y_m));
         er.push(e.theta_rad.abs().to_degrees());
+        if (r.t2_s - r.t1_s).abs() > LONG_SPAN_S {
+            long.push(e.x_m.hypot(e.y_m));
+        }
     }
     let stats = |v: &[f64]| {
         if v.is_empty() {
@@ -126,7 +145,11 @@ pub fn score(traj: &[(f64, Pose2)], relations: &[Relation], offset_s: f64, max_g
     };
     let (tm, ts, tx) = stats(&et);
     let (rm, rs, rx) = stats(&er);
+    let far = et.iter().filter(|e| **e > FAR_OFF_M).count();
     RelationScore {
+        long_scored: long.len(),
+        long_trans_mean_m: stats(&long).0,
+        over_far_share: if et.is_empty() { f64::NAN } else { far as f64 / et.len() as f64 },
         scored: et.len(),
         uncovered,
         trans_mean_m: tm,
@@ -187,6 +210,40 @@ mod tests {
         // Relations outside the trajectory are counted as uncovered.
         let s3 = score(&traj, &rels, 90.0, 1.0);
         assert!(s3.uncovered > 0);
+    }
+
+    #[test]
+    fn a_loop_that_is_not_closed_shows_in_the_long_relations_and_the_far_off_share() {
+        // A straight run out and back along x (1 m/s, 200 s): the truth returns to the start.
+        let truth: Vec<(f64, Pose2)> = (0..=200)
+            .map(|k| {
+                let t = k as f64;
+                let x = if t <= 100.0 { t } else { 200.0 - t };
+                (t, Pose2 { x_m: x, y_m: 0.0, theta_rad: 0.0 })
+            })
+            .collect();
+        // Short relations (10 s) all along, and long ones (150 s) that span the turn.
+        let mut rels = vec![];
+        for (t1, t2) in (0..19)
+            .map(|k| (k as f64 * 10.0, k as f64 * 10.0 + 10.0))
+            .chain((0..5).map(|k| (k as f64 * 10.0, k as f64 * 10.0 + 150.0)))
+        {
+            let (a, b) = (pose_at(&truth, t1, 2.0).unwrap(), pose_at(&truth, t2, 2.0).unwrap());
+            rels.push(Relation { t1_s: t1, t2_s: t2, delta: a.between(&b) });
+        }
+        let s = score(&truth, &rels, 0.0, 2.0);
+        assert_eq!((s.scored, s.long_scored), (24, 5));
+        assert!(s.long_trans_mean_m < 1e-9 && s.over_far_share == 0.0, "{s:?}");
+        // The way back drifts sideways 2 cm per second (the double wall of an unclosed loop):
+        // short relations stay good, every long one is off by metres.
+        let drifted: Vec<(f64, Pose2)> =
+            truth.iter().map(|(t, p)| (*t, Pose2 { y_m: 0.02 * (t - 100.0).max(0.0), ..*p })).collect();
+        let d = score(&drifted, &rels, 0.0, 2.0);
+        assert!(d.trans_mean_m < 0.6 && d.long_trans_mean_m > 0.9, "{d:?}");
+        assert!((d.over_far_share - 5.0 / 24.0).abs() < 1e-9, "{d:?}");
+        // None long: the mean is NaN (null in JSON), not 0.
+        let short = score(&truth, &rels[..19], 0.0, 2.0);
+        assert!(short.long_trans_mean_m.is_nan() && short.long_scored == 0);
     }
 
     #[test]

@@ -303,14 +303,20 @@ impl GridSlamStage {
                 Ok(rel) => {
                     let s = score(&traj, &rel, self.settings.relations_offset_s, 2.0);
                     tracing::info!(
-                        "relations ({}): {} scored, {} not covered: {:.4} ± {:.4} m, {:.3} ± {:.3} deg",
+                        "relations ({}): {} scored, {} not covered: {:.4} ± {:.4} m, {:.3} ± {:.3} deg; {} over {:.0} s: \
+                         {:.4} m; {:.1} % over {} m",
                         path.display(),
                         s.scored,
                         s.uncovered,
                         s.trans_mean_m,
                         s.trans_std_m,
                         s.rot_mean_deg,
-                        s.rot_std_deg
+                        s.rot_std_deg,
+                        s.long_scored,
+                        grid_slam::relations::LONG_SPAN_S,
+                        s.long_trans_mean_m,
+                        100.0 * s.over_far_share,
+                        grid_slam::relations::FAR_OFF_M
                     );
                     part["grid_slam"]["relations"] = serde_json::to_value(s)?;
                 }

@@ -7,8 +7,8 @@
 //! docs); the drifted odometry alone is scored as well, as the baseline.
 //!
 //! ```text
-//! cargo run --release -p pipeline_bench --bin grid_slam_bench            # fr079, 30 particles, 0.05 m
-//! cargo run --release -p pipeline_bench --bin grid_slam_bench -- --particles 1,30 --max-scans 1500
+//! cargo run --release -p pipeline_bench --bin grid_slam_bench   # fr079, intel, aces; drift seeds 7, 8, 9; 30 particles
+//! cargo run --release -p pipeline_bench --bin grid_slam_bench -- --sets fr079 --seeds 7 --particles 1,30 --max-scans 1500
 //! ```
 
 use anyhow::{Context, Result, bail};
@@ -28,7 +28,7 @@ struct Args {
     #[arg(long, default_value = "../shared/data/carmen")]
     data: PathBuf,
     /// Data sets: fr079, intel, aces (comma-separated).
-    #[arg(long, default_value = "fr079", value_delimiter = ',')]
+    #[arg(long, default_value = "fr079,intel,aces", value_delimiter = ',')]
     sets: Vec<String>,
     /// Particle counts to run (comma-separated).
     #[arg(long, default_value = "30", value_delimiter = ',')]
@@ -42,9 +42,10 @@ struct Args {
     /// Stop after this many scans (0: all).
     #[arg(long, default_value_t = 0)]
     max_scans: usize,
-    /// Drift seed.
-    #[arg(long, default_value_t = 7)]
-    seed: u64,
+    /// Drift seeds (comma-separated): each set runs once per seed, and the means over the
+    /// seeds close the table.
+    #[arg(long, default_value = "7,8,9", value_delimiter = ',')]
+    seeds: Vec<u64>,
     /// Filter settings as TOML (the `[grid_slam]` keys of a pipeline config), applied over the defaults.
     #[arg(long)]
     settings: Option<PathBuf>,
@@ -58,6 +59,16 @@ struct Args {
     /// Where the maps and trajectories go.
     #[arg(long, default_value = "target/grid_slam_bench")]
     out: PathBuf,
+}
+
+/// One run's scores, for the means over the seeds.
+struct Row {
+    set: &'static str,
+    particles: usize,
+    trans_m: f64,
+    long_m: f64,
+    far_share: f64,
+    wall_s: f64,
 }
 
 struct Set {
@@ -101,8 +112,9 @@ fn main() -> Result<()> {
     }
     std::fs::create_dir_all(&args.out)?;
     println!(
-        "{:<6} {:>4} {:>6} {:>6} {:>5} {:>8} {:>8} {:>20} {:>18} {:>16} {:>7} {:>8} {:>7}",
+        "{:<6} {:>4} {:>4} {:>6} {:>6} {:>5} {:>8} {:>8} {:>20} {:>18} {:>9} {:>7} {:>16} {:>7} {:>8} {:>7}",
         "set",
+        "seed",
         "N",
         "scans",
         "upd",
@@ -111,11 +123,14 @@ fn main() -> Result<()> {
         "data s",
         "trans m (mean±std)",
         "rot deg",
+        ">60 s m",
+        ">0.5 m",
         "odometry m/deg",
         "peak MB",
         "map MB",
         "mem x"
     );
+    let mut rows: Vec<Row> = vec![];
     for name in &args.sets {
         let Some(set) = SETS.iter().find(|s| s.name == name) else {
             bail!("unknown data set {name} (fr079, intel, aces)")
@@ -128,7 +143,6 @@ fn main() -> Result<()> {
         let log = read_carmen(&log_path)?;
         let relations = read_relations(&args.data.join(set.relations))?;
         let odo = log.scan_odometry(OdometrySource::LaserLines);
-        let mut one_particle_map_mb: Option<f64> = None;
         let mut scans: Vec<(usize, Pose2)> = log
             .scans
             .iter()
@@ -140,100 +154,132 @@ fn main() -> Result<()> {
             scans.truncate(args.max_scans);
         }
         let truth: Vec<Pose2> = scans.iter().map(|s| s.1).collect();
-        let drifted = DriftModel { seed: args.seed, ..Default::default() }.apply(&truth);
-        let first = &log.scans[scans[0].0];
-        let geom = ScanGeometry {
-            angle_min_rad: first.angle_min_rad,
-            angle_increment_rad: if args.span_deg > 0.0 {
-                args.span_deg.to_radians() / (first.ranges.len() - 1) as f64
-            } else {
-                first.angle_increment_rad
-            },
-            beams: first.ranges.len(),
-            range_min_m: 0.01,
-            range_max_m: first.range_max_m.unwrap_or(81.8),
-            body_from_laser: Pose2::default(),
-        };
-        let odo_traj: Vec<(f64, Pose2)> =
-            scans.iter().zip(&drifted).map(|((i, _), p)| (log.scans[*i].stamp_s, *p)).collect();
-        let odo_score = score(&odo_traj, &relations, set.offset_s, 2.0);
-        for &n in &args.particles {
-            let cfg =
-                GridSlamConfig { particles: n, resolution_m: args.resolution, threads: args.threads, ..base.clone() };
-            let mut f = GridSlam::new(cfg, geom)?;
-            let t0 = Instant::now();
-            let mut refused = 0;
-            let mut mem_trace: Vec<f64> = Vec::new();
-            for ((i, _), odom) in scans.iter().zip(&drifted) {
-                let s = &log.scans[*i];
-                match f.process(s.stamp_s, *odom, &s.ranges) {
-                    Ok(o) if o.updated && args.mem_trace => {
-                        let m = f.memory();
-                        mem_trace.push(m.bytes as f64 / 1e6);
-                        eprintln!("mem update={} bytes={} resampled={}", f.stats().updates, m.bytes, o.resampled);
+        for &seed in &args.seeds {
+            let mut one_particle_map_mb: Option<f64> = None;
+            let drifted = DriftModel { seed, ..Default::default() }.apply(&truth);
+            let first = &log.scans[scans[0].0];
+            let geom = ScanGeometry {
+                angle_min_rad: first.angle_min_rad,
+                angle_increment_rad: if args.span_deg > 0.0 {
+                    args.span_deg.to_radians() / (first.ranges.len() - 1) as f64
+                } else {
+                    first.angle_increment_rad
+                },
+                beams: first.ranges.len(),
+                range_min_m: 0.01,
+                range_max_m: first.range_max_m.unwrap_or(81.8),
+                body_from_laser: Pose2::default(),
+            };
+            let odo_traj: Vec<(f64, Pose2)> =
+                scans.iter().zip(&drifted).map(|((i, _), p)| (log.scans[*i].stamp_s, *p)).collect();
+            let odo_score = score(&odo_traj, &relations, set.offset_s, 2.0);
+            for &n in &args.particles {
+                let cfg = GridSlamConfig {
+                    particles: n,
+                    resolution_m: args.resolution,
+                    threads: args.threads,
+                    ..base.clone()
+                };
+                let mut f = GridSlam::new(cfg, geom)?;
+                let t0 = Instant::now();
+                let mut refused = 0;
+                let mut mem_trace: Vec<f64> = Vec::new();
+                for ((i, _), odom) in scans.iter().zip(&drifted) {
+                    let s = &log.scans[*i];
+                    match f.process(s.stamp_s, *odom, &s.ranges) {
+                        Ok(o) if o.updated && args.mem_trace => {
+                            let m = f.memory();
+                            mem_trace.push(m.bytes as f64 / 1e6);
+                            eprintln!("mem update={} bytes={} resampled={}", f.stats().updates, m.bytes, o.resampled);
+                        }
+                        Ok(_) => {}
+                        Err(_) => refused += 1,
                     }
-                    Ok(_) => {}
-                    Err(_) => refused += 1,
+                }
+                let wall = t0.elapsed().as_secs_f64();
+                let traj = f.trajectory();
+                let sc = score(&traj, &relations, set.offset_s, 2.0);
+                let st = f.stats();
+                // Peak bytes of all particles' distinct tiles against one map: the one-particle run's
+                // map when it ran first (`--particles 1,...`), else this run's best particle's.
+                let peak_mb = f.peak_memory().map_or(f64::NAN, |m| m.bytes as f64 / 1e6);
+                let one_map_mb = f.memory().best_bytes as f64 / 1e6;
+                if n == 1 {
+                    one_particle_map_mb = Some(one_map_mb);
+                }
+                let mem = peak_mb / one_particle_map_mb.unwrap_or(one_map_mb);
+                let span = traj.last().map_or(0.0, |l| l.0) - traj.first().map_or(0.0, |f| f.0);
+                println!(
+                    "{:<6} {:>4} {:>4} {:>6} {:>6} {:>5} {:>8.1} {:>8.0} {:>9.4}±{:<6.4} ({:>4}) {:>8.3}±{:<7.3} {:>9.4} {:>6.1}% {:>7.3}/{:<7.2} {:>8.1} {:>7.1} {:>7.2}",
+                    set.name,
+                    seed,
+                    n,
+                    st.scans,
+                    st.updates,
+                    st.resamples,
+                    wall,
+                    span,
+                    sc.trans_mean_m,
+                    sc.trans_std_m,
+                    sc.scored,
+                    sc.rot_mean_deg,
+                    sc.rot_std_deg,
+                    sc.long_trans_mean_m,
+                    100.0 * sc.over_far_share,
+                    odo_score.trans_mean_m,
+                    odo_score.rot_mean_deg,
+                    peak_mb,
+                    one_map_mb,
+                    mem
+                );
+                if refused > 0 || st.tracking_failures > 0 || st.proposal_fallbacks > 0 {
+                    println!(
+                        "       refused scans {refused}, tracking failures {}, proposal fallbacks {}, invalid beams {}",
+                        st.tracking_failures, st.proposal_fallbacks, st.invalid_beams
+                    );
+                }
+                if !mem_trace.is_empty() {
+                    let mut v = mem_trace.clone();
+                    v.sort_by(f64::total_cmp);
+                    println!(
+                        "       maps' memory over the {} updates: mean {:.1} MB, median {:.1}, p90 {:.1}, max {:.1}",
+                        v.len(),
+                        v.iter().sum::<f64>() / v.len() as f64,
+                        v[v.len() / 2],
+                        v[v.len() * 9 / 10],
+                        v[v.len() - 1]
+                    );
+                }
+                rows.push(Row {
+                    set: set.name,
+                    particles: n,
+                    trans_m: sc.trans_mean_m,
+                    long_m: sc.long_trans_mean_m,
+                    far_share: sc.over_far_share,
+                    wall_s: wall,
+                });
+                let stem = format!("{}_s{}_{}", set.name, seed, n);
+                write_tum2(&args.out.join(format!("{stem}.tum")), &traj)?;
+                if let Some(g) = f.best_grid() {
+                    let occ = Occupancy::from_grid(g, 5);
+                    occ.write_map_server(&args.out, &stem)?;
+                    let path: Vec<Pose2> = traj.iter().map(|p| p.1).collect();
+                    occ.write_png(&args.out.join(format!("{stem}.png")), &path)?;
                 }
             }
-            let wall = t0.elapsed().as_secs_f64();
-            let traj = f.trajectory();
-            let sc = score(&traj, &relations, set.offset_s, 2.0);
-            let st = f.stats();
-            // Peak bytes of all particles' distinct tiles against one map: the one-particle run's
-            // map when it ran first (`--particles 1,...`), else this run's best particle's.
-            let peak_mb = f.peak_memory().map_or(f64::NAN, |m| m.bytes as f64 / 1e6);
-            let one_map_mb = f.memory().best_bytes as f64 / 1e6;
-            if n == 1 {
-                one_particle_map_mb = Some(one_map_mb);
-            }
-            let mem = peak_mb / one_particle_map_mb.unwrap_or(one_map_mb);
-            let span = traj.last().map_or(0.0, |l| l.0) - traj.first().map_or(0.0, |f| f.0);
-            println!(
-                "{:<6} {:>4} {:>6} {:>6} {:>5} {:>8.1} {:>8.0} {:>9.4}±{:<6.4} ({:>4}) {:>8.3}±{:<7.3} {:>7.3}/{:<7.2} {:>8.1} {:>7.1} {:>7.2}",
-                set.name,
-                n,
-                st.scans,
-                st.updates,
-                st.resamples,
-                wall,
-                span,
-                sc.trans_mean_m,
-                sc.trans_std_m,
-                sc.scored,
-                sc.rot_mean_deg,
-                sc.rot_std_deg,
-                odo_score.trans_mean_m,
-                odo_score.rot_mean_deg,
-                peak_mb,
-                one_map_mb,
-                mem
-            );
-            if refused > 0 || st.tracking_failures > 0 || st.proposal_fallbacks > 0 {
+        }
+        for &n in &args.particles {
+            let runs: Vec<&Row> = rows.iter().filter(|r| r.set == set.name && r.particles == n).collect();
+            if runs.len() > 1 {
+                let mean = |f: fn(&Row) -> f64| runs.iter().map(|r| f(r)).sum::<f64>() / runs.len() as f64;
                 println!(
-                    "       refused scans {refused}, tracking failures {}, proposal fallbacks {}, invalid beams {}",
-                    st.tracking_failures, st.proposal_fallbacks, st.invalid_beams
+                    "       N={n}, mean over {} seeds: translation {:.4} m, over 60 s {:.4} m, over 0.5 m {:.1} %, wall {:.1} s",
+                    runs.len(),
+                    mean(|r| r.trans_m),
+                    mean(|r| r.long_m),
+                    100.0 * mean(|r| r.far_share),
+                    mean(|r| r.wall_s)
                 );
-            }
-            if !mem_trace.is_empty() {
-                let mut v = mem_trace.clone();
-                v.sort_by(f64::total_cmp);
-                println!(
-                    "       maps' memory over the {} updates: mean {:.1} MB, median {:.1}, p90 {:.1}, max {:.1}",
-                    v.len(),
-                    v.iter().sum::<f64>() / v.len() as f64,
-                    v[v.len() / 2],
-                    v[v.len() * 9 / 10],
-                    v[v.len() - 1]
-                );
-            }
-            let stem = format!("{}_{}", set.name, n);
-            write_tum2(&args.out.join(format!("{stem}.tum")), &traj)?;
-            if let Some(g) = f.best_grid() {
-                let occ = Occupancy::from_grid(g, 5);
-                occ.write_map_server(&args.out, &stem)?;
-                let path: Vec<Pose2> = traj.iter().map(|p| p.1).collect();
-                occ.write_png(&args.out.join(format!("{stem}.png")), &path)?;
             }
         }
         println!("       published: {}", set.published);

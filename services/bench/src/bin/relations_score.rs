@@ -78,6 +78,14 @@ fn run() -> Result<()> {
             s.rot_std_deg,
             s.rot_max_deg
         );
+        println!(
+            "{} relations over {:.0} s (global consistency): translation {:.4} m; {:.1} % of all over {} m",
+            s.long_scored,
+            grid_slam::relations::LONG_SPAN_S,
+            s.long_trans_mean_m,
+            100.0 * s.over_far_share,
+            grid_slam::relations::FAR_OFF_M
+        );
     }
     if let Some(w) = a.scan_offset {
         let steps = (w / 0.01).round() as i64;
