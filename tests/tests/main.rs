@@ -2,7 +2,7 @@
 //! the supervisor, each run with its own iceoryx2 prefix, root and temporary directory (see the
 //! `pipeline_tests` library), so that tests of different modules run side by side.
 //!
-//! Run one module: `cargo test -p pipeline_tests --test pipeline -- bridge::` (build the binaries
+//! Run one module: `cargo test --workspace --test pipeline -- bridge::` (build the binaries
 //! first: `cargo build --workspace --bins`).
 
 mod backpressure;
