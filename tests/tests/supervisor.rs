@@ -286,7 +286,10 @@ fn in_a_terminal_the_run_is_a_live_block_and_the_full_log_goes_to_run_log() {
     let run = TestRun::new("live");
     let procs = PAIR.replace("rate_hz = 50.0", "rate_hz = 40.0\nframes = 80");
     let cfg = run.write_config("end = \"end_of_stream\"\nend_of_stream_from = [\"consumer\"]\nduration_s = 60", &procs);
-    let cmd = format!("{} --config {}", pipeline_tests::bin("supervisor").display(), cfg.display());
+    // A narrow terminal (60 columns): every line of the block must fit, or the redraw in place
+    // breaks (a wrapped line is not erased).
+    let cmd =
+        format!("stty cols 60 rows 30; {} --config {}", pipeline_tests::bin("supervisor").display(), cfg.display());
     let mut child = std::process::Command::new("script")
         .args(["-qefc", &cmd, "/dev/null"])
         .env("RUST_LOG", "info")
@@ -321,6 +324,45 @@ fn in_a_terminal_the_run_is_a_live_block_and_the_full_log_goes_to_run_log() {
     for needle in ["process", "msg/s", "backlog", "dropped", "restarts", "producer", "consumer", "100% of the data"] {
         assert!(terminal.contains(needle), "`{needle}` not on the terminal:\n{terminal}");
     }
+    let strip = |l: &str| {
+        let mut out = String::new();
+        let mut chars = l.chars();
+        while let Some(c) = chars.next() {
+            if c == '\x1b' {
+                // An escape sequence, up to its final letter: a cursor move (not a colour, `m`)
+                // ends the line.
+                for c in chars.by_ref() {
+                    if c.is_ascii_alphabetic() {
+                        if c != 'm' {
+                            out.push('\n');
+                        }
+                        break;
+                    }
+                }
+            } else {
+                out.push(c);
+            }
+        }
+        out
+    };
+    // indicatif writes a line as wide as the terminal without a newline after it (the terminal
+    // wraps): the bar's line is from its `[` to its ETA, the header from `process` to `restarts`.
+    let mut bar_lines = 0;
+    for line in terminal.split(['\n', '\r']).map(strip).flat_map(|l| l.lines().map(String::from).collect::<Vec<_>>()) {
+        if let Some(end) = line.find("ETA ")
+            && let Some(start) = line[..end].rfind('[')
+        {
+            let bar = &line[start..(end + 12).min(line.len())];
+            assert!(bar.chars().count() <= 60, "the bar is wider than the 60-column terminal: {bar:?}");
+            bar_lines += 1;
+        }
+        if let Some(start) = line.find("process")
+            && let Some(end) = line.find("restarts")
+        {
+            assert!(line[start..end + 8].chars().count() <= 60, "the header is wider than 60 columns: {line:?}");
+        }
+    }
+    assert!(bar_lines > 0, "no progress bar drawn:\n{terminal}");
     // The summary after it, and where the log is.
     let log_path = run.out_dir().join("run.log");
     assert!(terminal.contains(&format!("full log in {}", log_path.display())), "{terminal}");

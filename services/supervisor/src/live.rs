@@ -126,10 +126,11 @@ impl Live {
         let bar = multi.add(ProgressBar::new(1000));
         bar.set_style(Self::waiting_style());
         bar.set_message("waiting for a source to report its progress");
-        let text = ProgressStyle::with_template("{msg}").expect("a valid template");
+        // Each line cut at the terminal's width: a wrapped line would break the redraw in place.
+        let text = ProgressStyle::with_template("{wide_msg}").expect("a valid template");
         let header = multi.add(ProgressBar::new(0).with_style(text.clone()));
         header.set_message(format!(
-            "{:<16} {:<10} {:>9} {:>8} {:>8} {:>8}",
+            "{:<14} {:<10} {:>8} {:>7} {:>7} {:>8}",
             "process", "state", "msg/s", "backlog", "dropped", "restarts"
         ));
         let now = Instant::now();
@@ -137,7 +138,7 @@ impl Live {
             .iter()
             .map(|n| {
                 let r = multi.add(ProgressBar::new(0).with_style(text.clone()));
-                r.set_message(format!("{n:<16} {:<10}", "pending"));
+                r.set_message(format!("{n:<14} {:<10}", "pending"));
                 r
             })
             .collect();
@@ -145,12 +146,12 @@ impl Live {
     }
 
     fn waiting_style() -> ProgressStyle {
-        ProgressStyle::with_template("{spinner} {elapsed_precise} elapsed · {msg}").expect("a valid template")
+        ProgressStyle::with_template("{spinner} {elapsed_precise} elapsed · {wide_msg}").expect("a valid template")
     }
 
     fn progress_style() -> ProgressStyle {
         ProgressStyle::with_template(
-            "[{bar:40}] {percent:>3}% of the data · {elapsed_precise} elapsed · ETA {eta_precise}",
+            "[{wide_bar}] {percent:>3}% of the data · {elapsed_precise} elapsed · ETA {eta_precise}",
         )
         .expect("a valid template")
         .progress_chars("#>-")
@@ -208,7 +209,7 @@ impl Live {
             let r = if dt >= RATE_WINDOW { rate.2 } else { last };
             let flag = if row.dropped > 0 || row.state == "failed" { " !" } else { "" };
             bar.set_message(format!(
-                "{:<16} {:<10} {:>9.1} {:>8} {:>8} {:>8}{flag}",
+                "{:<14} {:<10} {:>8.1} {:>7} {:>7} {:>8}{flag}",
                 row.name, row.state, r, row.backlog, row.dropped, row.restarts
             ));
         }
