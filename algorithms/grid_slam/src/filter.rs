@@ -251,7 +251,16 @@ struct Particle {
     log_weight: f64,
     grid: Grid,
     path: Arc<PathNode>,
+    /// The particle of the first set (or of the restart) this one descends from: how many
+    /// distinct ones are left says how many hypotheses the set still carries.
+    ancestor: u32,
+    /// The particle it descends from of the set [`LINEAGE_WINDOW`] updates back at most.
+    window_ancestor: u32,
 }
+
+/// Updates over which [`GridSlam::lineages`] counts the lineages that survived: about 50 m or
+/// 25 turns at the default update thresholds, the length of a corridor loop.
+pub const LINEAGE_WINDOW: u32 = 50;
 
 /// How one scan went.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -287,6 +296,24 @@ pub struct GridSlamStats {
     pub tracking_failures: u64,
     /// Tiles written at updates that became deltas over another particle's like tile.
     pub shared_tiles: u64,
+}
+
+/// How peaked the weights were over a run ([`GridSlam::n_eff_summary`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct NeffSummary {
+    /// Filter updates (one N_eff each).
+    pub updates: usize,
+    /// Mean of N_eff / N.
+    pub mean_share: f64,
+    /// Its 10th percentile.
+    pub p10_share: f64,
+    /// Its median.
+    pub median_share: f64,
+    /// Particles of the first set with descendants at the end ([`GridSlam::distinct_ancestors`]).
+    pub distinct_ancestors: usize,
+    /// Mean of [`GridSlam::lineages`]: particles with descendants [`LINEAGE_WINDOW`] updates
+    /// later (`None` before the first window ends).
+    pub lineages_mean: Option<f64>,
 }
 
 /// Memory held by the particles' maps.
@@ -339,6 +366,10 @@ pub struct GridSlam {
     records: Vec<ScanRecord>,
     best: usize,
     n_eff: f64,
+    /// (stamp s, N_eff) at every update.
+    n_eff_history: Vec<(f64, f64)>,
+    /// Lineages that survived each window of [`LINEAGE_WINDOW`] updates.
+    lineage_history: Vec<usize>,
     stats: GridSlamStats,
     peak_memory: Option<MemoryStats>,
     /// The trajectory before a restore (frozen: later loop closures do not move it).
@@ -381,6 +412,8 @@ impl GridSlam {
             records: Vec::new(),
             best: 0,
             n_eff: 0.0,
+            n_eff_history: Vec::new(),
+            lineage_history: Vec::new(),
             stats: GridSlamStats::default(),
             peak_memory: None,
             history: Vec::new(),
@@ -424,8 +457,9 @@ impl GridSlam {
         let grid = Grid::from_tiles(s.resolution_m, &s.tiles).ok_or_else(|| bad("a tile has the wrong size".into()))?;
         let mut f = GridSlam::new(cfg, s.geometry)?;
         let path = Arc::new(PathNode { update: s.updates, pose: s.pose, parent: None });
-        let p = Particle { pose: s.pose, log_weight: 0.0, grid, path };
+        let p = Particle { pose: s.pose, log_weight: 0.0, grid, path, ancestor: 0, window_ancestor: 0 };
         f.particles = vec![p; f.cfg.particles];
+        number_ancestors(&mut f.particles);
         f.updates = s.updates;
         f.last_update_odom = s.last_update_odom;
         f.last_stamp_s = s.last_stamp_s.is_finite().then_some(s.last_stamp_s);
@@ -522,8 +556,9 @@ impl GridSlam {
             Self::integrate(&mut grid, &odom, origin, &beams, &self.cfg.log_odds);
             grid.take_written();
             let path = Arc::new(PathNode { update: 0, pose: odom, parent: None });
-            let p = Particle { pose: odom, log_weight: 0.0, grid, path };
+            let p = Particle { pose: odom, log_weight: 0.0, grid, path, ancestor: 0, window_ancestor: 0 };
             self.particles = vec![p; self.cfg.particles];
+            number_ancestors(&mut self.particles);
             self.last_update_odom = odom;
             self.records.push(ScanRecord { stamp_s, update: 0, rel: Pose2::default() });
             self.n_eff = self.cfg.particles as f64;
@@ -612,6 +647,7 @@ impl GridSlam {
         let sum: f64 = w.iter().sum();
         let w: Vec<f64> = w.iter().map(|x| x / sum).collect();
         self.n_eff = 1.0 / w.iter().map(|x| x * x).sum::<f64>();
+        self.n_eff_history.push((stamp_s, self.n_eff));
         self.best = w.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map(|(i, _)| i).unwrap_or(0);
         let mut resampled = false;
         if self.n_eff < self.cfg.resample_threshold * self.particles.len() as f64 {
@@ -629,6 +665,12 @@ impl GridSlam {
             self.best = picks.iter().position(|&i| i == self.best).unwrap_or(0);
             self.stats.resamples += 1;
             resampled = true;
+        }
+        if update.is_multiple_of(LINEAGE_WINDOW) {
+            self.lineage_history.push(distinct(&self.particles, |p| p.window_ancestor));
+            for (i, p) in self.particles.iter_mut().enumerate() {
+                p.window_ancestor = i as u32;
+            }
         }
         // Tiles the particles wrote alike become deltas over one another's.
         self.stats.shared_tiles +=
@@ -669,6 +711,48 @@ impl GridSlam {
     /// Counters.
     pub fn stats(&self) -> GridSlamStats {
         self.stats
+    }
+
+    /// N_eff (the effective number of particles, 1/Σw², before any resampling) at every filter
+    /// update: (scan stamp s, N_eff). Near N: the weights are flat; near 1: one particle has all
+    /// the weight, and resampling leaves copies of it alone (Grisetti et al. 2007, §IV).
+    pub fn n_eff_history(&self) -> &[(f64, f64)] {
+        &self.n_eff_history
+    }
+
+    /// N_eff over the run as shares of N (see [`Self::n_eff_history`]); `None` before the
+    /// first update.
+    pub fn n_eff_summary(&self) -> Option<NeffSummary> {
+        let n = self.cfg.particles as f64;
+        let mut v: Vec<f64> = self.n_eff_history.iter().map(|(_, e)| e / n).collect();
+        if v.is_empty() {
+            return None;
+        }
+        v.sort_by(f64::total_cmp);
+        Some(NeffSummary {
+            updates: v.len(),
+            mean_share: v.iter().sum::<f64>() / v.len() as f64,
+            p10_share: v[v.len() / 10],
+            median_share: v[v.len() / 2],
+            distinct_ancestors: self.distinct_ancestors(),
+            lineages_mean: (!self.lineage_history.is_empty())
+                .then(|| self.lineage_history.iter().sum::<usize>() as f64 / self.lineage_history.len() as f64),
+        })
+    }
+
+    /// How many particles of the first set (or of the restart) still have descendants: the
+    /// hypotheses the filter carries. 1: the set has collapsed onto one lineage, and a loop
+    /// closure can only pick among its near copies.
+    pub fn distinct_ancestors(&self) -> usize {
+        distinct(&self.particles, |p| p.ancestor)
+    }
+
+    /// Every [`LINEAGE_WINDOW`] updates: how many particles of the set that many updates back
+    /// had descendants (1..=N). Over a whole log every particle filter's set descends from one
+    /// particle in the end; what decides whether a loop can be closed is how many hypotheses
+    /// survive the length of a loop.
+    pub fn lineages(&self) -> &[usize] {
+        &self.lineage_history
     }
 
     /// The best particle's map.
@@ -863,6 +947,22 @@ fn cholesky3(a: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
         }
     }
     Some(l)
+}
+
+/// Numbers the particles of a new set as their own ancestors.
+fn number_ancestors(particles: &mut [Particle]) {
+    for (i, p) in particles.iter_mut().enumerate() {
+        p.ancestor = i as u32;
+        p.window_ancestor = i as u32;
+    }
+}
+
+/// Distinct values of `key` over the particles.
+fn distinct(particles: &[Particle], key: fn(&Particle) -> u32) -> usize {
+    let mut a: Vec<u32> = particles.iter().map(key).collect();
+    a.sort_unstable();
+    a.dedup();
+    a.len()
 }
 
 #[cfg(test)]

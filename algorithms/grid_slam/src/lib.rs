@@ -18,7 +18,9 @@ pub mod grid;
 pub mod matcher;
 pub mod relations;
 
-pub use filter::{GridSlam, GridSlamConfig, GridSlamStats, MemoryStats, MotionNoise, ScanGeometry, ScanOutcome};
+pub use filter::{
+    GridSlam, GridSlamConfig, GridSlamStats, MemoryStats, MotionNoise, NeffSummary, ScanGeometry, ScanOutcome,
+};
 pub use omni::Pose2;
 
 /// What can go wrong.

@@ -72,4 +72,12 @@ fn fr079_relations_beat_the_drifting_odometry_and_the_published_gmapping_error()
     assert!(mem.ratio < 8.0, "tiles stay shared between the 8 particles: {mem:?}");
     assert!(f.stats().shared_tiles > 1000, "tiles written alike are shared: {:?}", f.stats());
     assert!(peak.bytes < 3 * mem.best_bytes, "the peak stays under 3 maps: {peak:?} against {mem:?}");
+    // N_eff at every update, within [1, N]; the lineages left at the end.
+    let neff = f.n_eff_summary().expect("updates were made");
+    eprintln!("fr079 N_eff: {neff:?}");
+    assert_eq!(f.n_eff_history().len() as u64, f.stats().updates);
+    assert!(f.n_eff_history().iter().all(|(_, e)| (1.0 - 1e-9..=8.0 + 1e-9).contains(e)), "{neff:?}");
+    assert!((1..=8).contains(&neff.distinct_ancestors), "{neff:?}");
+    assert_eq!(f.lineages().len() as u64, f.stats().updates / u64::from(grid_slam::filter::LINEAGE_WINDOW));
+    assert!(f.lineages().iter().all(|l| (1..=8).contains(l)), "{:?}", f.lineages());
 }

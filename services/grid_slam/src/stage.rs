@@ -274,6 +274,7 @@ impl GridSlamStage {
             "scans": st.scans,
             "updates": st.updates,
             "resamples": st.resamples,
+            "n_eff": f.n_eff_summary(),
             "particles": f.config().particles,
             "resolution_m": f.config().resolution_m,
             "poses_published": self.pose.sent(),
@@ -335,6 +336,15 @@ impl GridSlamStage {
             }
             Ok(_) => tracing::info!("no accuracy evaluation: {} is empty", gt_path.display()),
             Err(e) => tracing::info!("no accuracy evaluation: {e}"),
+        }
+        if let Some(n) = f.n_eff_summary() {
+            tracing::info!(
+                mean = n.mean_share,
+                p10 = n.p10_share,
+                distinct_ancestors = n.distinct_ancestors,
+                "N_eff / N over the {} updates; particles of the first set with descendants at the end",
+                n.updates
+            );
         }
         tracing::info!(
             scans = st.scans,

@@ -232,6 +232,17 @@ fn main() -> Result<()> {
                     one_map_mb,
                     mem
                 );
+                if let Some(ne) = f.n_eff_summary() {
+                    println!(
+                        "       N_eff/N over the updates: mean {:.2}, median {:.2}, p10 {:.2}; lineages that survive {} updates: {:.1} of {n} on average; of the first set at the end: {}",
+                        ne.mean_share,
+                        ne.median_share,
+                        ne.p10_share,
+                        grid_slam::filter::LINEAGE_WINDOW,
+                        ne.lineages_mean.unwrap_or(f64::NAN),
+                        ne.distinct_ancestors
+                    );
+                }
                 if refused > 0 || st.tracking_failures > 0 || st.proposal_fallbacks > 0 {
                     println!(
                         "       refused scans {refused}, tracking failures {}, proposal fallbacks {}, invalid beams {}",
