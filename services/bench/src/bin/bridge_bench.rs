@@ -15,6 +15,9 @@
 //! - **tls**: the bridge row again over mutual TLS (certificates made by `supervisor certs`,
 //!   docs/security.md); `tls/tcp` is its ratio to the plain-TCP bridge row of the same size.
 //!
+//! The plain-TCP and TLS bridge rows run in turn for `--rounds` rounds (3): their ratios are the
+//! median of the rounds' ratios, with the range, so that load drifting between rows decides less.
+//!
 //! One message in flight at `--rate-hz` for latency; then a burst of messages back to back
 //! (reliable: Zenoh congestion control `Block` on both rows) for throughput. Both clocks are this
 //! machine's, so one-way latency is exact.
@@ -59,6 +62,15 @@ struct Cli {
     /// loss 1%"); repeatable; needs root.
     #[arg(long)]
     shape: Vec<String>,
+    /// Rounds of the plain-TCP and TLS bridge rows, in turn (tcp, tls, tcp, tls, ...): the
+    /// `tls/tcp` ratios are the median over the rounds of each round's ratio, with their range,
+    /// so that the machine's load drifting between two rows does not decide the ratio.
+    #[arg(long, default_value_t = 3)]
+    rounds: usize,
+    /// Keep the bridges' logs (stderr) in this directory, one file per bridge and row, instead of
+    /// discarding them: to see what a bridge said about a message that did not arrive.
+    #[arg(long)]
+    logs: Option<std::path::PathBuf>,
 }
 
 /// Where the receiving side runs: this network namespace (loopback) or another one behind a veth.
@@ -169,6 +181,16 @@ struct Seen {
     last_hop_us: Vec<f64>,
     burst_messages: usize,
     burst_s: f64,
+}
+
+impl Seen {
+    /// Adds another run's measurements of the same row (latencies pooled, burst spans summed).
+    fn pool(&mut self, other: Seen) {
+        self.latencies_us.extend(other.latencies_us);
+        self.last_hop_us.extend(other.last_hop_us);
+        self.burst_messages += other.burst_messages;
+        self.burst_s += other.burst_s;
+    }
 }
 
 /// Flag of a message: a probe (not counted), a latency sample, or part of the burst.
@@ -388,13 +410,22 @@ fn bridged(
         ),
     )?;
     let spawn = |cfg: &std::path::Path, net: &Net| -> anyhow::Result<Killed> {
+        let stderr = match &cli.logs {
+            None => Stdio::null(),
+            Some(d) => {
+                std::fs::create_dir_all(d)?;
+                let name = cfg.file_stem().and_then(|n| n.to_str()).unwrap_or("bridge");
+                let file = d.join(format!("{}_{name}.log", std::process::id()));
+                std::fs::File::create(&file).with_context(|| format!("{}", file.display()))?.into()
+            }
+        };
         Ok(Killed(
             net.command(&bin)
                 .arg("--config")
                 .arg(cfg)
                 .args(["--name", "link"])
                 .stdout(Stdio::null())
-                .stderr(Stdio::null())
+                .stderr(stderr)
                 .spawn()?,
         ))
     };
@@ -472,6 +503,17 @@ fn bridged(
     Ok((seen, 96 + 12 * points))
 }
 
+/// The median of `v` (NaN when empty).
+fn median(v: &[f64]) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    match s.len() {
+        0 => f64::NAN,
+        n if n % 2 == 1 => s[n / 2],
+        n => (s[n / 2 - 1] + s[n / 2]) / 2.0,
+    }
+}
+
 fn pct(v: &[f64], q: f64) -> f64 {
     let mut s = v.to_vec();
     s.sort_by(f64::total_cmp);
@@ -535,9 +577,20 @@ fn main() -> anyhow::Result<()> {
         for (n, &size) in cli.sizes.iter().enumerate() {
             let burst = (cli.burst_bytes / size.max(1)).clamp(20, 20_000);
             let z = bare(size, &cli, burst, net)?;
-            let (b, sent_size) = bridged(size, &cli, burst, dir.path(), l * 100 + n, net, None)?;
-            let (t, _) = bridged(size, &cli, burst, dir.path(), l * 100 + n, net, Some(&certs))?;
             let mbs = |s: &Seen, bytes: usize| s.burst_messages as f64 * bytes as f64 / 1e6 / s.burst_s.max(1e-9);
+            // Rounds of tcp then tls; the rows' columns pool the rounds, the ratios are per round.
+            let (mut b, mut t, mut sent_size) = (Seen::default(), Seen::default(), size);
+            let (mut p50_ratios, mut mbs_ratios) = (vec![], vec![]);
+            for round in 0..cli.rounds.max(1) {
+                let id = (l * 100 + n) * 100 + round;
+                let (rb, sz) = bridged(size, &cli, burst, dir.path(), id, net, None)?;
+                let (rt, _) = bridged(size, &cli, burst, dir.path(), id, net, Some(&certs))?;
+                sent_size = sz;
+                p50_ratios.push(pct(&rt.latencies_us, 0.5) / pct(&rb.latencies_us, 0.5));
+                mbs_ratios.push(mbs(&rt, sz) / mbs(&rb, sz));
+                b.pool(rb);
+                t.pool(rt);
+            }
             println!(
                 "{:>9} | {:>9.0} {:>9.0} {:>8.1} | {:>10.0} {:>9.0} {:>8.1} {:>9.0} | {:>6.2} | {:>8.0} {:>9.0} {:>8.1} | {:>11.2} {:>9.2}",
                 size,
@@ -552,23 +605,36 @@ fn main() -> anyhow::Result<()> {
                 pct(&t.latencies_us, 0.5),
                 pct(&t.latencies_us, 0.99),
                 mbs(&t, sent_size),
-                pct(&t.latencies_us, 0.5) / pct(&b.latencies_us, 0.5),
-                mbs(&t, sent_size) / mbs(&b, sent_size)
+                median(&p50_ratios),
+                median(&mbs_ratios)
             );
-            if t.latencies_us.len() < cli.samples || t.burst_messages < burst {
+            if p50_ratios.len() > 1 {
+                let range = |v: &[f64]| {
+                    let (lo, hi) = v.iter().fold((f64::MAX, f64::MIN), |(lo, hi), &x| (lo.min(x), hi.max(x)));
+                    format!("{lo:.2}-{hi:.2}")
+                };
                 println!(
-                    "          note: the tls row got {} of {} latency and {} of {burst} burst messages",
+                    "          tls/tcp over {} rounds: p50 {}, MB/s {}",
+                    p50_ratios.len(),
+                    range(&p50_ratios),
+                    range(&mbs_ratios)
+                );
+            }
+            let (samples, bursts) = (cli.samples * cli.rounds.max(1), burst * cli.rounds.max(1));
+            if t.latencies_us.len() < samples || t.burst_messages < bursts {
+                println!(
+                    "          note: the tls row got {} of {} latency and {} of {bursts} burst messages",
                     t.latencies_us.len(),
-                    cli.samples,
+                    samples,
                     t.burst_messages
                 );
             }
-            if b.latencies_us.len() < cli.samples || b.burst_messages < burst || sent_size != size {
+            if b.latencies_us.len() < samples || b.burst_messages < bursts || sent_size != size {
                 println!(
                     "          note: the bridge row sent {sent_size}-byte clouds; got {} of {} latency and {} of \
-                     {burst} burst messages",
+                     {bursts} burst messages",
                     b.latencies_us.len(),
-                    cli.samples,
+                    samples,
                     b.burst_messages
                 );
             }
