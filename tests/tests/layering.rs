@@ -174,3 +174,36 @@ fn has_doc_test(text: &str) -> bool {
     }
     false
 }
+
+/// The code, the configs and the docs cite the papers and docs/EQUATIONS.md, not the steering
+/// repository's SPEC.md (which a user of this repository does not have).
+#[test]
+fn nothing_cites_the_steering_spec() {
+    let (root, _) = workspace();
+    let mut found = vec![];
+    let mut stack: Vec<PathBuf> = ["algorithms", "services", "shared_types", "config", "docs", "tests", "scripts"]
+        .iter()
+        .map(|d| root.join(d))
+        .collect();
+    stack.push(root.join("README.md"));
+    stack.push(root.join("Cargo.toml"));
+    while let Some(p) = stack.pop() {
+        if p.is_dir() {
+            for e in std::fs::read_dir(&p).expect("a readable directory").flatten() {
+                stack.push(e.path());
+            }
+            continue;
+        }
+        let ext = p.extension().and_then(|e| e.to_str()).unwrap_or("");
+        if !["rs", "toml", "md", "py", "sh"].contains(&ext) || p.ends_with(file!().rsplit('/').next().unwrap_or("")) {
+            continue;
+        }
+        let Ok(text) = std::fs::read_to_string(&p) else { continue };
+        for (i, line) in text.lines().enumerate() {
+            if line.contains(concat!("SPEC ", "§")) || line.contains(concat!("SPEC", ".md")) {
+                found.push(format!("{}:{}: {}", p.strip_prefix(&root).unwrap_or(&p).display(), i + 1, line.trim()));
+            }
+        }
+    }
+    assert!(found.is_empty(), "cite the papers or docs/EQUATIONS.md instead:\n{}", found.join("\n"));
+}

@@ -1,4 +1,4 @@
-//! The Rao-Blackwellised particle filter (SPEC §8, Grisetti et al. 2007).
+//! The Rao-Blackwellised particle filter (docs/EQUATIONS.md §8, Grisetti et al. 2007).
 //!
 //! Each particle holds a pose, a log-weight, its own [`Grid`] (tiles shared copy-on-write with its
 //! relatives) and its path. A filter *update* runs when the odometry has moved by

@@ -1,4 +1,4 @@
-//! 2-D grid SLAM ([2D3D] §III.A-B, SPEC §8): a Rao-Blackwellised particle filter over planar
+//! 2-D grid SLAM ([2D3D] §III.A-B, docs/EQUATIONS.md §8): a Rao-Blackwellised particle filter over planar
 //! poses with occupancy-grid maps, as gmapping (Grisetti, Stachniss, Burgard 2007), with
 //!
 //! - [`grid`]: log-odds grids in tiles shared copy-on-write between particles;

@@ -1,4 +1,4 @@
-//! Scan matching against a particle's own grid (gmapping's matcher, SPEC §8 step 1): each beam's
+//! Scan matching against a particle's own grid (gmapping's matcher, docs/EQUATIONS.md §8 step 1): each beam's
 //! end point is scored by its distance to the surface through the mean hit points of the nearest
 //! occupied cells in a small window whose cell one step nearer along the beam is not occupied (so
 //! a wall is matched from the side the beam saw it). Pattern search over x, y, θ with step

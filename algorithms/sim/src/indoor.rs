@@ -1,4 +1,4 @@
-//! A simulated indoor mission of a three-wheel omni-directional robot ([2D3D], SPEC §8):
+//! A simulated indoor mission of a three-wheel omni-directional robot ([2D3D], docs/EQUATIONS.md §8):
 //! two furnished rooms joined by a door and a corridor, the base driving two laps of a loop through
 //! them with
 //! holonomic motion (its heading sways independently of the path: it strafes), a 2-D laser, wheel

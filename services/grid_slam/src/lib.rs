@@ -1,4 +1,4 @@
-//! The `grid_slam` process ([2D3D] §III.A-B, SPEC §8): laser scans and planar odometry in, the
+//! The `grid_slam` process ([2D3D] §III.A-B, docs/EQUATIONS.md §8): laser scans and planar odometry in, the
 //! [`grid_slam::GridSlam`] filter in the middle, poses, particles and the occupancy grid out.
 //!
 //! This library holds the settings and the pure part, [`ScanQueue`]: scans wait until the
