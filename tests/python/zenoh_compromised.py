@@ -37,6 +37,7 @@ def main() -> None:
     ap.add_argument("--ca", required=True)
     ap.add_argument("--cert", required=True)
     ap.add_argument("--key-file", required=True)
+    ap.add_argument("--id", help="Zenoh id to use (a bridge lets a certificate's holder in only with the id of its name: supervisor certs prints it)")
     ap.add_argument("--attachment", required=True, help="the wire signature")
     ap.add_argument("--flood", type=int, default=3000, help="messages sent back to back at the end")
     a = ap.parse_args()
@@ -47,6 +48,8 @@ def main() -> None:
     c.insert_json5("connect/exit_on_failure", "false")
     c.insert_json5("scouting/multicast/enabled", "false")
     c.insert_json5("transport/shared_memory/enabled", "false")
+    if a.id:
+        c.insert_json5("id", json.dumps(a.id))
     tls = {
         "root_ca_certificate": a.ca,
         "verify_name_on_connect": False,

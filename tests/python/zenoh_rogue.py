@@ -25,6 +25,7 @@ def main() -> None:
     ap.add_argument("--ca", help="CA certificate to trust (TLS)")
     ap.add_argument("--cert", help="client certificate (mutual TLS)")
     ap.add_argument("--key-file", help="client private key (mutual TLS)")
+    ap.add_argument("--id", help="Zenoh id to use (a bridge lets a certificate's holder in only with the id of its name: supervisor certs prints it)")
     a = ap.parse_args()
 
     c = zenoh.Config()
@@ -34,6 +35,8 @@ def main() -> None:
     c.insert_json5("scouting/multicast/enabled", "false")
     # The wheel is built with shared memory, which leaves a segment in /dev/shm: not wanted here.
     c.insert_json5("transport/shared_memory/enabled", "false")
+    if a.id:
+        c.insert_json5("id", json.dumps(a.id))
     if a.ca:
         tls = {"root_ca_certificate": a.ca, "verify_name_on_connect": False}
         if a.cert:

@@ -29,7 +29,9 @@ fn tls(dir: &Path, name: &str) -> String {
 }
 
 /// Runs the rogue peer in the namespace; returns (peers it was linked to, messages it put).
-fn rogue(ns: &NetNs, endpoint: &str, certs: Option<(&Path, Option<&str>)>) -> (u64, u64) {
+/// With a certificate, it uses the Zenoh id of the certificate's name (`zid`: true) or a random
+/// one.
+fn rogue(ns: &NetNs, endpoint: &str, certs: Option<(&Path, Option<&str>)>, zid: bool) -> (u64, u64) {
     let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("python/zenoh_rogue.py");
     let signature = bridge_stage::signature(pipeline_runtime::topics::topic(ODOMETRY).expect("topic"));
     let mut cmd = ns.command("python3");
@@ -39,6 +41,9 @@ fn rogue(ns: &NetNs, endpoint: &str, certs: Option<(&Path, Option<&str>)>) -> (u
         cmd.arg("--ca").arg(dir.join("ca.pem"));
         if let Some(n) = name {
             cmd.arg("--cert").arg(dir.join(format!("{n}.pem"))).arg("--key-file").arg(dir.join(format!("{n}.key")));
+            if zid {
+                cmd.args(["--id", &bridge_stage::relay::zid_hex(n)]);
+            }
         }
     }
     let out = cmd.output().expect("python3 runs the rogue peer");
@@ -119,6 +124,7 @@ fn a_compromised_robot_gets_only_sound_messages_in_at_a_bounded_rate() {
         .arg(certs.join("auv1.pem"))
         .arg("--key-file")
         .arg(certs.join("auv1.key"))
+        .args(["--id", &bridge_stage::relay::zid_hex("auv1")])
         .output()
         .expect("python3 runs the compromised robot");
     let stdout = String::from_utf8_lossy(&out.stdout);
@@ -193,8 +199,8 @@ rate_hz = 0.0
 }
 
 /// A certificate revoked mid-run (`supervisor certs --revoke auv2`): the base station's bridge
-/// sees the list change, restarts to apply it, and from then on everything auv2 sends is refused
-/// (counted with its name) while auv1 goes on; what auv1 sent during the restart is counted as
+/// sees the list change, restarts to apply it, and from then on auv2's links are refused (counted
+/// with its name) while auv1 goes on; what auv1 sent during the restart is counted as
 /// lost, nothing silently.
 #[test]
 fn a_certificate_revoked_mid_run_is_refused_from_then_on() {
@@ -255,17 +261,24 @@ in = [
     let lost1 = in1["lost_on_the_way"].as_u64().expect("lost");
     assert!(got1 > sent1 / 2, "{in1}");
     assert_eq!(got1 + lost1, sent1, "{in1}");
-    // auv2: what it sent before the revocation got in; after it, everything refused, counted with
-    // its certificate's name.
+    // auv2: what it sent before the revocation got in; after it, its links are refused at the
+    // TLS relay (counted with its certificate's name), so nothing more of it gets in.
     let sent2 = a2["bridge"]["out"][ODOMETRY]["counts"]["sent"].as_u64().expect("sent");
     let in2 = &bb["in"][format!("auv2/{ODOMETRY}")];
-    let (got2, refused2) = (in2["counts"]["received"].as_u64().unwrap(), in2["refused_wrong_robot"].as_u64().unwrap());
-    eprintln!("auv2 sent {sent2}, received {got2}, refused {refused2}");
+    let got2 = in2["counts"]["received"].as_u64().unwrap();
+    eprintln!("auv2 sent {sent2}, received {got2}");
     assert!(got2 > 0 && got2 < sent2, "{in2}");
-    assert!(refused2 > 0, "{in2}");
-    let hosts = &bb["security"]["refused"]["refused_wrong_robot"];
-    assert!(hosts.as_array().is_some_and(|h| h.iter().all(|h| h["certificate"] == "auv2")), "{hosts}");
-    assert!(base.log().contains("revoked=true"), "the refusal warning says the host is revoked");
+    let links = &bb["security"]["links"];
+    let revoked_links: u64 = links["refused"]
+        .as_array()
+        .expect("links.refused")
+        .iter()
+        .filter(|r| r["reason"] == "certificate of `auv2` revoked")
+        .filter_map(|r| r["links"].as_u64())
+        .sum();
+    assert!(revoked_links > 0, "{links}");
+    assert_eq!(bb["security"]["refused_unauthenticated"].as_u64(), Some(revoked_links), "{links}");
+    assert!(base.log().contains("TLS link refused: certificate of `auv2` revoked"), "warned");
     for run in [&r1, &r2, &base] {
         assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new(), "iceoryx2 files left behind");
     }
@@ -307,11 +320,13 @@ fn a_rogue_peer_puts_nothing_into_the_base_stations_pipeline_and_the_link_shows_
     base.wait_for_log("zenoh session open", 1, Duration::from_secs(60));
 
     let endpoint = format!("tls/127.0.0.1:{PORT}");
-    let no_cert = rogue(&ns, &endpoint, Some((certs, None)));
-    let auv2 = rogue(&ns, &endpoint, Some((certs, Some("auv2"))));
-    let plain = rogue(&ns, &format!("tcp/127.0.0.1:{PORT}"), None);
+    let no_cert = rogue(&ns, &endpoint, Some((certs, None)), false);
+    let auv2 = rogue(&ns, &endpoint, Some((certs, Some("auv2"))), true);
+    let plain = rogue(&ns, &format!("tcp/127.0.0.1:{PORT}"), None, false);
+    let other_id = rogue(&ns, &endpoint, Some((certs, Some("auv2"))), false);
     assert_eq!(no_cert.0, 0, "a peer without a certificate got in");
     assert_eq!(plain.0, 0, "a plain TCP peer got in");
+    assert_eq!(other_id.0, 0, "a peer with auv2's certificate but another Zenoh id got in");
     assert_eq!(auv2.0, 1, "auv2's certificate is valid: it connects (and may publish only under auv2)");
 
     let mut robot = TestRun::new("secrobot");
@@ -365,10 +380,17 @@ rate_hz = 0.0
     assert_eq!(inn["bad_length"].as_u64(), Some(0), "{inn}");
     assert_eq!(b["recorder"]["messages"][ODOMETRY].as_u64(), Some(sent), "{:#}", b["recorder"]);
     assert_eq!(b["bridge"]["security"]["mode"], "mutual_tls");
-    // The rogue without a certificate and the plain-TCP one: each attempt refused and counted.
+    // The rogue without a certificate, the plain-TCP one and the one with another Zenoh id: each
+    // attempt refused and counted, with its reason.
     let refused = b["bridge"]["security"]["refused_unauthenticated"].as_u64().expect("refused_unauthenticated");
-    eprintln!("refused handshakes: {refused}");
-    assert!(refused >= 2, "refused_unauthenticated {refused}: {}", b["bridge"]["security"]);
+    let links = &b["bridge"]["security"]["links"];
+    eprintln!("refused links: {refused}: {links}");
+    assert!(refused >= 3, "refused_unauthenticated {refused}: {}", b["bridge"]["security"]);
+    let reasons: Vec<&str> =
+        links["refused"].as_array().expect("links.refused").iter().filter_map(|r| r["reason"].as_str()).collect();
+    assert!(reasons.iter().any(|r| r.contains("came as Zenoh id")), "{reasons:?}");
+    assert!(reasons.iter().any(|r| r.contains("handshake")), "{reasons:?}");
+    assert!(base.log().contains("TLS link refused"), "warned");
     // auv2's puts under auv1 reached the base station (it declares its subscriptions to every
     // host) and were refused there by the access control, counted on the route with the host.
     let wrong = b["bridge"]["in"][ODOMETRY]["refused_wrong_robot"].as_u64().expect("refused_wrong_robot");

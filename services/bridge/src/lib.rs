@@ -27,6 +27,7 @@
 
 pub mod clock;
 pub mod refusals;
+pub mod relay;
 pub mod stage;
 
 use pipeline_runtime::config::{Issues, ProcessSettings};
@@ -436,13 +437,14 @@ const ACL_MESSAGES: [&str; 9] = [
 
 /// The Zenoh access control of a TLS bridge (`access_control` of its session): everything not
 /// allowed is denied. A robot `r` this bridge receives from (an `in` route's `from`) may exchange
-/// only keys under `<namespace>/r/` and only over a link authenticated by the certificate named
-/// `r`; the keys of this bridge's own `robot` (its `out` routes, end markers, clock) go only to
-/// `receivers` (their certificates' names; none named: any host the CA signed, i.e. any TLS
-/// link). So a host cannot publish under another robot's name, and one the config does not name
-/// gets nothing.
+/// only keys under `<namespace>/r/` and only as the host whose Zenoh id is `r`'s
+/// ([`relay::zid_of`]: the TLS relays let a host through only with the id of its certificate's
+/// name); the keys of this bridge's own `robot` (its `out` routes, end markers, clock) go only to
+/// `receivers` (their certificates' names; none named: any host the relays let in, i.e. any
+/// host the CA signed). So a host cannot publish under another robot's name, and one the config
+/// does not name gets nothing. (Zenoh itself sees only the relays' Unix sockets.)
 ///
-/// A receiving bridge also denies everything to any TLS host explicitly ([`refusals_counted`]:
+/// A receiving bridge also denies everything to any host explicitly ([`refusals_counted`]:
 /// unless it also sends to any host, whose rule that would override), except that its
 /// subscriptions to the `in` routes' keys are declared to every host: a host that publishes
 /// under a robot's key it may not use then sends, and Zenoh refuses the messages here and
@@ -463,7 +465,7 @@ pub fn access_control(s: &BridgeSettings, revoked: &std::collections::BTreeSet<S
             "id": id, "permission": "allow", "flows": ["ingress", "egress"],
             "messages": ACL_MESSAGES, "key_exprs": [format!("{}/{r}/**", s.namespace)],
         }));
-        subjects.push(serde_json::json!({ "id": id, "cert_common_names": [r] }));
+        subjects.push(serde_json::json!({ "id": id, "zids": [relay::zid_hex(r)] }));
         policies.push(serde_json::json!({ "rules": [id], "subjects": [id] }));
     }
     if !s.robot.is_empty() && !s.out.is_empty() {
@@ -477,9 +479,10 @@ pub fn access_control(s: &BridgeSettings, revoked: &std::collections::BTreeSet<S
         // (Every receiver revoked: no subject, nobody gets the keys.)
         if named.is_empty() || !receivers.is_empty() {
             subjects.push(if named.is_empty() {
-                serde_json::json!({ "id": id, "link_protocols": ["tls"] })
+                serde_json::json!({ "id": id, "link_protocols": ["unixsock-stream"] })
             } else {
-                serde_json::json!({ "id": id, "cert_common_names": receivers })
+                let zids: Vec<String> = receivers.iter().map(|r| relay::zid_hex(r)).collect();
+                serde_json::json!({ "id": id, "zids": zids })
             });
             policies.push(serde_json::json!({ "rules": [id], "subjects": [id] }));
         }
@@ -505,7 +508,7 @@ pub fn access_control(s: &BridgeSettings, revoked: &std::collections::BTreeSet<S
             "id": "subscriptions out", "permission": "allow", "flows": ["egress"], "messages": ["declare_subscriber"],
             "key_exprs": keys,
         }));
-        subjects.push(serde_json::json!({ "id": id, "link_protocols": ["tls"] }));
+        subjects.push(serde_json::json!({ "id": id, "link_protocols": ["unixsock-stream"] }));
         policies.push(serde_json::json!({ "rules": ["deny in", "deny out", "subscriptions out"], "subjects": [id] }));
     }
     serde_json::json!({

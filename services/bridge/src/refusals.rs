@@ -89,6 +89,8 @@ struct State {
     without_role: BTreeSet<String>,
     /// The revoked hosts' names (said in the warnings).
     revoked: BTreeSet<String>,
+    /// The certificate names of the hosts by Zenoh id, from the TLS relays.
+    names: Option<crate::relay::Names>,
     warned: BTreeSet<(String, String)>,
 }
 
@@ -97,6 +99,12 @@ struct State {
 const MAX_OTHER_KEYS: usize = 32;
 
 impl State {
+    /// The certificate name of the host `zid`: from the TLS relays, or from Zenoh's identity.
+    fn certificate(&self, zid: &str) -> Option<String> {
+        let relayed = self.names.as_ref().and_then(|n| n.lock().unwrap_or_else(|p| p.into_inner()).get(zid).cloned());
+        relayed.or_else(|| self.identities.get(zid).and_then(|i| certificate_name(i)).map(str::to_string))
+    }
+
     fn route_of(&self, key: &str) -> String {
         if let Some(r) = self.routes.get(key) {
             return r.clone();
@@ -187,6 +195,12 @@ impl Refusals {
         r
     }
 
+    /// Names hosts by the certificate names the TLS relays saw ([`crate::relay`]: Zenoh itself
+    /// sees loopback links only).
+    pub fn names_from(&self, names: crate::relay::Names) {
+        lock(&self.0).names = Some(names);
+    }
+
     /// Warns once per host and route about refused messages (those counted for a while).
     pub fn warn_new(&self) {
         let mut st = lock(&self.0);
@@ -197,8 +211,7 @@ impl Refusals {
             .map(|((z, r), c)| (z.clone(), r.clone(), c.messages))
             .collect();
         for (zid, route, n) in new {
-            let identity = st.identities.get(&zid).cloned().unwrap_or_default();
-            let certificate = certificate_name(&identity).unwrap_or("?").to_string();
+            let certificate = st.certificate(&zid).unwrap_or_else(|| "?".into());
             let revoked = st.revoked.contains(&certificate);
             tracing::warn!(peer = %zid, %certificate, revoked, %route, refused_so_far = n,
                 "the access control refused messages from a host with a valid certificate that may not publish \
@@ -238,7 +251,7 @@ impl Refusals {
             .map(|((zid, route), c)| {
                 let identity = st.identities.get(zid);
                 serde_json::json!({
-                    "peer": zid, "certificate": identity.and_then(|i| certificate_name(i)), "identity": identity,
+                    "peer": zid, "certificate": st.certificate(zid), "identity": identity,
                     "route": route, "messages": c.messages,
                 })
             })

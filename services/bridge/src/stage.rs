@@ -672,9 +672,8 @@ pub struct BridgeStage {
     clocks: BTreeMap<String, ClockProbe>,
     /// When the counts were last kept for a restart, and the activity they had then.
     kept_at: Option<(Instant, u64)>,
-    /// Connection attempts the TLS listener refused (handshake failed: no certificate, another
-    /// CA's, an expired one, or not TLS), counted from Zenoh's warning for each.
-    refused_handshakes: Option<Arc<AtomicU64>>,
+    /// The TLS links ([`crate::relay`]; after the session, which uses them).
+    relays: Option<crate::relay::Relays>,
     /// Messages the access control refused, per host and route (see [`crate::refusals`]).
     refusals: Option<crate::refusals::Refusals>,
     /// The revoked hosts this session's access control leaves out.
@@ -742,51 +741,44 @@ impl Drop for RevocationWatch {
     }
 }
 
-/// Zenoh's TLS listener warns once per failed accept (a refused handshake) with this text.
-const TLS_ACCEPT_FAILED: &str = "Hint: increase the system open file limit";
-
 fn zenoh_err(what: impl std::fmt::Display, e: impl std::fmt::Display) -> StageError {
     StageError::msg(format!("zenoh: {what}: {e}"))
 }
 
-/// Makes rustls over aws-lc-rs this process's TLS provider, before Zenoh's TLS transport
-/// installs its own (ring) as the default: Zenoh's TLS link builds its configurations with the
-/// process's default provider (`ClientConfig::builder()`), and installs ring only where none is
-/// installed yet.
-///
-/// Why: a cloud is encrypted by the sending bridge and decrypted by the receiving one, so the
-/// AEAD's speed is the secure link's cost over plain TCP. On this project's 2-core x86-64 machine
-/// (VAES, AVX-512) aws-lc-rs seals AES-256-GCM at about 20 GB/s against ring's 10 GB/s, and the
-/// bridge over TLS went from 0.77-0.94x plain TCP's throughput for 1-3.6 MB clouds to 0.81-1.11x
-/// (docs/bridge.md, "Over mutual TLS"). The cipher suites are rustls's defaults (TLS 1.3,
-/// AES-GCM first), the certificates and their checks Zenoh's, unchanged.
-///
-/// A process where a provider is already installed (an in-process test that opened a Zenoh TLS
-/// session first) keeps it; this is logged at debug level.
-pub fn install_tls_provider() {
-    static ONCE: std::sync::Once = std::sync::Once::new();
-    ONCE.call_once(|| match rustls::crypto::aws_lc_rs::default_provider().install_default() {
-        Ok(()) => tracing::debug!("TLS provider: rustls over aws-lc-rs"),
-        Err(_) => tracing::debug!("TLS provider: the one installed before (not aws-lc-rs)"),
-    });
-}
-
-/// The Zenoh configuration of `settings` (errors name the key).
+/// The Zenoh configuration of `settings` (errors name the key). With `tls`, the session speaks
+/// over Unix sockets to `relays` ([`crate::relay`]), which do the TLS: its endpoints are
+/// theirs, its Zenoh id is derived from this host's certificate name, and its access control
+/// names hosts by their ids ([`crate::access_control`]).
 pub fn zenoh_config(
     s: &BridgeSettings,
     revoked: &std::collections::BTreeSet<String>,
+    relays: Option<&crate::relay::Relays>,
 ) -> Result<zenoh::Config, StageError> {
-    if s.zenoh.tls.is_some() {
-        install_tls_provider();
-    }
     let mut c = zenoh::Config::default();
     let json = |v: &dyn erased::Json| v.json();
     let set = |c: &mut zenoh::Config, k: &str, v: String| {
         c.insert_json5(k, &v).map_err(|e| StageError::Settings(format!("zenoh.{k} = {v}: {e}")))
     };
     set(&mut c, "mode", json(&s.zenoh.mode))?;
-    set(&mut c, "listen/endpoints", json(&s.zenoh.listen))?;
-    set(&mut c, "connect/endpoints", json(&s.zenoh.connect))?;
+    match (&s.zenoh.tls, relays) {
+        (None, _) => {
+            set(&mut c, "listen/endpoints", json(&s.zenoh.listen))?;
+            set(&mut c, "connect/endpoints", json(&s.zenoh.connect))?;
+        }
+        (Some(_), None) => {
+            return Err(StageError::Settings("zenoh.tls: the TLS relays are not started (stage::open_session)".into()));
+        }
+        (Some(t), Some(r)) => {
+            set(&mut c, "listen/endpoints", json(&r.zenoh_listen))?;
+            set(&mut c, "connect/endpoints", json(&r.zenoh_connect))?;
+            // Only the relays' Unix sockets: TLS is theirs.
+            set(&mut c, "transport/link/protocols", json(&["unixsock-stream"]))?;
+            let own = crate::read_certificate(&t.certificate)
+                .map_err(|e| StageError::Settings(format!("zenoh.tls.certificate: {e}")))?;
+            set(&mut c, "id", json(&crate::relay::zid_hex(&own.common_name)))?;
+            set(&mut c, "access_control", crate::access_control(s, revoked).to_string())?;
+        }
+    }
     set(&mut c, "scouting/multicast/enabled", s.zenoh.multicast_scouting.to_string())?;
     // Keep trying the peers named in `connect` if they are not up yet (or go away).
     set(&mut c, "connect/exit_on_failure", "false".into())?;
@@ -797,22 +789,30 @@ pub fn zenoh_config(
     let lease_ms = (s.zenoh.lease_s * 1e3).round() as u64;
     set(&mut c, "transport/link/tx/lease", lease_ms.to_string())?;
     set(&mut c, "transport/link/tx/queue/congestion_control/block/wait_before_close", (lease_ms * 1000).to_string())?;
-    if let Some(t) = &s.zenoh.tls {
-        let path = |p: &std::path::Path| json(&std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf()));
-        // Mutual TLS on both sides; TLS only (no plain link is accepted); a link closes when the
-        // peer's certificate expires (it cannot come back with it).
-        set(&mut c, "transport/link/protocols", json(&["tls"]))?;
-        set(&mut c, "transport/link/tls/enable_mtls", "true".into())?;
-        set(&mut c, "transport/link/tls/root_ca_certificate", path(&t.ca_certificate))?;
-        for role in ["listen", "connect"] {
-            set(&mut c, &format!("transport/link/tls/{role}_certificate"), path(&t.certificate))?;
-            set(&mut c, &format!("transport/link/tls/{role}_private_key"), path(&t.private_key))?;
-        }
-        set(&mut c, "transport/link/tls/verify_name_on_connect", t.verify_name.to_string())?;
-        set(&mut c, "transport/link/tls/close_link_on_expiration", "true".into())?;
-        set(&mut c, "access_control", crate::access_control(s, revoked).to_string())?;
-    }
     Ok(c)
+}
+
+/// Opens the Zenoh session of `settings`, behind TLS relays when `tls` is set
+/// ([`crate::relay`]); the relays must live as long as the session.
+pub fn open_session(
+    s: &BridgeSettings,
+    revoked: &std::collections::BTreeSet<String>,
+) -> Result<(zenoh::Session, Option<crate::relay::Relays>), StageError> {
+    let relays = match &s.zenoh.tls {
+        None => None,
+        Some(t) => Some(crate::relay::Relays::start(&s.zenoh.listen, &s.zenoh.connect, t, revoked)?),
+    };
+    let config = zenoh_config(s, revoked, relays.as_ref())?;
+    let session = zenoh::open(config).wait().map_err(|e| {
+        zenoh_err(
+            format!(
+                "cannot open a session (mode {}, listen {:?}, connect {:?})",
+                s.zenoh.mode, s.zenoh.listen, s.zenoh.connect
+            ),
+            e,
+        )
+    })?;
+    Ok((session, relays))
 }
 
 mod erased {
@@ -1161,10 +1161,6 @@ impl Stage for BridgeStage {
                 (revoked.clone(), Some(RevocationWatch::start(t.revocation_list(), revoked)?))
             }
         };
-        let config = zenoh_config(&settings, &revoked)?;
-        // Counted from before the listener starts.
-        let refused_handshakes = (settings.zenoh.tls.is_some() && !settings.zenoh.listen.is_empty())
-            .then(|| pipeline_runtime::logging::count_events("zenoh_link_tls", TLS_ACCEPT_FAILED));
         // Watched from before the session opens.
         let refusals = crate::refusals_counted(&settings).then(|| {
             let revoked = settings.zenoh.tls.as_ref().and_then(|t| t.read_revoked().ok()).unwrap_or_default();
@@ -1181,15 +1177,10 @@ impl Stage for BridgeStage {
                 }),
             )
         });
-        let session = zenoh::open(config).wait().map_err(|e| {
-            zenoh_err(
-                format!(
-                    "cannot open a session (mode {}, listen {:?}, connect {:?})",
-                    settings.zenoh.mode, settings.zenoh.listen, settings.zenoh.connect
-                ),
-                e,
-            )
-        })?;
+        let (session, relays) = open_session(&settings, &revoked)?;
+        if let (Some(r), Some(relays)) = (&refusals, &relays) {
+            r.names_from(relays.names());
+        }
         tracing::info!(zid = %session.zid(), mode = %settings.zenoh.mode, listen = ?settings.zenoh.listen,
             connect = ?settings.zenoh.connect, "zenoh session open");
         match &settings.zenoh.tls {
@@ -1398,7 +1389,7 @@ impl Stage for BridgeStage {
             _clock_answers: clock_answers,
             clocks,
             kept_at: None,
-            refused_handshakes,
+            relays,
             refusals,
             revoked,
             revocation_watch,
@@ -1540,20 +1531,22 @@ impl Stage for BridgeStage {
         if !missing_ends.is_empty() {
             tracing::warn!(?missing_ends, "no end of stream came from these robots");
         }
-        let refused = self.refused_handshakes.as_ref().map(|c| c.load(Ordering::Relaxed));
+        let links = self.relays.as_ref().map(crate::relay::Relays::counts);
+        let refused = self.relays.as_ref().map(crate::relay::Relays::refused_total);
         if let Some(n) = refused.filter(|&n| n > 0) {
             tracing::warn!(
                 refused_unauthenticated = n,
-                "connection attempts refused at the TLS handshake (no certificate, another CA's, an expired one, or \
-                 not TLS): see Zenoh's warnings above"
+                "TLS links refused (no certificate, another CA's, an expired or revoked one, not TLS, or a Zenoh id \
+                 that is not the certificate's): per peer and reason in summary.json bridge.security.links"
             );
         }
         let security = match &self.settings.zenoh.tls {
             None => serde_json::json!({ "mode": "insecure" }),
             Some(t) => serde_json::json!({
                 "mode": "mutual_tls",
-                // Connection attempts refused at the TLS handshake (no route: nothing got in).
+                // Links refused by the TLS relays (no route: nothing got in).
                 "refused_unauthenticated": refused,
+                "links": links,
                 "refused": self.refusals.as_ref().map(|r| r.json()),
                 "accept": {
                     "max_rate_hz": self.settings.accept.max_rate_hz,
@@ -1634,14 +1627,6 @@ impl Stage for BridgeStage {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn the_tls_provider_is_aws_lc_rs() {
-        install_tls_provider();
-        let provider = rustls::crypto::CryptoProvider::get_default().expect("a process TLS provider");
-        let key_provider = format!("{:?}", provider.key_provider);
-        assert!(key_provider.contains("AwsLc"), "the process's TLS provider is {key_provider}, not aws-lc-rs");
-    }
 
     #[test]
     fn the_head_of_a_message_in_pieces_is_its_first_32_bytes() {
