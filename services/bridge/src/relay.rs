@@ -546,9 +546,8 @@ fn accept_loop(shared: &Arc<Shared>, listener: Listener, side: Side) {
 /// A link between a TLS connection and a loopback one, its handshake done.
 struct Joined {
     tls: Mutex<rustls::Connection>,
-    /// The network socket's sending side: held while a thread sends what rustls made, so that
-    /// records go out in the order made.
-    net_tx: Mutex<TcpStream>,
+    /// Held while a thread sends what rustls made, so that records go out in the order made.
+    order: Mutex<()>,
     net: TcpStream,
     local: UnixStream,
     peer: Peer,
@@ -604,8 +603,53 @@ fn open(shared: &Shared, sock: Accepted, side: &Side) -> Result<Joined, Refusal>
         (None, Side::Client { .. }) => unreachable!("a client side has its loopback socket"),
     };
     conn.set_buffer_limit(None);
-    let net_tx = net.try_clone().map_err(|e| io(&peer_addr, "socket", e))?;
-    Ok(Joined { tls: Mutex::new(conn), net_tx: Mutex::new(net_tx), net, local, peer, peer_addr })
+    Ok(Joined { tls: Mutex::new(conn), order: Mutex::new(()), net, local, peer, peer_addr })
+}
+
+/// A socket's `send` that never blocks (`MSG_DONTWAIT`): a full socket answers `WouldBlock`.
+struct DontWait<'a>(&'a TcpStream);
+
+impl Write for DontWait<'_> {
+    fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+        self.write_vectored(&[std::io::IoSlice::new(b)])
+    }
+
+    fn write_vectored(&mut self, bufs: &[std::io::IoSlice<'_>]) -> std::io::Result<usize> {
+        use nix::sys::socket::{MsgFlags, SockaddrStorage, sendmsg};
+        use std::os::fd::AsRawFd;
+        let flags = MsgFlags::MSG_DONTWAIT | MsgFlags::MSG_NOSIGNAL;
+        sendmsg::<SockaddrStorage>(self.0.as_raw_fd(), bufs, &[], flags, None).map_err(std::io::Error::from)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+/// Plain bytes decrypted, in a buffer that is zeroed only where it grows.
+#[derive(Default)]
+struct Plain {
+    buf: Vec<u8>,
+    len: usize,
+}
+
+impl Plain {
+    /// Room for `k` more bytes, to be filled.
+    fn grow(&mut self, k: usize) -> &mut [u8] {
+        if self.buf.len() < self.len + k {
+            self.buf.resize(self.len + k, 0);
+        }
+        self.len += k;
+        &mut self.buf[self.len - k..self.len]
+    }
+
+    fn bytes(&self) -> &[u8] {
+        &self.buf[..self.len]
+    }
+
+    fn clear(&mut self) {
+        self.len = 0;
+    }
 }
 
 /// Why a link ended.
@@ -619,20 +663,35 @@ enum End {
 impl Joined {
     /// Sends what rustls has to send (records in the order made).
     fn flush(&self) -> std::io::Result<()> {
-        let mut tx = lock(&self.net_tx);
-        let mut out = Vec::new();
+        let order = lock(&self.order);
+        self.send_made(&order)
+    }
+
+    /// Sends what rustls made, straight from its buffers: the connection is held only for sends
+    /// that do not block; when the socket is full, this waits for room with the connection let
+    /// go (the other direction goes on decrypting). `_order`: records go out in the order made.
+    fn send_made(&self, _order: &std::sync::MutexGuard<'_, ()>) -> std::io::Result<()> {
         loop {
-            {
+            let sent = {
                 let mut t = lock(&self.tls);
-                while t.wants_write() {
-                    t.write_tls(&mut out)?;
+                if !t.wants_write() {
+                    return Ok(());
                 }
+                t.write_tls(&mut DontWait(&self.net))
+            };
+            match sent {
+                Ok(_) => {}
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                    use std::os::fd::AsFd;
+                    let mut fds = [nix::poll::PollFd::new(self.net.as_fd(), nix::poll::PollFlags::POLLOUT)];
+                    match nix::poll::poll(&mut fds, nix::poll::PollTimeout::NONE) {
+                        Ok(_) | Err(nix::errno::Errno::EINTR) => {}
+                        Err(e) => return Err(e.into()),
+                    }
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
             }
-            if out.is_empty() {
-                return Ok(());
-            }
-            tx.write_all(&out)?;
-            out.clear();
         }
     }
 
@@ -686,12 +745,17 @@ impl Joined {
     }
 
     /// Hands `bytes` from the network to rustls, appends the plain bytes to `plain` and sends
-    /// what rustls has to answer. Returns whether the peer closed the TLS session.
-    fn decrypt(&self, mut bytes: &[u8], plain: &mut Vec<u8>) -> std::io::Result<bool> {
+    /// what rustls has to answer (unless the sending thread is sending: it sends that too; this
+    /// thread must not wait for it, or neither side would read while both wait for room).
+    /// Returns whether the peer closed the TLS session.
+    fn decrypt(&self, mut bytes: &[u8], plain: &mut Plain) -> std::io::Result<bool> {
         let mut closed = false;
-        let mut answer = false;
+        let answer;
         {
             let mut t = lock(&self.tls);
+            // Records already waiting are the sending thread's: it is sending them (it holds
+            // `order` until rustls has nothing left) and will send ours after them.
+            let waiting = t.wants_write();
             // At least once: the handshake may have read records after its own (the peer's first
             // message, in the same segment as its Finished), which wait in rustls.
             loop {
@@ -702,22 +766,23 @@ impl Joined {
                     Ok(s) => s,
                     Err(e) => {
                         drop(t);
-                        let _ = self.flush();
+                        // Tell the peer (an alert), unless the sending thread is waiting for room.
+                        if let Ok(order) = self.order.try_lock() {
+                            let _ = self.send_made(&order);
+                        }
                         return Err(std::io::Error::new(std::io::ErrorKind::InvalidData, e));
                     }
                 };
                 let k = state.plaintext_bytes_to_read();
                 if k > 0 {
-                    let at = plain.len();
-                    plain.resize(at + k, 0);
-                    t.reader().read_exact(&mut plain[at..])?;
+                    t.reader().read_exact(plain.grow(k))?;
                 }
                 closed |= state.peer_has_closed();
                 if bytes.is_empty() {
                     break;
                 }
             }
-            answer |= t.wants_write();
+            answer = !waiting && t.wants_write();
         }
         if answer {
             self.flush()?;
@@ -730,7 +795,7 @@ impl Joined {
     /// name (within [`HANDSHAKE_TIMEOUT`]).
     fn net_to_local(&self, shared: &Shared) -> std::io::Result<End> {
         let mut buf = vec![0u8; CHUNK];
-        let mut plain = Vec::with_capacity(CHUNK);
+        let mut plain = Plain::default();
         let mut local = &self.local;
         let expected = zid_of(&self.peer.name);
         let t0 = std::time::Instant::now();
@@ -774,7 +839,7 @@ impl Joined {
             plain.clear();
             let closed = self.decrypt(&buf[..n], &mut plain)?;
             if let Some(p) = &mut pending {
-                p.extend_from_slice(&plain);
+                p.extend_from_slice(plain.bytes());
                 plain.clear();
                 match first_zid(p) {
                     Err(e) => return Ok(End::Refused(e)),
@@ -796,8 +861,8 @@ impl Joined {
                     }
                 }
             }
-            if !plain.is_empty() {
-                local.write_all(&plain)?;
+            if !plain.bytes().is_empty() {
+                local.write_all(plain.bytes())?;
             }
             if closed {
                 let _ = self.local.shutdown(Shutdown::Write);
@@ -809,7 +874,6 @@ impl Joined {
     /// Loopback to network until this host's session closes the link.
     fn local_to_net(&self) -> std::io::Result<()> {
         let mut buf = vec![0u8; CHUNK];
-        let mut out = Vec::with_capacity(CHUNK + 1024);
         let mut local = &self.local;
         loop {
             let n = match local.read(&mut buf) {
@@ -823,16 +887,9 @@ impl Joined {
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
                 Err(e) => return Err(e),
             };
-            let mut tx = lock(&self.net_tx);
-            {
-                let mut t = lock(&self.tls);
-                t.writer().write_all(&buf[..n])?;
-                while t.wants_write() {
-                    t.write_tls(&mut out)?;
-                }
-            }
-            tx.write_all(&out)?;
-            out.clear();
+            let order = lock(&self.order);
+            lock(&self.tls).writer().write_all(&buf[..n])?;
+            self.send_made(&order)?;
         }
     }
 }
