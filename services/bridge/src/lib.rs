@@ -216,8 +216,9 @@ pub struct TlsSettings {
     pub receivers: Vec<String>,
     /// The revocation list (`supervisor certs --revoke`: one host name per line, `#` comments);
     /// default `revoked.txt` next to `ca_certificate`; a missing file revokes nobody. A revoked
-    /// host gets nothing in or out (the access control leaves it out). The bridge watches the
-    /// file and restarts to apply a change (its restart policy must allow it: the default).
+    /// host's links are refused after the TLS handshake, and the access control leaves it out.
+    /// The bridge watches the file and restarts to apply a change (its restart policy must allow
+    /// it: the default).
     #[serde(default)]
     pub revoked: Option<std::path::PathBuf>,
 }

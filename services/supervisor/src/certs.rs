@@ -11,9 +11,9 @@
 //!
 //! - `revoked.txt`: the revocation list, one host name per line (`#` starts a comment), made
 //!   by `--revoke`. A bridge reads the list next to its `ca_certificate` (or the file its
-//!   `tls.revoked` names) and watches it: a revoked host's messages are refused and it gets
-//!   nothing, from the next second on (Zenoh has no certificate revocation of its own, so it is
-//!   done by name, in the access control).
+//!   `tls.revoked` names) and watches it: a revoked host's links are refused after the TLS
+//!   handshake and the access control leaves it out, from the next second on (by name: the CA
+//!   keeps no revocation list of its own).
 //!
 //! Private keys are ECDSA P-256 (PKCS#8 PEM), written with mode 0600.
 
