@@ -142,6 +142,9 @@ struct Shared {
     client: Arc<rustls::ClientConfig>,
     revoked: BTreeSet<String>,
     refused: Mutex<Refused>,
+    /// Links not opened because the peer (or this host's session) could not be reached, per
+    /// peer and reason.
+    unreachable: Mutex<BTreeMap<(String, String), u64>>,
     /// Zenoh id (hex) → certificate name, of every peer a link was opened with.
     names: Names,
     /// Open links' sockets (network, session), shut down when the relays stop.
@@ -164,6 +167,17 @@ impl Shared {
         *n += 1;
         if *n == 1 {
             tracing::warn!(%peer, "TLS link refused: {reason} (counted: bridge.security.refused_links)");
+        }
+    }
+
+    fn unreachable(&self, peer: &str, reason: String) {
+        let mut u = lock(&self.unreachable);
+        let n = u.entry((peer.to_string(), reason.clone())).or_default();
+        *n += 1;
+        if *n == 1 {
+            tracing::warn!(%peer, "TLS link not opened: {reason} (Zenoh tries again; counted: bridge.security.links.unreachable)");
+        } else {
+            tracing::debug!(%peer, "TLS link not opened: {reason}");
         }
     }
 
@@ -204,9 +218,12 @@ pub struct RelayCounts {
     pub links_expired: u64,
     /// Links refused, per peer address and reason.
     pub refused: Vec<RefusedLinks>,
+    /// Links not opened because the peer (or this host's session) could not be reached, per
+    /// address and reason (not refusals: a base station not up yet, a link cut).
+    pub unreachable: Vec<RefusedLinks>,
 }
 
-/// Links refused from one peer address for one reason.
+/// Links refused (or not opened) with one peer address for one reason.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct RefusedLinks {
     /// Its address (a dialled peer: the address dialled).
@@ -375,6 +392,7 @@ impl Relays {
             client: Arc::new(client),
             revoked: revoked.clone(),
             refused: Mutex::default(),
+            unreachable: Mutex::default(),
             names: Names::default(),
             open: Mutex::default(),
             next_link: AtomicU64::new(0),
@@ -429,6 +447,10 @@ impl Relays {
             links_expired: self.shared.links_expired.load(Ordering::Relaxed),
             refused: lock(&self.shared.refused)
                 .counts
+                .iter()
+                .map(|((peer, reason), &links)| RefusedLinks { peer: peer.clone(), reason: reason.clone(), links })
+                .collect(),
+            unreachable: lock(&self.shared.unreachable)
                 .iter()
                 .map(|((peer, reason), &links)| RefusedLinks { peer: peer.clone(), reason: reason.clone(), links })
                 .collect(),
@@ -533,7 +555,8 @@ fn accept_loop(shared: &Arc<Shared>, listener: Listener, side: Side) {
             sh.handshakes.fetch_sub(1, Ordering::SeqCst);
             match opened {
                 Ok(link) => link.run(&sh),
-                Err((peer, reason)) => sh.refuse(&peer, reason),
+                Err(Failure::Refused(peer, reason)) => sh.refuse(&peer, reason),
+                Err(Failure::Unreachable(peer, reason)) => sh.unreachable(&peer, reason),
             }
         });
         if let Err(e) = spawned {
@@ -554,16 +577,41 @@ struct Joined {
     peer_addr: String,
 }
 
-type Refusal = (String, String);
+/// Why a link was not opened, and with whom.
+enum Failure {
+    /// The peer was refused (or refused this host): counted in `refused`.
+    Refused(String, String),
+    /// The peer or this host's session could not be reached: counted in `unreachable`.
+    Unreachable(String, String),
+}
+
+/// How long the server side waits for its session's socket (the session starts after the
+/// relays).
+const SESSION_WAIT: Duration = Duration::from_secs(5);
+
+/// Connects to the session's socket at `inner`, waiting up to [`SESSION_WAIT`] for it.
+fn connect_session(inner: &Path) -> std::io::Result<UnixStream> {
+    let t0 = std::time::Instant::now();
+    loop {
+        match UnixStream::connect(inner) {
+            Err(e) if t0.elapsed() < SESSION_WAIT => {
+                tracing::debug!("{}: {e}: the session is not listening yet", inner.display());
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            r => return r,
+        }
+    }
+}
 
 /// Handshake and identity checks of a new link.
-fn open(shared: &Shared, sock: Accepted, side: &Side) -> Result<Joined, Refusal> {
-    let io = |peer: &str, what: &str, e: std::io::Error| (peer.to_string(), format!("{what}: {e}"));
+fn open(shared: &Shared, sock: Accepted, side: &Side) -> Result<Joined, Failure> {
+    let refused = |peer: &str, why: String| Failure::Refused(peer.to_string(), why);
+    let io = |peer: &str, what: &str, e: std::io::Error| Failure::Unreachable(peer.to_string(), format!("{what}: {e}"));
     let (mut net, local, mut conn, peer_addr): (TcpStream, Option<UnixStream>, rustls::Connection, String) =
         match (sock, side) {
             (Accepted::Tcp(sock, from), Side::Server { .. }) => {
                 let p = from.ip().to_string();
-                let c = rustls::ServerConnection::new(shared.server.clone()).map_err(|e| (p.clone(), e.to_string()))?;
+                let c = rustls::ServerConnection::new(shared.server.clone()).map_err(|e| refused(&p, e.to_string()))?;
                 (sock, None, c.into(), p)
             }
             (Accepted::Unix(sock), Side::Client { remote, name }) => {
@@ -571,11 +619,11 @@ fn open(shared: &Shared, sock: Accepted, side: &Side) -> Result<Joined, Refusal>
                     .to_socket_addrs()
                     .ok()
                     .and_then(|mut a| a.next())
-                    .ok_or_else(|| (remote.clone(), "cannot resolve the address".to_string()))?;
+                    .ok_or_else(|| Failure::Unreachable(remote.clone(), "cannot resolve the address".into()))?;
                 let net = TcpStream::connect_timeout(&addr, HANDSHAKE_TIMEOUT)
-                    .map_err(|e| (remote.clone(), format!("cannot connect: {e}")))?;
+                    .map_err(|e| io(remote, "cannot connect", e))?;
                 let c = rustls::ClientConnection::new(shared.client.clone(), name.clone())
-                    .map_err(|e| (remote.clone(), e.to_string()))?;
+                    .map_err(|e| refused(remote, e.to_string()))?;
                 (net, Some(sock), c.into(), remote.clone())
             }
             (s, _) => unreachable!("a relay accepts on one kind of listener only ({})", s.from()),
@@ -587,18 +635,19 @@ fn open(shared: &Shared, sock: Accepted, side: &Side) -> Result<Joined, Refusal>
         if let Err(e) = conn.complete_io(&mut net) {
             // Tell the peer why (rustls queued an alert), if it still listens.
             let _ = conn.write_tls(&mut net);
-            return Err((peer_addr, format!("TLS handshake failed: {e}")));
+            return Err(refused(&peer_addr, format!("TLS handshake failed: {e}")));
         }
     }
-    let der = conn.peer_certificates().and_then(|c| c.first()).ok_or((peer_addr.clone(), "no certificate".into()))?;
-    let peer = peer_of(der).map_err(|e| (peer_addr.clone(), e))?;
+    let der =
+        conn.peer_certificates().and_then(|c| c.first()).ok_or_else(|| refused(&peer_addr, "no certificate".into()))?;
+    let peer = peer_of(der).map_err(|e| refused(&peer_addr, e))?;
     if shared.revoked.contains(&peer.name) {
-        return Err((peer_addr, format!("certificate of `{}` revoked", peer.name)));
+        return Err(refused(&peer_addr, format!("certificate of `{}` revoked", peer.name)));
     }
     let local = match (local, side) {
         (Some(l), _) => l,
-        (None, Side::Server { inner }) => UnixStream::connect(inner).map_err(|e| {
-            (peer_addr.clone(), format!("this host's Zenoh session is not listening on {}: {e}", inner.display()))
+        (None, Side::Server { inner }) => connect_session(inner).map_err(|e| {
+            Failure::Unreachable(peer_addr.clone(), format!("this host's Zenoh session ({}): {e}", inner.display()))
         })?,
         (None, Side::Client { .. }) => unreachable!("a client side has its loopback socket"),
     };

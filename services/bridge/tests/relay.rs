@@ -199,3 +199,26 @@ fn a_peer_with_another_zenoh_id_than_its_certificates_name_is_refused_and_counte
         assert_eq!(b.read(&mut buf).unwrap_or(0), 0, "bytes of a refused peer reached the session");
     }
 }
+
+#[test]
+fn a_base_station_not_up_is_unreachable_not_a_refusal() {
+    let dir = tempfile::tempdir().unwrap();
+    let tls = certs(dir.path(), &["auv1"]);
+    let port = free_port();
+    let robot = Relays::start(&[], &[format!("tls/127.0.0.1:{port}")], &tls[0], &Default::default()).unwrap();
+    let mut r = UnixStream::connect(socket(&robot.zenoh_connect[0])).unwrap();
+    r.write_all(&init(zid_of("auv1"), &[])).unwrap();
+    r.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    let mut buf = [0u8; 16];
+    assert_eq!(r.read(&mut buf).unwrap_or(0), 0, "the session's link closes");
+    // The link closes before the failure is counted: wait for the count.
+    let t0 = std::time::Instant::now();
+    while robot.counts().unreachable.is_empty() && t0.elapsed() < Duration::from_secs(5) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let c = robot.counts();
+    assert!(c.refused.is_empty(), "{c:?}");
+    assert_eq!(c.unreachable.len(), 1, "{c:?}");
+    assert!(c.unreachable[0].reason.starts_with("cannot connect"), "{c:?}");
+    assert_eq!(robot.refused_total(), 0);
+}
