@@ -153,6 +153,7 @@ struct Shared {
     links_opened: AtomicU64,
     links_expired: AtomicU64,
     handshakes: AtomicUsize,
+    /// The accept threads.
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
 }
 
@@ -550,7 +551,10 @@ fn accept_loop(shared: &Arc<Shared>, listener: Listener, side: Side) {
             continue;
         }
         let (sh, side) = (shared.clone(), side.clone());
-        let spawned = shared.spawn("tls-link", move || {
+        // Not joined when the relays stop: an open link's sockets are shut down then, and a
+        // handshake in progress ends by itself (at most HANDSHAKE_TIMEOUT), so stopping never
+        // waits for a peer.
+        let spawned = std::thread::Builder::new().name("tls-link".into()).spawn(move || {
             let opened = open(&sh, sock, &side);
             sh.handshakes.fetch_sub(1, Ordering::SeqCst);
             match opened {
@@ -590,11 +594,11 @@ enum Failure {
 const SESSION_WAIT: Duration = Duration::from_secs(5);
 
 /// Connects to the session's socket at `inner`, waiting up to [`SESSION_WAIT`] for it.
-fn connect_session(inner: &Path) -> std::io::Result<UnixStream> {
+fn connect_session(inner: &Path, stop: &AtomicBool) -> std::io::Result<UnixStream> {
     let t0 = std::time::Instant::now();
     loop {
         match UnixStream::connect(inner) {
-            Err(e) if t0.elapsed() < SESSION_WAIT => {
+            Err(e) if t0.elapsed() < SESSION_WAIT && !stop.load(Ordering::SeqCst) => {
                 tracing::debug!("{}: {e}: the session is not listening yet", inner.display());
                 std::thread::sleep(Duration::from_millis(50));
             }
@@ -646,7 +650,7 @@ fn open(shared: &Shared, sock: Accepted, side: &Side) -> Result<Joined, Failure>
     }
     let local = match (local, side) {
         (Some(l), _) => l,
-        (None, Side::Server { inner }) => connect_session(inner).map_err(|e| {
+        (None, Side::Server { inner }) => connect_session(inner, &shared.stop).map_err(|e| {
             Failure::Unreachable(peer_addr.clone(), format!("this host's Zenoh session ({}): {e}", inner.display()))
         })?,
         (None, Side::Client { .. }) => unreachable!("a client side has its loopback socket"),
