@@ -126,6 +126,23 @@ fn unix_now_s() -> i64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs() as i64).unwrap_or(0)
 }
 
+/// Peer and reason pairs counted apart at most (more: counted under [`OTHER_PEERS`], so that a
+/// flood from many addresses does not grow the counts without bound).
+const MAX_PAIRS: usize = 256;
+/// The peer name of the pairs over [`MAX_PAIRS`].
+const OTHER_PEERS: &str = "other peers";
+
+/// Counts one more link for `peer` and `reason`; returns the pair's count.
+fn count(counts: &mut BTreeMap<(String, String), u64>, peer: &str, reason: &str) -> u64 {
+    let mut k = (peer.to_string(), reason.to_string());
+    if counts.len() >= MAX_PAIRS && !counts.contains_key(&k) {
+        k.0 = OTHER_PEERS.into();
+    }
+    let n = counts.entry(k).or_default();
+    *n += 1;
+    *n
+}
+
 /// Refused links per peer address and reason (the first of each pair is warned about).
 #[derive(Debug, Default)]
 struct Refused {
@@ -163,19 +180,15 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 
 impl Shared {
     fn refuse(&self, peer: &str, reason: String) {
-        let mut r = lock(&self.refused);
-        let n = r.counts.entry((peer.to_string(), reason.clone())).or_default();
-        *n += 1;
-        if *n == 1 {
-            tracing::warn!(%peer, "TLS link refused: {reason} (counted: bridge.security.refused_links)");
+        let n = count(&mut lock(&self.refused).counts, peer, &reason);
+        if n == 1 {
+            tracing::warn!(%peer, "TLS link refused: {reason} (counted: bridge.security.links.refused)");
         }
     }
 
     fn unreachable(&self, peer: &str, reason: String) {
-        let mut u = lock(&self.unreachable);
-        let n = u.entry((peer.to_string(), reason.clone())).or_default();
-        *n += 1;
-        if *n == 1 {
+        let n = count(&mut lock(&self.unreachable), peer, &reason);
+        if n == 1 {
             tracing::warn!(%peer, "TLS link not opened: {reason} (Zenoh tries again; counted: bridge.security.links.unreachable)");
         } else {
             tracing::debug!(%peer, "TLS link not opened: {reason}");
@@ -961,6 +974,18 @@ mod tests {
         }
         assert_ne!(zid_of("auv1"), zid_of("auv2"));
         assert_eq!(zid_of("auv1"), zid_of("auv1"));
+    }
+
+    #[test]
+    fn counts_keep_at_most_max_pairs_apart_then_count_the_rest_together() {
+        let mut c = BTreeMap::new();
+        for i in 0..MAX_PAIRS + 10 {
+            count(&mut c, &format!("10.0.{}.{}", i / 256, i % 256), "TLS handshake failed");
+        }
+        assert_eq!(count(&mut c, "10.0.0.1", "TLS handshake failed"), 2, "a pair kept apart goes on counting");
+        assert_eq!(c.len(), MAX_PAIRS + 1);
+        assert_eq!(c[&(OTHER_PEERS.to_string(), "TLS handshake failed".to_string())], 10);
+        assert_eq!(c.values().sum::<u64>(), (MAX_PAIRS + 11) as u64, "every link counted");
     }
 
     #[test]
