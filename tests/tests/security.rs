@@ -388,7 +388,7 @@ rate_hz = 0.0
     assert!(refused >= 3, "refused_unauthenticated {refused}: {}", b["bridge"]["security"]);
     let reasons: Vec<&str> =
         links["refused"].as_array().expect("links.refused").iter().filter_map(|r| r["reason"].as_str()).collect();
-    assert!(reasons.iter().any(|r| r.contains("came as Zenoh id")), "{reasons:?}");
+    assert!(reasons.iter().any(|r| r.contains("came as another Zenoh id")), "{reasons:?}");
     assert!(reasons.iter().any(|r| r.contains("handshake")), "{reasons:?}");
     assert!(base.log().contains("TLS link refused"), "warned");
     // auv2's puts under auv1 reached the base station (it declares its subscriptions to every

@@ -39,7 +39,7 @@ use std::io::{Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream, ToSocketAddrs};
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -51,8 +51,9 @@ use pipeline_runtime::StageError;
 /// The longest a TLS handshake and the peer's first Zenoh message may take.
 const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 /// Handshakes in progress at most (more: refused and counted, against a flood of half-open
-/// connections).
+/// connections), and from one address.
 const MAX_HANDSHAKES: usize = 32;
+const MAX_HANDSHAKES_PER_PEER: usize = 4;
 /// Bytes read from a socket at once.
 const CHUNK: usize = 256 * 1024;
 /// A link whose peer's certificate expires is closed at expiry; the receiving thread looks at the
@@ -169,7 +170,8 @@ struct Shared {
     next_link: AtomicU64,
     links_opened: AtomicU64,
     links_expired: AtomicU64,
-    handshakes: AtomicUsize,
+    /// Handshakes in progress per peer address (from the network).
+    handshakes: Mutex<BTreeMap<String, usize>>,
     /// The accept threads.
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
 }
@@ -183,6 +185,28 @@ impl Shared {
         let n = count(&mut lock(&self.refused).counts, peer, &reason);
         if n == 1 {
             tracing::warn!(%peer, "TLS link refused: {reason} (counted: bridge.security.links.refused)");
+        }
+    }
+
+    /// Counts a handshake from `peer` in, unless there are too many.
+    fn handshake_begins(&self, peer: &str) -> bool {
+        let mut h = lock(&self.handshakes);
+        let total: usize = h.values().sum();
+        let n = h.get(peer).copied().unwrap_or(0);
+        if total >= MAX_HANDSHAKES || n >= MAX_HANDSHAKES_PER_PEER {
+            return false;
+        }
+        h.insert(peer.to_string(), n + 1);
+        true
+    }
+
+    fn handshake_ends(&self, peer: &str) {
+        let mut h = lock(&self.handshakes);
+        if let Some(n) = h.get_mut(peer) {
+            *n -= 1;
+            if *n == 0 {
+                h.remove(peer);
+            }
         }
     }
 
@@ -217,10 +241,10 @@ pub struct Relays {
     dir: PathBuf,
 }
 
-/// A listener to connect to, to wake its accept thread.
+/// A listener to shut down and connect to, to wake its accept thread.
 enum Wake {
-    Tcp(SocketAddr),
-    Unix(PathBuf),
+    Tcp(SocketAddr, Option<TcpListener>),
+    Unix(PathBuf, Option<UnixListener>),
 }
 
 /// What the relays counted (summary.json `bridge.security`).
@@ -323,8 +347,9 @@ fn configs(tls: &crate::TlsSettings) -> Result<(rustls::ServerConfig, rustls::Cl
     let client_verifier = rustls::server::WebPkiClientVerifier::builder_with_provider(roots.clone(), provider.clone())
         .build()
         .map_err(|e| format!("client certificate verifier: {e}"))?;
+    // TLS 1.3 only: no renegotiation or other 1.2 messages that need an answer mid-stream.
     let server = rustls::ServerConfig::builder_with_provider(provider.clone())
-        .with_safe_default_protocol_versions()
+        .with_protocol_versions(&[&rustls::version::TLS13])
         .map_err(|e| e.to_string())?
         .with_client_cert_verifier(client_verifier)
         .with_single_cert(chain.clone(), key.clone_key())
@@ -333,7 +358,7 @@ fn configs(tls: &crate::TlsSettings) -> Result<(rustls::ServerConfig, rustls::Cl
         .build()
         .map_err(|e| format!("server certificate verifier: {e}"))?;
     let builder = rustls::ClientConfig::builder_with_provider(provider)
-        .with_safe_default_protocol_versions()
+        .with_protocol_versions(&[&rustls::version::TLS13])
         .map_err(|e| e.to_string())?;
     let builder = if tls.verify_name {
         builder.with_webpki_verifier(server_verifier)
@@ -412,7 +437,7 @@ impl Relays {
             next_link: AtomicU64::new(0),
             links_opened: AtomicU64::new(0),
             links_expired: AtomicU64::new(0),
-            handshakes: AtomicUsize::new(0),
+            handshakes: Mutex::default(),
             threads: Mutex::default(),
         });
         let io = |what: String| move |e: std::io::Error| StageError::Settings(format!("{what}: {e}"));
@@ -424,7 +449,7 @@ impl Relays {
             let public = TcpListener::bind(addr).map_err(io(format!("zenoh.listen[{i}]: cannot listen on {addr}")))?;
             let inner = relays.dir.join(format!("session-{i}.sock"));
             relays.zenoh_listen.push(unix_endpoint(&inner));
-            relays.wake.push(Wake::Tcp(wake_address(&public)?));
+            relays.wake.push(Wake::Tcp(wake_address(&public)?, public.try_clone().ok()));
             let sh = shared.clone();
             shared
                 .spawn("tls-accept", move || accept_loop(&sh, Listener::Tcp(public), Side::Server { inner }))
@@ -439,7 +464,7 @@ impl Relays {
             let at = relays.dir.join(format!("dial-{i}.sock"));
             let local = UnixListener::bind(&at).map_err(io(format!("{}", at.display())))?;
             relays.zenoh_connect.push(unix_endpoint(&at));
-            relays.wake.push(Wake::Unix(at));
+            relays.wake.push(Wake::Unix(at, local.try_clone().ok()));
             let sh = shared.clone();
             shared
                 .spawn("tls-dial", move || accept_loop(&sh, Listener::Unix(local), Side::Client { remote: addr, name }))
@@ -489,10 +514,24 @@ fn wake_address(l: &TcpListener) -> Result<SocketAddr, StageError> {
 impl Drop for Relays {
     fn drop(&mut self) {
         self.shared.stop.store(true, Ordering::SeqCst);
+        // A listening socket shut down wakes its accept (Linux: EINVAL); a connection too, in
+        // case it does not.
+        use nix::sys::socket::{Shutdown as How, shutdown};
+        use std::os::fd::AsRawFd;
         for w in &self.wake {
             let _ = match w {
-                Wake::Tcp(a) => TcpStream::connect_timeout(a, Duration::from_millis(200)).map(drop),
-                Wake::Unix(p) => UnixStream::connect(p).map(drop),
+                Wake::Tcp(a, l) => {
+                    if let Some(l) = l {
+                        let _ = shutdown(l.as_raw_fd(), How::Both);
+                    }
+                    TcpStream::connect_timeout(a, Duration::from_millis(200)).map(drop)
+                }
+                Wake::Unix(p, l) => {
+                    if let Some(l) = l {
+                        let _ = shutdown(l.as_raw_fd(), How::Both);
+                    }
+                    UnixStream::connect(p).map(drop)
+                }
             };
         }
         for (a, b) in lock(&self.shared.open).values() {
@@ -558,18 +597,23 @@ fn accept_loop(shared: &Arc<Shared>, listener: Listener, side: Side) {
                 continue;
             }
         };
-        if shared.handshakes.fetch_add(1, Ordering::SeqCst) >= MAX_HANDSHAKES {
-            shared.handshakes.fetch_sub(1, Ordering::SeqCst);
-            shared.refuse(&sock.from(), format!("more than {MAX_HANDSHAKES} handshakes at once"));
+        // Handshakes from the network: at most MAX_HANDSHAKES at once, MAX_HANDSHAKES_PER_PEER
+        // from one address (the session's own dialling is not counted).
+        let from = sock.from();
+        let counted = matches!(sock, Accepted::Tcp(..));
+        if counted && !shared.handshake_begins(&from) {
+            shared.refuse(&from, "too many handshakes at once".into());
             continue;
         }
-        let (sh, side) = (shared.clone(), side.clone());
+        let (sh, side, peer) = (shared.clone(), side.clone(), from.clone());
         // Not joined when the relays stop: an open link's sockets are shut down then, and a
-        // handshake in progress ends by itself (at most HANDSHAKE_TIMEOUT), so stopping never
+        // handshake in progress ends by its deadline (HANDSHAKE_TIMEOUT), so stopping never
         // waits for a peer.
         let spawned = std::thread::Builder::new().name("tls-link".into()).spawn(move || {
             let opened = open(&sh, sock, &side);
-            sh.handshakes.fetch_sub(1, Ordering::SeqCst);
+            if counted {
+                sh.handshake_ends(&peer);
+            }
             match opened {
                 Ok(link) => link.run(&sh),
                 Err(Failure::Refused(peer, reason)) => sh.refuse(&peer, reason),
@@ -577,7 +621,9 @@ fn accept_loop(shared: &Arc<Shared>, listener: Listener, side: Side) {
             }
         });
         if let Err(e) = spawned {
-            shared.handshakes.fetch_sub(1, Ordering::SeqCst);
+            if counted {
+                shared.handshake_ends(&from);
+            }
             tracing::warn!("TLS relay: no thread for a link: {e}");
         }
     }
@@ -592,6 +638,37 @@ struct Joined {
     local: UnixStream,
     peer: Peer,
     peer_addr: String,
+}
+
+/// Why a handshake failed, in words that do not depend on what the peer sent (counted per reason:
+/// the peer must not be able to make a new reason per attempt).
+fn handshake_failure(e: &std::io::Error) -> String {
+    use rustls::CertificateError as C;
+    let Some(t) = e.get_ref().and_then(|i| i.downcast_ref::<rustls::Error>()) else {
+        return format!("{:?}", e.kind());
+    };
+    match t {
+        rustls::Error::NoCertificatesPresented => "no certificate".into(),
+        rustls::Error::InvalidCertificate(c) => match c {
+            C::Expired | C::ExpiredContext { .. } => "certificate expired".into(),
+            C::NotValidYet | C::NotValidYetContext { .. } => "certificate not valid yet".into(),
+            C::UnknownIssuer => "certificate not signed by the CA".into(),
+            C::NotValidForName | C::NotValidForNameContext { .. } => {
+                "certificate does not name the address dialled".into()
+            }
+            C::Revoked => "certificate revoked".into(),
+            C::BadSignature => "bad certificate signature".into(),
+            other => format!("certificate refused ({})", variant(other)),
+        },
+        rustls::Error::AlertReceived(a) => format!("the peer refused ({a:?})"),
+        other => variant(other),
+    }
+}
+
+/// The name of an enum value's variant (its `Debug` text up to the first field).
+fn variant(v: &dyn std::fmt::Debug) -> String {
+    let d = format!("{v:?}");
+    d.split(['(', '{', ' ']).next().unwrap_or_default().to_string()
 }
 
 /// Why a link was not opened, and with whom.
@@ -646,13 +723,22 @@ fn open(shared: &Shared, sock: Accepted, side: &Side) -> Result<Joined, Failure>
             (s, _) => unreachable!("a relay accepts on one kind of listener only ({})", s.from()),
         };
     let _ = net.set_nodelay(true);
-    net.set_read_timeout(Some(HANDSHAKE_TIMEOUT)).map_err(|e| io(&peer_addr, "socket", e))?;
-    net.set_write_timeout(Some(HANDSHAKE_TIMEOUT)).map_err(|e| io(&peer_addr, "socket", e))?;
+    // One deadline for the whole handshake (a timeout per read would let a peer that sends a
+    // byte now and then hold its slot for ever).
+    let t0 = std::time::Instant::now();
     while conn.is_handshaking() {
+        let Some(left) = HANDSHAKE_TIMEOUT.checked_sub(t0.elapsed()).filter(|l| !l.is_zero()) else {
+            return Err(refused(
+                &peer_addr,
+                format!("TLS handshake not done within {} s", HANDSHAKE_TIMEOUT.as_secs()),
+            ));
+        };
+        net.set_read_timeout(Some(left)).map_err(|e| io(&peer_addr, "socket", e))?;
+        net.set_write_timeout(Some(left)).map_err(|e| io(&peer_addr, "socket", e))?;
         if let Err(e) = conn.complete_io(&mut net) {
             // Tell the peer why (rustls queued an alert), if it still listens.
             let _ = conn.write_tls(&mut net);
-            return Err(refused(&peer_addr, format!("TLS handshake failed: {e}")));
+            return Err(refused(&peer_addr, format!("TLS handshake failed: {}", handshake_failure(&e))));
         }
     }
     let der =
@@ -748,11 +834,24 @@ impl Joined {
             match sent {
                 Ok(_) => {}
                 Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                    // Room on the network, or the session gone (then nothing more is worth
+                    // sending: a peer that stops reading cannot hold the link after it).
+                    use nix::poll::{PollFd, PollFlags, PollTimeout, poll};
                     use std::os::fd::AsFd;
-                    let mut fds = [nix::poll::PollFd::new(self.net.as_fd(), nix::poll::PollFlags::POLLOUT)];
-                    match nix::poll::poll(&mut fds, nix::poll::PollTimeout::NONE) {
+                    let mut fds = [
+                        PollFd::new(self.net.as_fd(), PollFlags::POLLOUT),
+                        PollFd::new(self.local.as_fd(), PollFlags::from_bits_retain(libc::POLLRDHUP)),
+                    ];
+                    match poll(&mut fds, PollTimeout::NONE) {
                         Ok(_) | Err(nix::errno::Errno::EINTR) => {}
                         Err(e) => return Err(e.into()),
+                    }
+                    let gone = PollFlags::from_bits_retain(libc::POLLRDHUP) | PollFlags::POLLHUP | PollFlags::POLLERR;
+                    if fds[1].revents().is_some_and(|r| r.intersects(gone)) {
+                        return Err(std::io::Error::new(
+                            std::io::ErrorKind::BrokenPipe,
+                            "this host's session closed the link while the peer took nothing",
+                        ));
                     }
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
@@ -825,8 +924,9 @@ impl Joined {
             // At least once: the handshake may have read records after its own (the peer's first
             // message, in the same segment as its Finished), which wait in rustls.
             loop {
-                if !bytes.is_empty() {
-                    t.read_tls(&mut bytes)?;
+                if !bytes.is_empty() && t.read_tls(&mut bytes)? == 0 {
+                    // rustls takes nothing more once the peer closed: the rest is dropped.
+                    break;
                 }
                 let state = match t.process_new_packets() {
                     Ok(s) => s,
@@ -844,7 +944,7 @@ impl Joined {
                     t.reader().read_exact(plain.grow(k))?;
                 }
                 closed |= state.peer_has_closed();
-                if bytes.is_empty() {
+                if bytes.is_empty() || closed {
                     break;
                 }
             }
@@ -911,8 +1011,9 @@ impl Joined {
                     Err(e) => return Ok(End::Refused(e)),
                     Ok(None) => {}
                     Ok(Some(zid)) if zid != expected => {
+                        tracing::debug!(peer = %self.peer_addr, "came as Zenoh id {zid:x}");
                         return Ok(End::Refused(format!(
-                            "its certificate is `{}`'s (Zenoh id {expected:x}) but it came as Zenoh id {zid:x} (a \
+                            "its certificate is `{}`'s (Zenoh id {expected:x}) but it came as another Zenoh id (a \
                              Zenoh peer of your own with this certificate: set its `id` to \"{expected:x}\")",
                             self.peer.name
                         )));

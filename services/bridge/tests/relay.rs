@@ -123,24 +123,18 @@ fn both_directions_at_full_speed_over_one_tls_connection_arrive_intact() {
     assert_eq!((c.links_opened, c.refused.len()), (1, 0), "{c:?}");
 }
 
-#[test]
-fn a_first_message_in_the_same_segment_as_the_tls_finished_is_not_held_back() {
-    let dir = tempfile::tempdir().unwrap();
-    let tls = certs(dir.path(), &["base", "auv1"]);
-    let port = free_port();
-    let base = Relays::start(&[format!("tls/127.0.0.1:{port}")], &[], &tls[0], &Default::default()).unwrap();
-    let inner = UnixListener::bind(socket(&base.zenoh_listen[0])).unwrap();
-
-    // A client that sends its Finished and its first message in one write.
+/// A TLS client of `tls`'s certificate connected to `port`, its handshake done but its Finished
+/// still queued (not sent).
+fn raw_client(tls: &TlsSettings, port: u16) -> (rustls::ClientConnection, TcpStream) {
+    use rustls::pki_types::pem::PemObject;
     let provider = Arc::new(rustls::crypto::aws_lc_rs::default_provider());
     let mut roots = rustls::RootCertStore::empty();
-    use rustls::pki_types::pem::PemObject;
-    for c in rustls::pki_types::CertificateDer::pem_file_iter(&tls[1].ca_certificate).unwrap() {
+    for c in rustls::pki_types::CertificateDer::pem_file_iter(&tls.ca_certificate).unwrap() {
         roots.add(c.unwrap()).unwrap();
     }
     let chain: Vec<_> =
-        rustls::pki_types::CertificateDer::pem_file_iter(&tls[1].certificate).unwrap().map(|c| c.unwrap()).collect();
-    let key = rustls::pki_types::PrivateKeyDer::from_pem_file(&tls[1].private_key).unwrap();
+        rustls::pki_types::CertificateDer::pem_file_iter(&tls.certificate).unwrap().map(|c| c.unwrap()).collect();
+    let key = rustls::pki_types::PrivateKeyDer::from_pem_file(&tls.private_key).unwrap();
     let config = rustls::ClientConfig::builder_with_provider(provider)
         .with_safe_default_protocol_versions()
         .unwrap()
@@ -158,6 +152,47 @@ fn a_first_message_in_the_same_segment_as_the_tls_finished_is_not_held_back() {
             c.process_new_packets().unwrap();
         }
     }
+    (c, s)
+}
+
+#[test]
+fn bytes_after_the_peers_close_notify_are_dropped_and_the_link_closes() {
+    let dir = tempfile::tempdir().unwrap();
+    let tls = certs(dir.path(), &["base", "auv1"]);
+    let port = free_port();
+    let base = Relays::start(&[format!("tls/127.0.0.1:{port}")], &[], &tls[0], &Default::default()).unwrap();
+    let _inner = UnixListener::bind(socket(&base.zenoh_listen[0])).unwrap();
+    let (mut c, mut s) = raw_client(&tls[1], port);
+    // Finished, a 20 kB message, close_notify, then 64 kB more, in one write.
+    c.writer().write_all(&init(zid_of("auv1"), &vec![7u8; 20_000])).unwrap();
+    c.send_close_notify();
+    let mut all = vec![];
+    while c.wants_write() {
+        c.write_tls(&mut all).unwrap();
+    }
+    all.extend(std::iter::repeat_n(0x17u8, 65_536));
+    s.write_all(&all).unwrap();
+    let mut buf = [0u8; 64];
+    let t0 = std::time::Instant::now();
+    loop {
+        match s.read(&mut buf) {
+            Ok(0) | Err(_) => break,
+            Ok(_) => assert!(t0.elapsed() < Duration::from_secs(10), "the link did not close"),
+        }
+    }
+    assert!(t0.elapsed() < Duration::from_secs(9), "the relay closed the link only at its timeout");
+}
+
+#[test]
+fn a_first_message_in_the_same_segment_as_the_tls_finished_is_not_held_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let tls = certs(dir.path(), &["base", "auv1"]);
+    let port = free_port();
+    let base = Relays::start(&[format!("tls/127.0.0.1:{port}")], &[], &tls[0], &Default::default()).unwrap();
+    let inner = UnixListener::bind(socket(&base.zenoh_listen[0])).unwrap();
+
+    // A client that sends its Finished and its first message in one write.
+    let (mut c, mut s) = raw_client(&tls[1], port);
     // The Finished is queued, not sent: the first message joins it.
     let first = init(zid_of("auv1"), b"and more");
     c.writer().write_all(&first).unwrap();
@@ -191,7 +226,10 @@ fn a_peer_with_another_zenoh_id_than_its_certificates_name_is_refused_and_counte
     let c = base.counts();
     assert_eq!(c.links_opened, 0, "{c:?}");
     assert_eq!(c.refused.len(), 1, "{c:?}");
-    assert!(c.refused[0].reason.contains("`auv2`'s") && c.refused[0].reason.contains("came as Zenoh id"), "{c:?}");
+    assert!(
+        c.refused[0].reason.contains("`auv2`'s") && c.refused[0].reason.contains("came as another Zenoh id"),
+        "{c:?}"
+    );
     // Nothing of it reached the session (a connection may have been opened, no byte sent).
     if let Ok((mut b, _)) = inner.accept() {
         b.set_nonblocking(false).unwrap();
