@@ -3,7 +3,8 @@
 //! Zenoh's access control drops a refused message without telling the application; it reports
 //! each decision only in its log at TRACE (target
 //! `zenoh::net::routing::interceptor::access_control`), with the host's Zenoh id, its identity
-//! (interface, certificate name, link protocol, id, joined by `+`) and the key. The bridge watches
+//! (interface, link protocol, id, joined by `+`; the certificate's name comes from the TLS relays,
+//! which know it by the id: [`Refusals::names_from`]) and the key. The bridge watches
 //! those events ([`pipeline_runtime::logging::watch_events`]: they are never printed unless
 //! `RUST_LOG` asks) and counts the refused puts per host and route. A decision is reported once
 //! per subject the host matches (a robot's own rule and the catch-all deny of
