@@ -9,6 +9,7 @@ Used by tests/tests/security.rs.
 """
 
 import argparse
+import hashlib
 import ctypes
 import json
 import os
@@ -31,13 +32,20 @@ def message(seq: int, stamp_ns: int, origin_ns: int, v_mps: float = 0.5) -> byte
     return bytes(h) + bytes(u)
 
 
+
+def zid_of(name):
+    """The Zenoh id a bridge expects of the holder of the certificate named `name` (docs/security.md)."""
+    d = hashlib.sha256(b"slam-bridge zid\0" + name.encode()).digest()
+    return format(int.from_bytes(d[:16], "big") | 1 << 127, "x")
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--endpoint", required=True)
     ap.add_argument("--ca", required=True)
     ap.add_argument("--cert", required=True)
     ap.add_argument("--key-file", required=True)
-    ap.add_argument("--id", help="Zenoh id to use (a bridge lets a certificate's holder in only with the id of its name: supervisor certs prints it)")
+    ap.add_argument("--id", help="Zenoh id to use (a bridge lets a certificate's holder in only with the id of its name)")
+    ap.add_argument("--id-of", help="use the Zenoh id of this certificate name (docs/security.md's recipe)")
     ap.add_argument("--attachment", required=True, help="the wire signature")
     ap.add_argument("--flood", type=int, default=3000, help="messages sent back to back at the end")
     a = ap.parse_args()
@@ -48,6 +56,8 @@ def main() -> None:
     c.insert_json5("connect/exit_on_failure", "false")
     c.insert_json5("scouting/multicast/enabled", "false")
     c.insert_json5("transport/shared_memory/enabled", "false")
+    if a.id_of:
+        a.id = zid_of(a.id_of)
     if a.id:
         c.insert_json5("id", json.dumps(a.id))
     tls = {

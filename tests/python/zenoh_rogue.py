@@ -8,11 +8,18 @@ Used by tests/tests/security.rs.
 """
 
 import argparse
+import hashlib
 import json
 import time
 
 import zenoh
 
+
+
+def zid_of(name):
+    """The Zenoh id a bridge expects of the holder of the certificate named `name` (docs/security.md)."""
+    d = hashlib.sha256(b"slam-bridge zid\0" + name.encode()).digest()
+    return format(int.from_bytes(d[:16], "big") | 1 << 127, "x")
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
@@ -25,7 +32,8 @@ def main() -> None:
     ap.add_argument("--ca", help="CA certificate to trust (TLS)")
     ap.add_argument("--cert", help="client certificate (mutual TLS)")
     ap.add_argument("--key-file", help="client private key (mutual TLS)")
-    ap.add_argument("--id", help="Zenoh id to use (a bridge lets a certificate's holder in only with the id of its name: supervisor certs prints it)")
+    ap.add_argument("--id", help="Zenoh id to use (a bridge lets a certificate's holder in only with the id of its name)")
+    ap.add_argument("--id-of", help="use the Zenoh id of this certificate name (docs/security.md's recipe)")
     a = ap.parse_args()
 
     c = zenoh.Config()
@@ -35,6 +43,8 @@ def main() -> None:
     c.insert_json5("scouting/multicast/enabled", "false")
     # The wheel is built with shared memory, which leaves a segment in /dev/shm: not wanted here.
     c.insert_json5("transport/shared_memory/enabled", "false")
+    if a.id_of:
+        a.id = zid_of(a.id_of)
     if a.id:
         c.insert_json5("id", json.dumps(a.id))
     if a.ca:

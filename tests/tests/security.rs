@@ -42,7 +42,8 @@ fn rogue(ns: &NetNs, endpoint: &str, certs: Option<(&Path, Option<&str>)>, zid: 
         if let Some(n) = name {
             cmd.arg("--cert").arg(dir.join(format!("{n}.pem"))).arg("--key-file").arg(dir.join(format!("{n}.key")));
             if zid {
-                cmd.args(["--id", &bridge_stage::relay::zid_hex(n)]);
+                // The id by docs/security.md's recipe, computed by the script itself.
+                cmd.args(["--id-of", n]);
             }
         }
     }

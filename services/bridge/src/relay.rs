@@ -1074,6 +1074,8 @@ mod tests {
             assert!(h.chars().all(|c| c.is_ascii_digit() || ('a'..='f').contains(&c)));
         }
         assert_ne!(zid_of("auv1"), zid_of("auv2"));
+        // Pinned: peers of users' own compute it (docs/security.md's recipe gives this too).
+        assert_eq!(zid_hex("auv2"), "e7dcc051d576d4055cbf2766dd8d3631");
         assert_eq!(zid_of("auv1"), zid_of("auv1"));
     }
 
