@@ -83,6 +83,10 @@ status=0
 # Every target with tests (`--tests`: libraries, binaries with `test = true`, test files), then
 # the doc tests; not the examples, which a plain `cargo test` compiles and links (15 binaries no
 # test runs; clippy --all-targets in .ci/run still checks that they build).
+# Three tests at once per test binary on two cores: the multi-process tests wait on other
+# processes for much of their time (pipeline tests 310 s with two, 266 s with three, 254 s with
+# four, one run each, 2026-12-05; docs/benchmarks.md). `--test-threads` in "$@" overrides it.
+export RUST_TEST_THREADS="${RUST_TEST_THREADS:-3}"
 { cargo test --workspace --tests "$@" && cargo test --workspace --doc "$@"; } 2>&1 | tee "$log" || status=$?
 passed=$(grep -Eo 'test result: [A-Za-z]+\. [0-9]+ passed' "$log" | awk '{s+=$4} END {print s+0}')
 failed=$(grep -Eo '[0-9]+ failed' "$log" | awk '{s+=$1} END {print s+0}')

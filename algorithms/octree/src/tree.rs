@@ -872,10 +872,18 @@ impl OcTree {
         self.leaves().count()
     }
 
-    /// (occupied, free) leaves.
+    /// (occupied, free) leaves, in one walk of the tree (every leaf is one or the other: their sum
+    /// is [`OcTree::num_leaves`]).
     pub fn num_occupied_free_leaves(&self) -> (usize, usize) {
-        let occ = self.leaves().filter(|l| self.is_occupied_log_odds(l.log_odds)).count();
-        (occ, self.num_leaves() - occ)
+        let (mut occ, mut free) = (0, 0);
+        for l in self.leaves() {
+            if self.is_occupied_log_odds(l.log_odds) {
+                occ += 1;
+            } else {
+                free += 1;
+            }
+        }
+        (occ, free)
     }
 
     /// Heap bytes of the tree storage (node arena capacity, 8 bytes per slot, plus the free-block

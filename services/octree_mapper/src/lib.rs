@@ -530,10 +530,10 @@ impl MapperState {
         for p in &world {
             let v = Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
             if (v - origin).norm() <= max_range {
-                self.points.add(&v);
                 scan.add(&v);
             }
         }
+        self.points.merge(&scan)?;
         if self.settings.obstacle_max_bhattacharyya > 0.0 {
             let reg = (self.settings.resolution_m * 0.5).powi(2); // a voxel's extent: flat obstacles
             let u = self.obstacles.update(&scan, &self.settings.nsd, self.settings.obstacle_max_bhattacharyya, reg)?;

@@ -24,7 +24,7 @@ fn percentile(v: &[f64], q: f64) -> f64 {
 
 fn stats_msg(st: &MapperState, regions: u32, obstacles: u32) -> MapStats {
     let (occ, free) = st.tree.num_occupied_free_leaves();
-    let leaves = st.tree.num_leaves();
+    let leaves = occ + free;
     MapStats {
         resolution_m: st.tree.resolution(),
         leaves: leaves as u64,
@@ -132,7 +132,7 @@ fn end_of_run(
       "octree_mapper": {
         "resolution_m": st.tree.resolution(),
         "pose_source": st.settings().pose_source,
-        "leaves": st.tree.num_leaves(),
+        "leaves": occ + free,
         "occupied_leaves": occ,
         "free_leaves": free,
         "memory_bytes": st.tree.memory_usage_bytes(),
@@ -428,7 +428,7 @@ impl Stage for OctreeMapperStage {
         Ok(serde_json::json!({ "octree_mapper": {
             "resolution_m": st.tree.resolution(),
             "stopped_early": true,
-            "leaves": st.tree.num_leaves(),
+            "leaves": occ + free,
             "occupied_leaves": occ,
             "free_leaves": free,
             "counters": st.counters,
