@@ -334,6 +334,9 @@ pub struct InRoute {
     pub info_sub: Option<Subscription<CameraInfo>>,
     /// The remote writers matched to the reader now.
     pub remotes: std::collections::BTreeSet<ros2_client::dds::rustdds::GUID>,
+    /// Remote publishers already counted as not matching (discovery may report one more than
+    /// once: each update of its discovery data).
+    unmatched: std::collections::BTreeSet<ros2_client::dds::rustdds::GUID>,
     /// Its counters.
     pub counts: InCounts,
     last_seq: HashMap<String, i64>,
@@ -357,6 +360,7 @@ impl InRoute {
             sub,
             info_sub,
             remotes: Default::default(),
+            unmatched: Default::default(),
             counts: InCounts { service: cfg.route.service.service(), ..Default::default() },
             last_seq: HashMap::new(),
             warned: Default::default(),
@@ -441,8 +445,11 @@ impl InRoute {
         }
     }
 
-    /// A remote publisher whose QoS cannot match (discovery said so).
-    pub fn qos_incompatible(&mut self, requested: &str, offered: &str) {
+    /// A remote publisher whose QoS cannot match (discovery said so); counted once per publisher.
+    pub fn qos_incompatible(&mut self, remote: ros2_client::dds::rustdds::GUID, requested: &str, offered: &str) {
+        if !self.unmatched.insert(remote) {
+            return;
+        }
         self.counts.qos_incompatible += 1;
         let what = format!(
             "a publisher offers QoS ({offered}) that cannot match the route's ({requested}): nothing of it arrives"
@@ -450,10 +457,11 @@ impl InRoute {
         self.warn_once("qos_incompatible", &what);
     }
 
-    /// A remote publisher on the topic, of DDS type `dds_type`.
-    pub fn remote_type(&mut self, dds_type: &str) {
+    /// A remote publisher on the topic, of DDS type `dds_type`; one of another type is counted
+    /// once per publisher.
+    pub fn remote_type(&mut self, remote: ros2_client::dds::rustdds::GUID, dds_type: &str) {
         let want = ros2_interop::msgs::dds_type_name(self.counts_type());
-        if dds_type != want {
+        if dds_type != want && self.unmatched.insert(remote) {
             self.counts.type_mismatch += 1;
             let what = format!(
                 "a publisher of type `{dds_type}` on this topic; the route takes `{want}`: nothing of it arrives"

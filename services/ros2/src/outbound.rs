@@ -91,6 +91,9 @@ pub struct OutRoute {
     pub latency: crate::inbound::Hist,
     /// The remote readers matched to the writer now.
     pub remotes: std::collections::BTreeSet<ros2_client::dds::rustdds::GUID>,
+    /// Remote subscribers already counted as not matching (discovery may report one more than
+    /// once: each update of its discovery data).
+    unmatched: std::collections::BTreeSet<ros2_client::dds::rustdds::GUID>,
     /// Whether a reader was matched at the last look (a new one gets the newest snapshot).
     was_heard: bool,
     /// Messages written into the bag but not published: no reader matched.
@@ -122,6 +125,7 @@ impl OutRoute {
             warned: false,
             latency: Default::default(),
             remotes: Default::default(),
+            unmatched: Default::default(),
             was_heard: false,
             bag_only: 0,
         })
@@ -140,8 +144,11 @@ impl OutRoute {
         }
     }
 
-    /// A remote subscriber whose QoS cannot match (discovery said so).
-    pub fn qos_incompatible(&mut self, requested: &str, offered: &str) {
+    /// A remote subscriber whose QoS cannot match (discovery said so); counted once per subscriber.
+    pub fn qos_incompatible(&mut self, remote: ros2_client::dds::rustdds::GUID, requested: &str, offered: &str) {
+        if !self.unmatched.insert(remote) {
+            return;
+        }
         self.counts.qos_incompatible += 1;
         tracing::warn!(
             topic = %self.cfg.topic(),
@@ -149,10 +156,11 @@ impl OutRoute {
         );
     }
 
-    /// A remote subscriber on the topic, of DDS type `dds_type`.
-    pub fn remote_type(&mut self, dds_type: &str) {
+    /// A remote subscriber on the topic, of DDS type `dds_type`; one of another type is counted
+    /// once per subscriber.
+    pub fn remote_type(&mut self, remote: ros2_client::dds::rustdds::GUID, dds_type: &str) {
         let want = ros2_interop::msgs::dds_type_name(self.cfg.what.ros_type());
-        if dds_type != want {
+        if dds_type != want && self.unmatched.insert(remote) {
             self.counts.type_mismatch += 1;
             tracing::warn!(
                 topic = %self.cfg.topic(),

@@ -69,14 +69,14 @@ impl Ros2Stage {
         use ros2_client::dds::rustdds::{DomainParticipantStatusEvent as E, StatusEvented};
         while let Some(ev) = self.node.status.try_recv_status() {
             match ev {
-                E::RemoteWriterQosIncompatible { local_reader, requested_qos, offered_qos, .. } => {
+                E::RemoteWriterQosIncompatible { local_reader, remote_writer, requested_qos, offered_qos } => {
                     if let Some(r) = self.ins.iter_mut().find(|r| r.sub.guid() == local_reader) {
-                        r.qos_incompatible(&qos_text(&requested_qos), &qos_text(&offered_qos));
+                        r.qos_incompatible(remote_writer, &qos_text(&requested_qos), &qos_text(&offered_qos));
                     }
                 }
-                E::RemoteReaderQosIncompatible { local_writer, requested_qos, offered_qos, .. } => {
+                E::RemoteReaderQosIncompatible { local_writer, remote_reader, requested_qos, offered_qos } => {
                     if let Some(r) = self.out.routes.iter_mut().find(|r| r.guid() == local_writer) {
-                        r.qos_incompatible(&qos_text(&requested_qos), &qos_text(&offered_qos));
+                        r.qos_incompatible(remote_reader, &qos_text(&requested_qos), &qos_text(&offered_qos));
                     }
                 }
                 E::RemoteWriterMatched { local_reader, remote_writer } => {
@@ -101,14 +101,14 @@ impl Ros2Stage {
                 }
                 E::WriterDetected { writer } => {
                     if let Some(r) = self.ins.iter_mut().find(|r| writer.topic_name == format!("rt{}", r.topic)) {
-                        r.remote_type(&writer.type_name);
+                        r.remote_type(writer.guid, &writer.type_name);
                     }
                 }
                 E::ReaderDetected { reader } => {
                     if let Some(r) =
                         self.out.routes.iter_mut().find(|r| reader.topic_name == format!("rt{}", r.cfg.topic()))
                     {
-                        r.remote_type(&reader.type_name);
+                        r.remote_type(reader.guid, &reader.type_name);
                     }
                 }
                 _ => {}
