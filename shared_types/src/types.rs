@@ -399,7 +399,7 @@ wire_type! {
         pub memory_bytes: u64,
         /// Clouds inserted.
         pub clouds_inserted: u64,
-        /// Clouds dropped because insertion fell behind.
+        /// Clouds dropped: insertion behind (`when_behind = "drop_oldest"`), no pose in time, and gaps in the cloud publisher's sequence numbers.
         pub clouds_dropped: u64,
         /// Points inserted.
         pub points_inserted: u64,
