@@ -72,22 +72,47 @@ if [ ${#debs[@]} -gt 0 ]; then
         fi
     fi
 fi
-# Every binary the multi-process tests start; of the benchmarks only relations_score (the others
-# are run by hand: building them here cost ~50 s of a 2-core test run, 2026-12-04).
-cargo build --workspace --bins --exclude pipeline_bench
-# (--workspace: the features resolved as for the whole workspace, so nothing is built twice)
-cargo build --workspace --bin relations_score
-log=$(mktemp)
-trap 'rm -f "$log"' EXIT
+# Every binary the multi-process tests start and every test target, in one cargo invocation (its
+# two cores stay busy across what used to be two builds). Test targets: libraries, binaries with
+# `test = true`, test files; not the examples, which a plain `cargo test` compiles and links (15
+# binaries no test runs; clippy --all-targets in .ci/run still checks that they build).
+cargo build --workspace --bins --tests
+log=$(mktemp) multi=$(mktemp) multi_rc=$(mktemp)
+trap 'rm -f "$log" "$multi" "$multi_rc"' EXIT
 status=0
-# Every target with tests (`--tests`: libraries, binaries with `test = true`, test files), then
-# the doc tests; not the examples, which a plain `cargo test` compiles and links (15 binaries no
-# test runs; clippy --all-targets in .ci/run still checks that they build).
 # Three tests at once per test binary on two cores: the multi-process tests wait on other
 # processes for much of their time (pipeline tests 310 s with two, 266 s with three, 254 s with
-# four, one run each, 2026-12-05; docs/benchmarks.md). `--test-threads` in "$@" overrides it.
+# four, one run each, 2026-12-05; docs/benchmarks.md). `--test-threads` in the arguments
+# overrides it.
 export RUST_TEST_THREADS="${RUST_TEST_THREADS:-3}"
-{ cargo test --workspace --tests "$@" && cargo test --workspace --doc "$@"; } 2>&1 | tee "$log" || status=$?
+if [ $# -gt 0 ] && [ "$1" != "--" ]; then
+    # Cargo arguments (a package, a test target): cargo runs what they select, one binary after
+    # the other.
+    { cargo test --workspace --tests "$@" && cargo test --workspace --doc "$@"; } 2>&1 | tee "$log" || status=$?
+else
+    # The multi-process tests (one binary, pipeline_tests) run beside the other test binaries:
+    # they wait on their processes much of the time, and cargo would run the binaries one after
+    # the other (and holds its lock while they run, so a second cargo cannot run beside it). The
+    # binary runs as cargo runs it, from its package's directory. Arguments after `--` go to every
+    # test binary (a name filter, --nocapture).
+    exe=$(cargo test --workspace --tests --no-run --message-format=json 2>/dev/null \
+        | python3 -c 'import json, sys
+for line in sys.stdin:
+    m = json.loads(line)
+    if m.get("reason") == "compiler-artifact" and m["target"]["name"] == "pipeline" and m.get("executable"):
+        print(m["executable"])')
+    [ -x "$exe" ] || { echo "test.sh: no multi-process test binary (pipeline_tests)" >&2; exit 1; }
+    shift $(( $# > 0 ? 1 : 0 ))
+    echo "test.sh: the multi-process tests run beside the others; their output follows at the end"
+    ( cd tests && "$exe" "$@" > "$multi" 2>&1; echo $? > "$multi_rc" ) &
+    { cargo test --workspace --exclude pipeline_tests --tests -- "$@" \
+        && cargo test --workspace --doc -- "$@"; } 2>&1 | tee "$log" || status=$?
+    wait
+    echo "     Running tests/main.rs (multi-process tests, pipeline_tests)"
+    cat "$multi" | tee -a "$log"
+    rc=$(cat "$multi_rc")
+    [ "$rc" = 0 ] || status=$rc
+fi
 passed=$(grep -Eo 'test result: [A-Za-z]+\. [0-9]+ passed' "$log" | awk '{s+=$4} END {print s+0}')
 failed=$(grep -Eo '[0-9]+ failed' "$log" | awk '{s+=$1} END {print s+0}')
 echo "tests: ${passed} passed, ${failed} failed"
