@@ -104,14 +104,14 @@ for line in sys.stdin:
     [ -x "$exe" ] || { echo "test.sh: no multi-process test binary (pipeline_tests)" >&2; exit 1; }
     shift $(( $# > 0 ? 1 : 0 ))
     echo "test.sh: the multi-process tests run beside the others; their output follows at the end"
-    ( cd tests && "$exe" "$@" > "$multi" 2>&1; echo $? > "$multi_rc" ) &
+    ( cd tests || exit 1; rc=0; "$exe" "$@" > "$multi" 2>&1 || rc=$?; echo "$rc" > "$multi_rc" ) &
     { cargo test --workspace --exclude pipeline_tests --tests -- "$@" \
         && cargo test --workspace --doc -- "$@"; } 2>&1 | tee "$log" || status=$?
     wait
     echo "     Running tests/main.rs (multi-process tests, pipeline_tests)"
     cat "$multi" | tee -a "$log"
     rc=$(cat "$multi_rc")
-    [ "$rc" = 0 ] || status=$rc
+    [ "$rc" = 0 ] || status=${rc:-1}
 fi
 passed=$(grep -Eo 'test result: [A-Za-z]+\. [0-9]+ passed' "$log" | awk '{s+=$4} END {print s+0}')
 failed=$(grep -Eo '[0-9]+ failed' "$log" | awk '{s+=$1} END {print s+0}')

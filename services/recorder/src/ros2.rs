@@ -107,6 +107,9 @@ pub struct Ros2Report {
     pub undecodable: u64,
     /// Snapshot updates folded into a later message per topic (not lost).
     pub coalesced: BTreeMap<String, u64>,
+    /// `map → odom` transforms not written per `/tf` topic: no odometry at or before the pose's
+    /// stamp had come yet.
+    pub tf_without_odometry: BTreeMap<String, u64>,
     /// Voxel-stream messages the recorder missed (the cloud restarts at the next full set).
     pub voxel_messages_missed: u64,
     /// Voxel deltas left unused while waiting for a full set.
@@ -274,7 +277,11 @@ fn run(rx: Receiver<Job>, mut t: Translator, mut bag: BagWriter, dir: PathBuf) -
     for (i, topic) in t.routes().iter().map(|r| r.topic().to_string()).enumerate() {
         let c = t.route_coalesced(i);
         if c > 0 {
-            report.coalesced.insert(topic, c);
+            report.coalesced.insert(topic.clone(), c);
+        }
+        let n = t.route_no_odometry(i);
+        if n > 0 {
+            report.tf_without_odometry.insert(topic, n);
         }
     }
     (report.voxel_messages_missed, report.voxel_deltas_waiting_for_a_full_set) = t.voxel_gaps();

@@ -65,6 +65,9 @@ pub struct OutCounts {
     pub coalesced: u64,
     /// Publishing failed (DDS refused or timed out): lost.
     pub failed: u64,
+    /// `/tf` routes: `map → odom` of a pose not published, no odometry at or before its stamp
+    /// having come yet.
+    pub tf_without_odometry: u64,
     /// Published but not written into the ROS 2 bag (`record_bag`).
     pub not_recorded: u64,
     /// Not published because no subscriber was matched (DDS would have delivered them to
@@ -328,6 +331,7 @@ impl Outbound {
         for (i, r) in self.routes.iter_mut().enumerate() {
             r.counts.taken = self.translator.route_taken(i);
             r.counts.coalesced = self.translator.route_coalesced(i);
+            r.counts.tf_without_odometry = self.translator.route_no_odometry(i);
             r.counts.no_subscriber = self.translator.route_not_emitted_unheard(i) + r.bag_only;
         }
     }

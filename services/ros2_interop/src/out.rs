@@ -156,11 +156,18 @@ impl OutKind {
         }
     }
 
-    /// The QoS it is published with unless the route says.
+    /// The QoS it is published with unless the route says. Pose streams and `/tf` keep 100
+    /// samples: a reliable writer of depth 10 overwrites what a reader 10 behind has not
+    /// acknowledged (a replay as fast as possible sends them in bursts).
     pub fn default_qos(self) -> TopicQos {
         match self {
             OutKind::Map | OutKind::Voxels | OutKind::Landmarks | OutKind::Obstacles => TopicQos::MAP,
-            OutKind::Tf => TopicQos { depth: 100, ..TopicQos::DEFAULT },
+            OutKind::Tf
+            | OutKind::FusedOdometry
+            | OutKind::FusedPose
+            | OutKind::SlamOdometry
+            | OutKind::GridSlamOdometry
+            | OutKind::GridSlamPose => TopicQos { depth: 100, ..TopicQos::DEFAULT },
             _ => TopicQos::DEFAULT,
         }
     }
@@ -438,6 +445,8 @@ struct RouteState {
     path_frame: String,
     taken: u64,
     coalesced: u64,
+    /// `/tf` of a pose not sent: no odometry at or before its stamp had come yet.
+    no_odometry: u64,
     emitted: u64,
     /// False while nobody listens (no subscriber matched, no bag): nothing is emitted.
     unheard: bool,
@@ -551,6 +560,13 @@ impl Translator {
     /// them).
     pub fn route_coalesced(&self, route: usize) -> u64 {
         self.state.get(route).map_or(0, |s| s.coalesced)
+    }
+
+    /// `map → odom` transforms of route `route` not sent because no odometry at or before the
+    /// pose's stamp had come yet (the pose and odometry services are read apart: on a busy
+    /// machine several poses can come before the first odometry).
+    pub fn route_no_odometry(&self, route: usize) -> u64 {
+        self.state.get(route).map_or(0, |s| s.no_odometry)
     }
 
     /// Voxel-stream messages missed (sequence gaps) and deltas left unused waiting for a full set.
@@ -792,7 +808,10 @@ impl Translator {
                         Some(odom_from_body) => {
                             convert::transform(stamp_ns, &f.map, &f.odom, &(map_from_body * odom_from_body.inverse()))
                         }
-                        None => return,
+                        None => {
+                            s.no_odometry += 1;
+                            return;
+                        }
                     },
                 };
                 Self::emit(out, i, s, RosOut::Tf(TFMessage { transforms: vec![t] }))
@@ -1012,6 +1031,7 @@ mod tests {
         let pose = PlanarPose { position_m: [2.0, 0.0], yaw_rad: 0.0, ..Default::default() };
         t.grid_pose(5, 1, &pose, &mut out);
         assert!(out.is_empty(), "no odometry yet: no map → odom");
+        assert_eq!(t.route_no_odometry(0), 1, "counted");
         let o = PlanarOdometry { position_m: [1.5, 0.0], yaw_rad: 0.0, ..Default::default() };
         t.odometry(4, 1, &o, &mut out);
         t.grid_pose(5, 1, &pose, &mut out);
