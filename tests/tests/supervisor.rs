@@ -367,11 +367,17 @@ fn in_a_terminal_the_run_is_a_live_block_and_the_full_log_goes_to_run_log() {
     let log_path = run.out_dir().join("run.log");
     assert!(terminal.contains(&format!("full log in {}", log_path.display())), "{terminal}");
     assert!(terminal.contains("outputs in"), "{terminal}");
+    // The short summary: nothing lost, no warnings, the files written; the latency tables only
+    // in run.log.
+    for needle in ["lost: nothing", "warnings: none", "summary.json", "run.log"] {
+        assert!(terminal.contains(needle), "`{needle}` not in the summary on the terminal:\n{terminal}");
+    }
+    assert!(!terminal.contains("hop latency"), "the latency tables on the terminal:\n{terminal}");
     // Log lines are not on the terminal (no warnings in this run) but in run.log, with the
     // processes' own lines.
     assert!(!terminal.contains(" INFO "), "log lines on the terminal:\n{terminal}");
     let log = std::fs::read_to_string(&log_path).expect("run.log");
-    for needle in ["[supervisor]", "starting pipeline", "[producer]", "[consumer]", "end of stream"] {
+    for needle in ["[supervisor]", "starting pipeline", "[producer]", "[consumer]", "end of stream", "hop latency"] {
         assert!(log.contains(needle), "`{needle}` not in run.log:\n{log}");
     }
     let s = run.summary();

@@ -228,12 +228,19 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
         .with_context(|| format!("writing {}", out_dir.join("summary.json").display()))?;
     // The report goes to stdout; a closed stdout (piped into `head`) must not change the exit code.
     let mut out = std::io::stdout().lock();
-    let _ = write!(out, "{}", report::render(&outcome.summary))
-        .and_then(|()| writeln!(out, "outputs in {}", out_dir.display()))
-        .and_then(|()| match &log_path {
-            Some(p) => writeln!(out, "full log in {}", p.display()),
-            None => Ok(()),
-        })
-        .and_then(|()| out.flush());
+    let _ = match &log_path {
+        // In a terminal: the short summary; the whole report goes to run.log.
+        Some(p) => {
+            let text = std::fs::read_to_string(p).unwrap_or_default();
+            let warnings = text.lines().filter(|l| l.contains(" WARN ")).count();
+            let report = report::render(&outcome.summary);
+            let _ = std::fs::OpenOptions::new().append(true).open(p).and_then(|mut f| write!(f, "{report}"));
+            write!(out, "{}", report::render_short(&outcome.summary, &out_dir, warnings))
+                .and_then(|()| writeln!(out, "full log in {} (with the latency tables)", p.display()))
+        }
+        None => write!(out, "{}", report::render(&outcome.summary))
+            .and_then(|()| writeln!(out, "outputs in {}", out_dir.display())),
+    }
+    .and_then(|()| out.flush());
     Ok(outcome.exit_code)
 }

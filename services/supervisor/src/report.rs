@@ -226,6 +226,50 @@ pub fn write(out_dir: &Path, summary: &Value) -> std::io::Result<()> {
     std::fs::write(out_dir.join("latency.csv"), csv)
 }
 
+/// The short summary printed at the end of a run watched in a terminal (the live status block):
+/// how it ended, the processes, the accuracy (ATE per estimate), what was lost, how many
+/// warnings, and what was written where. The latency tables stay in summary.json, latency.csv
+/// and run.log (the plain output, [`render`], prints them).
+pub fn render_short(summary: &Value, out_dir: &Path, warnings: usize) -> String {
+    let full = render(summary);
+    // The run line, failures and the process table: everything before the latency tables.
+    let mut s: String = full.lines().take_while(|l| !l.starts_with("hop latency")).map(|l| format!("{l}\n")).collect();
+    if let Some(Value::Object(ate)) = summary.get("ate_m")
+        && !ate.is_empty()
+    {
+        let parts: Vec<String> = ate.iter().filter_map(|(k, v)| v.as_f64().map(|m| format!("{k} {m:.3}"))).collect();
+        s.push_str(&format!("accuracy, ATE m (against ground_truth.tum): {}\n", parts.join(" · ")));
+    }
+    let sum = |key: &str| -> (u64, usize) {
+        let rows = summary[key].as_array().map(Vec::as_slice).unwrap_or_default();
+        (rows.iter().filter_map(|r| r["messages"].as_u64()).sum(), rows.len())
+    };
+    let ((undelivered, u_rows), (dropped, d_rows)) = (sum("undelivered"), sum("dropped"));
+    if undelivered + dropped == 0 {
+        s.push_str("lost: nothing (no message undelivered or dropped)\n");
+    } else {
+        s.push_str(&format!(
+            "LOST: {undelivered} message(s) undelivered ({u_rows} service/consumer pair(s)), {dropped} dropped \
+             ({d_rows} reason(s)): summary.json `undelivered` and `dropped`\n"
+        ));
+    }
+    s.push_str(&match warnings {
+        0 => "warnings: none\n".to_string(),
+        n => format!("warnings: {n} (WARN lines in run.log)\n"),
+    });
+    let mut files: Vec<String> = std::fs::read_dir(out_dir)
+        .map(|d| {
+            d.filter_map(Result::ok)
+                .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .collect()
+        })
+        .unwrap_or_default();
+    files.sort();
+    s.push_str(&format!("outputs in {} ({} files): {}\n", out_dir.display(), files.len(), files.join(", ")));
+    s
+}
+
 /// The human-readable summary printed at the end of a run.
 pub fn render(summary: &Value) -> String {
     let mut s = String::new();
@@ -280,4 +324,30 @@ pub fn render(summary: &Value) -> String {
         }
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_short_summary_gives_the_accuracy_what_was_lost_and_the_files_but_no_latency_tables() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("map.bt"), b"x").unwrap();
+        std::fs::create_dir(dir.path().join("parts")).unwrap();
+        let summary = serde_json::json!({
+            "run": { "end_reason": "end_of_stream", "duration_s": 42.0, "exit_code": 0 },
+            "processes": {},
+            "ate_m": { "fused": 0.16036, "buoy": 0.2093 },
+            "undelivered": [ { "publisher": "a", "service": "s", "consumer": "b", "messages": 3 } ],
+            "dropped": [],
+            "latency_ms": { "hops": { "s -> b": { "count": 1, "p50": 1.0, "p99": 1.0, "max": 1.0 } } },
+        });
+        let s = render_short(&summary, dir.path(), 2);
+        assert!(s.contains("buoy 0.209 · fused 0.160"), "{s}");
+        assert!(s.contains("LOST: 3 message(s) undelivered"), "{s}");
+        assert!(s.contains("warnings: 2"), "{s}");
+        assert!(s.contains("(1 files): map.bt"), "{s}");
+        assert!(!s.contains("hop latency") && render(&summary).contains("hop latency"), "{s}");
+    }
 }
