@@ -88,11 +88,13 @@ pub struct GridSlamConfig {
     /// Beams are used (matched, and written as hits) up to this range; longer ones free space up
     /// to it (gmapping's maxUrange), m.
     pub usable_range_m: f64,
-    /// Whether a beam with no return (at or beyond the laser's maximum) frees the cells along
-    /// it up to `usable_range_m`. Off by default: such beams leave through windows, doors and
-    /// glass, and writing them paints large fans of "free" outside the building (on fr079 they
-    /// tripled the map's area and the particles' memory) while nothing bounds them.
-    pub free_on_no_return: bool,
+    /// A beam with no return (at or beyond the laser's maximum: raw logs write the maximum, e.g.
+    /// 81.83 m for a SICK LMS) never adds a hit; it frees the cells along it up to this range, m
+    /// (0: not at all; never beyond `usable_range_m`). 0 by default: such beams leave through
+    /// windows, doors and glass, and freeing them up to the usable range painted large fans of
+    /// "free" outside the building (on fr079 they tripled the map's area and the particles'
+    /// memory).
+    pub no_return_free_m: f64,
     /// A filter update after this much translation since the last one, m.
     pub linear_update_m: f64,
     /// ... or this much rotation, rad.
@@ -135,7 +137,7 @@ impl Default for GridSlamConfig {
             particles: 30,
             resolution_m: 0.05,
             usable_range_m: 15.0,
-            free_on_no_return: false,
+            no_return_free_m: 0.0,
             linear_update_m: 0.5,
             angular_update_rad: 0.25,
             resample_threshold: 0.5,
@@ -179,6 +181,9 @@ impl GridSlamConfig {
             if !pos(v) {
                 return bad(key, &format!("must be a positive number, got {v}"));
             }
+        }
+        if !(self.no_return_free_m.is_finite() && self.no_return_free_m >= 0.0) {
+            return bad("no_return_free_m", "must be >= 0 (0: no-return beams free nothing)");
         }
         if !(self.resample_threshold >= 0.0 && self.resample_threshold <= 1.0) {
             return bad("resample_threshold", "must be within [0, 1]");
@@ -277,6 +282,9 @@ pub struct ScanOutcome {
     pub invalid_beams: usize,
     /// Whether the tracking match of this scan failed (the pose is then dead reckoning).
     pub match_failed: bool,
+    /// The filter update this scan belongs to (the update it made, or the last one before it):
+    /// its index in [`GridSlam::node_path`].
+    pub update: u32,
 }
 
 /// Counts kept over a run.
@@ -377,10 +385,23 @@ pub struct GridSlam {
 }
 
 /// One beam prepared for the map update: its end in the body frame and whether it is a hit.
-#[derive(Debug, Clone, Copy)]
-struct MapBeam {
-    end: (f64, f64),
-    hit: bool,
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MapBeam {
+    /// The beam's end in the body frame (through the laser's mounting), m.
+    pub end: (f64, f64),
+    /// Whether it ends on an obstacle (a hit) or only frees space up to `end`.
+    pub hit: bool,
+}
+
+/// A scan as the map and the matcher use it: the body-frame beams and the matching points.
+#[derive(Debug, Clone, Default)]
+pub struct PreparedScan {
+    /// Beams for the map update.
+    pub beams: Vec<MapBeam>,
+    /// Points for matching.
+    pub points: ScanPoints,
+    /// The laser's origin in the body frame, m.
+    pub origin: (f64, f64),
 }
 
 impl GridSlam {
@@ -502,10 +523,16 @@ impl GridSlam {
                 continue;
             }
             let no_return = r >= g.range_max_m;
-            if no_return && !self.cfg.free_on_no_return {
+            if no_return && self.cfg.no_return_free_m <= 0.0 {
                 continue;
             }
-            let (len, hit) = if no_return || r > usable { (usable, false) } else { (r, true) };
+            let (len, hit) = if no_return {
+                (self.cfg.no_return_free_m.min(usable), false)
+            } else if r > usable {
+                (usable, false)
+            } else {
+                (r, true)
+            };
             let at = |d: f64| lp.compose(&Pose2 { x_m: d * c, y_m: d * s, theta_rad: 0.0 });
             let end = at(len);
             beams.push(MapBeam { end: (end.x_m, end.y_m), hit });
@@ -517,7 +544,14 @@ impl GridSlam {
         (pts, beams, invalid)
     }
 
-    fn integrate(grid: &mut Grid, pose: &Pose2, origin: (f64, f64), beams: &[MapBeam], lo: &LogOddsParams) {
+    /// A scan's beams and matching points as the filter uses them (invalid beams dropped).
+    pub fn prepare_scan(&self, ranges: &[f32]) -> PreparedScan {
+        let (points, beams, _) = self.prepare(ranges);
+        PreparedScan { beams, points, origin: (self.geom.body_from_laser.x_m, self.geom.body_from_laser.y_m) }
+    }
+
+    /// Writes a prepared scan into `grid` at `pose` (`map_from_body`).
+    pub fn integrate(grid: &mut Grid, pose: &Pose2, origin: (f64, f64), beams: &[MapBeam], lo: &LogOddsParams) {
         let (s, c) = pose.theta_rad.sin_cos();
         let w = |q: (f64, f64)| (pose.x_m + c * q.0 - s * q.1, pose.y_m + s * q.0 + c * q.1);
         let o = w(origin);
@@ -570,6 +604,7 @@ impl GridSlam {
                 n_eff: self.n_eff,
                 invalid_beams: invalid,
                 match_failed: false,
+                update: 0,
             });
         }
 
@@ -599,6 +634,7 @@ impl GridSlam {
                 n_eff: self.n_eff,
                 invalid_beams: invalid,
                 match_failed: failed,
+                update: self.updates,
             });
         }
 
@@ -685,6 +721,7 @@ impl GridSlam {
             n_eff: self.n_eff,
             invalid_beams: invalid,
             match_failed: false,
+            update,
         })
     }
 
@@ -803,6 +840,12 @@ impl GridSlam {
     /// The trajectory at every processed scan along the best particle's final path
     /// (`map_from_body`, stamped with the scans' stamps).
     pub fn trajectory(&self) -> Vec<(f64, Pose2)> {
+        self.trajectory_with(&self.node_path())
+    }
+
+    /// The best particle's pose at every filter update (`map_from_body`; index = update, `None`
+    /// for updates before a restore): the nodes a pose-graph back end optimises.
+    pub fn node_path(&self) -> Vec<Option<Pose2>> {
         let Some(best) = self.particles.get(self.best) else { return Vec::new() };
         let mut at_update = vec![None; self.updates as usize + 1];
         let mut node = Some(&best.path);
@@ -812,6 +855,13 @@ impl GridSlam {
             }
             node = n.parent.as_ref();
         }
+        at_update
+    }
+
+    /// The trajectory at every processed scan with the update poses `at_update` (as
+    /// [`GridSlam::node_path`] gives them, or optimised): each scan keeps its pose relative to its
+    /// update. Scans before a restore keep their frozen poses.
+    pub fn trajectory_with(&self, at_update: &[Option<Pose2>]) -> Vec<(f64, Pose2)> {
         let mut out = self.history.clone();
         out.extend(self.records.iter().filter_map(|r| {
             at_update.get(r.update as usize).copied().flatten().map(|p| (r.stamp_s, p.compose(&r.rel)))
@@ -975,6 +1025,40 @@ mod tests {
         assert_eq!(picks, vec![1, 1, 3, 3]);
         let picks = systematic_resample(&[0.25; 4], 0.99);
         assert_eq!(picks, vec![0, 1, 2, 3]);
+    }
+
+    /// A beam at the laser's maximum (no return, as raw logs write it) adds no hit; it frees
+    /// the cells along it up to `no_return_free_m`, and nothing when that is 0.
+    #[test]
+    fn no_return_beams_free_up_to_the_set_range_and_add_no_hit() {
+        let geom = ScanGeometry {
+            angle_min_rad: -0.1,
+            angle_increment_rad: 0.1,
+            beams: 3,
+            range_min_m: 0.1,
+            range_max_m: 81.83,
+            body_from_laser: Pose2::default(),
+        };
+        let ranges = [2.0f32, 81.83, 2.0];
+        for free_m in [0.0, 4.0] {
+            let cfg = GridSlamConfig { particles: 1, no_return_free_m: free_m, ..Default::default() };
+            let mut f = GridSlam::new(cfg, geom).expect("valid");
+            f.process(1.0, Pose2::default(), &ranges).expect("scan");
+            let g = f.best_grid().expect("a map");
+            // Along the middle beam (θ = 0): 1 m, 3.5 m (inside 4 m), 6 m (beyond).
+            let at = |x: f64| g.log_odds(g.cell_of(x, 0.01).0, g.cell_of(x, 0.01).1);
+            if free_m == 0.0 {
+                assert_eq!((at(1.0), at(3.5), at(6.0)), (0.0, 0.0, 0.0), "nothing written along a no-return beam");
+            } else {
+                assert!(at(1.0) < 0.0 && at(3.5) < 0.0, "freed up to 4 m: {} {}", at(1.0), at(3.5));
+                assert!(at(4.05) <= 0.0 && at(6.0) == 0.0, "no hit at 4 m, nothing beyond");
+            }
+            // The returning beams still hit at 2 m.
+            let (s, c) = 0.1f64.sin_cos();
+            assert!(g.log_odds(g.cell_of(2.0 * c, 2.0 * s).0, g.cell_of(2.0 * c, 2.0 * s).1) > 0.0);
+        }
+        let bad = GridSlamConfig { no_return_free_m: -1.0, ..Default::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("no_return_free_m"));
     }
 
     #[test]

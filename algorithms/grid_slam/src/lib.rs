@@ -11,15 +11,19 @@
 //! Frames: `map_from_body` poses in the map frame (the odometry frame at the first scan), m and
 //! rad; the laser's pose on the robot is `body_from_laser`.
 
+pub mod backend;
+pub mod correlative;
 pub mod drift;
 pub mod export;
 pub mod filter;
 pub mod grid;
 pub mod matcher;
+pub mod posegraph;
 pub mod relations;
 
 pub use filter::{
-    GridSlam, GridSlamConfig, GridSlamStats, MemoryStats, MotionNoise, NeffSummary, ScanGeometry, ScanOutcome,
+    GridSlam, GridSlamConfig, GridSlamStats, MapBeam, MemoryStats, MotionNoise, NeffSummary, PreparedScan,
+    ScanGeometry, ScanOutcome,
 };
 pub use omni::Pose2;
 
@@ -67,6 +71,12 @@ pub enum GridSlamError {
     /// A snapshot cannot be restored.
     #[error("grid_slam snapshot: {why}")]
     Snapshot {
+        /// What is wrong.
+        why: String,
+    },
+    /// The pose graph cannot be optimised.
+    #[error("pose graph: {why}")]
+    Optimisation {
         /// What is wrong.
         why: String,
     },

@@ -11,6 +11,7 @@ pub mod stage;
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
 
+use grid_slam::backend::BackEndConfig;
 use grid_slam::{GridSlamConfig, Pose2};
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
@@ -22,6 +23,14 @@ pub struct GridSlamSettings {
     /// The filter (particles, resolution, update distances, matcher, motion noise...): every key
     /// is documented in `algorithms/grid_slam/src/filter.rs`.
     pub filter: GridSlamConfig,
+    /// What runs behind the filter: `"pose_graph"` (default) closes loops over the filter's
+    /// final path at the end of the run (submaps, branch-and-bound loop search, sparse
+    /// optimisation with a robust kernel; `algorithms/grid_slam/src/backend.rs`) and writes the
+    /// grid and `grid_slam.tum` from the optimised poses; `"none"` writes the filter's own.
+    pub back_end: BackEndKind,
+    /// The pose-graph back end's settings (every key documented in
+    /// `algorithms/grid_slam/src/backend.rs`).
+    pub pose_graph: BackEndConfig,
     /// Longest a scan waits for odometry up to its stamp, in data time, s: once a later scan is
     /// this far past it and the odometry is not, the scan goes with the latest odometry (counted).
     pub odometry_wait_s: f64,
@@ -49,6 +58,8 @@ impl Default for GridSlamSettings {
     fn default() -> Self {
         Self {
             filter: GridSlamConfig::default(),
+            back_end: BackEndKind::PoseGraph,
+            pose_graph: BackEndConfig::default(),
             odometry_wait_s: 0.5,
             grid_every_s: 5.0,
             publish_particles: true,
@@ -69,6 +80,13 @@ impl ProcessSettings for GridSlamSettings {
                 _ => "",
             };
             issues.push(format!("{key}.filter.{k}"), e.to_string());
+        }
+        if let Err(e) = self.pose_graph.validate() {
+            let k = match &e {
+                grid_slam::GridSlamError::Config { key: k, .. } => k.trim_start_matches("back_end."),
+                _ => "",
+            };
+            issues.push(format!("{key}.pose_graph.{k}"), e.to_string());
         }
         issues.check(
             self.odometry_wait_s.is_finite() && self.odometry_wait_s >= 0.0,
@@ -93,6 +111,16 @@ impl ProcessSettings for GridSlamSettings {
         // The grid service: 1 MiB initial slices, a few in flight.
         8 << 20
     }
+}
+
+/// The back end behind the filter.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BackEndKind {
+    /// Pose graph with loop closures (Hess et al. 2016), run at the end.
+    PoseGraph,
+    /// The filter's best particle only ([2D3D] as published).
+    None,
 }
 
 /// Most odometry samples kept while no scan takes them.

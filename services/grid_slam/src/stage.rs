@@ -5,6 +5,7 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
+use grid_slam::backend::{BackEnd, BackEndResult};
 use grid_slam::export::{Occupancy, write_tum2};
 use grid_slam::relations::{read_relations, score};
 use grid_slam::{GridSlam, GridSlamError, Pose2, ScanGeometry};
@@ -16,7 +17,7 @@ use shared_types::services::{
 };
 use shared_types::*;
 
-use crate::{GridSlamSettings, PendingScan, ScanQueue};
+use crate::{BackEndKind, GridSlamSettings, PendingScan, ScanQueue};
 
 /// `PlanarPose::flags` bit: the filter was updated at this scan.
 pub const POSE_UPDATED: u32 = 1;
@@ -38,6 +39,14 @@ pub struct GridSlamStage {
     queue: ScanQueue,
     geometry: Option<ScanGeometry>,
     filter: Option<GridSlam>,
+    /// The pose-graph back end's nodes (`back_end = "pose_graph"`).
+    back_end: Option<BackEnd>,
+    /// Its result, once run at the end.
+    closed: Option<BackEndResult>,
+    /// Seconds the back end took.
+    back_end_s: f64,
+    /// Why it failed, if it did (the filter's own outputs are written then).
+    back_end_error: Option<String>,
     /// Scans the filter refused, by kind.
     refused: BTreeMap<&'static str, u64>,
     last_grid_ns: Option<u64>,
@@ -171,6 +180,11 @@ impl GridSlamStage {
                 return Ok(());
             }
         };
+        if out.updated
+            && let Some(b) = self.back_end.as_mut()
+        {
+            b.add_node(out.update, f.prepare_scan(&scan.ranges));
+        }
         self.last_stamp_ns = scan.stamp_ns;
         let header = MsgHeader { stamp_ns: scan.stamp_ns, origin_ns: scan.origin_ns, ..Default::default() };
         let cov = f.covariance();
@@ -228,8 +242,47 @@ impl GridSlamStage {
         Ok(())
     }
 
+    /// Runs the back end over the filter's final path (once).
+    fn close_loops(&mut self, rt: &mut Runtime) {
+        let (Some(b), Some(f)) = (&self.back_end, &self.filter) else { return };
+        if self.closed.is_some() || self.back_end_error.is_some() {
+            return;
+        }
+        // Seconds of bounded work, not a hang: the heartbeat goes on meanwhile.
+        let _alive = rt.hold_heartbeat();
+        tracing::info!(nodes = b.len(), "pose graph: searching loop closures over the filter's final path");
+        let t0 = Instant::now();
+        match b.run(f) {
+            Ok(r) => {
+                let rep = &r.report;
+                tracing::info!(
+                    nodes = rep.nodes,
+                    submaps = rep.submaps,
+                    searched = rep.searched,
+                    loop_constraints = rep.loop_constraints,
+                    rejected = rep.rejected,
+                    mean_correction_m = rep.mean_correction_m,
+                    max_correction_m = rep.max_correction_m,
+                    "pose graph optimised in {:.1} s: the grid and grid_slam.tum are written from its poses",
+                    t0.elapsed().as_secs_f64()
+                );
+                self.closed = Some(r);
+            }
+            Err(e) => {
+                tracing::warn!("pose graph failed, writing the filter's own path and map: {e}");
+                self.back_end_error = Some(e.to_string());
+            }
+        }
+        self.back_end_s = t0.elapsed().as_secs_f64();
+    }
+
+    /// The final grid: the back end's when it ran, else the best particle's.
+    fn final_grid(&self) -> Option<&grid_slam::grid::Grid> {
+        self.closed.as_ref().map(|r| &r.grid).or_else(|| self.filter.as_ref().and_then(|f| f.best_grid()))
+    }
+
     fn publish_grid(&mut self, header: MsgHeader) -> Result<(), StageError> {
-        let Some(g) = self.filter.as_ref().and_then(|f| f.best_grid()) else { return Ok(()) };
+        let Some(g) = self.final_grid() else { return Ok(()) };
         let occ = Occupancy::from_grid(g, self.settings.grid_margin_cells);
         if occ.data.is_empty() {
             return Ok(());
@@ -255,10 +308,14 @@ impl GridSlamStage {
             tracing::warn!("no scan was processed: no map, no trajectory");
             return Ok(serde_json::json!({ "grid_slam": { "scans": 0, "rejected": rejected } }));
         };
-        let traj = f.trajectory();
+        let front_traj = f.trajectory();
+        let traj = match &self.closed {
+            Some(r) => f.trajectory_with(&r.nodes),
+            None => front_traj.clone(),
+        };
         write_tum2(&self.out_dir.join("grid_slam.tum"), &traj).map_err(StageError::stage)?;
         let mut grid_part = serde_json::Value::Null;
-        if let Some(g) = f.best_grid() {
+        if let Some(g) = self.final_grid() {
             let occ = Occupancy::from_grid(g, self.settings.grid_margin_cells);
             occ.write_map_server(&self.out_dir, "grid").map_err(StageError::stage)?;
             let path: Vec<Pose2> = traj.iter().map(|p| p.1).collect();
@@ -288,6 +345,13 @@ impl GridSlamStage {
                         "peak_over_one_map": mem.map(|m| m.bytes as f64 / one_map.max(1) as f64) },
             "grid": grid_part,
             "trajectory": "grid_slam.tum",
+            "back_end": {
+                "kind": self.settings.back_end,
+                "report": self.closed.as_ref().map(|r| &r.report),
+                "wall_s": self.back_end_s,
+                "error": self.back_end_error,
+                "scans_bytes": self.back_end.as_ref().map(|b| b.bytes()),
+            },
             "wall_s": self.started.elapsed().as_secs_f64(),
         }});
         let n_rejected: u64 = rejected.values().sum();
@@ -320,6 +384,20 @@ impl GridSlamStage {
                         grid_slam::relations::FAR_OFF_M
                     );
                     part["grid_slam"]["relations"] = serde_json::to_value(s)?;
+                    if self.closed.is_some() {
+                        let fs = score(&front_traj, &rel, self.settings.relations_offset_s, 2.0);
+                        tracing::info!(
+                            "relations of the filter alone (before the pose graph): {:.4} ± {:.4} m, {:.3} deg; over {:.0} s: {:.4} m; {:.1} % over {} m",
+                            fs.trans_mean_m,
+                            fs.trans_std_m,
+                            fs.rot_mean_deg,
+                            grid_slam::relations::LONG_SPAN_S,
+                            fs.long_trans_mean_m,
+                            100.0 * fs.over_far_share,
+                            grid_slam::relations::FAR_OFF_M
+                        );
+                        part["grid_slam"]["relations_front_end"] = serde_json::to_value(fs)?;
+                    }
                 }
                 Err(e) => tracing::warn!("relations not scored: {e}"),
             }
@@ -376,9 +454,14 @@ impl Stage for GridSlamStage {
         let pose3d = rt.output(GRID_SLAM_POSE3D)?;
         let particles = rt.output_slice(GRID_SLAM_PARTICLES, settings.filter.particles.max(1))?;
         let grid = rt.output_slice(GRID_SLAM_GRID, 1024 * 1024)?;
+        let back_end = match settings.back_end {
+            BackEndKind::PoseGraph => Some(BackEnd::new(settings.pose_graph).map_err(StageError::stage)?),
+            BackEndKind::None => None,
+        };
         tracing::info!(
             particles = settings.filter.particles,
             resolution_m = settings.filter.resolution_m,
+            back_end = ?settings.back_end,
             "grid SLAM ready"
         );
         Ok(Self {
@@ -392,6 +475,10 @@ impl Stage for GridSlamStage {
             queue: ScanQueue::default(),
             geometry: None,
             filter: None,
+            back_end,
+            closed: None,
+            back_end_s: 0.0,
+            back_end_error: None,
             refused: BTreeMap::new(),
             last_grid_ns: None,
             last_snapshot_ns: None,
@@ -458,10 +545,11 @@ impl Stage for GridSlamStage {
         Ok(0)
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
         if ending == Ending::Stopped {
             tracing::info!(poses = self.pose.sent(), "stopped early: writing the outputs so far");
         } else if self.filter.is_some() {
+            self.close_loops(rt);
             // The last grid, so a viewer has the final map.
             let h = MsgHeader { stamp_ns: self.last_stamp_ns, ..Default::default() };
             self.publish_grid(h)?;

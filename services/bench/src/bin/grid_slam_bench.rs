@@ -14,6 +14,7 @@
 use anyhow::{Context, Result, bail};
 use clap::Parser;
 use datasets::carmen::{OdometrySource, read_carmen};
+use grid_slam::backend::{BackEnd, BackEndConfig};
 use grid_slam::drift::DriftModel;
 use grid_slam::export::{Occupancy, write_tum2};
 use grid_slam::relations::{read_relations, score};
@@ -56,6 +57,12 @@ struct Args {
     /// Print the particles' map memory after every filter update (stderr) and its distribution.
     #[arg(long)]
     mem_trace: bool,
+    /// The filter alone: no pose-graph back end (`back_end = "none"`).
+    #[arg(long)]
+    front_end_only: bool,
+    /// Back-end settings as TOML (the `[back_end]` keys of a pipeline config's `pose_graph`), over the defaults.
+    #[arg(long)]
+    back_end_settings: Option<PathBuf>,
     /// Where the maps and trajectories go.
     #[arg(long, default_value = "target/grid_slam_bench")]
     out: PathBuf,
@@ -109,6 +116,11 @@ fn main() -> Result<()> {
     if let Some(p) = &args.settings {
         let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
         base = toml::from_str(&text).with_context(|| format!("{}: not valid grid_slam settings", p.display()))?;
+    }
+    let mut be_cfg = BackEndConfig::default();
+    if let Some(p) = &args.back_end_settings {
+        let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+        be_cfg = toml::from_str(&text).with_context(|| format!("{}: not valid back-end settings", p.display()))?;
     }
     std::fs::create_dir_all(&args.out)?;
     println!(
@@ -181,23 +193,64 @@ fn main() -> Result<()> {
                     ..base.clone()
                 };
                 let mut f = GridSlam::new(cfg, geom)?;
+                let mut back_end = BackEnd::new(be_cfg)?;
                 let t0 = Instant::now();
                 let mut refused = 0;
                 let mut mem_trace: Vec<f64> = Vec::new();
                 for ((i, _), odom) in scans.iter().zip(&drifted) {
                     let s = &log.scans[*i];
                     match f.process(s.stamp_s, *odom, &s.ranges) {
-                        Ok(o) if o.updated && args.mem_trace => {
-                            let m = f.memory();
-                            mem_trace.push(m.bytes as f64 / 1e6);
-                            eprintln!("mem update={} bytes={} resampled={}", f.stats().updates, m.bytes, o.resampled);
+                        Ok(o) => {
+                            if o.updated && !args.front_end_only {
+                                back_end.add_node(o.update, f.prepare_scan(&s.ranges));
+                            }
+                            if o.updated && args.mem_trace {
+                                let m = f.memory();
+                                mem_trace.push(m.bytes as f64 / 1e6);
+                                eprintln!(
+                                    "mem update={} bytes={} resampled={}",
+                                    f.stats().updates,
+                                    m.bytes,
+                                    o.resampled
+                                );
+                            }
                         }
-                        Ok(_) => {}
                         Err(_) => refused += 1,
                     }
                 }
+                let front_wall = t0.elapsed().as_secs_f64();
+                let front_traj = f.trajectory();
+                let front_sc = score(&front_traj, &relations, set.offset_s, 2.0);
+                let mut back_grid = None;
+                let traj = if args.front_end_only {
+                    front_traj
+                } else {
+                    let r = back_end.run(&f)?;
+                    let b = &r.report;
+                    println!(
+                        "       front end: {:.4}±{:.4} m, {:.3}°, >60 s {:.4} m, >0.5 m {:.1}% in {:.1} s; back end: {} nodes, {} submaps, {} searched, {} matches, {} loop constraints ({} rejected), correction mean {:.3} max {:.3} m, {} iterations, {:.1} s",
+                        front_sc.trans_mean_m,
+                        front_sc.trans_std_m,
+                        front_sc.rot_mean_deg,
+                        front_sc.long_trans_mean_m,
+                        100.0 * front_sc.over_far_share,
+                        front_wall,
+                        b.nodes,
+                        b.submaps,
+                        b.searched,
+                        b.matches,
+                        b.loop_constraints,
+                        b.rejected,
+                        b.mean_correction_m,
+                        b.max_correction_m,
+                        b.iterations,
+                        t0.elapsed().as_secs_f64() - front_wall
+                    );
+                    let t = f.trajectory_with(&r.nodes);
+                    back_grid = Some(r.grid);
+                    t
+                };
                 let wall = t0.elapsed().as_secs_f64();
-                let traj = f.trajectory();
                 let sc = score(&traj, &relations, set.offset_s, 2.0);
                 let st = f.stats();
                 // Peak bytes of all particles' distinct tiles against one map: the one-particle run's
@@ -271,7 +324,7 @@ fn main() -> Result<()> {
                 });
                 let stem = format!("{}_s{}_{}", set.name, seed, n);
                 write_tum2(&args.out.join(format!("{stem}.tum")), &traj)?;
-                if let Some(g) = f.best_grid() {
+                if let Some(g) = back_grid.as_ref().or(f.best_grid()) {
                     let occ = Occupancy::from_grid(g, 5);
                     occ.write_map_server(&args.out, &stem)?;
                     let path: Vec<Pose2> = traj.iter().map(|p| p.1).collect();
