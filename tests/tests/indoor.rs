@@ -60,6 +60,12 @@ real_time_factor = 0.0
     let m = &summary["octree_mapper"];
     eprintln!("ATE {ate:.3} m; grid_slam {g}; mapper counters {} rebuild {}", m["counters"], m["rebuild"]);
     assert!(ate <= 0.05, "ATE {ate}");
+    // The pose graph ran behind the filter (the default) and closed the laps' loops.
+    let be = &g["back_end"];
+    assert_eq!(be["kind"], "pose_graph", "{be}");
+    assert!(be["error"].is_null(), "{be}");
+    assert!(be["report"]["loop_constraints"].as_u64().unwrap() > 20, "{be}");
+    assert!(be["report"]["max_correction_m"].as_f64().unwrap() < 0.5, "{be}");
     assert_eq!(g["scans"], summary["ingest"]["messages"]["laser"], "every scan mapped");
     let clouds = summary["ingest"]["messages"]["cloud"].as_u64().unwrap();
     assert_eq!(m["counters"]["clouds_inserted"], clouds, "every cloud in the live map: {m}");

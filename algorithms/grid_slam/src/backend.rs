@@ -193,6 +193,12 @@ pub struct BackEndReport {
     pub mean_correction_m: f64,
     /// Optimiser iterations over all rounds.
     pub iterations: usize,
+    /// Seconds spent building submaps and their search grids.
+    pub submaps_s: f64,
+    /// ... searching (wall time over the threads).
+    pub search_s: f64,
+    /// ... optimising.
+    pub optimise_s: f64,
 }
 
 /// The back end's result.
@@ -348,7 +354,7 @@ impl BackEnd {
                         };
                         let close = members
                             .clone()
-                            .any(|m| (est[m].x_m - est[i].x_m).hypot(est[m].y_m - est[i].y_m) <= w.linear_m + 3.0);
+                            .any(|m| (est[m].x_m - est[i].x_m).hypot(est[m].y_m - est[i].y_m) <= w.linear_m + 1.0);
                         close.then(|| (i, anchor_est.between(&est[i]), w))
                     })
                     .collect();
@@ -376,6 +382,7 @@ impl BackEnd {
                 if cands.is_empty() {
                     continue;
                 }
+                let t_build = std::time::Instant::now();
                 let mut grid = Grid::new(fcfg.resolution_m);
                 for m in members.clone() {
                     let local = anchor.between(&front[m]);
@@ -384,6 +391,8 @@ impl BackEnd {
                 let Some(lookup) = LookupGrid::new(&grid, fcfg.matcher.occupied_log_odds, cfg.depth) else {
                     continue;
                 };
+                report.submaps_s += t_build.elapsed().as_secs_f64();
+                let t_search = std::time::Instant::now();
                 for &(i, _, _) in &cands {
                     tried.insert((s0, i));
                 }
@@ -417,6 +426,7 @@ impl BackEnd {
                         });
                     }
                 });
+                report.search_s += t_search.elapsed().as_secs_f64();
                 let r = results.into_inner().unwrap_or_default();
                 found.extend(r.into_iter().map(|(i, pose)| (s0, i, pose)));
             }
@@ -434,6 +444,7 @@ impl BackEnd {
                 break;
             }
             // Optimise from the front end's poses, drop loop constraints that stay far off, again.
+            let t_opt = std::time::Instant::now();
             est = front.clone();
             let r = posegraph::optimize(&mut est, &edges, &params)?;
             report.iterations += r.iterations;
@@ -449,6 +460,7 @@ impl BackEnd {
                 let r = posegraph::optimize(&mut est, &edges, &params)?;
                 report.iterations += r.iterations;
             }
+            report.optimise_s += t_opt.elapsed().as_secs_f64();
         }
         report.loop_constraints = edges.len() - chain;
         let moves: Vec<f64> = est.iter().zip(&front).map(|(a, b)| (a.x_m - b.x_m).hypot(a.y_m - b.y_m)).collect();

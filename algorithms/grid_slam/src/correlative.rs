@@ -193,8 +193,35 @@ pub fn search(
             (th, cells)
         })
         .collect();
+    // Each rotation's cells relative to level 0's origin and their bounding box: a candidate
+    // whose box lies inside a level sums without a bounds test per point.
+    let rel: Vec<(Vec<(i32, i32)>, [i32; 4])> = rotations
+        .iter()
+        .map(|(_, cells)| {
+            let v: Vec<(i32, i32)> = cells.iter().map(|&(i, j)| (i - lookup.origin.0, j - lookup.origin.1)).collect();
+            let b = v.iter().fold([i32::MAX, i32::MAX, i32::MIN, i32::MIN], |b, &(x, y)| {
+                [b[0].min(x), b[1].min(y), b[2].max(x), b[3].max(y)]
+            });
+            (v, b)
+        })
+        .collect();
     let score_at = |h: u32, r: usize, dx: i32, dy: i32| -> u64 {
-        rotations[r].1.iter().map(|&(i, j)| lookup.get(h, i + dx, j + dy) as u64).sum()
+        let shift = (1i32 << h) - 1;
+        let (w, hh) = (lookup.width + shift, lookup.height + shift);
+        let level = &lookup.levels[h as usize];
+        let (cells, b) = &rel[r];
+        let (ox, oy) = (dx + shift, dy + shift);
+        if b[0] + ox >= 0 && b[1] + oy >= 0 && b[2] + ox < w && b[3] + oy < hh {
+            cells.iter().map(|&(x, y)| level[((y + oy) * w + x + ox) as usize] as u64).sum()
+        } else {
+            cells
+                .iter()
+                .map(|&(x, y)| {
+                    let (x, y) = (x + ox, y + oy);
+                    if x < 0 || y < 0 || x >= w || y >= hh { 0 } else { level[(y * w + x) as usize] as u64 }
+                })
+                .sum()
+        }
     };
     let n = points.len() as f64;
     let threshold = (min_score * 255.0 * n).ceil() as u64;
