@@ -149,6 +149,9 @@ pub struct Match {
     pub score: f64,
 }
 
+/// One rotation's point cells relative to level 0's origin, and their box (min x, min y, max x, max y).
+type RotatedCells = (Vec<(i32, i32)>, [i32; 4]);
+
 struct Candidate {
     rotation: usize,
     dx: i32,
@@ -195,7 +198,7 @@ pub fn search(
         .collect();
     // Each rotation's cells relative to level 0's origin and their bounding box: a candidate
     // whose box lies inside a level sums without a bounds test per point.
-    let rel: Vec<(Vec<(i32, i32)>, [i32; 4])> = rotations
+    let rel: Vec<RotatedCells> = rotations
         .iter()
         .map(|(_, cells)| {
             let v: Vec<(i32, i32)> = cells.iter().map(|&(i, j)| (i - lookup.origin.0, j - lookup.origin.1)).collect();
