@@ -4,9 +4,13 @@
 //! summary.json's `ate_m.grid_slam`), the heading error at the end and the wall time.
 //!
 //! `cargo run --release -p grid_slam --example indoor_eval -- --sim-seeds 1 --filter-seeds 1-4 [--particles 30]`
+//! `[--building ring]` (the 148 m corridor ring) `[--back-end]` (the pose graph behind the filter):
+//! then also the share of the final grid's occupied cells more than 0.1 m from every true surface
+//! in the laser's plane (double walls where a loop is not closed).
 
+use grid_slam::backend::{BackEnd, BackEndConfig};
 use grid_slam::{GridSlam, GridSlamConfig, Pose2, ScanGeometry};
-use sim::indoor::{IndoorConfig, IndoorEvent, IndoorSim};
+use sim::indoor::{Building, IndoorConfig, IndoorEvent, IndoorScene, IndoorSim};
 use std::time::Instant;
 
 fn seeds(s: &str) -> Vec<u64> {
@@ -26,10 +30,15 @@ fn main() {
     let particles: usize = arg("--particles").map_or(30, |v| v.parse().expect("--particles"));
     let trace = args.iter().any(|a| a == "--trace");
     let threads: usize = arg("--threads").map_or(2, |v| v.parse().expect("--threads"));
-    println!("sim_seed filter_seed  ate_m  final_yaw_err_deg  max_err_m  updates resamples  wall_s");
+    let ring = arg("--building").is_some_and(|b| b == "ring");
+    let back_end = args.iter().any(|a| a == "--back-end");
+    println!("sim_seed filter_seed  ate_m  final_yaw_err_deg  max_err_m  updates resamples  wall_s  off_walls");
     let mut all = Vec::new();
     for &ss in &sim_seeds {
         let mut sc = IndoorConfig { seed: ss, ..Default::default() };
+        if ring {
+            sc.building = Building::Ring;
+        }
         sc.depth.rate_hz = 0.0;
         if args.iter().any(|a| a == "--perfect-odometry") {
             sc.odometry.wheel_scale = [0.0; 3];
@@ -99,6 +108,7 @@ fn main() {
                 cfg.motion.str_ = v;
             }
             let mut f = GridSlam::new(cfg, geom).expect("filter");
+            let mut be = BackEnd::new(BackEndConfig { threads, ..Default::default() }).expect("back end");
             let started = Instant::now();
             let mut odom = Pose2::default();
             for e in &events {
@@ -106,6 +116,9 @@ fn main() {
                     IndoorEvent::Odometry { pose, .. } => odom = *pose,
                     IndoorEvent::Laser { t_s, ranges } => {
                         let out = f.process(*t_s, odom, ranges).expect("scan");
+                        if back_end && out.updated {
+                            be.add_node(out.update, f.prepare_scan(ranges));
+                        }
                         if trace && out.updated {
                             let k = truth.partition_point(|(s, _)| s < t_s).min(truth.len() - 1);
                             let tp = truth[k].1;
@@ -122,8 +135,14 @@ fn main() {
                     IndoorEvent::Cloud { .. } => {}
                 }
             }
+            let closed = back_end.then(|| be.run(&f).expect("pose graph"));
             let wall = started.elapsed().as_secs_f64();
-            let traj = f.trajectory();
+            let traj = match &closed {
+                Some(r) => f.trajectory_with(&r.nodes),
+                None => f.trajectory(),
+            };
+            let grid = closed.as_ref().map(|r| &r.grid).or(f.best_grid()).expect("a map");
+            let off = off_walls(grid, sim.scene(), sc.laser.height_m);
             let (mut sum, mut max) = (0.0, 0.0f64);
             for (t, p) in &truth {
                 let k = traj.partition_point(|(s, _)| s < t);
@@ -143,9 +162,14 @@ fn main() {
             let yaw = omni::wrap_angle(est.theta_rad - last.theta_rad).to_degrees();
             let st = f.stats();
             println!(
-                "{ss:8} {fs:11}  {ate:.4}  {yaw:17.3}  {max:9.3}  {:7} {:9}  {wall:6.1}",
-                st.updates, st.resamples
+                "{ss:8} {fs:11}  {ate:.4}  {yaw:17.3}  {max:9.3}  {:7} {:9}  {wall:6.1}  {:8.2}%",
+                st.updates,
+                st.resamples,
+                100.0 * off
             );
+            if let Some(r) = &closed {
+                println!("         pose graph: {:?}", r.report);
+            }
             all.push(ate);
         }
     }
@@ -153,6 +177,32 @@ fn main() {
     let worst = all.iter().cloned().fold(0.0, f64::max);
     let within = all.iter().filter(|a| **a <= 0.05).count();
     println!("mean ATE {mean:.4} m, worst {worst:.4} m, {within} of {} runs <= 0.05 m", all.len());
+}
+
+/// Share of the grid's occupied cells whose centre is more than 0.1 m from every box that
+/// crosses the laser's plane (`height_m`).
+fn off_walls(grid: &grid_slam::grid::Grid, scene: &IndoorScene, height_m: f64) -> f64 {
+    let Some((i0, j0, i1, j1)) = grid.known_bounds() else { return 0.0 };
+    let boxes: Vec<_> = scene.boxes.iter().filter(|b| b.min[2] <= height_m && b.max[2] >= height_m).collect();
+    let (mut occ, mut off) = (0usize, 0usize);
+    for j in j0..=j1 {
+        for i in i0..=i1 {
+            if grid.log_odds(i, j) <= 0.0 {
+                continue;
+            }
+            occ += 1;
+            let (x, y) = grid.centre_of(i, j);
+            let near = boxes.iter().any(|b| {
+                let dx = (b.min[0] - x).max(x - b.max[0]).max(0.0);
+                let dy = (b.min[1] - y).max(y - b.max[1]).max(0.0);
+                dx.hypot(dy) <= 0.1
+            });
+            if !near {
+                off += 1;
+            }
+        }
+    }
+    if occ == 0 { 0.0 } else { off as f64 / occ as f64 }
 }
 
 /// Matcher probe: a map built at the true poses (one scan per 0.5 m), each new scan matched from

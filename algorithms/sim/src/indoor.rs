@@ -37,6 +37,17 @@ impl Box3 {
         Self { min, max, what }
     }
 
+    /// This wall piece grown `by` metres outwards from the building on side `side` (n, e, s, w).
+    fn extended(mut self, side: char, by: f64) -> Self {
+        match side {
+            'w' => self.min[0] -= by,
+            'e' => self.max[0] += by,
+            'n' => self.max[1] += by,
+            _ => self.min[1] -= by,
+        }
+        self
+    }
+
     /// Whether the point is inside.
     pub fn contains(&self, p: &[f64; 3]) -> bool {
         (0..3).all(|i| p[i] >= self.min[i] && p[i] <= self.max[i])
@@ -64,6 +75,17 @@ impl Box3 {
     }
 }
 
+/// Which building the indoor mission drives through.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Building {
+    /// [`IndoorScene::two_rooms`] with the loop [`WAYPOINTS`] (`laps` times).
+    TwoRooms,
+    /// [`IndoorScene::ring`]: one lap of a 148 m corridor ring ([`RING_WAYPOINTS`], `laps` is
+    /// ignored), then 27 m more along the first corridor: the loop closes after 148 m.
+    Ring,
+}
+
 /// The building: walls, furniture and floor.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct IndoorScene {
@@ -72,6 +94,87 @@ pub struct IndoorScene {
 }
 
 impl IndoorScene {
+    /// A ring of corridors 2 m wide around a 38 × 32 m block (outer walls 42 × 36 m; the
+    /// corridors' centre line is a 40 × 34 m rectangle, 148 m), 2.5 m high, with what real
+    /// corridors hold at irregular spacing so that no stretch of wall is featureless for the
+    /// 12 m laser: door recesses (1.2 m wide, 0.4 m deep) in the outer wall, cabinets and
+    /// radiators along both walls, a pillar in two outer corners.
+    pub fn ring() -> Self {
+        let h = 2.5;
+        let t = 0.15;
+        let (ox, oy, ix, iy) = (21.0, 18.0, 19.0, 16.0);
+        let mut b = vec![
+            Box3::new("floor", [-ox - 1.0, -oy - 1.0, -0.1], [ox + 1.0, oy + 1.0, 0.0]),
+            // The inner block (solid: offices the robot does not enter).
+            Box3::new("wall", [-ix, -iy, 0.0], [ix, iy, h]),
+        ];
+        // Door recesses in the outer wall: (side, position along it), irregular.
+        let recesses: [(char, &[f64]); 4] = [
+            ('w', &[-12.5, -3.0, 4.5, 13.0]),
+            ('n', &[-14.0, -6.5, 1.0, 11.5, 17.0]),
+            ('e', &[-11.0, -1.5, 8.0]),
+            ('s', &[-16.0, -4.0, 3.5, 9.0, 15.5]),
+        ];
+        let half = 0.6;
+        let depth = 0.4;
+        // Each outer wall in segments between its recesses, and the recess' back wall.
+        for (side, at) in recesses {
+            let (lo, hi) = match side {
+                'w' | 'e' => (-oy, oy),
+                _ => (-ox, ox),
+            };
+            let mut cuts: Vec<f64> = at.to_vec();
+            cuts.sort_by(f64::total_cmp);
+            let mut from = lo - t;
+            let mut pieces = vec![];
+            for c in &cuts {
+                pieces.push((from, c - half));
+                from = c + half;
+            }
+            pieces.push((from, hi + t));
+            let wall = |a: f64, b: f64, off: f64| -> Box3 {
+                match side {
+                    'w' => Box3::new("wall", [-ox - off - t, a, 0.0], [-ox - off, b, h]),
+                    'e' => Box3::new("wall", [ox + off, a, 0.0], [ox + off + t, b, h]),
+                    'n' => Box3::new("wall", [a, oy + off, 0.0], [b, oy + off + t, h]),
+                    _ => Box3::new("wall", [a, -oy - off - t, 0.0], [b, -oy - off, h]),
+                }
+            };
+            for (a, z) in pieces {
+                b.push(wall(a, z, 0.0));
+            }
+            for c in &cuts {
+                // Back and the two jambs of the recess.
+                b.push(wall(c - half - t, c + half + t, depth));
+                b.push(wall(c - half - t, c - half, 0.0).extended(side, depth));
+                b.push(wall(c + half, c + half + t, 0.0).extended(side, depth));
+            }
+        }
+        // Furniture along the corridors (in the laser's plane): (what, x0, y0, x1, y1).
+        let items: [(&'static str, [f64; 4]); 14] = [
+            ("cabinet", [-21.0, -7.0, -20.5, -6.0]),
+            ("radiator", [-19.0, 1.0, -18.8, 2.8]),
+            ("cabinet", [-21.0, 9.0, -20.4, 10.2]),
+            ("radiator", [-9.5, 16.0, -7.5, 16.2]),
+            ("cabinet", [4.0, 17.4, 5.5, 18.0]),
+            ("radiator", [7.0, 16.0, 9.5, 16.2]),
+            ("cabinet", [20.4, 12.0, 21.0, 13.5]),
+            ("radiator", [18.8, 3.0, 19.0, 5.5]),
+            ("cabinet", [20.5, -6.0, 21.0, -4.8]),
+            ("radiator", [18.8, -14.0, 19.0, -12.0]),
+            ("cabinet", [11.0, -18.0, 12.3, -17.4]),
+            ("radiator", [-1.0, -16.2, 1.5, -16.0]),
+            ("cabinet", [-10.0, -18.0, -9.0, -17.5]),
+            ("radiator", [-15.5, -16.2, -13.5, -16.0]),
+        ];
+        for (what, [x0, y0, x1, y1]) in items {
+            b.push(Box3::new(what, [x0, y0, 0.0], [x1, y1, 1.0]));
+        }
+        b.push(Box3::new("pillar", [20.4, 17.4, 0.0], [20.8, 17.8, h]));
+        b.push(Box3::new("pillar", [-20.8, -17.8, 0.0], [-20.4, -17.4, h]));
+        Self { boxes: b }
+    }
+
     /// The building: two 8 × 10 m rooms joined by a 1.4 m door at x = 0, and a 16 × 1.9 m
     /// corridor along their north side that each room opens onto by a 1.2 m door; 2.5 m high.
     pub fn two_rooms() -> Self {
@@ -268,11 +371,14 @@ pub struct IndoorConfig {
     pub odometry: OmniOdometryConfig,
     /// The depth camera.
     pub depth: IndoorDepthConfig,
+    /// The building and its path.
+    pub building: Building,
 }
 
 impl Default for IndoorConfig {
     fn default() -> Self {
         Self {
+            building: Building::TwoRooms,
             seed: 11,
             speed_mps: 0.4,
             laps: 2,
@@ -337,6 +443,12 @@ pub const WAYPOINTS: [[f64; 2]; 10] = [
     [1.5, 0.0],
     [-1.5, 0.0],
 ];
+
+/// The ring building's path ([`IndoorScene::ring`]): along the corridors' centre line
+/// counter-clockwise from the west corridor, once round (148 m), then on to 12 m past the start
+/// and back to it.
+pub const RING_WAYPOINTS: [[f64; 2]; 6] =
+    [[-20.0, -10.0], [-20.0, 17.0], [20.0, 17.0], [20.0, -17.0], [-20.0, -17.0], [-20.0, 2.0]];
 
 /// What the simulator emits.
 #[derive(Debug, Clone, PartialEq)]
@@ -413,8 +525,12 @@ impl IndoorSim {
             .map_err(|e| crate::SimError::Config(vec![("odometry".into(), e.to_string())]))?;
         let mut path = Vec::new();
         let mut s = 0.0;
-        for _ in 0..cfg.laps {
-            for w in WAYPOINTS.iter() {
+        let (waypoints, laps): (&[[f64; 2]], u32) = match cfg.building {
+            Building::TwoRooms => (&WAYPOINTS, cfg.laps),
+            Building::Ring => (&RING_WAYPOINTS, 1),
+        };
+        for _ in 0..laps {
+            for w in waypoints.iter() {
                 if let Some((last, _)) = path.last() {
                     let last: &[f64; 2] = last;
                     s += (w[0] - last[0]).hypot(w[1] - last[1]);
@@ -422,16 +538,19 @@ impl IndoorSim {
                 path.push((*w, s));
             }
         }
-        let first = WAYPOINTS[0];
+        let first = waypoints[0];
         let last = path.last().map(|p| p.0).unwrap_or(first);
         s += (first[0] - last[0]).hypot(first[1] - last[1]);
         path.push((first, s));
         let seed = cfg.seed;
         let dt_s = 1.0 / cfg.odometry.rate_hz;
-        let start_dir = (WAYPOINTS[1][1] - first[1]).atan2(WAYPOINTS[1][0] - first[0]);
+        let start_dir = (waypoints[1][1] - first[1]).atan2(waypoints[1][0] - first[0]);
         let start = Pose2 { x_m: first[0], y_m: first[1], theta_rad: start_dir };
         Ok(Self {
-            scene: IndoorScene::two_rooms(),
+            scene: match cfg.building {
+                Building::TwoRooms => IndoorScene::two_rooms(),
+                Building::Ring => IndoorScene::ring(),
+            },
             base,
             path,
             total_m: s,
