@@ -170,6 +170,15 @@ fn main() {
             if let Some(r) = &closed {
                 println!("         pose graph: {:?}", r.report);
             }
+            if let (Some(n), Some(m)) = (f.n_eff_summary(), f.peak_memory()) {
+                println!(
+                    "         N_eff/N median {:.2}, lineages per 50 updates {:.1}, maps' peak {:.1} MB = {:.2}x the best map",
+                    n.median_share,
+                    n.lineages_mean.unwrap_or(f64::NAN),
+                    m.bytes as f64 / 1e6,
+                    m.bytes as f64 / f.memory().best_bytes.max(1) as f64
+                );
+            }
             all.push(ate);
         }
     }
