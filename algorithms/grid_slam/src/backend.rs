@@ -267,6 +267,23 @@ impl BackEnd {
     /// As [`BackEnd::run`] with the front end's poses per update `path` and its settings.
     pub fn optimize(&self, path: &[Option<Pose2>], fcfg: &GridSlamConfig) -> Result<BackEndResult, GridSlamError> {
         let cfg = &self.cfg;
+        // Every update needs its pose and scan: a filter restored from a snapshot has neither for
+        // the updates before it, and a graph of the rest would rebuild the map without them.
+        let missing = (0..path.len())
+            .filter(|&k| path[k].is_none() || self.scans.get(k).is_none_or(|s| s.is_none()))
+            .count();
+        if missing > 0 {
+            return Err(GridSlamError::Optimisation {
+                why: format!(
+                    "{missing} of {} filter updates have no pose or no scan (a filter restored from a snapshot keeps \
+                     neither for the updates before it): the pose graph needs them all",
+                    path.len()
+                ),
+            });
+        }
+        if path.len() < 2 {
+            return Err(GridSlamError::Optimisation { why: format!("{} filter update(s): nothing to optimise", path.len()) });
+        }
         // The nodes: updates with a pose and a scan.
         let ids: Vec<usize> =
             (0..path.len()).filter(|&k| path[k].is_some() && self.scans.get(k).is_some_and(|s| s.is_some())).collect();
@@ -476,5 +493,31 @@ impl BackEnd {
             nodes[k] = Some(est[j]);
         }
         Ok(BackEndResult { nodes, grid, report })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Updates without a pose or a scan (a filter restored from a snapshot) are refused with a
+    /// reason, as is a path too short to optimise; bad settings name their key.
+    #[test]
+    fn incomplete_paths_and_bad_settings_are_refused() {
+        let cfg = GridSlamConfig::default();
+        let mut b = BackEnd::new(BackEndConfig::default()).expect("defaults are valid");
+        let p = Pose2::default();
+        b.add_node(1, PreparedScan::default());
+        b.add_node(2, PreparedScan::default());
+        let e = b.optimize(&[None, Some(p), Some(p)], &cfg).unwrap_err().to_string();
+        assert!(e.contains("1 of 3") && e.contains("snapshot"), "{e}");
+        let e = b.optimize(&[Some(p), Some(p), Some(p)], &cfg).unwrap_err().to_string();
+        assert!(e.contains("1 of 3"), "update 0 has no scan: {e}");
+        let e = BackEnd::new(BackEndConfig::default()).expect("valid").optimize(&[Some(p)], &cfg).unwrap_err();
+        assert!(e.to_string().contains("nothing to optimise"), "{e}");
+        let bad = BackEndConfig { min_score: 1.5, ..Default::default() };
+        assert!(BackEnd::new(bad).unwrap_err().to_string().contains("back_end.min_score"));
+        let bad = BackEndConfig { angular_window_max_rad: 4.0, ..Default::default() };
+        assert!(BackEnd::new(bad).unwrap_err().to_string().contains("angular_window_max_rad"));
     }
 }
