@@ -639,6 +639,18 @@ impl Stage for ViewerStage {
     }
 
     fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+        // What came last reaches the clients before the server closes, the final map above all
+        // (the octree is otherwise sent at most `octree_max_hz`, and the run's last voxels may
+        // be held back by that rate when the run ends).
+        if let Err(e) = self.drain_octree() {
+            tracing::warn!("the last voxels could not be read: {e}");
+        }
+        if self.octree_dirty && self.octree_ch.has_sinks() {
+            self.octree_dirty = false;
+            self.count("/octree").logged += 1;
+            let m = fx::voxels(self.octree_stamp, self.octree.values());
+            self.octree_ch.log(&m);
+        }
         if let Some(s) = self.server.take() {
             // A client that stopped reading can hold the server's close up: wait a second at
             // most (the summary part must reach the supervisor before its stop timeout).
