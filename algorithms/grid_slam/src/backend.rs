@@ -115,58 +115,58 @@ impl BackEndConfig {
         let pos = |v: f64| v.is_finite() && v > 0.0;
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
         if self.submap_nodes < 2 {
-            return bad("back_end.submap_nodes", "must be at least 2");
+            return bad("pose_graph.submap_nodes", "must be at least 2");
         }
         if self.search_every == 0 {
-            return bad("back_end.search_every", "must be at least 1");
+            return bad("pose_graph.search_every", "must be at least 1");
         }
         if !(self.min_score > 0.0 && self.min_score <= 1.0) {
-            return bad("back_end.min_score", "must be in (0, 1]");
+            return bad("pose_graph.min_score", "must be in (0, 1]");
         }
         for (k, v) in [
-            ("back_end.window_base_m", self.window_base_m),
-            ("back_end.angular_window_base_rad", self.angular_window_base_rad),
-            ("back_end.odometry_sigma_m", self.odometry_sigma_m),
-            ("back_end.odometry_sigma_rad", self.odometry_sigma_rad),
-            ("back_end.loop_sigma_m", self.loop_sigma_m),
-            ("back_end.loop_sigma_rad", self.loop_sigma_rad),
-            ("back_end.huber", self.huber),
-            ("back_end.outlier_chi2", self.outlier_chi2),
+            ("pose_graph.window_base_m", self.window_base_m),
+            ("pose_graph.angular_window_base_rad", self.angular_window_base_rad),
+            ("pose_graph.odometry_sigma_m", self.odometry_sigma_m),
+            ("pose_graph.odometry_sigma_rad", self.odometry_sigma_rad),
+            ("pose_graph.loop_sigma_m", self.loop_sigma_m),
+            ("pose_graph.loop_sigma_rad", self.loop_sigma_rad),
+            ("pose_graph.huber", self.huber),
+            ("pose_graph.outlier_chi2", self.outlier_chi2),
         ] {
             if !pos(v) {
                 return bad(k, "must be finite and > 0");
             }
         }
         for (k, v) in [
-            ("back_end.window_per_m", self.window_per_m),
-            ("back_end.angular_window_per_m", self.angular_window_per_m),
-            ("back_end.odometry_sigma_per_m", self.odometry_sigma_per_m),
-            ("back_end.odometry_sigma_per_rad", self.odometry_sigma_per_rad),
+            ("pose_graph.window_per_m", self.window_per_m),
+            ("pose_graph.angular_window_per_m", self.angular_window_per_m),
+            ("pose_graph.odometry_sigma_per_m", self.odometry_sigma_per_m),
+            ("pose_graph.odometry_sigma_per_rad", self.odometry_sigma_per_rad),
         ] {
             if !nonneg(v) {
                 return bad(k, "must be finite and >= 0");
             }
         }
         if !(self.window_max_m.is_finite() && self.window_max_m >= self.window_base_m) {
-            return bad("back_end.window_max_m", "must be finite and >= window_base_m");
+            return bad("pose_graph.window_max_m", "must be finite and >= window_base_m");
         }
         if !(self.angular_window_max_rad.is_finite()
             && self.angular_window_max_rad >= self.angular_window_base_rad
             && self.angular_window_max_rad <= std::f64::consts::PI)
         {
-            return bad("back_end.angular_window_max_rad", "must be >= angular_window_base_rad and <= π");
+            return bad("pose_graph.angular_window_max_rad", "must be >= angular_window_base_rad and <= π");
         }
         if self.max_per_visit == 0 {
-            return bad("back_end.max_per_visit", "must be at least 1");
+            return bad("pose_graph.max_per_visit", "must be at least 1");
         }
         if self.max_points < 10 {
-            return bad("back_end.max_points", "must be at least 10");
+            return bad("pose_graph.max_points", "must be at least 10");
         }
         if !(1..=10).contains(&self.depth) {
-            return bad("back_end.depth", "must be 1-10");
+            return bad("pose_graph.depth", "must be 1-10");
         }
         if self.rounds == 0 {
-            return bad("back_end.rounds", "must be at least 1");
+            return bad("pose_graph.rounds", "must be at least 1");
         }
         Ok(())
     }
@@ -269,9 +269,8 @@ impl BackEnd {
         let cfg = &self.cfg;
         // Every update needs its pose and scan: a filter restored from a snapshot has neither for
         // the updates before it, and a graph of the rest would rebuild the map without them.
-        let missing = (0..path.len())
-            .filter(|&k| path[k].is_none() || self.scans.get(k).is_none_or(|s| s.is_none()))
-            .count();
+        let missing =
+            (0..path.len()).filter(|&k| path[k].is_none() || self.scans.get(k).is_none_or(|s| s.is_none())).count();
         if missing > 0 {
             return Err(GridSlamError::Optimisation {
                 why: format!(
@@ -282,7 +281,9 @@ impl BackEnd {
             });
         }
         if path.len() < 2 {
-            return Err(GridSlamError::Optimisation { why: format!("{} filter update(s): nothing to optimise", path.len()) });
+            return Err(GridSlamError::Optimisation {
+                why: format!("{} filter update(s): nothing to optimise", path.len()),
+            });
         }
         // The nodes: updates with a pose and a scan.
         let ids: Vec<usize> =
@@ -516,7 +517,7 @@ mod tests {
         let e = BackEnd::new(BackEndConfig::default()).expect("valid").optimize(&[Some(p)], &cfg).unwrap_err();
         assert!(e.to_string().contains("nothing to optimise"), "{e}");
         let bad = BackEndConfig { min_score: 1.5, ..Default::default() };
-        assert!(BackEnd::new(bad).unwrap_err().to_string().contains("back_end.min_score"));
+        assert!(BackEnd::new(bad).unwrap_err().to_string().contains("pose_graph.min_score"));
         let bad = BackEndConfig { angular_window_max_rad: 4.0, ..Default::default() };
         assert!(BackEnd::new(bad).unwrap_err().to_string().contains("angular_window_max_rad"));
     }

@@ -83,7 +83,7 @@ impl ProcessSettings for GridSlamSettings {
         }
         if let Err(e) = self.pose_graph.validate() {
             let k = match &e {
-                grid_slam::GridSlamError::Config { key: k, .. } => k.trim_start_matches("back_end."),
+                grid_slam::GridSlamError::Config { key: k, .. } => k.trim_start_matches("pose_graph."),
                 _ => "",
             };
             issues.push(format!("{key}.pose_graph.{k}"), e.to_string());

@@ -106,10 +106,13 @@ impl Source for IndoorSource {
     fn describe(&self) -> String {
         let c = self.sim.config();
         format!(
-            "simulated indoor mission of an omni-directional robot (seed {}, {} laps, ~{:.0} s; laser {} beams at {} Hz, \
+            "simulated indoor mission of an omni-directional robot (seed {}, {}, ~{:.0} s; laser {} beams at {} Hz, \
              depth {}x{} at {} Hz)",
             c.seed,
-            c.laps,
+            match c.building {
+                sim::indoor::Building::TwoRooms => format!("two rooms and a corridor, {} laps", c.laps),
+                sim::indoor::Building::Ring => "a 148 m corridor ring, one lap and 12 m more".to_string(),
+            },
             self.sim.duration_s(),
             c.laser.beams,
             c.laser.rate_hz,
