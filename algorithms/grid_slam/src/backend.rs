@@ -514,7 +514,9 @@ mod tests {
         assert!(e.contains("1 of 3") && e.contains("snapshot"), "{e}");
         let e = b.optimize(&[Some(p), Some(p), Some(p)], &cfg).unwrap_err().to_string();
         assert!(e.contains("1 of 3"), "update 0 has no scan: {e}");
-        let e = BackEnd::new(BackEndConfig::default()).expect("valid").optimize(&[Some(p)], &cfg).unwrap_err();
+        let mut one = BackEnd::new(BackEndConfig::default()).expect("valid");
+        one.add_node(0, PreparedScan::default());
+        let e = one.optimize(&[Some(p)], &cfg).unwrap_err();
         assert!(e.to_string().contains("nothing to optimise"), "{e}");
         let bad = BackEndConfig { min_score: 1.5, ..Default::default() };
         assert!(BackEnd::new(bad).unwrap_err().to_string().contains("pose_graph.min_score"));
