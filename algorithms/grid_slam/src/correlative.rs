@@ -208,23 +208,36 @@ pub fn search(
             (v, b)
         })
         .collect();
-    let score_at = |h: u32, r: usize, dx: i32, dy: i32| -> u64 {
+    // The summed field of rotation r's points at offset (dx, dy) on level h. It stops early, and
+    // returns 0, once the points left cannot lift the sum above `floor` (the candidate is cut
+    // whatever they hold: the search stays exact).
+    let score_at = |h: u32, r: usize, dx: i32, dy: i32, floor: u64| -> u64 {
         let shift = (1i32 << h) - 1;
         let (w, hh) = (lookup.width + shift, lookup.height + shift);
         let level = &lookup.levels[h as usize];
         let (cells, b) = &rel[r];
         let (ox, oy) = (dx + shift, dy + shift);
-        if b[0] + ox >= 0 && b[1] + oy >= 0 && b[2] + ox < w && b[3] + oy < hh {
-            cells.iter().map(|&(x, y)| level[((y + oy) * w + x + ox) as usize] as u64).sum()
-        } else {
-            cells
-                .iter()
-                .map(|&(x, y)| {
-                    let (x, y) = (x + ox, y + oy);
-                    if x < 0 || y < 0 || x >= w || y >= hh { 0 } else { level[(y * w + x) as usize] as u64 }
-                })
-                .sum()
+        let inside = b[0] + ox >= 0 && b[1] + oy >= 0 && b[2] + ox < w && b[3] + oy < hh;
+        let mut left = 255 * cells.len() as u64;
+        let mut sum = 0u64;
+        for chunk in cells.chunks(32) {
+            sum += if inside {
+                chunk.iter().map(|&(x, y)| level[((y + oy) * w + x + ox) as usize] as u64).sum::<u64>()
+            } else {
+                chunk
+                    .iter()
+                    .map(|&(x, y)| {
+                        let (x, y) = (x + ox, y + oy);
+                        if x < 0 || y < 0 || x >= w || y >= hh { 0 } else { level[(y * w + x) as usize] as u64 }
+                    })
+                    .sum::<u64>()
+            };
+            left -= 255 * chunk.len() as u64;
+            if sum + left <= floor {
+                return 0;
+            }
         }
+        sum
     };
     let n = points.len() as f64;
     let threshold = (min_score * 255.0 * n).ceil() as u64;
@@ -237,7 +250,12 @@ pub fn search(
         while dx <= wc {
             let mut dy = -wc;
             while dy <= wc {
-                top.push(Candidate { rotation: r, dx, dy, score: score_at(depth, r, dx, dy) });
+                top.push(Candidate {
+                    rotation: r,
+                    dx,
+                    dy,
+                    score: score_at(depth, r, dx, dy, threshold.saturating_sub(1)),
+                });
                 dy += step;
             }
             dx += step;
@@ -251,7 +269,7 @@ pub fn search(
         wc: i32,
         threshold: u64,
         best: &mut Option<(u64, usize, i32, i32)>,
-        score_at: &dyn Fn(u32, usize, i32, i32) -> u64,
+        score_at: &dyn Fn(u32, usize, i32, i32, u64) -> u64,
     ) {
         let floor = best.map_or(threshold.saturating_sub(1), |b| b.0);
         if c.score <= floor {
@@ -268,7 +286,12 @@ pub fn search(
             if dx > wc || dy > wc {
                 continue;
             }
-            children.push(Candidate { rotation: c.rotation, dx, dy, score: score_at(h - 1, c.rotation, dx, dy) });
+            children.push(Candidate {
+                rotation: c.rotation,
+                dx,
+                dy,
+                score: score_at(h - 1, c.rotation, dx, dy, floor),
+            });
         }
         children.sort_by_key(|c| std::cmp::Reverse(c.score));
         for ch in &children {
