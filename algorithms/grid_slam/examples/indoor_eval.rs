@@ -87,6 +87,9 @@ fn main() {
             if let Some(v) = num("--likelihood-sigma") {
                 cfg.matcher.likelihood_sigma_m = v;
             }
+            if let Some(v) = num("--null-ll") {
+                cfg.matcher.null_log_likelihood = v;
+            }
             if let Some(v) = num("--score-sigma") {
                 cfg.matcher.score_sigma_m = v;
             }
