@@ -120,7 +120,7 @@ fn main() {
                     IndoorEvent::Laser { t_s, ranges } => {
                         let out = f.process(*t_s, odom, ranges).expect("scan");
                         if back_end && out.updated {
-                            be.add_node(out.update, f.prepare_scan(ranges));
+                            be.add_node(out.update, ranges);
                         }
                         if trace && out.updated {
                             let k = truth.partition_point(|(s, _)| s < t_s).min(truth.len() - 1);

@@ -212,11 +212,12 @@ pub struct BackEndResult {
     pub report: BackEndReport,
 }
 
-/// The nodes' scans, kept as the filter updates.
+/// The nodes' scans, kept as the filter updates: the ranges only (4 bytes a beam), prepared again
+/// when the graph is built (prepared scans take ~14× that).
 #[derive(Debug, Clone, Default)]
 pub struct BackEnd {
     cfg: BackEndConfig,
-    scans: Vec<Option<PreparedScan>>,
+    scans: Vec<Option<Box<[f32]>>>,
 }
 
 impl BackEnd {
@@ -231,8 +232,10 @@ impl BackEnd {
         &self.cfg
     }
 
-    /// Keeps the scan of filter update `update` (call when [`crate::ScanOutcome::updated`]).
-    pub fn add_node(&mut self, update: u32, scan: PreparedScan) {
+    /// Keeps the scan (ranges, m) of filter update `update` (call when
+    /// [`crate::ScanOutcome::updated`]).
+    pub fn add_node(&mut self, update: u32, ranges: &[f32]) {
+        let scan: Box<[f32]> = ranges.into();
         let k = update as usize;
         if self.scans.len() <= k {
             self.scans.resize(k + 1, None);
@@ -252,20 +255,23 @@ impl BackEnd {
 
     /// Bytes of the kept scans.
     pub fn bytes(&self) -> usize {
-        self.scans
-            .iter()
-            .flatten()
-            .map(|s| s.beams.len() * std::mem::size_of::<crate::MapBeam>() + s.points.points.len() * 32)
-            .sum()
+        self.scans.iter().flatten().map(|s| s.len() * std::mem::size_of::<f32>()).sum()
     }
 
     /// Closes loops over the filter's final path: search, optimise, rebuild the grid.
     pub fn run(&self, filter: &GridSlam) -> Result<BackEndResult, GridSlamError> {
-        self.optimize(&filter.node_path(), filter.config())
+        self.optimize(&filter.node_path(), filter.config(), |r| filter.prepare_scan(r))
     }
 
     /// As [`BackEnd::run`] with the front end's poses per update `path` and its settings.
-    pub fn optimize(&self, path: &[Option<Pose2>], fcfg: &GridSlamConfig) -> Result<BackEndResult, GridSlamError> {
+    /// `prepare` turns a node's ranges into beams and matching points as the filter does
+    /// ([`GridSlam::prepare_scan`]).
+    pub fn optimize(
+        &self,
+        path: &[Option<Pose2>],
+        fcfg: &GridSlamConfig,
+        prepare: impl Fn(&[f32]) -> PreparedScan + Sync,
+    ) -> Result<BackEndResult, GridSlamError> {
         let cfg = &self.cfg;
         // Every update needs its pose and scan: a filter restored from a snapshot has neither for
         // the updates before it, and a graph of the rest would rebuild the map without them.
@@ -289,7 +295,8 @@ impl BackEnd {
         let ids: Vec<usize> =
             (0..path.len()).filter(|&k| path[k].is_some() && self.scans.get(k).is_some_and(|s| s.is_some())).collect();
         let front: Vec<Pose2> = ids.iter().map(|&k| path[k].unwrap_or_default()).collect();
-        let scans: Vec<&PreparedScan> = ids.iter().filter_map(|&k| self.scans[k].as_ref()).collect();
+        let ranges: Vec<&[f32]> = ids.iter().filter_map(|&k| self.scans[k].as_deref()).collect();
+        let scan = |i: usize| prepare(ranges[i]);
         let n = ids.len();
         let mut report = BackEndReport { nodes: n, ..Default::default() };
         // Path length at each node.
@@ -321,9 +328,9 @@ impl BackEnd {
         report.submaps = starts.len();
         // Search points per node (voxel filter of 2 cells over the hits, then a stride).
         let cell = 2.0 * fcfg.resolution_m;
-        let points: Vec<Vec<(f64, f64)>> = scans
-            .iter()
-            .map(|s| {
+        let points: Vec<Vec<(f64, f64)>> = (0..n)
+            .map(|i| {
+                let s = scan(i);
                 let mut seen = std::collections::HashSet::new();
                 let v: Vec<(f64, f64)> = s
                     .beams
@@ -404,7 +411,8 @@ impl BackEnd {
                 let mut grid = Grid::new(fcfg.resolution_m);
                 for m in members.clone() {
                     let local = anchor.between(&front[m]);
-                    GridSlam::integrate(&mut grid, &local, scans[m].origin, &scans[m].beams, &fcfg.log_odds);
+                    let sm = scan(m);
+                    GridSlam::integrate(&mut grid, &local, sm.origin, &sm.beams, &fcfg.log_odds);
                 }
                 let Some(lookup) = LookupGrid::new(&grid, fcfg.matcher.occupied_log_odds, cfg.depth) else {
                     continue;
@@ -428,7 +436,7 @@ impl BackEnd {
                                     continue;
                                 };
                                 // Refine with the filter's matcher on the submap's grid.
-                                let (refined, _) = matcher::optimize(&grid, &scans[i].points, &m.pose, &fcfg.matcher);
+                                let (refined, _) = matcher::optimize(&grid, &scan(i).points, &m.pose, &fcfg.matcher);
                                 let moved = (refined.x_m - m.pose.x_m).hypot(refined.y_m - m.pose.y_m);
                                 let pose = if moved <= 2.0 * fcfg.resolution_m
                                     && omni::wrap_angle(refined.theta_rad - m.pose.theta_rad).abs() < 0.02
@@ -486,8 +494,9 @@ impl BackEnd {
         report.mean_correction_m = if n > 0 { moves.iter().sum::<f64>() / n as f64 } else { 0.0 };
         // The grid from the nodes' scans at the optimised poses.
         let mut grid = Grid::new(fcfg.resolution_m);
-        for (pose, scan) in est.iter().zip(&scans) {
-            GridSlam::integrate(&mut grid, pose, scan.origin, &scan.beams, &fcfg.log_odds);
+        for (i, pose) in est.iter().enumerate() {
+            let sc = scan(i);
+            GridSlam::integrate(&mut grid, pose, sc.origin, &sc.beams, &fcfg.log_odds);
         }
         let mut nodes = vec![None; path.len()];
         for (j, &k) in ids.iter().enumerate() {
@@ -508,15 +517,15 @@ mod tests {
         let cfg = GridSlamConfig::default();
         let mut b = BackEnd::new(BackEndConfig::default()).expect("defaults are valid");
         let p = Pose2::default();
-        b.add_node(1, PreparedScan::default());
-        b.add_node(2, PreparedScan::default());
-        let e = b.optimize(&[None, Some(p), Some(p)], &cfg).unwrap_err().to_string();
+        b.add_node(1, &[]);
+        b.add_node(2, &[]);
+        let e = b.optimize(&[None, Some(p), Some(p)], &cfg, |_| PreparedScan::default()).unwrap_err().to_string();
         assert!(e.contains("1 of 3") && e.contains("snapshot"), "{e}");
-        let e = b.optimize(&[Some(p), Some(p), Some(p)], &cfg).unwrap_err().to_string();
+        let e = b.optimize(&[Some(p), Some(p), Some(p)], &cfg, |_| PreparedScan::default()).unwrap_err().to_string();
         assert!(e.contains("1 of 3"), "update 0 has no scan: {e}");
         let mut one = BackEnd::new(BackEndConfig::default()).expect("valid");
-        one.add_node(0, PreparedScan::default());
-        let e = one.optimize(&[Some(p)], &cfg).unwrap_err();
+        one.add_node(0, &[]);
+        let e = one.optimize(&[Some(p)], &cfg, |_| PreparedScan::default()).unwrap_err();
         assert!(e.to_string().contains("nothing to optimise"), "{e}");
         let bad = BackEndConfig { min_score: 1.5, ..Default::default() };
         assert!(BackEnd::new(bad).unwrap_err().to_string().contains("pose_graph.min_score"));

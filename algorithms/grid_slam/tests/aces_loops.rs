@@ -43,7 +43,7 @@ fn aces_long_loops_close_with_the_pose_graph() {
     let mut refused = 0;
     for (s, o) in scans.iter().zip(&drifted) {
         match f.process(s.stamp_s, *o, &s.ranges) {
-            Ok(out) if out.updated => back.add_node(out.update, f.prepare_scan(&s.ranges)),
+            Ok(out) if out.updated => back.add_node(out.update, &s.ranges),
             Ok(_) => {}
             Err(_) => refused += 1,
         }

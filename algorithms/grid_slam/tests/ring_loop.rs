@@ -79,7 +79,7 @@ fn the_148_m_ring_closes_with_the_pose_graph() {
             IndoorEvent::Laser { t_s, ranges } => {
                 let out = f.process(*t_s, odom, ranges).expect("scan");
                 if out.updated {
-                    back.add_node(out.update, f.prepare_scan(ranges));
+                    back.add_node(out.update, ranges);
                 }
             }
             IndoorEvent::Cloud { .. } => {}

@@ -183,7 +183,7 @@ impl GridSlamStage {
         if out.updated
             && let Some(b) = self.back_end.as_mut()
         {
-            b.add_node(out.update, f.prepare_scan(&scan.ranges));
+            b.add_node(out.update, &scan.ranges);
         }
         self.last_stamp_ns = scan.stamp_ns;
         let header = MsgHeader { stamp_ns: scan.stamp_ns, origin_ns: scan.origin_ns, ..Default::default() };

@@ -206,7 +206,7 @@ fn main() -> Result<()> {
                     match f.process(s.stamp_s, *odom, &s.ranges) {
                         Ok(o) => {
                             if o.updated && !args.front_end_only {
-                                back_end.add_node(o.update, f.prepare_scan(&s.ranges));
+                                back_end.add_node(o.update, &s.ranges);
                             }
                             if o.updated && args.mem_trace {
                                 let m = f.memory();
