@@ -11,6 +11,7 @@
 //! Frames: `map_from_body` poses in the map frame (the odometry frame at the first scan), m and
 //! rad; the laser's pose on the robot is `body_from_laser`.
 
+#[cfg(feature = "pose-graph")]
 pub mod backend;
 pub mod correlative;
 pub mod drift;
@@ -18,6 +19,7 @@ pub mod export;
 pub mod filter;
 pub mod grid;
 pub mod matcher;
+#[cfg(feature = "pose-graph")]
 pub mod posegraph;
 pub mod relations;
 
