@@ -84,8 +84,10 @@ def main():
             return refused(args, f"tls: {e.reason or e}")
         except (InvalidMessage, ConnectionClosed, EOFError) as e:
             # A TLS server answering a plain ws:// request closes it.
+            print(f"closed before a response: {e!r} (cause: {e.__cause__!r})", file=sys.stderr)
             return refused(args, f"closed: {type(e).__name__}")
-        except OSError:
+        except OSError as e:
+            print(f"connecting to {args.url}: {e!r}; retrying", file=sys.stderr)
             if time.monotonic() > deadline:
                 print(f"could not connect to {args.url}", file=sys.stderr)
                 return 1

@@ -485,7 +485,11 @@ rate_hz = 0.0
         }
         let out = cmd.output().expect("python3 runs the Foxglove client");
         let stdout = String::from_utf8_lossy(&out.stdout).to_string();
-        assert!(out.status.success(), "{url}: {}\n{stdout}", String::from_utf8_lossy(&out.stderr));
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{url}: {stderr}\n{stdout}");
+        if !stderr.trim().is_empty() {
+            eprintln!("{url}: {stderr}");
+        }
         serde_json::from_str(stdout.lines().last().unwrap_or_default()).expect("the client's JSON line")
     };
     let wrong = attempt(&format!("wss://127.0.0.1:{port}/?token=not-{token}"), Some(&ca), true);

@@ -126,12 +126,19 @@ pub fn tls_config(
     }
     let key = PrivateKeyDer::from_pem_file(private_key).map_err(|e| file_err(private_key, &e))?;
     let provider = Arc::new(rustls::crypto::ring::default_provider());
-    rustls::ServerConfig::builder_with_provider(provider)
+    let mut config = rustls::ServerConfig::builder_with_provider(provider)
         .with_safe_default_protocol_versions()
         .map_err(|e| GateError::Tls(e.to_string()))?
         .with_no_client_auth()
         .with_single_cert(chain, key)
-        .map_err(|e| GateError::Tls(format!("{} with {}: {e}", certificate.display(), private_key.display())))
+        .map_err(|e| GateError::Tls(format!("{} with {}: {e}", certificate.display(), private_key.display())))?;
+    // No TLS 1.3 session tickets. A viewer connects once, so resumption gains nothing, and the
+    // tickets arrive after the handshake, before the client's upgrade request: a client that
+    // reads on one thread while it writes the request on another (Python's `websockets.sync`)
+    // then stalled in 1 connection of ~15 under load here (2026-12-05: its request never left,
+    // seen in a capture), and the gate answered 400 ten seconds later.
+    config.send_tls13_tickets = 0;
+    Ok(config)
 }
 
 /// Whether an upgrade request's head (request line and headers) carries `token`, as
