@@ -90,6 +90,12 @@ fn main() {
             if let Some(v) = num("--null-ll") {
                 cfg.matcher.null_log_likelihood = v;
             }
+            if let Some(v) = num("--coarse-stride") {
+                cfg.matcher.coarse_stride = v as usize;
+            }
+            if let Some(v) = num("--coarse-refinements") {
+                cfg.matcher.coarse_refinements = v as u32;
+            }
             if let Some(v) = num("--score-sigma") {
                 cfg.matcher.score_sigma_m = v;
             }

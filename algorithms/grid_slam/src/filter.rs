@@ -191,6 +191,12 @@ impl GridSlamConfig {
         if self.matcher.beam_stride == 0 {
             return bad("matcher.beam_stride", "must be at least 1");
         }
+        if self.matcher.coarse_stride == 0 {
+            return bad("matcher.coarse_stride", "must be at least 1 (1: every point at every step size)");
+        }
+        if self.matcher.coarse_refinements > self.matcher.refinements {
+            return bad("matcher.coarse_refinements", "must be at most matcher.refinements");
+        }
         if !(0..=3).contains(&self.matcher.kernel_cells) {
             return bad("matcher.kernel_cells", "must be 0..=3");
         }
@@ -921,7 +927,7 @@ fn propose(
     let fallback = |rng: &mut Xoshiro256PlusPlus| {
         let n = Pose2 { x_m: sd[0] * normal(rng), y_m: sd[1] * normal(rng), theta_rad: sd[2] * normal(rng) };
         let x = predicted.compose(&n);
-        let ll = matcher::fit(&p.grid, pts, &x, &cfg.matcher).log_likelihood;
+        let ll = matcher::log_likelihood(&p.grid, pts, &x, &cfg.matcher);
         (x, ll, true)
     };
     if pts.points.is_empty() {
@@ -942,7 +948,7 @@ fn propose(
                     y_m: star.y_m + b as f64 * sm,
                     theta_rad: wrap_angle(star.theta_rad + t as f64 * sr),
                 };
-                let ll = matcher::fit(&p.grid, pts, &x, &cfg.matcher).log_likelihood + motion_ll(&x);
+                let ll = matcher::log_likelihood(&p.grid, pts, &x, &cfg.matcher) + motion_ll(&x);
                 samples.push((x, ll));
             }
         }
@@ -1093,5 +1099,11 @@ mod tests {
         assert!(e.to_string().contains("resolution_m"), "{e}");
         let e = GridSlamConfig { particles: 0, ..Default::default() }.validate().unwrap_err();
         assert!(e.to_string().contains("particles"), "{e}");
+        let m = MatcherParams { coarse_stride: 0, ..Default::default() };
+        let e = GridSlamConfig { matcher: m, ..Default::default() }.validate().unwrap_err();
+        assert!(e.to_string().contains("matcher.coarse_stride"), "{e}");
+        let m = MatcherParams { coarse_refinements: 9, ..Default::default() };
+        let e = GridSlamConfig { matcher: m, ..Default::default() }.validate().unwrap_err();
+        assert!(e.to_string().contains("matcher.coarse_refinements"), "{e}");
     }
 }

@@ -40,6 +40,12 @@ pub struct MatcherParams {
     pub refinements: u32,
     /// Use every n-th beam (1: all).
     pub beam_stride: usize,
+    /// Hill climbing's first `coarse_refinements` step sizes poll only every
+    /// `coarse_stride`-th point (1: all points at every step size); the finer steps, which set
+    /// the result, use all.
+    pub coarse_stride: usize,
+    /// How many of the step sizes, from the first, are coarse (see `coarse_stride`).
+    pub coarse_refinements: u32,
     /// Log-odds above which a cell counts as occupied.
     pub occupied_log_odds: f32,
     /// A match is accepted when its score is at least this share of the beams used.
@@ -60,6 +66,8 @@ impl Default for MatcherParams {
             angular_step_rad: 0.05,
             refinements: 5,
             beam_stride: 1,
+            coarse_stride: 1,
+            coarse_refinements: 0,
             occupied_log_odds: 0.0,
             min_score_share: 0.15,
             point_to_line: true,
@@ -96,13 +104,24 @@ pub struct Fit {
 
 /// Scores `pose` (world_from_body) against `grid`.
 pub fn fit(grid: &Grid, scan: &ScanPoints, pose: &Pose2, p: &MatcherParams) -> Fit {
+    fit_every(grid, scan, 1, pose, p, true)
+}
+
+/// [`fit`]'s log-likelihood alone (the same value; the score's exponentials, a fifth of a
+/// fit's time, are skipped): what the proposal's samples need.
+pub fn log_likelihood(grid: &Grid, scan: &ScanPoints, pose: &Pose2, p: &MatcherParams) -> f64 {
+    fit_every(grid, scan, 1, pose, p, false).log_likelihood
+}
+
+/// [`fit`] over every `stride`-th point of `scan`; the score only `with_score` (0 otherwise).
+fn fit_every(grid: &Grid, scan: &ScanPoints, stride: usize, pose: &Pose2, p: &MatcherParams, with_score: bool) -> Fit {
     let (s, c) = pose.theta_rad.sin_cos();
     let to_world = |q: (f64, f64)| (pose.x_m + c * q.0 - s * q.1, pose.y_m + s * q.0 + c * q.1);
     let inv_score = 1.0 / (2.0 * p.score_sigma_m * p.score_sigma_m);
     let inv_lik = 1.0 / (2.0 * p.likelihood_sigma_m * p.likelihood_sigma_m);
     let (mut score, mut ll, mut matched) = (0.0, 0.0, 0usize);
     let k = p.kernel_cells;
-    for b in &scan.points {
+    for b in scan.points.iter().step_by(stride.max(1)) {
         let hit = to_world(b.hit);
         let free = to_world(b.free);
         let (hi, hj) = grid.cell_of(hit.0, hit.1);
@@ -154,7 +173,9 @@ pub fn fit(grid: &Grid, scan: &ScanPoints, pose: &Pose2, p: &MatcherParams) -> F
             }
         }
         if best.is_finite() {
-            score += exp_neg(best * inv_score);
+            if with_score {
+                score += exp_neg(best * inv_score);
+            }
             ll += -best * inv_lik;
             matched += 1;
         } else {
@@ -195,7 +216,11 @@ pub fn exp_neg(y: f64) -> f64 {
 /// Returns the best pose found and its fit.
 pub fn optimize(grid: &Grid, scan: &ScanPoints, start: &Pose2, p: &MatcherParams) -> (Pose2, Fit) {
     let mut current = *start;
-    let mut current_fit = fit(grid, scan, &current, p);
+    // Coarse to fine: the first `coarse_refinements` step sizes poll every `coarse_stride`-th
+    // point, the finer ones all of them.
+    let coarse = p.coarse_stride.max(1) > 1 && p.coarse_refinements > 0;
+    let mut stride = if coarse { p.coarse_stride } else { 1 };
+    let mut current_fit = fit_every(grid, scan, stride, &current, p, true);
     let (mut ld, mut ad) = (p.linear_step_m, p.angular_step_rad);
     let mut refinement = 0u32;
     let mut first = 0usize;
@@ -211,7 +236,7 @@ pub fn optimize(grid: &Grid, scan: &ScanPoints, start: &Pose2, p: &MatcherParams
                 y_m: current.y_m + dy,
                 theta_rad: omni::wrap_angle(current.theta_rad + dth),
             };
-            let f = fit(grid, scan, &cand, p);
+            let f = fit_every(grid, scan, stride, &cand, p, true);
             evaluations += 1;
             if f.score > current_fit.score {
                 (current, current_fit) = (cand, f);
@@ -227,11 +252,18 @@ pub fn optimize(grid: &Grid, scan: &ScanPoints, start: &Pose2, p: &MatcherParams
             refinement += 1;
             ld *= 0.5;
             ad *= 0.5;
+            if stride > 1 && refinement >= p.coarse_refinements {
+                stride = 1;
+                current_fit = fit(grid, scan, &current, p);
+            }
         }
         // A bound on the work: the steps are halved often enough long before this.
         if evaluations > 1200 {
             break;
         }
+    }
+    if stride > 1 {
+        current_fit = fit(grid, scan, &current, p);
     }
     (current, current_fit)
 }
@@ -290,6 +322,22 @@ mod tests {
         assert!(f.matched > 340, "{f:?}");
         let at_truth = fit(&g, &pts, &Pose2::default(), &p);
         assert!(at_truth.log_likelihood > fit(&g, &pts, &start, &p).log_likelihood);
+    }
+
+    #[test]
+    fn coarse_steps_on_a_subset_end_where_all_points_do_and_the_fit_is_over_all() {
+        let (g, pts) = room();
+        let start = Pose2 { x_m: 0.06, y_m: -0.04, theta_rad: 0.02 };
+        let fine = MatcherParams::default();
+        let coarse = MatcherParams { coarse_stride: 8, coarse_refinements: 3, ..fine };
+        let (a, fa) = optimize(&g, &pts, &start, &fine);
+        let (b, fb) = optimize(&g, &pts, &start, &coarse);
+        assert!((a.x_m - b.x_m).abs() < 0.005 && (a.y_m - b.y_m).abs() < 0.005, "{a:?} against {b:?}");
+        assert!((a.theta_rad - b.theta_rad).abs() < 0.003, "{a:?} against {b:?}");
+        // The returned fit is over every point, as the fine one.
+        assert_eq!(fb, fit(&g, &pts, &b, &fine));
+        assert!((fb.score - fa.score).abs() < 0.02 * fa.score, "{fa:?} against {fb:?}");
+        assert_eq!(log_likelihood(&g, &pts, &b, &fine), fb.log_likelihood);
     }
 
     /// A room 8 × 5 m turned 17° against the grid, scanned (360 beams, noiseless) at `pose`.

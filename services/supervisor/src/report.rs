@@ -141,6 +141,7 @@ pub fn summary(plan: &Plan, rows: &[ProcessRow<'_>], end: &EndReason, exit_code:
                     "messages_out": counts.1,
                     "cpu_s": r.usage.cpu_s,
                     "peak_rss_mib": r.usage.peak_rss_mib,
+                    "ready_rss_mib": r.usage.ready_rss_mib,
                 }),
             )
         })

@@ -138,6 +138,17 @@ pub struct Usage {
     pub cpu_s: f64,
     /// The largest resident set size of any instance, MiB.
     pub peak_rss_mib: f64,
+    /// The resident set size when the first instance reported ready (before any data), MiB, read
+    /// from `/proc/<pid>/status`: `peak_rss_mib` less this is what the run's data added.
+    pub ready_rss_mib: f64,
+}
+
+/// A running process's resident set size, MiB (`VmRSS` in `/proc/<pid>/status`), if readable.
+fn rss_mib(pid: u32) -> Option<f64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let kib: f64 =
+        status.lines().find_map(|l| l.strip_prefix("VmRSS:"))?.trim().trim_end_matches("kB").trim().parse().ok()?;
+    Some(kib / 1024.0)
 }
 
 /// `waitpid(pid, WNOHANG)` that also returns the child's resource usage once it has ended.
@@ -157,6 +168,7 @@ fn wait_with_usage(pid: Pid) -> nix::Result<(WaitStatus, Usage)> {
     let usage = Usage {
         cpu_s: secs(ru.ru_utime) + secs(ru.ru_stime),
         peak_rss_mib: ru.ru_maxrss as f64 / 1024.0, // KiB on Linux
+        ready_rss_mib: 0.0,
     };
     Ok((WaitStatus::from_raw(pid, status)?, usage))
 }
@@ -391,6 +403,9 @@ impl Supervisor {
             {
                 tracing::info!(process = %name, pid = hb.pid, "ready after {:.0} ms", (now - since).as_secs_f64() * 1e3);
                 c.state = ProcState::Ready;
+                if c.restarts == 0 {
+                    c.usage.ready_rss_mib = rss_mib(hb.pid).unwrap_or(0.0);
+                }
                 if c.restarts > 0 || !self.failed_streams.is_empty() {
                     replay.push(name.clone());
                 }
