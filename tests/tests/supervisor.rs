@@ -78,6 +78,12 @@ fn end_of_stream_ends_the_run_with_every_frame_verified() {
         let (cpu, rss) = (&s["processes"][p]["cpu_s"], &s["processes"][p]["peak_rss_mib"]);
         assert!(cpu.as_f64().is_some_and(|c| c > 0.0 && c < 60.0), "{p} cpu_s {cpu}");
         assert!(rss.as_f64().is_some_and(|m| m > 1.0 && m < 1024.0), "{p} peak_rss_mib {rss}");
+        // Its memory when it reported ready, before any data: a real process's, at most the peak.
+        let ready = &s["processes"][p]["ready_rss_mib"];
+        assert!(
+            ready.as_f64().is_some_and(|m| m > 1.0 && m <= rss.as_f64().unwrap_or(0.0)),
+            "{p} ready_rss_mib {ready}, peak {rss}"
+        );
     }
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
 }
