@@ -11,6 +11,10 @@
 //! `--offset` is added to the trajectory's stamps to reach the relations' clock (the CARMEN
 //! logs' offsets are in ../shared/data/carmen/ATTRIBUTION.md). `--scan-offset` also prints the
 //! errors over a range of offsets, to show how sensitive the score is to the clock alignment.
+//! `--by-rotation` splits the translational error by how far each relation turns, and
+//! `--point-ahead` scores a point that far ahead of the pose along the body's x axis: together they
+//! show whether a relation's reference point differs from the trajectory's (then the error grows
+//! with the turn, as (R(δθ) − I)·lever).
 //! Exit status 0; 2 on bad input (the message names the file and line).
 
 use anyhow::{Context, Result};
@@ -40,6 +44,13 @@ struct Args {
     /// Print the result as JSON.
     #[arg(long)]
     json: bool,
+    /// Also print the translational error over the relations whose turn |δθ| falls in each of
+    /// the bins [0, 0.1), [0.1, 0.5), [0.5, 1.6), [1.6, π] rad.
+    #[arg(long)]
+    by_rotation: bool,
+    /// Score the point this far ahead of each pose along the body's x axis, m (0: the pose).
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    point_ahead: f64,
 }
 
 fn main() {
@@ -61,6 +72,7 @@ fn run() -> Result<()> {
             let (_, _, yaw) = iso.rotation.euler_angles();
             (t, Pose2 { x_m: iso.translation.x, y_m: iso.translation.y, theta_rad: yaw })
         })
+        .map(|(t, p): (f64, Pose2)| (t, p.compose(&Pose2 { x_m: a.point_ahead, y_m: 0.0, theta_rad: 0.0 })))
         .collect();
     let rel = read_relations(&a.relations)?;
     let s = score(&traj, &rel, a.offset, a.max_gap);
@@ -86,6 +98,14 @@ fn run() -> Result<()> {
             100.0 * s.over_far_share,
             grid_slam::relations::FAR_OFF_M
         );
+    }
+    if a.by_rotation {
+        println!("{:>14} {:>10} {:>10}", "|turn| rad", "relations", "trans m");
+        for (lo, hi) in [(0.0, 0.1), (0.1, 0.5), (0.5, 1.6), (1.6, 4.0)] {
+            let bin: Vec<_> = rel.iter().filter(|r| (lo..hi).contains(&r.delta.theta_rad.abs())).copied().collect();
+            let s = score(&traj, &bin, a.offset, a.max_gap);
+            println!("{:>14} {:>10} {:>10.4}", format!("{lo:.1}-{hi:.1}"), s.scored, s.trans_mean_m);
+        }
     }
     if let Some(w) = a.scan_offset {
         let steps = (w / 0.01).round() as i64;
