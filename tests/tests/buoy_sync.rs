@@ -44,7 +44,9 @@ dir = "{dir}"
     let s = run_to_end(&mut run, &procs, "\"buoy\"");
     let ate = s["ate_m"]["buoy_ekf"].as_f64().expect("ate_m.buoy_ekf");
     let dr = s["ate_m"]["dead_reckoning"].as_f64().expect("ate_m.dead_reckoning");
-    assert!(ate <= 0.5, "buoy EKF ATE {ate} m over the 0.5 m goal: {s:#}");
+    // The goal is 0.5 m; docs/buoy_ekf.md and the README claim 0.407 m (a batch smoother with
+    // GTSAM: 0.41 m): the claim is what is held.
+    assert!(ate <= 0.41, "buoy EKF ATE {ate} m over the 0.41 m the docs claim (goal 0.5 m): {s:#}");
     let b = &s["buoy_ekf"];
     // Every odometry message applied in stamp order: none arrived after a range it should have
     // come before (the stage drains the ranges before the odometry), so dead reckoning is the

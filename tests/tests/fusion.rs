@@ -27,6 +27,9 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     // the SLAM path per local map (ATE after an alignment to the truth), and no worse than the
     // SLAM path placed in the world by the same local alignments (the fused path leans on it).
     assert!(fused <= 0.8 * buoy, "fused {fused} m must be <= 0.8 x the buoy-only path {buoy} m: {ate:#}");
+    // The buoy EKF alone within what docs/buoy_ekf.md claims for the main job (0.223 m).
+    let buoy_ekf = ate["buoy_ekf"].as_f64().unwrap();
+    assert!(buoy_ekf <= 0.25, "buoy EKF {buoy_ekf} m over 0.25 m: {ate:#}");
     assert!(fused < slam, "fused {fused} m must beat the SLAM path {slam} m: {ate:#}");
     assert!(fused <= 1.02 * ate["slam_global"].as_f64().unwrap(), "{ate:#}");
     assert!(

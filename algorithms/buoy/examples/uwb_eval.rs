@@ -150,37 +150,98 @@ fn main() -> ExitCode {
     }
 }
 
+/// What to evaluate: the data set's directory and the options of the command line.
+pub struct Options {
+    /// The directory with `Indoor_UWB_Input.txt` and `Indoor_UWB_GT.txt`.
+    pub dir: PathBuf,
+    /// EKF settings (TOML) over the defaults.
+    pub config: Option<PathBuf>,
+    /// Keep only the ranges to these modules.
+    pub keep: Option<Vec<u32>>,
+    /// Share of the ranges made gross errors.
+    pub outliers: f64,
+    /// Seed of the gross errors.
+    pub outlier_seed: u64,
+}
+
+impl Options {
+    /// The defaults: the shared data set, every beacon, no added errors.
+    pub fn shared() -> Self {
+        let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+        Self { dir: root.join("../shared/data/indoor_uwb"), config: None, keep: None, outliers: 0.0, outlier_seed: 1 }
+    }
+}
+
+/// A finished evaluation: the ground truth, the EKF's run, dead reckoning and the counts.
+pub struct Evaluation {
+    /// Ground truth `(t, x, y)`.
+    pub gt: Vec<(f64, f64, f64)>,
+    /// The EKF's run.
+    pub run: common::Run,
+    /// Dead reckoning `(t, x, y)`.
+    pub dr: Vec<(f64, f64, f64)>,
+    /// The replay's start, s.
+    pub t0_s: f64,
+    /// Odometry rows, ranges, ranges made gross errors, beacons.
+    pub counts: (usize, usize, usize, usize),
+}
+
+impl Evaluation {
+    /// The EKF's ATE (RMSE against every ground-truth row, m) and dead reckoning's.
+    pub fn ate_m(&self) -> (f64, f64) {
+        (common::ate(&self.gt, &self.run.estimates).0, common::ate(&self.gt, &self.dr).0)
+    }
+}
+
 fn run() -> Result<()> {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let mut dir = root.join("../shared/data/indoor_uwb");
-    let (mut config, mut dump) = (None, None);
-    let (mut keep, mut outliers, mut outlier_seed): (Option<Vec<u32>>, f64, u64) = (None, 0.0, 1);
+    let mut o = Options::shared();
+    let mut dump = None;
     let mut it = std::env::args().skip(1);
     while let Some(a) = it.next() {
         match a.as_str() {
-            "--config" => config = Some(PathBuf::from(it.next().context("--config needs a file")?)),
+            "--config" => o.config = Some(PathBuf::from(it.next().context("--config needs a file")?)),
             "--dump" => dump = Some(PathBuf::from(it.next().context("--dump needs a file")?)),
             "--beacons" => {
                 let list = it.next().context("--beacons needs ids, e.g. 105,107,108")?;
-                keep = Some(
+                o.keep = Some(
                     list.split(',')
                         .map(|x| x.parse().with_context(|| format!("--beacons: `{x}`")))
                         .collect::<Result<_>>()?,
                 );
             }
             "--outliers" => {
-                outliers = it.next().context("--outliers needs a share")?.parse().context("--outliers")?;
-                if !(0.0..=0.5).contains(&outliers) {
+                o.outliers = it.next().context("--outliers needs a share")?.parse().context("--outliers")?;
+                if !(0.0..=0.5).contains(&o.outliers) {
                     bail!("--outliers must be in [0, 0.5]");
                 }
             }
             "--outlier-seed" => {
-                outlier_seed = it.next().context("--outlier-seed needs a number")?.parse().context("--outlier-seed")?
+                o.outlier_seed =
+                    it.next().context("--outlier-seed needs a number")?.parse().context("--outlier-seed")?
             }
             s if s.starts_with("--") => bail!("unknown option {s}"),
-            _ => dir = a.into(),
+            _ => o.dir = a.into(),
         }
     }
+    let e = evaluate(&o)?;
+    let (odometry, ranges, injected, beacons) = e.counts;
+    println!(
+        "Indoor UWB ({}): {} ground-truth rows, {odometry} odometry rows, {ranges} ranges ({injected} made gross \
+         errors), {beacons} beacons",
+        common::tidy(&o.dir).display(),
+        e.gt.len(),
+    );
+    common::report(&e.gt, &e.run, &e.dr, e.t0_s)?;
+    if let Some(path) = dump {
+        common::dump(&path, &e.gt, &e.run.estimates)?;
+    }
+    Ok(())
+}
+
+/// Replays the data set through the EKF with the options `o`.
+pub fn evaluate(o: &Options) -> Result<Evaluation> {
+    let (dir, config, keep, outliers, outlier_seed) =
+        (&o.dir, o.config.as_deref(), &o.keep, o.outliers, o.outlier_seed);
     let mut ranges = Vec::new();
     let mut odom = Vec::new();
     for line in parse_file(&dir.join("Indoor_UWB_Input.txt"))? {
@@ -242,7 +303,7 @@ fn run() -> Result<()> {
             }
         }
     }
-    let mut cfg = common::load_config(config.as_deref())?;
+    let mut cfg = common::load_config(config)?;
     cfg.mode = Mode::Planar;
     cfg.buoys = modules.iter().map(|(&id, p)| BuoyEntry { id, position_m: [p[0], p[1], 0.0] }).collect();
     cfg.init.min_buoys = cfg.init.min_buoys.min(cfg.buoys.len());
@@ -276,17 +337,5 @@ fn run() -> Result<()> {
         .collect();
     let t0 = (inputs[0].0 - inputs[0].1.dt_s).min(ranges[0].t_s);
     let run = common::replay(cfg, t0, &inputs, &events)?;
-    println!(
-        "Indoor UWB ({}): {} ground-truth rows, {} odometry rows, {} ranges ({injected} made gross errors), {} beacons",
-        common::tidy(&dir).display(),
-        gt.len(),
-        inputs.len(),
-        ranges.len(),
-        modules.len()
-    );
-    common::report(&gt, &run, &dr, t0)?;
-    if let Some(path) = dump {
-        common::dump(&path, &gt, &run.estimates)?;
-    }
-    Ok(())
+    Ok(Evaluation { gt, run, dr, t0_s: t0, counts: (inputs.len(), ranges.len(), injected, modules.len()) })
 }
