@@ -47,5 +47,6 @@ def summary(schema, m):
     if schema == "foxglove.Log":
         return {"name": m.name, "message": m.message}
     if schema == "foxglove.Grid":
-        return {"columns": m.column_count, "cells": len(m.data)}
+        return {"columns": m.column_count, "cells": len(m.data), "frame_id": m.frame_id,
+                "cell_size": m.cell_size.x}
     return {}

@@ -3,8 +3,12 @@
 //! the 3-D map built from the depth camera at the 2-D SLAM poses and rebuilt along the final path.
 //! Checks the trajectory against the ground truth, the 2-D map against the true walls, and the 3-D
 //! map against the scene's true occupancy (scene.json), including the furniture that differs
-//! between the laser's plane and the 3-D scene (a table top, a crate below the laser).
+//! between the laser's plane and the 3-D scene (a table top, a crate below the laser). A live view
+//! (`kind = "viewer"`) runs along: a Foxglove WebSocket client (tests/python/foxglove_ws_client.py)
+//! receives the 2-D map (`/grid`) and the grid SLAM path (`/grid_slam/path`) while the run goes on.
 
+use std::path::PathBuf;
+use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use pipeline_tests::TestRun;
@@ -45,16 +49,49 @@ pitch_down_deg = 10.0
 
 [processes.ingest]
 kind = "ingest"
-after = ["slam2d", "map"]
+after = ["slam2d", "map", "view"]
 [processes.ingest.settings]
 source = "indoor"
 real_time_factor = 0.0
+
+[processes.view]
+kind = "viewer"
+[processes.view.settings]
+port = PORT
 "#;
-    let summary = run.run_to_end(
-        "end = \"end_of_stream\"\nend_of_stream_from = [\"slam2d\", \"map\"]",
-        processes,
-        Duration::from_secs(600),
-    );
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let processes = processes.replace("PORT", &port.to_string());
+    let cfg = run.write_config("end = \"end_of_stream\"\nend_of_stream_from = [\"slam2d\", \"map\"]", &processes);
+    run.start_supervisor(&cfg, &[]);
+    // The client connects (retrying until the viewer listens) while the mission runs, and stops
+    // once it has had two of each (or reports what came when the run ends first).
+    let client = Command::new("python3")
+        .arg(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("python/foxglove_ws_client.py"))
+        .args(["--url", &format!("ws://127.0.0.1:{port}"), "--timeout-s", "400", "--min-messages", "2"])
+        .args(["--want", "/grid", "--want", "/grid_slam/path", "--at-least", "/grid_slam/path", "poses", "2"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("python3 runs the Foxglove client");
+    let status = run.wait_supervisor(Duration::from_secs(600)).expect("the run ends");
+    assert_eq!(status.code(), Some(0), "{}", run.log());
+    assert_eq!(run.leftovers(), Vec::<PathBuf>::new(), "iceoryx2 files left behind");
+    let summary = run.summary();
+    let seen = client.wait_with_output().expect("the client ends");
+    let stdout = String::from_utf8_lossy(&seen.stdout);
+    assert!(seen.status.success(), "client: {}\n{stdout}", String::from_utf8_lossy(&seen.stderr));
+    let seen: serde_json::Value = serde_json::from_str(stdout.trim()).expect("the client's JSON");
+    let (grid, path) = (&seen["topics"]["/grid"], &seen["topics"]["/grid_slam/path"]);
+    assert_eq!(grid["schema"], "foxglove.Grid", "{seen:#}");
+    assert_eq!(grid["last"]["frame_id"], "world", "{seen:#}");
+    // The building is 16 x 12 m: a map of at least a room at 0.05 m cells, one byte each.
+    let columns = grid["last"]["columns"].as_u64().unwrap_or(0);
+    assert!(columns >= 40 && grid["last"]["cells"].as_u64().unwrap_or(0) >= 40 * columns, "{seen:#}");
+    assert!((grid["last"]["cell_size"].as_f64().unwrap_or(0.0) - 0.05).abs() < 1e-9, "{seen:#}");
+    assert_eq!(path["schema"], "foxglove.PosesInFrame", "{seen:#}");
+    assert!(path["last"]["poses"].as_u64().unwrap_or(0) >= 2, "{seen:#}");
+    assert_eq!(path["last"]["finite"], true, "{seen:#}");
+    assert_eq!(path["last"]["frame_id"], "world", "{seen:#}");
     let ate = summary["ate_m"]["grid_slam"].as_f64().expect("ATE");
     let g = &summary["grid_slam"];
     let m = &summary["octree_mapper"];
