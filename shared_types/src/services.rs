@@ -8,28 +8,13 @@
 //! Every data service's `max_subscribers` leaves room for [`WATCHERS`] subscribers beyond what the
 //! shipped configs use (a viewer and a recorder). A run that needs more sets
 //! `run.extra_subscribers`: every process of the run then adds that many to every service's
-//! `max_subscribers` and `max_nodes` ([`Qos::effective`], [`set_extra_subscribers`]); an external
-//! producer that may create a service before the pipeline does must add them too.
-
-use std::sync::atomic::{AtomicUsize, Ordering};
+//! `max_subscribers` and `max_nodes` ([`Qos::with_extra`]: the runtime applies the run's count
+//! where it opens services); an external producer that may create a service before the pipeline
+//! does must add them too.
 
 /// Subscribers every data service admits beyond the shipped configs' own consumers: room for a
 /// viewer and a recorder to attach to a running pipeline.
 pub const WATCHERS: usize = 2;
-
-/// `run.extra_subscribers` of this process's run (set once at start-up).
-static EXTRA_SUBSCRIBERS: AtomicUsize = AtomicUsize::new(0);
-
-/// Sets this process's `run.extra_subscribers` (before it opens any service): every
-/// [`Qos::effective`] adds it to `max_subscribers` and `max_nodes`.
-pub fn set_extra_subscribers(n: usize) {
-    EXTRA_SUBSCRIBERS.store(n, Ordering::Relaxed);
-}
-
-/// This process's `run.extra_subscribers`.
-pub fn extra_subscribers() -> usize {
-    EXTRA_SUBSCRIBERS.load(Ordering::Relaxed)
-}
 
 /// Quality of service of one publish-subscribe service.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -85,15 +70,14 @@ impl Qos {
         Self { safe_overflow: false, subscriber_buffer, ..Self::stream(max_subscribers, initial_slice_len) }
     }
 
-    /// This QoS with the run's `run.extra_subscribers` ([`set_extra_subscribers`]) added to
-    /// `max_subscribers` and `max_nodes`: what every process of the run opens services with.
-    pub fn effective(&self) -> Self {
-        let extra = extra_subscribers();
+    /// This QoS with a run's `run.extra_subscribers` (`extra`) added to `max_subscribers` and
+    /// `max_nodes`: what every process of that run opens services with.
+    pub const fn with_extra(&self, extra: usize) -> Self {
         Self { max_subscribers: self.max_subscribers + extra, max_nodes: self.max_nodes + extra, ..*self }
     }
 
     /// Chunks one publisher of this service reserves (iceoryx2's data-segment formula); apply
-    /// [`Qos::effective`] first for a run's real figure.
+    /// [`Qos::with_extra`] first for a run's real figure.
     pub const fn chunks_per_publisher(&self) -> usize {
         self.max_subscribers * (self.subscriber_buffer + self.subscriber_borrowed) + self.history + self.publisher_loans
     }

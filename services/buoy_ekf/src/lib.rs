@@ -79,7 +79,7 @@ impl ProcessSettings for BuoyEkfSettings {
         );
     }
 
-    fn shm_estimate_bytes(&self) -> u64 {
+    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
         // One BuoyFix stream.
         1 << 20
     }

@@ -114,7 +114,7 @@ impl ProcessSettings for FastSlamSettings {
         );
     }
 
-    fn shm_estimate_bytes(&self) -> u64 {
+    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
         // pose, particles, landmarks (grows by powers of two), diagnostics.
         let particles = (self.filter.particles * 64).next_power_of_two() as u64;
         particles * 12 + (1 << 20) * 12 + (1 << 20)

@@ -55,7 +55,7 @@ impl ProcessSettings for FusionSettings {
         issues.check(!self.slam_process.is_empty(), format!("{key}.slam_process"), "must name the SLAM process");
     }
 
-    fn shm_estimate_bytes(&self) -> u64 {
+    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
         // Fused poses, the global map (grows by powers of two), commands.
         (1 << 20) + (16 << 20)
     }

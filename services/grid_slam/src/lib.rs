@@ -107,7 +107,7 @@ impl ProcessSettings for GridSlamSettings {
         );
     }
 
-    fn shm_estimate_bytes(&self) -> u64 {
+    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
         // The grid service: 1 MiB initial slices, a few in flight.
         8 << 20
     }

@@ -323,7 +323,7 @@ impl ProcessSettings for IngestSettings {
         }
     }
 
-    fn shm_estimate_bytes(&self) -> u64 {
+    fn shm_estimate_bytes(&self, extra_subscribers: usize) -> u64 {
         let points = match self.source {
             SourceKind::Sim => {
                 let d = &self.sim.sensors.depth_camera;
@@ -341,7 +341,7 @@ impl ProcessSettings for IngestSettings {
         };
         let qos = service_spec(CLOUD).expect("cloud service is in the contract").qos;
         let chunk = (points.max(1) * size_of::<shared_types::CloudPoint>()).next_power_of_two() as u64;
-        chunk * qos.effective().chunks_per_publisher() as u64 + (4 << 20)
+        chunk * qos.with_extra(extra_subscribers).chunks_per_publisher() as u64 + (4 << 20)
     }
 }
 

@@ -225,7 +225,7 @@ impl ProcessSettings for MapperSettings {
         }
     }
 
-    fn shm_estimate_bytes(&self) -> u64 {
+    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
         // Stats and the voxel slice (grows by powers of two).
         (1 << 20) + (64 << 20)
     }

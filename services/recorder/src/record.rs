@@ -141,7 +141,7 @@ impl ProcessSettings for RecorderSettings {
         }
     }
 
-    fn shm_estimate_bytes(&self) -> u64 {
+    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
         0 // subscribers only: the publishers reserve the shared memory
     }
 }

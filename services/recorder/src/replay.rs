@@ -82,7 +82,7 @@ impl ProcessSettings for ReplayerSettings {
         );
     }
 
-    fn shm_estimate_bytes(&self) -> u64 {
+    fn shm_estimate_bytes(&self, extra_subscribers: usize) -> u64 {
         let names: Vec<&str> = if self.topics.is_empty() {
             TOPICS.iter().map(|t| t.service).collect()
         } else {
@@ -93,7 +93,7 @@ impl ProcessSettings for ReplayerSettings {
             .filter_map(|n| Some((topic(n)?, service_spec(n)?)))
             .map(|(t, s)| {
                 let chunk = t.header_size() + t.payload_size() * s.qos.initial_slice_len.max(1);
-                (chunk.next_power_of_two() * s.qos.effective().chunks_per_publisher()) as u64
+                (chunk.next_power_of_two() * s.qos.with_extra(extra_subscribers).chunks_per_publisher()) as u64
             })
             .sum()
     }

@@ -376,8 +376,10 @@ pub trait ProcessSettings: DeserializeOwned {
     /// Checks values; `key` is the settings table's dotted key (`processes.<name>.settings`).
     fn validate(&self, key: &str, issues: &mut Issues);
 
-    /// Shared memory the process's publishers may reserve with these settings, bytes.
-    fn shm_estimate_bytes(&self) -> u64 {
+    /// Shared memory the process's publishers may reserve with these settings in a run with
+    /// `run.extra_subscribers = extra_subscribers`, bytes.
+    fn shm_estimate_bytes(&self, extra_subscribers: usize) -> u64 {
+        let _ = extra_subscribers;
         0
     }
 }

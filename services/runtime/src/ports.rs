@@ -107,8 +107,8 @@ pub trait Payload: Debug + IceoryxSend + 'static {
 
 macro_rules! open_with_qos {
     ($builder:expr, $name:expr, $qos:expr) => {{
-        // With the run's `run.extra_subscribers`.
-        let qos = $qos.effective();
+        // The runtime has added the run's `run.extra_subscribers` (Qos::with_extra).
+        let qos = $qos;
         $builder
             .max_publishers(qos.max_publishers)
             .max_subscribers(qos.max_subscribers)
@@ -210,7 +210,6 @@ fn open_event(
     name: &str,
     qos: &Qos,
 ) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, PortError> {
-    let qos = qos.effective();
     node.service_builder(&service_name(name)?)
         .event()
         .max_notifiers(qos.max_publishers)
@@ -692,7 +691,7 @@ impl<P: Payload + ?Sized, H: Header> Input<P, H> {
         let subscriber = builder.create().map_err(|e| {
             let mut reason = format!("{e:?}");
             if reason.contains("ExceedsMaxSupportedSubscribers") {
-                let q = qos.effective();
+                let q = qos;
                 reason += &format!(
                     " (it admits {} subscribers, all taken by other processes of this run or tools attached to it; \
                      raise `run.extra_subscribers`)",

@@ -43,13 +43,12 @@ pub struct CheckReport {
 /// Validates the settings of process `args.name` in `args.config` as a `T`.
 pub fn check<T: ProcessSettings>(args: &ProcessArgs) -> Result<CheckReport, ContextError> {
     let config = load_pipeline_config(&args.config)?;
-    shared_types::services::set_extra_subscribers(config.run.extra_subscribers);
     let process = config
         .processes
         .get(&args.name)
         .ok_or_else(|| ContextError::NoProcess { file: args.config.clone(), name: args.name.clone() })?;
     let (issues, shm_estimate_bytes) = match settings_for::<T>(&args.name, &process.settings) {
-        Ok(s) => (vec![], s.shm_estimate_bytes()),
+        Ok(s) => (vec![], s.shm_estimate_bytes(config.run.extra_subscribers)),
         Err(issues) => (issues, 0),
     };
     Ok(CheckReport { protocol: CHECK_PROTOCOL, process: args.name.clone(), issues, shm_estimate_bytes })

@@ -62,7 +62,6 @@ impl ProcessContext {
     /// Loads the config and resolves the scope. Errors name the file and key.
     pub fn from_args(args: &ProcessArgs) -> Result<Self, ContextError> {
         let config = load_pipeline_config(&args.config)?;
-        shared_types::services::set_extra_subscribers(config.run.extra_subscribers);
         if !config.processes.contains_key(&args.name) {
             return Err(ContextError::NoProcess { file: args.config.clone(), name: args.name.clone() });
         }
@@ -90,6 +89,7 @@ impl ProcessContext {
             stats_interval: Duration::from_secs_f64(self.config.run.stats_interval_s),
             publish_control: true,
             final_stats_dir: Some(self.out_dir.join("stats")),
+            extra_subscribers: self.config.run.extra_subscribers,
         }
     }
 
@@ -114,6 +114,10 @@ pub struct RuntimeOptions {
     /// Where the final statistics report is written at the end of [`Runtime::run`]
     /// (`<dir>/<process>-<pid>.bin`): a report published just before exit may never be read.
     pub final_stats_dir: Option<PathBuf>,
+    /// The run's `run.extra_subscribers`: added to every service's `max_subscribers` and
+    /// `max_nodes` where this runtime opens it ([`Qos::with_extra`]), as every process of the run
+    /// must.
+    pub extra_subscribers: usize,
 }
 
 impl Default for RuntimeOptions {
@@ -123,6 +127,7 @@ impl Default for RuntimeOptions {
             stats_interval: Duration::from_secs(1),
             publish_control: true,
             final_stats_dir: None,
+            extra_subscribers: 0,
         }
     }
 }
@@ -324,18 +329,24 @@ impl Runtime {
         if rt.options.publish_control {
             let hb_stats = Rc::new(RefCell::new(PortStats::new(services::HEARTBEAT, false)));
             let node = rt.node.as_ref().expect("created above");
+            let extra = rt.options.extra_subscribers;
             rt.heartbeat = Some(Output::create(
                 node,
                 services::HEARTBEAT,
-                &services::CONTROL_QOS,
+                &services::CONTROL_QOS.with_extra(extra),
                 Delivery::DiscardWhenFull,
                 hb_stats,
                 rt.backpressure.clone(),
             )?);
             let st_stats = Rc::new(RefCell::new(PortStats::new("stats", false)));
             let stats_name = services::stats_service(name);
-            rt.stats_out =
-                Some(Output::create_slice(node, &stats_name, &services::STATS_QOS, st_stats, rt.backpressure.clone())?);
+            rt.stats_out = Some(Output::create_slice(
+                node,
+                &stats_name,
+                &services::STATS_QOS.with_extra(extra),
+                st_stats,
+                rt.backpressure.clone(),
+            )?);
             rt.publish_heartbeat();
         }
         Ok(rt)
@@ -448,6 +459,7 @@ impl Runtime {
     ) -> Result<Output<T, H>, RuntimeError> {
         let stats = self.port_stats(service, false);
         self.keep_alive_for(delivery);
+        let qos = &qos.with_extra(self.options.extra_subscribers);
         match self.node_or_local(service) {
             Ok(node) => Ok(Output::create(node, service, qos, delivery, stats, self.backpressure.clone())?),
             Err(bus) => Ok(Output::local(service, bus.queue(service, Side::Output)?, stats)),
@@ -474,6 +486,7 @@ impl Runtime {
     ) -> Result<Output<[T], H>, RuntimeError> {
         let stats = self.port_stats(service, false);
         self.keep_alive_for(delivery);
+        let qos = &qos.with_extra(self.options.extra_subscribers);
         match self.node_or_local(service) {
             Ok(node) => Ok(Output::create_slice_with_len(
                 node,
@@ -526,6 +539,7 @@ impl Runtime {
         buffer: usize,
     ) -> Result<Input<P, H>, RuntimeError> {
         let stats = self.port_stats(service, true);
+        let qos = &qos.with_extra(self.options.extra_subscribers);
         let input = match self.node_or_local(service) {
             Ok(node) => Input::create(node, service, qos, buffer, stats)?,
             Err(bus) => Input::local(service, bus.queue(service, Side::Input)?, stats),
@@ -663,7 +677,7 @@ impl Runtime {
                 scope.clone(),
                 self.name.clone(),
                 self.pid,
-                self.options.heartbeat_interval,
+                &self.options,
                 self.backpressure.clone(),
                 self.counts.clone(),
                 self.started,
@@ -887,11 +901,13 @@ impl KeepAlive {
         scope: IoxScope,
         name: String,
         pid: u32,
-        interval: Duration,
+        options: &RuntimeOptions,
         bp: Arc<Backpressure>,
         counts: Arc<(std::sync::atomic::AtomicU64, std::sync::atomic::AtomicU64)>,
         started: Instant,
     ) -> Self {
+        let (interval, control_qos) =
+            (options.heartbeat_interval, services::CONTROL_QOS.with_extra(options.extra_subscribers));
         let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
         let stop_t = stop.clone();
         let thread = std::thread::Builder::new()
@@ -903,7 +919,7 @@ impl KeepAlive {
                     let out = Output::<Heartbeat, MsgHeader>::create(
                         &node,
                         services::HEARTBEAT,
-                        &services::CONTROL_QOS,
+                        &control_qos,
                         Delivery::DiscardWhenFull,
                         hb_stats,
                         bp.clone(),

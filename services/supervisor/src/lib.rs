@@ -200,6 +200,8 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
     }
     let scope = plan.scope.clone();
     let out_dir = plan.out_dir.clone();
+    // The supervisor opens the control services like every process of the run.
+    let options = supervise::Supervisor::runtime_options(plan.config.run.extra_subscribers);
     let live = if cli.live() {
         let names: Vec<String> = plan.processes.iter().map(|p| p.name.clone()).collect();
         let view = live::Live::start(&out_dir, &names)
@@ -210,7 +212,7 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
     };
     let log_path = live.as_ref().map(|l| l.log_path().to_path_buf());
     let outcome = {
-        let mut rt = Runtime::new("supervisor", &scope, supervise::Supervisor::runtime_options())?;
+        let mut rt = Runtime::new("supervisor", &scope, options)?;
         let mut sup = supervise::Supervisor::new(plan, &mut rt)?;
         if let Some(l) = live {
             sup.set_live(l);

@@ -68,8 +68,6 @@ fn is_executable(p: &Path) -> bool {
 /// Loads, overrides and validates the config; finds binaries and checks settings.
 pub fn make_plan(config_path: &Path, overrides: &Overrides, bin_dir: &Path) -> Result<Plan, ConfigError> {
     let mut config = load_pipeline_config(config_path)?;
-    // The supervisor opens the control services like every process of the run.
-    shared_types::services::set_extra_subscribers(config.run.extra_subscribers);
     if let Some(o) = &overrides.out_dir {
         config.run.out_dir = o.clone();
     }

@@ -274,8 +274,8 @@ impl Supervisor {
     }
 
     /// Runtime options of the supervisor's own node (it publishes no heartbeat).
-    pub fn runtime_options() -> RuntimeOptions {
-        RuntimeOptions { publish_control: false, ..Default::default() }
+    pub fn runtime_options(extra_subscribers: usize) -> RuntimeOptions {
+        RuntimeOptions { publish_control: false, extra_subscribers, ..Default::default() }
     }
 
     /// Runs until the end condition or a signal, then stops every process and reports.

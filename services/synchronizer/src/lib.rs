@@ -46,7 +46,7 @@ impl ProcessSettings for SynchronizerSettings {
         }
     }
 
-    fn shm_estimate_bytes(&self) -> u64 {
+    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
         1 << 20
     }
 }

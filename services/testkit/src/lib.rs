@@ -50,10 +50,10 @@ impl ProcessSettings for ProducerSettings {
         );
     }
 
-    fn shm_estimate_bytes(&self) -> u64 {
+    fn shm_estimate_bytes(&self, extra_subscribers: usize) -> u64 {
         let qos = service_spec(CLOUD).expect("cloud service is in the contract").qos;
         let chunk = (self.points * size_of::<CloudPoint>()).next_power_of_two() as u64;
-        chunk * qos.effective().chunks_per_publisher() as u64
+        chunk * qos.with_extra(extra_subscribers).chunks_per_publisher() as u64
     }
 }
 
@@ -224,8 +224,8 @@ mod tests {
 
     #[test]
     fn shm_estimate_grows_with_the_cloud_size() {
-        let small = ProducerSettings { points: 1000, ..Default::default() }.shm_estimate_bytes();
-        let big = ProducerSettings { points: 300_000, ..Default::default() }.shm_estimate_bytes();
+        let small = ProducerSettings { points: 1000, ..Default::default() }.shm_estimate_bytes(0);
+        let big = ProducerSettings { points: 300_000, ..Default::default() }.shm_estimate_bytes(0);
         assert!(big > 100 * small, "{small} {big}");
         assert!(big >= 300_000 * 12);
     }
