@@ -8,7 +8,6 @@ use std::path::PathBuf;
 use crate::config::{ConfigError, ConfigIssue};
 use crate::ports::PortError;
 use crate::restart::StateError;
-use crate::runtime::RuntimeError;
 
 /// The config of a process cannot be used.
 #[derive(Debug, thiserror::Error)]
@@ -63,10 +62,10 @@ pub enum StageError {
     Stage(Box<dyn std::error::Error + Send + Sync + 'static>),
 }
 
-impl From<crate::topics::TopicError> for StageError {
-    fn from(e: crate::topics::TopicError) -> Self {
+impl From<TopicError> for StageError {
+    fn from(e: TopicError) -> Self {
         match e {
-            crate::topics::TopicError::Port(p) => StageError::Port(p),
+            TopicError::Port(p) => StageError::Port(p),
             other => StageError::stage(other),
         }
     }
@@ -97,4 +96,43 @@ pub fn error_chain(e: &(dyn std::error::Error + 'static)) -> String {
         source = s.source();
     }
     text
+}
+
+/// Errors of the runtime.
+#[derive(Debug, thiserror::Error)]
+pub enum RuntimeError {
+    /// iceoryx2 setup failed.
+    #[error(transparent)]
+    Iox(#[from] crate::iox::IoxError),
+    /// A port failed.
+    #[error(transparent)]
+    Port(#[from] PortError),
+    /// The service has no entry in the contract and no QoS was given.
+    #[error("service `{0}` is not in the service contract (shared_types::services::SERVICES)")]
+    UnknownService(String),
+    /// The WaitSet failed.
+    #[error("WaitSet: {0}")]
+    WaitSet(String),
+    /// Installing the signal handlers failed.
+    #[error("cannot install SIGINT/SIGTERM handlers: {0}")]
+    Signals(std::io::Error),
+    /// An in-process runtime has no loop (drive its stage with `pipeline_runtime::testing::StageHarness`).
+    #[error("an in-process runtime has no loop: drive the stage with pipeline_runtime::testing::StageHarness")]
+    Local,
+}
+
+/// Why a message cannot be moved through a topic's `Tap` or `Emit` (the `topics` module).
+#[derive(Debug, thiserror::Error)]
+pub enum TopicError {
+    /// A message cannot be taken as its service's wire type.
+    #[error("`{service}`: {what}")]
+    Message {
+        /// The service.
+        service: String,
+        /// What is wrong.
+        what: String,
+    },
+    /// A port failed.
+    #[error(transparent)]
+    Port(#[from] PortError),
 }

@@ -20,6 +20,7 @@ use shared_types::{EndOfStream, Heartbeat, MsgHeader, name32};
 
 use crate::clock::monotonic_ns;
 use crate::config::{LogFormat, PipelineConfig, ProcessSettings, load_pipeline_config, settings_for};
+pub use crate::error::RuntimeError;
 use crate::error::{ContextError, StageError};
 use crate::iox::IoxScope;
 use crate::ports::{Backpressure, Delivery, Header, Input, LocalBus, Output, PortError, Side};
@@ -157,29 +158,6 @@ pub enum StopReason {
     Finished,
     /// SIGINT or SIGTERM (the signal number).
     Signal(i32),
-}
-
-/// Errors of the runtime.
-#[derive(Debug, thiserror::Error)]
-pub enum RuntimeError {
-    /// iceoryx2 setup failed.
-    #[error(transparent)]
-    Iox(#[from] crate::iox::IoxError),
-    /// A port failed.
-    #[error(transparent)]
-    Port(#[from] PortError),
-    /// The service has no entry in the contract and no QoS was given.
-    #[error("service `{0}` is not in the service contract (shared_types::services::SERVICES)")]
-    UnknownService(String),
-    /// The WaitSet failed.
-    #[error("WaitSet: {0}")]
-    WaitSet(String),
-    /// Installing the signal handlers failed.
-    #[error("cannot install SIGINT/SIGTERM handlers: {0}")]
-    Signals(std::io::Error),
-    /// An in-process runtime has no loop (drive its stage with [`crate::testing::StageHarness`]).
-    #[error("an in-process runtime has no loop: drive the stage with pipeline_runtime::testing::StageHarness")]
-    Local,
 }
 
 /// One process's node, ports and loop.

@@ -15,26 +15,11 @@ use iceoryx2::prelude::ZeroCopySend;
 
 use crate::ports::Header;
 use crate::runtime::RuntimeError;
+pub use crate::error::TopicError;
 use crate::validate::Rejection;
-use crate::{Delivery, Input, Output, PortError, Runtime};
+use crate::{Delivery, Input, Output, Runtime};
 use shared_types::services::{self, Qos};
 use shared_types::*;
-
-/// Why a message cannot be moved through a [`Tap`] or an [`Emit`].
-#[derive(Debug, thiserror::Error)]
-pub enum TopicError {
-    /// A message cannot be taken as its service's wire type.
-    #[error("`{service}`: {what}")]
-    Message {
-        /// The service.
-        service: String,
-        /// What is wrong.
-        what: String,
-    },
-    /// A port failed.
-    #[error(transparent)]
-    Port(#[from] PortError),
-}
 
 /// One recordable service and its wire types.
 #[derive(Debug, Clone, Copy)]

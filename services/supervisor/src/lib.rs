@@ -6,6 +6,7 @@ pub mod certs;
 pub mod doctor;
 pub mod kinds;
 pub mod live;
+pub mod outcome;
 pub mod plan;
 pub mod report;
 pub mod status;

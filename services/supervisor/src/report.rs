@@ -11,7 +11,7 @@ use pipeline_runtime::stats::{LatencySummary, histogram_from_bytes, new_histogra
 use serde_json::{Value, json};
 
 use crate::plan::Plan;
-use crate::supervise::{EndReason, ExitInfo};
+use crate::outcome::{EndReason, ExitInfo, Usage};
 
 /// One process as the report sees it.
 pub struct ProcessRow<'a> {
@@ -30,7 +30,7 @@ pub struct ProcessRow<'a> {
     /// Latest statistics of each instance (by pid).
     pub reports: Vec<&'a StatsReport>,
     /// CPU time and peak memory of its ended instances.
-    pub usage: crate::supervise::Usage,
+    pub usage: Usage,
 }
 
 /// What each process's outputs did not deliver, summed over its instances: (publisher,
