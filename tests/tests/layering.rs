@@ -4,7 +4,8 @@
 //! - a stage crate (services/ minus the runtime, the supervisor, the test kit and the bench)
 //!   depends on no other stage;
 //! - the supervisor depends on the runtime and shared_types only among the workspace's crates
-//!   (kinds are plug-ins it finds by name).
+//!   (kinds are plug-ins it finds by name);
+//! - no crate's modules import each other in a loop (read from the sources).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -206,4 +207,138 @@ fn nothing_cites_the_steering_spec() {
         }
     }
     assert!(found.is_empty(), "cite the papers or docs/EQUATIONS.md instead:\n{}", found.join("\n"));
+}
+
+/// The modules a crate's file `text` names: `crate::m` paths and `use crate::{a, b::c}` groups,
+/// where `m` is one of the crate's top-level modules or a name its lib.rs re-exports from one
+/// (`reexports`: name → module). Comment lines are skipped (doc links are not imports).
+fn named_modules(text: &str, modules: &[String], reexports: &BTreeMap<String, String>) -> Vec<String> {
+    let resolve = |name: &str| -> Option<String> {
+        if modules.iter().any(|m| m == name) { Some(name.to_string()) } else { reexports.get(name).cloned() }
+    };
+    let code: String = text.lines().filter(|l| !l.trim_start().starts_with("//")).map(|l| format!("{l}\n")).collect();
+    let mut out = vec![];
+    let mut rest = code.as_str();
+    while let Some(i) = rest.find("crate::") {
+        rest = &rest[i + "crate::".len()..];
+        if let Some(group) = rest.strip_prefix('{') {
+            // The group's top-level items, up to its closing brace.
+            let (mut depth, mut item, mut end) = (0, String::new(), group.len());
+            for (k, ch) in group.char_indices() {
+                match ch {
+                    '{' => depth += 1,
+                    '}' if depth == 0 => {
+                        end = k;
+                        break;
+                    }
+                    '}' => depth -= 1,
+                    ',' if depth == 0 => {
+                        out.extend(resolve(item.trim().split("::").next().unwrap_or("").trim()));
+                        item.clear();
+                        continue;
+                    }
+                    _ => {}
+                }
+                if depth == 0 {
+                    item.push(ch);
+                }
+            }
+            out.extend(resolve(item.trim().split("::").next().unwrap_or("").trim()));
+            rest = &group[end..];
+        } else {
+            let name: String = rest.chars().take_while(|c| c.is_alphanumeric() || *c == '_').collect();
+            out.extend(resolve(&name));
+        }
+    }
+    out
+}
+
+/// No crate's modules import each other in a loop (a module above all it imports makes the
+/// crate readable from the bottom up; docs/architecture.md). Modules are the files and folders
+/// under `src/`; an import is a `crate::` path to one of them or to a name lib.rs re-exports
+/// from one.
+#[test]
+fn no_crate_has_modules_that_import_each_other_in_a_loop() {
+    let (_, packages) = workspace();
+    let mut circles = vec![];
+    let mut crates_seen = 0;
+    for p in &packages {
+        let src = p.dir.join("src");
+        let Ok(entries) = std::fs::read_dir(&src) else { continue };
+        crates_seen += 1;
+        // Top-level modules and their files.
+        let mut files: BTreeMap<String, Vec<PathBuf>> = BTreeMap::new();
+        for e in entries.flatten() {
+            let path = e.path();
+            let name = path.file_stem().and_then(|s| s.to_str()).unwrap_or("").to_string();
+            if path.is_dir() {
+                let mut stack = vec![path.clone()];
+                while let Some(d) = stack.pop() {
+                    for f in std::fs::read_dir(&d).into_iter().flatten().flatten() {
+                        let fp = f.path();
+                        if fp.is_dir() {
+                            stack.push(fp);
+                        } else if fp.extension().is_some_and(|x| x == "rs") {
+                            files.entry(name.clone()).or_default().push(fp);
+                        }
+                    }
+                }
+            } else if path.extension().is_some_and(|x| x == "rs") && !["lib", "main"].contains(&name.as_str()) {
+                files.entry(name).or_default().push(path);
+            }
+        }
+        let modules: Vec<String> = files.keys().filter(|m| m.as_str() != "bin").cloned().collect();
+        // Names lib.rs re-exports: `pub use module::{A, B}` / `pub use module::A`.
+        let mut reexports = BTreeMap::new();
+        let lib = std::fs::read_to_string(src.join("lib.rs")).unwrap_or_default();
+        for stmt in lib.split(';') {
+            let Some(u) = stmt.trim().strip_prefix("pub use ") else { continue };
+            let u = u.trim_start_matches("crate::").trim_start_matches("self::");
+            let Some((module, names)) = u.split_once("::") else { continue };
+            if !modules.iter().any(|m| m == module) {
+                continue;
+            }
+            for n in names.trim_matches(|c| c == '{' || c == '}' || char::is_whitespace(c)).split(',') {
+                let n = n.trim();
+                let n = n.rsplit(" as ").next().unwrap_or(n).rsplit("::").next().unwrap_or(n).trim();
+                if !n.is_empty() && n != "*" {
+                    reexports.insert(n.to_string(), module.to_string());
+                }
+            }
+        }
+        let mut edges: BTreeMap<String, std::collections::BTreeSet<String>> = BTreeMap::new();
+        for m in &modules {
+            for f in &files[m] {
+                let text = std::fs::read_to_string(f).unwrap_or_default();
+                for to in named_modules(&text, &modules, &reexports) {
+                    if &to != m {
+                        edges.entry(m.clone()).or_default().insert(to);
+                    }
+                }
+            }
+        }
+        // A loop: a module that reaches itself.
+        for start in &modules {
+            let mut stack: Vec<(String, Vec<String>)> = vec![(start.clone(), vec![start.clone()])];
+            let mut seen = std::collections::BTreeSet::new();
+            while let Some((at, path)) = stack.pop() {
+                for next in edges.get(&at).into_iter().flatten() {
+                    if next == start {
+                        let mut ring = path.clone();
+                        ring.push(start.clone());
+                        // Reported once, from its smallest module.
+                        if path.iter().all(|m| m >= start) {
+                            circles.push(format!("{}: {}", p.name, ring.join(" -> ")));
+                        }
+                    } else if seen.insert(next.clone()) {
+                        let mut more = path.clone();
+                        more.push(next.clone());
+                        stack.push((next.clone(), more));
+                    }
+                }
+            }
+        }
+    }
+    assert!(crates_seen >= 20, "crates not found: {crates_seen}");
+    assert!(circles.is_empty(), "modules that import each other in a loop:\n{}", circles.join("\n"));
 }

@@ -8,12 +8,14 @@
 //! The binaries (`src/bin/`) are the wiring around them. [`ros2`] is the recorder's optional
 //! ROS 2 bag (rosbag2 MCAP) of the pipeline's outputs.
 
+pub mod error;
 pub mod record;
 pub mod replay;
 pub mod ros2;
 pub mod stage;
 
+pub use error::RecorderError;
 pub use pipeline_runtime::topics::{self, Emit, TOPICS, Tap, Topic, TopicError, topic};
-pub use record::{Compression, McapSink, RecorderError, RecorderSettings, SinkOptions, SinkReport};
+pub use record::{Compression, McapSink, RecorderSettings, SinkOptions, SinkReport};
 pub use replay::{Replay, ReplayError, Replayed, ReplayerSettings, ScanReport, Selection, scan};
 pub use ros2::{Ros2Recording, Ros2Report, Ros2Sink};

@@ -3,6 +3,7 @@
 //! (topic = service name), one schema per wire type, metadata, chunk indexes and a summary
 //! section, and optional JSON mirror channels of the small estimates for Foxglove's plots.
 
+use crate::error::RecorderError;
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
@@ -204,62 +205,6 @@ pub struct SinkOptions {
     pub json_mirror: bool,
     /// Write Foxglove-schema channels.
     pub foxglove_channels: bool,
-}
-
-/// What recording can fail with; each names the file or the service.
-#[derive(Debug, thiserror::Error)]
-pub enum RecorderError {
-    /// The file or its directory cannot be created, written or synced.
-    #[error("{}: {what}: {source}", path.display())]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// What was being done.
-        what: &'static str,
-        /// The error.
-        #[source]
-        source: std::io::Error,
-    },
-    /// The MCAP writer failed.
-    #[error("{}: {source}", path.display())]
-    Mcap {
-        /// The file.
-        path: PathBuf,
-        /// The error.
-        #[source]
-        source: mcap::McapError,
-    },
-    /// The writer thread is gone (finished, stopped after an error, or panicked).
-    #[error("{}: {what}", path.display())]
-    Writer {
-        /// The file.
-        path: PathBuf,
-        /// What happened.
-        what: &'static str,
-    },
-    /// A message cannot be taken as its service's wire type.
-    #[error("`{service}`: {what}")]
-    Message {
-        /// The service.
-        service: String,
-        /// What is wrong.
-        what: String,
-    },
-    /// A port failed.
-    #[error(transparent)]
-    Port(#[from] pipeline_runtime::PortError),
-    /// A message could not be moved in or out of shared memory.
-    #[error(transparent)]
-    Topic(#[from] pipeline_runtime::topics::TopicError),
-    /// A schema or JSON mirror cannot be encoded.
-    #[error(transparent)]
-    Json(#[from] serde_json::Error),
-}
-
-impl From<RecorderError> for pipeline_runtime::StageError {
-    fn from(e: RecorderError) -> Self {
-        pipeline_runtime::StageError::stage(e)
-    }
 }
 
 /// An MCAP file being written by a writer thread.

@@ -22,7 +22,7 @@ use shared_types::{
     PoseEstimate, Voxel, VoxelSetHeader, WireType,
 };
 
-use crate::RecorderError;
+use crate::error::RecorderError;
 
 /// Settings of the recorder's ROS 2 bag.
 #[derive(Debug, Clone, Serialize, Deserialize)]

@@ -13,9 +13,9 @@ use std::ops::ControlFlow;
 
 use iceoryx2::prelude::ZeroCopySend;
 
+pub use crate::error::TopicError;
 use crate::ports::Header;
 use crate::runtime::RuntimeError;
-pub use crate::error::TopicError;
 use crate::validate::Rejection;
 use crate::{Delivery, Input, Output, Runtime};
 use shared_types::services::{self, Qos};

@@ -10,8 +10,8 @@ use pipeline_runtime::StatsReport;
 use pipeline_runtime::stats::{LatencySummary, histogram_from_bytes, new_histogram};
 use serde_json::{Value, json};
 
-use crate::plan::Plan;
 use crate::outcome::{EndReason, ExitInfo, Usage};
+use crate::plan::Plan;
 
 /// One process as the report sees it.
 pub struct ProcessRow<'a> {
