@@ -68,6 +68,9 @@ fn end_of_stream_ends_the_run_with_every_frame_verified() {
     assert_eq!(status.code(), Some(0), "{}", run.log());
     let s = run.summary();
     assert_eq!(s["run"]["end_reason"], "end_of_stream");
+    // The configured bound as in the config, and the run's own wall time (30 frames at 100 Hz).
+    assert_eq!(s["run"]["duration_s"], 60.0, "{:#}", s["run"]);
+    assert!(s["run"]["elapsed_s"].as_f64().is_some_and(|e| e > 0.2 && e < 60.0), "{:#}", s["run"]);
     let c = consumer_counters(&run);
     assert_eq!(c["frames_ok"], 30, "{c}");
     assert_eq!(c["frames_missed"], 0, "{c}");

@@ -164,7 +164,10 @@ pub fn summary(plan: &Plan, rows: &[ProcessRow<'_>], end: &EndReason, exit_code:
             "config": plan.config_path,
             "end_reason": end,
             "exit_code": exit_code,
-            "duration_s": elapsed.as_secs_f64(),
+            // The run's own wall time; `duration_s` is the configured bound (`run.duration_s`,
+            // 0: none), as in the config.
+            "elapsed_s": elapsed.as_secs_f64(),
+            "duration_s": plan.config.run.duration_s,
             "iceoryx_prefix": plan.scope.prefix,
             "iceoryx_root": plan.scope.root,
         },
@@ -278,7 +281,7 @@ pub fn render(summary: &Value) -> String {
     s.push_str(&format!(
         "run ended: {} after {:.1} s (exit code {})\n",
         run["end_reason"].to_string().trim_matches('"'),
-        run["duration_s"].as_f64().unwrap_or(0.0),
+        run["elapsed_s"].as_f64().unwrap_or(0.0),
         run["exit_code"]
     ));
     if let Some(Value::Array(failed)) = run.get("failed_processes")
@@ -337,7 +340,7 @@ mod tests {
         std::fs::write(dir.path().join("map.bt"), b"x").unwrap();
         std::fs::create_dir(dir.path().join("parts")).unwrap();
         let summary = serde_json::json!({
-            "run": { "end_reason": "end_of_stream", "duration_s": 42.0, "exit_code": 0 },
+            "run": { "end_reason": "end_of_stream", "elapsed_s": 42.0, "duration_s": 600.0, "exit_code": 0 },
             "processes": {},
             "ate_m": { "fused": 0.16036, "buoy": 0.2093 },
             "undelivered": [ { "publisher": "a", "service": "s", "consumer": "b", "messages": 3 } ],
