@@ -11,6 +11,7 @@
 pub mod error;
 pub mod record;
 pub mod replay;
+pub mod replay_stage;
 pub mod ros2;
 pub mod stage;
 
