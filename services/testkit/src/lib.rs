@@ -1,10 +1,8 @@
 //! Test-only pipeline processes. Until the real stages exist they let the supervisor, restarts and
 //! latency accounting be exercised for real: a point-cloud producer of configurable size and rate
 //! (which can also crash or stall on purpose) and a consumer that verifies every point it receives.
-//! The logic is here as pure functions; the binaries are thin wiring around them. The sensor
-//! monitor ([`monitor`]), part of the main job, is a [`pipeline_runtime::Stage`].
-
-pub mod monitor;
+//! The logic is here as pure functions; the binaries are thin wiring around them. (The sensor
+//! monitor, a process kind users run, is the `sensor_monitor_stage` crate.)
 
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
@@ -86,36 +84,6 @@ impl ProcessSettings for ConsumerSettings {
                 format!("must be 1..={MAX_POINTS}"),
             );
         }
-    }
-}
-
-/// Settings of `sensor_monitor` (`kind = "sensor_monitor"`): a sink for every sensor
-/// service that validates each message, counts accepted and rejected ones by reason, and forwards
-/// end of stream. It stands in for the stages while they do not exist and checks producers.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields, default)]
-pub struct SensorMonitorSettings {
-    /// Buoy ids a range may name (unset: any).
-    pub known_buoy_ids: Option<Vec<u32>>,
-    /// Largest accepted cloud.
-    pub max_cloud_points: usize,
-    /// Send our own end of stream (once) when the first upstream one arrives.
-    pub forward_end_of_stream: bool,
-}
-
-impl Default for SensorMonitorSettings {
-    fn default() -> Self {
-        Self { known_buoy_ids: None, max_cloud_points: MAX_POINTS, forward_end_of_stream: true }
-    }
-}
-
-impl ProcessSettings for SensorMonitorSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
-        issues.check(
-            (1..=MAX_POINTS).contains(&self.max_cloud_points),
-            format!("{key}.max_cloud_points"),
-            format!("must be 1..={MAX_POINTS}"),
-        );
     }
 }
 

@@ -6,9 +6,9 @@ use std::path::Path;
 use std::time::Duration;
 
 use pipeline_runtime::testing::StageHarness;
+use sensor_monitor_stage::stage::SensorMonitorStage;
 use shared_types::services::{BUOY_RANGES, ODOMETRY};
 use shared_types::{BuoyRange, MsgHeader, OdometryInput};
-use testkit::monitor::SensorMonitorStage;
 
 const CONFIG: &str =
     "[processes.monitor]\nkind = \"sensor_monitor\"\n[processes.monitor.settings]\nknown_buoy_ids = [0, 1]\n";
