@@ -17,7 +17,17 @@
 //!
 //! Clock drift between hosts (typically below 50 ppm) moves the offset by < 1 ms over the window.
 
+use crate::{ClockMode, clock_answer_key, clock_ask_key};
+use crate::{lock, zenoh_err};
+use pipeline_runtime::StageError;
+use pipeline_runtime::monotonic_ns;
+use pipeline_runtime::topics::Origin;
 use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use zenoh::Wait;
+use zenoh::qos::CongestionControl;
 
 /// Answers kept for the estimate.
 pub const WINDOW: usize = 16;
@@ -118,5 +128,137 @@ mod tests {
         assert_eq!(decode_answer(&a), Some((7 << 32 | 3, 123_456_789, "3f0c-boot".to_string())));
         assert_eq!(decode_answer(&a[..12]), None);
         assert!(!boot_id().contains('\n'));
+    }
+}
+
+/// What is known of a sending robot's clock (kept by its [`ClockProbe`]).
+#[derive(Debug, Default)]
+pub(crate) struct ClockState {
+    pub(crate) mode: ClockMode,
+    /// Whether the robot's bridge runs on this machine (same boot id), once it answered.
+    pub(crate) same_machine: Option<bool>,
+    pub(crate) estimator: OffsetEstimator,
+    pub(crate) asked: u64,
+    pub(crate) answered: u64,
+}
+
+impl ClockState {
+    /// What becomes of a message's `origin_ns`; `None`: the offset is needed but not known yet
+    /// (the message keeps the sender's clock).
+    pub(crate) fn origin(&self) -> Option<Origin> {
+        if self.mode == ClockMode::Auto && self.same_machine == Some(true) {
+            return Some(Origin::Keep);
+        }
+        self.estimator.estimate().map(|e| Origin::Shift(-e.offset_ns))
+    }
+
+    pub(crate) fn json(&self) -> serde_json::Value {
+        let e = self.estimator.estimate();
+        serde_json::json!({
+            "mode": self.mode,
+            "same_machine": self.same_machine,
+            "offset_ns": e.map(|e| e.offset_ns),
+            "rtt_ns": e.map(|e| e.rtt_ns),
+            "shifted": self.origin().is_some_and(|o| o != Origin::Keep),
+            "asked": self.asked,
+            "answered": self.answered,
+        })
+    }
+}
+
+/// A thread that asks a robot's bridge for its clock (see [`crate::clock`]).
+pub(crate) struct ClockProbe {
+    pub(crate) state: Arc<Mutex<ClockState>>,
+    pub(crate) stop: Arc<AtomicBool>,
+    pub(crate) thread: Option<std::thread::JoinHandle<()>>,
+    pub(crate) _answers: zenoh::pubsub::Subscriber<()>,
+}
+
+/// Nonces of different probes (of this process and, by the process id, of others) differ.
+static PROBES: AtomicU64 = AtomicU64::new(0);
+
+impl ClockProbe {
+    pub(crate) fn start(
+        session: &zenoh::Session,
+        namespace: &str,
+        robot: String,
+        mode: ClockMode,
+    ) -> Result<Self, StageError> {
+        let state = Arc::new(Mutex::new(ClockState { mode, ..Default::default() }));
+        let stop = Arc::new(AtomicBool::new(false));
+        let (st, sp) = (state.clone(), stop.clone());
+        let local_boot = boot_id();
+        let (ask_k, answer_k) = (clock_ask_key(namespace, &robot), clock_answer_key(namespace, &robot));
+        // Answers (with the local time they came) go to the thread; the callback never waits.
+        let (tx, rx) = std::sync::mpsc::sync_channel::<(u64, zenoh::bytes::ZBytes)>(64);
+        let answers = session
+            .declare_subscriber(&answer_k)
+            .callback(move |s| {
+                let _ = tx.try_send((monotonic_ns(), s.payload().clone()));
+            })
+            .wait()
+            .map_err(|e| zenoh_err(format!("subscriber on {answer_k}"), e))?;
+        let ask = session
+            .declare_publisher(ask_k.clone())
+            .congestion_control(CongestionControl::Drop)
+            .express(true)
+            .wait()
+            .map_err(|e| zenoh_err(format!("publisher on {ask_k}"), e))?;
+        let probe = (u64::from(std::process::id()) << 16 | PROBES.fetch_add(1, Ordering::Relaxed) & 0xffff) << 32;
+        let thread = std::thread::Builder::new()
+            .name("clock".into())
+            .spawn(move || {
+                let mut known = false;
+                let mut k = 0u32;
+                while !sp.load(Ordering::Relaxed) {
+                    let nonce = probe | u64::from(k);
+                    let t0 = monotonic_ns();
+                    lock(&st).asked += 1;
+                    if ask.put(nonce.to_le_bytes().to_vec()).wait().is_ok() {
+                        let deadline = Instant::now() + Duration::from_millis(500);
+                        // Answers to other probes (or late ones to earlier asks) are skipped.
+                        while let Ok((t1, payload)) =
+                            rx.recv_timeout(deadline.saturating_duration_since(Instant::now()))
+                        {
+                            let Some((n, remote, boot)) = decode_answer(&payload.to_bytes()) else { continue };
+                            if n != nonce {
+                                continue;
+                            }
+                            let mut s = lock(&st);
+                            s.answered += 1;
+                            s.same_machine = Some(!boot.is_empty() && boot == local_boot);
+                            let sample = s.estimator.add(t0, remote, t1);
+                            if !known && let Some(ClockSample { offset_ns, rtt_ns }) = sample {
+                                known = true;
+                                tracing::info!(
+                                    %robot,
+                                    same_machine = s.same_machine,
+                                    offset_ms = offset_ns as f64 / 1e6,
+                                    error_ms = rtt_ns as f64 / 2e6,
+                                    "clock of the sending robot measured (its CLOCK_MONOTONIC minus ours)"
+                                );
+                            }
+                            break;
+                        }
+                    }
+                    k += 1;
+                    let pause = if k < 10 { Duration::from_millis(200) } else { Duration::from_secs(1) };
+                    let until = Instant::now() + pause;
+                    while !sp.load(Ordering::Relaxed) && Instant::now() < until {
+                        std::thread::sleep(Duration::from_millis(20));
+                    }
+                }
+            })
+            .map_err(|e| StageError::Settings(format!("clock thread: {e}")))?;
+        Ok(Self { state, stop, thread: Some(thread), _answers: answers })
+    }
+}
+
+impl Drop for ClockProbe {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
     }
 }

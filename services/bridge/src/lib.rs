@@ -25,9 +25,14 @@
 //!
 //! Everything is counted per route and direction in summary.json (`bridge.out`, `bridge.in`).
 
+pub mod buffers;
 pub mod clock;
+pub mod counts;
+pub mod inbox;
+pub mod order;
 pub mod refusals;
 pub mod relay;
+pub mod session;
 pub mod stage;
 
 use pipeline_runtime::config::{Issues, ProcessSettings};
@@ -762,6 +767,17 @@ impl ProcessSettings for BridgeSettings {
         }
         issues.check(a.queue_mib.is_finite() && a.queue_mib > 0.0, format!("{key}.accept.queue_mib"), "must be > 0");
     }
+}
+
+/// Locks `m`, taking over a lock poisoned by a panicked thread (the data stays usable: counters
+/// and queues).
+pub(crate) fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// A stage error for a failed Zenoh call `what`.
+pub(crate) fn zenoh_err(what: impl std::fmt::Display, e: impl std::fmt::Display) -> pipeline_runtime::StageError {
+    pipeline_runtime::StageError::msg(format!("zenoh: {what}: {e}"))
 }
 
 #[cfg(test)]

@@ -1,4 +1,4 @@
-//! The bridge's Zenoh sessions as its TLS settings make them (`stage::zenoh_config`), on loopback
+//! The bridge's Zenoh sessions as its TLS settings make them (`session::zenoh_config`), on loopback
 //! only, with certificates made here (rcgen): a base station that receives `auv1`'s poses gets
 //! them from `auv1` and from nobody else:
 //! - `auv2`, whose certificate the same CA signed, connects but cannot publish under `auv1`, nor
@@ -81,7 +81,7 @@ impl std::ops::Deref for Host {
 }
 
 fn open(s: &BridgeSettings) -> Host {
-    let (session, relays) = bridge_stage::stage::open_session(s, &Default::default()).expect("session");
+    let (session, relays) = bridge_stage::session::open_session(s, &Default::default()).expect("session");
     Host { session, _relays: relays }
 }
 
