@@ -9,19 +9,29 @@
 //! them; `main.rs` one line.
 
 pub mod carmen;
+pub mod file_sources;
 pub mod indoor;
+pub mod plaza2;
 pub mod progress;
 pub mod reorder;
 pub mod rosbag2;
 pub mod settings;
+pub mod sim_source;
 pub mod sources;
 pub mod stage;
+pub mod stereo_sim;
+pub mod stereo_vo;
 
 use std::time::{Duration, Instant};
 
+pub use file_sources::{CloudFileSource, DepthImageSource};
+pub use plaza2::Plaza2Source;
 pub use progress::Progress;
 pub use settings::*;
+pub use sim_source::SimSource;
 pub use sources::*;
+pub use stereo_sim::StereoSimSource;
+pub use stereo_vo::StereoVoSource;
 
 pub use pipeline_runtime::restart::{ENV_RESTARTS, is_restart};
 

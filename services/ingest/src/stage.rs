@@ -349,7 +349,7 @@ fn make_source(settings: &IngestSettings, _config_dir: &Path, out_dir: &Path) ->
         SourceKind::Sim => Box::new(SimSource::new(settings.sim.clone(), out_dir)?),
         SourceKind::StereoSim => Box::new(crate::StereoSimSource::new(&settings.stereo_sim, out_dir)?),
         SourceKind::Indoor => Box::new(crate::indoor::IndoorSource::new(settings.indoor.clone(), out_dir)?),
-        other => crate::file_source(other, settings, _config_dir, out_dir)?,
+        other => file_source(other, settings, _config_dir, out_dir)?,
     })
 }
 
@@ -464,4 +464,30 @@ impl Stage for IngestStage {
         let sent: u64 = self.counts.iter().sum();
         (sent.saturating_sub(1), sent)
     }
+}
+
+/// Creates the replay source for `kind` (everything but the simulator).
+fn file_source(
+    kind: crate::SourceKind,
+    settings: &crate::IngestSettings,
+    config_dir: &std::path::Path,
+    _out_dir: &std::path::Path,
+) -> Result<Box<dyn crate::Source>, crate::SourceError> {
+    use crate::SourceKind::*;
+    Ok(match kind {
+        Sim | StereoSim | Indoor => {
+            return Err(crate::SourceError::Settings("a simulator is not a file source".into()));
+        }
+        Plaza2 => {
+            Box::new(crate::Plaza2Source::load(&crate::resolve(config_dir, &settings.plaza2.dir), &settings.plaza2)?)
+        }
+        StereoVo => Box::new(crate::StereoVoSource::load(
+            &crate::resolve(config_dir, &settings.stereo_vo.dir),
+            &settings.stereo_vo,
+        )?),
+        Clouds => Box::new(crate::CloudFileSource::new(config_dir, &settings.clouds)?),
+        Carmen => Box::new(crate::carmen::CarmenSource::load(config_dir, &settings.carmen)?),
+        DepthImages => Box::new(crate::DepthImageSource::new(config_dir, &settings.depth_images)?),
+        Rosbag2 => Box::new(crate::rosbag2::Rosbag2Source::open(config_dir, &settings.rosbag2)?),
+    })
 }
