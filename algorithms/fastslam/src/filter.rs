@@ -802,26 +802,7 @@ impl FastSlam {
         // Observations with a feature track id are associated by it (a new track makes a new
         // landmark); the others by maximum likelihood.
         let known: Vec<bool> = obs.iter().map(|o| o.track_id.is_some()).collect();
-        let mut candidates: Vec<Vec<u32>> = obs
-            .iter()
-            .map(|o| {
-                if let Some(t) = o.track_id {
-                    return self.tracks.get(&t).map(|id| vec![*id]).unwrap_or_default();
-                }
-                if o.stereo.is_some() {
-                    return vec![]; // filled below, in the camera
-                }
-                let w = spread.0.transform_point(&o.z_m.into()).coords;
-                let particles_m = 3.0 * (spread.1 + spread.2 * o.z_m.norm()) + 0.25;
-                let radius = cfg.association.search_radius_m.max(3.0 * o.Rz.trace().sqrt()) + particles_m;
-                // A landmark passes the duplicate gate only within √(χ²·(tr Σ_L + tr Rz)) ≤
-                // √(χ²·tr Σ₀) + √(χ²·tr Rz) of the particle's view of the observation.
-                let slack = (cfg.association.duplicate_gate_chi2 * o.Rz.trace()).sqrt() + particles_m;
-                let mut c = vec![];
-                self.grid.candidates(&w, radius, slack, &mut c);
-                c
-            })
-            .collect();
+        let mut candidates = self.track_and_map_candidates(obs, &spread);
         // 1. Association and importance weights: read-only on the maps. The weight of FastSLAM
         //    (1.0 and 2.0) uses the landmark estimates before this frame's update, and the update
         //    is deterministic given pose, map and decisions; so resampling can come first and the
@@ -829,17 +810,7 @@ impl FastSlam {
         //    updates), and never for particles about to be discarded.
         // The pose uncertainty of this frame's motion seen in each observation: H_x·P·H_xᵀ at
         // the best particle (the same for every particle to first order).
-        let best_pose = spread.0;
-        let pose_q: Vec<(Matrix3<f64>, Matrix3<f64>)> = obs
-            .iter()
-            .map(|o| {
-                let l = best_pose.transform_point(&o.z_m.into()).coords;
-                let sym = |q: Matrix3<f64>| (q + q.transpose()) * 0.5;
-                let (_, Hb) = ekf::jacobians(&best_pose, &l);
-                let Hx = pose_jacobian(&best_pose, &l, o);
-                (sym(Hx * motion_cov * Hx.transpose()), sym(Hb * motion_cov * Hb.transpose()))
-            })
-            .collect();
+        let pose_q = motion_in_observations(&spread.0, obs, &motion_cov);
         self.stereo_candidates(obs, &known, &motion_cov, &spread, &mut candidates);
         let t_candidates = std::time::Instant::now();
         let seeds = self.seeds();
@@ -862,13 +833,7 @@ impl FastSlam {
             (0..n).collect()
         };
         // 2. Runs of equal parents (systematic resampling returns them sorted): (parent, copies).
-        let mut groups: Vec<(usize, usize)> = vec![];
-        for &i in &parents {
-            match groups.last_mut() {
-                Some((g, c)) if *g == i => *c += 1,
-                _ => groups.push((i, 1)),
-            }
-        }
+        let groups = runs_of_parents(&parents);
         let mut old: Vec<Option<Particle>> = std::mem::take(&mut self.particles).into_iter().map(Some).collect();
         let mut survivors: Vec<(Particle, Vec<Decision>)> =
             groups.iter().map(|(i, _)| (old[*i].take().expect("each parent once"), decisions[*i].clone())).collect();
@@ -894,24 +859,7 @@ impl FastSlam {
         self.free(garbage);
         // Register the new landmarks in the association grid (first creator's position), or
         // under their feature track.
-        let mut seen = std::collections::HashSet::new();
-        for r in &results {
-            for (id, pos) in &r.created {
-                if seen.insert(*id) {
-                    let j = (*id - first_new_id) as usize;
-                    if let Some(t) = obs[j].track_id {
-                        self.tracks.insert(t, *id);
-                    }
-                    match &obs[j].stereo {
-                        Some(_) => {
-                            let k = (pos / VIEW_CELL_M).map(|v| v.floor() as i32);
-                            self.grid.view.entry([k.x, k.y, k.z]).or_default().push(*id);
-                        }
-                        None => self.grid.insert(*id, *pos, obs[j].Rz.trace(), cfg.association.duplicate_gate_chi2),
-                    }
-                }
-            }
-        }
+        self.register_new_landmarks(&results, obs, first_new_id);
         // The best particle (largest weight) always survives systematic resampling (it has
         // w ≥ 1/N, so at least one copy).
         let best_group = groups.iter().position(|(i, _)| *i == best_idx).unwrap_or(0);
@@ -924,33 +872,8 @@ impl FastSlam {
         let landmarks = self.best().confirmed;
         let t_copies = std::time::Instant::now();
         let estimate = self.estimate();
-        if let Some(prev) = self.last_mean {
-            // Twist for the constant-velocity model (per frame; scaled by dt at prediction).
-            let d = prev.inverse() * estimate.map_from_body;
-            if let Some(dt) = self.last_cv_dt.filter(|dt| *dt > 0.0) {
-                self.twist = Some((d.translation.vector / dt, d.rotation.scaled_axis() / dt));
-            }
-        }
-        self.last_mean = Some(estimate.map_from_body);
-        let mut new_segment = None;
-        self.segment_frames += 1;
-        if matched < cfg.segments.min_matched {
-            self.weak_frames += 1;
-        } else {
-            self.weak_frames = 0;
-        }
-        let sigma = estimate.covariance.fixed_view::<3, 3>(0, 0).symmetric_eigenvalues().max().max(0.0).sqrt();
-        if sigma > cfg.segments.max_position_sigma_m {
-            new_segment = Some(SegmentReason::PoseUncertainty { sigma_m: sigma });
-        } else if self.weak_frames >= cfg.segments.weak_frames
-            && landmarks >= cfg.segments.min_matched
-            && self.segment_frames >= cfg.segments.min_frames
-        {
-            new_segment = Some(SegmentReason::FewMatches { matched, frames: self.weak_frames });
-        }
-        if let Some(reason) = &new_segment {
-            self.start_new_segment(reason.clone());
-        }
+        self.update_twist(&estimate);
+        let new_segment = self.check_segments(&estimate, matched, landmarks);
         let candidates_per_observation =
             candidates.iter().map(Vec::len).sum::<usize>() as f64 / obs.len().max(1) as f64;
         FrameReport {
@@ -975,6 +898,97 @@ impl FastSlam {
                 total_ms: ms(t_start, std::time::Instant::now()),
             },
         }
+    }
+
+    /// Candidate landmarks per observation for all particles: by feature track id (a new
+    /// track has none), none yet for stereo observations (the camera search fills them), and
+    /// for the rest from the association grid around the mean pose, widened by the
+    /// observation's noise (far stereo points are uncertain along the ray) and by the particles'
+    /// spread `spread` (mean pose, translation and rotation spread), so every particle's own
+    /// search would find no more.
+    fn track_and_map_candidates(&self, obs: &[Observation], spread: &(Isometry3<f64>, f64, f64)) -> Vec<Vec<u32>> {
+        let a = &self.cfg.association;
+        obs.iter()
+            .map(|o| {
+                if let Some(t) = o.track_id {
+                    return self.tracks.get(&t).map(|id| vec![*id]).unwrap_or_default();
+                }
+                if o.stereo.is_some() {
+                    return vec![]; // filled later, in the camera
+                }
+                let w = spread.0.transform_point(&o.z_m.into()).coords;
+                let particles_m = 3.0 * (spread.1 + spread.2 * o.z_m.norm()) + 0.25;
+                let radius = a.search_radius_m.max(3.0 * o.Rz.trace().sqrt()) + particles_m;
+                // A landmark passes the duplicate gate only within √(χ²·(tr Σ_L + tr Rz)) ≤
+                // √(χ²·tr Σ₀) + √(χ²·tr Rz) of the particle's view of the observation.
+                let slack = (a.duplicate_gate_chi2 * o.Rz.trace()).sqrt() + particles_m;
+                let mut c = vec![];
+                self.grid.candidates(&w, radius, slack, &mut c);
+                c
+            })
+            .collect()
+    }
+
+    /// Registers the landmarks this frame created in the association grid (at the first
+    /// creator's position) or under their feature track.
+    fn register_new_landmarks(&mut self, results: &[ParticleFrame], obs: &[Observation], first_new_id: u32) {
+        let gate = self.cfg.association.duplicate_gate_chi2;
+        let mut seen = std::collections::HashSet::new();
+        for r in results {
+            for (id, pos) in &r.created {
+                if seen.insert(*id) {
+                    let j = (*id - first_new_id) as usize;
+                    if let Some(t) = obs[j].track_id {
+                        self.tracks.insert(t, *id);
+                    }
+                    match &obs[j].stereo {
+                        Some(_) => {
+                            let k = (pos / VIEW_CELL_M).map(|v| v.floor() as i32);
+                            self.grid.view.entry([k.x, k.y, k.z]).or_default().push(*id);
+                        }
+                        None => self.grid.insert(*id, *pos, obs[j].Rz.trace(), gate),
+                    }
+                }
+            }
+        }
+    }
+
+    /// The twist of the constant-velocity model from the last two mean poses (per frame; scaled
+    /// by dt at prediction).
+    fn update_twist(&mut self, estimate: &PoseEstimate) {
+        if let Some(prev) = self.last_mean {
+            let d = prev.inverse() * estimate.map_from_body;
+            if let Some(dt) = self.last_cv_dt.filter(|dt| *dt > 0.0) {
+                self.twist = Some((d.translation.vector / dt, d.rotation.scaled_axis() / dt));
+            }
+        }
+        self.last_mean = Some(estimate.map_from_body);
+    }
+
+    /// The multi-map triggers ([3D] §IV): a new local map when the pose has grown too uncertain,
+    /// or after `weak_frames` frames with fewer than `min_matched` matches in a map that has
+    /// enough landmarks; starts it and says why.
+    fn check_segments(&mut self, estimate: &PoseEstimate, matched: usize, landmarks: usize) -> Option<SegmentReason> {
+        let s = &self.cfg.segments;
+        self.segment_frames += 1;
+        if matched < s.min_matched {
+            self.weak_frames += 1;
+        } else {
+            self.weak_frames = 0;
+        }
+        let sigma = estimate.covariance.fixed_view::<3, 3>(0, 0).symmetric_eigenvalues().max().max(0.0).sqrt();
+        let new_segment = if sigma > s.max_position_sigma_m {
+            Some(SegmentReason::PoseUncertainty { sigma_m: sigma })
+        } else if self.weak_frames >= s.weak_frames && landmarks >= s.min_matched && self.segment_frames >= s.min_frames
+        {
+            Some(SegmentReason::FewMatches { matched, frames: self.weak_frames })
+        } else {
+            None
+        };
+        if let Some(reason) = &new_segment {
+            self.start_new_segment(reason.clone());
+        }
+        new_segment
     }
 
     /// Association decisions and the importance weight of one particle for one frame (and, with
@@ -1467,6 +1481,37 @@ pub fn systematic_resample(weights: &[f64], u: f64) -> Vec<usize> {
         out.push(i);
     }
     out
+}
+
+/// The pose uncertainty of this frame's motion `motion_cov` seen in each observation, at the
+/// best particle's pose `best_pose` (the same for every particle to first order): H_x·P·H_xᵀ
+/// and H_b·P·H_bᵀ.
+fn motion_in_observations(
+    best_pose: &Isometry3<f64>,
+    obs: &[Observation],
+    motion_cov: &Matrix6<f64>,
+) -> Vec<(Matrix3<f64>, Matrix3<f64>)> {
+    obs.iter()
+        .map(|o| {
+            let l = best_pose.transform_point(&o.z_m.into()).coords;
+            let sym = |q: Matrix3<f64>| (q + q.transpose()) * 0.5;
+            let (_, Hb) = ekf::jacobians(best_pose, &l);
+            let Hx = pose_jacobian(best_pose, &l, o);
+            (sym(Hx * motion_cov * Hx.transpose()), sym(Hb * motion_cov * Hb.transpose()))
+        })
+        .collect()
+}
+
+/// Runs of equal parents (systematic resampling returns them sorted): (parent, copies).
+fn runs_of_parents(parents: &[usize]) -> Vec<(usize, usize)> {
+    let mut groups: Vec<(usize, usize)> = vec![];
+    for &i in parents {
+        match groups.last_mut() {
+            Some((g, c)) if *g == i => *c += 1,
+            _ => groups.push((i, 1)),
+        }
+    }
+    groups
 }
 
 #[cfg(test)]
