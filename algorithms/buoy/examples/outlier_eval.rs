@@ -70,9 +70,9 @@ fn run() -> Result<()> {
             ),
         }
     }
-    let problems = scenario.validate();
+    let problems = validation::Validate::issues(&scenario);
     if !problems.is_empty() {
-        bail!("invalid scenario: {problems:?}");
+        bail!("invalid scenario: {problems}");
     }
     let base: BuoyConfig = match &config {
         Some(p) => toml::from_str(&std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?)

@@ -7,6 +7,7 @@
 //! the odometry speed and turn) comes with each measurement, not from here.
 
 use serde::{Deserialize, Serialize};
+use validation::{Issues, Validate};
 
 /// Geometry of the estimate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -355,23 +356,22 @@ impl BuoyConfig {
         self.mode == Mode::Spatial
             && (p.len() < 4 || crate::trilaterate::spread_ratio(&p) < crate::trilaterate::DEGENERATE_SPREAD)
     }
+}
 
-    /// Checks the values; each problem is (key, message).
-    pub fn validate(&self) -> Vec<(String, String)> {
-        let mut v = vec![];
-        let mut check = |ok: bool, key: &str, msg: &str| {
-            if !ok {
-                v.push((key.to_string(), msg.to_string()));
-            }
-        };
+impl Validate for BuoyConfig {
+    fn validate(&self, issues: &mut Issues) {
         let pos = |x: f64| x.is_finite() && x > 0.0;
         let nonneg = |x: f64| x.is_finite() && x >= 0.0;
-        check(self.planar_height_m.is_finite(), "planar_height_m", "must be finite");
-        check(self.buoys.len() >= 3, "buoys", "needs at least 3 buoys");
+        issues.check(self.planar_height_m.is_finite(), "planar_height_m", "must be finite");
+        issues.check(self.buoys.len() >= 3, "buoys", "needs at least 3 buoys");
         for (i, b) in self.buoys.iter().enumerate() {
-            check(b.position_m.iter().all(|c| c.is_finite()), &format!("buoys[{i}].position_m"), "must be finite");
+            issues.check(
+                b.position_m.iter().all(|c| c.is_finite()),
+                format!("buoys[{i}].position_m"),
+                "must be finite",
+            );
             if self.buoys[..i].iter().any(|o| o.id == b.id) {
-                check(false, &format!("buoys[{i}].id"), &format!("buoy id {} is listed twice", b.id));
+                issues.check(false, format!("buoys[{i}].id"), format!("buoy id {} is listed twice", b.id));
             }
         }
         if self.buoys.len() >= 3 && self.buoys.iter().all(|b| b.position_m.iter().all(|c| c.is_finite())) {
@@ -382,49 +382,61 @@ impl BuoyConfig {
                  reads the same ranges; add a buoy off the line",
                 self.buoys.len()
             );
-            check(crate::trilaterate::spread_ratio(&xy) >= crate::trilaterate::DEGENERATE_SPREAD, "buoys", &msg);
+            issues.check(crate::trilaterate::spread_ratio(&xy) >= crate::trilaterate::DEGENERATE_SPREAD, "buoys", &msg);
         }
         let r = &self.range;
-        check(r.gate_probability > 0.0 && r.gate_probability < 1.0, "range.gate_probability", "must be in (0, 1)");
-        check(r.huber_k == 0.0 || (pos(r.huber_k) && r.huber_k >= 1.0), "range.huber_k", "must be 0 (off) or >= 1");
-        check(
+        issues.check(
+            r.gate_probability > 0.0 && r.gate_probability < 1.0,
+            "range.gate_probability",
+            "must be in (0, 1)",
+        );
+        issues.check(
+            r.huber_k == 0.0 || (pos(r.huber_k) && r.huber_k >= 1.0),
+            "range.huber_k",
+            "must be 0 (off) or >= 1",
+        );
+        issues.check(
             r.doubtful_sigma == 0.0 || (pos(r.doubtful_sigma) && r.doubtful_sigma >= 1.0),
             "range.doubtful_sigma",
             "must be 0 (off) or >= 1",
         );
-        check(
+        issues.check(
             r.calibration_k == 0.0 || (pos(r.calibration_k) && r.calibration_k >= 1.0),
             "range.calibration_k",
             "must be 0 (off) or >= 1",
         );
-        check(
+        issues.check(
             r.observable_sigma_fraction.is_finite() && r.observable_sigma_fraction >= 0.0,
             "range.observable_sigma_fraction",
             "must be >= 0 (0: off)",
         );
-        check(pos(r.observability_window_s), "range.observability_window_s", "must be positive and finite");
-        check(pos(r.bias_prior_sigma_m), "range.bias_prior_sigma_m", "must be > 0");
-        check(nonneg(r.bias_random_walk_m_per_sqrt_s), "range.bias_random_walk_m_per_sqrt_s", "must be >= 0");
-        check(pos(r.scale_prior_sigma) && r.scale_prior_sigma < 0.5, "range.scale_prior_sigma", "must be in (0, 0.5)");
+        issues.check(pos(r.observability_window_s), "range.observability_window_s", "must be positive and finite");
+        issues.check(pos(r.bias_prior_sigma_m), "range.bias_prior_sigma_m", "must be > 0");
+        issues.check(nonneg(r.bias_random_walk_m_per_sqrt_s), "range.bias_random_walk_m_per_sqrt_s", "must be >= 0");
+        issues.check(
+            pos(r.scale_prior_sigma) && r.scale_prior_sigma < 0.5,
+            "range.scale_prior_sigma",
+            "must be in (0, 0.5)",
+        );
         let m = &self.motion;
-        check(pos(m.accel_sigma_mps2), "motion.accel_sigma_mps2", "must be > 0");
-        check(nonneg(m.cv_turn_rate_sigma_rps), "motion.cv_turn_rate_sigma_rps", "must be >= 0");
-        check(nonneg(m.slip_fraction) && m.slip_fraction < 1.0, "motion.slip_fraction", "must be in [0, 1)");
-        check(
+        issues.check(pos(m.accel_sigma_mps2), "motion.accel_sigma_mps2", "must be > 0");
+        issues.check(nonneg(m.cv_turn_rate_sigma_rps), "motion.cv_turn_rate_sigma_rps", "must be >= 0");
+        issues.check(nonneg(m.slip_fraction) && m.slip_fraction < 1.0, "motion.slip_fraction", "must be in [0, 1)");
+        issues.check(
             nonneg(m.heading_random_walk_rad_per_sqrt_s),
             "motion.heading_random_walk_rad_per_sqrt_s",
             "must be >= 0",
         );
-        check(pos(m.turn_bias_prior_sigma_rps), "motion.turn_bias_prior_sigma_rps", "must be > 0");
-        check(
+        issues.check(pos(m.turn_bias_prior_sigma_rps), "motion.turn_bias_prior_sigma_rps", "must be > 0");
+        issues.check(
             nonneg(m.turn_bias_random_walk_rps_per_sqrt_s),
             "motion.turn_bias_random_walk_rps_per_sqrt_s",
             "must be >= 0",
         );
-        check(nonneg(m.input_hold_s), "motion.input_hold_s", "must be >= 0");
+        issues.check(nonneg(m.input_hold_s), "motion.input_hold_s", "must be >= 0");
         let i = &self.init;
-        check(pos(i.window_s), "init.window_s", "must be > 0");
-        check(i.min_buoys >= 3, "init.min_buoys", "must be >= 3");
+        issues.check(pos(i.window_s), "init.window_s", "must be > 0");
+        issues.check(i.min_buoys >= 3, "init.min_buoys", "must be >= 3");
         // A filter that needs more distinct buoys to start than there are would wait forever.
         let starts = self.buoys.len() < 3 || i.min_buoys <= self.buoys.len();
         let msg = format!(
@@ -433,60 +445,59 @@ impl BuoyConfig {
             self.buoys.len(),
             self.buoys.len()
         );
-        check(starts, "init.min_buoys", &msg);
-        check(pos(i.max_condition) && i.max_condition > 1.0, "init.max_condition", "must be > 1");
-        check(pos(i.max_normalised_rms), "init.max_normalised_rms", "must be > 0");
-        check(i.prior_position_m.iter().all(|c| c.is_finite()), "init.prior_position_m", "must be finite");
-        check(pos(i.prior_position_sigma_m), "init.prior_position_sigma_m", "must be > 0");
-        check(i.prior_heading_rad.is_none_or(f64::is_finite), "init.prior_heading_rad", "must be finite");
-        check(pos(i.prior_heading_sigma_rad), "init.prior_heading_sigma_rad", "must be > 0");
-        check(pos(i.initial_speed_sigma_mps), "init.initial_speed_sigma_mps", "must be > 0");
-        check((4..=64).contains(&i.heading_hypotheses), "init.heading_hypotheses", "must be 4..=64");
-        check(
+        issues.check(starts, "init.min_buoys", &msg);
+        issues.check(pos(i.max_condition) && i.max_condition > 1.0, "init.max_condition", "must be > 1");
+        issues.check(pos(i.max_normalised_rms), "init.max_normalised_rms", "must be > 0");
+        issues.check(i.prior_position_m.iter().all(|c| c.is_finite()), "init.prior_position_m", "must be finite");
+        issues.check(pos(i.prior_position_sigma_m), "init.prior_position_sigma_m", "must be > 0");
+        issues.check(i.prior_heading_rad.is_none_or(f64::is_finite), "init.prior_heading_rad", "must be finite");
+        issues.check(pos(i.prior_heading_sigma_rad), "init.prior_heading_sigma_rad", "must be > 0");
+        issues.check(pos(i.initial_speed_sigma_mps), "init.initial_speed_sigma_mps", "must be > 0");
+        issues.check((4..=64).contains(&i.heading_hypotheses), "init.heading_hypotheses", "must be 4..=64");
+        issues.check(
             pos(i.heading_max_sigma_rad) && i.heading_max_sigma_rad < 1.0,
             "init.heading_max_sigma_rad",
             "must be in (0, 1)",
         );
-        check(pos(i.odometry_window_s), "init.odometry_window_s", "must be > 0");
-        check(i.odometry_window_max_ranges >= 8, "init.odometry_window_max_ranges", "must be >= 8");
-        check(i.odometry_window_min_inliers >= 4, "init.odometry_window_min_inliers", "must be >= 4");
-        check(
+        issues.check(pos(i.odometry_window_s), "init.odometry_window_s", "must be > 0");
+        issues.check(i.odometry_window_max_ranges >= 8, "init.odometry_window_max_ranges", "must be >= 8");
+        issues.check(i.odometry_window_min_inliers >= 4, "init.odometry_window_min_inliers", "must be >= 4");
+        issues.check(
             i.odometry_window_min_inliers <= i.odometry_window_max_ranges,
             "init.odometry_window_min_inliers",
             "must be <= init.odometry_window_max_ranges",
         );
-        check(
+        issues.check(
             i.odometry_window_min_inlier_fraction > 0.0 && i.odometry_window_min_inlier_fraction <= 1.0,
             "init.odometry_window_min_inlier_fraction",
             "must be in (0, 1]",
         );
-        check(
+        issues.check(
             nonneg(i.odometry_drift_fraction) && i.odometry_drift_fraction < 1.0,
             "init.odometry_drift_fraction",
             "must be in [0, 1)",
         );
-        check(
+        issues.check(
             nonneg(i.odometry_window_ambiguity_margin),
             "init.odometry_window_ambiguity_margin",
             "must be >= 0 (outliers' worth of cost)",
         );
         let c = &self.recovery;
-        check(c.consecutive_rejections >= 1, "recovery.consecutive_rejections", "must be >= 1");
-        check(nonneg(c.heading_sigma_rad), "recovery.heading_sigma_rad", "must be >= 0");
-        check(c.buoy_consecutive_rejections >= 1, "recovery.buoy_consecutive_rejections", "must be >= 1");
-        check(c.fix_rejections >= 1, "recovery.fix_rejections", "must be >= 1");
-        check(c.check_ranges >= 4, "recovery.check_ranges", "must be >= 4");
-        check(
+        issues.check(c.consecutive_rejections >= 1, "recovery.consecutive_rejections", "must be >= 1");
+        issues.check(nonneg(c.heading_sigma_rad), "recovery.heading_sigma_rad", "must be >= 0");
+        issues.check(c.buoy_consecutive_rejections >= 1, "recovery.buoy_consecutive_rejections", "must be >= 1");
+        issues.check(c.fix_rejections >= 1, "recovery.fix_rejections", "must be >= 1");
+        issues.check(c.check_ranges >= 4, "recovery.check_ranges", "must be >= 4");
+        issues.check(
             c.check_rejected_share > 0.0 && c.check_rejected_share <= 1.0,
             "recovery.check_rejected_share",
             "must be in (0, 1]",
         );
-        check(
+        issues.check(
             c.confirm_checks == 0 || c.confirm_every_ranges >= 1,
             "recovery.confirm_every_ranges",
             "must be >= 1 (or recovery.confirm_checks = 0)",
         );
-        v
     }
 }
 
@@ -503,9 +514,9 @@ mod tests {
 
     #[test]
     fn defaults_with_a_buoy_table_are_valid() {
-        assert_eq!(with_buoys().validate(), vec![]);
+        assert!(with_buoys().issues().is_empty());
         // The default has no buoys: that is the one problem.
-        let keys: Vec<String> = BuoyConfig::default().validate().into_iter().map(|(k, _)| k).collect();
+        let keys: Vec<String> = BuoyConfig::default().issues().into_iter().map(|i| i.key).collect();
         assert_eq!(keys, ["buoys"]);
     }
 
@@ -513,12 +524,16 @@ mod tests {
     fn more_buoys_to_start_than_configured_is_refused() {
         let mut c = with_buoys();
         c.buoys.pop(); // 3 buoys, min_buoys 4 by default
-        let issues = c.validate();
+        let issues = c.issues().into_vec();
         assert_eq!(issues.len(), 1, "{issues:?}");
-        assert_eq!(issues[0].0, "init.min_buoys");
-        assert!(issues[0].1.contains("never initialise") && issues[0].1.contains("lists 3"), "{}", issues[0].1);
+        assert_eq!(issues[0].key, "init.min_buoys");
+        assert!(
+            issues[0].message.contains("never initialise") && issues[0].message.contains("lists 3"),
+            "{}",
+            issues[0].message
+        );
         c.init.min_buoys = 3;
-        assert_eq!(c.validate(), vec![]);
+        assert!(c.issues().is_empty());
     }
 
     #[test]
@@ -527,9 +542,9 @@ mod tests {
         for (i, b) in c.buoys.iter_mut().enumerate() {
             b.position_m = [i as f64 * 10.0, i as f64 * 5.0, -(i as f64)];
         }
-        let issues = c.validate();
+        let issues = c.issues().into_vec();
         assert_eq!(issues.len(), 1, "{issues:?}");
-        assert!(issues[0].0 == "buoys" && issues[0].1.contains("one line"), "{issues:?}");
+        assert!(issues[0].key == "buoys" && issues[0].message.contains("one line"), "{issues:?}");
         let c = with_buoys(); // all at z = 0
         assert!(c.needs_depth());
         let mut c = with_buoys();
@@ -550,7 +565,7 @@ mod tests {
         c.init.min_buoys = 2;
         c.init.prior_heading_rad = Some(f64::INFINITY);
         c.recovery.fix_rejections = 0;
-        let keys: Vec<String> = c.validate().into_iter().map(|(k, _)| k).collect();
+        let keys: Vec<String> = c.issues().into_iter().map(|i| i.key).collect();
         assert_eq!(
             keys,
             [

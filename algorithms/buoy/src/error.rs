@@ -7,7 +7,7 @@
 pub enum BuoyError {
     /// The configuration failed validation; each entry is (key, problem).
     #[error("invalid buoy configuration: {}", format_problems(.0))]
-    InvalidConfig(Vec<(String, String)>),
+    InvalidConfig(Vec<validation::ConfigIssue>),
     /// An input was NaN or infinite.
     #[error("non-finite input: {0}")]
     NonFinite(&'static str),
@@ -130,6 +130,6 @@ pub enum TrilaterationError {
     },
 }
 
-fn format_problems(problems: &[(String, String)]) -> String {
-    problems.iter().map(|(k, m)| format!("`{k}` {m}")).collect::<Vec<_>>().join("; ")
+fn format_problems(problems: &[validation::ConfigIssue]) -> String {
+    problems.iter().map(|i| format!("`{}` {}", i.key, i.message)).collect::<Vec<_>>().join("; ")
 }

@@ -23,6 +23,7 @@ use crate::config::{BuoyConfig, BuoyEntry, Mode};
 use crate::ekf::{BuoyEkf, OdometryInput, RangeOutcome};
 use crate::error::BuoyError;
 use crate::trilaterate::{Geometry, Limits, RangeObs, trilaterate, wrap_angle};
+use validation::{Issues, Validate};
 
 /// Settings of a mission (defaults: the indoor UWB robot of issue 18, 3 beacons).
 #[derive(Debug, Clone, PartialEq)]
@@ -245,47 +246,11 @@ pub fn median(values: &[f64]) -> f64 {
 }
 
 impl OutlierScenario {
-    /// Checks the settings; each problem is (field, message).
-    pub fn validate(&self) -> Vec<(String, String)> {
-        let mut v = vec![];
-        let mut check = |ok: bool, key: &str, msg: &str| {
-            if !ok {
-                v.push((key.to_string(), msg.to_string()));
-            }
-        };
-        let pos = |x: f64| x.is_finite() && x > 0.0;
-        let nonneg = |x: f64| x.is_finite() && x >= 0.0;
-        check(pos(self.duration_s), "duration_s", "must be > 0");
-        check(self.area_m.iter().all(|&a| a.is_finite() && a > 1.0), "area_m", "both sides must be > 1 m");
-        check(pos(self.speed_mps), "speed_mps", "must be > 0");
-        check(self.beacons_m.len() >= 3, "beacons_m", "needs at least 3 beacons");
-        check(self.beacons_m.iter().flatten().all(|c| c.is_finite()), "beacons_m", "must be finite");
-        check(self.antenna_height_m.is_finite(), "antenna_height_m", "must be finite");
-        check(pos(self.range_period_s), "range_period_s", "must be > 0");
-        check(pos(self.range_sigma_m), "range_sigma_m", "must be > 0");
-        check((0.0..=0.5).contains(&self.outlier_fraction), "outlier_fraction", "must be in [0, 0.5]");
-        check(
-            nonneg(self.outlier_m[0]) && self.outlier_m[1].is_finite() && self.outlier_m[1] >= self.outlier_m[0],
-            "outlier_m",
-            "must be [min, max] with 0 <= min <= max",
-        );
-        check(pos(self.odometry_rate_hz), "odometry_rate_hz", "must be > 0");
-        check(
-            self.speed_scale_error.is_finite() && self.speed_scale_error.abs() < 0.5,
-            "speed_scale_error",
-            "must be in (-0.5, 0.5)",
-        );
-        check(self.turn_bias_rps.is_finite(), "turn_bias_rps", "must be finite");
-        check(pos(self.speed_sigma_mps), "speed_sigma_mps", "must be > 0");
-        check(pos(self.turn_sigma_rad), "turn_sigma_rad", "must be > 0");
-        v
-    }
-
     /// Generates the mission of `seed` (deterministic). Panics on settings that
     /// [`Self::validate`] refuses (a test and benchmark helper, not a process input).
     pub fn generate(&self, seed: u64) -> Mission {
-        let problems = self.validate();
-        assert!(problems.is_empty(), "invalid scenario: {problems:?}");
+        let problems = self.issues();
+        assert!(problems.is_empty(), "invalid scenario: {problems}");
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
         let n01 = Normal::new(0.0, 1.0).expect("unit normal");
         let dt = 1.0 / self.odometry_rate_hz;
@@ -359,6 +324,36 @@ impl OutlierScenario {
     }
 }
 
+impl Validate for OutlierScenario {
+    fn validate(&self, issues: &mut Issues) {
+        let pos = |x: f64| x.is_finite() && x > 0.0;
+        let nonneg = |x: f64| x.is_finite() && x >= 0.0;
+        issues.check(pos(self.duration_s), "duration_s", "must be > 0");
+        issues.check(self.area_m.iter().all(|&a| a.is_finite() && a > 1.0), "area_m", "both sides must be > 1 m");
+        issues.check(pos(self.speed_mps), "speed_mps", "must be > 0");
+        issues.check(self.beacons_m.len() >= 3, "beacons_m", "needs at least 3 beacons");
+        issues.check(self.beacons_m.iter().flatten().all(|c| c.is_finite()), "beacons_m", "must be finite");
+        issues.check(self.antenna_height_m.is_finite(), "antenna_height_m", "must be finite");
+        issues.check(pos(self.range_period_s), "range_period_s", "must be > 0");
+        issues.check(pos(self.range_sigma_m), "range_sigma_m", "must be > 0");
+        issues.check((0.0..=0.5).contains(&self.outlier_fraction), "outlier_fraction", "must be in [0, 0.5]");
+        issues.check(
+            nonneg(self.outlier_m[0]) && self.outlier_m[1].is_finite() && self.outlier_m[1] >= self.outlier_m[0],
+            "outlier_m",
+            "must be [min, max] with 0 <= min <= max",
+        );
+        issues.check(pos(self.odometry_rate_hz), "odometry_rate_hz", "must be > 0");
+        issues.check(
+            self.speed_scale_error.is_finite() && self.speed_scale_error.abs() < 0.5,
+            "speed_scale_error",
+            "must be in (-0.5, 0.5)",
+        );
+        issues.check(self.turn_bias_rps.is_finite(), "turn_bias_rps", "must be finite");
+        issues.check(pos(self.speed_sigma_mps), "speed_sigma_mps", "must be > 0");
+        issues.check(pos(self.turn_sigma_rad), "turn_sigma_rad", "must be > 0");
+    }
+}
+
 /// The baseline: at every range, a plain least-squares trilateration (no robust weights) from
 /// the latest range of every beacon (once each has one) in `geometry`. Returns (t, position)
 /// for the ranges where it has a solution (degenerate or ill-conditioned ones are skipped).
@@ -426,7 +421,7 @@ mod tests {
     #[test]
     fn invalid_settings_are_named() {
         let s = OutlierScenario { beacons_m: vec![[0.0; 3]; 2], outlier_fraction: 0.7, ..Default::default() };
-        let keys: Vec<String> = s.validate().into_iter().map(|(k, _)| k).collect();
+        let keys: Vec<String> = s.issues().into_iter().map(|i| i.key).collect();
         assert_eq!(keys, ["beacons_m", "outlier_fraction"]);
     }
 }

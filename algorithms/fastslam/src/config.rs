@@ -2,6 +2,7 @@
 //! and a validation pass that names each bad key.
 
 use serde::{Deserialize, Serialize};
+use validation::{Issues, Validate};
 
 /// Which proposal distribution samples the particle poses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -140,37 +141,37 @@ impl Default for FastSlamConfig {
     }
 }
 
-impl FastSlamConfig {
-    /// Checks the values; each problem is (key below the settings table, message).
-    pub fn validate(&self) -> Vec<(String, String)> {
-        let mut v = vec![];
-        let mut check = |ok: bool, key: &str, msg: &str| {
-            if !ok {
-                v.push((key.to_string(), msg.to_string()));
-            }
-        };
+impl Validate for FastSlamConfig {
+    fn validate(&self, issues: &mut Issues) {
         let pos = |x: f64| x.is_finite() && x > 0.0;
         let nonneg = |x: f64| x.is_finite() && x >= 0.0;
-        check((1..=100_000).contains(&self.particles), "particles", "must be 1..=100000");
-        check(self.resample_fraction > 0.0 && self.resample_fraction <= 1.0, "resample_fraction", "must be in (0, 1]");
-        check(nonneg(self.process_position_sigma), "process_position_sigma", "must be >= 0");
-        check(nonneg(self.process_rotation_sigma), "process_rotation_sigma", "must be >= 0");
-        check(nonneg(self.input_noise_scale), "input_noise_scale", "must be >= 0");
-        check(pos(self.relative_motion_noise_scale), "relative_motion_noise_scale", "must be > 0");
-        check(nonneg(self.drift_position_sigma_per_sqrt_m), "drift_position_sigma_per_sqrt_m", "must be >= 0");
-        check(nonneg(self.drift_rotation_sigma_per_sqrt_m), "drift_rotation_sigma_per_sqrt_m", "must be >= 0");
-        check(nonneg(self.cv_velocity_sigma_mps), "cv_velocity_sigma_mps", "must be >= 0");
-        check(nonneg(self.cv_angular_velocity_sigma_rps), "cv_angular_velocity_sigma_rps", "must be >= 0");
+        issues.check((1..=100_000).contains(&self.particles), "particles", "must be 1..=100000");
+        issues.check(
+            self.resample_fraction > 0.0 && self.resample_fraction <= 1.0,
+            "resample_fraction",
+            "must be in (0, 1]",
+        );
+        issues.check(nonneg(self.process_position_sigma), "process_position_sigma", "must be >= 0");
+        issues.check(nonneg(self.process_rotation_sigma), "process_rotation_sigma", "must be >= 0");
+        issues.check(nonneg(self.input_noise_scale), "input_noise_scale", "must be >= 0");
+        issues.check(pos(self.relative_motion_noise_scale), "relative_motion_noise_scale", "must be > 0");
+        issues.check(nonneg(self.drift_position_sigma_per_sqrt_m), "drift_position_sigma_per_sqrt_m", "must be >= 0");
+        issues.check(nonneg(self.drift_rotation_sigma_per_sqrt_m), "drift_rotation_sigma_per_sqrt_m", "must be >= 0");
+        issues.check(nonneg(self.cv_velocity_sigma_mps), "cv_velocity_sigma_mps", "must be >= 0");
+        issues.check(nonneg(self.cv_angular_velocity_sigma_rps), "cv_angular_velocity_sigma_rps", "must be >= 0");
         let a = &self.association;
-        check(pos(a.gate_chi2), "association.gate_chi2", "must be > 0");
-        check(a.duplicate_gate_chi2 >= a.gate_chi2, "association.duplicate_gate_chi2", "must be >= gate_chi2");
-        check(a.ratio > 0.0 && a.ratio <= 1.0, "association.ratio", "must be in (0, 1]");
-        check(a.ml_margin_chi2.is_finite() && a.ml_margin_chi2 >= 0.0, "association.ml_margin_chi2", "must be >= 0");
-        check(a.max_hamming <= 256, "association.max_hamming", "must be <= 256");
-        check(a.confirm_after >= 1, "association.confirm_after", "must be >= 1");
-        check(pos(a.search_radius_m), "association.search_radius_m", "must be > 0");
-        check(pos(self.segments.max_position_sigma_m), "segments.max_position_sigma_m", "must be > 0");
-        check(self.threads <= 256, "threads", "must be <= 256");
-        v
+        issues.check(pos(a.gate_chi2), "association.gate_chi2", "must be > 0");
+        issues.check(a.duplicate_gate_chi2 >= a.gate_chi2, "association.duplicate_gate_chi2", "must be >= gate_chi2");
+        issues.check(a.ratio > 0.0 && a.ratio <= 1.0, "association.ratio", "must be in (0, 1]");
+        issues.check(
+            a.ml_margin_chi2.is_finite() && a.ml_margin_chi2 >= 0.0,
+            "association.ml_margin_chi2",
+            "must be >= 0",
+        );
+        issues.check(a.max_hamming <= 256, "association.max_hamming", "must be <= 256");
+        issues.check(a.confirm_after >= 1, "association.confirm_after", "must be >= 1");
+        issues.check(pos(a.search_radius_m), "association.search_radius_m", "must be > 0");
+        issues.check(pos(self.segments.max_position_sigma_m), "segments.max_position_sigma_m", "must be > 0");
+        issues.check(self.threads <= 256, "threads", "must be <= 256");
     }
 }

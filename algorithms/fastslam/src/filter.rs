@@ -442,11 +442,8 @@ fn meas_cov(o: &Observation) -> &Matrix3<f64> {
 
 impl FastSlam {
     /// A filter with every particle at the origin of local map 0.
-    pub fn new(cfg: FastSlamConfig) -> Result<Self, Vec<(String, String)>> {
-        let problems = cfg.validate();
-        if !problems.is_empty() {
-            return Err(problems);
-        }
+    pub fn new(cfg: FastSlamConfig) -> Result<Self, Vec<validation::ConfigIssue>> {
+        validation::Validate::issues(&cfg).into_result()?;
         let n = cfg.particles;
         let threads = if cfg.threads == 0 {
             std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)

@@ -42,6 +42,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::filter::Observation;
 use crate::sym3::Chol3;
+use validation::{Issues, Validate};
 
 /// Settings of the stereo front end.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -110,31 +111,31 @@ impl Default for FrontEndConfig {
     }
 }
 
-impl FrontEndConfig {
-    /// Checks the values; each problem is (key below the front-end table, message).
-    pub fn validate(&self) -> Vec<(String, String)> {
-        let mut v = vec![];
-        let mut check = |ok: bool, key: &str, msg: &str| {
-            if !ok {
-                v.push((key.to_string(), msg.to_string()));
-            }
-        };
+impl Validate for FrontEndConfig {
+    fn validate(&self, issues: &mut Issues) {
         let pos = |x: f64| x.is_finite() && x > 0.0;
-        check(pos(self.inlier_chi2), "inlier_chi2", "must be > 0");
-        check(self.min_inliers >= 3, "min_inliers", "must be >= 3");
-        check((0.0..=1.0).contains(&self.min_inlier_fraction), "min_inlier_fraction", "must be in [0, 1]");
-        check(pos(self.max_translation_m), "max_translation_m", "must be > 0");
-        check(pos(self.max_rotation_deg) && self.max_rotation_deg < 90.0, "max_rotation_deg", "must be in (0, 90)");
-        check(pos(self.search_max_sigma_m), "search_max_sigma_m", "must be > 0");
-        check(self.search_trials >= 1, "search_trials", "must be >= 1");
-        check(self.search_max_triples >= 1, "search_max_triples", "must be >= 1");
-        check(pos(self.prior_translation_sigma_m), "prior_translation_sigma_m", "must be > 0");
-        check(pos(self.prior_rotation_sigma_deg), "prior_rotation_sigma_deg", "must be > 0");
-        check(pos(self.huber_sigma), "huber_sigma", "must be > 0");
-        check(self.ransac_iterations >= 1, "ransac_iterations", "must be >= 1");
-        check(pos(self.fallback_velocity_sigma_mps), "fallback_velocity_sigma_mps", "must be > 0");
-        check(pos(self.fallback_angular_velocity_sigma_rps), "fallback_angular_velocity_sigma_rps", "must be > 0");
-        v
+        issues.check(pos(self.inlier_chi2), "inlier_chi2", "must be > 0");
+        issues.check(self.min_inliers >= 3, "min_inliers", "must be >= 3");
+        issues.check((0.0..=1.0).contains(&self.min_inlier_fraction), "min_inlier_fraction", "must be in [0, 1]");
+        issues.check(pos(self.max_translation_m), "max_translation_m", "must be > 0");
+        issues.check(
+            pos(self.max_rotation_deg) && self.max_rotation_deg < 90.0,
+            "max_rotation_deg",
+            "must be in (0, 90)",
+        );
+        issues.check(pos(self.search_max_sigma_m), "search_max_sigma_m", "must be > 0");
+        issues.check(self.search_trials >= 1, "search_trials", "must be >= 1");
+        issues.check(self.search_max_triples >= 1, "search_max_triples", "must be >= 1");
+        issues.check(pos(self.prior_translation_sigma_m), "prior_translation_sigma_m", "must be > 0");
+        issues.check(pos(self.prior_rotation_sigma_deg), "prior_rotation_sigma_deg", "must be > 0");
+        issues.check(pos(self.huber_sigma), "huber_sigma", "must be > 0");
+        issues.check(self.ransac_iterations >= 1, "ransac_iterations", "must be >= 1");
+        issues.check(pos(self.fallback_velocity_sigma_mps), "fallback_velocity_sigma_mps", "must be > 0");
+        issues.check(
+            pos(self.fallback_angular_velocity_sigma_rps),
+            "fallback_angular_velocity_sigma_rps",
+            "must be > 0",
+        );
     }
 }
 

@@ -22,6 +22,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::FusionError;
 use crate::fuse::check_covariance;
+use validation::{Issues, Validate};
 
 /// Floor added to every pair covariance S_i, m² (σ = 1 µm), so exact (zero-covariance) pairs stay
 /// solvable; negligible against any real sensor.
@@ -61,20 +62,17 @@ impl Default for AlignConfig {
     }
 }
 
-impl AlignConfig {
-    /// Every bad setting as (key, message); empty when the config is valid.
-    pub fn validate(&self) -> Vec<(String, String)> {
-        let mut v = vec![];
+impl Validate for AlignConfig {
+    fn validate(&self, issues: &mut Issues) {
         if self.min_pairs < 3 {
-            v.push(("min_pairs".to_string(), "must be >= 3".to_string()));
+            issues.push("min_pairs", "must be >= 3");
         }
         if !(self.min_spread_ratio.is_finite() && (0.0..1.0).contains(&self.min_spread_ratio)) {
-            v.push(("min_spread_ratio".to_string(), "must be in [0, 1)".to_string()));
+            issues.push("min_spread_ratio", "must be in [0, 1)");
         }
         if !(self.min_extent_m.is_finite() && self.min_extent_m >= 0.0) {
-            v.push(("min_extent_m".to_string(), "must be >= 0".to_string()));
+            issues.push("min_extent_m", "must be >= 0");
         }
-        v
     }
 }
 
@@ -207,7 +205,7 @@ fn normal_equations(
 /// ([`FusionError::Collinear`]) — both resolvable with [`align_with_heading`]
 /// ([`FusionError::is_degenerate_geometry`]); non-finite values or non-PSD covariances.
 pub fn align(pairs: &[Correspondence], cfg: &AlignConfig) -> Result<Alignment, FusionError> {
-    if !cfg.validate().is_empty() {
+    if !cfg.issues().is_empty() {
         return Err(FusionError::InvalidArgument("align config (see AlignConfig::validate)"));
     }
     let need = cfg.min_pairs.max(3);
@@ -443,10 +441,10 @@ mod tests {
         bad[0].local_cov_m2[(2, 2)] = -1.0;
         assert_eq!(align(&bad, &cfg).unwrap_err(), FusionError::NotPositiveDefinite("local covariance"));
         let invalid = AlignConfig { min_pairs: 2, min_spread_ratio: 1.5, min_extent_m: f64::NAN };
-        let keys: Vec<String> = invalid.validate().into_iter().map(|(k, _)| k).collect();
+        let keys: Vec<String> = invalid.issues().into_iter().map(|i| i.key).collect();
         assert_eq!(keys, ["min_pairs", "min_spread_ratio", "min_extent_m"]);
         assert!(matches!(align(&exact_pairs(&truth, &three), &invalid), Err(FusionError::InvalidArgument(_))));
-        assert!(cfg.validate().is_empty());
+        assert!(cfg.issues().is_empty());
     }
 
     #[test]

@@ -35,6 +35,7 @@ use crate::align::{AlignConfig, Alignment, Correspondence, align, align_with_hea
 use crate::bspline::{LocalPathSpline, PathSample};
 use crate::fuse::{FuseOutcome, chi2_3_quantile, fuse};
 use crate::global_map::{GlobalLandmark, MapLandmark, MergeConfig, build_global_map};
+use validation::{ConfigIssue, Issues, Validate};
 
 /// Settings of the engine.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -72,19 +73,16 @@ impl Default for FusionConfig {
     }
 }
 
-impl FusionConfig {
-    /// Checks the values; each problem is (key, message).
-    pub fn validate(&self) -> Vec<(String, String)> {
-        let mut v: Vec<(String, String)> =
-            self.align.validate().into_iter().map(|(k, m)| (format!("align.{k}"), m)).collect();
-        v.extend(self.merge.validate().into_iter().map(|(k, m)| (format!("merge.{k}"), m)));
+impl Validate for FusionConfig {
+    fn validate(&self, issues: &mut Issues) {
+        issues.nested("align", &self.align);
+        issues.nested("merge", &self.merge);
         if !(self.gate_probability > 0.0 && self.gate_probability < 1.0) {
-            v.push(("gate_probability".into(), "must be in (0, 1)".into()));
+            issues.push("gate_probability", "must be in (0, 1)");
         }
         if !(self.local_window_s.is_finite() && self.local_window_s >= 0.0) {
-            v.push(("local_window_s".into(), "must be >= 0 (0 = off)".into()));
+            issues.push("local_window_s", "must be >= 0 (0 = off)");
         }
-        v
     }
 }
 
@@ -261,13 +259,11 @@ fn body_rotation_cov(world_from_body: &UnitQuaternion<f64>, transform_rot_cov: &
 
 impl Fusion {
     /// A new engine; the configuration must validate.
-    pub fn new(cfg: FusionConfig) -> Result<Self, Vec<(String, String)>> {
-        let problems = cfg.validate();
-        if !problems.is_empty() {
-            return Err(problems);
-        }
-        let gate_chi2 = chi2_3_quantile(cfg.gate_probability)
-            .ok_or_else(|| vec![("gate_probability".to_string(), "no χ²₃ quantile for it".to_string())])?;
+    pub fn new(cfg: FusionConfig) -> Result<Self, Vec<ConfigIssue>> {
+        cfg.issues().into_result()?;
+        let gate_chi2 = chi2_3_quantile(cfg.gate_probability).ok_or_else(|| {
+            vec![ConfigIssue { key: "gate_probability".into(), message: "no χ²₃ quantile for it".into() }]
+        })?;
         Ok(Self { cfg, gate_chi2, segments: BTreeMap::new(), fixes: vec![], headings: vec![], last_orientation: None })
     }
 

@@ -32,6 +32,7 @@ use serde::{Deserialize, Serialize};
 use crate::FusionError;
 use crate::align::Alignment;
 use crate::fuse::{check_covariance, fuse_unchecked};
+use validation::{Issues, Validate};
 
 /// A landmark of one segment's local map, in the segment's local frame.
 #[derive(Debug, Clone, PartialEq)]
@@ -86,20 +87,17 @@ impl Default for MergeConfig {
     }
 }
 
-impl MergeConfig {
-    /// Every bad setting as (key, message); empty when the config is valid.
-    pub fn validate(&self) -> Vec<(String, String)> {
-        let mut v = vec![];
+impl Validate for MergeConfig {
+    fn validate(&self, issues: &mut Issues) {
         if !(self.gate_chi2.is_finite() && self.gate_chi2 > 0.0) {
-            v.push(("gate_chi2".to_string(), "must be finite and > 0".to_string()));
+            issues.push("gate_chi2", "must be finite and > 0");
         }
         if !(self.max_bhattacharyya.is_finite() && self.max_bhattacharyya > 0.0) {
-            v.push(("max_bhattacharyya".to_string(), "must be finite and > 0".to_string()));
+            issues.push("max_bhattacharyya", "must be finite and > 0");
         }
         if self.max_hamming > 256 {
-            v.push(("max_hamming".to_string(), "must be <= 256 (bits of a descriptor)".to_string()));
+            issues.push("max_hamming", "must be <= 256 (bits of a descriptor)");
         }
-        v
     }
 }
 
@@ -238,7 +236,7 @@ pub fn build_global_map_with_stats(
     segments: &[(Alignment, Vec<MapLandmark>)],
     cfg: &MergeConfig,
 ) -> Result<(Vec<GlobalLandmark>, MergeStats), FusionError> {
-    if !cfg.validate().is_empty() {
+    if !cfg.issues().is_empty() {
         return Err(FusionError::InvalidArgument("merge config (see MergeConfig::validate)"));
     }
     Ok(build(segments, cfg, true))
@@ -638,7 +636,7 @@ mod tests {
         assert_eq!(map.len(), 1);
         let bad =
             MergeConfig { gate_chi2: f64::NAN, max_bhattacharyya: 0.0, max_hamming: 300, use_bhattacharyya: false };
-        let keys: Vec<String> = bad.validate().into_iter().map(|(k, _)| k).collect();
+        let keys: Vec<String> = bad.issues().into_iter().map(|i| i.key).collect();
         assert_eq!(keys, ["gate_chi2", "max_bhattacharyya", "max_hamming"]);
         assert!(matches!(build_global_map_with_stats(&segs, &bad), Err(FusionError::InvalidArgument(_))));
         assert_eq!(build_global_map(&segs, &bad).len(), 2);
@@ -649,7 +647,7 @@ mod tests {
         )
         .unwrap();
         assert_eq!(stats.dropped, 1);
-        assert!(MergeConfig::default().validate().is_empty());
+        assert!(MergeConfig::default().issues().is_empty());
     }
 
     #[test]

@@ -24,6 +24,7 @@ use crate::grid::Grid;
 use crate::posegraph::{self, Edge, Kernel, OptimizeParams};
 use crate::{GridSlamError, matcher};
 use omni::Pose2;
+use validation::{Issues, Validate};
 
 /// Back-end settings.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -108,67 +109,49 @@ impl Default for BackEndConfig {
     }
 }
 
-impl BackEndConfig {
-    /// Checks every value; the error names the key.
-    pub fn validate(&self) -> Result<(), GridSlamError> {
-        let bad = |key: &'static str, why: &str| Err(GridSlamError::Config { key, why: why.to_string() });
+impl Validate for BackEndConfig {
+    fn validate(&self, issues: &mut Issues) {
         let pos = |v: f64| v.is_finite() && v > 0.0;
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
-        if self.submap_nodes < 2 {
-            return bad("pose_graph.submap_nodes", "must be at least 2");
-        }
-        if self.search_every == 0 {
-            return bad("pose_graph.search_every", "must be at least 1");
-        }
-        if !(self.min_score > 0.0 && self.min_score <= 1.0) {
-            return bad("pose_graph.min_score", "must be in (0, 1]");
+        issues.check(self.submap_nodes >= 2, "submap_nodes", "must be at least 2");
+        issues.check(self.search_every != 0, "search_every", "must be at least 1");
+        issues.check(self.min_score > 0.0 && self.min_score <= 1.0, "min_score", "must be in (0, 1]");
+        for (k, v) in [
+            ("window_base_m", self.window_base_m),
+            ("angular_window_base_rad", self.angular_window_base_rad),
+            ("odometry_sigma_m", self.odometry_sigma_m),
+            ("odometry_sigma_rad", self.odometry_sigma_rad),
+            ("loop_sigma_m", self.loop_sigma_m),
+            ("loop_sigma_rad", self.loop_sigma_rad),
+            ("huber", self.huber),
+            ("outlier_chi2", self.outlier_chi2),
+        ] {
+            issues.check(pos(v), k, "must be finite and > 0");
         }
         for (k, v) in [
-            ("pose_graph.window_base_m", self.window_base_m),
-            ("pose_graph.angular_window_base_rad", self.angular_window_base_rad),
-            ("pose_graph.odometry_sigma_m", self.odometry_sigma_m),
-            ("pose_graph.odometry_sigma_rad", self.odometry_sigma_rad),
-            ("pose_graph.loop_sigma_m", self.loop_sigma_m),
-            ("pose_graph.loop_sigma_rad", self.loop_sigma_rad),
-            ("pose_graph.huber", self.huber),
-            ("pose_graph.outlier_chi2", self.outlier_chi2),
+            ("window_per_m", self.window_per_m),
+            ("angular_window_per_m", self.angular_window_per_m),
+            ("odometry_sigma_per_m", self.odometry_sigma_per_m),
+            ("odometry_sigma_per_rad", self.odometry_sigma_per_rad),
         ] {
-            if !pos(v) {
-                return bad(k, "must be finite and > 0");
-            }
+            issues.check(nonneg(v), k, "must be finite and >= 0");
         }
-        for (k, v) in [
-            ("pose_graph.window_per_m", self.window_per_m),
-            ("pose_graph.angular_window_per_m", self.angular_window_per_m),
-            ("pose_graph.odometry_sigma_per_m", self.odometry_sigma_per_m),
-            ("pose_graph.odometry_sigma_per_rad", self.odometry_sigma_per_rad),
-        ] {
-            if !nonneg(v) {
-                return bad(k, "must be finite and >= 0");
-            }
-        }
-        if !(self.window_max_m.is_finite() && self.window_max_m >= self.window_base_m) {
-            return bad("pose_graph.window_max_m", "must be finite and >= window_base_m");
-        }
-        if !(self.angular_window_max_rad.is_finite()
-            && self.angular_window_max_rad >= self.angular_window_base_rad
-            && self.angular_window_max_rad <= std::f64::consts::PI)
-        {
-            return bad("pose_graph.angular_window_max_rad", "must be >= angular_window_base_rad and <= π");
-        }
-        if self.max_per_visit == 0 {
-            return bad("pose_graph.max_per_visit", "must be at least 1");
-        }
-        if self.max_points < 10 {
-            return bad("pose_graph.max_points", "must be at least 10");
-        }
-        if !(1..=10).contains(&self.depth) {
-            return bad("pose_graph.depth", "must be 1-10");
-        }
-        if self.rounds == 0 {
-            return bad("pose_graph.rounds", "must be at least 1");
-        }
-        Ok(())
+        issues.check(
+            self.window_max_m.is_finite() && self.window_max_m >= self.window_base_m,
+            "window_max_m",
+            "must be finite and >= window_base_m",
+        );
+        issues.check(
+            self.angular_window_max_rad.is_finite()
+                && self.angular_window_max_rad >= self.angular_window_base_rad
+                && self.angular_window_max_rad <= std::f64::consts::PI,
+            "angular_window_max_rad",
+            "must be >= angular_window_base_rad and <= π",
+        );
+        issues.check(self.max_per_visit != 0, "max_per_visit", "must be at least 1");
+        issues.check(self.max_points >= 10, "max_points", "must be at least 10");
+        issues.check((1..=10).contains(&self.depth), "depth", "must be 1-10");
+        issues.check(self.rounds != 0, "rounds", "must be at least 1");
     }
 }
 
@@ -223,7 +206,9 @@ pub struct BackEnd {
 impl BackEnd {
     /// A back end with `cfg` (checked).
     pub fn new(cfg: BackEndConfig) -> Result<Self, GridSlamError> {
-        cfg.validate()?;
+        let mut issues = Issues::at("pose_graph");
+        cfg.validate(&mut issues);
+        issues.into_result().map_err(GridSlamError::Config)?;
         Ok(Self { cfg, scans: Vec::new() })
     }
 

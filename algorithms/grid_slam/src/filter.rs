@@ -20,6 +20,7 @@ use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
 use rand_xoshiro::Xoshiro256PlusPlus;
 use std::sync::Arc;
+use validation::{Issues, Validate};
 
 /// The laser's beam layout and mounting.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -155,14 +156,10 @@ impl Default for GridSlamConfig {
     }
 }
 
-impl GridSlamConfig {
-    /// Checks every value; the error names the key.
-    pub fn validate(&self) -> Result<(), GridSlamError> {
-        let bad = |key: &'static str, why: &str| Err(GridSlamError::Config { key, why: why.to_string() });
+impl Validate for GridSlamConfig {
+    fn validate(&self, issues: &mut Issues) {
         let pos = |v: f64| v.is_finite() && v > 0.0;
-        if self.particles == 0 {
-            return bad("particles", "must be at least 1");
-        }
+        issues.check(self.particles != 0, "particles", "must be at least 1");
         for (key, v) in [
             ("resolution_m", self.resolution_m),
             ("usable_range_m", self.usable_range_m),
@@ -178,60 +175,57 @@ impl GridSlamConfig {
             ("matcher.linear_step_m", self.matcher.linear_step_m),
             ("matcher.angular_step_rad", self.matcher.angular_step_rad),
         ] {
-            if !pos(v) {
-                return bad(key, &format!("must be a positive number, got {v}"));
-            }
+            issues.check(pos(v), key, format!("must be a positive number, got {v}"));
         }
-        if !(self.no_return_free_m.is_finite() && self.no_return_free_m >= 0.0) {
-            return bad("no_return_free_m", "must be >= 0 (0: no-return beams free nothing)");
-        }
-        if !(self.resample_threshold >= 0.0 && self.resample_threshold <= 1.0) {
-            return bad("resample_threshold", "must be within [0, 1]");
-        }
-        if self.matcher.beam_stride == 0 {
-            return bad("matcher.beam_stride", "must be at least 1");
-        }
-        if self.matcher.coarse_stride == 0 {
-            return bad("matcher.coarse_stride", "must be at least 1 (1: every point at every step size)");
-        }
-        if self.matcher.coarse_refinements > self.matcher.refinements {
-            return bad("matcher.coarse_refinements", "must be at most matcher.refinements");
-        }
-        if !(0..=3).contains(&self.matcher.kernel_cells) {
-            return bad("matcher.kernel_cells", "must be 0..=3");
-        }
+        issues.check(
+            self.no_return_free_m.is_finite() && self.no_return_free_m >= 0.0,
+            "no_return_free_m",
+            "must be >= 0 (0: no-return beams free nothing)",
+        );
+        issues.check(
+            self.resample_threshold >= 0.0 && self.resample_threshold <= 1.0,
+            "resample_threshold",
+            "must be within [0, 1]",
+        );
+        issues.check(self.matcher.beam_stride != 0, "matcher.beam_stride", "must be at least 1");
+        issues.check(
+            self.matcher.coarse_stride != 0,
+            "matcher.coarse_stride",
+            "must be at least 1 (1: every point at every step size)",
+        );
+        issues.check(
+            self.matcher.coarse_refinements <= self.matcher.refinements,
+            "matcher.coarse_refinements",
+            "must be at most matcher.refinements",
+        );
+        issues.check((0..=3).contains(&self.matcher.kernel_cells), "matcher.kernel_cells", "must be 0..=3");
         let m = &self.motion;
         for (key, v) in [("motion.srr", m.srr), ("motion.srt", m.srt), ("motion.str_", m.str_), ("motion.stt", m.stt)] {
-            if !(v.is_finite() && v >= 0.0) {
-                return bad(key, "must be a non-negative number");
-            }
+            issues.check(v.is_finite() && v >= 0.0, key, "must be a non-negative number");
         }
-        if !pos(m.min_sd_m) || !pos(m.min_sd_rad) {
-            return bad("motion.min_sd_m", "the floors must be positive");
-        }
+        issues.check(pos(m.min_sd_m) && pos(m.min_sd_rad), "motion.min_sd_m", "the floors must be positive");
         let l = &self.log_odds;
-        if !(l.hit > 0.0 && l.miss < 0.0 && l.min < 0.0 && l.max > 0.0) {
-            return bad("log_odds", "hit and max must be positive, miss and min negative");
-        }
-        Ok(())
+        issues.check(
+            l.hit > 0.0 && l.miss < 0.0 && l.min < 0.0 && l.max > 0.0,
+            "log_odds",
+            "hit and max must be positive, miss and min negative",
+        );
     }
 }
 
-impl ScanGeometry {
-    /// Checks the geometry; the error names the field.
-    pub fn validate(&self) -> Result<(), GridSlamError> {
-        let bad = |key: &'static str, why: &str| Err(GridSlamError::Config { key, why: why.to_string() });
-        if self.beams < 2 {
-            return bad("laser.beams", "needs at least 2 beams");
-        }
-        if !(self.angle_min_rad.is_finite() && self.angle_increment_rad.is_finite() && self.angle_increment_rad != 0.0)
-        {
-            return bad("laser.angle_increment_rad", "angles must be finite and the increment non-zero");
-        }
-        if !(self.range_min_m.is_finite() && self.range_min_m >= 0.0 && self.range_max_m > self.range_min_m) {
-            return bad("laser.range_max_m", "needs 0 <= range_min_m < range_max_m");
-        }
-        Ok(())
+impl Validate for ScanGeometry {
+    fn validate(&self, issues: &mut Issues) {
+        issues.check(self.beams >= 2, "laser.beams", "needs at least 2 beams");
+        issues.check(
+            self.angle_min_rad.is_finite() && self.angle_increment_rad.is_finite() && self.angle_increment_rad != 0.0,
+            "laser.angle_increment_rad",
+            "angles must be finite and the increment non-zero",
+        );
+        issues.check(
+            self.range_min_m.is_finite() && self.range_min_m >= 0.0 && self.range_max_m > self.range_min_m,
+            "laser.range_max_m",
+            "needs 0 <= range_min_m < range_max_m",
+        );
     }
 }
 
@@ -413,8 +407,10 @@ pub struct PreparedScan {
 impl GridSlam {
     /// A filter for a laser with geometry `geom`.
     pub fn new(cfg: GridSlamConfig, geom: ScanGeometry) -> Result<Self, GridSlamError> {
-        cfg.validate()?;
-        geom.validate()?;
+        let mut issues = Issues::new();
+        cfg.validate(&mut issues);
+        geom.validate(&mut issues);
+        issues.into_result().map_err(GridSlamError::Config)?;
         let dirs = (0..geom.beams)
             .map(|k| {
                 let a = geom.angle_min_rad + k as f64 * geom.angle_increment_rad;
@@ -1064,7 +1060,7 @@ mod tests {
             assert!(g.log_odds(g.cell_of(2.0 * c, 2.0 * s).0, g.cell_of(2.0 * c, 2.0 * s).1) > 0.0);
         }
         let bad = GridSlamConfig { no_return_free_m: -1.0, ..Default::default() };
-        assert!(bad.validate().unwrap_err().to_string().contains("no_return_free_m"));
+        assert!(bad.issues().to_string().contains("no_return_free_m"));
     }
 
     #[test]
@@ -1095,15 +1091,15 @@ mod tests {
 
     #[test]
     fn config_errors_name_the_key() {
-        let e = GridSlamConfig { resolution_m: 0.0, ..Default::default() }.validate().unwrap_err();
+        let e = GridSlamConfig { resolution_m: 0.0, ..Default::default() }.issues();
         assert!(e.to_string().contains("resolution_m"), "{e}");
-        let e = GridSlamConfig { particles: 0, ..Default::default() }.validate().unwrap_err();
+        let e = GridSlamConfig { particles: 0, ..Default::default() }.issues();
         assert!(e.to_string().contains("particles"), "{e}");
         let m = MatcherParams { coarse_stride: 0, ..Default::default() };
-        let e = GridSlamConfig { matcher: m, ..Default::default() }.validate().unwrap_err();
+        let e = GridSlamConfig { matcher: m, ..Default::default() }.issues();
         assert!(e.to_string().contains("matcher.coarse_stride"), "{e}");
         let m = MatcherParams { coarse_refinements: 9, ..Default::default() };
-        let e = GridSlamConfig { matcher: m, ..Default::default() }.validate().unwrap_err();
+        let e = GridSlamConfig { matcher: m, ..Default::default() }.issues();
         assert!(e.to_string().contains("matcher.coarse_refinements"), "{e}");
     }
 }

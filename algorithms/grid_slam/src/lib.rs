@@ -32,14 +32,9 @@ pub use omni::Pose2;
 /// What can go wrong.
 #[derive(Debug, thiserror::Error)]
 pub enum GridSlamError {
-    /// A setting is invalid.
-    #[error("grid_slam setting {key}: {why}")]
-    Config {
-        /// The key.
-        key: &'static str,
-        /// What is wrong.
-        why: String,
-    },
+    /// Settings are invalid: every problem, with its key.
+    #[error("invalid grid_slam settings: {}", .0.iter().map(|i| format!("{}: {}", i.key, i.message)).collect::<Vec<_>>().join("; "))]
+    Config(Vec<validation::ConfigIssue>),
     /// A scan's beam count differs from the laser's.
     #[error("scan has {got} beams, the laser has {expected}")]
     BeamCount {

@@ -26,6 +26,7 @@ use std::path::Path;
 
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use serde::{Deserialize, Serialize};
+use validation::{Issues, Validate};
 
 /// A voxel index, ⌊x/res⌋ per axis.
 pub type VoxelKey = [i32; 3];
@@ -178,21 +179,17 @@ impl Default for NsdConfig {
     }
 }
 
-impl NsdConfig {
-    /// Checks the values; each problem is (key, message).
-    pub fn validate(&self) -> Vec<(String, String)> {
-        let mut v = vec![];
-        let mut check = |ok: bool, k: &str, m: &str| {
-            if !ok {
-                v.push((k.to_string(), m.to_string()));
-            }
-        };
-        check(self.min_points >= 3, "min_points", "must be >= 3");
-        check(self.max_plane_mse_m2.is_finite() && self.max_plane_mse_m2 >= 0.0, "max_plane_mse_m2", "must be >= 0");
-        check((0.0..=90.0).contains(&self.max_slope_deg), "max_slope_deg", "must be in [0, 90]");
-        check(self.max_step_m.is_finite() && self.max_step_m >= 0.0, "max_step_m", "must be >= 0");
-        check((0.0..=90.0).contains(&self.max_normal_angle_deg), "max_normal_angle_deg", "must be in [0, 90]");
-        v
+impl Validate for NsdConfig {
+    fn validate(&self, issues: &mut Issues) {
+        issues.check(self.min_points >= 3, "min_points", "must be >= 3");
+        issues.check(
+            self.max_plane_mse_m2.is_finite() && self.max_plane_mse_m2 >= 0.0,
+            "max_plane_mse_m2",
+            "must be >= 0",
+        );
+        issues.check((0.0..=90.0).contains(&self.max_slope_deg), "max_slope_deg", "must be in [0, 90]");
+        issues.check(self.max_step_m.is_finite() && self.max_step_m >= 0.0, "max_step_m", "must be >= 0");
+        issues.check((0.0..=90.0).contains(&self.max_normal_angle_deg), "max_normal_angle_deg", "must be in [0, 90]");
     }
 }
 
@@ -324,7 +321,7 @@ pub fn discover(
     occupied: impl Fn(&VoxelKey) -> bool,
     cfg: &NsdConfig,
 ) -> Result<Discovery, NavigableError> {
-    if let Some((key, message)) = cfg.validate().into_iter().next() {
+    if let Some(validation::ConfigIssue { key, message }) = cfg.issues().into_iter().next() {
         return Err(NavigableError::Config { key, message });
     }
     let mut keys: Vec<VoxelKey> = acc.cells.keys().filter(|k| occupied(k)).copied().collect();

@@ -3,6 +3,7 @@
 
 use geometry::StereoRig;
 use serde::{Deserialize, Serialize};
+use validation::{Issues, Validate};
 
 /// The whole simulator configuration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -323,101 +324,97 @@ impl Default for CompassConfig {
     }
 }
 
-impl SimConfig {
-    /// Checks the values; each problem is (dotted key below the sim table, message).
-    pub fn validate(&self) -> Vec<(String, String)> {
-        let mut v = vec![];
-        let mut check = |ok: bool, key: &str, msg: &str| {
-            if !ok {
-                v.push((key.to_string(), msg.to_string()));
-            }
-        };
+impl Validate for SimConfig {
+    fn validate(&self, issues: &mut Issues) {
         let s = &self.sensors;
         let pos = |x: f64| x.is_finite() && x > 0.0;
         let nonneg = |x: f64| x.is_finite() && x >= 0.0;
-        check(
+        issues.check(
             pos(s.odometry.rate_hz) && s.odometry.rate_hz <= 1000.0,
             "sensors.odometry.rate_hz",
             "must be in (0, 1000]",
         );
-        check(nonneg(s.odometry.speed_sigma_mps), "sensors.odometry.speed_sigma_mps", "must be >= 0");
-        check(nonneg(s.odometry.turn_sigma_rad), "sensors.odometry.turn_sigma_rad", "must be >= 0");
-        check(
+        issues.check(nonneg(s.odometry.speed_sigma_mps), "sensors.odometry.speed_sigma_mps", "must be >= 0");
+        issues.check(nonneg(s.odometry.turn_sigma_rad), "sensors.odometry.turn_sigma_rad", "must be >= 0");
+        issues.check(
             nonneg(s.stereo.rate_hz) && s.stereo.rate_hz <= s.odometry.rate_hz,
             "sensors.stereo.rate_hz",
             "must be in [0, odometry rate]",
         );
-        check(
+        issues.check(
             pos(s.stereo.rig.f_px) && pos(s.stereo.rig.baseline_m),
             "sensors.stereo.rig",
             "focal length and baseline must be > 0",
         );
-        check(s.stereo.rig.width_px > 0 && s.stereo.rig.height_px > 0, "sensors.stereo.rig", "image size must be > 0");
-        check(pos(s.stereo.pixel_sigma_px), "sensors.stereo.pixel_sigma_px", "must be > 0");
-        check(pos(s.stereo.max_range_m), "sensors.stereo.max_range_m", "must be > 0");
-        check(
+        issues.check(
+            s.stereo.rig.width_px > 0 && s.stereo.rig.height_px > 0,
+            "sensors.stereo.rig",
+            "image size must be > 0",
+        );
+        issues.check(pos(s.stereo.pixel_sigma_px), "sensors.stereo.pixel_sigma_px", "must be > 0");
+        issues.check(pos(s.stereo.max_range_m), "sensors.stereo.max_range_m", "must be > 0");
+        issues.check(
             (0.0..=1.0).contains(&s.stereo.spurious_fraction),
             "sensors.stereo.spurious_fraction",
             "must be in [0, 1]",
         );
-        check(
+        issues.check(
             nonneg(s.buoys.rate_hz) && s.buoys.rate_hz <= s.odometry.rate_hz,
             "sensors.buoys.rate_hz",
             "must be in [0, odometry rate]",
         );
-        check(pos(s.buoys.sigma_m), "sensors.buoys.sigma_m", "must be > 0");
-        check(
+        issues.check(pos(s.buoys.sigma_m), "sensors.buoys.sigma_m", "must be > 0");
+        issues.check(
             (0.0..=1.0).contains(&s.buoys.outlier_probability),
             "sensors.buoys.outlier_probability",
             "must be in [0, 1]",
         );
-        check(
+        issues.check(
             (0.0..=1.0).contains(&s.buoys.dropout_probability),
             "sensors.buoys.dropout_probability",
             "must be in [0, 1]",
         );
         let d = &s.depth_camera;
-        check(
+        issues.check(
             nonneg(d.rate_hz) && d.rate_hz <= s.odometry.rate_hz,
             "sensors.depth_camera.rate_hz",
             "must be in [0, odometry rate]",
         );
-        check(
+        issues.check(
             (1..=640).contains(&d.width_px) && (1..=480).contains(&d.height_px),
             "sensors.depth_camera",
             "resolution must be at most 640×480",
         );
-        check(d.hfov_deg > 1.0 && d.hfov_deg < 170.0, "sensors.depth_camera.hfov_deg", "must be in (1, 170)");
-        check((1..=64).contains(&d.threads), "sensors.depth_camera.threads", "must be 1..=64");
-        check(
+        issues.check(d.hfov_deg > 1.0 && d.hfov_deg < 170.0, "sensors.depth_camera.hfov_deg", "must be in (1, 170)");
+        issues.check((1..=64).contains(&d.threads), "sensors.depth_camera.threads", "must be 1..=64");
+        issues.check(
             nonneg(s.compass.rate_hz) && s.compass.rate_hz <= s.odometry.rate_hz,
             "sensors.compass.rate_hz",
             "must be >= 0 and <= sensors.odometry.rate_hz",
         );
-        check(nonneg(s.compass.sigma_deg), "sensors.compass.sigma_deg", "must be >= 0");
-        check(
+        issues.check(nonneg(s.compass.sigma_deg), "sensors.compass.sigma_deg", "must be >= 0");
+        issues.check(
             nonneg(s.pressure.rate_hz) && s.pressure.rate_hz <= s.odometry.rate_hz,
             "sensors.pressure.rate_hz",
             "must be in [0, odometry rate]",
         );
-        check(self.scene.buoys_m.len() >= 3, "scene.buoys_m", "at least 3 buoys");
-        check(
+        issues.check(self.scene.buoys_m.len() >= 3, "scene.buoys_m", "at least 3 buoys");
+        issues.check(
             s.buoys.outlier_min_m.is_finite()
                 && s.buoys.outlier_min_m >= 0.0
                 && s.buoys.outlier_min_m <= s.buoys.outlier_max_m,
             "sensors.buoys.outlier_min_m",
             "must be in [0, sensors.buoys.outlier_max_m]",
         );
-        check(self.scene.extent_m.iter().all(|x| pos(*x)), "scene.extent_m", "must be > 0");
-        check(
+        issues.check(self.scene.extent_m.iter().all(|x| pos(*x)), "scene.extent_m", "must be > 0");
+        issues.check(
             self.scene.rock_radius_m[0] > 0.0 && self.scene.rock_radius_m[0] <= self.scene.rock_radius_m[1],
             "scene.rock_radius_m",
             "must be 0 < min <= max",
         );
-        check(self.mission.legs >= 1, "mission.legs", "at least 1");
-        check(!self.mission.leg_depths_m.is_empty(), "mission.leg_depths_m", "at least one depth");
-        check(pos(self.mission.speed_mps), "mission.speed_mps", "must be > 0");
-        check(pos(self.mission.max_duration_s), "mission.max_duration_s", "must be > 0");
-        v
+        issues.check(self.mission.legs >= 1, "mission.legs", "at least 1");
+        issues.check(!self.mission.leg_depths_m.is_empty(), "mission.leg_depths_m", "at least one depth");
+        issues.check(pos(self.mission.speed_mps), "mission.speed_mps", "must be > 0");
+        issues.check(pos(self.mission.max_duration_s), "mission.max_duration_s", "must be > 0");
     }
 }

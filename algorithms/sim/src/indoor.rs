@@ -20,6 +20,7 @@ use rand::{RngExt, SeedableRng};
 use rand_distr::{Distribution, Normal};
 use rand_xoshiro::Xoshiro256PlusPlus;
 use serde::{Deserialize, Serialize};
+use validation::{Issues, Validate};
 
 /// An axis-aligned box, m.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -392,15 +393,9 @@ impl Default for IndoorConfig {
     }
 }
 
-impl IndoorConfig {
-    /// Problems as (key, message).
-    pub fn validate(&self) -> Vec<(String, String)> {
-        let mut v = vec![];
-        let mut pos = |k: &str, x: f64| {
-            if !(x.is_finite() && x > 0.0) {
-                v.push((k.to_string(), format!("must be > 0, got {x}")));
-            }
-        };
+impl Validate for IndoorConfig {
+    fn validate(&self, issues: &mut Issues) {
+        let mut pos = |k: &str, x: f64| issues.check(x.is_finite() && x > 0.0, k, format!("must be > 0, got {x}"));
         pos("speed_mps", self.speed_mps);
         pos("sway_period_s", self.sway_period_s);
         pos("max_turn_radps", self.max_turn_radps);
@@ -411,21 +406,20 @@ impl IndoorConfig {
         pos("odometry.wheel_radius_m", self.odometry.wheel_radius_m);
         pos("depth.max_range_m", self.depth.max_range_m);
         if self.laps == 0 {
-            v.push(("laps".into(), "must be >= 1".into()));
+            issues.push("laps", "must be >= 1");
         }
         if self.laser.beams < 8 {
-            v.push(("laser.beams".into(), "must be >= 8".into()));
+            issues.push("laser.beams", "must be >= 8");
         }
         if !(0.0..1.0).contains(&self.laser.dropout_prob) {
-            v.push(("laser.dropout_prob".into(), "must be within [0, 1)".into()));
+            issues.push("laser.dropout_prob", "must be within [0, 1)");
         }
         if self.depth.rate_hz < 0.0 || self.depth.width_px == 0 || self.depth.height_px == 0 {
-            v.push(("depth".into(), "rate must be >= 0 and the image non-empty".into()));
+            issues.push("depth", "rate must be >= 0 and the image non-empty");
         }
         if !(self.depth.min_range_m >= 0.0 && self.depth.min_range_m < self.depth.max_range_m) {
-            v.push(("depth.min_range_m".into(), "must be below max_range_m".into()));
+            issues.push("depth.min_range_m", "must be below max_range_m");
         }
-        v
     }
 }
 
@@ -517,12 +511,10 @@ pub struct IndoorSim {
 impl IndoorSim {
     /// A simulator for `cfg`.
     pub fn new(cfg: IndoorConfig) -> Result<Self, crate::SimError> {
-        let problems = cfg.validate();
-        if !problems.is_empty() {
-            return Err(crate::SimError::Config(problems));
-        }
-        let base = OmniBase::new(cfg.odometry.center_to_wheel_m, cfg.odometry.wheel_radius_m)
-            .map_err(|e| crate::SimError::Config(vec![("odometry".into(), e.to_string())]))?;
+        cfg.issues().into_result().map_err(crate::SimError::Config)?;
+        let base = OmniBase::new(cfg.odometry.center_to_wheel_m, cfg.odometry.wheel_radius_m).map_err(|e| {
+            crate::SimError::Config(vec![validation::ConfigIssue { key: "odometry".into(), message: e.to_string() }])
+        })?;
         let mut path = Vec::new();
         let mut s = 0.0;
         let (waypoints, laps): (&[[f64; 2]], u32) = match cfg.building {

@@ -29,9 +29,9 @@ pub use scene::*;
 /// Errors of the simulator.
 #[derive(Debug, thiserror::Error)]
 pub enum SimError {
-    /// The configuration is invalid: (key below the sim table, message) pairs.
-    #[error("invalid simulator config: {}", .0.iter().map(|(k, m)| format!("{k}: {m}")).collect::<Vec<_>>().join("; "))]
-    Config(Vec<(String, String)>),
+    /// The configuration is invalid: every problem, keyed below the sim table.
+    #[error("invalid simulator config: {}", .0.iter().map(|i| format!("{}: {}", i.key, i.message)).collect::<Vec<_>>().join("; "))]
+    Config(Vec<validation::ConfigIssue>),
 }
 
 /// The true pose at one instant.
@@ -205,10 +205,7 @@ fn wrap_pi(a: f64) -> f64 {
 impl Simulator {
     /// Builds the scene and the mission from `cfg`.
     pub fn new(cfg: SimConfig) -> Result<Self, SimError> {
-        let problems = cfg.validate();
-        if !problems.is_empty() {
-            return Err(SimError::Config(problems));
-        }
+        validation::Validate::issues(&cfg).into_result().map_err(SimError::Config)?;
         let seed = cfg.seed;
         let stream =
             |k: u64| Xoshiro256PlusPlus::seed_from_u64(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(k));

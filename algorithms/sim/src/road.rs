@@ -29,6 +29,7 @@ use rand_xoshiro::Xoshiro256PlusPlus;
 use serde::{Deserialize, Serialize};
 
 use crate::TruthSample;
+use validation::{Issues, Validate};
 
 /// Settings of the stereo drive.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -101,42 +102,42 @@ impl Default for RoadConfig {
     }
 }
 
-impl RoadConfig {
-    /// Checks the values; each problem is (key below the road table, message).
-    pub fn validate(&self) -> Vec<(String, String)> {
-        let mut v = vec![];
-        let mut check = |ok: bool, key: &str, msg: &str| {
-            if !ok {
-                v.push((key.to_string(), msg.to_string()));
-            }
-        };
+impl Validate for RoadConfig {
+    fn validate(&self, issues: &mut Issues) {
         let pos = |x: f64| x.is_finite() && x > 0.0;
         let frac = |x: f64| (0.0..=1.0).contains(&x);
-        check(self.frames >= 2, "frames", "must be >= 2");
-        check(pos(self.rate_hz), "rate_hz", "must be > 0");
-        check(pos(self.speed_mps), "speed_mps", "must be > 0");
-        check(
+        issues.check(self.frames >= 2, "frames", "must be >= 2");
+        issues.check(pos(self.rate_hz), "rate_hz", "must be > 0");
+        issues.check(pos(self.speed_mps), "speed_mps", "must be > 0");
+        issues.check(
             self.speed_variation_mps.is_finite() && (0.0..self.speed_mps).contains(&self.speed_variation_mps),
             "speed_variation_mps",
             "must be in [0, speed_mps)",
         );
-        check(self.max_yaw_rate_rps.is_finite() && self.max_yaw_rate_rps >= 0.0, "max_yaw_rate_rps", "must be >= 0");
-        check(
+        issues.check(
+            self.max_yaw_rate_rps.is_finite() && self.max_yaw_rate_rps >= 0.0,
+            "max_yaw_rate_rps",
+            "must be >= 0",
+        );
+        issues.check(
             pos(self.rig.f_px) && pos(self.rig.baseline_m) && self.rig.width_px > 0 && self.rig.height_px > 0,
             "rig",
             "focal length, baseline and image size must be > 0",
         );
-        check(pos(self.camera_height_m), "camera_height_m", "must be > 0");
-        check(pos(self.pixel_sigma_px), "pixel_sigma_px", "must be > 0");
-        check(pos(self.min_disparity_px), "min_disparity_px", "must be > 0");
-        check(self.max_features >= 1, "max_features", "must be >= 1");
-        check(frac(self.detection_probability), "detection_probability", "must be in [0, 1]");
-        check(frac(self.wrong_match_fraction), "wrong_match_fraction", "must be in [0, 1]");
-        check(frac(self.spurious_fraction), "spurious_fraction", "must be in [0, 1]");
-        check(frac(self.wrong_track_fraction), "wrong_track_fraction", "must be in [0, 1]");
-        check((0.0..0.5).contains(&self.dropped_frame_probability), "dropped_frame_probability", "must be in [0, 0.5)");
-        check(pos(self.landmarks_per_m), "landmarks_per_m", "must be > 0");
-        v
+        issues.check(pos(self.camera_height_m), "camera_height_m", "must be > 0");
+        issues.check(pos(self.pixel_sigma_px), "pixel_sigma_px", "must be > 0");
+        issues.check(pos(self.min_disparity_px), "min_disparity_px", "must be > 0");
+        issues.check(self.max_features >= 1, "max_features", "must be >= 1");
+        issues.check(frac(self.detection_probability), "detection_probability", "must be in [0, 1]");
+        issues.check(frac(self.wrong_match_fraction), "wrong_match_fraction", "must be in [0, 1]");
+        issues.check(frac(self.spurious_fraction), "spurious_fraction", "must be in [0, 1]");
+        issues.check(frac(self.wrong_track_fraction), "wrong_track_fraction", "must be in [0, 1]");
+        issues.check(
+            (0.0..0.5).contains(&self.dropped_frame_probability),
+            "dropped_frame_probability",
+            "must be in [0, 0.5)",
+        );
+        issues.check(pos(self.landmarks_per_m), "landmarks_per_m", "must be > 0");
     }
 }
 
@@ -193,10 +194,7 @@ const CELL_M: f64 = 20.0;
 impl RoadSim {
     /// Builds the road, its landmarks and the car's trajectory.
     pub fn new(cfg: RoadConfig) -> Result<Self, crate::SimError> {
-        let problems = cfg.validate();
-        if !problems.is_empty() {
-            return Err(crate::SimError::Config(problems));
-        }
+        cfg.issues().into_result().map_err(crate::SimError::Config)?;
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(cfg.seed);
         // Trajectory: yaw-rate segments (straights, curves, one sharp turn), slowly varying speed.
         let dt = 1.0 / cfg.rate_hz;

@@ -244,6 +244,6 @@ fn invalid_configs_are_refused_with_their_keys() {
     c.sensors.depth_camera.width_px = 1000;
     c.scene.buoys_m.truncate(2);
     let Err(sim::SimError::Config(problems)) = Simulator::new(c) else { panic!("accepted") };
-    let keys: Vec<_> = problems.iter().map(|(k, _)| k.as_str()).collect();
+    let keys: Vec<_> = problems.iter().map(|i| i.key.as_str()).collect();
     assert!(keys.contains(&"sensors.depth_camera") && keys.contains(&"scene.buoys_m"), "{keys:?}");
 }

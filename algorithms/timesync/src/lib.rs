@@ -41,6 +41,7 @@ use std::collections::VecDeque;
 
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use serde::{Deserialize, Serialize};
+use validation::{ConfigIssue, Issues, Validate};
 
 /// An error of the synchronizer ([`Synchronizer`]).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -189,29 +190,21 @@ impl Default for SyncConfig {
     }
 }
 
-impl SyncConfig {
-    /// Checks the values; each problem is (key, message).
-    pub fn validate(&self) -> Vec<(String, String)> {
-        let mut v = vec![];
-        let mut check = |ok: bool, key: &str, msg: &str| {
-            if !ok {
-                v.push((key.to_string(), msg.to_string()));
-            }
-        };
+impl Validate for SyncConfig {
+    fn validate(&self, issues: &mut Issues) {
         let pos = |x: f64| x.is_finite() && x > 0.0;
         let nonneg = |x: f64| x.is_finite() && x >= 0.0;
-        check(self.capacity >= 3, "capacity", "must be >= 3");
-        check(pos(self.max_gap_s), "max_gap_s", "must be > 0");
-        check(nonneg(self.max_latency_s), "max_latency_s", "must be >= 0");
-        check(nonneg(self.max_extrapolation_s), "max_extrapolation_s", "must be >= 0");
-        check(nonneg(self.extrapolation_velocity_sigma_mps), "extrapolation_velocity_sigma_mps", "must be >= 0");
-        check(nonneg(self.duplicate_tolerance_s), "duplicate_tolerance_s", "must be >= 0");
-        check(
+        issues.check(self.capacity >= 3, "capacity", "must be >= 3");
+        issues.check(pos(self.max_gap_s), "max_gap_s", "must be > 0");
+        issues.check(nonneg(self.max_latency_s), "max_latency_s", "must be >= 0");
+        issues.check(nonneg(self.max_extrapolation_s), "max_extrapolation_s", "must be >= 0");
+        issues.check(nonneg(self.extrapolation_velocity_sigma_mps), "extrapolation_velocity_sigma_mps", "must be >= 0");
+        issues.check(nonneg(self.duplicate_tolerance_s), "duplicate_tolerance_s", "must be >= 0");
+        issues.check(
             pos(self.restart_backjump_s) && self.restart_backjump_s > self.duplicate_tolerance_s,
             "restart_backjump_s",
             "must be > duplicate_tolerance_s",
         );
-        v
     }
 }
 
@@ -324,11 +317,8 @@ pub struct Synchronizer {
 
 impl Synchronizer {
     /// An empty synchronizer; the configuration must validate.
-    pub fn new(cfg: SyncConfig) -> Result<Self, Vec<(String, String)>> {
-        let problems = cfg.validate();
-        if !problems.is_empty() {
-            return Err(problems);
-        }
+    pub fn new(cfg: SyncConfig) -> Result<Self, Vec<ConfigIssue>> {
+        cfg.issues().into_result()?;
         Ok(Self { cfg, fixes: VecDeque::new(), last_seq: None, counters: SyncCounters::default() })
     }
 

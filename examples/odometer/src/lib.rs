@@ -9,7 +9,7 @@
 //! nothing in the supervisor names it. Its state is plain data with a function per message,
 //! tested without iceoryx2 below; `main.rs` only wires it to the ports.
 
-use pipeline_runtime::config::{Issues, ProcessSettings};
+use pipeline_runtime::config::{Issues, ProcessSettings, Validate};
 use serde::{Deserialize, Serialize};
 
 /// Settings (`[processes.<name>.settings]`).
@@ -26,15 +26,17 @@ impl Default for OdometerSettings {
     }
 }
 
-impl ProcessSettings for OdometerSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
+impl Validate for OdometerSettings {
+    fn validate(&self, issues: &mut Issues) {
         issues.check(
             self.max_speed_mps.is_finite() && self.max_speed_mps > 0.0,
-            format!("{key}.max_speed_mps"),
+            "max_speed_mps",
             format!("must be a positive speed in m/s, got {}", self.max_speed_mps),
         );
     }
 }
+
+impl ProcessSettings for OdometerSettings {}
 
 /// Why a message was not counted.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
@@ -113,9 +115,9 @@ mod tests {
 
     #[test]
     fn settings_name_their_key() {
-        let mut issues = Issues::default();
-        OdometerSettings { max_speed_mps: -1.0 }.validate("processes.odo.settings", &mut issues);
-        assert_eq!(issues.0.len(), 1);
-        assert_eq!(issues.0[0].key, "processes.odo.settings.max_speed_mps");
+        let mut issues = Issues::at("processes.odo.settings");
+        OdometerSettings { max_speed_mps: -1.0 }.validate(&mut issues);
+        assert_eq!(issues.len(), 1);
+        assert_eq!(issues.iter().next().unwrap().key, "processes.odo.settings.max_speed_mps");
     }
 }

@@ -35,6 +35,7 @@ pub mod relay;
 pub mod session;
 pub mod stage;
 
+use pipeline_runtime::Validate;
 use pipeline_runtime::config::{Issues, ProcessSettings};
 use pipeline_runtime::topics::{TOPICS, Topic, topic};
 use serde::Deserialize;
@@ -562,13 +563,13 @@ pub fn revocation_gap(s: &BridgeSettings, revoked: &std::collections::BTreeSet<S
 }
 
 /// Checks the `tls` settings: endpoints, files, the certificate's name against `robot`.
-fn validate_tls(s: &BridgeSettings, t: &TlsSettings, key: &str, issues: &mut Issues) {
+fn validate_tls(s: &BridgeSettings, t: &TlsSettings, issues: &mut Issues) {
     let z = &s.zenoh;
     for (field, list) in [("listen", &z.listen), ("connect", &z.connect)] {
         for (i, e) in list.iter().enumerate() {
             issues.check(
                 !e.starts_with("tcp/"),
-                format!("{key}.zenoh.{field}[{i}]"),
+                format!("zenoh.{field}[{i}]"),
                 format!("`{e}` is plain TCP but `tls` is set: write tls/{}", e.trim_start_matches("tcp/")),
             );
         }
@@ -576,17 +577,17 @@ fn validate_tls(s: &BridgeSettings, t: &TlsSettings, key: &str, issues: &mut Iss
     let now = unix_now_s();
     for (field, path) in [("ca_certificate", &t.ca_certificate), ("certificate", &t.certificate)] {
         match read_certificate(path) {
-            Err(e) => issues.push(format!("{key}.zenoh.tls.{field}"), format!("{e} (make one: supervisor certs)")),
+            Err(e) => issues.push(format!("zenoh.tls.{field}"), format!("{e} (make one: supervisor certs)")),
             Ok(c) => {
                 issues.check(
                     c.not_after_unix_s > now,
-                    format!("{key}.zenoh.tls.{field}"),
+                    format!("zenoh.tls.{field}"),
                     format!("{} expired (CN {}): make a new one (supervisor certs)", path.display(), c.common_name),
                 );
                 if field == "certificate" && !s.out.is_empty() {
                     issues.check(
                         c.common_name == s.robot,
-                        format!("{key}.zenoh.tls.certificate"),
+                        "zenoh.tls.certificate",
                         format!(
                             "{} is `{}`'s certificate, but this bridge sends as robot `{}`: receivers accept a robot's \
                              keys only over a link authenticated by that robot's own certificate",
@@ -600,80 +601,74 @@ fn validate_tls(s: &BridgeSettings, t: &TlsSettings, key: &str, issues: &mut Iss
         }
     }
     if let Err(e) = std::fs::File::open(&t.private_key) {
-        issues.push(format!("{key}.zenoh.tls.private_key"), format!("cannot read {}: {e}", t.private_key.display()));
+        issues.push("zenoh.tls.private_key", format!("cannot read {}: {e}", t.private_key.display()));
     }
     for (i, r) in t.receivers.iter().enumerate() {
-        issues.check(is_chunk(r), format!("{key}.zenoh.tls.receivers[{i}]"), "a host's name (letters, digits, _ - .)");
+        issues.check(is_chunk(r), format!("zenoh.tls.receivers[{i}]"), "a host's name (letters, digits, _ - .)");
     }
     match t.read_revoked() {
-        Err(e) => issues.push(format!("{key}.zenoh.tls.revoked"), format!("cannot read the revocation list: {e}")),
+        Err(e) => issues.push("zenoh.tls.revoked", format!("cannot read the revocation list: {e}")),
         Ok(revoked) => {
             let own = read_certificate(&t.certificate).ok().map(|c| c.common_name);
             if let Some(p) = revocation_problem(own.as_deref(), &revoked) {
-                issues.push(format!("{key}.zenoh.tls.revoked"), format!("{}: {p}", t.revocation_list().display()));
+                issues.push("zenoh.tls.revoked", format!("{}: {p}", t.revocation_list().display()));
             }
         }
     }
 }
 
-impl ProcessSettings for BridgeSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
-        issues.check(
-            is_path(&self.namespace),
-            format!("{key}.namespace"),
-            "must be key chunks (letters, digits, _ - .) joined by /",
-        );
+impl Validate for BridgeSettings {
+    fn validate(&self, issues: &mut Issues) {
+        issues.check(is_path(&self.namespace), "namespace", "must be key chunks (letters, digits, _ - .) joined by /");
         if !self.out.is_empty() {
             issues.check(
                 is_chunk(&self.robot),
-                format!("{key}.robot"),
+                "robot",
                 "an `out` bridge needs its robot's name (letters, digits, _ - .)",
             );
         } else if !self.robot.is_empty() {
-            issues.check(is_chunk(&self.robot), format!("{key}.robot"), "letters, digits, _ - . only");
+            issues.check(is_chunk(&self.robot), "robot", "letters, digits, _ - . only");
         }
         issues.check(
             !self.out.is_empty() || !self.inbound.is_empty(),
-            format!("{key}.out"),
+            "out",
             "the bridge forwards nothing: give `out` and/or `in` routes",
         );
         let z = &self.zenoh;
         issues.check(
             ["peer", "client", "router"].contains(&z.mode.as_str()),
-            format!("{key}.zenoh.mode"),
+            "zenoh.mode",
             format!("`{}`: one of peer, client, router", z.mode),
         );
         for (field, list) in [("listen", &z.listen), ("connect", &z.connect)] {
             for (i, e) in list.iter().enumerate() {
                 issues.check(
                     endpoint_ok(e),
-                    format!("{key}.zenoh.{field}[{i}]"),
+                    format!("zenoh.{field}[{i}]"),
                     format!("`{e}`: an endpoint is <protocol>/<address>, e.g. tcp/192.168.1.2:7447"),
                 );
             }
         }
         issues.check(
             z.lease_s.is_finite() && (1.0..=3600.0).contains(&z.lease_s),
-            format!("{key}.zenoh.lease_s"),
+            "zenoh.lease_s",
             format!("{}: seconds from 1 to 3600", z.lease_s),
         );
         match (&z.tls, z.insecure) {
             (None, false) => issues.push(
-                format!("{key}.zenoh.tls"),
+                "zenoh.tls",
                 "a link between hosts must be authenticated and encrypted: give `tls` (certificates made by \
                  `supervisor certs`, docs/security.md), or set `insecure = true` for plain TCP that anyone \
                  on the network may read and publish into",
             ),
-            (Some(_), true) => {
-                issues.push(format!("{key}.zenoh.insecure"), "`insecure = true` and `tls` together: choose one")
-            }
-            (Some(t), false) => validate_tls(self, t, key, issues),
+            (Some(_), true) => issues.push("zenoh.insecure", "`insecure = true` and `tls` together: choose one"),
+            (Some(t), false) => validate_tls(self, t, issues),
             (None, true) => {
                 for (field, list) in [("listen", &z.listen), ("connect", &z.connect)] {
                     for (i, e) in list.iter().enumerate() {
                         issues.check(
                             !e.starts_with("tls/"),
-                            format!("{key}.zenoh.{field}[{i}]"),
+                            format!("zenoh.{field}[{i}]"),
                             format!("`{e}` is TLS but no `tls` certificates are given"),
                         );
                     }
@@ -681,15 +676,11 @@ impl ProcessSettings for BridgeSettings {
             }
         }
         if z.mode == "client" {
-            issues.check(
-                !z.connect.is_empty(),
-                format!("{key}.zenoh.connect"),
-                "a client needs a router or peer to connect to",
-            );
+            issues.check(!z.connect.is_empty(), "zenoh.connect", "a client needs a router or peer to connect to");
         }
         if z.listen.is_empty() && z.connect.is_empty() && !z.multicast_scouting {
             issues.push(
-                format!("{key}.zenoh"),
+                "zenoh",
                 "with neither `listen` nor `connect` endpoints and multicast scouting off, the bridge can reach no one",
             );
         }
@@ -697,22 +688,22 @@ impl ProcessSettings for BridgeSettings {
         for (i, r) in self.out.iter().enumerate() {
             issues.check(
                 topic(&r.service).is_some(),
-                format!("{key}.out[{i}].service"),
+                format!("out[{i}].service"),
                 format!("`{}` is not a service that can be bridged (one of: {})", r.service, topics_list()),
             );
             issues.check(
                 seen.insert(r.service.clone()),
-                format!("{key}.out[{i}].service"),
+                format!("out[{i}].service"),
                 format!("`{}` is routed twice", r.service),
             );
             issues.check(
                 r.max_rate_hz.is_finite() && r.max_rate_hz >= 0.0,
-                format!("{key}.out[{i}].max_rate_hz"),
+                format!("out[{i}].max_rate_hz"),
                 "must be >= 0",
             );
             issues.check(
                 r.max_rate_hz == 0.0 || r.policy == Policy::DropOldest,
-                format!("{key}.out[{i}].max_rate_hz"),
+                format!("out[{i}].max_rate_hz"),
                 "a rate limit drops messages: set `policy = \"drop_oldest\"` too",
             );
         }
@@ -722,23 +713,19 @@ impl ProcessSettings for BridgeSettings {
         for (i, r) in self.inbound.iter().enumerate() {
             issues.check(
                 is_chunk(&r.from),
-                format!("{key}.in[{i}].from"),
+                format!("in[{i}].from"),
                 "the sending robot's name (letters, digits, _ - .)",
             );
             issues.check(
                 topic(&r.service).is_some(),
-                format!("{key}.in[{i}].service"),
+                format!("in[{i}].service"),
                 format!("`{}` is not a service that can be bridged (one of: {})", r.service, topics_list()),
             );
-            issues.check(
-                is_path(r.local_service()),
-                format!("{key}.in[{i}].local"),
-                "a service name: chunks joined by /",
-            );
+            issues.check(is_path(r.local_service()), format!("in[{i}].local"), "a service name: chunks joined by /");
             let entry = locals.entry(r.local_service()).or_insert((r.service.as_str(), vec![]));
             issues.check(
                 entry.0 == r.service && !entry.1.contains(&r.from.as_str()),
-                format!("{key}.in[{i}].local"),
+                format!("in[{i}].local"),
                 format!(
                     "`{}` is published by two routes of {}: give one a `local` name",
                     r.local_service(),
@@ -747,27 +734,29 @@ impl ProcessSettings for BridgeSettings {
             );
             entry.1.push(r.from.as_str());
             if let Some(hz) = r.max_rate_hz {
-                issues.check(hz.is_finite() && hz >= 0.0, format!("{key}.in[{i}].max_rate_hz"), "must be >= 0");
+                issues.check(hz.is_finite() && hz >= 0.0, format!("in[{i}].max_rate_hz"), "must be >= 0");
             }
             issues.check(
                 !self.out.iter().any(|o| o.service == r.local_service()),
-                format!("{key}.in[{i}].local"),
+                format!("in[{i}].local"),
                 format!("`{}` is also sent out: it would loop back", r.local_service()),
             );
         }
         for (field, v) in [("wait_for_remote_s", self.wait_for_remote_s), ("end_ack_timeout_s", self.end_ack_timeout_s)]
         {
-            issues.check(v.is_finite() && v >= 0.0, format!("{key}.{field}"), "must be >= 0");
+            issues.check(v.is_finite() && v >= 0.0, field, "must be >= 0");
         }
-        issues.check(self.queue_messages >= 1, format!("{key}.queue_messages"), "must be at least 1");
+        issues.check(self.queue_messages >= 1, "queue_messages", "must be at least 1");
         let a = &self.accept;
         for (field, v) in [("max_rate_hz", a.max_rate_hz), ("max_future_s", a.max_future_s), ("max_age_s", a.max_age_s)]
         {
-            issues.check(v.is_finite() && v >= 0.0, format!("{key}.accept.{field}"), "must be >= 0");
+            issues.check(v.is_finite() && v >= 0.0, format!("accept.{field}"), "must be >= 0");
         }
-        issues.check(a.queue_mib.is_finite() && a.queue_mib > 0.0, format!("{key}.accept.queue_mib"), "must be > 0");
+        issues.check(a.queue_mib.is_finite() && a.queue_mib > 0.0, "accept.queue_mib", "must be > 0");
     }
 }
+
+impl ProcessSettings for BridgeSettings {}
 
 /// Locks `m`, taking over a lock poisoned by a panicked thread (the data stays usable: counters
 /// and queues).
@@ -786,9 +775,9 @@ mod tests {
 
     fn issues(text: &str) -> Vec<String> {
         let s: BridgeSettings = toml::from_str(text).expect("parses");
-        let mut i = Issues::default();
-        s.validate("processes.b.settings", &mut i);
-        i.0.iter().map(|c| format!("{}: {}", c.key, c.message)).collect()
+        let mut i = Issues::at("processes.b.settings");
+        s.validate(&mut i);
+        i.iter().map(|c| format!("{}: {}", c.key, c.message)).collect()
     }
 
     #[test]

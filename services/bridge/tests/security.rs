@@ -61,9 +61,8 @@ impl Ca {
 
 fn settings(text: &str) -> BridgeSettings {
     let s: BridgeSettings = toml::from_str(text).unwrap_or_else(|e| panic!("{e}\n{text}"));
-    let mut issues = pipeline_runtime::config::Issues::default();
-    pipeline_runtime::config::ProcessSettings::validate(&s, "link", &mut issues);
-    assert!(issues.0.is_empty(), "{:?}\n{text}", issues.0.iter().map(|i| &i.message).collect::<Vec<_>>());
+    let issues = pipeline_runtime::Validate::issues(&s);
+    assert!(issues.is_empty(), "{issues}\n{text}");
     s
 }
 

@@ -12,6 +12,7 @@ use std::time::{Duration, Instant};
 use buoy::{BuoyConfig, BuoyEkf, Estimate, Mode, RangeOutcome};
 use geometry::ProcessInput;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use pipeline_runtime::Validate;
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 use shared_types::{BuoyRange, DepthReading, OdometryInput};
@@ -56,32 +57,32 @@ impl Default for BuoyEkfSettings {
 }
 
 impl ProcessSettings for BuoyEkfSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
-        for (k, m) in self.ekf.validate() {
-            issues.push(format!("{key}.ekf.{k}"), m);
-        }
+    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
+        // One BuoyFix stream.
+        1 << 20
+    }
+}
+
+impl Validate for BuoyEkfSettings {
+    fn validate(&self, issues: &mut Issues) {
+        issues.nested("ekf", &self.ekf);
         issues.check(
             !self.ekf.needs_depth() || self.use_depth,
-            format!("{key}.use_depth"),
+            "use_depth",
             "is false, but the buoys lie in one plane (or there are fewer than 4) in spatial mode: a fix has a \
              mirror image across that plane and only depth readings pick the side; set use_depth = true, add a buoy \
              off the plane, or use mode = \"planar\"",
         );
         issues.check(
             self.odometry_wait_s.is_finite() && self.odometry_wait_s >= 0.0,
-            format!("{key}.odometry_wait_s"),
+            "odometry_wait_s",
             "must be >= 0",
         );
         issues.check(
             self.odometry_stall_s.is_finite() && self.odometry_stall_s >= 0.0,
-            format!("{key}.odometry_stall_s"),
+            "odometry_stall_s",
             "must be >= 0 (0: no wall-time limit)",
         );
-    }
-
-    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
-        // One BuoyFix stream.
-        1 << 20
     }
 }
 

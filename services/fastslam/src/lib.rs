@@ -12,6 +12,7 @@ use fastslam::frontend::{FrontEndConfig, Method, RegistrationError};
 use fastslam::{CameraOnly, FastSlam, FastSlamConfig, FrameReport, MotionReport, Observation};
 use geometry::ProcessInput;
 use nalgebra::{Matrix3, Vector3};
+use pipeline_runtime::Validate;
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 use shared_types::{OdometryInput, STEREO_HAS_DESCRIPTOR, STEREO_HAS_TRACK_ID, StereoObservation};
@@ -88,36 +89,30 @@ impl Default for FastSlamSettings {
 }
 
 impl ProcessSettings for FastSlamSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
-        for (k, m) in self.filter.validate() {
-            issues.push(format!("{key}.filter.{k}"), m);
-        }
-        for (k, m) in self.frontend.validate() {
-            issues.push(format!("{key}.frontend.{k}"), m);
-        }
-        let max =
-            shared_types::services::service_spec(shared_types::services::STEREO).map_or(1, |s| s.qos.subscriber_buffer);
-        issues.check(
-            (1..=max).contains(&self.stereo_queue),
-            format!("{key}.stereo_queue"),
-            format!("must be 1..={max} (the stereo service's subscriber buffer), got {}", self.stereo_queue),
-        );
-        issues.check(
-            self.landmarks_rate_hz.is_finite() && self.landmarks_rate_hz >= 0.0,
-            format!("{key}.landmarks_rate_hz"),
-            "must be >= 0",
-        );
-        issues.check(
-            self.camera.offset_m.iter().all(|v| v.is_finite()),
-            format!("{key}.camera.offset_m"),
-            "must be finite",
-        );
-    }
-
     fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
         // pose, particles, landmarks (grows by powers of two), diagnostics.
         let particles = (self.filter.particles * 64).next_power_of_two() as u64;
         particles * 12 + (1 << 20) * 12 + (1 << 20)
+    }
+}
+
+impl Validate for FastSlamSettings {
+    fn validate(&self, issues: &mut Issues) {
+        issues.nested("filter", &self.filter);
+        issues.nested("frontend", &self.frontend);
+        let max =
+            shared_types::services::service_spec(shared_types::services::STEREO).map_or(1, |s| s.qos.subscriber_buffer);
+        issues.check(
+            (1..=max).contains(&self.stereo_queue),
+            "stereo_queue",
+            format!("must be 1..={max} (the stereo service's subscriber buffer), got {}", self.stereo_queue),
+        );
+        issues.check(
+            self.landmarks_rate_hz.is_finite() && self.landmarks_rate_hz >= 0.0,
+            "landmarks_rate_hz",
+            "must be >= 0",
+        );
+        issues.check(self.camera.offset_m.iter().all(|v| v.is_finite()), "camera.offset_m", "must be finite");
     }
 }
 
@@ -364,8 +359,8 @@ mod tests {
     fn a_stereo_queue_outside_the_services_buffer_is_refused_naming_its_key() {
         for (q, ok) in [(0, false), (1, true), (2, true), (8, true), (9, false)] {
             let s = FastSlamSettings { stereo_queue: q, ..Default::default() };
-            let mut issues = Issues::default();
-            s.validate("processes.slam.settings", &mut issues);
+            let mut issues = Issues::at("processes.slam.settings");
+            s.validate(&mut issues);
             let text = format!("{issues:?}");
             assert_eq!(!text.contains("processes.slam.settings.stereo_queue"), ok, "{q}: {text}");
         }

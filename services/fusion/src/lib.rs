@@ -3,6 +3,7 @@
 //! The fusion itself is [`fusion::engine::Fusion`]; [`stage::FusionStage`] is the stage around it; `main.rs` one line.
 
 use pipeline_runtime::StageError;
+use pipeline_runtime::Validate;
 use std::path::Path;
 
 pub mod journal;
@@ -48,16 +49,16 @@ impl Default for FusionSettings {
 }
 
 impl ProcessSettings for FusionSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
-        for (k, m) in self.fusion.validate() {
-            issues.push(format!("{key}.fusion.{k}"), m);
-        }
-        issues.check(!self.slam_process.is_empty(), format!("{key}.slam_process"), "must name the SLAM process");
-    }
-
     fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
         // Fused poses, the global map (grows by powers of two), commands.
         (1 << 20) + (16 << 20)
+    }
+}
+
+impl Validate for FusionSettings {
+    fn validate(&self, issues: &mut Issues) {
+        issues.nested("fusion", &self.fusion);
+        issues.check(!self.slam_process.is_empty(), "slam_process", "must name the SLAM process");
     }
 }
 

@@ -13,6 +13,7 @@ use std::path::PathBuf;
 
 use grid_slam::backend::BackEndConfig;
 use grid_slam::{GridSlamConfig, Pose2};
+use pipeline_runtime::Validate;
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 
@@ -73,43 +74,33 @@ impl Default for GridSlamSettings {
 }
 
 impl ProcessSettings for GridSlamSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
-        if let Err(e) = self.filter.validate() {
-            let k = match &e {
-                grid_slam::GridSlamError::Config { key: k, .. } => *k,
-                _ => "",
-            };
-            issues.push(format!("{key}.filter.{k}"), e.to_string());
-        }
-        if let Err(e) = self.pose_graph.validate() {
-            let k = match &e {
-                grid_slam::GridSlamError::Config { key: k, .. } => k.trim_start_matches("pose_graph."),
-                _ => "",
-            };
-            issues.push(format!("{key}.pose_graph.{k}"), e.to_string());
-        }
+    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
+        // The grid service: 1 MiB initial slices, a few in flight.
+        8 << 20
+    }
+}
+
+impl Validate for GridSlamSettings {
+    fn validate(&self, issues: &mut Issues) {
+        issues.nested("filter", &self.filter);
+        issues.nested("pose_graph", &self.pose_graph);
         issues.check(
             self.odometry_wait_s.is_finite() && self.odometry_wait_s >= 0.0,
-            format!("{key}.odometry_wait_s"),
+            "odometry_wait_s",
             "must be >= 0",
         );
         issues.check(
             self.grid_every_s.is_finite() && self.grid_every_s >= 0.0,
-            format!("{key}.grid_every_s"),
+            "grid_every_s",
             "must be >= 0 (0: only at the end)",
         );
-        issues.check(self.grid_margin_cells >= 0, format!("{key}.grid_margin_cells"), "must be >= 0");
-        issues.check(self.relations_offset_s.is_finite(), format!("{key}.relations_offset_s"), "must be finite");
+        issues.check(self.grid_margin_cells >= 0, "grid_margin_cells", "must be >= 0");
+        issues.check(self.relations_offset_s.is_finite(), "relations_offset_s", "must be finite");
         issues.check(
             self.snapshot_every_s.is_finite() && self.snapshot_every_s >= 0.0,
-            format!("{key}.snapshot_every_s"),
+            "snapshot_every_s",
             "must be >= 0 (0: no snapshots)",
         );
-    }
-
-    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
-        // The grid service: 1 MiB initial slices, a few in flight.
-        8 << 20
     }
 }
 

@@ -77,7 +77,7 @@ fn geometry_of(h: &LaserScanHeader) -> Result<ScanGeometry, &'static str> {
     };
     let finite =
         [g.body_from_laser.x_m, g.body_from_laser.y_m, g.body_from_laser.theta_rad].iter().all(|v| v.is_finite());
-    if g.validate().is_err() || !finite {
+    if !pipeline_runtime::Validate::issues(&g).is_empty() || !finite {
         return Err("laser_geometry_invalid");
     }
     Ok(g)

@@ -18,6 +18,7 @@ use grid_slam::Pose2;
 use grid_slam::drift::DriftModel;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use pipeline_runtime::Issues;
+use pipeline_runtime::Validate;
 use serde::{Deserialize, Serialize};
 use shared_types::{LASER_MAX_IS_NO_RETURN, LaserScanHeader, PlanarOdometry};
 
@@ -63,20 +64,15 @@ impl Default for CarmenSettings {
     }
 }
 
-impl CarmenSettings {
-    /// Checks the values; problems are named by key under `key`.
-    pub fn validate(&self, key: &str, issues: &mut Issues) {
-        issues.check(!self.file.as_os_str().is_empty(), format!("{key}.file"), "no log file");
+impl Validate for CarmenSettings {
+    fn validate(&self, issues: &mut Issues) {
+        issues.check(!self.file.as_os_str().is_empty(), "file", "no log file");
         issues.check(
             self.range_min_m.is_finite() && self.range_min_m >= 0.0 && self.range_max_m > self.range_min_m,
-            format!("{key}.range_max_m"),
+            "range_max_m",
             "needs 0 <= range_min_m < range_max_m",
         );
-        issues.check(
-            self.body_from_laser.iter().all(|v| v.is_finite()),
-            format!("{key}.body_from_laser"),
-            "must be finite",
-        );
+        issues.check(self.body_from_laser.iter().all(|v| v.is_finite()), "body_from_laser", "must be finite");
         let d = &self.drift;
         issues.check(
             [
@@ -94,7 +90,7 @@ impl CarmenSettings {
                 && d.lateral_noise >= 0.0
                 && d.rot_noise >= 0.0
                 && d.rot_noise_per_m >= 0.0,
-            format!("{key}.drift"),
+            "drift",
             "values must be finite, the noises >= 0",
         );
     }

@@ -14,6 +14,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 use pipeline_runtime::Issues;
+use pipeline_runtime::Validate;
 use ros2_interop::Message;
 use ros2_interop::msgs::CameraInfo;
 use ros2_interop::route::{Decoded, InRoute, InService, RouteDecoder};
@@ -46,23 +47,16 @@ pub struct Rosbag2Settings {
     pub routes: Vec<InRoute>,
 }
 
-impl Rosbag2Settings {
-    /// Checks the values; problems are named by key under `key`.
-    pub fn validate(&self, key: &str, issues: &mut Issues) {
-        issues.check(!self.path.as_os_str().is_empty(), format!("{key}.path"), "no bag given");
-        issues.check(
-            !self.routes.is_empty(),
-            format!("{key}.routes"),
-            "no routes: nothing of the bag would be replayed",
-        );
+impl Validate for Rosbag2Settings {
+    fn validate(&self, issues: &mut Issues) {
+        issues.check(!self.path.as_os_str().is_empty(), "path", "no bag given");
+        issues.check(!self.routes.is_empty(), "routes", "no routes: nothing of the bag would be replayed");
         let mut topics = BTreeSet::new();
         for (i, r) in self.routes.iter().enumerate() {
-            for (k, m) in r.validate() {
-                issues.push(format!("{key}.routes[{i}].{k}"), m);
-            }
+            issues.nested(format!("routes[{i}]"), r);
             issues.check(
                 topics.insert(r.topic.clone()),
-                format!("{key}.routes[{i}].topic"),
+                format!("routes[{i}].topic"),
                 format!("`{}` is routed twice", r.topic),
             );
         }

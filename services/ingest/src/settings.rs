@@ -3,6 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
+use pipeline_runtime::Validate;
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 use shared_types::services::{CLOUD, service_spec};
@@ -241,88 +242,6 @@ impl Default for DepthImageSettings {
 pub const MAX_CLOUD_POINTS: usize = 4_000_000;
 
 impl ProcessSettings for IngestSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
-        let rtf = self.real_time_factor;
-        issues.check(
-            rtf.is_finite() && rtf >= 0.0,
-            format!("{key}.real_time_factor"),
-            "must be >= 0 (0 = as fast as possible)",
-        );
-        issues.check(
-            self.backpressure_max_wait_s.is_finite() && self.backpressure_max_wait_s >= 0.0,
-            format!("{key}.backpressure_max_wait_s"),
-            "must be >= 0 (0 = as long as the consumer is alive)",
-        );
-        issues.check(
-            self.resubscribe_wait_s.is_finite() && self.resubscribe_wait_s >= 0.0,
-            format!("{key}.resubscribe_wait_s"),
-            "must be >= 0 (0 = do not wait)",
-        );
-        issues.check(
-            self.connect_grace_s.is_finite() && self.connect_grace_s >= 0.0,
-            format!("{key}.connect_grace_s"),
-            "must be >= 0",
-        );
-        issues.check(
-            self.cloud_lag_s.is_finite() && (0.0..=10.0).contains(&self.cloud_lag_s),
-            format!("{key}.cloud_lag_s"),
-            "must be 0..=10 s (0 = strict data order)",
-        );
-        issues.check(self.progress_interval_s >= 0.0, format!("{key}.progress_interval_s"), "must be >= 0");
-        match self.source {
-            SourceKind::Sim => {
-                for (k, m) in self.sim.validate() {
-                    issues.push(format!("{key}.sim.{k}"), m);
-                }
-            }
-            SourceKind::Plaza2 => {
-                issues.check(self.plaza2.range_sigma_m > 0.0, format!("{key}.plaza2.range_sigma_m"), "must be > 0");
-            }
-            SourceKind::StereoSim => {
-                for (k, m) in self.stereo_sim.drive.validate() {
-                    issues.push(format!("{key}.stereo_sim.drive.{k}"), m);
-                }
-            }
-            SourceKind::StereoVo => {
-                issues.check(self.stereo_vo.rate_hz > 0.0, format!("{key}.stereo_vo.rate_hz"), "must be > 0");
-                issues.check(
-                    self.stereo_vo.pixel_sigma_px > 0.0,
-                    format!("{key}.stereo_vo.pixel_sigma_px"),
-                    "must be > 0",
-                );
-            }
-            SourceKind::Clouds => {
-                issues.check(!self.clouds.files.is_empty(), format!("{key}.clouds.files"), "no files");
-                issues.check(self.clouds.rate_hz > 0.0, format!("{key}.clouds.rate_hz"), "must be > 0");
-                issues.check(self.clouds.repeat >= 1, format!("{key}.clouds.repeat"), "must be >= 1");
-            }
-            SourceKind::Carmen => self.carmen.validate(&format!("{key}.carmen"), issues),
-            SourceKind::Rosbag2 => self.rosbag2.validate(&format!("{key}.rosbag2"), issues),
-            SourceKind::Indoor => {
-                for (k, m) in self.indoor.validate() {
-                    issues.push(format!("{key}.indoor.{k}"), m);
-                }
-            }
-            SourceKind::DepthImages => {
-                let d = &self.depth_images;
-                issues.check(!d.files.is_empty(), format!("{key}.depth_images.files"), "no files");
-                issues.check(d.rate_hz > 0.0, format!("{key}.depth_images.rate_hz"), "must be > 0");
-                issues.check(
-                    d.fx_px > 0.0 && d.fy_px > 0.0,
-                    format!("{key}.depth_images.fx_px"),
-                    "focal lengths must be > 0",
-                );
-                issues.check(d.depth_scale > 0.0, format!("{key}.depth_images.depth_scale"), "must be > 0");
-                issues.check(
-                    d.min_depth_m < d.max_depth_m,
-                    format!("{key}.depth_images.max_depth_m"),
-                    "must exceed min_depth_m",
-                );
-                issues.check(d.stride >= 1, format!("{key}.depth_images.stride"), "must be >= 1");
-            }
-        }
-    }
-
     fn shm_estimate_bytes(&self, extra_subscribers: usize) -> u64 {
         let points = match self.source {
             SourceKind::Sim => {
@@ -342,6 +261,68 @@ impl ProcessSettings for IngestSettings {
         let qos = service_spec(CLOUD).expect("cloud service is in the contract").qos;
         let chunk = (points.max(1) * size_of::<shared_types::CloudPoint>()).next_power_of_two() as u64;
         chunk * qos.with_extra(extra_subscribers).chunks_per_publisher() as u64 + (4 << 20)
+    }
+}
+
+impl Validate for IngestSettings {
+    fn validate(&self, issues: &mut Issues) {
+        let rtf = self.real_time_factor;
+        issues.check(rtf.is_finite() && rtf >= 0.0, "real_time_factor", "must be >= 0 (0 = as fast as possible)");
+        issues.check(
+            self.backpressure_max_wait_s.is_finite() && self.backpressure_max_wait_s >= 0.0,
+            "backpressure_max_wait_s",
+            "must be >= 0 (0 = as long as the consumer is alive)",
+        );
+        issues.check(
+            self.resubscribe_wait_s.is_finite() && self.resubscribe_wait_s >= 0.0,
+            "resubscribe_wait_s",
+            "must be >= 0 (0 = do not wait)",
+        );
+        issues.check(
+            self.connect_grace_s.is_finite() && self.connect_grace_s >= 0.0,
+            "connect_grace_s",
+            "must be >= 0",
+        );
+        issues.check(
+            self.cloud_lag_s.is_finite() && (0.0..=10.0).contains(&self.cloud_lag_s),
+            "cloud_lag_s",
+            "must be 0..=10 s (0 = strict data order)",
+        );
+        issues.check(self.progress_interval_s >= 0.0, "progress_interval_s", "must be >= 0");
+        match self.source {
+            SourceKind::Sim => {
+                issues.nested("sim", &self.sim);
+            }
+            SourceKind::Plaza2 => {
+                issues.check(self.plaza2.range_sigma_m > 0.0, "plaza2.range_sigma_m", "must be > 0");
+            }
+            SourceKind::StereoSim => {
+                issues.nested("stereo_sim.drive", &self.stereo_sim.drive);
+            }
+            SourceKind::StereoVo => {
+                issues.check(self.stereo_vo.rate_hz > 0.0, "stereo_vo.rate_hz", "must be > 0");
+                issues.check(self.stereo_vo.pixel_sigma_px > 0.0, "stereo_vo.pixel_sigma_px", "must be > 0");
+            }
+            SourceKind::Clouds => {
+                issues.check(!self.clouds.files.is_empty(), "clouds.files", "no files");
+                issues.check(self.clouds.rate_hz > 0.0, "clouds.rate_hz", "must be > 0");
+                issues.check(self.clouds.repeat >= 1, "clouds.repeat", "must be >= 1");
+            }
+            SourceKind::Carmen => issues.nested("carmen", &self.carmen),
+            SourceKind::Rosbag2 => issues.nested("rosbag2", &self.rosbag2),
+            SourceKind::Indoor => {
+                issues.nested("indoor", &self.indoor);
+            }
+            SourceKind::DepthImages => {
+                let d = &self.depth_images;
+                issues.check(!d.files.is_empty(), "depth_images.files", "no files");
+                issues.check(d.rate_hz > 0.0, "depth_images.rate_hz", "must be > 0");
+                issues.check(d.fx_px > 0.0 && d.fy_px > 0.0, "depth_images.fx_px", "focal lengths must be > 0");
+                issues.check(d.depth_scale > 0.0, "depth_images.depth_scale", "must be > 0");
+                issues.check(d.min_depth_m < d.max_depth_m, "depth_images.max_depth_m", "must exceed min_depth_m");
+                issues.check(d.stride >= 1, "depth_images.stride", "must be >= 1");
+            }
+        }
     }
 }
 

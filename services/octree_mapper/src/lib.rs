@@ -14,6 +14,7 @@ use std::time::{Duration, Instant};
 use nalgebra::{Isometry3, Vector3};
 use navigable::{Discovery, NsdConfig, PointAccumulator};
 use octree::{OcTree, SensorModel};
+use pipeline_runtime::Validate;
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 
@@ -189,45 +190,41 @@ impl Default for MapperSettings {
 }
 
 impl ProcessSettings for MapperSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
-        issues.check(
-            self.resolution_m.is_finite() && self.resolution_m >= 0.001,
-            format!("{key}.resolution_m"),
-            "must be >= 0.001",
-        );
+    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
+        // Stats and the voxel slice (grows by powers of two).
+        (1 << 20) + (64 << 20)
+    }
+}
+
+impl Validate for MapperSettings {
+    fn validate(&self, issues: &mut Issues) {
+        issues.check(self.resolution_m.is_finite() && self.resolution_m >= 0.001, "resolution_m", "must be >= 0.001");
         if let Err(e) = OcTree::with_model(self.resolution_m.max(0.001), self.sensor.model()) {
-            issues.push(format!("{key}.sensor"), e.to_string());
+            issues.push("sensor", e.to_string());
         }
-        issues.check(self.max_pending_clouds >= 1, format!("{key}.max_pending_clouds"), "must be >= 1");
+        issues.check(self.max_pending_clouds >= 1, "max_pending_clouds", "must be >= 1");
         for (k, v) in [("pose_wait_s", self.pose_wait_s), ("max_pose_gap_s", self.max_pose_gap_s)] {
-            issues.check(v.is_finite() && v >= 0.0, format!("{key}.{k}"), "must be >= 0");
+            issues.check(v.is_finite() && v >= 0.0, k, "must be >= 0");
         }
         for (k, v) in [
             ("stats_rate_hz", self.stats_rate_hz),
             ("voxels_rate_hz", self.voxels_rate_hz),
             ("voxels_full_interval_s", self.voxels_full_interval_s),
         ] {
-            issues.check(v.is_finite() && v >= 0.0, format!("{key}.{k}"), "must be >= 0");
+            issues.check(v.is_finite() && v >= 0.0, k, "must be >= 0");
         }
-        issues.check(self.ray_threads >= 1, format!("{key}.ray_threads"), "must be >= 1");
+        issues.check(self.ray_threads >= 1, "ray_threads", "must be >= 1");
         issues.check(
             self.checkpoint_interval_s.is_finite() && self.checkpoint_interval_s >= 0.0,
-            format!("{key}.checkpoint_interval_s"),
+            "checkpoint_interval_s",
             "must be >= 0",
         );
         issues.check(
             self.obstacle_max_bhattacharyya.is_finite() && self.obstacle_max_bhattacharyya >= 0.0,
-            format!("{key}.obstacle_max_bhattacharyya"),
+            "obstacle_max_bhattacharyya",
             "must be >= 0",
         );
-        for (k, m) in self.nsd.validate() {
-            issues.push(format!("{key}.nsd.{k}"), m);
-        }
-    }
-
-    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
-        // Stats and the voxel slice (grows by powers of two).
-        (1 << 20) + (64 << 20)
+        issues.nested("nsd", &self.nsd);
     }
 }
 

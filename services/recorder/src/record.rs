@@ -11,6 +11,7 @@ use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, sync_channel};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+use pipeline_runtime::Validate;
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 use shared_types::services;
@@ -101,13 +102,19 @@ impl Default for RecorderSettings {
 }
 
 impl ProcessSettings for RecorderSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
-        issues.check(!self.file.trim().is_empty(), format!("{key}.file"), "must name a file");
+    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
+        0 // subscribers only: the publishers reserve the shared memory
+    }
+}
+
+impl Validate for RecorderSettings {
+    fn validate(&self, issues: &mut Issues) {
+        issues.check(!self.file.trim().is_empty(), "file", "must name a file");
         for (field, list) in [("services", &self.services), ("exclude", &self.exclude)] {
             for (i, s) in list.iter().enumerate() {
                 issues.check(
                     topic(s).is_some(),
-                    format!("{key}.{field}[{i}]"),
+                    format!("{field}[{i}]"),
                     format!(
                         "`{s}` is not a recordable service (one of: {})",
                         TOPICS.iter().map(|t| t.service).collect::<Vec<_>>().join(", ")
@@ -115,35 +122,21 @@ impl ProcessSettings for RecorderSettings {
                 );
             }
         }
-        issues.check(
-            (1..=1 << 20).contains(&self.chunk_size_kib),
-            format!("{key}.chunk_size_kib"),
-            "must be 1..=1048576",
-        );
+        issues.check((1..=1 << 20).contains(&self.chunk_size_kib), "chunk_size_kib", "must be 1..=1048576");
         issues.check(
             self.flush_interval_s.is_finite() && self.flush_interval_s >= 0.0,
-            format!("{key}.flush_interval_s"),
+            "flush_interval_s",
             "must be >= 0",
         );
-        issues.check(
-            (1..=1 << 20).contains(&self.queue_messages),
-            format!("{key}.queue_messages"),
-            "must be 1..=1048576",
-        );
+        issues.check((1..=1 << 20).contains(&self.queue_messages), "queue_messages", "must be 1..=1048576");
         issues.check(
             !self.send_end_of_stream || !self.end_after.is_empty(),
-            format!("{key}.send_end_of_stream"),
+            "send_end_of_stream",
             "needs `end_after` (without it the recording ends only on a signal)",
         );
         if let Some(r) = &self.ros2 {
-            for (k, m) in r.check() {
-                issues.push(format!("{key}.ros2.{k}"), m);
-            }
+            issues.nested("ros2", r);
         }
-    }
-
-    fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
-        0 // subscribers only: the publishers reserve the shared memory
     }
 }
 
@@ -523,10 +516,10 @@ mod tests {
     #[test]
     fn unknown_services_are_named_with_their_key() {
         let s = RecorderSettings { exclude: vec!["pipeline/nope".into()], ..Default::default() };
-        let mut issues = Issues::default();
-        s.validate("processes.rec.settings", &mut issues);
-        assert_eq!(issues.0.len(), 1);
-        assert_eq!(issues.0[0].key, "processes.rec.settings.exclude[0]");
+        let mut issues = Issues::at("processes.rec.settings");
+        s.validate(&mut issues);
+        assert_eq!(issues.len(), 1);
+        assert_eq!(issues.iter().next().unwrap().key, "processes.rec.settings.exclude[0]");
     }
 
     #[test]

@@ -16,6 +16,7 @@ use std::fs::File;
 use std::io::BufReader;
 use std::path::{Path, PathBuf};
 
+use pipeline_runtime::Validate;
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 use shared_types::services::{self, service_spec};
@@ -60,28 +61,6 @@ impl Default for ReplayerSettings {
 }
 
 impl ProcessSettings for ReplayerSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
-        issues.check(!self.file.trim().is_empty(), format!("{key}.file"), "must name the MCAP recording");
-        for (i, s) in self.topics.iter().enumerate() {
-            issues.check(
-                topic(s).is_some(),
-                format!("{key}.topics[{i}]"),
-                format!("`{s}` is not a replayable service"),
-            );
-        }
-        issues.check(self.speed.is_finite() && self.speed >= 0.0, format!("{key}.speed"), "must be >= 0");
-        issues.check(
-            self.backpressure_max_wait_s.is_finite() && self.backpressure_max_wait_s >= 0.0,
-            format!("{key}.backpressure_max_wait_s"),
-            "must be >= 0",
-        );
-        issues.check(
-            self.connect_grace_s.is_finite() && self.connect_grace_s >= 0.0,
-            format!("{key}.connect_grace_s"),
-            "must be >= 0",
-        );
-    }
-
     fn shm_estimate_bytes(&self, extra_subscribers: usize) -> u64 {
         let names: Vec<&str> = if self.topics.is_empty() {
             TOPICS.iter().map(|t| t.service).collect()
@@ -96,6 +75,26 @@ impl ProcessSettings for ReplayerSettings {
                 (chunk.next_power_of_two() * s.qos.with_extra(extra_subscribers).chunks_per_publisher()) as u64
             })
             .sum()
+    }
+}
+
+impl Validate for ReplayerSettings {
+    fn validate(&self, issues: &mut Issues) {
+        issues.check(!self.file.trim().is_empty(), "file", "must name the MCAP recording");
+        for (i, s) in self.topics.iter().enumerate() {
+            issues.check(topic(s).is_some(), format!("topics[{i}]"), format!("`{s}` is not a replayable service"));
+        }
+        issues.check(self.speed.is_finite() && self.speed >= 0.0, "speed", "must be >= 0");
+        issues.check(
+            self.backpressure_max_wait_s.is_finite() && self.backpressure_max_wait_s >= 0.0,
+            "backpressure_max_wait_s",
+            "must be >= 0",
+        );
+        issues.check(
+            self.connect_grace_s.is_finite() && self.connect_grace_s >= 0.0,
+            "connect_grace_s",
+            "must be >= 0",
+        );
     }
 }
 

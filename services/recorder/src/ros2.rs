@@ -23,6 +23,7 @@ use shared_types::{
 };
 
 use crate::error::RecorderError;
+use validation::{Issues, Validate};
 
 /// Settings of the recorder's ROS 2 bag.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -49,28 +50,19 @@ fn default_dir() -> String {
     "ros2_bag".into()
 }
 
-impl Ros2Recording {
-    /// Problems as (key under `prefix`, what is wrong).
-    pub fn check(&self) -> Vec<(String, String)> {
-        let mut issues = vec![];
-        if self.dir.trim().is_empty() {
-            issues.push(("dir".to_string(), "must name a directory".to_string()));
-        }
-        if self.out.is_empty() {
-            issues.push((
-                "out".to_string(),
-                "no routes: list the topics to write (`{ what = \"fused_odometry\" }`, ...)".to_string(),
-            ));
-        }
-        issues.extend(ros2_interop::out::validate(
-            &self.out,
-            &self.frames,
-            &self.static_transforms,
-            &mut Default::default(),
-        ));
-        issues
+impl Validate for Ros2Recording {
+    fn validate(&self, issues: &mut Issues) {
+        issues.check(!self.dir.trim().is_empty(), "dir", "must name a directory");
+        issues.check(
+            !self.out.is_empty(),
+            "out",
+            "no routes: list the topics to write (`{ what = \"fused_odometry\" }`, ...)",
+        );
+        ros2_interop::out::validate(&self.out, &self.frames, &self.static_transforms, &mut Default::default(), issues);
     }
+}
 
+impl Ros2Recording {
     /// The pipeline services the routes are made from.
     pub fn services(&self) -> Vec<&'static str> {
         let n = Translator::new(&self.out, &self.frames).needs();
@@ -313,7 +305,7 @@ static_transforms = [{ parent = "base_link", child = "cam", xyz_m = [0.5, 0.0, 0
 "#,
         )
         .unwrap();
-        assert!(s.check().is_empty(), "{:?}", s.check());
+        assert!(s.issues().is_empty(), "{}", s.issues());
         assert_eq!(s.services(), [FUSION_POSE]);
         let sink = Ros2Sink::create(&bag_dir, &s, 16).unwrap();
         for k in 0..10u64 {
@@ -352,9 +344,9 @@ static_transforms = [{ parent = "base_link", child = "cam", xyz_m = [0.5, 0.0, 0
     #[test]
     fn a_recording_without_routes_or_with_a_bad_topic_is_refused_by_key() {
         let s: Ros2Recording = toml::from_str("out = []").unwrap();
-        assert_eq!(s.check()[0].0, "out");
+        assert_eq!(s.issues().into_vec()[0].key, "out");
         let s: Ros2Recording = toml::from_str("out = [{ what = \"map\", topic = \"no spaces\" }]").unwrap();
-        assert_eq!(s.check()[0].0, "out[0].topic");
+        assert_eq!(s.issues().into_vec()[0].key, "out[0].topic");
         let e = toml::from_str::<Ros2Recording>("out = [{ what = \"maps\" }]").unwrap_err();
         assert!(e.to_string().contains("maps"), "{e}");
         assert_eq!(

@@ -2,6 +2,7 @@
 
 use std::net::IpAddr;
 
+use pipeline_runtime::Validate;
 use pipeline_runtime::config::{Issues, ProcessSettings};
 pub use ros2_interop::out::{
     Durability, Frames, OutKind, OutRoute as GatewayOut, Reliability, StaticTransform, TfFrom, TfOdom, TopicQos,
@@ -125,46 +126,44 @@ pub enum WhenFull {
     Wait,
 }
 
-impl ProcessSettings for Ros2Settings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
+impl Validate for Ros2Settings {
+    fn validate(&self, issues: &mut Issues) {
         issues.check(
             self.insecure,
-            format!("{key}.insecure"),
+            "insecure",
             "the gateway speaks plain DDS (DDS-Security / SROS2 is not supported yet): anyone on the network can \
              read its topics and publish into its routes; set `insecure = true` to run it anyway (and confine it \
              with `only_networks` or a network namespace)",
         );
         issues.check(
             ros2_client::NodeName::new(&self.namespace, &self.node_name).is_ok(),
-            format!("{key}.node_name"),
+            "node_name",
             format!("`{}` in namespace `{}` is not a ROS 2 node name", self.node_name, self.namespace),
         );
         if let Some(d) = self.domain_id {
-            issues.check(d <= 232, format!("{key}.domain_id"), format!("{d}: a ROS 2 domain id is 0-232"));
+            issues.check(d <= 232, "domain_id", format!("{d}: a ROS 2 domain id is 0-232"));
         }
         issues.check(
             !self.inbound.is_empty() || !self.out.is_empty() || !self.static_transforms.is_empty(),
-            format!("{key}.in"),
+            "in",
             "no routes: give `in` or `out` routes",
         );
         let mut topics = std::collections::BTreeSet::new();
         for (i, r) in self.inbound.iter().enumerate() {
-            for (k, m) in r.route.validate() {
-                issues.push(format!("{key}.in[{i}].{k}"), m);
-            }
-            issues.check(topics.insert(r.route.topic.clone()), format!("{key}.in[{i}].topic"), "routed twice");
+            issues.nested(format!("in[{i}]"), &r.route);
+            issues.check(topics.insert(r.route.topic.clone()), format!("in[{i}].topic"), "routed twice");
             if let Some(q) = r.qos {
-                issues.check(q.depth >= 1, format!("{key}.in[{i}].qos.depth"), "must be >= 1");
+                issues.check(q.depth >= 1, format!("in[{i}].qos.depth"), "must be >= 1");
             }
         }
-        for (k, m) in ros2_interop::out::validate(&self.out, &self.frames, &self.static_transforms, &mut topics) {
-            issues.push(format!("{key}.{k}"), m);
-        }
+        ros2_interop::out::validate(&self.out, &self.frames, &self.static_transforms, &mut topics, issues);
         for (k, v) in [("end_when_idle_s", self.end_when_idle_s), ("linger_s", self.linger_s)] {
-            issues.check(v.is_finite() && v >= 0.0, format!("{key}.{k}"), "must be >= 0 s");
+            issues.check(v.is_finite() && v >= 0.0, k, "must be >= 0 s");
         }
     }
 }
+
+impl ProcessSettings for Ros2Settings {}
 
 impl Ros2Settings {
     /// The DDS domain: the setting, else `ROS_DOMAIN_ID`, else 0.
@@ -216,9 +215,9 @@ odom = "planar_odometry"
         assert_eq!(s.out[0].topic(), "/map");
         assert_eq!(s.out[0].qos(), TopicQos::MAP);
         assert_eq!((s.out[1].from, s.out[1].odom), (TfFrom::GridSlam, TfOdom::PlanarOdometry));
-        let mut issues = Issues::default();
-        s.validate("s", &mut issues);
-        assert!(issues.0.is_empty(), "{issues:?}");
+        let mut issues = Issues::at("s");
+        s.validate(&mut issues);
+        assert!(issues.is_empty(), "{issues:?}");
         let e = parse("[[in]]\ntopic = \"/scan\"\nservice = \"laser\"\nbody_from_lasr = [0, 0, 0]\n").unwrap_err();
         assert!(e.contains("body_from_lasr"), "{e}");
         let e = parse("[[out]]\nwhat = \"maps\"\n").unwrap_err();
@@ -231,9 +230,9 @@ odom = "planar_odometry"
             "insecure = true\ndomain_id = 300\n[[in]]\ntopic = \"scan\"\nservice = \"laser\"\n[[out]]\nwhat = \"map\"\ntopic = \"/my map\"\n",
         )
         .unwrap();
-        let mut issues = Issues::default();
-        s.validate("s", &mut issues);
-        let keys: Vec<&str> = issues.0.iter().map(|i| i.key.as_str()).collect();
+        let mut issues = Issues::at("s");
+        s.validate(&mut issues);
+        let keys: Vec<&str> = issues.iter().map(|i| i.key.as_str()).collect();
         assert!(
             keys.contains(&"s.domain_id") && keys.contains(&"s.in[0].topic") && keys.contains(&"s.out[0].topic"),
             "{keys:?}"

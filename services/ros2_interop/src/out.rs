@@ -303,40 +303,40 @@ pub fn topic_ok(t: &str) -> bool {
         && !t.starts_with(|c: char| c.is_ascii_digit())
 }
 
-/// Checks out routes, frames and static transforms; returns (key under `prefix`, problem) pairs.
-/// Topics already used (e.g. by `in` routes) are in `topics`.
+/// Checks out routes, frames and static transforms into `issues` (keys `out[i]...`, `frames...`,
+/// `static_transforms[i]` under the current path). Topics already used (e.g. by `in` routes) are
+/// in `topics`.
 pub fn validate(
     routes: &[OutRoute],
     frames: &Frames,
     statics: &[StaticTransform],
     topics: &mut std::collections::BTreeSet<String>,
-) -> Vec<(String, String)> {
-    let mut issues = vec![];
-    let mut check = |ok: bool, key: String, why: String| {
-        if !ok {
-            issues.push((key, why));
-        }
-    };
+    issues: &mut validation::Issues,
+) {
     for (i, r) in routes.iter().enumerate() {
-        check(topic_ok(r.topic()), format!("out[{i}].topic"), format!("`{}` is not a ROS topic name", r.topic()));
-        check(topics.insert(r.topic().to_string()), format!("out[{i}].topic"), "used twice".into());
-        check(r.qos().depth >= 1, format!("out[{i}].qos.depth"), "must be >= 1".into());
-        check(
+        issues.check(
+            topic_ok(r.topic()),
+            format!("out[{i}].topic"),
+            format!("`{}` is not a ROS topic name", r.topic()),
+        );
+        issues.check(topics.insert(r.topic().to_string()), format!("out[{i}].topic"), "used twice");
+        issues.check(r.qos().depth >= 1, format!("out[{i}].qos.depth"), "must be >= 1");
+        issues.check(
             r.max_rate_hz.is_finite() && r.max_rate_hz >= 0.0,
             format!("out[{i}].max_rate_hz"),
-            "must be >= 0".into(),
+            "must be >= 0",
         );
     }
     for (i, s) in statics.iter().enumerate() {
-        check(
+        issues.check(
             !s.parent.is_empty() && !s.child.is_empty() && s.parent != s.child,
             format!("static_transforms[{i}]"),
-            "needs two different frames".into(),
+            "needs two different frames",
         );
-        check(
+        issues.check(
             s.xyz_m.iter().chain(&s.rpy_rad).all(|v| v.is_finite()),
             format!("static_transforms[{i}]"),
-            "must be finite".into(),
+            "must be finite",
         );
     }
     for (k, v) in [
@@ -345,9 +345,8 @@ pub fn validate(
         ("base_link", &frames.base_link),
         ("local_map", &frames.local_map),
     ] {
-        check(!v.is_empty() && !v.contains(char::is_whitespace), format!("frames.{k}"), "not a frame id".into());
+        issues.check(!v.is_empty() && !v.contains(char::is_whitespace), format!("frames.{k}"), "not a frame id");
     }
-    issues
 }
 
 /// `/tf_static`: the configured mounts, and `map → odom` = identity when a `tf` route has no
@@ -1058,9 +1057,10 @@ mod tests {
             xyz_m: [0.5, 0.0, 0.0],
             rpy_rad: [0.0; 3],
         }];
-        let issues = validate(&routes, &Frames::default(), &statics, &mut Default::default());
-        assert_eq!(issues.len(), 1, "{issues:?}");
-        assert_eq!(issues[0].0, "out[1].topic");
+        let mut issues = validation::Issues::new();
+        validate(&routes, &Frames::default(), &statics, &mut Default::default(), &mut issues);
+        assert_eq!(issues.len(), 1, "{issues}");
+        assert!(issues.has("out[1].topic"), "{issues}");
         let tf = static_tf(&statics, &routes, &Frames::default()).unwrap();
         assert_eq!(tf.transforms.len(), 2);
         assert_eq!(tf.transforms[1].header.frame_id, "map");

@@ -5,6 +5,7 @@
 use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
+use validation::{Issues, Validate};
 
 use shared_types::{BuoyRange, DepthReading, HeadingReading, LaserScanHeader, OdometryInput, PlanarOdometry};
 
@@ -170,15 +171,16 @@ impl InRoute {
             max_depth_m: default_max_depth(),
         }
     }
+}
 
-    /// Problems with the route's values, as (key under the route, what is wrong).
-    pub fn validate(&self) -> Vec<(&'static str, String)> {
-        let mut out = vec![];
+/// Problems with the route's values, keyed under the route.
+impl Validate for InRoute {
+    fn validate(&self, issues: &mut Issues) {
         if !self.topic.starts_with('/') || self.topic.len() < 2 || self.topic.contains(char::is_whitespace) {
-            out.push(("topic", format!("`{}` is not an absolute ROS topic name (`/scan`)", self.topic)));
+            issues.push("topic", format!("`{}` is not an absolute ROS topic name (`/scan`)", self.topic));
         }
         if !self.body_from_laser.iter().all(|v| v.is_finite()) {
-            out.push(("body_from_laser", "must be finite".into()));
+            issues.push("body_from_laser", "must be finite");
         }
         for (k, v) in [
             ("speed_sigma_mps", self.speed_sigma_mps),
@@ -189,24 +191,23 @@ impl InRoute {
             ("range_sigma_m", self.range_sigma_m),
         ] {
             if !(v.is_finite() && v > 0.0) {
-                out.push((k, format!("{v}: must be > 0")));
+                issues.push(k, format!("{v}: must be > 0"));
             }
         }
         if self.service == InService::DepthImage {
             if !self.camera_info.starts_with('/') {
-                out.push(("camera_info", "a depth image route needs the absolute topic of its CameraInfo".into()));
+                issues.push("camera_info", "a depth image route needs the absolute topic of its CameraInfo");
             }
             if self.stride == 0 {
-                out.push(("stride", "must be >= 1".into()));
+                issues.push("stride", "must be >= 1");
             }
             if !(self.min_depth_m >= 0.0 && self.max_depth_m > self.min_depth_m) {
-                out.push(("max_depth_m", "needs 0 <= min_depth_m < max_depth_m".into()));
+                issues.push("max_depth_m", "needs 0 <= min_depth_m < max_depth_m");
             }
         }
         if !self.surface_pa.is_finite() || self.surface_pa < 0.0 {
-            out.push(("surface_pa", format!("{}: must be >= 0", self.surface_pa)));
+            issues.push("surface_pa", format!("{}: must be >= 0", self.surface_pa));
         }
-        out
     }
 }
 

@@ -13,37 +13,7 @@ use std::path::{Path, PathBuf};
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
-/// One problem found in a config: the dotted key and what is wrong with it.
-#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-pub struct ConfigIssue {
-    /// Dotted key, e.g. `processes.consumer.after`.
-    pub key: String,
-    /// What is wrong.
-    pub message: String,
-}
-
-/// Collects [`ConfigIssue`]s during validation.
-#[derive(Debug, Default, Clone)]
-pub struct Issues(pub Vec<ConfigIssue>);
-
-impl Issues {
-    /// Records a problem with `key`.
-    pub fn push(&mut self, key: impl Into<String>, message: impl Into<String>) {
-        self.0.push(ConfigIssue { key: key.into(), message: message.into() });
-    }
-
-    /// Records a problem unless `ok`.
-    pub fn check(&mut self, ok: bool, key: impl Into<String>, message: impl Into<String>) {
-        if !ok {
-            self.push(key, message);
-        }
-    }
-
-    /// True when nothing was recorded.
-    pub fn is_empty(&self) -> bool {
-        self.0.is_empty()
-    }
-}
+pub use validation::{ConfigIssue, Issues, Validate};
 
 /// Errors of loading or validating a config file.
 #[derive(Debug, thiserror::Error)]
@@ -371,11 +341,9 @@ pub fn parse_settings<T: DeserializeOwned>(name: &str, table: &toml::Table) -> R
     })
 }
 
-/// Settings of a process kind: typed, with a validation pass.
-pub trait ProcessSettings: DeserializeOwned {
-    /// Checks values; `key` is the settings table's dotted key (`processes.<name>.settings`).
-    fn validate(&self, key: &str, issues: &mut Issues);
-
+/// Settings of a process kind: typed, and checked by their [`Validate`] impl (keys relative to the
+/// settings table; the runtime roots them at `processes.<name>.settings`).
+pub trait ProcessSettings: DeserializeOwned + Validate {
     /// Shared memory the process's publishers may reserve with these settings in a run with
     /// `run.extra_subscribers = extra_subscribers`, bytes.
     fn shm_estimate_bytes(&self, extra_subscribers: usize) -> u64 {
@@ -387,9 +355,9 @@ pub trait ProcessSettings: DeserializeOwned {
 /// Parses and validates a process's settings in one go.
 pub fn settings_for<T: ProcessSettings>(name: &str, table: &toml::Table) -> Result<T, Vec<ConfigIssue>> {
     let settings: T = parse_settings(name, table).map_err(|i| vec![i])?;
-    let mut issues = Issues::default();
-    settings.validate(&format!("processes.{name}.settings"), &mut issues);
-    if issues.is_empty() { Ok(settings) } else { Err(issues.0) }
+    let mut issues = Issues::at(format!("processes.{name}.settings"));
+    settings.validate(&mut issues);
+    issues.into_result().map(|()| settings)
 }
 
 fn positive(issues: &mut Issues, key: &str, v: f64) {
@@ -576,7 +544,7 @@ mod tests {
         assert_eq!(cycle.first(), cycle.last());
         assert_eq!(cycle.len(), 4);
         let issues = c.validate();
-        assert!(issues.0.iter().any(|i| i.key.ends_with(".after") && i.message.contains("cycle")), "{issues:?}");
+        assert!(issues.iter().any(|i| i.key.ends_with(".after") && i.message.contains("cycle")), "{issues:?}");
     }
 
     #[test]
@@ -589,27 +557,27 @@ mod tests {
     fn unknown_dependency_is_named() {
         let c = parse("[processes.a]\nafter=[\"ghost\"]\n").unwrap();
         let issues = c.validate();
-        assert_eq!(issues.0.len(), 1, "{issues:?}");
-        assert_eq!(issues.0[0].key, "processes.a.after");
-        assert!(issues.0[0].message.contains("ghost"));
+        assert_eq!(issues.len(), 1, "{issues:?}");
+        assert_eq!(issues.iter().next().unwrap().key, "processes.a.after");
+        assert!(issues.iter().next().unwrap().message.contains("ghost"));
     }
 
     #[test]
     fn niceness_out_of_range_is_named() {
-        assert!(parse("[processes.a]\nnice = 10\n").unwrap().validate().0.is_empty());
+        assert!(parse("[processes.a]\nnice = 10\n").unwrap().validate().is_empty());
         for bad in ["-5", "20"] {
             let issues = parse(&format!("[processes.a]\nnice = {bad}\n")).unwrap().validate();
-            assert_eq!(issues.0.len(), 1, "{issues:?}");
-            assert_eq!(issues.0[0].key, "processes.a.nice");
+            assert_eq!(issues.len(), 1, "{issues:?}");
+            assert_eq!(issues.iter().next().unwrap().key, "processes.a.nice");
         }
     }
 
     #[test]
     fn extra_subscribers_beyond_the_limit_are_named() {
-        assert!(parse("[run]\nextra_subscribers = 16\n[processes.a]\n").unwrap().validate().0.is_empty());
+        assert!(parse("[run]\nextra_subscribers = 16\n[processes.a]\n").unwrap().validate().is_empty());
         let issues = parse("[run]\nextra_subscribers = 17\n[processes.a]\n").unwrap().validate();
-        assert_eq!(issues.0.len(), 1, "{issues:?}");
-        assert_eq!(issues.0[0].key, "run.extra_subscribers");
+        assert_eq!(issues.len(), 1, "{issues:?}");
+        assert_eq!(issues.iter().next().unwrap().key, "run.extra_subscribers");
     }
 
     #[test]

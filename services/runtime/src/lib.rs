@@ -19,7 +19,7 @@ pub mod topics;
 pub mod validate;
 
 pub use clock::monotonic_ns;
-pub use config::{ConfigError, ConfigIssue, Issues, LogFormat, PipelineConfig, ProcessSettings};
+pub use config::{ConfigError, ConfigIssue, Issues, LogFormat, PipelineConfig, ProcessSettings, Validate};
 pub use error::{ContextError, StageError, error_chain};
 pub use iox::IoxScope;
 pub use ports::{Delivery, Input, Output, PortError};

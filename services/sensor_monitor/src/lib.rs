@@ -5,6 +5,7 @@
 
 pub mod stage;
 
+use pipeline_runtime::Validate;
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 
@@ -31,12 +32,14 @@ impl Default for SensorMonitorSettings {
     }
 }
 
-impl ProcessSettings for SensorMonitorSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
+impl Validate for SensorMonitorSettings {
+    fn validate(&self, issues: &mut Issues) {
         issues.check(
             (1..=MAX_POINTS).contains(&self.max_cloud_points),
-            format!("{key}.max_cloud_points"),
+            "max_cloud_points",
             format!("must be 1..={MAX_POINTS}"),
         );
     }
 }
+
+impl ProcessSettings for SensorMonitorSettings {}

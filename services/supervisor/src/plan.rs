@@ -135,12 +135,12 @@ pub fn make_plan(config_path: &Path, overrides: &Overrides, bin_dir: &Path) -> R
             }
         };
         let shm_bytes = if external {
-            issues.0.extend(kinds::check_external(name, &p.settings));
+            issues.extend_absolute(kinds::check_external(name, &p.settings));
             0
         } else {
             match kinds::run_check(&binary, &config_abs, name, kinds::CHECK_TIMEOUT) {
                 Ok(report) => {
-                    issues.0.extend(report.issues);
+                    issues.extend_absolute(report.issues);
                     report.shm_estimate_bytes
                 }
                 Err(e) => {
@@ -165,7 +165,7 @@ pub fn make_plan(config_path: &Path, overrides: &Overrides, bin_dir: &Path) -> R
         });
     }
     if !issues.is_empty() {
-        return Err(ConfigError::Invalid { file: config_path.to_path_buf(), issues: issues.0 });
+        return Err(ConfigError::Invalid { file: config_path.to_path_buf(), issues: issues.into_vec() });
     }
     let scope = IoxScope {
         prefix: config.run.iceoryx_prefix.clone(),

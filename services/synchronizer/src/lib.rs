@@ -10,6 +10,7 @@ use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use nalgebra::{Matrix3, Vector3};
+use pipeline_runtime::Validate;
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 use shared_types::{BuoyFix, MsgHeader, PoseEstimate};
@@ -40,14 +41,14 @@ impl Default for SynchronizerSettings {
 }
 
 impl ProcessSettings for SynchronizerSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
-        for (k, m) in self.sync.validate() {
-            issues.push(format!("{key}.sync.{k}"), m);
-        }
-    }
-
     fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
         1 << 20
+    }
+}
+
+impl Validate for SynchronizerSettings {
+    fn validate(&self, issues: &mut Issues) {
+        issues.nested("sync", &self.sync);
     }
 }
 
@@ -113,7 +114,7 @@ pub struct SyncState {
 
 impl SyncState {
     /// A new state; the settings must validate.
-    pub fn new(settings: &SynchronizerSettings) -> Result<Self, Vec<(String, String)>> {
+    pub fn new(settings: &SynchronizerSettings) -> Result<Self, Vec<pipeline_runtime::ConfigIssue>> {
         Ok(Self {
             sync: Synchronizer::new(settings.sync.clone())?,
             max_latency: Duration::from_secs_f64(settings.sync.max_latency_s),

@@ -4,6 +4,7 @@
 //! The logic is here as pure functions; the binaries are thin wiring around them. (The sensor
 //! monitor, a process kind users run, is the `sensor_monitor_stage` crate.)
 
+use pipeline_runtime::Validate;
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 use shared_types::CloudPoint;
@@ -35,23 +36,25 @@ impl Default for ProducerSettings {
 pub const MAX_POINTS: usize = 4_000_000;
 
 impl ProcessSettings for ProducerSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
-        issues.check(
-            (1..=MAX_POINTS).contains(&self.points),
-            format!("{key}.points"),
-            format!("must be 1..={MAX_POINTS}, got {}", self.points),
-        );
-        issues.check(
-            self.rate_hz.is_finite() && self.rate_hz > 0.0 && self.rate_hz <= 10_000.0,
-            format!("{key}.rate_hz"),
-            format!("must be in (0, 10000], got {}", self.rate_hz),
-        );
-    }
-
     fn shm_estimate_bytes(&self, extra_subscribers: usize) -> u64 {
         let qos = service_spec(CLOUD).expect("cloud service is in the contract").qos;
         let chunk = (self.points * size_of::<CloudPoint>()).next_power_of_two() as u64;
         chunk * qos.with_extra(extra_subscribers).chunks_per_publisher() as u64
+    }
+}
+
+impl Validate for ProducerSettings {
+    fn validate(&self, issues: &mut Issues) {
+        issues.check(
+            (1..=MAX_POINTS).contains(&self.points),
+            "points",
+            format!("must be 1..={MAX_POINTS}, got {}", self.points),
+        );
+        issues.check(
+            self.rate_hz.is_finite() && self.rate_hz > 0.0 && self.rate_hz <= 10_000.0,
+            "rate_hz",
+            format!("must be in (0, 10000], got {}", self.rate_hz),
+        );
     }
 }
 
@@ -74,18 +77,16 @@ impl Default for ConsumerSettings {
     }
 }
 
-impl ProcessSettings for ConsumerSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
-        issues.check(self.stereo_delay_ms <= 2000, format!("{key}.stereo_delay_ms"), "must be <= 2000 (the heartbeat)");
+impl Validate for ConsumerSettings {
+    fn validate(&self, issues: &mut Issues) {
+        issues.check(self.stereo_delay_ms <= 2000, "stereo_delay_ms", "must be <= 2000 (the heartbeat)");
         if let Some(n) = self.expect_points {
-            issues.check(
-                (1..=MAX_POINTS).contains(&n),
-                format!("{key}.expect_points"),
-                format!("must be 1..={MAX_POINTS}"),
-            );
+            issues.check((1..=MAX_POINTS).contains(&n), "expect_points", format!("must be 1..={MAX_POINTS}"));
         }
     }
 }
+
+impl ProcessSettings for ConsumerSettings {}
 
 /// The deterministic content of point `i` of cloud `seq`.
 pub fn cloud_point(seq: u64, i: usize) -> CloudPoint {
@@ -184,9 +185,9 @@ mod tests {
     #[test]
     fn settings_are_validated_with_their_keys() {
         let s = ProducerSettings { points: 0, rate_hz: -1.0, ..Default::default() };
-        let mut issues = Issues::default();
-        s.validate("processes.p.settings", &mut issues);
-        let keys: Vec<_> = issues.0.iter().map(|i| i.key.as_str()).collect();
+        let mut issues = Issues::at("processes.p.settings");
+        s.validate(&mut issues);
+        let keys: Vec<_> = issues.iter().map(|i| i.key.as_str()).collect();
         assert_eq!(keys, ["processes.p.settings.points", "processes.p.settings.rate_hz"]);
     }
 

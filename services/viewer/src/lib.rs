@@ -21,6 +21,7 @@
 pub mod gate;
 pub mod stage;
 
+use pipeline_runtime::Validate;
 use pipeline_runtime::config::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 
@@ -104,18 +105,18 @@ impl Default for ViewerSettings {
     }
 }
 
-impl ProcessSettings for ViewerSettings {
-    fn validate(&self, key: &str, issues: &mut Issues) {
+impl Validate for ViewerSettings {
+    fn validate(&self, issues: &mut Issues) {
         issues.check(
             self.host.parse::<std::net::IpAddr>().is_ok(),
-            format!("{key}.host"),
+            "host",
             format!("must be an IP address (e.g. 127.0.0.1 or 0.0.0.0), got `{}`", self.host),
         );
         let secured = self.tls.is_some() && self.token_file.is_some();
         if let Ok(ip) = self.host.parse::<std::net::IpAddr>() {
             issues.check(
                 ip.is_loopback() || self.insecure || secured,
-                format!("{key}.host"),
+                "host",
                 format!(
                     "`{}` would let anyone who reaches it watch the run: give `tls` and `token_file` (clients \
                      connect with wss://...?token=...), or keep 127.0.0.1 and tunnel (ssh -L 8765:127.0.0.1:8765 \
@@ -126,14 +127,14 @@ impl ProcessSettings for ViewerSettings {
         }
         issues.check(
             self.tls.is_some() == self.token_file.is_some(),
-            format!("{key}.{}", if self.tls.is_some() { "token_file" } else { "tls" }),
+            if self.tls.is_some() { "token_file" } else { "tls" },
             "`tls` and `token_file` go together: TLS keeps the link private, the token keeps strangers out",
         );
         if let Some(t) = &self.tls {
             for (field, p) in [("certificate", &t.certificate), ("private_key", &t.private_key)] {
                 if let Err(e) = std::fs::File::open(p) {
                     issues.push(
-                        format!("{key}.tls.{field}"),
+                        format!("tls.{field}"),
                         format!("cannot read {}: {e} (make one: supervisor certs --name <this host>)", p.display()),
                     );
                 }
@@ -142,29 +143,23 @@ impl ProcessSettings for ViewerSettings {
         if let Some(p) = &self.token_file
             && let Err(e) = read_token(p)
         {
-            issues.push(format!("{key}.token_file"), e);
+            issues.push("token_file", e);
         }
         for (field, v) in
             [("cloud_max_hz", self.cloud_max_hz), ("map_max_hz", self.map_max_hz), ("path_max_hz", self.path_max_hz)]
         {
             issues.check(
                 v.is_finite() && v > 0.0 && v <= 1000.0,
-                format!("{key}.{field}"),
+                field,
                 format!("must be a rate in (0, 1000] Hz, got {v}"),
             );
         }
-        issues.check(
-            (2..=10_000_000).contains(&self.path_max_poses),
-            format!("{key}.path_max_poses"),
-            "must be 2..=10000000",
-        );
-        issues.check(
-            (1..=1_000_000).contains(&self.client_backlog),
-            format!("{key}.client_backlog"),
-            "must be 1..=1000000",
-        );
+        issues.check((2..=10_000_000).contains(&self.path_max_poses), "path_max_poses", "must be 2..=10000000");
+        issues.check((1..=1_000_000).contains(&self.client_backlog), "client_backlog", "must be 1..=1000000");
     }
 }
+
+impl ProcessSettings for ViewerSettings {}
 
 #[cfg(test)]
 mod tests {
@@ -174,21 +169,21 @@ mod tests {
     fn bad_settings_name_their_key() {
         let s =
             ViewerSettings { host: "localhost:1".into(), cloud_max_hz: 0.0, path_max_poses: 1, ..Default::default() };
-        let mut issues = Issues::default();
-        s.validate("processes.view.settings", &mut issues);
+        let mut issues = Issues::at("processes.view.settings");
+        s.validate(&mut issues);
         let text = format!("{issues:?}");
         for key in ["processes.view.settings.host", "processes.view.settings.cloud_max_hz", "path_max_poses"] {
             assert!(text.contains(key), "{key} in {text}");
         }
-        let mut issues = Issues::default();
-        ViewerSettings::default().validate("k", &mut issues);
+        let mut issues = Issues::at("k");
+        ViewerSettings::default().validate(&mut issues);
         assert!(issues.is_empty(), "{issues:?}");
         let open = ViewerSettings { host: "0.0.0.0".into(), ..Default::default() };
-        let mut issues = Issues::default();
-        open.validate("k", &mut issues);
+        let mut issues = Issues::at("k");
+        open.validate(&mut issues);
         assert!(format!("{issues:?}").contains("insecure = true"), "{issues:?}");
-        let mut issues = Issues::default();
-        ViewerSettings { insecure: true, ..open.clone() }.validate("k", &mut issues);
+        let mut issues = Issues::at("k");
+        ViewerSettings { insecure: true, ..open.clone() }.validate(&mut issues);
         assert!(issues.is_empty(), "{issues:?}");
         // TLS with a token opens any address; one without the other is an error.
         let dir = tempfile::tempdir().unwrap();
@@ -198,15 +193,15 @@ mod tests {
         }
         std::fs::write(&token, "0123456789abcdef0123\n").unwrap();
         let tls = Some(ViewerTls { certificate: cert.clone(), private_key: key.clone() });
-        let mut issues = Issues::default();
-        ViewerSettings { tls: tls.clone(), token_file: Some(token.clone()), ..open.clone() }.validate("k", &mut issues);
+        let mut issues = Issues::at("k");
+        ViewerSettings { tls: tls.clone(), token_file: Some(token.clone()), ..open.clone() }.validate(&mut issues);
         assert!(issues.is_empty(), "{issues:?}");
-        let mut issues = Issues::default();
-        ViewerSettings { tls: tls.clone(), ..open.clone() }.validate("k", &mut issues);
+        let mut issues = Issues::at("k");
+        ViewerSettings { tls: tls.clone(), ..open.clone() }.validate(&mut issues);
         assert!(format!("{issues:?}").contains("k.token_file"), "{issues:?}");
         std::fs::write(&token, "short\n").unwrap();
-        let mut issues = Issues::default();
-        ViewerSettings { tls, token_file: Some(token), ..open }.validate("k", &mut issues);
+        let mut issues = Issues::at("k");
+        ViewerSettings { tls, token_file: Some(token), ..open }.validate(&mut issues);
         assert!(format!("{issues:?}").contains("at least 16"), "{issues:?}");
     }
 }

@@ -219,10 +219,7 @@ const MIN_LOG_WEIGHT: f64 = -50.0;
 impl BuoyEkf {
     /// A filter at time `t0_s` (validates the configuration; method `prior` starts initialised).
     pub fn new(config: BuoyConfig, t0_s: f64) -> Result<Self, BuoyError> {
-        let problems = config.validate();
-        if !problems.is_empty() {
-            return Err(BuoyError::InvalidConfig(problems));
-        }
+        validation::Validate::issues(&config).into_result().map_err(BuoyError::InvalidConfig)?;
         finite(t0_s, "t0_s")?;
         let lay = Layout::new(&config);
         let q = |p: f64, k: usize| chi2_quantile(p, k).ok_or(BuoyError::NonFinite("gate probability"));
@@ -1617,19 +1614,19 @@ mod tests {
         let mut cfg = planar_config(BiasMode::Global);
         cfg.range.gate_probability = 2.0;
         match BuoyEkf::new(cfg, 0.0) {
-            Err(BuoyError::InvalidConfig(p)) => assert_eq!(p[0].0, "range.gate_probability"),
+            Err(BuoyError::InvalidConfig(p)) => assert_eq!(p[0].key, "range.gate_probability"),
             other => panic!("{other:?}"),
         }
         let mut cfg = planar_config(BiasMode::Global);
         cfg.init.odometry_window_ambiguity_margin = -1.0;
         match BuoyEkf::new(cfg, 0.0) {
-            Err(BuoyError::InvalidConfig(p)) => assert_eq!(p[0].0, "init.odometry_window_ambiguity_margin"),
+            Err(BuoyError::InvalidConfig(p)) => assert_eq!(p[0].key, "init.odometry_window_ambiguity_margin"),
             other => panic!("{other:?}"),
         }
         let mut cfg = planar_config(BiasMode::Global);
         cfg.range.doubtful_sigma = 0.5;
         match BuoyEkf::new(cfg, 0.0) {
-            Err(BuoyError::InvalidConfig(p)) => assert_eq!(p[0].0, "range.doubtful_sigma"),
+            Err(BuoyError::InvalidConfig(p)) => assert_eq!(p[0].key, "range.doubtful_sigma"),
             other => panic!("{other:?}"),
         }
     }
@@ -1706,7 +1703,7 @@ mod tests {
         for (i, b) in cfg.buoys.iter_mut().enumerate() {
             b.position_m = [10.0 * i as f64, 5.0 * i as f64, 0.0];
         }
-        assert!(matches!(BuoyEkf::new(cfg.clone(), 0.0), Err(BuoyError::InvalidConfig(p)) if p[0].0 == "buoys"));
+        assert!(matches!(BuoyEkf::new(cfg.clone(), 0.0), Err(BuoyError::InvalidConfig(p)) if p[0].key == "buoys"));
         // … and when only the buoys on one line answer, the filter waits.
         cfg.buoys[3].position_m = [0.0, 60.0, 0.0];
         cfg.buoys[4].position_m = [30.0, 75.0, 0.0];
