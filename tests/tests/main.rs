@@ -27,6 +27,7 @@ mod ros2_bags;
 mod ros2_gateway;
 mod security;
 mod stop;
+mod summary_schema;
 mod supervisor;
 mod viewer;
 mod watchers;

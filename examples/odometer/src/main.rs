@@ -35,7 +35,9 @@ impl Stage for OdometerStage {
         Ok(Step::Idle)
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = serde_json::Value;
+
+    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<Self::Summary, StageError> {
         tracing::info!(distance_m = self.odometer.distance_m, messages = self.odometer.messages, "done");
         Ok(self.odometer.summary_part())
     }

@@ -775,7 +775,9 @@ impl Stage for BridgeStage {
         Ok(if inputs_ended && !ins_done { Step::Pending } else { Step::Idle })
     }
 
-    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = serde_json::Value;
+
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         if ending == Ending::Stopped {
             if let Err(e) = self.pump_out(rt) {
                 tracing::warn!("last drain: {e:#}");

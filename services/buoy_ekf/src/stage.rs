@@ -116,7 +116,9 @@ impl Stage for BuoyEkfStage {
         Ok(if st.pending() == 0 { Step::Idle } else { Step::Pending })
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = serde_json::Value;
+
+    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         if ending == Ending::Stopped {
             tracing::info!(fixes = self.fixes.sent(), "stopped early: writing the outputs so far");
         }

@@ -288,7 +288,9 @@ impl Stage for FastSlamStage {
         Ok(if busy { Step::Busy } else { Step::Idle })
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = serde_json::Value;
+
+    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         let st = &self.st;
         match ending {
             Ending::EndOfStream => {

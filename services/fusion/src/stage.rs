@@ -267,7 +267,9 @@ impl Stage for FusionStage {
         Ok(Step::Idle)
     }
 
-    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = serde_json::Value;
+
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         let result = self.engine.finish();
         rt.keep_alive();
         if ending == Ending::EndOfStream {

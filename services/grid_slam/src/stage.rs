@@ -545,7 +545,9 @@ impl Stage for GridSlamStage {
         Ok(0)
     }
 
-    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = serde_json::Value;
+
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         if ending == Ending::Stopped {
             tracing::info!(poses = self.pose.sent(), "stopped early: writing the outputs so far");
         } else if self.filter.is_some() {

@@ -441,7 +441,9 @@ impl Stage for IngestStage {
         self.pump(rt)
     }
 
-    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = serde_json::Value;
+
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         let sent: u64 = self.counts.iter().sum();
         let completed = ending == Ending::EndOfStream;
         if completed {

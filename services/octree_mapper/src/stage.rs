@@ -359,7 +359,9 @@ impl Stage for OctreeMapperStage {
         Ok(if queue_empty && st.pending.is_empty() { Step::Idle } else { Step::Pending })
     }
 
-    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = serde_json::Value;
+
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         let mut rebuild = serde_json::Value::Null;
         if ending == Ending::EndOfStream && !self.settings.rebuild_from.is_empty() {
             let path = self.out_dir.join(&self.settings.rebuild_from);

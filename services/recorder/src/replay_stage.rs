@@ -142,7 +142,9 @@ impl Stage for Replayer {
         Ok(if self.done { Step::Done } else { Step::Idle })
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = serde_json::Value;
+
+    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<Self::Summary, StageError> {
         Ok(serde_json::json!({ "replayer": {
             "file": self.path.display().to_string(),
             "speed": self.settings.speed,

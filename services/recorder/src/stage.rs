@@ -275,7 +275,9 @@ impl Stage for RecorderStage {
         Ok(Step::Idle)
     }
 
-    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = serde_json::Value;
+
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         let why = match ending {
             Ending::EndOfStream => "end of stream",
             Ending::Stopped => "stopped",

@@ -242,7 +242,9 @@ impl Stage for Ros2Stage {
         Ok(Step::Idle)
     }
 
-    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = serde_json::Value;
+
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         self.discovery();
         for r in &mut self.ins {
             r.drain(&self.ports);

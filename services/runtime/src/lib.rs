@@ -14,6 +14,7 @@ pub mod restart;
 pub mod runtime;
 pub mod stage;
 pub mod stats;
+pub mod summary;
 pub mod testing;
 pub mod topics;
 pub mod validate;

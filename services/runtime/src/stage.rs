@@ -107,10 +107,14 @@ pub trait Stage: Sized {
     /// process the stage waits for has ended, and everything they sent is already queued.
     fn step(&mut self, rt: &mut Runtime, wake: Wake, inputs_ended: bool) -> Result<Step, StageError>;
 
-    /// The end ([`Ending`]): write the final outputs and return this stage's part of summary.json
-    /// (a JSON object, merged into the summary). Long work should call [`Runtime::keep_alive`]
-    /// between its parts.
-    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError>;
+    /// This stage's part of summary.json: a struct that serialises to a JSON object (merged into
+    /// the summary by the supervisor), deriving `schemars::JsonSchema` as well so that
+    /// docs/summary.schema.json describes its keys and units.
+    type Summary: serde::Serialize;
+
+    /// The end ([`Ending`]): write the final outputs and return this stage's part of summary.json.
+    /// Long work should call [`Runtime::keep_alive`] between its parts.
+    fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError>;
 
     /// `(last_seq, messages_sent)` of the stage's main output, for its end of stream.
     fn end_of_stream(&self) -> (u64, u64);
@@ -236,7 +240,7 @@ impl Driver {
             rt.wake_at(Instant::now());
         }
         if step == Step::Done || (over && step == Step::Idle) {
-            let part = stage.finish(rt, Ending::EndOfStream)?;
+            let part = serde_json::to_value(stage.finish(rt, Ending::EndOfStream)?)?;
             rt.state().flush()?;
             let part = self.with_failures(rt, part);
             write_summary_part(&self.out_dir, &self.name, &part)?;
@@ -256,7 +260,7 @@ impl Driver {
             return Ok(());
         }
         tracing::info!("stopped before the end of its inputs: writing what there is");
-        let part = stage.finish(rt, Ending::Stopped)?;
+        let part = serde_json::to_value(stage.finish(rt, Ending::Stopped)?)?;
         let part = self.with_failures(rt, part);
         write_summary_part(&self.out_dir, &self.name, &part)?;
         self.part = Some(part);

@@ -185,7 +185,7 @@ impl StatsReport {
 }
 
 /// p50/p99/max summary of a histogram, ms.
-#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, schemars::JsonSchema, PartialEq, Default)]
 pub struct LatencySummary {
     /// Samples.
     pub count: u64,

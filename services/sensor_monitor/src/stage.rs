@@ -161,7 +161,9 @@ impl Stage for SensorMonitorStage {
         Ok(Step::Idle)
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = serde_json::Value;
+
+    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<Self::Summary, StageError> {
         let digest = |s: &Stream| format!("{:016x}", s.digest.0);
         Ok(serde_json::json!({ "sensor_monitor": {
             ODOMETRY: self.odometry.guard.report(), STEREO: self.stereo.guard.report(),

@@ -7,7 +7,7 @@ use nix::unistd::Pid;
 use serde::Serialize;
 
 /// How a process instance ended.
-#[derive(Debug, Clone, Serialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize, schemars::JsonSchema, PartialEq)]
 pub struct ExitInfo {
     /// Exit code, if it exited.
     pub code: Option<i32>,
@@ -89,7 +89,7 @@ pub(crate) fn wait_with_usage(pid: Pid) -> nix::Result<(WaitStatus, Usage)> {
 }
 
 /// Why the run ended.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum EndReason {
     /// `run.duration_s` elapsed.

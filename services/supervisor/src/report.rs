@@ -1,13 +1,15 @@
 //! What a run reports: `summary.json` (processes, latency per hop and end to end, plus the parts
 //! other stages write to `<out>/parts/<process>.json`), `latency.csv`, and the printed summary.
 
-use std::collections::BTreeMap;
-use std::path::Path;
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use hdrhistogram::Histogram;
 use pipeline_runtime::StatsReport;
 use pipeline_runtime::stats::{LatencySummary, histogram_from_bytes, new_histogram};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
 use crate::outcome::{EndReason, ExitInfo, Usage};
@@ -111,76 +113,197 @@ pub fn merged_latency(rows: &[ProcessRow<'_>]) -> (BTreeMap<String, LatencySumma
     (f(hop), f(e2e))
 }
 
-fn lat_json(s: &LatencySummary) -> Value {
-    json!({ "count": s.count, "p50": s.p50, "p99": s.p99, "p999": s.p999, "max": s.max })
+/// What the supervisor itself writes into summary.json; the stages' parts are merged into it.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct SupervisorPart {
+    /// The run as a whole.
+    pub run: RunInfo,
+    /// Each process by name.
+    pub processes: BTreeMap<String, ProcessReport>,
+    /// Messages a publisher sent that a consumer never received, by (publisher, service, consumer).
+    pub undelivered: Vec<Undelivered>,
+    /// Messages a process received and dropped, by (process, service, reason).
+    pub dropped: Vec<Dropped>,
+    /// Latency per hop and end to end, from the processes' histograms, ms.
+    pub latency_ms: LatencyTables,
 }
 
-/// Builds summary.json.
-pub fn summary(plan: &Plan, rows: &[ProcessRow<'_>], end: &EndReason, exit_code: u8, elapsed: Duration) -> Value {
-    let processes: serde_json::Map<String, Value> = rows
-        .iter()
-        .map(|r| {
-            let counts: (u64, u64) = r
-                .reports
-                .iter()
-                .flat_map(|rep| rep.ports.iter())
-                .fold((0, 0), |(i, o), p| if p.input { (i + p.count, o) } else { (i, o + p.count) });
-            (
-                r.name.to_string(),
-                json!({
-                    "kind": r.kind,
-                    "state": r.state,
-                    "failure": r.failure,
-                    "restarts": r.restarts,
-                    "instances": r.reports.len(),
-                    "undelivered": r.reports.iter().flat_map(|rep| rep.ports.iter()).map(|p| p.undelivered).sum::<u64>(),
-                    "dropped": r.reports.iter().flat_map(|rep| rep.ports.iter())
-                        .flat_map(|p| p.dropped_by.iter()).map(|(_, n)| n).sum::<u64>(),
-                    "last_exit": r.last_exit,
-                    "messages_in": counts.0,
-                    "messages_out": counts.1,
-                    "cpu_s": r.usage.cpu_s,
-                    "peak_rss_mib": r.usage.peak_rss_mib,
-                    "ready_rss_mib": r.usage.ready_rss_mib,
-                }),
-            )
-        })
-        .collect();
-    let (hop, e2e) = merged_latency(rows);
-    let lost: Vec<Value> = undelivered(rows)
-        .into_iter()
-        .map(|((publisher, service, consumer), n)| {
-            json!({ "publisher": publisher, "service": service, "consumer": consumer, "messages": n })
-        })
-        .collect();
-    let dropped: Vec<Value> = dropped(rows)
-        .into_iter()
-        .map(|((process, service, reason), n)| {
-            json!({ "process": process, "service": service, "reason": reason, "messages": n })
-        })
-        .collect();
-    let mut out = json!({
-        "run": {
-            "config": plan.config_path,
-            "end_reason": end,
-            "exit_code": exit_code,
-            // The run's own wall time; `duration_s` is the configured bound (`run.duration_s`,
-            // 0: none), as in the config.
-            "elapsed_s": elapsed.as_secs_f64(),
-            "duration_s": plan.config.run.duration_s,
-            "iceoryx_prefix": plan.scope.prefix,
-            "iceoryx_root": plan.scope.root,
-        },
-        "processes": processes,
-        "undelivered": lost,
-        "dropped": dropped,
-        "latency_ms": {
-            "hops": hop.iter().map(|(k, s)| (k.clone(), lat_json(s))).collect::<serde_json::Map<_, _>>(),
-            "end_to_end": e2e.iter().map(|(k, s)| (k.clone(), lat_json(s))).collect::<serde_json::Map<_, _>>(),
-        },
+/// `run`: how the run went.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct RunInfo {
+    /// The config file.
+    pub config: PathBuf,
+    /// Why it ended.
+    pub end_reason: EndReason,
+    /// The supervisor's exit code.
+    pub exit_code: u8,
+    /// The run's wall time, from the start to the summary, s.
+    pub elapsed_s: f64,
+    /// The configured bound `run.duration_s` (0: none), s; not the run's length (`elapsed_s`).
+    pub duration_s: f64,
+    /// The run's iceoryx2 prefix.
+    pub iceoryx_prefix: String,
+    /// The run's iceoryx2 root path.
+    pub iceoryx_root: PathBuf,
+    /// Processes that failed, with why (`name (why)`).
+    pub failed_processes: Vec<String>,
+    /// Processes whose streams the supervisor ended for them because they failed for good.
+    pub streams_ended_for_failure: BTreeSet<String>,
+}
+
+/// `processes.<name>`: one process over all its instances.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ProcessReport {
+    /// Its kind.
+    pub kind: String,
+    /// Its final state (`done`, `failed`, `stopped`, ...).
+    pub state: String,
+    /// Why it failed, if it did.
+    pub failure: Option<String>,
+    /// How often the supervisor restarted it.
+    pub restarts: u32,
+    /// Instances that reported statistics (1 + restarts that came up).
+    pub instances: usize,
+    /// Messages its outputs sent that some consumer never received.
+    pub undelivered: u64,
+    /// Messages it received and dropped.
+    pub dropped: u64,
+    /// How its last instance ended.
+    pub last_exit: Option<ExitInfo>,
+    /// Messages received, over every input.
+    pub messages_in: u64,
+    /// Messages sent, over every output.
+    pub messages_out: u64,
+    /// User + system CPU time of its ended instances, s.
+    pub cpu_s: f64,
+    /// The largest resident set size of any instance, MiB.
+    pub peak_rss_mib: f64,
+    /// The resident set size when it reported ready, before any data, MiB.
+    pub ready_rss_mib: f64,
+    /// Upstream processes that failed for good while it ran (written by the process itself).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub upstream_failed: Option<Vec<String>>,
+}
+
+/// One (publisher, service, consumer) with messages lost.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Undelivered {
+    /// The publishing process.
+    pub publisher: String,
+    /// The service.
+    pub service: String,
+    /// The consumer that did not receive them.
+    pub consumer: String,
+    /// How many.
+    pub messages: u64,
+}
+
+/// One (process, service, reason) with messages dropped.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Dropped {
+    /// The process that dropped them.
+    pub process: String,
+    /// The service they came on.
+    pub service: String,
+    /// Why.
+    pub reason: String,
+    /// How many.
+    pub messages: u64,
+}
+
+/// `latency_ms`: the processes' latency histograms merged, ms.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct LatencyTables {
+    /// From a message's publication to its reception, by `<service> -> <process>`.
+    pub hops: BTreeMap<String, LatencySummary>,
+    /// From the origin of the data a message carries to its reception, by `<service> -> <process>`.
+    pub end_to_end: BTreeMap<String, LatencySummary>,
+}
+
+/// Builds summary.json: the supervisor's part, with every stage's part in `<out>/parts` merged in.
+pub fn summary(
+    plan: &Plan,
+    rows: &[ProcessRow<'_>],
+    end: &EndReason,
+    exit_code: u8,
+    elapsed: Duration,
+    failed_streams: &BTreeSet<String>,
+) -> Value {
+    let part = supervisor_part(plan, rows, end, exit_code, elapsed, failed_streams);
+    let mut out = serde_json::to_value(&part).unwrap_or_else(|e| {
+        tracing::error!("the supervisor's summary does not serialise: {e}");
+        json!({})
     });
     merge_parts(&mut out, &plan.out_dir.join("parts"));
     out
+}
+
+/// The supervisor's own part of summary.json.
+pub fn supervisor_part(
+    plan: &Plan,
+    rows: &[ProcessRow<'_>],
+    end: &EndReason,
+    exit_code: u8,
+    elapsed: Duration,
+    failed_streams: &BTreeSet<String>,
+) -> SupervisorPart {
+    let processes = rows
+        .iter()
+        .map(|r| {
+            let ports = || r.reports.iter().flat_map(|rep| rep.ports.iter());
+            let counts: (u64, u64) =
+                ports().fold((0, 0), |(i, o), p| if p.input { (i + p.count, o) } else { (i, o + p.count) });
+            let report = ProcessReport {
+                kind: r.kind.to_string(),
+                state: r.state.to_string(),
+                failure: r.failure.map(str::to_string),
+                restarts: r.restarts,
+                instances: r.reports.len(),
+                undelivered: ports().map(|p| p.undelivered).sum(),
+                dropped: ports().flat_map(|p| p.dropped_by.iter()).map(|(_, n)| n).sum(),
+                last_exit: r.last_exit.cloned(),
+                messages_in: counts.0,
+                messages_out: counts.1,
+                cpu_s: r.usage.cpu_s,
+                peak_rss_mib: r.usage.peak_rss_mib,
+                ready_rss_mib: r.usage.ready_rss_mib,
+                upstream_failed: None,
+            };
+            (r.name.to_string(), report)
+        })
+        .collect();
+    let (hops, end_to_end) = merged_latency(rows);
+    let undelivered = undelivered(rows)
+        .into_iter()
+        .map(|((publisher, service, consumer), messages)| Undelivered { publisher, service, consumer, messages })
+        .collect();
+    let dropped = dropped(rows)
+        .into_iter()
+        .map(|((process, service, reason), messages)| Dropped { process, service, reason, messages })
+        .collect();
+    SupervisorPart {
+        run: RunInfo {
+            config: plan.config_path.clone(),
+            end_reason: end.clone(),
+            exit_code,
+            elapsed_s: elapsed.as_secs_f64(),
+            duration_s: plan.config.run.duration_s,
+            iceoryx_prefix: plan.scope.prefix.clone(),
+            iceoryx_root: plan.scope.root.clone(),
+            failed_processes: rows.iter().filter_map(|r| r.failure.map(|why| format!("{} ({why})", r.name))).collect(),
+            streams_ended_for_failure: failed_streams.clone(),
+        },
+        processes,
+        undelivered,
+        dropped,
+        latency_ms: LatencyTables { hops, end_to_end },
+    }
 }
 
 /// Merges every `<dir>/*.json` object into `out` (deep merge of objects; later keys win).

@@ -228,14 +228,13 @@ impl Supervisor {
                 "{process} dropped {n} message(s) of `{service}`: {reason}"
             );
         }
-        let mut summary = crate::report::summary(&self.plan, &rows, &end, exit_code, self.started.elapsed());
+        let summary =
+            crate::report::summary(&self.plan, &rows, &end, exit_code, self.started.elapsed(), &self.failed_streams);
         let failed: Vec<String> =
             rows.iter().filter_map(|r| r.failure.map(|why| format!("{} ({why})", r.name))).collect();
         if !failed.is_empty() {
             tracing::error!("the run ended with failed process(es): {}", failed.join("; "));
         }
-        summary["run"]["failed_processes"] = serde_json::json!(failed);
-        summary["run"]["streams_ended_for_failure"] = serde_json::json!(self.failed_streams);
         Ok(RunOutcome { end, exit_code, summary })
     }
 

@@ -5,6 +5,7 @@
 //! [`stage::SynchronizerStage`] is the stage around it; `main.rs` one line.
 
 pub mod stage;
+pub mod summary;
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -79,7 +80,7 @@ pub struct Paired {
 }
 
 /// Counts of what happened to the poses and fixes.
-#[derive(Debug, Clone, Default, Serialize)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct SyncStats {
     /// Poses paired by interpolation (quadratic, linear or an exact fix).
     pub interpolated: u64,

@@ -5,10 +5,12 @@ use pipeline_runtime::StageError;
 use std::time::Instant;
 
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
+use pipeline_runtime::summary::Percentiles;
 use pipeline_runtime::{Input, Output, ProcessContext, Runtime, Wake};
 use shared_types::services::{BUOY_FIX, SLAM_POSE, SYNC_PAIR};
 use shared_types::{BuoyFix, MsgHeader, PoseEstimate, SyncedPair, convert};
 
+use crate::summary::{FixCounts, SyncSummary, SynchronizerPart};
 use crate::{SyncState, SynchronizerSettings};
 
 /// The `synchronizer` stage.
@@ -18,10 +20,6 @@ pub struct SynchronizerStage {
     poses: Input<PoseEstimate, MsgHeader>,
     fixes: Input<BuoyFix, MsgHeader>,
     pairs: Output<SyncedPair, MsgHeader>,
-}
-
-fn percentile(sorted: &[f64], q: f64) -> f64 {
-    geometry::stats::percentile_sorted(sorted, q).unwrap_or(f64::NAN)
 }
 
 impl Stage for SynchronizerStage {
@@ -83,28 +81,30 @@ impl Stage for SynchronizerStage {
         Ok(if self.st.pending.is_empty() { Step::Idle } else { Step::Pending })
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = SynchronizerPart;
+
+    fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<Self::Summary, StageError> {
         let st = &self.st;
-        let mut ms: Vec<f64> = st.added_latency_s.iter().map(|s| s * 1e3).collect();
-        ms.sort_by(f64::total_cmp);
-        let c = st.synchronizer().counters();
+        let ms: Vec<f64> = st.added_latency_s.iter().map(|s| s * 1e3).collect();
+        let added_latency_ms = Percentiles::of(&ms);
         let max_latency_ms = self.settings.sync.max_latency_s * 1e3;
         tracing::info!(
             pairs = ms.len(),
             extrapolated = st.stats.extrapolated,
             unavailable = st.stats.unavailable,
             "added latency p50 {:.2} ms, max {:.2} ms (bound {max_latency_ms:.0} ms)",
-            percentile(&ms, 0.5),
-            percentile(&ms, 1.0),
+            added_latency_ms.p50.unwrap_or(f64::NAN),
+            added_latency_ms.max.unwrap_or(f64::NAN),
         );
-        Ok(serde_json::json!({ "synchronizer": {
-            "pairs": ms.len(),
-            "poses": st.stats,
-            "fixes": { "inserted": c.inserted, "out_of_order": c.out_of_order, "duplicates": c.duplicates,
-                       "restarts": c.restarts, "dropped": c.dropped },
-            "max_latency_ms": max_latency_ms,
-            "added_latency_ms": { "p50": percentile(&ms, 0.5), "p99": percentile(&ms, 0.99), "max": percentile(&ms, 1.0) },
-        }}))
+        Ok(SynchronizerPart {
+            synchronizer: SyncSummary {
+                pairs: ms.len() as u64,
+                poses: st.stats.clone(),
+                fixes: FixCounts::from(st.synchronizer().counters()),
+                max_latency_ms,
+                added_latency_ms,
+            },
+        })
     }
 
     fn end_of_stream(&self) -> (u64, u64) {

@@ -638,7 +638,9 @@ impl Stage for ViewerStage {
         Ok(Step::Idle)
     }
 
-    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<serde_json::Value, StageError> {
+    type Summary = serde_json::Value;
+
+    fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         // What came last reaches the clients before the server closes, the final map above all
         // (the octree is otherwise sent at most `octree_max_hz`, and the run's last voxels may
         // be held back by that rate when the run ends).

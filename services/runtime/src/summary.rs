@@ -1,0 +1,52 @@
+//! Pieces of summary.json that several stages use. Each stage's part is a struct of its own
+//! ([`crate::Stage::Summary`]) deriving `Serialize`, `Deserialize` and `JsonSchema`; the
+//! supervisor merges the parts, and docs/summary.schema.json (generated from these structs,
+//! checked by `tests/tests/summary_schema.rs`) says which keys exist and in which unit.
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+/// Median, 99th percentile and maximum of a set of samples, in the unit the field's name gives
+/// (`..._ms`: milliseconds). `null` when there were no samples.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize, JsonSchema)]
+pub struct Percentiles {
+    /// Median.
+    pub p50: Option<f64>,
+    /// 99th percentile.
+    pub p99: Option<f64>,
+    /// Maximum.
+    pub max: Option<f64>,
+}
+
+impl Percentiles {
+    /// Of `samples` (any order; non-finite values are left out).
+    pub fn of(samples: &[f64]) -> Self {
+        let mut s: Vec<f64> = samples.iter().copied().filter(|v| v.is_finite()).collect();
+        s.sort_by(f64::total_cmp);
+        let at = |q: f64| {
+            if s.is_empty() { None } else { Some(s[((q * (s.len() - 1) as f64).round() as usize).min(s.len() - 1)]) }
+        };
+        Self { p50: at(0.5), p99: at(0.99), max: at(1.0) }
+    }
+}
+
+/// A number that may be undefined: serialised as the number, or `null` (JSON has no NaN).
+pub fn finite(v: f64) -> Option<f64> {
+    v.is_finite().then_some(v)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentiles_of_samples_and_of_none() {
+        let p = Percentiles::of(&[3.0, 1.0, f64::NAN, 2.0, 100.0]);
+        assert_eq!((p.p50, p.max), (Some(2.0), Some(100.0)));
+        assert_eq!(Percentiles::of(&[]), Percentiles::default());
+        assert_eq!(
+            serde_json::to_value(Percentiles::default()).unwrap(),
+            serde_json::json!({"p50": null, "p99": null, "max": null})
+        );
+    }
+}

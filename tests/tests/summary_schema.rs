@@ -1,0 +1,194 @@
+//! summary.json's keys, declared: docs/summary.schema.json is the JSON Schema of the supervisor's
+//! part and of every stage's part (the structs each stage returns from `Stage::finish`), merged
+//! as the supervisor merges the parts. This module checks that the committed file is what the
+//! code generates, and gives the other tests [`undeclared`], which lists every key of a real
+//! summary.json that the schema does not declare (tests/tests/fusion.rs runs it on the main job).
+//!
+//! Regenerate the file after changing a summary struct:
+//! `UPDATE_SUMMARY_SCHEMA=1 cargo test --workspace --test pipeline -- summary_schema::`
+
+use serde_json::{Map, Value, json};
+
+/// The committed schema's path.
+fn committed_path() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/summary.schema.json")
+}
+
+fn schema_of<T: schemars::JsonSchema>() -> Value {
+    serde_json::to_value(schemars::schema_for!(T)).expect("a schema is JSON")
+}
+
+/// The parts of summary.json with a typed struct, by the kind that writes them.
+fn parts() -> Vec<(&'static str, Value)> {
+    vec![("synchronizer", schema_of::<synchronizer_stage::summary::SynchronizerPart>())]
+}
+
+/// The merged schema of summary.json.
+pub fn schema() -> Value {
+    let mut root = schema_of::<supervisor::report::SupervisorPart>();
+    root["title"] = json!("summary.json");
+    root["description"] = json!(
+        "What a run reports: the supervisor's part (run, processes, undelivered, dropped, latency_ms) and the parts \
+         of the stages that ran, merged key by key. Generated from the summary structs by \
+         tests/tests/summary_schema.rs; units are in the key names (_m, _s, _ms, _mib) or the descriptions."
+    );
+    for (kind, part) in parts() {
+        merge_defs(&mut root, &part, kind);
+        let props = part["properties"].as_object().cloned().unwrap_or_default();
+        for (key, sub) in props {
+            let merged = match root["properties"].get(&key) {
+                None => sub,
+                Some(existing) => merge_objects(&root, existing.clone(), sub, &format!("{kind}: {key}")),
+            };
+            root["properties"][&key] = merged;
+        }
+    }
+    root
+}
+
+fn merge_defs(root: &mut Value, part: &Value, kind: &str) {
+    let Some(defs) = part.get("$defs").and_then(Value::as_object) else { return };
+    let target = root.as_object_mut().unwrap().entry("$defs").or_insert_with(|| json!({}));
+    for (name, def) in defs {
+        match target.get(name) {
+            Some(old) if old != def => panic!("{kind}: the summary type `{name}` differs from another of that name"),
+            _ => {
+                target[name] = def.clone();
+            }
+        }
+    }
+}
+
+/// `$ref` resolved against the root's `$defs`.
+fn resolve<'a>(root: &'a Value, s: &'a Value) -> &'a Value {
+    match s.get("$ref").and_then(Value::as_str).and_then(|r| r.strip_prefix("#/$defs/")) {
+        Some(name) => &root["$defs"][name],
+        None => s,
+    }
+}
+
+/// Two object schemas for one key written by two parts: their properties together.
+fn merge_objects(root: &Value, a: Value, b: Value, what: &str) -> Value {
+    let (a, b) = (resolve(root, &a).clone(), resolve(root, &b).clone());
+    let (Some(pa), Some(pb)) = (a["properties"].as_object(), b["properties"].as_object()) else {
+        panic!("{what}: two parts write this key and one of them is not an object")
+    };
+    let mut props: Map<String, Value> = pa.clone();
+    for (k, v) in pb {
+        let merged = match props.get(k) {
+            Some(old) if old == v => v.clone(),
+            Some(old) => merge_objects(root, old.clone(), v.clone(), &format!("{what}.{k}")),
+            None => v.clone(),
+        };
+        props.insert(k.clone(), merged);
+    }
+    let mut out = json!({ "type": "object", "properties": props, "additionalProperties": false });
+    if let Some(d) = a.get("description").or(b.get("description")) {
+        out["description"] = d.clone();
+    }
+    out
+}
+
+/// Every key of `value` (a summary.json) the schema does not declare, as dotted paths; and every
+/// value whose JSON type the schema does not allow. `null` passes for a number (JSON has no NaN).
+pub fn undeclared(schema: &Value, value: &Value) -> Vec<String> {
+    let mut out = vec![];
+    check(schema, schema, value, "", &mut out);
+    out
+}
+
+fn allows(s: &Value, ty: &str) -> bool {
+    match &s["type"] {
+        Value::String(t) => t == ty || (ty == "integer" && t == "number"),
+        Value::Array(ts) => ts.iter().any(|t| t == ty || (ty == "integer" && t == "number")),
+        _ => true,
+    }
+}
+
+fn check(root: &Value, s: &Value, v: &Value, path: &str, out: &mut Vec<String>) {
+    let s = resolve(root, s);
+    if let Some(alts) = s.get("anyOf").or(s.get("oneOf")).and_then(Value::as_array) {
+        // An Option<T> or an enum: one alternative must take it without complaint.
+        let fits = alts.iter().any(|alt| {
+            let mut o = vec![];
+            check(root, alt, v, path, &mut o);
+            o.is_empty()
+        });
+        if !fits {
+            out.push(format!("{path}: {v} fits none of the declared alternatives"));
+        }
+        return;
+    }
+    if s.as_bool() == Some(true) || s.as_object().is_some_and(|o| o.is_empty()) {
+        return; // anything (an untyped value)
+    }
+    let ty = match v {
+        Value::Null => "null",
+        Value::Bool(_) => "boolean",
+        Value::Number(n) if n.is_i64() || n.is_u64() => "integer",
+        Value::Number(_) => "number",
+        Value::String(_) => "string",
+        Value::Array(_) => "array",
+        Value::Object(_) => "object",
+    };
+    let ok = allows(s, ty)
+        || (ty == "null" && allows(s, "number"))
+        || s.get("const") == Some(v)
+        || s.get("enum").and_then(Value::as_array).is_some_and(|e| e.contains(v));
+    if !ok {
+        out.push(format!("{path}: a {ty} where the schema says {}", s["type"]));
+        return;
+    }
+    match v {
+        Value::Object(m) => {
+            let props = s.get("properties").and_then(Value::as_object);
+            for (k, x) in m {
+                let p = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
+                match (props.and_then(|ps| ps.get(k)), s.get("additionalProperties")) {
+                    (Some(sub), _) => check(root, sub, x, &p, out),
+                    (None, Some(Value::Bool(false))) => out.push(format!("{p}: not declared")),
+                    (None, Some(extra)) if extra.is_object() => check(root, extra, x, &p, out),
+                    (None, _) if props.is_some() => out.push(format!("{p}: not declared")),
+                    (None, _) => {}
+                }
+            }
+        }
+        Value::Array(items) => {
+            if let Some(item) = s.get("items") {
+                for (i, x) in items.iter().enumerate() {
+                    check(root, item, x, &format!("{path}[{i}]"), out);
+                }
+            }
+        }
+        _ => {}
+    }
+}
+
+#[test]
+fn the_committed_summary_schema_is_the_one_the_code_generates() {
+    let text = serde_json::to_string_pretty(&schema()).unwrap() + "\n";
+    let path = committed_path();
+    if std::env::var_os("UPDATE_SUMMARY_SCHEMA").is_some() {
+        std::fs::write(&path, &text).unwrap();
+    }
+    let committed = std::fs::read_to_string(&path).unwrap_or_default();
+    assert!(
+        committed == text,
+        "{} is not what the summary structs generate; regenerate it with \
+         `UPDATE_SUMMARY_SCHEMA=1 cargo test --workspace --test pipeline -- summary_schema::`",
+        path.display()
+    );
+}
+
+#[test]
+fn the_checker_finds_undeclared_keys_and_wrong_types() {
+    let s = schema();
+    let ok =
+        json!({ "run": { "exit_code": 0, "elapsed_s": 1.5 }, "synchronizer": { "pairs": 3, "max_latency_ms": null } });
+    assert_eq!(undeclared(&s, &ok), Vec::<String>::new());
+    let bad = json!({ "run": { "exit_code": "zero", "elapsed": 1.0 }, "synchronizer": { "pears": 3 }, "mystery": {} });
+    let found = undeclared(&s, &bad);
+    for key in ["run.exit_code", "run.elapsed:", "synchronizer.pears", "mystery"] {
+        assert!(found.iter().any(|f| f.starts_with(key)), "{key} in {found:?}");
+    }
+}
