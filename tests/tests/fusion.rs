@@ -20,27 +20,35 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
         format!("end = {}\nend_of_stream_from = {}\nduration_s = 600", run["end"], run["end_of_stream_from"]);
     let mut t = TestRun::new("fusiondefault");
     let s = t.run_to_end(&run_extra, &processes, Duration::from_secs(600));
+    // Every key of the main job's summary is declared in docs/summary.schema.json, with its type.
+    let undeclared = crate::summary_schema::undeclared(&crate::summary_schema::schema(), &s);
+    assert!(undeclared.is_empty(), "summary.json keys not in the schema: {undeclared:#?}");
+    // The tests read the parts as the structs the stages write.
+    let fusion_part: fusion_stage::summary::FusionPart = serde_json::from_value(s.clone()).expect("fusion's part");
+    let slam_part: fastslam_stage::summary::FastSlamPart = serde_json::from_value(s.clone()).expect("fastslam's part");
+    let buoy_part: buoy_ekf_stage::summary::BuoyEkfPart = serde_json::from_value(s.clone()).expect("buoy_ekf's part");
     let ate = &s["ate_m"];
-    let (fused, buoy, slam) =
-        (ate["fused"].as_f64().unwrap(), ate["buoy"].as_f64().unwrap(), ate["slam"].as_f64().unwrap());
+    let fused_ate = fusion_part.ate_m.as_ref().expect("fused ATE");
+    let (fused, buoy, slam) = (
+        fused_ate.fused.unwrap(),
+        fused_ate.buoy.unwrap(),
+        slam_part.ate_m.as_ref().and_then(|a| a.slam).expect("SLAM ATE"),
+    );
     // Fusion gains from SLAM: at most 0.8 of the buoy-only path's error (the goal), better than
     // the SLAM path per local map (ATE after an alignment to the truth), and no worse than the
     // SLAM path placed in the world by the same local alignments (the fused path leans on it).
     assert!(fused <= 0.8 * buoy, "fused {fused} m must be <= 0.8 x the buoy-only path {buoy} m: {ate:#}");
     // The buoy EKF alone within what docs/buoy_ekf.md claims for the main job (0.223 m).
-    let buoy_ekf = ate["buoy_ekf"].as_f64().unwrap();
+    let buoy_ekf = buoy_part.ate_m.as_ref().and_then(|a| a.buoy_ekf).expect("buoy EKF ATE");
     assert!(buoy_ekf <= 0.25, "buoy EKF {buoy_ekf} m over 0.25 m: {ate:#}");
     assert!(fused < slam, "fused {fused} m must beat the SLAM path {slam} m: {ate:#}");
-    assert!(fused <= 1.02 * ate["slam_global"].as_f64().unwrap(), "{ate:#}");
-    assert!(
-        s["nees"]["slam_position"].as_f64().is_some_and(|n| (0.2158..=9.3484).contains(&n)),
-        "honest SLAM covariance: {:#}",
-        s["nees"]
-    );
-    let f = &s["fusion"];
-    assert_eq!(f["poses"], s["slam"]["frames"], "one global pose per SLAM pose: {f:#}");
-    assert!(f["segments_aligned"].as_u64().unwrap() >= 1, "{f:#}");
-    assert!(f["global_landmarks"].as_u64().unwrap() > 100, "{f:#}");
+    assert!(fused <= 1.02 * fused_ate.slam_global.unwrap(), "{ate:#}");
+    let nees = slam_part.nees.as_ref().and_then(|n| n.slam_position);
+    assert!(nees.is_some_and(|n| (0.2158..=9.3484).contains(&n)), "honest SLAM covariance: {:#}", s["nees"]);
+    let f = &fusion_part.fusion;
+    assert_eq!(f.poses, slam_part.slam.frames, "one global pose per SLAM pose: {f:#?}");
+    assert!(f.segments_aligned >= 1, "{f:#?}");
+    assert!(f.global_landmarks > 100, "{f:#?}");
     let out = t.out_dir();
     for file in [
         "fused_global.tum",

@@ -20,13 +20,22 @@ fn schema_of<T: schemars::JsonSchema>() -> Value {
 
 /// The parts of summary.json with a typed struct, by the kind that writes them.
 fn parts() -> Vec<(&'static str, Value)> {
-    vec![("synchronizer", schema_of::<synchronizer_stage::summary::SynchronizerPart>())]
+    vec![
+        ("sensor_monitor", schema_of::<sensor_monitor_stage::summary::SensorMonitorPart>()),
+        ("ingest", schema_of::<ingest_stage::summary::IngestPart>()),
+        ("fastslam", schema_of::<fastslam_stage::summary::FastSlamPart>()),
+        ("buoy_ekf", schema_of::<buoy_ekf_stage::summary::BuoyEkfPart>()),
+        ("synchronizer", schema_of::<synchronizer_stage::summary::SynchronizerPart>()),
+        ("fusion", schema_of::<fusion_stage::summary::FusionPart>()),
+        ("octree_mapper", schema_of::<octree_mapper_stage::summary::OctreeMapperPart>()),
+    ]
 }
 
 /// The merged schema of summary.json.
 pub fn schema() -> Value {
     let mut root = schema_of::<supervisor::report::SupervisorPart>();
     root["title"] = json!("summary.json");
+    root["additionalProperties"] = json!(false);
     root["description"] = json!(
         "What a run reports: the supervisor's part (run, processes, undelivered, dropped, latency_ms) and the parts \
          of the stages that ran, merged key by key. Generated from the summary structs by \
@@ -67,9 +76,18 @@ fn resolve<'a>(root: &'a Value, s: &'a Value) -> &'a Value {
     }
 }
 
+/// An `Option<T>`'s schema (`anyOf: [T, null]`) as T's, resolved.
+fn unwrap_option<'a>(root: &'a Value, s: &'a Value) -> &'a Value {
+    let s = resolve(root, s);
+    match s.get("anyOf").and_then(Value::as_array).map(Vec::as_slice) {
+        Some([t, n]) | Some([n, t]) if n.get("type") == Some(&json!("null")) => resolve(root, t),
+        _ => s,
+    }
+}
+
 /// Two object schemas for one key written by two parts: their properties together.
 fn merge_objects(root: &Value, a: Value, b: Value, what: &str) -> Value {
-    let (a, b) = (resolve(root, &a).clone(), resolve(root, &b).clone());
+    let (a, b) = (unwrap_option(root, &a).clone(), unwrap_option(root, &b).clone());
     let (Some(pa), Some(pb)) = (a["properties"].as_object(), b["properties"].as_object()) else {
         panic!("{what}: two parts write this key and one of them is not an object")
     };

@@ -7,6 +7,7 @@ use std::collections::VecDeque;
 
 pub mod journal;
 pub mod stage;
+pub mod summary;
 use std::time::{Duration, Instant};
 
 use buoy::{BuoyConfig, BuoyEkf, Estimate, Mode, RangeOutcome};

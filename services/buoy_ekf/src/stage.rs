@@ -11,8 +11,10 @@ use pipeline_runtime::{Input, Output, ProcessContext, Restart, Runtime, Wake};
 use shared_types::services::{BUOY_FIX, BUOY_RANGES, DEPTH, ODOMETRY};
 use shared_types::*;
 
+use crate::summary::{BuoyAte, BuoyEkfPart, BuoyEkfSummary, PerBuoy, RangeBias, RejectedShare};
 use crate::{BuoyEkfSettings, BuoyState, fix_pose};
 use geometry::trajectory::{ate_nearest, dead_reckoning};
+use pipeline_runtime::summary::finite;
 
 /// The `buoy_ekf` stage.
 pub struct BuoyEkfStage {
@@ -116,7 +118,7 @@ impl Stage for BuoyEkfStage {
         Ok(if st.pending() == 0 { Step::Idle } else { Step::Pending })
     }
 
-    type Summary = serde_json::Value;
+    type Summary = BuoyEkfPart;
 
     fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         if ending == Ending::Stopped {
@@ -135,7 +137,7 @@ fn summary(
     settings: &BuoyEkfSettings,
     out_dir: &std::path::Path,
     fixes_sent: u64,
-) -> Result<serde_json::Value, StageError> {
+) -> Result<BuoyEkfPart, StageError> {
     std::fs::create_dir_all(out_dir)?;
     if !st.ekf().is_some_and(|e| e.is_initialised()) {
         tracing::warn!(
@@ -149,42 +151,58 @@ fn summary(
     geometry::tum::write_tum(&out_dir.join("buoy_ekf.tum"), poses.iter().map(|(t, p)| (*t, p)))?;
     let counters = st.ekf().map(|e| e.counters().clone()).unwrap_or_default();
     let estimate = st.ekf().filter(|e| e.is_initialised()).and_then(|e| e.estimate().ok());
-    let mut part = serde_json::json!({ "buoy_ekf": {
-        "fixes": fixes_sent,
-        "trajectory_samples": st.trajectory.len(),
-        "ranges_accepted": counters.accepted,
-        "ranges_rejected": counters.rejected,
-        "recoveries": counters.recoveries,
-        "reinitialisations": counters.reinitialisations,
-        "outlier_branch_switches": counters.outlier_branch_switches,
-        "lost_checks_without_fix": counters.lost_checks_without_fix,
-        "start_checks": counters.start_checks,
-        "start_corrections": counters.start_corrections,
-        "bias_resets": counters.bias_resets,
-        "calibration_held": counters.calibration_held,
-        "calibration_unobservable": counters.calibration_unobservable,
-        "rejected_share_at_end": st.ekf().and_then(|e| e.recent_rejected_share()).map(|(share, n)| serde_json::json!({
-            "share": share, "of_last_ranges": n })),
-        "depth_rejected": counters.depth_rejected,
-        "ranges_waiting_for_initialisation": st.waiting,
-        "initialised": st.ekf().is_some_and(|e| e.is_initialised()),
-        "last_waiting_reason": st.waiting_reason,
-        "per_buoy": counters.per_buoy.iter().map(|b| serde_json::json!({
-            "id": b.id, "accepted": b.accepted, "rejected": b.rejected,
-            "rejected_share": b.rejected as f64 / (b.accepted + b.rejected).max(1) as f64 })).collect::<Vec<_>>(),
-        "range_biases_m": estimate.as_ref().map(|e| e.biases.iter().map(|b| serde_json::json!({
-            "buoy_id": b.buoy_id, "bias_m": b.bias_m, "sigma_m": b.sigma_m })).collect::<Vec<_>>()),
-        "range_scale": estimate.as_ref().and_then(|e| e.range_scale).map(|s| s.0),
-        "invalid_inputs": st.invalid,
-        "filter_errors": st.filter_errors,
-    }});
+    let ekf = st.ekf();
+    let mut part = BuoyEkfPart {
+        buoy_ekf: BuoyEkfSummary {
+            fixes: fixes_sent,
+            trajectory_samples: st.trajectory.len(),
+            ranges_accepted: counters.accepted,
+            ranges_rejected: counters.rejected,
+            recoveries: counters.recoveries,
+            reinitialisations: counters.reinitialisations,
+            outlier_branch_switches: counters.outlier_branch_switches,
+            lost_checks_without_fix: counters.lost_checks_without_fix,
+            start_checks: counters.start_checks,
+            start_corrections: counters.start_corrections,
+            bias_resets: counters.bias_resets,
+            calibration_held: counters.calibration_held,
+            calibration_unobservable: counters.calibration_unobservable,
+            rejected_share_at_end: ekf
+                .and_then(|e| e.recent_rejected_share())
+                .map(|(share, of_last_ranges)| RejectedShare { share, of_last_ranges }),
+            depth_rejected: counters.depth_rejected,
+            ranges_waiting_for_initialisation: st.waiting,
+            initialised: ekf.is_some_and(|e| e.is_initialised()),
+            last_waiting_reason: st.waiting_reason.clone(),
+            per_buoy: counters
+                .per_buoy
+                .iter()
+                .map(|b| PerBuoy {
+                    id: b.id,
+                    accepted: b.accepted,
+                    rejected: b.rejected,
+                    rejected_share: b.rejected as f64 / (b.accepted + b.rejected).max(1) as f64,
+                })
+                .collect(),
+            range_biases_m: estimate.as_ref().map(|e| {
+                e.biases
+                    .iter()
+                    .map(|b| RangeBias { buoy_id: b.buoy_id, bias_m: b.bias_m, sigma_m: b.sigma_m })
+                    .collect()
+            }),
+            range_scale: estimate.as_ref().and_then(|e| e.range_scale).map(|s| s.0),
+            invalid_inputs: st.invalid.clone(),
+            filter_errors: st.filter_errors.clone(),
+        },
+        ate_m: None,
+    };
     let gt_path = out_dir.join(&settings.ground_truth);
     match geometry::tum::read_tum(&gt_path) {
         Ok(truth) if !truth.is_empty() => {
             let truth_p: Vec<(f64, Vector3<f64>)> = truth.iter().map(|(t, p)| (*t, p.translation.vector)).collect();
             let est: Vec<(f64, Vector3<f64>)> = st.trajectory.iter().map(|(t, p, _)| (*t, *p)).collect();
             let ate = ate_nearest(&est, &truth_p, planar);
-            let mut ates = serde_json::json!({ "buoy_ekf": ate });
+            let mut ates = BuoyAte { buoy_ekf: finite(ate), dead_reckoning: None };
             if let Some((t0, u0)) = st.inputs.first() {
                 // Dead reckoning from the ground-truth pose at the start of the first input.
                 let start = geometry::trajectory::nearest(&truth, t0 - u0.dt_s).copied().unwrap_or(truth[0].1);
@@ -192,7 +210,7 @@ fn summary(
                 geometry::tum::write_tum(&out_dir.join("dead_reckoning.tum"), dr.iter().map(|(t, p)| (*t, p)))?;
                 let dr_p: Vec<_> = dr.iter().map(|(t, p)| (*t, p.translation.vector)).collect();
                 let dr_ate = ate_nearest(&dr_p, &truth_p, planar);
-                ates["dead_reckoning"] = serde_json::json!(dr_ate);
+                ates.dead_reckoning = finite(dr_ate);
                 tracing::info!(
                     "ATE ({}, nearest stamp, every ground-truth row): buoy EKF {ate:.3} m, dead reckoning {dr_ate:.3} m",
                     if planar { "2-D" } else { "3-D" }
@@ -200,7 +218,7 @@ fn summary(
             } else {
                 tracing::info!("ATE (nearest stamp, every ground-truth row): buoy EKF {ate:.3} m");
             }
-            part["ate_m"] = ates;
+            part.ate_m = Some(ates);
         }
         Ok(_) => tracing::info!("no accuracy evaluation: {} is empty", gt_path.display()),
         Err(e) => tracing::info!("no accuracy evaluation: {e}"),

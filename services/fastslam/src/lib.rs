@@ -6,6 +6,7 @@ use std::collections::{BTreeMap, VecDeque};
 
 pub mod journal;
 pub mod stage;
+pub mod summary;
 
 use fastslam::eval::TrajectorySample;
 use fastslam::frontend::{FrontEndConfig, Method, RegistrationError};
@@ -18,7 +19,7 @@ use serde::{Deserialize, Serialize};
 use shared_types::{OdometryInput, STEREO_HAS_DESCRIPTOR, STEREO_HAS_TRACK_ID, StereoObservation};
 
 /// How the particles are predicted between frames.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum MotionModel {
     /// From the odometry/input stream (EQUATIONS §1).

@@ -11,7 +11,9 @@ use pipeline_runtime::{Input, Output, ProcessContext, Restart, Runtime, Wake};
 use shared_types::services::{COMMAND, ODOMETRY, SLAM_DIAGNOSTICS, SLAM_LANDMARKS, SLAM_PARTICLES, SLAM_POSE, STEREO};
 use shared_types::*;
 
+use crate::summary::{FastSlamPart, FrontendSummary, SegmentSummary, SlamAte, SlamNees, SlamSummary};
 use crate::{FastSlamSettings, SlamState, frame_from_wire};
+use pipeline_runtime::summary::{Percentiles, finite};
 
 struct Outputs {
     pose: Output<PoseEstimate, MsgHeader>,
@@ -288,7 +290,7 @@ impl Stage for FastSlamStage {
         Ok(if busy { Step::Busy } else { Step::Idle })
     }
 
-    type Summary = serde_json::Value;
+    type Summary = FastSlamPart;
 
     fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         let st = &self.st;
@@ -315,7 +317,7 @@ fn summary(
     out_dir: &std::path::Path,
     update_ms: &[f64],
     stats: &RunStats,
-) -> Result<serde_json::Value, StageError> {
+) -> Result<FastSlamPart, StageError> {
     std::fs::create_dir_all(out_dir)?;
     let mut tum = String::new();
     let mut seg = String::from("t_s,segment\n");
@@ -330,32 +332,36 @@ fn summary(
     }
     std::fs::write(out_dir.join("slam_local.tum"), tum)?;
     std::fs::write(out_dir.join("slam_segments.csv"), seg)?;
-    let mut sorted = update_ms.to_vec();
-    sorted.sort_by(f64::total_cmp);
-    let pct = |q: f64| geometry::stats::percentile_sorted(&sorted, q).unwrap_or(f64::NAN);
-    let mut part = serde_json::json!({ "slam": {
-        "particles": settings.filter.particles,
-        "proposal": settings.filter.proposal,
-        "frames": st.trajectory.len(),
-        "segments": st.filter.segment() + 1,
-        "update_ms": { "p50": pct(0.5), "p99": pct(0.99), "max": pct(1.0) },
-        "rejected_observations": st.rejected_observations,
-        "rejected_odometry": st.rejected_odometry,
-        "motion_model": settings.motion_model,
-        "mean_nis": if stats.nis_frames > 0 { stats.nis_sum / stats.nis_frames as f64 } else { f64::NAN },
-        "candidates_per_observation": stats.candidates_sum / stats.frames.max(1) as f64,
-        "rejected_track_matches": stats.rejected,
-    }});
+    let proposal = serde_json::to_value(settings.filter.proposal)?.as_str().unwrap_or_default().to_string();
+    let mut part = FastSlamPart {
+        slam: SlamSummary {
+            particles: settings.filter.particles,
+            proposal,
+            frames: st.trajectory.len(),
+            segments: st.filter.segment() + 1,
+            update_ms: Percentiles::of(update_ms),
+            rejected_observations: st.rejected_observations,
+            rejected_odometry: st.rejected_odometry,
+            motion_model: settings.motion_model,
+            mean_nis: (stats.nis_frames > 0).then(|| stats.nis_sum / stats.nis_frames as f64),
+            candidates_per_observation: stats.candidates_sum / stats.frames.max(1) as f64,
+            rejected_track_matches: stats.rejected,
+            frontend: None,
+            per_segment: None,
+        },
+        ate_m: None,
+        nees: None,
+    };
     if let Some(cam) = &st.camera_only {
         let c = cam.stats();
-        part["slam"]["frontend"] = serde_json::json!({
-            "frames": c.frames,
-            "by_track_ids": c.by_track_ids,
-            "guided": c.guided,
-            "search": c.search,
-            "failed": c.failed,
-            "mean_inliers": c.inliers as f64 / (c.by_track_ids + c.guided + c.search).max(1) as f64,
-            "mean_ms": stats.frontend_ms_sum / stats.frames.max(1) as f64,
+        part.slam.frontend = Some(FrontendSummary {
+            frames: c.frames,
+            by_track_ids: c.by_track_ids,
+            guided: c.guided,
+            search: c.search,
+            failed: c.failed,
+            mean_inliers: c.inliers as f64 / (c.by_track_ids + c.guided + c.search).max(1) as f64,
+            mean_ms: stats.frontend_ms_sum / stats.frames.max(1) as f64,
         });
         if c.failed > 0 {
             tracing::warn!(
@@ -382,10 +388,13 @@ fn summary(
                 scores.len(),
                 in95 * 100.0
             );
-            part["ate_m"] = serde_json::json!({ "slam": ate });
-            part["nees"] =
-                serde_json::json!({ "slam": nees, "slam_position": nees_position, "slam_position_in_95": in95 });
-            part["slam"]["per_segment"] = serde_json::to_value(&scores)?;
+            part.ate_m = Some(SlamAte { slam: finite(ate) });
+            part.nees = Some(SlamNees {
+                slam: finite(nees),
+                slam_position: finite(nees_position),
+                slam_position_in_95: finite(in95),
+            });
+            part.slam.per_segment = Some(scores.iter().map(SegmentSummary::from).collect());
         }
         Err(e) => tracing::info!("no accuracy evaluation: {e}"),
     }

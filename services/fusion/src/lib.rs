@@ -8,6 +8,10 @@ use std::path::Path;
 
 pub mod journal;
 pub mod stage;
+pub mod summary;
+
+use pipeline_runtime::summary::{CountedPercentiles, finite};
+use summary::{FusedAte, FusedLatency, FusionPart, FusionSummary};
 
 use fusion::engine::{FinalResult, FixInput, Fusion, FusionConfig, PairInput, Source};
 use fusion::global_map::MapLandmark;
@@ -101,7 +105,7 @@ pub fn landmark_from_wire(l: &Landmark) -> Option<MapLandmark> {
 }
 
 /// Counts by source.
-#[derive(Debug, Clone, Default, Serialize)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct SourceCounts {
     /// Fused poses.
     pub fused: u64,
@@ -148,14 +152,6 @@ pub struct RunLog {
     pub predicted_invalid: u64,
 }
 
-/// p50, p99 and max of `v` (ms), as JSON.
-pub fn latency_json(v: &[f64]) -> serde_json::Value {
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    let q = |q: f64| geometry::stats::percentile_sorted(&s, q);
-    serde_json::json!({ "count": s.len(), "p50": q(0.5), "p99": q(0.99), "max": q(1.0) })
-}
-
 fn positions(p: &[(f64, Isometry3<f64>)]) -> Vec<(f64, Vector3<f64>)> {
     p.iter().map(|(t, x)| (*t, x.translation.vector)).collect()
 }
@@ -167,7 +163,7 @@ pub fn write_outputs(
     engine: &Fusion,
     result: &FinalResult,
     log: &RunLog,
-) -> Result<serde_json::Value, StageError> {
+) -> Result<FusionPart, StageError> {
     use geometry::tum::write_tum;
     std::fs::create_dir_all(out_dir)?;
     let fused: Vec<(f64, Isometry3<f64>)> = result.path.iter().map(|o| (o.t_s, o.world_from_body)).collect();
@@ -202,22 +198,25 @@ pub fn write_outputs(
         .collect();
     std::fs::write(out_dir.join("segment_transforms.json"), serde_json::to_vec_pretty(&segments)?)?;
     let merged = result.global_map.iter().filter(|l| l.members.len() > 1).count();
-    let mut part = serde_json::json!({ "fusion": {
-        "poses": result.path.len(),
-        "live": log.live_sources,
-        "final": final_sources,
-        "segments": segments.len(),
-        "segments_aligned": engine.segments().filter(|s| s.alignment.is_some()).count(),
-        "new_local_maps_requested": log.segment_requests,
-        "global_landmarks": result.global_map.len(),
-        "global_landmarks_merged": merged,
-        "invalid_inputs": log.invalid,
-        "predicted": log.predicted.len(),
-    }});
-    part["pipeline_latency_ms"] = serde_json::json!({
-        "stereo_to_fused_pose": latency_json(&log.stereo_to_fused_ms),
-        "stereo_to_first_fused_pose": latency_json(&log.stereo_to_first_fused_ms),
-    });
+    let mut part = FusionPart {
+        fusion: FusionSummary {
+            poses: result.path.len(),
+            live: log.live_sources.clone(),
+            final_: final_sources,
+            segments: segments.len(),
+            segments_aligned: engine.segments().filter(|s| s.alignment.is_some()).count(),
+            new_local_maps_requested: log.segment_requests,
+            global_landmarks: result.global_map.len(),
+            global_landmarks_merged: merged,
+            invalid_inputs: log.invalid.clone(),
+            predicted: log.predicted.len(),
+        },
+        pipeline_latency_ms: FusedLatency {
+            stereo_to_fused_pose: CountedPercentiles::of(&log.stereo_to_fused_ms),
+            stereo_to_first_fused_pose: CountedPercentiles::of(&log.stereo_to_first_fused_ms),
+        },
+        ate_m: None,
+    };
     let truth = geometry::tum::read_tum(&out_dir.join(&settings.ground_truth));
     let truth = match truth {
         Ok(t) if !t.is_empty() => Some(t),
@@ -231,16 +230,16 @@ pub fn write_outputs(
     if let Some(truth) = &truth {
         let tp = positions(truth);
         let ate = |est: &[(f64, Vector3<f64>)]| geometry::trajectory::ate_nearest(est, &tp, false);
-        let ates = serde_json::json!({
-            "fused": ate(&positions(&fused)),
-            "fused_live": ate(&positions(&log.live)),
-            "fused_first": ate(&positions(&log.first)),
-            "fused_predicted": ate(&positions(&log.predicted)),
-            "buoy": ate(&log.buoy),
-            "slam_global": ate(&positions(&result.slam_world)),
-        });
-        tracing::info!("ATE (3-D, nearest stamp, no alignment): {ates}");
-        part["ate_m"] = ates;
+        let ates = FusedAte {
+            fused: finite(ate(&positions(&fused))),
+            fused_live: finite(ate(&positions(&log.live))),
+            fused_first: finite(ate(&positions(&log.first))),
+            fused_predicted: finite(ate(&positions(&log.predicted))),
+            buoy: finite(ate(&log.buoy)),
+            slam_global: finite(ate(&positions(&result.slam_world))),
+        };
+        tracing::info!("ATE (3-D, nearest stamp, no alignment): {}", serde_json::to_string(&ates)?);
+        part.ate_m = Some(ates);
         series_truth = tp.iter().map(|(_, p)| (p.x, p.y)).collect();
     }
     if settings.plot {

@@ -267,7 +267,7 @@ impl Stage for FusionStage {
         Ok(Step::Idle)
     }
 
-    type Summary = serde_json::Value;
+    type Summary = crate::summary::FusionPart;
 
     fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         let result = self.engine.finish();

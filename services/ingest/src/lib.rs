@@ -21,6 +21,7 @@ pub mod sources;
 pub mod stage;
 pub mod stereo_sim;
 pub mod stereo_vo;
+pub mod summary;
 
 use std::time::{Duration, Instant};
 

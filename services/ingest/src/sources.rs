@@ -160,10 +160,10 @@ pub trait Source {
     fn warts(&self) -> std::collections::BTreeMap<&'static str, u64> {
         Default::default()
     }
-    /// More about the source for summary.json (an object merged into `ingest`; per-route counts
-    /// of a bag, say). The default is nothing.
-    fn details(&self) -> serde_json::Value {
-        serde_json::Value::Null
+    /// More about the source for summary.json (merged into `ingest`; per-route counts of a bag,
+    /// say). The default is nothing.
+    fn details(&self) -> crate::summary::SourceDetails {
+        Default::default()
     }
 }
 

@@ -6,6 +6,7 @@ use pipeline_runtime::StageError;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use crate::summary::{IngestPart, IngestSummary, MessageCounts};
 use crate::{IngestSettings, Item, Pacer, Progress, SimSource, Source, SourceKind, TruthFile};
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
 use pipeline_runtime::{Delivery, Output, ProcessContext, Restart, Runtime, Wake};
@@ -170,28 +171,32 @@ impl IngestStage {
 
     /// This process's part of summary.json: at the end of the source, or what was published
     /// so far when the run is stopped first (`completed: false`).
-    fn part(&self, rt: &Runtime, completed: bool) -> serde_json::Value {
-        let data_s = self.first_last_stamp.map_or(0.0, |(a, b)| (b - a) as f64 / 1e9);
-        let mut part = serde_json::json!({ "ingest": {
-            "source": self.source.describe(),
-            "completed": completed,
-            "progress": self.source.progress(),
-            "messages": { "odometry": self.counts[0], "stereo": self.counts[1], "buoy_ranges": self.counts[2],
-                          "depth": self.counts[3], "cloud": self.counts[4], "heading": self.counts[5],
-                          "laser": self.counts[6], "planar_odometry": self.counts[7] },
-            "empty_clouds_skipped": self.empty_clouds,
-            "data_warts": self.source.warts(),
-            "ground_truth_samples": self.truth.written(),
-            "data_duration_s": data_s,
-            "wall_duration_s": self.started.elapsed().as_secs_f64(),
-            "backpressure_wait_s": rt.backpressure_waited().as_secs_f64(),
-        }});
-        if let serde_json::Value::Object(more) = self.source.details() {
-            for (k, v) in more {
-                part["ingest"][k] = v;
-            }
+    fn part(&self, rt: &Runtime, completed: bool) -> IngestPart {
+        let c = &self.counts;
+        IngestPart {
+            ingest: IngestSummary {
+                source: self.source.describe(),
+                completed,
+                progress: self.source.progress(),
+                messages: MessageCounts {
+                    odometry: c[0],
+                    stereo: c[1],
+                    buoy_ranges: c[2],
+                    depth: c[3],
+                    cloud: c[4],
+                    heading: c[5],
+                    laser: c[6],
+                    planar_odometry: c[7],
+                },
+                empty_clouds_skipped: self.empty_clouds,
+                data_warts: self.source.warts().into_iter().map(|(k, n)| (k.to_string(), n)).collect(),
+                ground_truth_samples: self.truth.written() as u64,
+                data_duration_s: self.first_last_stamp.map_or(0.0, |(a, b)| (b - a) as f64 / 1e9),
+                wall_duration_s: self.started.elapsed().as_secs_f64(),
+                backpressure_wait_s: rt.backpressure_waited().as_secs_f64(),
+                details: self.source.details(),
+            },
         }
-        part
     }
 
     fn subscribers(&self, k: usize) -> usize {
@@ -441,7 +446,7 @@ impl Stage for IngestStage {
         self.pump(rt)
     }
 
-    type Summary = serde_json::Value;
+    type Summary = IngestPart;
 
     fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         let sent: u64 = self.counts.iter().sum();

@@ -6,6 +6,7 @@
 //! line.
 
 pub mod stage;
+pub mod summary;
 pub mod voxels;
 
 use std::collections::VecDeque;
@@ -19,7 +20,7 @@ use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 
 /// Which pose places the clouds.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum PoseSource {
     /// The fused global pose (`pipeline/fusion/pose`).
@@ -246,7 +247,7 @@ pub struct PendingCloud {
 }
 
 /// Counters.
-#[derive(Debug, Clone, Default, Serialize)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct MapperCounters {
     /// Clouds inserted.
     pub clouds_inserted: u64,
@@ -298,7 +299,7 @@ pub struct MapperState {
 }
 
 /// What a rebuild did.
-#[derive(Debug, Clone, Default, Serialize)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct RebuildReport {
     /// The trajectory file.
     pub trajectory: String,

@@ -13,14 +13,10 @@ const CHECKPOINT: &str = "map.bt";
 use shared_types::services::{CLOUD, COMMAND, FUSION_POSE, GRID_SLAM_POSE3D, MAP_STATS, MAP_VOXELS, SLAM_POSE};
 use shared_types::*;
 
-use crate::voxels::VoxelStream;
+use crate::summary::{MapperEnd, MapperLatency, MapperSummary, OctreeMapperPart, VoxelClasses, VoxelStreamSummary};
+use crate::voxels::{VoxelStream, VoxelStreamCounters};
 use crate::{MapperSettings, MapperState, PendingCloud, PoseSource};
-
-fn percentile(v: &[f64], q: f64) -> f64 {
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    geometry::stats::percentile_sorted(&s, q).unwrap_or(f64::NAN)
-}
+use pipeline_runtime::summary::{CountedPercentiles, Percentiles};
 
 fn stats_msg(st: &MapperState, regions: u32, obstacles: u32) -> MapStats {
     let (occ, free) = st.tree.num_occupied_free_leaves();
@@ -68,34 +64,13 @@ fn send_voxels(
     Ok(())
 }
 
-/// summary.json `octree_mapper.voxel_stream`: messages and MB of full sets and deltas, and the
-/// MB a stream of full sets only would have taken at the same rate (each delta's moment's map).
-fn voxel_stream_summary(s: &VoxelStream) -> serde_json::Value {
-    let c = &s.counters;
-    let mb = |b: u64| b as f64 / 1e6;
-    serde_json::json!({
-        "full_messages": c.full_messages,
-        "delta_messages": c.delta_messages,
-        "full_mb": mb(c.full_bytes),
-        "delta_mb": mb(c.delta_bytes),
-        "removed_voxels": c.removed,
-        "snapshots_requested": c.snapshots_requested,
-        "full_sets_only_mb": mb(c.full_only_bytes),
-        "mb_per_s": if c.span_s > 0.0 { mb(c.full_bytes + c.delta_bytes) / c.span_s } else { 0.0 },
-        "whole_map_reads": c.whole_map_reads,
-        "regions_read": c.regions_read,
-        "region_voxels_read": c.region_voxels_read,
-        "build_s": c.build_s,
-    })
-}
-
 /// The end-of-run work (map.bt, navigable space, PLY layers, the classified voxels) on a worker
 /// thread, while this thread keeps the heartbeats going (a large map takes seconds).
 fn end_of_run(
     rt: &mut Runtime,
     st: &MapperState,
     out_dir: &std::path::Path,
-) -> Result<(navigable::Discovery, Vec<Voxel>, serde_json::Value), StageError> {
+) -> Result<(navigable::Discovery, Vec<Voxel>, OctreeMapperPart), StageError> {
     std::fs::create_dir_all(out_dir)?;
     let (d, voxels) = std::thread::scope(|s| {
         let worker = s.spawn(|| -> Result<(navigable::Discovery, Vec<Voxel>), StageError> {
@@ -125,28 +100,35 @@ fn end_of_run(
     })?;
     let (nav, steep, nonplanar, sparse) = d.counts();
     let (occ, free) = st.tree.num_occupied_free_leaves();
-    let lat = &st.cloud_to_octree_ms;
-    let part = serde_json::json!({
-      "pipeline_latency_ms": { "cloud_to_octree": { "count": lat.len(), "p50": percentile(lat, 0.5),
-                               "p99": percentile(lat, 0.99), "max": percentile(lat, 1.0) } },
-      "octree_mapper": {
-        "resolution_m": st.tree.resolution(),
-        "pose_source": st.settings().pose_source,
-        "leaves": occ + free,
-        "occupied_leaves": occ,
-        "free_leaves": free,
-        "memory_bytes": st.tree.memory_usage_bytes(),
-        "counters": st.counters,
-        "insert_ms": { "p50": percentile(&st.insert_ms, 0.5), "p99": percentile(&st.insert_ms, 0.99),
-                       "max": percentile(&st.insert_ms, 1.0) },
-        "voxels": { "navigable": nav, "steep": steep, "non_planar": nonplanar, "sparse": sparse },
-        "navigable_regions": d.regions.len(),
-        "navigable_area_m2": d.regions.iter().map(|r| r.area_m2).sum::<f64>(),
-        "obstacles": d.obstacles.len(),
-        "obstacle_landmarks": st.obstacles.landmarks.len(),
-
-        "obstacle_landmarks_seen_in_2_or_more_scans": st.obstacles.landmarks.iter().filter(|l| l.scans >= 2).count(),
-    }});
+    let part = OctreeMapperPart {
+        pipeline_latency_ms: Some(MapperLatency { cloud_to_octree: CountedPercentiles::of(&st.cloud_to_octree_ms) }),
+        octree_mapper: MapperSummary {
+            resolution_m: st.tree.resolution(),
+            stopped_early: false,
+            pose_source: Some(st.settings().pose_source),
+            leaves: occ + free,
+            occupied_leaves: occ,
+            free_leaves: free,
+            memory_bytes: Some(st.tree.memory_usage_bytes()),
+            counters: st.counters.clone(),
+            end_of_stream: Some(MapperEnd {
+                insert_ms: Percentiles::of(&st.insert_ms),
+                voxels: VoxelClasses { navigable: nav, steep, non_planar: nonplanar, sparse },
+                navigable_regions: d.regions.len(),
+                navigable_area_m2: d.regions.iter().map(|r| r.area_m2).sum::<f64>(),
+                obstacles: d.obstacles.len(),
+                obstacle_landmarks: st.obstacles.landmarks.len(),
+                obstacle_landmarks_seen_in_2_or_more_scans: st
+                    .obstacles
+                    .landmarks
+                    .iter()
+                    .filter(|l| l.scans >= 2)
+                    .count(),
+                rebuild: None,
+                voxel_stream: VoxelStreamSummary::from(&VoxelStreamCounters::default()),
+            }),
+        },
+    };
     tracing::info!(
         clouds = st.counters.clouds_inserted,
         dropped = st.counters.clouds_dropped_behind + st.counters.clouds_dropped_no_pose,
@@ -359,10 +341,10 @@ impl Stage for OctreeMapperStage {
         Ok(if queue_empty && st.pending.is_empty() { Step::Idle } else { Step::Pending })
     }
 
-    type Summary = serde_json::Value;
+    type Summary = OctreeMapperPart;
 
     fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
-        let mut rebuild = serde_json::Value::Null;
+        let mut rebuild = None;
         if ending == Ending::EndOfStream && !self.settings.rebuild_from.is_empty() {
             let path = self.out_dir.join(&self.settings.rebuild_from);
             match geometry::tum::read_tum(&path) {
@@ -400,7 +382,7 @@ impl Stage for OctreeMapperStage {
                             "clouds left out of the rebuilt map"
                         );
                     }
-                    rebuild = serde_json::to_value(r)?;
+                    rebuild = Some(r);
                 }
                 Ok(_) => tracing::warn!("no rebuild: {} is empty", path.display()),
                 Err(e) => tracing::warn!("no rebuild: {e}"),
@@ -408,14 +390,15 @@ impl Stage for OctreeMapperStage {
         }
         if ending == Ending::EndOfStream {
             let (d, voxels, mut part) = end_of_run(rt, &self.st, &self.out_dir)?;
-            if !rebuild.is_null() {
-                part["octree_mapper"]["rebuild"] = rebuild;
-            }
+
             let header = MsgHeader { stamp_ns: self.last_stamp, ..Default::default() };
             self.stats_out.send_value(header, stats_msg(&self.st, d.regions.len() as u32, d.obstacles.len() as u32))?;
             let _alive = rt.hold_heartbeat();
             send_voxels(&mut self.voxels_out, &mut self.voxel_stream, &mut self.st, Some(voxels), self.last_stamp)?;
-            part["octree_mapper"]["voxel_stream"] = voxel_stream_summary(&self.voxel_stream);
+            if let Some(end) = part.octree_mapper.end_of_stream.as_mut() {
+                end.rebuild = rebuild;
+                end.voxel_stream = VoxelStreamSummary::from(&self.voxel_stream.counters);
+            }
             return Ok(part);
         }
         let st = &self.st;
@@ -427,14 +410,20 @@ impl Stage for OctreeMapperStage {
         drop(alive);
         let (occ, free) = st.tree.num_occupied_free_leaves();
         tracing::info!(clouds = st.counters.clouds_inserted, "stopped early: map.bt written");
-        Ok(serde_json::json!({ "octree_mapper": {
-            "resolution_m": st.tree.resolution(),
-            "stopped_early": true,
-            "leaves": occ + free,
-            "occupied_leaves": occ,
-            "free_leaves": free,
-            "counters": st.counters,
-        }}))
+        Ok(OctreeMapperPart {
+            octree_mapper: MapperSummary {
+                resolution_m: st.tree.resolution(),
+                stopped_early: true,
+                pose_source: None,
+                leaves: occ + free,
+                occupied_leaves: occ,
+                free_leaves: free,
+                memory_bytes: None,
+                counters: st.counters.clone(),
+                end_of_stream: None,
+            },
+            pipeline_latency_ms: None,
+        })
     }
 
     fn end_of_stream(&self) -> (u64, u64) {

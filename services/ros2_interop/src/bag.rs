@@ -81,7 +81,7 @@ pub struct BagMessage {
 }
 
 /// What was wrong in the bag so far, by kind.
-#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct BagWarts {
     /// Chunks skipped: they did not decompress or parse, or their CRC did not match.
     pub corrupt_chunks: u64,

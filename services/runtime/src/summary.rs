@@ -30,6 +30,27 @@ impl Percentiles {
     }
 }
 
+/// [`Percentiles`] with the number of samples (latency tables: `count`, `p50`, `p99`, `max`).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize, JsonSchema)]
+pub struct CountedPercentiles {
+    /// Samples.
+    pub count: usize,
+    /// Median.
+    pub p50: Option<f64>,
+    /// 99th percentile.
+    pub p99: Option<f64>,
+    /// Maximum.
+    pub max: Option<f64>,
+}
+
+impl CountedPercentiles {
+    /// Of `samples` (any order; non-finite values are left out of the percentiles, not the count).
+    pub fn of(samples: &[f64]) -> Self {
+        let p = Percentiles::of(samples);
+        Self { count: samples.len(), p50: p.p50, p99: p.p99, max: p.max }
+    }
+}
+
 /// A number that may be undefined: serialised as the number, or `null` (JSON has no NaN).
 pub fn finite(v: f64) -> Option<f64> {
     v.is_finite().then_some(v)

@@ -147,12 +147,12 @@ pub struct Guard {
 }
 
 /// A guard's counters, for summaries.
-#[derive(Debug, Clone, Serialize, PartialEq, Eq)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize, schemars::JsonSchema, PartialEq, Eq)]
 pub struct GuardReport {
     /// Messages accepted.
     pub accepted: u64,
     /// Messages rejected, by reason.
-    pub rejected: BTreeMap<&'static str, u64>,
+    pub rejected: BTreeMap<String, u64>,
     /// Messages never received: gaps in the publishers' sequence numbers.
     pub missed: u64,
 }
@@ -230,7 +230,11 @@ impl Guard {
 
     /// The counters.
     pub fn report(&self) -> GuardReport {
-        GuardReport { accepted: self.accepted, rejected: self.rejected.clone(), missed: self.missed }
+        GuardReport {
+            accepted: self.accepted,
+            rejected: self.rejected.iter().map(|(k, n)| (k.to_string(), *n)).collect(),
+            missed: self.missed,
+        }
     }
 }
 

@@ -4,6 +4,7 @@
 //! producers publish; the stage is [`stage::SensorMonitorStage`].
 
 pub mod stage;
+pub mod summary;
 
 use pipeline_runtime::Validate;
 use pipeline_runtime::{Issues, ProcessSettings};

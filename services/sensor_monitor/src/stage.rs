@@ -13,6 +13,7 @@ use shared_types::{
 };
 
 use crate::SensorMonitorSettings;
+use crate::summary::{SensorMonitorPart, SensorMonitorSummary};
 
 /// FNV-1a over every accepted message's stamp and payload bytes, per service: two runs that
 /// publish identical messages give identical digests.
@@ -161,20 +162,25 @@ impl Stage for SensorMonitorStage {
         Ok(Step::Idle)
     }
 
-    type Summary = serde_json::Value;
+    type Summary = SensorMonitorPart;
 
     fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<Self::Summary, StageError> {
-        let digest = |s: &Stream| format!("{:016x}", s.digest.0);
-        Ok(serde_json::json!({ "sensor_monitor": {
-            ODOMETRY: self.odometry.guard.report(), STEREO: self.stereo.guard.report(),
-            BUOY_RANGES: self.buoys.guard.report(), DEPTH: self.depth.guard.report(),
-            HEADING: self.heading.guard.report(), CLOUD: self.cloud.guard.report(),
-            "cloud_points": self.cloud_points, "stereo_observations": self.stereo_observations,
-            "digests": {
-                ODOMETRY: digest(&self.odometry), STEREO: digest(&self.stereo), BUOY_RANGES: digest(&self.buoys),
-                DEPTH: digest(&self.depth), HEADING: digest(&self.heading), CLOUD: digest(&self.cloud),
+        let all = [
+            (ODOMETRY, &self.odometry),
+            (STEREO, &self.stereo),
+            (BUOY_RANGES, &self.buoys),
+            (DEPTH, &self.depth),
+            (HEADING, &self.heading),
+            (CLOUD, &self.cloud),
+        ];
+        Ok(SensorMonitorPart {
+            sensor_monitor: SensorMonitorSummary {
+                cloud_points: self.cloud_points,
+                stereo_observations: self.stereo_observations,
+                digests: all.iter().map(|(k, s)| (k.to_string(), format!("{:016x}", s.digest.0))).collect(),
+                streams: all.iter().map(|(k, s)| (k.to_string(), s.guard.report())).collect(),
             },
-        }}))
+        })
     }
 
     fn end_of_stream(&self) -> (u64, u64) {

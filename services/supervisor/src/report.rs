@@ -115,7 +115,6 @@ pub fn merged_latency(rows: &[ProcessRow<'_>]) -> (BTreeMap<String, LatencySumma
 
 /// What the supervisor itself writes into summary.json; the stages' parts are merged into it.
 #[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
-#[serde(deny_unknown_fields)]
 pub struct SupervisorPart {
     /// The run as a whole.
     pub run: RunInfo,

@@ -9,7 +9,6 @@ use crate::SyncStats;
 
 /// What the `synchronizer` stage adds to summary.json.
 #[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
-#[serde(deny_unknown_fields)]
 pub struct SynchronizerPart {
     /// The pairing of SLAM poses with buoy positions.
     pub synchronizer: SyncSummary,
