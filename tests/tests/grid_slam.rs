@@ -49,6 +49,8 @@ add_drift = true
         &processes,
         Duration::from_secs(300),
     );
+    let undeclared = crate::summary_schema::undeclared(&crate::summary_schema::schema(), &summary);
+    assert!(undeclared.is_empty(), "summary.json keys not in the schema: {undeclared:#?}");
     let ingest = &summary["ingest"];
     let scans = ingest["messages"]["laser"].as_u64().unwrap();
     assert!(scans > 800 && scans < 4791, "{ingest}");

@@ -77,6 +77,9 @@ port = PORT
     assert_eq!(status.code(), Some(0), "{}", run.log());
     assert_eq!(run.leftovers(), Vec::<PathBuf>::new(), "iceoryx2 files left behind");
     let summary = run.summary();
+    // Every key is declared in docs/summary.schema.json (ingest, grid_slam, octree_mapper, viewer).
+    let undeclared = crate::summary_schema::undeclared(&crate::summary_schema::schema(), &summary);
+    assert!(undeclared.is_empty(), "summary.json keys not in the schema: {undeclared:#?}");
     let seen = client.wait_with_output().expect("the client ends");
     let stdout = String::from_utf8_lossy(&seen.stdout);
     assert!(seen.status.success(), "client: {}\n{stdout}", String::from_utf8_lossy(&seen.stderr));

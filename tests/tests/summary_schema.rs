@@ -28,6 +28,8 @@ fn parts() -> Vec<(&'static str, Value)> {
         ("synchronizer", schema_of::<synchronizer_stage::summary::SynchronizerPart>()),
         ("fusion", schema_of::<fusion_stage::summary::FusionPart>()),
         ("octree_mapper", schema_of::<octree_mapper_stage::summary::OctreeMapperPart>()),
+        ("grid_slam", schema_of::<grid_slam_stage::summary::GridSlamPart>()),
+        ("viewer", schema_of::<viewer_stage::summary::ViewerPart>()),
     ]
 }
 

@@ -156,7 +156,8 @@ impl Validate for BackEndConfig {
 }
 
 /// What the back end did.
-#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 pub struct BackEndReport {
     /// Nodes in the graph.
     pub nodes: usize,

@@ -307,7 +307,8 @@ pub struct GridSlamStats {
 }
 
 /// How peaked the weights were over a run ([`GridSlam::n_eff_summary`]).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 pub struct NeffSummary {
     /// Filter updates (one N_eff each).
     pub updates: usize,

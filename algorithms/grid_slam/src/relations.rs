@@ -62,7 +62,8 @@ pub const LONG_SPAN_S: f64 = 60.0;
 pub const FAR_OFF_M: f64 = 0.5;
 
 /// The score of a trajectory against relations.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 pub struct RelationScore {
     /// Relations scored.
     pub scored: usize,

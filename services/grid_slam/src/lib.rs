@@ -7,6 +7,7 @@
 //! [`stage::GridSlamStage`] is the stage around it; `main.rs` one line.
 
 pub mod stage;
+pub mod summary;
 
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
@@ -105,7 +106,7 @@ impl Validate for GridSlamSettings {
 }
 
 /// The back end behind the filter.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum BackEndKind {
     /// Pose graph with loop closures (Hess et al. 2016), run at the end.

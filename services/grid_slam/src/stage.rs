@@ -17,6 +17,7 @@ use shared_types::services::{
 };
 use shared_types::*;
 
+use crate::summary::{BackEndSummary, GridFiles, GridMemory, GridSlamAte, GridSlamPart, GridSlamRun, GridSlamSummary};
 use crate::{BackEndKind, GridSlamSettings, PendingScan, ScanQueue};
 
 /// `PlanarPose::flags` bit: the filter was updated at this scan.
@@ -300,13 +301,14 @@ impl GridSlamStage {
         Ok(())
     }
 
-    fn summary(&self) -> Result<serde_json::Value, StageError> {
+    fn summary(&self) -> Result<GridSlamPart, StageError> {
         std::fs::create_dir_all(&self.out_dir)?;
         let mut rejected: BTreeMap<&str, u64> = self.queue.rejected.clone();
         rejected.extend(self.refused.iter().map(|(k, v)| (*k, *v)));
         let Some(f) = &self.filter else {
             tracing::warn!("no scan was processed: no map, no trajectory");
-            return Ok(serde_json::json!({ "grid_slam": { "scans": 0, "rejected": rejected } }));
+            let rejected = rejected.iter().map(|(k, n)| (k.to_string(), *n)).collect();
+            return Ok(GridSlamPart { grid_slam: GridSlamSummary { scans: 0, rejected, run: None }, ate_m: None });
         };
         let front_traj = f.trajectory();
         let traj = match &self.closed {
@@ -314,46 +316,57 @@ impl GridSlamStage {
             None => front_traj.clone(),
         };
         write_tum2(&self.out_dir.join("grid_slam.tum"), &traj).map_err(StageError::stage)?;
-        let mut grid_part = serde_json::Value::Null;
+        let mut grid_part = None;
         if let Some(g) = self.final_grid() {
             let occ = Occupancy::from_grid(g, self.settings.grid_margin_cells);
             occ.write_map_server(&self.out_dir, "grid").map_err(StageError::stage)?;
             let path: Vec<Pose2> = traj.iter().map(|p| p.1).collect();
             occ.write_png(&self.out_dir.join("grid.png"), &path).map_err(StageError::stage)?;
-            grid_part = serde_json::json!({ "pgm": "grid.pgm", "yaml": "grid.yaml", "png": "grid.png",
-                "width": occ.width, "height": occ.height, "resolution_m": occ.resolution_m,
-                "origin_m": [occ.origin_m.0, occ.origin_m.1] });
+            grid_part = Some(GridFiles {
+                pgm: "grid.pgm".into(),
+                yaml: "grid.yaml".into(),
+                png: "grid.png".into(),
+                width: occ.width,
+                height: occ.height,
+                resolution_m: occ.resolution_m,
+                origin_m: [occ.origin_m.0, occ.origin_m.1],
+            });
         }
         let st = f.stats();
         let mem = f.peak_memory();
         let one_map = f.memory().best_bytes;
-        let mut part = serde_json::json!({ "grid_slam": {
-            "scans": st.scans,
-            "updates": st.updates,
-            "resamples": st.resamples,
-            "n_eff": f.n_eff_summary(),
-            "particles": f.config().particles,
-            "resolution_m": f.config().resolution_m,
-            "poses_published": self.pose.sent(),
-            "grids_published": self.grid.sent(),
-            "particle_sets_published": self.particles.sent(),
-            "rejected": rejected,
-            "invalid_beams": st.invalid_beams,
-            "tracking_failures": st.tracking_failures,
-            "proposal_fallbacks": st.proposal_fallbacks,
-            "memory": { "peak_bytes": mem.map(|m| m.bytes), "one_map_bytes": one_map, "tiles_shared": st.shared_tiles,
-                        "peak_over_one_map": mem.map(|m| m.bytes as f64 / one_map.max(1) as f64) },
-            "grid": grid_part,
-            "trajectory": "grid_slam.tum",
-            "back_end": {
-                "kind": self.settings.back_end,
-                "report": self.closed.as_ref().map(|r| &r.report),
-                "wall_s": self.back_end_s,
-                "error": self.back_end_error,
-                "scans_bytes": self.back_end.as_ref().map(|b| b.bytes()),
+        let mut run = GridSlamRun {
+            updates: st.updates,
+            resamples: st.resamples,
+            n_eff: f.n_eff_summary(),
+            particles: f.config().particles,
+            resolution_m: f.config().resolution_m,
+            poses_published: self.pose.sent(),
+            grids_published: self.grid.sent(),
+            particle_sets_published: self.particles.sent(),
+            invalid_beams: st.invalid_beams,
+            tracking_failures: st.tracking_failures,
+            proposal_fallbacks: st.proposal_fallbacks,
+            memory: GridMemory {
+                peak_bytes: mem.map(|m| m.bytes),
+                one_map_bytes: one_map,
+                tiles_shared: st.shared_tiles,
+                peak_over_one_map: mem.map(|m| m.bytes as f64 / one_map.max(1) as f64),
             },
-            "wall_s": self.started.elapsed().as_secs_f64(),
-        }});
+            grid: grid_part,
+            trajectory: "grid_slam.tum".into(),
+            back_end: BackEndSummary {
+                kind: self.settings.back_end,
+                report: self.closed.as_ref().map(|r| r.report.clone()),
+                wall_s: self.back_end_s,
+                error: self.back_end_error.clone(),
+                scans_bytes: self.back_end.as_ref().map(|b| b.bytes()),
+            },
+            wall_s: self.started.elapsed().as_secs_f64(),
+            relations: None,
+            relations_front_end: None,
+        };
+        let mut ate_m = None;
         let n_rejected: u64 = rejected.values().sum();
         if n_rejected > 0 {
             tracing::warn!(?rejected, "inputs rejected (counted in summary.json grid_slam.rejected)");
@@ -383,7 +396,7 @@ impl GridSlamStage {
                         100.0 * s.over_far_share,
                         grid_slam::relations::FAR_OFF_M
                     );
-                    part["grid_slam"]["relations"] = serde_json::to_value(s)?;
+                    run.relations = Some(s);
                     if self.closed.is_some() {
                         let fs = score(&front_traj, &rel, self.settings.relations_offset_s, 2.0);
                         tracing::info!(
@@ -396,7 +409,7 @@ impl GridSlamStage {
                             100.0 * fs.over_far_share,
                             grid_slam::relations::FAR_OFF_M
                         );
-                        part["grid_slam"]["relations_front_end"] = serde_json::to_value(fs)?;
+                        run.relations_front_end = Some(fs);
                     }
                 }
                 Err(e) => tracing::warn!("relations not scored: {e}"),
@@ -410,7 +423,7 @@ impl GridSlamStage {
                     traj.iter().map(|(t, p)| (*t, Vector3::new(p.x_m, p.y_m, 0.0))).collect();
                 let ate = geometry::trajectory::ate_nearest(&est, &truth_p, true);
                 tracing::info!("ATE (2-D, nearest stamp, against {}): grid SLAM {ate:.3} m", gt_path.display());
-                part["ate_m"] = serde_json::json!({ "grid_slam": ate });
+                ate_m = Some(GridSlamAte { grid_slam: pipeline_runtime::summary::finite(ate) });
             }
             Ok(_) => tracing::info!("no accuracy evaluation: {} is empty", gt_path.display()),
             Err(e) => tracing::info!("no accuracy evaluation: {e}"),
@@ -431,7 +444,8 @@ impl GridSlamStage {
             "grid SLAM done: grid.pgm, grid.yaml, grid.png, grid_slam.tum in {}",
             self.out_dir.display()
         );
-        Ok(part)
+        let rejected = rejected.iter().map(|(k, n)| (k.to_string(), *n)).collect();
+        Ok(GridSlamPart { grid_slam: GridSlamSummary { scans: st.scans, rejected, run: Some(run) }, ate_m })
     }
 }
 
@@ -545,7 +559,7 @@ impl Stage for GridSlamStage {
         Ok(0)
     }
 
-    type Summary = serde_json::Value;
+    type Summary = GridSlamPart;
 
     fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         if ending == Ending::Stopped {

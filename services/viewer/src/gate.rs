@@ -40,14 +40,14 @@ pub struct GateCounts {
 }
 
 impl GateCounts {
-    /// The counts as JSON (summary.json `viewer.gate`).
-    pub fn json(&self) -> serde_json::Value {
-        serde_json::json!({
-            "admitted": self.admitted.load(Ordering::Relaxed),
-            "refused_token": self.refused_token.load(Ordering::Relaxed),
-            "refused_tls": self.refused_tls.load(Ordering::Relaxed),
-            "refused_request": self.refused_request.load(Ordering::Relaxed),
-        })
+    /// The counts (summary.json `viewer.gate`).
+    pub fn summary(&self) -> crate::summary::GateSummary {
+        crate::summary::GateSummary {
+            admitted: self.admitted.load(Ordering::Relaxed),
+            refused_token: self.refused_token.load(Ordering::Relaxed),
+            refused_tls: self.refused_tls.load(Ordering::Relaxed),
+            refused_request: self.refused_request.load(Ordering::Relaxed),
+        }
     }
 }
 

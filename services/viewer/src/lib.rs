@@ -20,6 +20,7 @@
 
 pub mod gate;
 pub mod stage;
+pub mod summary;
 
 use pipeline_runtime::Validate;
 use pipeline_runtime::config::{Issues, ProcessSettings};

@@ -37,15 +37,7 @@ impl Every {
     }
 }
 
-/// Per channel: messages received for it, logged to Foxglove, skipped (over its rate, or
-/// nobody subscribed).
-#[derive(Debug, Default, Clone, Copy, serde::Serialize)]
-struct Counts {
-    received: u64,
-    logged: u64,
-    skipped_rate: u64,
-    skipped_unwatched: u64,
-}
+use crate::summary::{ChannelCounts as Counts, ViewerPart, ViewerSummary};
 
 /// One trajectory: its poses, thinned when full, and its channel.
 struct Path {
@@ -638,7 +630,7 @@ impl Stage for ViewerStage {
         Ok(Step::Idle)
     }
 
-    type Summary = serde_json::Value;
+    type Summary = ViewerPart;
 
     fn finish(&mut self, _rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         // What came last reaches the clients before the server closes, the final map above all
@@ -666,26 +658,25 @@ impl Stage for ViewerStage {
                 tracing::warn!("a client did not close within 1 s; the viewer stops without waiting for it");
             }
         }
-        let thinned: BTreeMap<&str, u64> = self.paths.iter().map(|(k, p)| (*k, p.thinned)).collect();
-        Ok(serde_json::json!({
-            "viewer": {
-                "ending": format!("{ending:?}"),
-                "host": self.settings.host,
-                "insecure": self.settings.insecure,
-                "port": self.port,
-                "tls": self.gate.is_some(),
-                "gate": self.gate.as_ref().map(|g| g.counts().json()),
-                "clients_max": self.clients_max,
-                "sdk_outbox_full_reports": self.sdk_outbox_full.load(std::sync::atomic::Ordering::Relaxed),
-                "channels": self.counts,
-                "not_shown": self.not_shown,
-                "path_poses_thinned": thinned,
-                "octree_deltas_before_a_full_set": self.octree_waiting,
-                "octree_snapshots_asked": self.snapshots_asked,
-                "ground_truth_bad_lines": self.truth.bad_lines,
-                "seconds": self.started.elapsed().as_secs_f64(),
-            }
-        }))
+        Ok(ViewerPart {
+            viewer: ViewerSummary {
+                ending: format!("{ending:?}"),
+                host: self.settings.host.clone(),
+                insecure: self.settings.insecure,
+                port: self.port,
+                tls: self.gate.is_some(),
+                gate: self.gate.as_ref().map(|g| g.counts().summary()),
+                clients_max: self.clients_max,
+                sdk_outbox_full_reports: self.sdk_outbox_full.load(std::sync::atomic::Ordering::Relaxed),
+                channels: self.counts.iter().map(|(k, c)| (k.to_string(), *c)).collect(),
+                not_shown: self.not_shown.clone(),
+                path_poses_thinned: self.paths.iter().map(|(k, p)| (k.to_string(), p.thinned)).collect(),
+                octree_deltas_before_a_full_set: self.octree_waiting,
+                octree_snapshots_asked: self.snapshots_asked,
+                ground_truth_bad_lines: self.truth.bad_lines,
+                seconds: self.started.elapsed().as_secs_f64(),
+            },
+        })
     }
 
     fn end_of_stream(&self) -> (u64, u64) {
