@@ -188,6 +188,8 @@ rate_hz = 0.0
         assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new(), "iceoryx2 files left behind");
     }
     let (r, b) = (robot.summary(), base.summary());
+    crate::summary_schema::assert_declared(&r);
+    crate::summary_schema::assert_declared(&b);
     let (rb, bb) = (&r["bridge"], &b["bridge"]);
     // Plain TCP only because the config says so, and the summary says it too.
     let mode = if certs.is_some() { "mutual_tls" } else { "insecure" };

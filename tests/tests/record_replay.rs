@@ -140,6 +140,7 @@ topics = [{topics}, "pipeline/control/end_of_stream"]
         recording.display()
     );
     let s = run.run_to_end("end = \"end_of_stream\"\nend_of_stream_from = [\"rec\"]\nduration_s = 200", &procs, LONG);
+    crate::summary_schema::assert_declared(&s);
     (run, s)
 }
 

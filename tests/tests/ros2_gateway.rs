@@ -123,6 +123,7 @@ in = [
     assert!(run.leftovers().is_empty(), "iceoryx2 files left behind");
     let heard = stop_listener(&mut run, pid);
     let s = run.summary();
+    crate::summary_schema::assert_declared(&s);
 
     let gw_in = &s["ros2"]["ros_in"]["in"];
     for topic in ["/scan", "/odom"] {

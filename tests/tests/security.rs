@@ -135,6 +135,7 @@ fn a_compromised_robot_gets_only_sound_messages_in_at_a_bounded_rate() {
     assert_eq!(bs.code(), Some(0), "base:\n{}", base.log());
 
     let b = base.summary();
+    crate::summary_schema::assert_declared(&b);
     let c = &b["bridge"]["in"][ODOMETRY]["counts"];
     eprintln!("sent {sent}\nin {c}");
     let n = |v: &serde_json::Value, k: &str| v[k].as_u64().unwrap_or_else(|| panic!("{k} in {v}"));
@@ -251,6 +252,9 @@ in = [
     assert!(base.log().contains("the revocation list changed"), "{}", base.log());
 
     let (a1, a2, b) = (r1.summary(), r2.summary(), base.summary());
+    for s in [&a1, &a2, &b] {
+        crate::summary_schema::assert_declared(s);
+    }
     let bb = &b["bridge"];
     eprintln!("base bridge {bb:#}");
     assert_eq!(bb["security"]["revoked"], serde_json::json!(["auv2"]), "{bb:#}");
@@ -367,6 +371,8 @@ rate_hz = 0.0
     drop(capture);
 
     let (r, b) = (robot.summary(), base.summary());
+    crate::summary_schema::assert_declared(&r);
+    crate::summary_schema::assert_declared(&b);
     let out = &r["bridge"]["out"][ODOMETRY]["counts"];
     let inn = &b["bridge"]["in"][ODOMETRY]["counts"];
     eprintln!("rogue (peers, put): no certificate {no_cert:?}, auv2 {auv2:?}, plain {plain:?}\nout {out}\nin {inn}");

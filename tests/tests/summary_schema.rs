@@ -30,6 +30,10 @@ fn parts() -> Vec<(&'static str, Value)> {
         ("octree_mapper", schema_of::<octree_mapper_stage::summary::OctreeMapperPart>()),
         ("grid_slam", schema_of::<grid_slam_stage::summary::GridSlamPart>()),
         ("viewer", schema_of::<viewer_stage::summary::ViewerPart>()),
+        ("recorder", schema_of::<recorder_stage::summary::RecorderPart>()),
+        ("replayer", schema_of::<recorder_stage::summary::ReplayerPart>()),
+        ("bridge", schema_of::<bridge_stage::summary::BridgePart>()),
+        ("ros2", schema_of::<ros2_stage::summary::Ros2Part>()),
     ]
 }
 
@@ -182,6 +186,12 @@ fn check(root: &Value, s: &Value, v: &Value, path: &str, out: &mut Vec<String>) 
         }
         _ => {}
     }
+}
+
+/// Panics with the keys of `summary` that docs/summary.schema.json does not declare.
+pub fn assert_declared(summary: &Value) {
+    let undeclared = undeclared(&schema(), summary);
+    assert!(undeclared.is_empty(), "summary.json keys not in docs/summary.schema.json: {undeclared:#?}");
 }
 
 #[test]

@@ -38,6 +38,14 @@ impl Validate for OdometerSettings {
 
 impl ProcessSettings for OdometerSettings {}
 
+/// What the `odometer` stage adds to summary.json: a struct, so that its keys and units are
+/// declared (`schemars::JsonSchema`), as every stage's part is (docs/summary.schema.json).
+#[derive(Debug, Clone, Serialize, Deserialize, schemars::JsonSchema)]
+pub struct OdometerPart {
+    /// The distance travelled and the messages counted.
+    pub odometer: Odometer,
+}
+
 /// Why a message was not counted.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
 pub enum Implausible {
@@ -60,7 +68,7 @@ pub enum Implausible {
 }
 
 /// The stage's state: distance so far and counts.
-#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Odometer {
     /// Distance travelled, m (the integral of |v| dt).
     pub distance_m: f64,
@@ -90,8 +98,8 @@ impl Odometer {
     }
 
     /// This stage's part of summary.json.
-    pub fn summary_part(&self) -> serde_json::Value {
-        serde_json::json!({ "odometer": self })
+    pub fn summary_part(&self) -> OdometerPart {
+        OdometerPart { odometer: self.clone() }
     }
 }
 
@@ -110,7 +118,7 @@ mod tests {
         assert!(matches!(o.on_odometry(f64::NAN, 0.1, &s), Err(Implausible::BadValues { .. })));
         assert!((o.distance_m - 0.35).abs() < 1e-12 && (o.duration_s - 0.3).abs() < 1e-12);
         assert_eq!((o.messages, o.implausible), (2, 3));
-        assert_eq!(o.summary_part()["odometer"]["messages"], 2);
+        assert_eq!(serde_json::to_value(o.summary_part()).unwrap()["odometer"]["messages"], 2);
     }
 
     #[test]

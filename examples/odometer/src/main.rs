@@ -35,7 +35,7 @@ impl Stage for OdometerStage {
         Ok(Step::Idle)
     }
 
-    type Summary = serde_json::Value;
+    type Summary = odometer::OdometerPart;
 
     fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<Self::Summary, StageError> {
         tracing::info!(distance_m = self.odometer.distance_m, messages = self.odometer.messages, "done");

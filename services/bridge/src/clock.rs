@@ -152,17 +152,17 @@ impl ClockState {
         self.estimator.estimate().map(|e| Origin::Shift(-e.offset_ns))
     }
 
-    pub(crate) fn json(&self) -> serde_json::Value {
+    pub(crate) fn summary(&self) -> crate::summary::ClockSummary {
         let e = self.estimator.estimate();
-        serde_json::json!({
-            "mode": self.mode,
-            "same_machine": self.same_machine,
-            "offset_ns": e.map(|e| e.offset_ns),
-            "rtt_ns": e.map(|e| e.rtt_ns),
-            "shifted": self.origin().is_some_and(|o| o != Origin::Keep),
-            "asked": self.asked,
-            "answered": self.answered,
-        })
+        crate::summary::ClockSummary {
+            mode: self.mode,
+            same_machine: self.same_machine,
+            offset_ns: e.map(|e| e.offset_ns),
+            rtt_ns: e.map(|e| e.rtt_ns),
+            shifted: self.origin().is_some_and(|o| o != Origin::Keep),
+            asked: self.asked,
+            answered: self.answered,
+        }
     }
 }
 

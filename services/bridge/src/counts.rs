@@ -5,24 +5,26 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 /// Counters of one `out` route.
-#[derive(Debug, Default, Clone, Copy, serde::Serialize, serde::Deserialize)]
-pub(crate) struct OutCounts {
+#[derive(Debug, Default, Clone, Copy, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[schemars(rename = "BridgeOutCounts")]
+pub struct OutCounts {
     /// Messages taken from the local service.
-    pub(crate) received: u64,
+    pub received: u64,
     /// Handed to Zenoh.
-    pub(crate) sent: u64,
+    pub sent: u64,
     /// Not sent: over the route's `max_rate_hz`.
-    pub(crate) rate_dropped: u64,
+    pub rate_dropped: u64,
     /// Not sent: Zenoh refused them.
-    pub(crate) send_errors: u64,
+    pub send_errors: u64,
     /// Missed on the local service before the bridge took them (sequence gaps per publisher).
-    pub(crate) missed_locally: u64,
+    pub missed_locally: u64,
     /// Sent while no subscriber on the other side matched the key: lost.
-    pub(crate) no_subscriber: u64,
+    pub no_subscriber: u64,
     /// XXH64 folded over the bytes of every message sent, in order: equal on the receiving side
     /// (`in.digest`) when the same messages arrived.
     #[serde(serialize_with = "hex", deserialize_with = "unhex")]
-    pub(crate) digest: u64,
+    #[schemars(with = "String")]
+    pub digest: u64,
 }
 
 /// The digest of no message.
@@ -83,44 +85,46 @@ pub(crate) struct KeptIn {
 }
 
 /// Counters of one `in` route.
-#[derive(Debug, Default, Clone, Copy, serde::Serialize, serde::Deserialize)]
-pub(crate) struct InCounts {
+#[derive(Debug, Default, Clone, Copy, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[schemars(rename = "BridgeInCounts")]
+pub struct InCounts {
     /// Messages that arrived from Zenoh.
-    pub(crate) received: u64,
+    pub received: u64,
     /// Published into the local pipeline.
-    pub(crate) published: u64,
+    pub published: u64,
     /// Refused: the wire signature (version, types) differs from this side's.
-    pub(crate) wrong_type: u64,
+    pub wrong_type: u64,
     /// Refused: the length is not a message of the service's types.
-    pub(crate) bad_length: u64,
+    pub bad_length: u64,
     /// Dropped: the bridge's receive queue was full.
-    pub(crate) queue_dropped: u64,
+    pub queue_dropped: u64,
     /// Published but not delivered to a local subscriber (its queue was full or it died).
-    pub(crate) undelivered: u64,
+    pub undelivered: u64,
     /// Gaps in the sender's sequence numbers (lost on the way, before or over the link).
-    pub(crate) seq_gaps: u64,
+    pub seq_gaps: u64,
     /// Published with `origin_ns` on the sender's clock because the offset to another machine's
     /// clock was not measured yet (their end-to-end latency is off by that offset).
-    pub(crate) origin_unaligned: u64,
+    pub origin_unaligned: u64,
     /// Dropped on arrival: over the route's rate (`accept.max_rate_hz`), a flood.
     #[serde(default)]
-    pub(crate) rate_dropped: u64,
+    pub rate_dropped: u64,
     /// Refused: a NaN or an infinity in the message.
     #[serde(default)]
-    pub(crate) refused_non_finite: u64,
+    pub refused_non_finite: u64,
     /// Refused: `origin_ns` unset, later than now by more than `accept.max_future_s`, or older
     /// than `accept.max_age_s`.
     #[serde(default)]
-    pub(crate) refused_time: u64,
+    pub refused_time: u64,
     /// Refused: a sequence number not after the last one (a repeated or replayed message).
     #[serde(default)]
-    pub(crate) refused_going_back: u64,
+    pub refused_going_back: u64,
     /// The sender's sequence numbers started again from the beginning (its publisher restarted):
     /// accepted, counted.
     #[serde(default)]
-    pub(crate) sender_restarts: u64,
+    pub sender_restarts: u64,
     /// XXH64 folded over the bytes of every message published, in order (as they came over the
     /// link): equal to the sender's `out.digest` when the same messages arrived.
     #[serde(serialize_with = "hex", deserialize_with = "unhex")]
-    pub(crate) digest: u64,
+    #[schemars(with = "String")]
+    pub digest: u64,
 }

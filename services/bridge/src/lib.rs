@@ -34,6 +34,7 @@ pub mod refusals;
 pub mod relay;
 pub mod session;
 pub mod stage;
+pub mod summary;
 
 use pipeline_runtime::Validate;
 use pipeline_runtime::config::{Issues, ProcessSettings};
@@ -133,7 +134,7 @@ fn default_age() -> f64 {
 }
 
 /// How a receiving bridge maps the sender's `origin_ns` onto its own clock ([`clock`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default, serde::Serialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum ClockMode {
     /// Kept when the sender runs on this machine (same boot id: one clock), moved by the
@@ -402,7 +403,7 @@ fn endpoint_ok(e: &str) -> bool {
 }
 
 /// What a host's certificate says (docs/security.md).
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct CertificateInfo {
     /// Its subject's common name: the host's name.
     pub common_name: String,

@@ -243,21 +243,21 @@ impl Refusals {
     }
 
     /// Every host and route with refused messages, and the hosts without a role.
-    pub fn json(&self) -> serde_json::Value {
+    pub fn summary(&self) -> crate::summary::RefusalsSummary {
         let st = lock(&self.0);
-        let hosts: Vec<serde_json::Value> = st
+        let hosts = st
             .counts
             .iter()
             .filter(|(_, c)| c.messages > 0)
-            .map(|((zid, route), c)| {
-                let identity = st.identities.get(zid);
-                serde_json::json!({
-                    "peer": zid, "certificate": st.certificate(zid), "identity": identity,
-                    "route": route, "messages": c.messages,
-                })
+            .map(|((zid, route), c)| crate::summary::RefusedHost {
+                peer: zid.clone(),
+                certificate: st.certificate(zid),
+                identity: st.identities.get(zid).cloned(),
+                route: route.clone(),
+                messages: c.messages,
             })
             .collect();
-        serde_json::json!({ "refused_wrong_robot": hosts, "hosts_without_role": st.without_role })
+        crate::summary::RefusalsSummary { refused_wrong_robot: hosts, hosts_without_role: st.without_role.clone() }
     }
 }
 
@@ -318,8 +318,8 @@ mod tests {
         st.on_put(parse("Using cached result: x9 is unauthorized to Put (ingress) on slam/z").unwrap());
         let r = Refusals(Arc::new(Mutex::new(st)));
         assert_eq!(r.per_route(), [("pose".to_string(), 5), ("other: slam/z".to_string(), 1)].into());
-        let j = r.json();
-        assert_eq!(j["refused_wrong_robot"].as_array().map(Vec::len), Some(2));
-        assert_eq!(j["refused_wrong_robot"][0]["identity"], "auv2");
+        let j = r.summary();
+        assert_eq!(j.refused_wrong_robot.len(), 2);
+        assert_eq!(j.refused_wrong_robot[0].identity.as_deref(), Some("auv2"));
     }
 }

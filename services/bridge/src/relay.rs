@@ -248,7 +248,7 @@ enum Wake {
 }
 
 /// What the relays counted (summary.json `bridge.security`).
-#[derive(Debug, Clone, serde::Serialize)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct RelayCounts {
     /// Links opened (TLS handshake and identity checked).
     pub links_opened: u64,
@@ -262,7 +262,7 @@ pub struct RelayCounts {
 }
 
 /// Links refused (or not opened) with one peer address for one reason.
-#[derive(Debug, Clone, serde::Serialize)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct RefusedLinks {
     /// Its address (a dialled peer: the address dialled).
     pub peer: String,

@@ -25,6 +25,9 @@ use crate::counts::*;
 use crate::inbox::*;
 use crate::order::*;
 use crate::session::*;
+use crate::summary::{
+    AcceptSummary, BridgePart, BridgeSummary, InRouteSummary, OutRouteSummary, SecuritySummary, TlsSummary,
+};
 use crate::{
     BridgeSettings, ClockMode, Policy, WhenFull, ack_key, clock_answer_key, clock_ask_key, end_key, key, signature,
 };
@@ -775,7 +778,7 @@ impl Stage for BridgeStage {
         Ok(if inputs_ended && !ins_done { Step::Pending } else { Step::Idle })
     }
 
-    type Summary = serde_json::Value;
+    type Summary = BridgePart;
 
     fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         if ending == Ending::Stopped {
@@ -789,18 +792,16 @@ impl Stage for BridgeStage {
         if ending == Ending::EndOfStream {
             self.send_end(rt);
         }
-        let outs: BTreeMap<&str, serde_json::Value> = self
+        let outs: BTreeMap<String, OutRouteSummary> = self
             .outs
             .iter()
             .map(|o| {
-                (
-                    o.topic.service,
-                    serde_json::json!({
-                        "key": key(&self.settings.namespace, &self.settings.robot, o.topic.service),
-                        "policy": format!("{:?}", o.policy).to_lowercase(),
-                        "counts": o.counts,
-                    }),
-                )
+                let route = OutRouteSummary {
+                    key: key(&self.settings.namespace, &self.settings.robot, o.topic.service),
+                    policy: format!("{:?}", o.policy).to_lowercase(),
+                    counts: o.counts,
+                };
+                (o.topic.service.to_string(), route)
             })
             .collect();
         if let Some(r) = &self.refusals {
@@ -808,7 +809,7 @@ impl Stage for BridgeStage {
         }
         let wrong_robot = self.refusals.as_ref().map(|r| r.per_route()).unwrap_or_default();
         let mut lost_total = 0u64;
-        let ins: BTreeMap<&str, serde_json::Value> = self
+        let ins: BTreeMap<String, InRouteSummary> = self
             .ins
             .iter()
             .map(|r| {
@@ -834,23 +835,21 @@ impl Stage for BridgeStage {
                     + c.refused_non_finite
                     + c.refused_time
                     + c.refused_going_back;
-                (
-                    r.route_name.as_str(),
-                    serde_json::json!({
-                        "local": r.local,
-                        "from": r.from,
-                        "service": r.service,
-                        "key": key(&self.settings.namespace, &r.from, &r.service),
-                        "counts": c,
-                        "lost_on_the_way": lost,
-                        // Refused by the access control: sent under this route's key by a host that
-                        // is not the robot (they never reach the counts above).
-                        "refused_wrong_robot": self
-                            .refusals
-                            .as_ref()
-                            .map(|_| wrong_robot.get(&r.route_name).copied().unwrap_or(0)),
-                    }),
-                )
+                let route = InRouteSummary {
+                    local: r.local.to_string(),
+                    from: r.from.clone(),
+                    service: r.service.clone(),
+                    key: key(&self.settings.namespace, &r.from, &r.service),
+                    counts: c,
+                    lost_on_the_way: lost,
+                    // Refused by the access control: sent under this route's key by a host that
+                    // is not the robot (they never reach the counts above).
+                    refused_wrong_robot: self
+                        .refusals
+                        .as_ref()
+                        .map(|_| wrong_robot.get(&r.route_name).copied().unwrap_or(0)),
+                };
+                (r.route_name.clone(), route)
             })
             .collect();
         let out_dropped: u64 = self.outs.iter().map(|o| o.counts.rate_dropped + o.counts.send_errors).sum();
@@ -882,40 +881,44 @@ impl Stage for BridgeStage {
             );
         }
         let security = match &self.settings.zenoh.tls {
-            None => serde_json::json!({ "mode": "insecure" }),
-            Some(t) => serde_json::json!({
-                "mode": "mutual_tls",
-                // Links refused by the TLS relays (no route: nothing got in).
-                "refused_unauthenticated": refused,
-                "links": links,
-                "refused": self.refusals.as_ref().map(|r| r.json()),
-                "accept": {
-                    "max_rate_hz": self.settings.accept.max_rate_hz,
-                    "queue_messages": self.settings.queue_messages,
-                    "queue_mib": self.settings.accept.queue_mib,
-                    "max_future_s": self.settings.accept.max_future_s,
-                    "max_age_s": self.settings.accept.max_age_s,
-                },
-                "certificate": crate::read_certificate(&t.certificate).ok(),
-                "receivers": t.receivers,
-                "access_control": crate::access_control(&self.settings, &self.revoked),
-                "revoked": self.revoked,
-                "revocation_list": t.revocation_list(),
-            }),
+            None => SecuritySummary { mode: "insecure".into(), tls: None },
+            Some(t) => SecuritySummary {
+                mode: "mutual_tls".into(),
+                tls: Some(TlsSummary {
+                    // Links refused by the TLS relays (no route: nothing got in).
+                    refused_unauthenticated: refused,
+                    links,
+                    refused: self.refusals.as_ref().map(|r| r.summary()),
+                    accept: AcceptSummary {
+                        max_rate_hz: self.settings.accept.max_rate_hz,
+                        queue_messages: self.settings.queue_messages,
+                        queue_mib: self.settings.accept.queue_mib,
+                        max_future_s: self.settings.accept.max_future_s,
+                        max_age_s: self.settings.accept.max_age_s,
+                    },
+                    certificate: crate::read_certificate(&t.certificate).ok(),
+                    receivers: t.receivers.clone(),
+                    access_control: crate::access_control(&self.settings, &self.revoked),
+                    revoked: self.revoked.clone(),
+                    revocation_list: t.revocation_list(),
+                }),
+            },
         };
-        Ok(serde_json::json!({ "bridge": {
-            "security": security,
-            "namespace": self.settings.namespace,
-            "robot": self.settings.robot,
-            "zid": self.session.zid().to_string(),
-            "out": outs,
-            "in": ins,
-            "ends_received": self.ends.iter().filter(|(_, e)| e.is_some()).map(|(r, _)| r).collect::<Vec<_>>(),
-            "ends_missing": missing_ends,
-            "end_acknowledged": self.end_acknowledged,
-            "clock": self.clocks.iter().map(|(r, p)| (r.clone(), lock(&p.state).json())).collect::<BTreeMap<_, _>>(),
-            "wall_s": self.started.elapsed().as_secs_f64(),
-        }}))
+        Ok(BridgePart {
+            bridge: BridgeSummary {
+                security,
+                namespace: self.settings.namespace.clone(),
+                robot: self.settings.robot.clone(),
+                zid: self.session.zid().to_string(),
+                out: outs,
+                inbound: ins,
+                ends_received: self.ends.iter().filter(|(_, e)| e.is_some()).map(|(r, _)| r.clone()).collect(),
+                ends_missing: missing_ends.into_iter().cloned().collect(),
+                end_acknowledged: self.end_acknowledged,
+                clock: self.clocks.iter().map(|(r, p)| (r.clone(), lock(&p.state).summary())).collect(),
+                wall_s: self.started.elapsed().as_secs_f64(),
+            },
+        })
     }
 
     fn end_of_stream(&self) -> (u64, u64) {

@@ -14,6 +14,7 @@ pub mod replay;
 pub mod replay_stage;
 pub mod ros2;
 pub mod stage;
+pub mod summary;
 
 pub use error::RecorderError;
 pub use pipeline_runtime::topics::{self, Emit, TOPICS, Tap, Topic, TopicError, topic};

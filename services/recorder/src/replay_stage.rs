@@ -8,6 +8,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use crate::summary::{ReplayerPart, ReplayerSummary};
 use crate::{Emit, Replay, Replayed, ReplayerSettings, ScanReport, Selection, scan, topic};
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
 use pipeline_runtime::{Delivery, ProcessContext, Runtime, StageError, Wake};
@@ -142,21 +143,25 @@ impl Stage for Replayer {
         Ok(if self.done { Step::Done } else { Step::Idle })
     }
 
-    type Summary = serde_json::Value;
+    type Summary = ReplayerPart;
 
     fn finish(&mut self, _rt: &mut Runtime, _ending: Ending) -> Result<Self::Summary, StageError> {
-        Ok(serde_json::json!({ "replayer": {
-            "file": self.path.display().to_string(),
-            "speed": self.settings.speed,
-            "in_file": self.report.in_file,
-            "selected": self.report.selected,
-            "sent": self.sent,
-            "undelivered": self.undelivered,
-            "skipped_end_of_stream": self.report.skipped_end_of_stream,
-            "received_out_of_publish_order": self.report.reordered,
-            "max_held": self.replay.max_held,
-            "complete": self.done,
-        }}))
+        let by_name = |m: &BTreeMap<&'static str, u64>| m.iter().map(|(k, n)| (k.to_string(), *n)).collect();
+        let r = &self.report;
+        Ok(ReplayerPart {
+            replayer: ReplayerSummary {
+                file: self.path.display().to_string(),
+                speed: self.settings.speed,
+                in_file: r.in_file.clone(),
+                selected: r.selected.clone(),
+                sent: by_name(&self.sent),
+                undelivered: by_name(&self.undelivered),
+                skipped_end_of_stream: r.skipped_end_of_stream.clone(),
+                received_out_of_publish_order: r.reordered,
+                max_held: self.replay.max_held,
+                complete: self.done,
+            },
+        })
     }
 
     fn end_of_stream(&self) -> (u64, u64) {

@@ -87,7 +87,7 @@ impl Ros2Recording {
 }
 
 /// What the ROS 2 bag got.
-#[derive(Debug, Clone, Default, Serialize)]
+#[derive(Debug, Clone, Default, Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct Ros2Report {
     /// The bag directory.
     pub dir: PathBuf,

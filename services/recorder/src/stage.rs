@@ -14,6 +14,7 @@ use std::time::{Duration, Instant};
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
 use pipeline_runtime::{ProcessContext, Restart, Runtime, Wake, monotonic_ns};
 
+use crate::summary::{RecorderPart, RecordingSummary, Ros2BagSummary};
 use crate::{McapSink, RecorderSettings, SinkOptions, Tap, Topic};
 
 /// Per-topic counters.
@@ -275,7 +276,8 @@ impl Stage for RecorderStage {
         Ok(Step::Idle)
     }
 
-    type Summary = serde_json::Value;
+    /// `None` when the recorder never opened its file (nothing to report).
+    type Summary = Option<RecorderPart>;
 
     fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         let why = match ending {
@@ -297,13 +299,11 @@ impl Stage for RecorderStage {
                     );
                 }
                 tracing::info!(dir = %r.dir.display(), messages = r.messages.values().sum::<u64>(), "ROS 2 bag written");
-                let mut v = serde_json::to_value(&r)?;
-                v["earlier_parts"] = serde_json::to_value(&self.earlier_ros2_parts)?;
-                v
+                Some(Ros2BagSummary { report: r, earlier_parts: self.earlier_ros2_parts.clone() })
             }
-            None => serde_json::Value::Null,
+            None => None,
         };
-        let Some(sink) = self.sink.take() else { return Ok(serde_json::json!({})) };
+        let Some(sink) = self.sink.take() else { return Ok(None) };
         let counts: BTreeMap<String, String> = self
             .taps
             .iter()
@@ -327,30 +327,30 @@ impl Stage for RecorderStage {
             "recording written ({why}): {:.0} messages/s over {active_s:.1} s",
             total as f64 / active_s.max(1e-9)
         );
-        let per_topic = |f: fn(&Counts) -> u64| -> BTreeMap<&str, u64> {
-            self.taps.iter().zip(&self.counts).map(|(t, c)| (t.service(), f(c))).collect()
+        let per_topic = |f: fn(&Counts) -> u64| -> BTreeMap<String, u64> {
+            self.taps.iter().zip(&self.counts).map(|(t, c)| (t.service().to_string(), f(c))).collect()
         };
         // Under `recorder` (one recorder per run, as before) and under `recorders.<name>`: with
         // several recorders in a run the first is merged from all of them, the second is each one's.
-        let part = serde_json::json!({
-            "file": self.path.display().to_string(),
-            "earlier_parts": self.earlier_parts,
-            "ended_by": why,
-            "file_bytes": r.file_bytes,
-            "chunks": r.chunks,
-            "messages": r.messages,
-            "message_bytes": r.bytes,
-            "received": per_topic(|c| c.received),
-            "missed": per_topic(|c| c.missed),
-            "not_recorded": self.skipped,
-            "active_s": active_s,
-            "messages_per_s": total as f64 / active_s.max(1e-9),
-            "max_queued": r.max_queued,
-            "foxglove_messages": r.foxglove_messages,
-            "wall_s": self.started.elapsed().as_secs_f64(),
-            "ros2_bag": ros2,
-        });
-        Ok(serde_json::json!({ "recorder": part.clone(), "recorders": { rt.name(): part } }))
+        let part = RecordingSummary {
+            file: self.path.display().to_string(),
+            earlier_parts: self.earlier_parts.clone(),
+            ended_by: why.to_string(),
+            file_bytes: r.file_bytes,
+            chunks: r.chunks,
+            messages: r.messages,
+            message_bytes: r.bytes,
+            received: per_topic(|c| c.received),
+            missed: per_topic(|c| c.missed),
+            not_recorded: self.skipped.clone(),
+            active_s,
+            messages_per_s: total as f64 / active_s.max(1e-9),
+            max_queued: r.max_queued,
+            foxglove_messages: r.foxglove_messages,
+            wall_s: self.started.elapsed().as_secs_f64(),
+            ros2_bag: ros2,
+        };
+        Ok(Some(RecorderPart { recorder: part.clone(), recorders: BTreeMap::from([(rt.name().to_string(), part)]) }))
     }
 
     fn end_of_stream(&self) -> (u64, u64) {

@@ -253,7 +253,7 @@ impl<'de> DeserializeSeed<'de> for Seed<'_> {
 
 /// Latency percentiles of a route, ms (from the pipeline's publish for an out route: with a
 /// snapshot's coalescing).
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct LatencyMs {
     /// Samples.
     pub count: u64,
@@ -294,10 +294,11 @@ impl Hist {
 }
 
 /// Counters of an `in` route (summary.json `ros2.in.<topic>`).
-#[derive(Debug, Default, Serialize)]
+#[derive(Debug, Default, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[schemars(rename = "Ros2InCounts")]
 pub struct InCounts {
     /// The pipeline service it feeds.
-    pub service: &'static str,
+    pub service: String,
     /// DDS samples taken.
     pub received: u64,
     /// Published into the pipeline.
@@ -361,7 +362,7 @@ impl InRoute {
             info_sub,
             remotes: Default::default(),
             unmatched: Default::default(),
-            counts: InCounts { service: cfg.route.service.service(), ..Default::default() },
+            counts: InCounts { service: cfg.route.service.service().to_string(), ..Default::default() },
             last_seq: HashMap::new(),
             warned: Default::default(),
             transport: Hist::default(),
@@ -475,15 +476,15 @@ impl InRoute {
     }
 
     /// The route's part of summary.json.
-    pub fn summary(&self) -> serde_json::Value {
-        serde_json::json!({
-            "type": self.counts_type(),
-            "counts": self.counts,
-            "latency_ms": {
-                "dds_transport": self.transport.ms(),
-                "gateway": self.gateway.ms(),
-                "take_to_sent": self.convert.ms(),
+    pub fn summary(&self) -> crate::summary::InRouteSummary {
+        crate::summary::InRouteSummary {
+            ros_type: self.counts_type().to_string(),
+            counts: self.counts.clone(),
+            latency_ms: crate::summary::InLatency {
+                dds_transport: self.transport.ms(),
+                gateway: self.gateway.ms(),
+                take_to_sent: self.convert.ms(),
             },
-        })
+        }
     }
 }

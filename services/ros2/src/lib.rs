@@ -27,5 +27,6 @@ pub mod inbound;
 pub mod outbound;
 pub mod settings;
 pub mod stage;
+pub mod summary;
 
 pub use settings::Ros2Settings;

@@ -52,7 +52,8 @@ fn unix_ns() -> u64 {
 }
 
 /// Counters of an `out` route (summary.json `ros2.out.<topic>`).
-#[derive(Debug, Default, Serialize)]
+#[derive(Debug, Default, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[schemars(rename = "Ros2OutCounts")]
 pub struct OutCounts {
     /// What it publishes.
     pub what: Option<OutKind>,

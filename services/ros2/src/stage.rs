@@ -14,6 +14,7 @@ use crate::dds::{DdsWaker, RosNode, err};
 use crate::inbound::{InPorts, InRoute, Taken};
 use crate::outbound::Outbound;
 use crate::settings::{Ros2Settings, TopicQos};
+use crate::summary::{GatewaySummary, OutRouteSummary, Ros2Part};
 
 /// The `ros2` gateway stage.
 pub struct Ros2Stage {
@@ -242,7 +243,7 @@ impl Stage for Ros2Stage {
         Ok(Step::Idle)
     }
 
-    type Summary = serde_json::Value;
+    type Summary = Ros2Part;
 
     fn finish(&mut self, rt: &mut Runtime, ending: Ending) -> Result<Self::Summary, StageError> {
         self.discovery();
@@ -272,24 +273,25 @@ impl Stage for Ros2Stage {
                         report.first_error.as_deref().unwrap_or("-")
                     );
                 }
-                serde_json::to_value(&report).unwrap_or_default()
+                Some(report)
             }
-            None => serde_json::Value::Null,
+            None => None,
         };
         for r in &mut self.ins {
             r.counts.publishers = r.remotes.len();
         }
-        let ins: serde_json::Map<String, serde_json::Value> =
-            self.ins.iter().map(|r| (r.topic.clone(), r.summary())).collect();
-        let outs: serde_json::Map<String, serde_json::Value> = self
+        let inbound = self.ins.iter().map(|r| (r.topic.clone(), r.summary())).collect();
+        let out = self
             .out
             .routes
             .iter()
             .map(|r| {
-                let mut v = serde_json::to_value(&r.counts).unwrap_or_default();
-                v["type"] = r.cfg.what.ros_type().into();
-                v["latency_ms"] = serde_json::to_value(r.latency.ms()).unwrap_or_default();
-                (r.cfg.topic().to_string(), v)
+                let route = OutRouteSummary {
+                    counts: r.counts.clone(),
+                    ros_type: r.cfg.what.ros_type().to_string(),
+                    latency_ms: r.latency.ms(),
+                };
+                (r.cfg.topic().to_string(), route)
             })
             .collect();
         let lost: u64 = self
@@ -308,21 +310,22 @@ impl Stage for Ros2Stage {
         if lost > 0 {
             tracing::warn!("ROS 2 gateway: {lost} message(s) not carried (per route in summary.json `ros2`)");
         }
-        Ok(serde_json::json!({ "ros2": { &self.name: {
-            "completed": ending == Ending::EndOfStream,
-            "insecure": true,
-            "node": format!("{}/{}", self.settings.namespace.trim_end_matches('/'), self.settings.node_name),
-            "domain_id": self.node.domain,
-            "in": ins,
-            "out": outs,
-            "static_transforms": self.static_transforms,
-            "pipeline_messages_taken": self.out.taken(),
-            "voxel_messages_missed": self.out.voxel_gaps().0,
-            "voxel_deltas_waiting_for_a_full_set": self.out.voxel_gaps().1,
-            "not_carried": lost,
-            "endpoints_unmatched": unmatched,
-            "bag": bag,
-        }}}))
+        let gateway = GatewaySummary {
+            completed: ending == Ending::EndOfStream,
+            insecure: true,
+            node: format!("{}/{}", self.settings.namespace.trim_end_matches('/'), self.settings.node_name),
+            domain_id: self.node.domain,
+            inbound,
+            out,
+            static_transforms: self.static_transforms,
+            pipeline_messages_taken: self.out.taken(),
+            voxel_messages_missed: self.out.voxel_gaps().0,
+            voxel_deltas_waiting_for_a_full_set: self.out.voxel_gaps().1,
+            not_carried: lost,
+            endpoints_unmatched: unmatched,
+            bag,
+        };
+        Ok(Ros2Part { ros2: std::collections::BTreeMap::from([(self.name.clone(), gateway)]) })
     }
 
     fn end_of_stream(&self) -> (u64, u64) {

@@ -116,7 +116,7 @@ pub fn prepare_bag_dir(dir: &Path, restart: bool) -> Result<NewBag, BagError> {
 }
 
 /// A bag written by a [`BagSink`]: what is in it and what is not.
-#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct BagReport {
     /// The bag directory.
     pub dir: PathBuf,

@@ -102,7 +102,7 @@ impl TopicQos {
 }
 
 /// What an out route publishes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Deserialize, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Deserialize, Serialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum OutKind {
     /// `pipeline/fusion/pose` (refined estimates) as `nav_msgs/Odometry` in `frames.map`.

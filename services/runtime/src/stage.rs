@@ -110,7 +110,7 @@ pub trait Stage: Sized {
     /// This stage's part of summary.json: a struct that serialises to a JSON object (merged into
     /// the summary by the supervisor), deriving `schemars::JsonSchema` as well so that
     /// docs/summary.schema.json describes its keys and units.
-    type Summary: serde::Serialize;
+    type Summary: serde::Serialize + schemars::JsonSchema;
 
     /// The end ([`Ending`]): write the final outputs and return this stage's part of summary.json.
     /// Long work should call [`Runtime::keep_alive`] between its parts.
@@ -135,6 +135,11 @@ pub trait Stage: Sized {
     fn sends_end_of_stream(&self) -> bool {
         true
     }
+}
+
+/// A stage's summary as a JSON object: `null` (a `Summary` of `None`: nothing to report) is `{}`.
+fn summary_object(v: serde_json::Value) -> serde_json::Value {
+    if v.is_null() { serde_json::json!({}) } else { v }
 }
 
 /// Writes a summary part (`<out>/parts/<process>.json`).
@@ -240,7 +245,7 @@ impl Driver {
             rt.wake_at(Instant::now());
         }
         if step == Step::Done || (over && step == Step::Idle) {
-            let part = serde_json::to_value(stage.finish(rt, Ending::EndOfStream)?)?;
+            let part = summary_object(serde_json::to_value(stage.finish(rt, Ending::EndOfStream)?)?);
             rt.state().flush()?;
             let part = self.with_failures(rt, part);
             write_summary_part(&self.out_dir, &self.name, &part)?;
@@ -260,7 +265,7 @@ impl Driver {
             return Ok(());
         }
         tracing::info!("stopped before the end of its inputs: writing what there is");
-        let part = serde_json::to_value(stage.finish(rt, Ending::Stopped)?)?;
+        let part = summary_object(serde_json::to_value(stage.finish(rt, Ending::Stopped)?)?);
         let part = self.with_failures(rt, part);
         write_summary_part(&self.out_dir, &self.name, &part)?;
         self.part = Some(part);
