@@ -138,7 +138,7 @@ in = [{ins}]
             assert!(t0.elapsed() < Duration::from_secs(30), "the base station's bridge never subscribed");
             std::thread::sleep(Duration::from_millis(20));
         }
-        let right = bridge_stage::signature(pipeline_runtime::topics::topic(SERVICES[0]).unwrap());
+        let right = bridge_stage::signature(wire_topics::topic(SERVICES[0]).unwrap());
         p.put(vec![0u8; 32 + 168]).attachment("slam-wire;v=0;h=Old;p=Old;slice=false").wait().unwrap();
         p.put(vec![0u8; 32 + 7]).attachment(right.as_str()).wait().unwrap();
         s.close().wait().unwrap();

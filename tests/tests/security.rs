@@ -33,7 +33,7 @@ fn tls(dir: &Path, name: &str) -> String {
 /// one.
 fn rogue(ns: &NetNs, endpoint: &str, certs: Option<(&Path, Option<&str>)>, zid: bool) -> (u64, u64) {
     let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("python/zenoh_rogue.py");
-    let signature = bridge_stage::signature(pipeline_runtime::topics::topic(ODOMETRY).expect("topic"));
+    let signature = bridge_stage::signature(wire_topics::topic(ODOMETRY).expect("topic"));
     let mut cmd = ns.command("python3");
     cmd.arg(&script).args(["--endpoint", endpoint, "--key", &format!("slam/auv1/{ODOMETRY}")]);
     cmd.args(["--attachment", &signature, "--count", "100", "--seconds", "2"]);
@@ -114,7 +114,7 @@ fn a_compromised_robot_gets_only_sound_messages_in_at_a_bounded_rate() {
     base.wait_for_log("zenoh session open", 1, Duration::from_secs(60));
 
     let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("python/zenoh_compromised.py");
-    let signature = bridge_stage::signature(pipeline_runtime::topics::topic(ODOMETRY).expect("topic"));
+    let signature = bridge_stage::signature(wire_topics::topic(ODOMETRY).expect("topic"));
     let out = ns
         .command("python3")
         .arg(&script)
@@ -412,7 +412,7 @@ rate_hz = 0.0
     // every message (the Zenoh attachment), and over plain TCP it would be in the clear.
     let bytes = std::fs::read(&pcap).expect("the capture");
     assert!(bytes.len() > 20_000, "tcpdump captured only {} bytes", bytes.len());
-    let signature = bridge_stage::signature(pipeline_runtime::topics::topic(ODOMETRY).expect("topic"));
+    let signature = bridge_stage::signature(wire_topics::topic(ODOMETRY).expect("topic"));
     for needle in [signature.as_str(), "slam-wire", "pipeline/sensors/odometry"] {
         assert!(!bytes.windows(needle.len()).any(|w| w == needle.as_bytes()), "`{needle}` in the clear on the link");
     }

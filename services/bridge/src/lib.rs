@@ -38,8 +38,8 @@ pub mod summary;
 
 use pipeline_runtime::Validate;
 use pipeline_runtime::config::{Issues, ProcessSettings};
-use pipeline_runtime::topics::{TOPICS, Topic, topic};
 use serde::Deserialize;
+use wire_topics::{TOPICS, Topic, topic};
 
 /// The bridge's settings (`[processes.<name>.settings]`).
 #[derive(Debug, Clone, Deserialize)]

@@ -11,10 +11,11 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
-use pipeline_runtime::topics::{Emit, Tap, Topic, topic};
+use pipeline_runtime::topics::{Emit, Tap};
 use pipeline_runtime::{Delivery, ProcessContext, Restart, Runtime, StageError, Wake};
 use shared_types::WireType;
 use shared_types::services;
+use wire_topics::{Topic, topic};
 use zenoh::Wait;
 use zenoh::qos::CongestionControl;
 

@@ -10,7 +10,7 @@
 //! are counted in summary.json (`data_warts`, and per route in `rosbag2`); topics without a route
 //! are counted there too and named in the log once.
 
-use crate::summary::SourceDetails;
+use crate::summary::{Rosbag2Details, RouteCounts, SourceDetails};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
@@ -62,40 +62,6 @@ impl Validate for Rosbag2Settings {
             );
         }
     }
-}
-
-/// One route's counts (summary.json `ingest.rosbag2.routes.<topic>`).
-#[derive(Debug, Default, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
-pub struct RouteCounts {
-    /// The pipeline service it feeds.
-    pub service: String,
-    /// Messages published on it.
-    pub published: u64,
-    /// Messages of another type than the route's.
-    pub wrong_type: u64,
-    /// Messages that did not decode.
-    pub undecodable: u64,
-    /// Messages the route's checks refused.
-    pub invalid: u64,
-    /// Points left out of clouds for not being finite.
-    pub non_finite_points: u64,
-    /// Camera infos taken (depth-image routes).
-    pub camera_infos: u64,
-}
-
-/// The bag and its routes (summary.json `ingest.rosbag2`).
-#[derive(Debug, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
-pub struct Rosbag2Details {
-    /// The bag as configured.
-    pub path: PathBuf,
-    /// Its files, in the order read.
-    pub files: Vec<PathBuf>,
-    /// Each routed topic's counts.
-    pub routes: BTreeMap<String, RouteCounts>,
-    /// Messages of topics no route takes, by topic.
-    pub unrouted_messages: BTreeMap<String, u64>,
-    /// What was wrong in the bag.
-    pub bag: ros2_interop::bag::BagWarts,
 }
 
 /// The `rosbag2` source.

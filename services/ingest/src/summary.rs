@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
-use crate::rosbag2::Rosbag2Details;
+use std::path::PathBuf;
 
 /// What the `ingest` stage adds to summary.json.
 #[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
@@ -71,4 +71,38 @@ pub struct SourceDetails {
     /// The `rosbag2` source: the bag, its routes and counts.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rosbag2: Option<Rosbag2Details>,
+}
+
+/// One route's counts (summary.json `ingest.rosbag2.routes.<topic>`).
+#[derive(Debug, Default, Clone, Serialize, Deserialize, JsonSchema)]
+pub struct RouteCounts {
+    /// The pipeline service it feeds.
+    pub service: String,
+    /// Messages published on it.
+    pub published: u64,
+    /// Messages of another type than the route's.
+    pub wrong_type: u64,
+    /// Messages that did not decode.
+    pub undecodable: u64,
+    /// Messages the route's checks refused.
+    pub invalid: u64,
+    /// Points left out of clouds for not being finite.
+    pub non_finite_points: u64,
+    /// Camera infos taken (depth-image routes).
+    pub camera_infos: u64,
+}
+
+/// The bag and its routes (summary.json `ingest.rosbag2`).
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+pub struct Rosbag2Details {
+    /// The bag as configured.
+    pub path: PathBuf,
+    /// Its files, in the order read.
+    pub files: Vec<PathBuf>,
+    /// Each routed topic's counts.
+    pub routes: BTreeMap<String, RouteCounts>,
+    /// Messages of topics no route takes, by topic.
+    pub unrouted_messages: BTreeMap<String, u64>,
+    /// What was wrong in the bag.
+    pub bag: ros2_interop::bag::BagWarts,
 }

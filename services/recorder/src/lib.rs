@@ -17,7 +17,8 @@ pub mod stage;
 pub mod summary;
 
 pub use error::RecorderError;
-pub use pipeline_runtime::topics::{self, Emit, TOPICS, Tap, Topic, TopicError, topic};
+pub use pipeline_runtime::topics::{self, Emit, Tap, TopicError};
 pub use record::{Compression, McapSink, RecorderSettings, SinkOptions, SinkReport};
 pub use replay::{Replay, ReplayError, Replayed, ReplayerSettings, ScanReport, Selection, scan};
 pub use ros2::{Ros2Recording, Ros2Report, Ros2Sink};
+pub use wire_topics::{TOPICS, Topic, topic};

@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use shared_types::services;
 use shared_types::{BuoyFix, FusedPose, MsgHeader, PoseEstimate, WireType};
 
-use pipeline_runtime::topics::{TOPICS, Topic, topic};
+use wire_topics::{TOPICS, Topic, topic};
 
 /// MCAP schema encoding of the wire types: the schema data is the JSON layout description of
 /// [`Topic::schema_json`].

@@ -23,7 +23,7 @@ use shared_types::services::{self, service_spec};
 use shared_types::{EndOfStream, WireType, name_from32};
 
 use crate::record::{MESSAGE_ENCODING, SCHEMA_ENCODING};
-use pipeline_runtime::topics::{TOPICS, Topic, topic};
+use wire_topics::{TOPICS, Topic, topic};
 
 /// Settings of the `replayer` process.
 #[derive(Debug, Clone, Serialize, Deserialize)]

@@ -293,6 +293,32 @@ impl Hist {
     }
 }
 
+/// An `in` route: ROS 2 messages into a pipeline service.
+#[derive(Debug, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+#[schemars(rename = "Ros2InRouteSummary")]
+pub struct InRouteSummary {
+    /// The ROS 2 message type.
+    #[serde(rename = "type")]
+    pub ros_type: String,
+    /// What the route did.
+    pub counts: InCounts,
+    /// Latency of its messages.
+    pub latency_ms: InLatency,
+}
+
+/// An `in` route's latency, ms.
+#[derive(Debug, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct InLatency {
+    /// From the publisher's source stamp to the gateway's take (DDS and the publisher's queue).
+    pub dds_transport: LatencyMs,
+    /// From the take to the pipeline sample sent.
+    pub gateway: LatencyMs,
+    /// Converting and sending alone.
+    pub take_to_sent: LatencyMs,
+}
+
 /// Counters of an `in` route (summary.json `ros2.in.<topic>`).
 #[derive(Debug, Default, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
 #[schemars(rename = "Ros2InCounts")]
@@ -476,11 +502,11 @@ impl InRoute {
     }
 
     /// The route's part of summary.json.
-    pub fn summary(&self) -> crate::summary::InRouteSummary {
-        crate::summary::InRouteSummary {
+    pub fn summary(&self) -> InRouteSummary {
+        InRouteSummary {
             ros_type: self.counts_type().to_string(),
             counts: self.counts.clone(),
-            latency_ms: crate::summary::InLatency {
+            latency_ms: InLatency {
                 dds_transport: self.transport.ms(),
                 gateway: self.gateway.ms(),
                 take_to_sent: self.convert.ms(),

@@ -7,7 +7,7 @@ use ros2_interop::bag_sink::BagReport;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
-use crate::inbound::{InCounts, LatencyMs};
+use crate::inbound::{InRouteSummary, LatencyMs};
 use crate::outbound::OutCounts;
 
 /// What a `ros2` stage adds to summary.json: its gateway under `ros2.<process name>`.
@@ -48,32 +48,6 @@ pub struct GatewaySummary {
     pub endpoints_unmatched: u64,
     /// The ROS 2 bag written beside the topics (`bag`), `null` without one.
     pub bag: Option<BagReport>,
-}
-
-/// An `in` route: ROS 2 messages into a pipeline service.
-#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
-#[serde(deny_unknown_fields)]
-#[schemars(rename = "Ros2InRouteSummary")]
-pub struct InRouteSummary {
-    /// The ROS 2 message type.
-    #[serde(rename = "type")]
-    pub ros_type: String,
-    /// What the route did.
-    pub counts: InCounts,
-    /// Latency of its messages.
-    pub latency_ms: InLatency,
-}
-
-/// An `in` route's latency, ms.
-#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
-#[serde(deny_unknown_fields)]
-pub struct InLatency {
-    /// From the publisher's source stamp to the gateway's take (DDS and the publisher's queue).
-    pub dds_transport: LatencyMs,
-    /// From the take to the pipeline sample sent.
-    pub gateway: LatencyMs,
-    /// Converting and sending alone.
-    pub take_to_sent: LatencyMs,
 }
 
 /// An `out` route: a pipeline service onto a ROS 2 topic.

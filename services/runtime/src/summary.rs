@@ -63,7 +63,7 @@ mod tests {
     #[test]
     fn percentiles_of_samples_and_of_none() {
         let p = Percentiles::of(&[3.0, 1.0, f64::NAN, 2.0, 100.0]);
-        assert_eq!((p.p50, p.max), (Some(2.0), Some(100.0)));
+        assert_eq!((p.p50, p.max), (Some(3.0), Some(100.0))); // rank round((n - 1) q), as geometry::stats
         assert_eq!(Percentiles::of(&[]), Percentiles::default());
         assert_eq!(
             serde_json::to_value(Percentiles::default()).unwrap(),

@@ -1,5 +1,6 @@
-//! The services that can be recorded and replayed, with their wire types: one [`Topic`] per
-//! service of the contract (`shared_types::services::SERVICES`) except the per-process statistics.
+//! Services handled as bytes, whatever their wire types: a [`Topic`] is a service with its wire
+//! types ([`Topic::fixed`], [`Topic::slice`]); the pipeline's table of them (every service of the
+//! contract but the per-process statistics) is `wire_topics::TOPICS`, outside the runtime.
 //!
 //! A recorded message is the exact bytes of the user header followed by the payload bytes, both
 //! `#[repr(C)]` without padding as in `docs/WIRE_FORMAT.md`: for a slice service, the elements one
@@ -18,7 +19,7 @@ use crate::ports::Header;
 use crate::runtime::RuntimeError;
 use crate::validate::Rejection;
 use crate::{Delivery, Input, Output, Runtime};
-use shared_types::services::{self, Qos};
+use shared_types::services::Qos;
 use shared_types::*;
 
 /// One recordable service and its wire types.
@@ -42,70 +43,6 @@ pub struct Topic {
 type OpenTap = fn(&mut Runtime, &'static str) -> Result<Box<dyn Tap>, RuntimeError>;
 /// Creates an [`Emit`] publisher on a service with QoS and delivery.
 type OpenEmit = fn(&mut Runtime, &'static str, &Qos, Delivery) -> Result<Box<dyn Emit>, RuntimeError>;
-
-macro_rules! fixed {
-    ($svc:expr, $t:ty, $h:ty, $default:expr) => {
-        Topic {
-            service: $svc,
-            header: TypeLayout::of::<$h>,
-            payload: TypeLayout::of::<$t>,
-            slice: false,
-            default_recorded: $default,
-            tap: fixed_tap::<$t, $h>,
-            emitter: fixed_emit::<$t, $h>,
-        }
-    };
-}
-
-macro_rules! slice {
-    ($svc:expr, $t:ty, $h:ty, $default:expr) => {
-        Topic {
-            service: $svc,
-            header: TypeLayout::of::<$h>,
-            payload: TypeLayout::of::<$t>,
-            slice: true,
-            default_recorded: $default,
-            tap: slice_tap::<$t, $h>,
-            emitter: slice_emit::<$t, $h>,
-        }
-    };
-}
-
-/// Every recordable service. Heartbeats are recordable on request but not by default (they say
-/// nothing about the data); the per-process statistics (`pipeline/stats/<process>`) are not
-/// recordable (internal bincode).
-pub const TOPICS: &[Topic] = &[
-    fixed!(services::ODOMETRY, OdometryInput, MsgHeader, true),
-    slice!(services::STEREO, StereoObservation, MsgHeader, true),
-    slice!(services::BUOY_RANGES, BuoyRange, MsgHeader, true),
-    fixed!(services::DEPTH, DepthReading, MsgHeader, true),
-    fixed!(services::HEADING, HeadingReading, MsgHeader, true),
-    slice!(services::CLOUD, CloudPoint, CloudHeader, true),
-    fixed!(services::SLAM_POSE, PoseEstimate, MsgHeader, true),
-    slice!(services::SLAM_PARTICLES, Particle, ParticleSetHeader, true),
-    slice!(services::SLAM_LANDMARKS, Landmark, LandmarkMapHeader, true),
-    fixed!(services::SLAM_DIAGNOSTICS, SlamDiagnostics, MsgHeader, true),
-    fixed!(services::BUOY_FIX, BuoyFix, MsgHeader, true),
-    fixed!(services::SYNC_PAIR, SyncedPair, MsgHeader, true),
-    fixed!(services::FUSION_POSE, FusedPose, MsgHeader, true),
-    slice!(services::FUSION_MAP, Landmark, LandmarkMapHeader, true),
-    fixed!(services::MAP_STATS, MapStats, MsgHeader, true),
-    slice!(services::MAP_VOXELS, Voxel, VoxelSetHeader, true),
-    slice!(services::LASER, LaserRange, LaserScanHeader, true),
-    fixed!(services::PLANAR_ODOMETRY, PlanarOdometry, MsgHeader, true),
-    fixed!(services::GRID_SLAM_POSE, PlanarPose, MsgHeader, true),
-    fixed!(services::GRID_SLAM_POSE3D, PoseEstimate, MsgHeader, true),
-    slice!(services::GRID_SLAM_PARTICLES, Particle, ParticleSetHeader, true),
-    slice!(services::GRID_SLAM_GRID, OccupancyCell, OccupancyGridHeader, true),
-    fixed!(services::END_OF_STREAM, EndOfStream, MsgHeader, true),
-    fixed!(services::COMMAND, ControlCommand, MsgHeader, true),
-    fixed!(services::HEARTBEAT, Heartbeat, MsgHeader, false),
-];
-
-/// The topic of service `name`.
-pub fn topic(name: &str) -> Option<&'static Topic> {
-    TOPICS.iter().find(|t| t.service == name)
-}
 
 /// Why a recorded message cannot be a message of its topic.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -137,6 +74,39 @@ pub enum LenError {
 }
 
 impl Topic {
+    /// A service whose messages are one `T` under the user header `H` (the runtime knows no
+    /// concrete wire type: the table of the pipeline's services is `wire_topics::TOPICS`).
+    pub const fn fixed<T: WireType + Debug + ZeroCopySend, H: Header + WireType>(
+        service: &'static str,
+        default_recorded: bool,
+    ) -> Self {
+        Topic {
+            service,
+            header: TypeLayout::of::<H>,
+            payload: TypeLayout::of::<T>,
+            slice: false,
+            default_recorded,
+            tap: fixed_tap::<T, H>,
+            emitter: fixed_emit::<T, H>,
+        }
+    }
+
+    /// A service whose messages are a slice `[T]` under the user header `H`.
+    pub const fn slice<T: WireType + Debug + ZeroCopySend, H: Header + WireType>(
+        service: &'static str,
+        default_recorded: bool,
+    ) -> Self {
+        Topic {
+            service,
+            header: TypeLayout::of::<H>,
+            payload: TypeLayout::of::<T>,
+            slice: true,
+            default_recorded,
+            tap: slice_tap::<T, H>,
+            emitter: slice_emit::<T, H>,
+        }
+    }
+
     /// Size of the user header in bytes.
     pub fn header_size(&self) -> usize {
         (self.header)().size
@@ -622,32 +592,6 @@ mod tests {
         }
         let short = &data[..50];
         assert!(split_header::<CloudHeader>(services::CLOUD, &[&short[..20], &short[20..]], Origin::Keep).is_err());
-    }
-
-    #[test]
-    fn every_service_of_the_contract_but_the_statistics_is_a_topic_with_the_contract_types() {
-        for spec in services::SERVICES {
-            if spec.name.starts_with(services::STATS_PREFIX) {
-                assert!(topic(spec.name).is_none());
-                continue;
-            }
-            let t = topic(spec.name).unwrap_or_else(|| panic!("{} has no topic", spec.name));
-            assert_eq!(t.contract_payload(), spec.payload, "{}", spec.name);
-            assert_eq!((t.header)().rust_name, spec.user_header, "{}", spec.name);
-        }
-        assert_eq!(TOPICS.len(), services::SERVICES.len() - 1);
-    }
-
-    #[test]
-    fn message_lengths_are_checked_against_header_and_payload_sizes() {
-        let odo = topic(services::ODOMETRY).unwrap();
-        assert_eq!(odo.check_len(32 + 168), Ok(1));
-        assert_eq!(odo.check_len(32 + 167), Err(LenError::PayloadSize { got: 167, expected: 168 }));
-        assert_eq!(odo.check_len(10), Err(LenError::ShorterThanHeader { got: 10, header: 32 }));
-        let cloud = topic(services::CLOUD).unwrap();
-        assert_eq!(cloud.check_len(96 + 12 * 5), Ok(5));
-        assert_eq!(cloud.check_len(96), Ok(0));
-        assert_eq!(cloud.check_len(96 + 13), Err(LenError::SliceRemainder { got: 13, element: 12 }));
     }
 
     #[test]

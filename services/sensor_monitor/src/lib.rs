@@ -3,6 +3,7 @@
 //! it accepted, and forwards end of stream. The main job runs it to check what ingest and external
 //! producers publish; the stage is [`stage::SensorMonitorStage`].
 
+pub mod checks;
 pub mod stage;
 pub mod summary;
 

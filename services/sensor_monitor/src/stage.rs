@@ -3,8 +3,9 @@
 //! rejected messages by reason with a digest of what it accepted, and ends after the first
 //! upstream end of stream (the runtime's rule), sending its own when `forward_end_of_stream`.
 
+use crate::checks as validate;
 use pipeline_runtime::stage::{EndAfter, Ending, Stage, Step};
-use pipeline_runtime::validate::{self, Guard, Rejection};
+use pipeline_runtime::validate::{Guard, Rejection};
 use pipeline_runtime::{Input, ProcessContext, Runtime, StageError, Wake};
 use shared_types::WireType;
 use shared_types::services::{BUOY_RANGES, CLOUD, DEPTH, HEADING, ODOMETRY, STEREO};
