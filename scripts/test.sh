@@ -39,6 +39,12 @@ fi
 if ! python3 -c 'import importlib.metadata as m, sys; sys.exit(m.version("eclipse-zenoh") != "1.10.2")' >/dev/null 2>&1; then
     python3 -m pip install --quiet eclipse-zenoh==1.10.2
 fi
+# Python test dependency: tests/tests/fusion.rs validates the main job's summary.json against
+# docs/summary.schema.json with `jsonschema` (PyPI), a JSON Schema implementation no one here wrote.
+# Installed only when missing.
+if ! python3 -c 'import jsonschema' >/dev/null 2>&1; then
+    python3 -m pip install --quiet jsonschema
+fi
 # Debian test dependencies: tests/tests/octree_tools.rs runs OctoMap's convert_octree and
 # compare_octrees (package octomap-tools) on the .bt files of the octree crate; tests/tests/security.rs
 # captures the bridge's link with tcpdump. Installed only when missing (as root, or through sudo);

@@ -23,6 +23,8 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     // Every key of the main job's summary is declared in docs/summary.schema.json, with its type.
     let undeclared = crate::summary_schema::undeclared(&crate::summary_schema::schema(), &s);
     assert!(undeclared.is_empty(), "summary.json keys not in the schema: {undeclared:#?}");
+    // ... and the file validates against it by an implementation of JSON Schema we did not write.
+    crate::summary_schema::assert_valid_by_jsonschema(&t.out_dir().join("summary.json"));
     // The tests read the parts as the structs the stages write.
     let fusion_part: fusion_stage::summary::FusionPart = serde_json::from_value(s.clone()).expect("fusion's part");
     let slam_part: fastslam_stage::summary::FastSlamPart = serde_json::from_value(s.clone()).expect("fastslam's part");

@@ -153,7 +153,7 @@ fn kill_9_of_each_stage_once_is_survived_with_complete_outputs() {
     assert_eq!(exit.code(), Some(0), "{}", run.log());
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new(), "iceoryx2 files left behind");
 
-    // Each restarted stage took over what its killed instance had done (see docs/architecture.md, Restarts):
+    // Each restarted stage took over what its killed instance had done (see docs/stages.md, Restarts):
     // ingest resumed where the killed one was instead of replaying the mission (and held back
     // while a consumer of its services restarted), SLAM and the buoy EKF kept their trajectories,
     // fusion replayed its inputs, the mapper loaded its checkpoint.

@@ -1,4 +1,4 @@
-//! The layering rules of the docs/architecture.md ("What may depend on what"), checked on `cargo metadata`:
+//! The layering rules of the docs/ARCHITECTURE.md ("What may depend on what"), checked on `cargo metadata`:
 //! - an algorithm crate (algorithms/) depends on no iceoryx2, shared_types or anything under
 //!   services/ (the maths stays pure and testable without IPC);
 //! - a stage crate (services/ minus the runtime, the supervisor, the test kit and the bench)
@@ -83,7 +83,7 @@ fn algorithms_stages_and_the_supervisor_depend_only_on_what_the_readme_allows() 
     }
     assert!(
         violations.is_empty(),
-        "layering rules broken (docs/architecture.md, What may depend on what):\n{}",
+        "layering rules broken (docs/ARCHITECTURE.md, What may depend on what):\n{}",
         violations.join("\n")
     );
 }
@@ -254,7 +254,7 @@ fn named_modules(text: &str, modules: &[String], reexports: &BTreeMap<String, St
 }
 
 /// No crate's modules import each other in a loop (a module above all it imports makes the
-/// crate readable from the bottom up; docs/architecture.md). Modules are the files and folders
+/// crate readable from the bottom up; docs/ARCHITECTURE.md). Modules are the files and folders
 /// under `src/`; an import is a `crate::` path to one of them or to a name lib.rs re-exports
 /// from one.
 #[test]

@@ -194,6 +194,27 @@ pub fn assert_declared(summary: &Value) {
     assert!(undeclared.is_empty(), "summary.json keys not in docs/summary.schema.json: {undeclared:#?}");
 }
 
+/// Validates the summary.json at `path` against the committed docs/summary.schema.json with
+/// Python's `jsonschema` (PyPI: an implementation no one here wrote; scripts/test.sh installs it),
+/// which also checks the schema itself against draft 2020-12.
+pub fn assert_valid_by_jsonschema(path: &std::path::Path) {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = std::process::Command::new("python3")
+        .arg(root.join("python/check_summary_schema.py"))
+        .arg(committed_path())
+        .arg(path)
+        .output()
+        .expect("python3 is needed for this test");
+    assert!(
+        out.status.success(),
+        "{} does not validate against docs/summary.schema.json (Python jsonschema; install it with \
+         `python3 -m pip install jsonschema`, as scripts/test.sh does):\n{}{}",
+        path.display(),
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
 #[test]
 fn the_committed_summary_schema_is_the_one_the_code_generates() {
     let text = serde_json::to_string_pretty(&schema()).unwrap() + "\n";

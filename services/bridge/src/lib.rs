@@ -618,6 +618,119 @@ fn validate_tls(s: &BridgeSettings, t: &TlsSettings, issues: &mut Issues) {
     }
 }
 
+/// Checks the `zenoh` table: the mode, the endpoints, the lease, TLS or the explicit insecure mode.
+fn validate_zenoh(s: &BridgeSettings, issues: &mut Issues) {
+    let z = &s.zenoh;
+    issues.check(
+        ["peer", "client", "router"].contains(&z.mode.as_str()),
+        "zenoh.mode",
+        format!("`{}`: one of peer, client, router", z.mode),
+    );
+    for (field, list) in [("listen", &z.listen), ("connect", &z.connect)] {
+        for (i, e) in list.iter().enumerate() {
+            issues.check(
+                endpoint_ok(e),
+                format!("zenoh.{field}[{i}]"),
+                format!("`{e}`: an endpoint is <protocol>/<address>, e.g. tcp/192.168.1.2:7447"),
+            );
+        }
+    }
+    issues.check(
+        z.lease_s.is_finite() && (1.0..=3600.0).contains(&z.lease_s),
+        "zenoh.lease_s",
+        format!("{}: seconds from 1 to 3600", z.lease_s),
+    );
+    match (&z.tls, z.insecure) {
+        (None, false) => issues.push(
+            "zenoh.tls",
+            "a link between hosts must be authenticated and encrypted: give `tls` (certificates made by \
+                 `supervisor certs`, docs/security.md), or set `insecure = true` for plain TCP that anyone \
+                 on the network may read and publish into",
+        ),
+        (Some(_), true) => issues.push("zenoh.insecure", "`insecure = true` and `tls` together: choose one"),
+        (Some(t), false) => validate_tls(s, t, issues),
+        (None, true) => {
+            for (field, list) in [("listen", &z.listen), ("connect", &z.connect)] {
+                for (i, e) in list.iter().enumerate() {
+                    issues.check(
+                        !e.starts_with("tls/"),
+                        format!("zenoh.{field}[{i}]"),
+                        format!("`{e}` is TLS but no `tls` certificates are given"),
+                    );
+                }
+            }
+        }
+    }
+    if z.mode == "client" {
+        issues.check(!z.connect.is_empty(), "zenoh.connect", "a client needs a router or peer to connect to");
+    }
+    if z.listen.is_empty() && z.connect.is_empty() && !z.multicast_scouting {
+        issues.push(
+            "zenoh",
+            "with neither `listen` nor `connect` endpoints and multicast scouting off, the bridge can reach no one",
+        );
+    }
+}
+
+/// Checks the `out` and `in` routes: services that can be bridged, each routed once, rates, local
+/// names that neither clash nor loop back.
+fn validate_routes(s: &BridgeSettings, issues: &mut Issues) {
+    let mut seen = std::collections::BTreeSet::new();
+    for (i, r) in s.out.iter().enumerate() {
+        issues.check(
+            topic(&r.service).is_some(),
+            format!("out[{i}].service"),
+            format!("`{}` is not a service that can be bridged (one of: {})", r.service, topics_list()),
+        );
+        issues.check(
+            seen.insert(r.service.clone()),
+            format!("out[{i}].service"),
+            format!("`{}` is routed twice", r.service),
+        );
+        issues.check(
+            r.max_rate_hz.is_finite() && r.max_rate_hz >= 0.0,
+            format!("out[{i}].max_rate_hz"),
+            "must be >= 0",
+        );
+        issues.check(
+            r.max_rate_hz == 0.0 || r.policy == Policy::DropOldest,
+            format!("out[{i}].max_rate_hz"),
+            "a rate limit drops messages: set `policy = \"drop_oldest\"` too",
+        );
+    }
+    // A local service may take several robots' streams of one service (e.g. every robot's
+    // clouds into one map), never two services or one robot twice.
+    let mut locals: std::collections::BTreeMap<&str, (&str, Vec<&str>)> = std::collections::BTreeMap::new();
+    for (i, r) in s.inbound.iter().enumerate() {
+        issues.check(is_chunk(&r.from), format!("in[{i}].from"), "the sending robot's name (letters, digits, _ - .)");
+        issues.check(
+            topic(&r.service).is_some(),
+            format!("in[{i}].service"),
+            format!("`{}` is not a service that can be bridged (one of: {})", r.service, topics_list()),
+        );
+        issues.check(is_path(r.local_service()), format!("in[{i}].local"), "a service name: chunks joined by /");
+        let entry = locals.entry(r.local_service()).or_insert((r.service.as_str(), vec![]));
+        issues.check(
+            entry.0 == r.service && !entry.1.contains(&r.from.as_str()),
+            format!("in[{i}].local"),
+            format!(
+                "`{}` is published by two routes of {}: give one a `local` name",
+                r.local_service(),
+                if entry.0 == r.service { "one robot" } else { "different services" }
+            ),
+        );
+        entry.1.push(r.from.as_str());
+        if let Some(hz) = r.max_rate_hz {
+            issues.check(hz.is_finite() && hz >= 0.0, format!("in[{i}].max_rate_hz"), "must be >= 0");
+        }
+        issues.check(
+            !s.out.iter().any(|o| o.service == r.local_service()),
+            format!("in[{i}].local"),
+            format!("`{}` is also sent out: it would loop back", r.local_service()),
+        );
+    }
+}
+
 impl Validate for BridgeSettings {
     fn validate(&self, issues: &mut Issues) {
         issues.check(is_path(&self.namespace), "namespace", "must be key chunks (letters, digits, _ - .) joined by /");
@@ -635,114 +748,8 @@ impl Validate for BridgeSettings {
             "out",
             "the bridge forwards nothing: give `out` and/or `in` routes",
         );
-        let z = &self.zenoh;
-        issues.check(
-            ["peer", "client", "router"].contains(&z.mode.as_str()),
-            "zenoh.mode",
-            format!("`{}`: one of peer, client, router", z.mode),
-        );
-        for (field, list) in [("listen", &z.listen), ("connect", &z.connect)] {
-            for (i, e) in list.iter().enumerate() {
-                issues.check(
-                    endpoint_ok(e),
-                    format!("zenoh.{field}[{i}]"),
-                    format!("`{e}`: an endpoint is <protocol>/<address>, e.g. tcp/192.168.1.2:7447"),
-                );
-            }
-        }
-        issues.check(
-            z.lease_s.is_finite() && (1.0..=3600.0).contains(&z.lease_s),
-            "zenoh.lease_s",
-            format!("{}: seconds from 1 to 3600", z.lease_s),
-        );
-        match (&z.tls, z.insecure) {
-            (None, false) => issues.push(
-                "zenoh.tls",
-                "a link between hosts must be authenticated and encrypted: give `tls` (certificates made by \
-                 `supervisor certs`, docs/security.md), or set `insecure = true` for plain TCP that anyone \
-                 on the network may read and publish into",
-            ),
-            (Some(_), true) => issues.push("zenoh.insecure", "`insecure = true` and `tls` together: choose one"),
-            (Some(t), false) => validate_tls(self, t, issues),
-            (None, true) => {
-                for (field, list) in [("listen", &z.listen), ("connect", &z.connect)] {
-                    for (i, e) in list.iter().enumerate() {
-                        issues.check(
-                            !e.starts_with("tls/"),
-                            format!("zenoh.{field}[{i}]"),
-                            format!("`{e}` is TLS but no `tls` certificates are given"),
-                        );
-                    }
-                }
-            }
-        }
-        if z.mode == "client" {
-            issues.check(!z.connect.is_empty(), "zenoh.connect", "a client needs a router or peer to connect to");
-        }
-        if z.listen.is_empty() && z.connect.is_empty() && !z.multicast_scouting {
-            issues.push(
-                "zenoh",
-                "with neither `listen` nor `connect` endpoints and multicast scouting off, the bridge can reach no one",
-            );
-        }
-        let mut seen = std::collections::BTreeSet::new();
-        for (i, r) in self.out.iter().enumerate() {
-            issues.check(
-                topic(&r.service).is_some(),
-                format!("out[{i}].service"),
-                format!("`{}` is not a service that can be bridged (one of: {})", r.service, topics_list()),
-            );
-            issues.check(
-                seen.insert(r.service.clone()),
-                format!("out[{i}].service"),
-                format!("`{}` is routed twice", r.service),
-            );
-            issues.check(
-                r.max_rate_hz.is_finite() && r.max_rate_hz >= 0.0,
-                format!("out[{i}].max_rate_hz"),
-                "must be >= 0",
-            );
-            issues.check(
-                r.max_rate_hz == 0.0 || r.policy == Policy::DropOldest,
-                format!("out[{i}].max_rate_hz"),
-                "a rate limit drops messages: set `policy = \"drop_oldest\"` too",
-            );
-        }
-        // A local service may take several robots' streams of one service (e.g. every robot's
-        // clouds into one map), never two services or one robot twice.
-        let mut locals: std::collections::BTreeMap<&str, (&str, Vec<&str>)> = std::collections::BTreeMap::new();
-        for (i, r) in self.inbound.iter().enumerate() {
-            issues.check(
-                is_chunk(&r.from),
-                format!("in[{i}].from"),
-                "the sending robot's name (letters, digits, _ - .)",
-            );
-            issues.check(
-                topic(&r.service).is_some(),
-                format!("in[{i}].service"),
-                format!("`{}` is not a service that can be bridged (one of: {})", r.service, topics_list()),
-            );
-            issues.check(is_path(r.local_service()), format!("in[{i}].local"), "a service name: chunks joined by /");
-            let entry = locals.entry(r.local_service()).or_insert((r.service.as_str(), vec![]));
-            issues.check(
-                entry.0 == r.service && !entry.1.contains(&r.from.as_str()),
-                format!("in[{i}].local"),
-                format!(
-                    "`{}` is published by two routes of {}: give one a `local` name",
-                    r.local_service(),
-                    if entry.0 == r.service { "one robot" } else { "different services" }
-                ),
-            );
-            entry.1.push(r.from.as_str());
-            if let Some(hz) = r.max_rate_hz {
-                issues.check(hz.is_finite() && hz >= 0.0, format!("in[{i}].max_rate_hz"), "must be >= 0");
-            }
-            issues.check(
-                !self.out.iter().any(|o| o.service == r.local_service()),
-                format!("in[{i}].local"),
-                format!("`{}` is also sent out: it would loop back", r.local_service()),
-            );
-        }
+        validate_zenoh(self, issues);
+        validate_routes(self, issues);
         for (field, v) in [("wait_for_remote_s", self.wait_for_remote_s), ("end_ack_timeout_s", self.end_ack_timeout_s)]
         {
             issues.check(v.is_finite() && v >= 0.0, field, "must be >= 0");

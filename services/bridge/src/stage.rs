@@ -171,6 +171,103 @@ pub struct BridgeStage {
 }
 
 impl BridgeStage {
+    /// summary.json `bridge.out`: each `out` route's key, policy and counts.
+    fn out_summaries(&self) -> BTreeMap<String, OutRouteSummary> {
+        self.outs
+            .iter()
+            .map(|o| {
+                let route = OutRouteSummary {
+                    key: key(&self.settings.namespace, &self.settings.robot, o.topic.service),
+                    policy: format!("{:?}", o.policy).to_lowercase(),
+                    counts: o.counts,
+                };
+                (o.topic.service.to_string(), route)
+            })
+            .collect()
+    }
+
+    /// summary.json `bridge.in`: each `in` route's counts, what the robot said it sent less what
+    /// arrived (counted as dropped now, where no sequence gap showed it), and what the access
+    /// control refused under its key. Returns them and the messages lost or refused in all.
+    fn in_summaries(&self) -> (BTreeMap<String, InRouteSummary>, u64) {
+        let wrong_robot = self.refusals.as_ref().map(|r| r.per_route()).unwrap_or_default();
+        let mut lost_total = 0u64;
+        let ins = self
+            .ins
+            .iter()
+            .map(|r| {
+                let c = r.counts;
+                // What the other side said it sent, against what arrived here.
+                // (What arrived of the sender's: refused signatures and lengths may be anyone's.)
+                let arrived =
+                    (c.received + c.queue_dropped + c.rate_dropped).saturating_sub(c.wrong_type + c.bad_length);
+                let lost = self
+                    .ends
+                    .get(&r.from)
+                    .and_then(|e| e.as_ref())
+                    .and_then(|sent| sent.get(&r.service))
+                    .map(|&sent| sent.saturating_sub(arrived));
+                // What went missing without a sequence gap here (lost before the end) is counted now.
+                let unseen = lost.unwrap_or(0).saturating_sub(c.seq_gaps);
+                self.emitters[r.emitter].count_dropped("lost on the way", unseen);
+                lost_total += lost.unwrap_or(0)
+                    + c.wrong_type
+                    + c.bad_length
+                    + c.queue_dropped
+                    + c.rate_dropped
+                    + c.refused_non_finite
+                    + c.refused_time
+                    + c.refused_going_back;
+                let route = InRouteSummary {
+                    local: r.local.to_string(),
+                    from: r.from.clone(),
+                    service: r.service.clone(),
+                    key: key(&self.settings.namespace, &r.from, &r.service),
+                    counts: c,
+                    lost_on_the_way: lost,
+                    // Refused by the access control: sent under this route's key by a host that
+                    // is not the robot (they never reach the counts above).
+                    refused_wrong_robot: self
+                        .refusals
+                        .as_ref()
+                        .map(|_| wrong_robot.get(&r.route_name).copied().unwrap_or(0)),
+                };
+                (r.route_name.clone(), route)
+            })
+            .collect();
+        (ins, lost_total)
+    }
+
+    /// summary.json `bridge.security`: the mode and, with TLS, the links, refusals and limits.
+    fn security_summary(&self) -> SecuritySummary {
+        let links = self.relays.as_ref().map(crate::relay::Relays::counts);
+        let refused = self.relays.as_ref().map(crate::relay::Relays::refused_total);
+        match &self.settings.zenoh.tls {
+            None => SecuritySummary { mode: "insecure".into(), tls: None },
+            Some(t) => SecuritySummary {
+                mode: "mutual_tls".into(),
+                tls: Some(TlsSummary {
+                    // Links refused by the TLS relays (no route: nothing got in).
+                    refused_unauthenticated: refused,
+                    links,
+                    refused: self.refusals.as_ref().map(|r| r.summary()),
+                    accept: AcceptSummary {
+                        max_rate_hz: self.settings.accept.max_rate_hz,
+                        queue_messages: self.settings.queue_messages,
+                        queue_mib: self.settings.accept.queue_mib,
+                        max_future_s: self.settings.accept.max_future_s,
+                        max_age_s: self.settings.accept.max_age_s,
+                    },
+                    certificate: crate::read_certificate(&t.certificate).ok(),
+                    receivers: t.receivers.clone(),
+                    access_control: crate::access_control(&self.settings, &self.revoked),
+                    revoked: self.revoked.clone(),
+                    revocation_list: t.revocation_list(),
+                }),
+            },
+        }
+    }
+
     /// Waits (up to `wait_for_remote_s`) until every reliable route has a subscriber on the
     /// other side, saying what it waits for every 2 s.
     fn wait_for_remote(&self) {
@@ -289,6 +386,28 @@ impl BridgeStage {
         let taken = self.inbox.take();
         // The drops counted after the take: every message dropped before one taken is in them
         // (its gap in the sequence numbers is explained by them).
+        self.count_inbox_drops();
+        for item in taken {
+            match &item {
+                Incoming::Data { route, .. } if self.ins[*route].may_wait => waiting.push(item),
+                Incoming::Data { .. } => quick.push(item),
+                Incoming::End { .. } => ends.push(item),
+            }
+        }
+        for item in quick.into_iter().chain(waiting).chain(ends) {
+            match item {
+                Incoming::Data { route, payload, attachment } => {
+                    n += 1;
+                    self.publish_in(route, &payload, attachment.as_ref())?;
+                }
+                Incoming::End { from, body } => self.on_end(from, &body),
+            }
+        }
+        Ok(n)
+    }
+
+    /// Counts what the inbox dropped (receive queue full, over a route's rate) since the last time.
+    fn count_inbox_drops(&mut self) {
         for r in &mut self.ins {
             let total = r.queue_dropped_before + self.inbox.dropped[r.index].load(Ordering::Relaxed);
             if total > r.counts.queue_dropped {
@@ -309,102 +428,100 @@ impl BridgeStage {
                 }
             }
         }
-        for item in taken {
-            match &item {
-                Incoming::Data { route, .. } if self.ins[*route].may_wait => waiting.push(item),
-                Incoming::Data { .. } => quick.push(item),
-                Incoming::End { .. } => ends.push(item),
+    }
+
+    /// Checks one message of `in` route `route` (its wire signature, its length, its header's
+    /// stamps and sequence, no NaN) and publishes it locally, counting what is refused.
+    fn publish_in(
+        &mut self,
+        route: usize,
+        payload: &zenoh::bytes::ZBytes,
+        attachment: Option<&zenoh::bytes::ZBytes>,
+    ) -> Result<(), StageError> {
+        let r = &mut self.ins[route];
+        r.counts.received += 1;
+        let attachment = attachment.as_ref().map(|a| a.to_bytes());
+        if attachment.as_deref() != Some(&r.signature[..]) {
+            r.counts.wrong_type += 1;
+            self.emitters[r.emitter].count_dropped("another wire signature", 1);
+            if !r.warned {
+                tracing::warn!(
+                    from = %r.from,
+                    service = %r.service,
+                    expected = %String::from_utf8_lossy(&r.signature),
+                    got = %attachment.as_deref().map(String::from_utf8_lossy).unwrap_or_default(),
+                    "refused a message with another wire signature (counted in summary.json bridge.in)"
+                );
+                r.warned = true;
+            }
+            return Ok(());
+        }
+        // Zenoh's pieces as they are (a large message arrives as the fragments' buffers):
+        // the only copy is each piece into the loaned sample.
+        let parts: Vec<&[u8]> = payload.slices().collect();
+        let len = payload.len();
+        let head = gather_head(&parts);
+        if let Err(e) = r.topic.check_len(len) {
+            r.counts.bad_length += 1;
+            self.emitters[r.emitter].count_dropped("not a message of the service's types", 1);
+            if !r.warned {
+                tracing::warn!(from = %r.from, service = %r.service, "refused a message: {e} (counted)");
+                r.warned = true;
+            }
+            return Ok(());
+        }
+        let origin = match &r.clock {
+            None => Some(Origin::Keep),
+            Some(c) => lock(c).origin(),
+        };
+        let Some(h) = shared_types::MsgHeader::from_bytes(&head) else { return Ok(()) };
+        match r.admit(&h, origin, &self.settings.accept) {
+            Ok(0) => {}
+            Ok(gap) => self.emitters[r.emitter].count_dropped("lost on the way", gap),
+            Err(reason) => {
+                self.emitters[r.emitter].count_dropped(reason, 1);
+                return Ok(());
             }
         }
-        for item in quick.into_iter().chain(waiting).chain(ends) {
-            match item {
-                Incoming::Data { route, payload, attachment } => {
-                    n += 1;
-                    let r = &mut self.ins[route];
-                    r.counts.received += 1;
-                    let attachment = attachment.as_ref().map(|a| a.to_bytes());
-                    if attachment.as_deref() != Some(&r.signature[..]) {
-                        r.counts.wrong_type += 1;
-                        self.emitters[r.emitter].count_dropped("another wire signature", 1);
-                        if !r.warned {
-                            tracing::warn!(
-                                from = %r.from,
-                                service = %r.service,
-                                expected = %String::from_utf8_lossy(&r.signature),
-                                got = %attachment.as_deref().map(String::from_utf8_lossy).unwrap_or_default(),
-                                "refused a message with another wire signature (counted in summary.json bridge.in)"
-                            );
-                            r.warned = true;
-                        }
-                        continue;
-                    }
-                    // Zenoh's pieces as they are (a large message arrives as the fragments' buffers):
-                    // the only copy is each piece into the loaned sample.
-                    let parts: Vec<&[u8]> = payload.slices().collect();
-                    let len = payload.len();
-                    let head = gather_head(&parts);
-                    if let Err(e) = r.topic.check_len(len) {
-                        r.counts.bad_length += 1;
-                        self.emitters[r.emitter].count_dropped("not a message of the service's types", 1);
-                        if !r.warned {
-                            tracing::warn!(from = %r.from, service = %r.service, "refused a message: {e} (counted)");
-                            r.warned = true;
-                        }
-                        continue;
-                    }
-                    let origin = match &r.clock {
-                        None => Some(Origin::Keep),
-                        Some(c) => lock(c).origin(),
-                    };
-                    let Some(h) = shared_types::MsgHeader::from_bytes(&head) else { continue };
-                    match r.admit(&h, origin, &self.settings.accept) {
-                        Ok(0) => {}
-                        Ok(gap) => self.emitters[r.emitter].count_dropped("lost on the way", gap),
-                        Err(reason) => {
-                            self.emitters[r.emitter].count_dropped(reason, 1);
-                            continue;
-                        }
-                    }
-                    if origin.is_none() {
-                        r.counts.origin_unaligned += 1;
-                        if !r.warned_clock {
-                            tracing::warn!(from = %r.from, service = %r.service,
-                                "the clock of the sending robot's machine is not measured yet: origin_ns stays on its \
-                                 clock (counted in summary.json bridge.in as origin_unaligned)");
-                            r.warned_clock = true;
-                        }
-                    }
-                    let (reached, registered) =
-                        match self.emitters[r.emitter].send_parts_finite(&parts, origin.unwrap_or(Origin::Keep))? {
-                            Ok(sent) => sent,
-                            Err(rejection) => {
-                                r.counts.refused_non_finite += 1;
-                                r.warn_refusal("non_finite", &rejection.detail);
-                                self.emitters[r.emitter].count_dropped("refused: a NaN or an infinity", 1);
-                                continue;
-                            }
-                        };
-                    r.counts.published += 1;
-                    r.counts.digest = fold(r.counts.digest, &parts);
-                    self.published += 1;
-                    if reached < registered {
-                        r.counts.undelivered += (registered - reached) as u64;
-                    }
-                }
-                Incoming::End { from, body } => {
-                    let sent: BTreeMap<String, u64> = serde_json::from_slice::<serde_json::Value>(&body)
-                        .ok()
-                        .and_then(|v| serde_json::from_value(v["sent"].clone()).ok())
-                        .unwrap_or_default();
-                    tracing::info!(%from, ?sent, "end of stream from the other side");
-                    if let Err(e) = self.session.put(ack_key(&self.settings.namespace, &from), "ack").wait() {
-                        tracing::warn!(%from, "end marker not acknowledged: {e}");
-                    }
-                    self.ends.insert(from, Some(sent));
-                }
+        if origin.is_none() {
+            r.counts.origin_unaligned += 1;
+            if !r.warned_clock {
+                tracing::warn!(from = %r.from, service = %r.service,
+                    "the clock of the sending robot's machine is not measured yet: origin_ns stays on its \
+                     clock (counted in summary.json bridge.in as origin_unaligned)");
+                r.warned_clock = true;
             }
         }
-        Ok(n)
+        let (reached, registered) =
+            match self.emitters[r.emitter].send_parts_finite(&parts, origin.unwrap_or(Origin::Keep))? {
+                Ok(sent) => sent,
+                Err(rejection) => {
+                    r.counts.refused_non_finite += 1;
+                    r.warn_refusal("non_finite", &rejection.detail);
+                    self.emitters[r.emitter].count_dropped("refused: a NaN or an infinity", 1);
+                    return Ok(());
+                }
+            };
+        r.counts.published += 1;
+        r.counts.digest = fold(r.counts.digest, &parts);
+        self.published += 1;
+        if reached < registered {
+            r.counts.undelivered += (registered - reached) as u64;
+        }
+        Ok(())
+    }
+
+    /// The end of stream of robot `from`, with what it says it sent: acknowledged.
+    fn on_end(&mut self, from: String, body: &[u8]) {
+        let sent: BTreeMap<String, u64> = serde_json::from_slice::<serde_json::Value>(body)
+            .ok()
+            .and_then(|v| serde_json::from_value(v["sent"].clone()).ok())
+            .unwrap_or_default();
+        tracing::info!(%from, ?sent, "end of stream from the other side");
+        if let Err(e) = self.session.put(ack_key(&self.settings.namespace, &from), "ack").wait() {
+            tracing::warn!(%from, "end marker not acknowledged: {e}");
+        }
+        self.ends.insert(from, Some(sent));
     }
 
     /// Messages handled and ends received so far: the kept counts are renewed when it moves.
@@ -481,215 +598,256 @@ impl BridgeStage {
     }
 }
 
+/// The revocation list as it is now, and its watch (TLS only): a bridge whose own certificate is
+/// revoked refuses to start.
+fn revocation_state(settings: &BridgeSettings) -> Result<(BTreeSet<String>, Option<RevocationWatch>), StageError> {
+    let Some(t) = &settings.zenoh.tls else { return Ok((BTreeSet::new(), None)) };
+    let revoked = t.read_revoked().map_err(|e| StageError::Settings(format!("zenoh.tls.revoked: {e}")))?;
+    let own = crate::read_certificate(&t.certificate).ok().map(|c| c.common_name);
+    if let Some(p) = crate::revocation_problem(own.as_deref(), &revoked) {
+        return Err(StageError::Settings(format!("{}: {p}", t.revocation_list().display())));
+    }
+    if let Some(gap) = crate::revocation_gap(settings, &revoked) {
+        tracing::warn!("{gap}");
+    }
+    if !revoked.is_empty() {
+        tracing::warn!(?revoked, list = %t.revocation_list().display(),
+            "revoked hosts: everything from them is refused, nothing goes to them");
+    }
+    Ok((revoked.clone(), Some(RevocationWatch::start(t.revocation_list(), revoked)?)))
+}
+
+/// The access control's refusals, counted per route (when there is an access control to count).
+fn watch_refusals(settings: &BridgeSettings) -> Option<crate::refusals::Refusals> {
+    crate::refusals_counted(settings).then(|| {
+        let revoked = settings.zenoh.tls.as_ref().and_then(|t| t.read_revoked().ok()).unwrap_or_default();
+        crate::refusals::Refusals::watch(
+            revoked,
+            settings.inbound.iter().map(|r| {
+                let shared = settings.inbound.iter().filter(|o| o.local_service() == r.local_service()).count() > 1;
+                let name =
+                    if shared { format!("{}:{}", r.from, r.local_service()) } else { r.local_service().to_string() };
+                (key(&settings.namespace, &r.from, &r.service), name)
+            }),
+        )
+    })
+}
+
+/// Logs the open session and how its links are secured.
+fn log_session(settings: &BridgeSettings, session: &zenoh::Session) {
+    tracing::info!(zid = %session.zid(), mode = %settings.zenoh.mode, listen = ?settings.zenoh.listen,
+        connect = ?settings.zenoh.connect, "zenoh session open");
+    match &settings.zenoh.tls {
+        None => tracing::warn!(
+            "insecure: the link is plain TCP: anyone on the network reads it, connects, and publishes under any robot's name"
+        ),
+        Some(t) => match crate::read_certificate(&t.certificate) {
+            Ok(c) => tracing::info!(name = %c.common_name, not_after_unix_s = c.not_after_unix_s,
+                "mutual TLS: only hosts whose certificate the CA signed get in, each only under its own name"),
+            Err(e) => tracing::warn!("mutual TLS, but the certificate cannot be read back: {e}"),
+        },
+    }
+}
+
+/// One Zenoh publisher per `out` route, with a listener for whether anyone receives it.
+fn open_out_routes(
+    settings: &BridgeSettings,
+    session: &zenoh::Session,
+    rt: &mut Runtime,
+) -> Result<Vec<OutRoute>, StageError> {
+    let mut outs = vec![];
+    for r in &settings.out {
+        let t = topic(&r.service).ok_or_else(|| StageError::Settings(format!("out: unknown service {}", r.service)))?;
+        let k = key(&settings.namespace, &settings.robot, t.service);
+        let cc = match r.policy {
+            Policy::Reliable => CongestionControl::Block,
+            Policy::DropOldest => CongestionControl::Drop,
+        };
+        let publisher = session
+            .declare_publisher(k.clone())
+            .congestion_control(cc)
+            .wait()
+            .map_err(|e| zenoh_err(format!("publisher on {k}"), e))?;
+        let matched = Arc::new(AtomicBool::new(publisher.matching_status().wait().is_ok_and(|m| m.matching())));
+        let flag = matched.clone();
+        let matching = publisher
+            .matching_listener()
+            .callback(move |m| flag.store(m.matching(), Ordering::Relaxed))
+            .wait()
+            .map_err(|e| zenoh_err(format!("matching listener on {k}"), e))?;
+        outs.push(OutRoute {
+            matched,
+            _matching: matching,
+            buffers: SendBuffers::default(),
+            topic: t,
+            tap: t.tap(rt)?,
+            publisher,
+            policy: r.policy,
+            min_interval: (r.max_rate_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / r.max_rate_hz)),
+            next_send: None,
+            signature: signature(t).into_bytes(),
+            counts: OutCounts { digest: DIGEST0, ..Default::default() },
+            last_seq: HashMap::new(),
+            warned: false,
+        });
+    }
+    Ok(outs)
+}
+
+/// The receive queue Zenoh's callbacks fill (bounded in messages and bytes, rate-limited per route).
+fn new_inbox(settings: &BridgeSettings, rt: &mut Runtime) -> Result<Arc<Inbox>, StageError> {
+    let waker = if settings.inbound.is_empty() { None } else { Some(rt.waker()?) };
+    let n_in = settings.inbound.len();
+    Ok(Arc::new(Inbox {
+        queue: Mutex::new(Queue { items: VecDeque::new(), count: vec![0; n_in], bytes: vec![0; n_in] }),
+        space: std::sync::Condvar::new(),
+        capacity: settings.queue_messages,
+        max_bytes: (settings.accept.queue_mib * 1024.0 * 1024.0) as usize,
+        dropped: settings.inbound.iter().map(|_| AtomicU64::new(0)).collect(),
+        buckets: settings
+            .inbound
+            .iter()
+            .map(|r| {
+                let hz = r.max_rate_hz.unwrap_or(settings.accept.max_rate_hz);
+                (hz > 0.0).then(|| Mutex::new(Bucket::new(hz)))
+            })
+            .collect(),
+        rate_dropped: settings.inbound.iter().map(|_| AtomicU64::new(0)).collect(),
+        waker,
+    }))
+}
+
+/// Answers the receiving bridges' clock asks (a sending bridge; see crate::clock).
+fn answer_clock_asks(
+    settings: &BridgeSettings,
+    session: &zenoh::Session,
+) -> Result<zenoh::pubsub::Subscriber<()>, StageError> {
+    let (ask_k, answer_k, boot) = (
+        clock_ask_key(&settings.namespace, &settings.robot),
+        clock_answer_key(&settings.namespace, &settings.robot),
+        boot_id(),
+    );
+    let answer = session
+        .declare_publisher(answer_k.clone())
+        .congestion_control(CongestionControl::Drop)
+        .express(true)
+        .wait()
+        .map_err(|e| zenoh_err(format!("publisher on {answer_k}"), e))?;
+    session
+        .declare_subscriber(&ask_k)
+        .callback(move |ask| {
+            let stamp = monotonic_ns();
+            let Some(nonce) = ask.payload().to_bytes().get(..8).and_then(|b| b.try_into().ok()) else {
+                return;
+            };
+            // `Drop`: on a congested link the answer is dropped at once (it would be a wrong one),
+            // and Zenoh's receive thread that runs this goes on.
+            if let Err(e) = answer.put(encode_answer(u64::from_le_bytes(nonce), stamp, &boot)).wait() {
+                tracing::debug!("clock ask not answered: {e}");
+            }
+        })
+        .wait()
+        .map_err(|e| zenoh_err(format!("subscriber on {ask_k}"), e))
+}
+
+/// The local publishers of the `in` routes (routes that share a local service share one).
+type Emitters = Vec<Box<dyn Emit>>;
+
+/// One Zenoh subscriber per `in` route (into the inbox) and one local publisher per local
+/// service (routes that share one share its publisher).
+fn open_in_routes(
+    settings: &BridgeSettings,
+    session: &zenoh::Session,
+    rt: &mut Runtime,
+    inbox: &Arc<Inbox>,
+    clocks: &BTreeMap<String, ClockProbe>,
+) -> Result<(Vec<InRoute>, Emitters), StageError> {
+    let mut ins = vec![];
+    let mut emitters: Vec<Box<dyn Emit>> = vec![];
+    let mut emitter_of: HashMap<String, usize> = HashMap::new();
+    for (i, r) in settings.inbound.iter().enumerate() {
+        let t = topic(&r.service).ok_or_else(|| StageError::Settings(format!("in: unknown service {}", r.service)))?;
+        let local: &'static str = Box::leak(r.local_service().to_string().into_boxed_str());
+        let qos = services::service_spec(t.service)
+            .map(|s| s.qos)
+            .ok_or_else(|| StageError::Settings(format!("in: {} has no QoS in the contract", t.service)))?;
+        let emitter = match emitter_of.get(local) {
+            Some(&e) => e,
+            None => {
+                let delivery = match r.when_full {
+                    WhenFull::Wait => Delivery::WaitWhenFull { max_wait: None },
+                    WhenFull::Drop => Delivery::DiscardWhenFull,
+                };
+                emitters.push(t.emitter_on(rt, local, &qos, delivery)?);
+                emitter_of.insert(local.to_string(), emitters.len() - 1);
+                emitters.len() - 1
+            }
+        };
+        let k = key(&settings.namespace, &r.from, t.service);
+        let inbox_cb = inbox.clone();
+        let subscriber = session
+            .declare_subscriber(k.clone())
+            .callback(move |sample| {
+                inbox_cb.push_data(i, sample.payload().clone(), sample.attachment().cloned());
+            })
+            .wait()
+            .map_err(|e| zenoh_err(format!("subscriber on {k}"), e))?;
+        let shared = settings.inbound.iter().filter(|o| o.local_service() == local).count() > 1;
+        ins.push(InRoute {
+            index: i,
+            may_wait: r.when_full == WhenFull::Wait && !qos.safe_overflow,
+            route_name: if shared { format!("{}:{local}", r.from) } else { local.to_string() },
+            from: r.from.clone(),
+            service: r.service.clone(),
+            local,
+            topic: t,
+            signature: signature(t).into_bytes(),
+            emitter,
+            counts: InCounts { digest: DIGEST0, ..Default::default() },
+            order: Order::default(),
+            warned: false,
+            warned_refusals: BTreeSet::new(),
+            clock: clocks.get(&r.from).map(|p: &ClockProbe| p.state.clone()),
+            warned_clock: false,
+            queue_dropped_before: 0,
+            rate_dropped_before: 0,
+            drop_credit: 0,
+            _subscriber: subscriber,
+        });
+    }
+    Ok((ins, emitters))
+}
+
 impl Stage for BridgeStage {
     type Settings = BridgeSettings;
 
     fn open(_ctx: &ProcessContext, settings: BridgeSettings, rt: &mut Runtime) -> Result<Self, StageError> {
         // The revocation list as it is now; watched from here on (a change restarts the bridge).
-        let (revoked, revocation_watch) = match &settings.zenoh.tls {
-            None => (BTreeSet::new(), None),
-            Some(t) => {
-                let revoked = t.read_revoked().map_err(|e| StageError::Settings(format!("zenoh.tls.revoked: {e}")))?;
-                let own = crate::read_certificate(&t.certificate).ok().map(|c| c.common_name);
-                if let Some(p) = crate::revocation_problem(own.as_deref(), &revoked) {
-                    return Err(StageError::Settings(format!("{}: {p}", t.revocation_list().display())));
-                }
-                if let Some(gap) = crate::revocation_gap(&settings, &revoked) {
-                    tracing::warn!("{gap}");
-                }
-                if !revoked.is_empty() {
-                    tracing::warn!(?revoked, list = %t.revocation_list().display(),
-                        "revoked hosts: everything from them is refused, nothing goes to them");
-                }
-                (revoked.clone(), Some(RevocationWatch::start(t.revocation_list(), revoked)?))
-            }
-        };
+        let (revoked, revocation_watch) = revocation_state(&settings)?;
         // Watched from before the session opens.
-        let refusals = crate::refusals_counted(&settings).then(|| {
-            let revoked = settings.zenoh.tls.as_ref().and_then(|t| t.read_revoked().ok()).unwrap_or_default();
-            crate::refusals::Refusals::watch(
-                revoked,
-                settings.inbound.iter().map(|r| {
-                    let shared = settings.inbound.iter().filter(|o| o.local_service() == r.local_service()).count() > 1;
-                    let name = if shared {
-                        format!("{}:{}", r.from, r.local_service())
-                    } else {
-                        r.local_service().to_string()
-                    };
-                    (key(&settings.namespace, &r.from, &r.service), name)
-                }),
-            )
-        });
+        let refusals = watch_refusals(&settings);
         let (session, relays) = open_session(&settings, &revoked)?;
         if let (Some(r), Some(relays)) = (&refusals, &relays) {
             r.names_from(relays.names());
         }
-        tracing::info!(zid = %session.zid(), mode = %settings.zenoh.mode, listen = ?settings.zenoh.listen,
-            connect = ?settings.zenoh.connect, "zenoh session open");
-        match &settings.zenoh.tls {
-            None => tracing::warn!(
-                "insecure: the link is plain TCP: anyone on the network reads it, connects, and publishes under any robot's name"
-            ),
-            Some(t) => match crate::read_certificate(&t.certificate) {
-                Ok(c) => tracing::info!(name = %c.common_name, not_after_unix_s = c.not_after_unix_s,
-                    "mutual TLS: only hosts whose certificate the CA signed get in, each only under its own name"),
-                Err(e) => tracing::warn!("mutual TLS, but the certificate cannot be read back: {e}"),
-            },
-        }
-        let ns = settings.namespace.clone();
-        let mut outs = vec![];
-        for r in &settings.out {
-            let t =
-                topic(&r.service).ok_or_else(|| StageError::Settings(format!("out: unknown service {}", r.service)))?;
-            let k = key(&ns, &settings.robot, t.service);
-            let cc = match r.policy {
-                Policy::Reliable => CongestionControl::Block,
-                Policy::DropOldest => CongestionControl::Drop,
-            };
-            let publisher = session
-                .declare_publisher(k.clone())
-                .congestion_control(cc)
-                .wait()
-                .map_err(|e| zenoh_err(format!("publisher on {k}"), e))?;
-            let matched = Arc::new(AtomicBool::new(publisher.matching_status().wait().is_ok_and(|m| m.matching())));
-            let flag = matched.clone();
-            let matching = publisher
-                .matching_listener()
-                .callback(move |m| flag.store(m.matching(), Ordering::Relaxed))
-                .wait()
-                .map_err(|e| zenoh_err(format!("matching listener on {k}"), e))?;
-            outs.push(OutRoute {
-                matched,
-                _matching: matching,
-                buffers: SendBuffers::default(),
-                topic: t,
-                tap: t.tap(rt)?,
-                publisher,
-                policy: r.policy,
-                min_interval: (r.max_rate_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / r.max_rate_hz)),
-                next_send: None,
-                signature: signature(t).into_bytes(),
-                counts: OutCounts { digest: DIGEST0, ..Default::default() },
-                last_seq: HashMap::new(),
-                warned: false,
-            });
-        }
-        let waker = if settings.inbound.is_empty() { None } else { Some(rt.waker()?) };
-        let n_in = settings.inbound.len();
-        let inbox = Arc::new(Inbox {
-            queue: Mutex::new(Queue { items: VecDeque::new(), count: vec![0; n_in], bytes: vec![0; n_in] }),
-            space: std::sync::Condvar::new(),
-            capacity: settings.queue_messages,
-            max_bytes: (settings.accept.queue_mib * 1024.0 * 1024.0) as usize,
-            dropped: settings.inbound.iter().map(|_| AtomicU64::new(0)).collect(),
-            buckets: settings
-                .inbound
-                .iter()
-                .map(|r| {
-                    let hz = r.max_rate_hz.unwrap_or(settings.accept.max_rate_hz);
-                    (hz > 0.0).then(|| Mutex::new(Bucket::new(hz)))
-                })
-                .collect(),
-            rate_dropped: settings.inbound.iter().map(|_| AtomicU64::new(0)).collect(),
-            waker,
-        });
+        log_session(&settings, &session);
+        let outs = open_out_routes(&settings, &session, rt)?;
+        let inbox = new_inbox(&settings, rt)?;
         // The clock of every robot received from (see crate::clock).
         let mut clocks = BTreeMap::new();
         if settings.clock != ClockMode::Keep {
             for from in settings.inbound.iter().map(|r| &r.from).collect::<BTreeSet<_>>() {
-                let probe = ClockProbe::start(&session, &ns, from.clone(), settings.clock)?;
+                let probe = ClockProbe::start(&session, &settings.namespace, from.clone(), settings.clock)?;
                 clocks.insert(from.clone(), probe);
             }
         }
-        let clock_answers = if outs.is_empty() {
-            None
-        } else {
-            let (ask_k, answer_k, boot) =
-                (clock_ask_key(&ns, &settings.robot), clock_answer_key(&ns, &settings.robot), boot_id());
-            let answer = session
-                .declare_publisher(answer_k.clone())
-                .congestion_control(CongestionControl::Drop)
-                .express(true)
-                .wait()
-                .map_err(|e| zenoh_err(format!("publisher on {answer_k}"), e))?;
-            Some(
-                session
-                    .declare_subscriber(&ask_k)
-                    .callback(move |ask| {
-                        let stamp = monotonic_ns();
-                        let Some(nonce) = ask.payload().to_bytes().get(..8).and_then(|b| b.try_into().ok()) else {
-                            return;
-                        };
-                        // `Drop`: on a congested link the answer is dropped at once (it would be
-                        // a wrong one), and Zenoh's receive thread that runs this goes on.
-                        if let Err(e) = answer.put(encode_answer(u64::from_le_bytes(nonce), stamp, &boot)).wait() {
-                            tracing::debug!("clock ask not answered: {e}");
-                        }
-                    })
-                    .wait()
-                    .map_err(|e| zenoh_err(format!("subscriber on {ask_k}"), e))?,
-            )
-        };
-        let mut ins = vec![];
-        let mut emitters: Vec<Box<dyn Emit>> = vec![];
-        let mut emitter_of: HashMap<String, usize> = HashMap::new();
-        for (i, r) in settings.inbound.iter().enumerate() {
-            let t =
-                topic(&r.service).ok_or_else(|| StageError::Settings(format!("in: unknown service {}", r.service)))?;
-            let local: &'static str = Box::leak(r.local_service().to_string().into_boxed_str());
-            let qos = services::service_spec(t.service)
-                .map(|s| s.qos)
-                .ok_or_else(|| StageError::Settings(format!("in: {} has no QoS in the contract", t.service)))?;
-            let emitter = match emitter_of.get(local) {
-                Some(&e) => e,
-                None => {
-                    let delivery = match r.when_full {
-                        WhenFull::Wait => Delivery::WaitWhenFull { max_wait: None },
-                        WhenFull::Drop => Delivery::DiscardWhenFull,
-                    };
-                    emitters.push(t.emitter_on(rt, local, &qos, delivery)?);
-                    emitter_of.insert(local.to_string(), emitters.len() - 1);
-                    emitters.len() - 1
-                }
-            };
-            let k = key(&ns, &r.from, t.service);
-            let inbox_cb = inbox.clone();
-            let subscriber = session
-                .declare_subscriber(k.clone())
-                .callback(move |sample| {
-                    inbox_cb.push_data(i, sample.payload().clone(), sample.attachment().cloned());
-                })
-                .wait()
-                .map_err(|e| zenoh_err(format!("subscriber on {k}"), e))?;
-            let shared = settings.inbound.iter().filter(|o| o.local_service() == local).count() > 1;
-            ins.push(InRoute {
-                index: i,
-                may_wait: r.when_full == WhenFull::Wait && !qos.safe_overflow,
-                route_name: if shared { format!("{}:{local}", r.from) } else { local.to_string() },
-                from: r.from.clone(),
-                service: r.service.clone(),
-                local,
-                topic: t,
-                signature: signature(t).into_bytes(),
-                emitter,
-                counts: InCounts { digest: DIGEST0, ..Default::default() },
-                order: Order::default(),
-                warned: false,
-                warned_refusals: BTreeSet::new(),
-                clock: clocks.get(&r.from).map(|p: &ClockProbe| p.state.clone()),
-                warned_clock: false,
-                queue_dropped_before: 0,
-                rate_dropped_before: 0,
-                drop_credit: 0,
-                _subscriber: subscriber,
-            });
-        }
+        let clock_answers = if outs.is_empty() { None } else { Some(answer_clock_asks(&settings, &session)?) };
+        let (ins, emitters) = open_in_routes(&settings, &session, rt, &inbox, &clocks)?;
         let robots: BTreeSet<String> = settings.inbound.iter().map(|r| r.from.clone()).collect();
         let mut end_subscribers = vec![];
         for from in &robots {
-            let k = end_key(&ns, from);
-            let inbox_cb = inbox.clone();
-            let from_cb = from.clone();
+            let k = end_key(&settings.namespace, from);
+            let (inbox_cb, from_cb) = (inbox.clone(), from.clone());
             end_subscribers.push(
                 session
                     .declare_subscriber(k.clone())
@@ -704,7 +862,7 @@ impl Stage for BridgeStage {
         let ack_subscriber = if outs.is_empty() {
             None
         } else {
-            let k = ack_key(&ns, &settings.robot);
+            let k = ack_key(&settings.namespace, &settings.robot);
             let a = acked.clone();
             Some(
                 session
@@ -793,66 +951,11 @@ impl Stage for BridgeStage {
         if ending == Ending::EndOfStream {
             self.send_end(rt);
         }
-        let outs: BTreeMap<String, OutRouteSummary> = self
-            .outs
-            .iter()
-            .map(|o| {
-                let route = OutRouteSummary {
-                    key: key(&self.settings.namespace, &self.settings.robot, o.topic.service),
-                    policy: format!("{:?}", o.policy).to_lowercase(),
-                    counts: o.counts,
-                };
-                (o.topic.service.to_string(), route)
-            })
-            .collect();
+        let outs = self.out_summaries();
         if let Some(r) = &self.refusals {
             r.warn_new();
         }
-        let wrong_robot = self.refusals.as_ref().map(|r| r.per_route()).unwrap_or_default();
-        let mut lost_total = 0u64;
-        let ins: BTreeMap<String, InRouteSummary> = self
-            .ins
-            .iter()
-            .map(|r| {
-                let c = r.counts;
-                // What the other side said it sent, against what arrived here.
-                // (What arrived of the sender's: refused signatures and lengths may be anyone's.)
-                let arrived =
-                    (c.received + c.queue_dropped + c.rate_dropped).saturating_sub(c.wrong_type + c.bad_length);
-                let lost = self
-                    .ends
-                    .get(&r.from)
-                    .and_then(|e| e.as_ref())
-                    .and_then(|sent| sent.get(&r.service))
-                    .map(|&sent| sent.saturating_sub(arrived));
-                // What went missing without a sequence gap here (lost before the end) is counted now.
-                let unseen = lost.unwrap_or(0).saturating_sub(c.seq_gaps);
-                self.emitters[r.emitter].count_dropped("lost on the way", unseen);
-                lost_total += lost.unwrap_or(0)
-                    + c.wrong_type
-                    + c.bad_length
-                    + c.queue_dropped
-                    + c.rate_dropped
-                    + c.refused_non_finite
-                    + c.refused_time
-                    + c.refused_going_back;
-                let route = InRouteSummary {
-                    local: r.local.to_string(),
-                    from: r.from.clone(),
-                    service: r.service.clone(),
-                    key: key(&self.settings.namespace, &r.from, &r.service),
-                    counts: c,
-                    lost_on_the_way: lost,
-                    // Refused by the access control: sent under this route's key by a host that
-                    // is not the robot (they never reach the counts above).
-                    refused_wrong_robot: self
-                        .refusals
-                        .as_ref()
-                        .map(|_| wrong_robot.get(&r.route_name).copied().unwrap_or(0)),
-                };
-                (r.route_name.clone(), route)
-            })
-            .collect();
+        let (ins, lost_total) = self.in_summaries();
         let out_dropped: u64 = self.outs.iter().map(|o| o.counts.rate_dropped + o.counts.send_errors).sum();
         if lost_total > 0 || out_dropped > 0 {
             tracing::warn!(
@@ -872,39 +975,14 @@ impl Stage for BridgeStage {
         if !missing_ends.is_empty() {
             tracing::warn!(?missing_ends, "no end of stream came from these robots");
         }
-        let links = self.relays.as_ref().map(crate::relay::Relays::counts);
-        let refused = self.relays.as_ref().map(crate::relay::Relays::refused_total);
-        if let Some(n) = refused.filter(|&n| n > 0) {
+        if let Some(n) = self.relays.as_ref().map(crate::relay::Relays::refused_total).filter(|&n| n > 0) {
             tracing::warn!(
                 refused_unauthenticated = n,
                 "TLS links refused (no certificate, another CA's, an expired or revoked one, not TLS, or a Zenoh id \
                  that is not the certificate's): per peer and reason in summary.json bridge.security.links"
             );
         }
-        let security = match &self.settings.zenoh.tls {
-            None => SecuritySummary { mode: "insecure".into(), tls: None },
-            Some(t) => SecuritySummary {
-                mode: "mutual_tls".into(),
-                tls: Some(TlsSummary {
-                    // Links refused by the TLS relays (no route: nothing got in).
-                    refused_unauthenticated: refused,
-                    links,
-                    refused: self.refusals.as_ref().map(|r| r.summary()),
-                    accept: AcceptSummary {
-                        max_rate_hz: self.settings.accept.max_rate_hz,
-                        queue_messages: self.settings.queue_messages,
-                        queue_mib: self.settings.accept.queue_mib,
-                        max_future_s: self.settings.accept.max_future_s,
-                        max_age_s: self.settings.accept.max_age_s,
-                    },
-                    certificate: crate::read_certificate(&t.certificate).ok(),
-                    receivers: t.receivers.clone(),
-                    access_control: crate::access_control(&self.settings, &self.revoked),
-                    revoked: self.revoked.clone(),
-                    revocation_list: t.revocation_list(),
-                }),
-            },
-        };
+        let security = self.security_summary();
         Ok(BridgePart {
             bridge: BridgeSummary {
                 security,

@@ -105,6 +105,127 @@ pub struct FastSlamStage {
     out_dir: std::path::PathBuf,
 }
 
+impl FastSlamStage {
+    /// Takes the odometry, a few stereo frames and the commands. Returns whether more frames wait
+    /// in the service's queue.
+    fn take_inputs(&mut self, rt: &mut Runtime, inputs_ended: bool) -> Result<bool, StageError> {
+        let st = &mut self.st;
+        while let Some(s) = self.odometry.receive()? {
+            st.push_odometry(s.user_header().stamp_ns, s.payload());
+        }
+        // Take at most a few frames into the own queue: the rest stay in the service's queue,
+        // so a source replaying as fast as possible feels the back-pressure and stays at most a
+        // few frames ahead (else it runs ahead by the whole data set and every consumer of the
+        // SLAM poses waits for minutes of data time).
+        let mut more_waiting = false;
+        while inputs_ended || st.frames.len() < MAX_QUEUED_FRAMES {
+            let Some(s) = self.stereo.receive()? else { break };
+            let h = s.user_header();
+            st.frames.push_back(frame_from_wire(h.stamp_ns, h.origin_ns, s.payload(), &self.body_from_camera));
+            more_waiting = st.frames.len() >= MAX_QUEUED_FRAMES;
+        }
+        while let Some(s) = self.commands.receive()? {
+            let c = s.payload();
+            let target = name_from32(&c.target);
+            if (target.is_empty() || target == rt.name()) && c.command == COMMAND_NEW_SEGMENT {
+                tracing::info!("new local map requested");
+                st.filter.start_new_segment(SegmentReason::Requested);
+                let t = st.last_frame_ns.unwrap_or(0) as f64 / 1e9;
+                st.segment_origins_s.insert(st.filter.segment(), t);
+            }
+        }
+        Ok(more_waiting)
+    }
+
+    /// Journals the new local maps' origins and the last `processed` trajectory samples.
+    fn journal(&mut self, rt: &mut Runtime, processed: usize) -> Result<(), StageError> {
+        let st = &self.st;
+        for (&seg, &t) in st.segment_origins_s.range(self.journalled_origins.map_or(0, |s| s + 1)..) {
+            crate::journal::record_origin(rt.state(), seg, t);
+            self.journalled_origins = Some(seg);
+        }
+        for s in &st.trajectory[st.trajectory.len() - processed..] {
+            crate::journal::record_sample(rt.state(), s);
+        }
+        rt.state().flush()?;
+        Ok(())
+    }
+
+    /// Publishes a processed frame: the pose, the particles, the diagnostics and, when due, the
+    /// landmarks; counts a frame without a motion from the front end.
+    fn publish_frame(&mut self, p: &crate::Processed, per_frame_ms: f64) -> Result<(), StageError> {
+        self.update_ms.push(per_frame_ms);
+        let (settings, out) = (&self.settings, &mut self.out);
+        let f = &self.st.filter;
+        let e = f.estimate();
+        let h = header(p.stamp_ns, p.origin_ns);
+        out.pose.send_value(
+            h,
+            PoseEstimate::from_nalgebra(&e.map_from_body, &e.covariance, f.segment(), FRAME_LOCAL_MAP),
+        )?;
+        let parts: Vec<_> = f.particles().collect();
+        let mut s = out
+            .particles
+            .loan_slice_uninit(parts.len())?
+            .write_from_fn(|i| Particle::from_nalgebra(parts[i].0, parts[i].1));
+        *s.user_header_mut() =
+            ParticleSetHeader { msg: h, segment_id: f.segment(), _reserved: 0, n_eff: p.report.n_eff };
+        out.particles.send(s)?;
+        let r = &p.report;
+        if let Some(reason) = &r.new_segment {
+            tracing::info!(segment = f.segment(), "new local map: {reason}");
+        }
+        if let Some(m) = &p.motion
+            && let Err(e) = &m.registration
+            && !matches!(e, RegistrationError::FirstFrame)
+        {
+            // Every failure is counted (summary.json); the log says so for the first ones
+            // and then once per 100.
+            self.registration_failures += 1;
+            let n = self.registration_failures;
+            if n <= 10 || n.is_multiple_of(100) {
+                tracing::warn!(
+                    stamp_ns = p.stamp_ns,
+                    failures = n,
+                    "stereo front end found no motion ({e}): constant velocity for this frame"
+                );
+            }
+        }
+        self.run_stats.add(r, p.frontend_ms);
+        out.diagnostics.send_value(
+            h,
+            SlamDiagnostics {
+                segment_id: f.segment(),
+                matched: r.matched as u32,
+                new_landmarks: r.new as u32,
+                ambiguous: r.ambiguous as u32,
+                landmarks: r.landmarks as u32,
+                new_segment_reason: reason_code(&r.new_segment),
+                particles: settings.filter.particles as u32,
+                resampled: r.resampled as u32,
+                n_eff: r.n_eff,
+                update_ms: per_frame_ms,
+                motion_source: p.motion_source(settings.motion_model),
+                registration_inliers: p
+                    .motion
+                    .as_ref()
+                    .and_then(|m| m.registration.as_ref().ok())
+                    .map_or(0, |r| r.inliers as u32),
+                rejected: r.rejected as u32,
+                _reserved: 0,
+                candidates_per_observation: r.candidates_per_observation,
+                mean_nis: r.mean_nis,
+                frontend_ms: p.frontend_ms,
+            },
+        )?;
+        if self.landmark_every.is_some_and(|every| self.last_landmarks.elapsed() >= every) {
+            self.last_landmarks = Instant::now();
+            publish_landmarks(&mut out.landmarks, f, p.stamp_ns, p.origin_ns)?;
+        }
+        Ok(())
+    }
+}
+
 impl Stage for FastSlamStage {
     type Settings = FastSlamSettings;
 
@@ -162,130 +283,18 @@ impl Stage for FastSlamStage {
     }
 
     fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
-        let Self {
-            settings,
-            st,
-            body_from_camera,
-            odometry,
-            stereo,
-            commands,
-            out,
-            journalled_origins,
-            update_ms,
-            registration_failures,
-            run_stats,
-            last_landmarks,
-            landmark_every,
-            ..
-        } = self;
-        let body_from_camera = &*body_from_camera;
-        while let Some(s) = odometry.receive()? {
-            st.push_odometry(s.user_header().stamp_ns, s.payload());
-        }
-        // Take at most a few frames into the own queue: the rest stay in the service's queue,
-        // so a source replaying as fast as possible feels the back-pressure and stays at most a
-        // few frames ahead (else it runs ahead by the whole data set and every consumer of the
-        // SLAM poses waits for minutes of data time).
-        let mut more_waiting = false;
-        while inputs_ended || st.frames.len() < MAX_QUEUED_FRAMES {
-            let Some(s) = stereo.receive()? else { break };
-            let h = s.user_header();
-            st.frames.push_back(frame_from_wire(h.stamp_ns, h.origin_ns, s.payload(), body_from_camera));
-            more_waiting = st.frames.len() >= MAX_QUEUED_FRAMES;
-        }
-        while let Some(s) = commands.receive()? {
-            let c = s.payload();
-            let target = name_from32(&c.target);
-            if (target.is_empty() || target == rt.name()) && c.command == COMMAND_NEW_SEGMENT {
-                tracing::info!("new local map requested");
-                st.filter.start_new_segment(SegmentReason::Requested);
-                let t = st.last_frame_ns.unwrap_or(0) as f64 / 1e9;
-                st.segment_origins_s.insert(st.filter.segment(), t);
-            }
-        }
+        let more_waiting = self.take_inputs(rt, inputs_ended)?;
         // One frame per loop iteration: the inputs are drained between frames, so a source
         // waiting on our queues (back-pressure) never waits for more than one frame's work.
         let t0 = Instant::now();
-        let processed = st.step(inputs_ended, 1);
+        let processed = self.st.step(inputs_ended, 1);
         // Journal before publishing: a restarted instance resumes from what was journalled.
-        for (&seg, &t) in st.segment_origins_s.range(journalled_origins.map_or(0, |s| s + 1)..) {
-            crate::journal::record_origin(rt.state(), seg, t);
-            *journalled_origins = Some(seg);
-        }
-        for s in &st.trajectory[st.trajectory.len() - processed.len()..] {
-            crate::journal::record_sample(rt.state(), s);
-        }
-        rt.state().flush()?;
-        let busy = !st.frames.is_empty() || more_waiting;
+        self.journal(rt, processed.len())?;
+        let busy = !self.st.frames.is_empty() || more_waiting;
         let per_frame =
             if processed.is_empty() { 0.0 } else { t0.elapsed().as_secs_f64() * 1e3 / processed.len() as f64 };
         for p in processed {
-            update_ms.push(per_frame);
-            let f = &st.filter;
-            let e = f.estimate();
-            let h = header(p.stamp_ns, p.origin_ns);
-            out.pose.send_value(
-                h,
-                PoseEstimate::from_nalgebra(&e.map_from_body, &e.covariance, f.segment(), FRAME_LOCAL_MAP),
-            )?;
-            let parts: Vec<_> = f.particles().collect();
-            let mut s = out
-                .particles
-                .loan_slice_uninit(parts.len())?
-                .write_from_fn(|i| Particle::from_nalgebra(parts[i].0, parts[i].1));
-            *s.user_header_mut() =
-                ParticleSetHeader { msg: h, segment_id: f.segment(), _reserved: 0, n_eff: p.report.n_eff };
-            out.particles.send(s)?;
-            let r = &p.report;
-            if let Some(reason) = &r.new_segment {
-                tracing::info!(segment = f.segment(), "new local map: {reason}");
-            }
-            if let Some(m) = &p.motion
-                && let Err(e) = &m.registration
-                && !matches!(e, RegistrationError::FirstFrame)
-            {
-                // Every failure is counted (summary.json); the log says so for the first ones
-                // and then once per 100.
-                *registration_failures += 1;
-                if *registration_failures <= 10 || registration_failures.is_multiple_of(100) {
-                    tracing::warn!(
-                        stamp_ns = p.stamp_ns,
-                        failures = *registration_failures,
-                        "stereo front end found no motion ({e}): constant velocity for this frame"
-                    );
-                }
-            }
-            run_stats.add(r, p.frontend_ms);
-            out.diagnostics.send_value(
-                h,
-                SlamDiagnostics {
-                    segment_id: f.segment(),
-                    matched: r.matched as u32,
-                    new_landmarks: r.new as u32,
-                    ambiguous: r.ambiguous as u32,
-                    landmarks: r.landmarks as u32,
-                    new_segment_reason: reason_code(&r.new_segment),
-                    particles: settings.filter.particles as u32,
-                    resampled: r.resampled as u32,
-                    n_eff: r.n_eff,
-                    update_ms: per_frame,
-                    motion_source: p.motion_source(settings.motion_model),
-                    registration_inliers: p
-                        .motion
-                        .as_ref()
-                        .and_then(|m| m.registration.as_ref().ok())
-                        .map_or(0, |r| r.inliers as u32),
-                    rejected: r.rejected as u32,
-                    _reserved: 0,
-                    candidates_per_observation: r.candidates_per_observation,
-                    mean_nis: r.mean_nis,
-                    frontend_ms: p.frontend_ms,
-                },
-            )?;
-            if landmark_every.is_some_and(|every| last_landmarks.elapsed() >= every) {
-                *last_landmarks = Instant::now();
-                publish_landmarks(&mut out.landmarks, f, p.stamp_ns, p.origin_ns)?;
-            }
+            self.publish_frame(&p, per_frame)?;
         }
         Ok(if busy { Step::Busy } else { Step::Idle })
     }

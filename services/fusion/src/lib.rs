@@ -156,6 +156,72 @@ fn positions(p: &[(f64, Isometry3<f64>)]) -> Vec<(f64, Vector3<f64>)> {
     p.iter().map(|(t, x)| (*t, x.translation.vector)).collect()
 }
 
+/// Writes `segment_transforms.json` (each local map's transform to the world and its alignment's
+/// quality); returns how many local maps there were.
+fn write_segment_transforms(out_dir: &Path, engine: &Fusion) -> Result<usize, StageError> {
+    let segments: Vec<serde_json::Value> = engine
+        .segments()
+        .map(|s| {
+            let a = s.alignment.as_ref();
+            serde_json::json!({
+                "segment": s.id,
+                "poses": s.pairs.len(),
+                "status": s.status,
+                "landmarks": s.landmarks.len(),
+                "translation_m": a.map(|a| a.global_from_local.translation.vector.as_slice().to_vec()),
+                "rotation_xyzw": a.map(|a| shared_types::convert::quat_to_xyzw(&a.global_from_local.rotation)),
+                "pairs": a.map(|a| a.pairs),
+                "rms_residual_m": a.map(|a| a.rms_residual_m),
+                "spread_ratio": a.map(|a| a.spread_ratio),
+            })
+        })
+        .collect();
+    std::fs::write(out_dir.join("segment_transforms.json"), serde_json::to_vec_pretty(&segments)?)?;
+    Ok(segments.len())
+}
+
+/// Draws `trajectories.png`: the top view of the ground truth, the buoy fixes, the SLAM path
+/// mapped to the world (broken where a local map has no transform) and the fused path.
+fn plot_trajectories(
+    out_dir: &Path,
+    series_truth: &[(f64, f64)],
+    buoy: &[(f64, Vector3<f64>)],
+    slam_world: &[(f64, Isometry3<f64>)],
+    fused: &[(f64, Isometry3<f64>)],
+) {
+    let xy = |v: &[(f64, Vector3<f64>)]| v.iter().map(|(_, p)| (p.x, p.y)).collect::<Vec<_>>();
+    // The mapped SLAM path has holes (segments without a transform): break the line there.
+    let mut slam = vec![];
+    for w in slam_world.windows(2) {
+        let p = w[0].1.translation.vector;
+        slam.push((p.x, p.y));
+        if w[1].0 - w[0].0 > 0.5 {
+            slam.push((f64::NAN, f64::NAN));
+        }
+    }
+    if let Some((_, last)) = slam_world.last() {
+        slam.push((last.translation.vector.x, last.translation.vector.y));
+    }
+    let (buoy, fused_xy) = (xy(buoy), xy(&positions(fused)));
+    let series = [
+        fusion::plot::Series { label: "ground truth", color: (0, 0, 0), points: series_truth, thin: true },
+        fusion::plot::Series { label: "buoy", color: (230, 120, 0), points: &buoy, thin: false },
+        fusion::plot::Series { label: "SLAM (mapped to the world)", color: (40, 90, 220), points: &slam, thin: false },
+        fusion::plot::Series { label: "fused", color: (20, 160, 60), points: &fused_xy, thin: false },
+    ];
+    match fusion::plot::plot_top_view(
+        &out_dir.join("trajectories.png"),
+        "Top view: ground truth, buoy, SLAM, fused",
+        &series,
+        1200,
+        900,
+    ) {
+        Ok(r) if !r.text => tracing::warn!("trajectories.png drawn without text: no TrueType font found"),
+        Ok(_) => {}
+        Err(e) => tracing::warn!("trajectories.png not written: {e}"),
+    }
+}
+
 /// Writes the end-of-run outputs into `out_dir` and returns the summary part.
 pub fn write_outputs(
     out_dir: &Path,
@@ -179,31 +245,14 @@ pub fn write_outputs(
     for o in &result.path {
         final_sources.add(o.source);
     }
-    let segments: Vec<serde_json::Value> = engine
-        .segments()
-        .map(|s| {
-            let a = s.alignment.as_ref();
-            serde_json::json!({
-                "segment": s.id,
-                "poses": s.pairs.len(),
-                "status": s.status,
-                "landmarks": s.landmarks.len(),
-                "translation_m": a.map(|a| a.global_from_local.translation.vector.as_slice().to_vec()),
-                "rotation_xyzw": a.map(|a| shared_types::convert::quat_to_xyzw(&a.global_from_local.rotation)),
-                "pairs": a.map(|a| a.pairs),
-                "rms_residual_m": a.map(|a| a.rms_residual_m),
-                "spread_ratio": a.map(|a| a.spread_ratio),
-            })
-        })
-        .collect();
-    std::fs::write(out_dir.join("segment_transforms.json"), serde_json::to_vec_pretty(&segments)?)?;
+    let segments = write_segment_transforms(out_dir, engine)?;
     let merged = result.global_map.iter().filter(|l| l.members.len() > 1).count();
     let mut part = FusionPart {
         fusion: FusionSummary {
             poses: result.path.len(),
             live: log.live_sources.clone(),
             final_: final_sources,
-            segments: segments.len(),
+            segments,
             segments_aligned: engine.segments().filter(|s| s.alignment.is_some()).count(),
             new_local_maps_requested: log.segment_requests,
             global_landmarks: result.global_map.len(),
@@ -243,42 +292,7 @@ pub fn write_outputs(
         series_truth = tp.iter().map(|(_, p)| (p.x, p.y)).collect();
     }
     if settings.plot {
-        let xy = |v: &[(f64, Vector3<f64>)]| v.iter().map(|(_, p)| (p.x, p.y)).collect::<Vec<_>>();
-        // The mapped SLAM path has holes (segments without a transform): break the line there.
-        let mut slam = vec![];
-        for w in result.slam_world.windows(2) {
-            let p = w[0].1.translation.vector;
-            slam.push((p.x, p.y));
-            if w[1].0 - w[0].0 > 0.5 {
-                slam.push((f64::NAN, f64::NAN));
-            }
-        }
-        if let Some((_, last)) = result.slam_world.last() {
-            slam.push((last.translation.vector.x, last.translation.vector.y));
-        }
-        let (buoy, fused_xy) = (xy(&log.buoy), xy(&positions(&fused)));
-        let series = [
-            fusion::plot::Series { label: "ground truth", color: (0, 0, 0), points: &series_truth, thin: true },
-            fusion::plot::Series { label: "buoy", color: (230, 120, 0), points: &buoy, thin: false },
-            fusion::plot::Series {
-                label: "SLAM (mapped to the world)",
-                color: (40, 90, 220),
-                points: &slam,
-                thin: false,
-            },
-            fusion::plot::Series { label: "fused", color: (20, 160, 60), points: &fused_xy, thin: false },
-        ];
-        match fusion::plot::plot_top_view(
-            &out_dir.join("trajectories.png"),
-            "Top view: ground truth, buoy, SLAM, fused",
-            &series,
-            1200,
-            900,
-        ) {
-            Ok(r) if !r.text => tracing::warn!("trajectories.png drawn without text: no TrueType font found"),
-            Ok(_) => {}
-            Err(e) => tracing::warn!("trajectories.png not written: {e}"),
-        }
+        plot_trajectories(out_dir, &series_truth, &log.buoy, &result.slam_world, &fused);
     }
     Ok(part)
 }

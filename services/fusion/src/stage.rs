@@ -43,6 +43,156 @@ pub struct FusionStage {
     predicted_stamps: std::collections::VecDeque<u64>,
 }
 
+impl FusionStage {
+    /// Takes the buoy fixes, the headings and the local maps' landmarks that came (journalled).
+    fn take_fixes_headings_and_maps(&mut self, rt: &mut Runtime) -> Result<(), StageError> {
+        let (engine, log) = (&mut self.engine, &mut self.log);
+        while let Some(s) = self.fixes.receive()? {
+            let fix = fix_from_wire(s.user_header(), s.payload());
+            if engine.push_fix(fix).is_err() {
+                count(log, "buoy fix with NaN");
+            } else {
+                crate::journal::record(rt.state(), &Entry::Fix(fix));
+            }
+        }
+        while let Some(s) = self.headings.receive()? {
+            let h = s.payload();
+            let reading = fusion::engine::HeadingInput {
+                t_s: s.user_header().stamp_ns as f64 / 1e9,
+                yaw_rad: h.yaw_rad,
+                sigma_rad: h.sigma_rad,
+            };
+            if engine.push_heading(reading).is_err() {
+                count(log, "heading with NaN or sigma <= 0");
+            } else {
+                crate::journal::record(rt.state(), &Entry::Heading(reading));
+            }
+        }
+        while let Some(s) = self.landmarks.receive()? {
+            let h = s.user_header();
+            let ls: Vec<_> = s.payload().iter().filter_map(landmark_from_wire).collect();
+            if ls.len() < s.payload().len() {
+                count(log, "landmark with NaN");
+            }
+            crate::journal::landmarks(rt.state(), h.segment_id, &ls)?;
+            engine.set_landmarks(h.segment_id, ls);
+        }
+        Ok(())
+    }
+
+    /// A predicted pair: a first pose at once from the state as it is; the refined pair follows.
+    /// Not journalled: it changes nothing.
+    fn on_predicted_pair(
+        &mut self,
+        h: &MsgHeader,
+        pair: &fusion::engine::PairInput,
+        latency_ms: Option<f64>,
+    ) -> Result<(), StageError> {
+        let log = &mut self.log;
+        let out = match self.engine.predict_pair(pair) {
+            Ok(o) => o,
+            Err(e) => {
+                log.predicted_invalid += 1;
+                count(log, &format!("predicted pair: {e}"));
+                return Ok(());
+            }
+        };
+        log.predicted.push((out.t_s, out.world_from_body));
+        log.first.push((out.t_s, out.world_from_body));
+        self.predicted_stamps.push_back(h.stamp_ns);
+        log.stereo_to_first_fused_ms.extend(latency_ms);
+        self.pose_out.send_value(
+            MsgHeader { stamp_ns: h.stamp_ns, origin_ns: h.origin_ns, ..Default::default() },
+            FusedPose {
+                pose: PoseEstimate::from_nalgebra(&out.world_from_body, &out.covariance, out.segment, FRAME_WORLD),
+                flags: flags(out.source) | FUSED_PREDICTED,
+                _reserved: 0,
+            },
+        )?;
+        Ok(())
+    }
+
+    /// A pair proper: journalled, fused, published (the first pose of its stamp unless one was
+    /// predicted), and a new local map asked for when camera and buoy stopped overlapping.
+    fn on_pair(
+        &mut self,
+        rt: &mut Runtime,
+        h: &MsgHeader,
+        pair: fusion::engine::PairInput,
+        latency_ms: Option<f64>,
+        now: u64,
+    ) -> Result<(), StageError> {
+        let stamps = &mut self.predicted_stamps;
+        while stamps.front().is_some_and(|&t| t < h.stamp_ns) {
+            stamps.pop_front();
+        }
+        let was_predicted = stamps.front() == Some(&h.stamp_ns);
+        if was_predicted {
+            stamps.pop_front();
+        }
+        let (buoy, t_s) = (pair.buoy_m, pair.t_s);
+        crate::journal::record(rt.state(), &Entry::Pair(Box::new(pair.clone())));
+        let log = &mut self.log;
+        let out = match self.engine.push_pair(pair) {
+            Ok(o) => o,
+            Err(e) => {
+                count(log, &format!("synced pair: {e}"));
+                return Ok(());
+            }
+        };
+        log.buoy.push((t_s, buoy));
+        log.live.push((out.t_s, out.world_from_body));
+        log.live_sources.add(out.source);
+        if !was_predicted {
+            log.first.push((out.t_s, out.world_from_body));
+        }
+        // Journalled before publishing: a restarted instance replays what was journalled.
+        rt.state().flush()?;
+        if let Some(ms) = latency_ms {
+            let ms = ms + (pipeline_runtime::clock::monotonic_ns() - now) as f64 / 1e6;
+            log.stereo_to_fused_ms.push(ms);
+            if !was_predicted {
+                log.stereo_to_first_fused_ms.push(ms);
+            }
+        }
+        self.pose_out.send_value(
+            MsgHeader { stamp_ns: h.stamp_ns, origin_ns: h.origin_ns, ..Default::default() },
+            FusedPose {
+                pose: PoseEstimate::from_nalgebra(&out.world_from_body, &out.covariance, out.segment, FRAME_WORLD),
+                flags: flags(out.source) | FUSED_REFINED,
+                _reserved: 0,
+            },
+        )?;
+        if let Some(seg) = self.engine.segment(out.segment) {
+            // Log changes of kind (waiting, degenerate, aligned), not every new fix count.
+            let kind = std::mem::discriminant(&seg.status);
+            if self.statuses.get(&out.segment) != Some(&kind) {
+                tracing::info!(segment = out.segment, "local map: {:?}", seg.status);
+                self.statuses.insert(out.segment, kind);
+            }
+        }
+        if out.request_new_segment {
+            self.log.segment_requests += 1;
+            tracing::info!(
+                segment = out.segment,
+                mahalanobis = out.mahalanobis,
+                "camera and buoy estimates stopped overlapping: asking {} for a new local map",
+                self.settings.slam_process
+            );
+            self.commands.send_value(
+                MsgHeader { stamp_ns: h.stamp_ns, origin_ns: h.origin_ns, ..Default::default() },
+                ControlCommand {
+                    target: name32(&self.settings.slam_process),
+                    command: COMMAND_NEW_SEGMENT,
+                    _reserved: 0,
+                    arg: out.segment as u64,
+                },
+            )?;
+        }
+        Ok(())
+    }
+}
+
 impl Stage for FusionStage {
     type Settings = FusionSettings;
 
@@ -116,152 +266,22 @@ impl Stage for FusionStage {
     }
 
     fn step(&mut self, rt: &mut Runtime, _wake: Wake, _inputs_ended: bool) -> Result<Step, StageError> {
-        let Self {
-            settings,
-            engine,
-            pairs,
-            fixes,
-            landmarks,
-            headings,
-            pose_out,
-            commands,
-            log,
-            statuses,
-            predicted_stamps,
-            ..
-        } = self;
         // Fixes and maps first, so that a pair sees every fix that arrived with it.
-        while let Some(s) = fixes.receive()? {
-            let fix = fix_from_wire(s.user_header(), s.payload());
-            if engine.push_fix(fix).is_err() {
-                count(log, "buoy fix with NaN");
-            } else {
-                crate::journal::record(rt.state(), &Entry::Fix(fix));
-            }
-        }
-        while let Some(s) = headings.receive()? {
-            let h = s.payload();
-            let reading = fusion::engine::HeadingInput {
-                t_s: s.user_header().stamp_ns as f64 / 1e9,
-                yaw_rad: h.yaw_rad,
-                sigma_rad: h.sigma_rad,
+        self.take_fixes_headings_and_maps(rt)?;
+        loop {
+            // The pair is copied out of shared memory: the sample goes back before the work.
+            let Some((h, pair, predicted)) = self.pairs.receive()?.map(|s| {
+                let h = *s.user_header();
+                (h, pair_from_wire(&h, s.payload()), s.payload().flags & SYNC_PREDICTED != 0)
+            }) else {
+                break;
             };
-            if engine.push_heading(reading).is_err() {
-                count(log, "heading with NaN or sigma <= 0");
-            } else {
-                crate::journal::record(rt.state(), &Entry::Heading(reading));
-            }
-        }
-        while let Some(s) = landmarks.receive()? {
-            let h = s.user_header();
-            let ls: Vec<_> = s.payload().iter().filter_map(landmark_from_wire).collect();
-            if ls.len() < s.payload().len() {
-                count(log, "landmark with NaN");
-            }
-            crate::journal::landmarks(rt.state(), h.segment_id, &ls)?;
-            engine.set_landmarks(h.segment_id, ls);
-        }
-        while let Some(s) = pairs.receive()? {
-            let h = *s.user_header();
-            let pair = pair_from_wire(&h, s.payload());
             let now = pipeline_runtime::clock::monotonic_ns();
             let latency_ms = (h.origin_ns > 0).then(|| now.saturating_sub(h.origin_ns) as f64 / 1e6);
-            if s.payload().flags & SYNC_PREDICTED != 0 {
-                // A first pose at once from the state as it is; the refined pair follows. Not
-                // journalled: it changes nothing.
-                let out = match engine.predict_pair(&pair) {
-                    Ok(o) => o,
-                    Err(e) => {
-                        log.predicted_invalid += 1;
-                        count(log, &format!("predicted pair: {e}"));
-                        continue;
-                    }
-                };
-                log.predicted.push((out.t_s, out.world_from_body));
-                log.first.push((out.t_s, out.world_from_body));
-                predicted_stamps.push_back(h.stamp_ns);
-                log.stereo_to_first_fused_ms.extend(latency_ms);
-                pose_out.send_value(
-                    MsgHeader { stamp_ns: h.stamp_ns, origin_ns: h.origin_ns, ..Default::default() },
-                    FusedPose {
-                        pose: PoseEstimate::from_nalgebra(
-                            &out.world_from_body,
-                            &out.covariance,
-                            out.segment,
-                            FRAME_WORLD,
-                        ),
-                        flags: flags(out.source) | FUSED_PREDICTED,
-                        _reserved: 0,
-                    },
-                )?;
-                continue;
-            }
-            // The refined pose: the first of its stamp unless one was predicted.
-            while predicted_stamps.front().is_some_and(|&t| t < h.stamp_ns) {
-                predicted_stamps.pop_front();
-            }
-            let was_predicted = predicted_stamps.front() == Some(&h.stamp_ns);
-            if was_predicted {
-                predicted_stamps.pop_front();
-            }
-            let buoy = pair.buoy_m;
-            let t_s = pair.t_s;
-            crate::journal::record(rt.state(), &Entry::Pair(Box::new(pair.clone())));
-            let out = match engine.push_pair(pair) {
-                Ok(o) => o,
-                Err(e) => {
-                    count(log, &format!("synced pair: {e}"));
-                    continue;
-                }
-            };
-            log.buoy.push((t_s, buoy));
-            log.live.push((out.t_s, out.world_from_body));
-            log.live_sources.add(out.source);
-            if !was_predicted {
-                log.first.push((out.t_s, out.world_from_body));
-            }
-            // Journalled before publishing: a restarted instance replays what was journalled.
-            rt.state().flush()?;
-            if let Some(ms) = latency_ms {
-                let ms = ms + (pipeline_runtime::clock::monotonic_ns() - now) as f64 / 1e6;
-                log.stereo_to_fused_ms.push(ms);
-                if !was_predicted {
-                    log.stereo_to_first_fused_ms.push(ms);
-                }
-            }
-            pose_out.send_value(
-                MsgHeader { stamp_ns: h.stamp_ns, origin_ns: h.origin_ns, ..Default::default() },
-                FusedPose {
-                    pose: PoseEstimate::from_nalgebra(&out.world_from_body, &out.covariance, out.segment, FRAME_WORLD),
-                    flags: flags(out.source) | FUSED_REFINED,
-                    _reserved: 0,
-                },
-            )?;
-            if let Some(seg) = engine.segment(out.segment) {
-                // Log changes of kind (waiting, degenerate, aligned), not every new fix count.
-                let kind = std::mem::discriminant(&seg.status);
-                if statuses.get(&out.segment) != Some(&kind) {
-                    tracing::info!(segment = out.segment, "local map: {:?}", seg.status);
-                    statuses.insert(out.segment, kind);
-                }
-            }
-            if out.request_new_segment {
-                log.segment_requests += 1;
-                tracing::info!(
-                    segment = out.segment,
-                    mahalanobis = out.mahalanobis,
-                    "camera and buoy estimates stopped overlapping: asking {} for a new local map",
-                    settings.slam_process
-                );
-                commands.send_value(
-                    MsgHeader { stamp_ns: h.stamp_ns, origin_ns: h.origin_ns, ..Default::default() },
-                    ControlCommand {
-                        target: name32(&settings.slam_process),
-                        command: COMMAND_NEW_SEGMENT,
-                        _reserved: 0,
-                        arg: out.segment as u64,
-                    },
-                )?;
+            if predicted {
+                self.on_predicted_pair(&h, &pair, latency_ms)?;
+            } else {
+                self.on_pair(rt, &h, pair, latency_ms, now)?;
             }
         }
         Ok(Step::Idle)

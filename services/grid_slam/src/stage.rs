@@ -301,13 +301,19 @@ impl GridSlamStage {
         Ok(())
     }
 
+    /// The end of the run: `grid_slam.tum`, the map_server grid and its picture, the scores
+    /// against the relations and the ground truth, and the summary part.
     fn summary(&self) -> Result<GridSlamPart, StageError> {
         std::fs::create_dir_all(&self.out_dir)?;
         let mut rejected: BTreeMap<&str, u64> = self.queue.rejected.clone();
         rejected.extend(self.refused.iter().map(|(k, v)| (*k, *v)));
+        let n_rejected: u64 = rejected.values().sum();
+        if n_rejected > 0 {
+            tracing::warn!(?rejected, "inputs rejected (counted in summary.json grid_slam.rejected)");
+        }
+        let rejected = rejected.iter().map(|(k, n)| (k.to_string(), *n)).collect();
         let Some(f) = &self.filter else {
             tracing::warn!("no scan was processed: no map, no trajectory");
-            let rejected = rejected.iter().map(|(k, n)| (k.to_string(), *n)).collect();
             return Ok(GridSlamPart { grid_slam: GridSlamSummary { scans: 0, rejected, run: None }, ate_m: None });
         };
         let front_traj = f.trajectory();
@@ -316,26 +322,53 @@ impl GridSlamStage {
             None => front_traj.clone(),
         };
         write_tum2(&self.out_dir.join("grid_slam.tum"), &traj).map_err(StageError::stage)?;
-        let mut grid_part = None;
-        if let Some(g) = self.final_grid() {
-            let occ = Occupancy::from_grid(g, self.settings.grid_margin_cells);
-            occ.write_map_server(&self.out_dir, "grid").map_err(StageError::stage)?;
-            let path: Vec<Pose2> = traj.iter().map(|p| p.1).collect();
-            occ.write_png(&self.out_dir.join("grid.png"), &path).map_err(StageError::stage)?;
-            grid_part = Some(GridFiles {
-                pgm: "grid.pgm".into(),
-                yaml: "grid.yaml".into(),
-                png: "grid.png".into(),
-                width: occ.width,
-                height: occ.height,
-                resolution_m: occ.resolution_m,
-                origin_m: [occ.origin_m.0, occ.origin_m.1],
-            });
+        let mut run = self.run_summary(f, self.write_grid(&traj)?);
+        self.score_relations(&traj, &front_traj, &mut run);
+        let ate_m = self.score_against_truth(&traj);
+        if let Some(n) = f.n_eff_summary() {
+            tracing::info!(
+                mean = n.mean_share,
+                p10 = n.p10_share,
+                distinct_ancestors = n.distinct_ancestors,
+                "N_eff / N over the {} updates; particles of the first set with descendants at the end",
+                n.updates
+            );
         }
+        let st = f.stats();
+        tracing::info!(
+            scans = st.scans,
+            updates = st.updates,
+            resamples = st.resamples,
+            "grid SLAM done: grid.pgm, grid.yaml, grid.png, grid_slam.tum in {}",
+            self.out_dir.display()
+        );
+        Ok(GridSlamPart { grid_slam: GridSlamSummary { scans: st.scans, rejected, run: Some(run) }, ate_m })
+    }
+
+    /// Writes the final grid (`grid.pgm` + `grid.yaml`, and `grid.png` with the path `traj`).
+    fn write_grid(&self, traj: &[(f64, Pose2)]) -> Result<Option<GridFiles>, StageError> {
+        let Some(g) = self.final_grid() else { return Ok(None) };
+        let occ = Occupancy::from_grid(g, self.settings.grid_margin_cells);
+        occ.write_map_server(&self.out_dir, "grid").map_err(StageError::stage)?;
+        let path: Vec<Pose2> = traj.iter().map(|p| p.1).collect();
+        occ.write_png(&self.out_dir.join("grid.png"), &path).map_err(StageError::stage)?;
+        Ok(Some(GridFiles {
+            pgm: "grid.pgm".into(),
+            yaml: "grid.yaml".into(),
+            png: "grid.png".into(),
+            width: occ.width,
+            height: occ.height,
+            resolution_m: occ.resolution_m,
+            origin_m: [occ.origin_m.0, occ.origin_m.1],
+        }))
+    }
+
+    /// The filter's and the back end's counts (no scores yet).
+    fn run_summary(&self, f: &GridSlam, grid: Option<GridFiles>) -> GridSlamRun {
         let st = f.stats();
         let mem = f.peak_memory();
         let one_map = f.memory().best_bytes;
-        let mut run = GridSlamRun {
+        GridSlamRun {
             updates: st.updates,
             resamples: st.resamples,
             n_eff: f.n_eff_summary(),
@@ -353,7 +386,7 @@ impl GridSlamStage {
                 tiles_shared: st.shared_tiles,
                 peak_over_one_map: mem.map(|m| m.bytes as f64 / one_map.max(1) as f64),
             },
-            grid: grid_part,
+            grid,
             trajectory: "grid_slam.tum".into(),
             back_end: BackEndSummary {
                 kind: self.settings.back_end,
@@ -365,56 +398,63 @@ impl GridSlamStage {
             wall_s: self.started.elapsed().as_secs_f64(),
             relations: None,
             relations_front_end: None,
+        }
+    }
+
+    /// Scores the final trajectory (and the filter's own, when the back end moved it) against the
+    /// configured relations file (Kümmerle et al. 2009), if any.
+    fn score_relations(&self, traj: &[(f64, Pose2)], front_traj: &[(f64, Pose2)], run: &mut GridSlamRun) {
+        if self.settings.relations.as_os_str().is_empty() {
+            return;
+        }
+        let path = if self.settings.relations.is_absolute() {
+            self.settings.relations.clone()
+        } else {
+            self.config_dir.join(&self.settings.relations)
         };
-        let mut ate_m = None;
-        let n_rejected: u64 = rejected.values().sum();
-        if n_rejected > 0 {
-            tracing::warn!(?rejected, "inputs rejected (counted in summary.json grid_slam.rejected)");
-        }
-        if !self.settings.relations.as_os_str().is_empty() {
-            let path = if self.settings.relations.is_absolute() {
-                self.settings.relations.clone()
-            } else {
-                self.config_dir.join(&self.settings.relations)
-            };
-            match read_relations(&path) {
-                Ok(rel) => {
-                    let s = score(&traj, &rel, self.settings.relations_offset_s, 2.0);
-                    tracing::info!(
-                        "relations ({}): {} scored, {} not covered: {:.4} ± {:.4} m, {:.3} ± {:.3} deg; {} over {:.0} s: \
-                         {:.4} m; {:.1} % over {} m",
-                        path.display(),
-                        s.scored,
-                        s.uncovered,
-                        s.trans_mean_m,
-                        s.trans_std_m,
-                        s.rot_mean_deg,
-                        s.rot_std_deg,
-                        s.long_scored,
-                        grid_slam::relations::LONG_SPAN_S,
-                        s.long_trans_mean_m,
-                        100.0 * s.over_far_share,
-                        grid_slam::relations::FAR_OFF_M
-                    );
-                    run.relations = Some(s);
-                    if self.closed.is_some() {
-                        let fs = score(&front_traj, &rel, self.settings.relations_offset_s, 2.0);
-                        tracing::info!(
-                            "relations of the filter alone (before the pose graph): {:.4} ± {:.4} m, {:.3} deg; over {:.0} s: {:.4} m; {:.1} % over {} m",
-                            fs.trans_mean_m,
-                            fs.trans_std_m,
-                            fs.rot_mean_deg,
-                            grid_slam::relations::LONG_SPAN_S,
-                            fs.long_trans_mean_m,
-                            100.0 * fs.over_far_share,
-                            grid_slam::relations::FAR_OFF_M
-                        );
-                        run.relations_front_end = Some(fs);
-                    }
-                }
-                Err(e) => tracing::warn!("relations not scored: {e}"),
+        let rel = match read_relations(&path) {
+            Ok(rel) => rel,
+            Err(e) => {
+                tracing::warn!("relations not scored: {e}");
+                return;
             }
+        };
+        let s = score(traj, &rel, self.settings.relations_offset_s, 2.0);
+        tracing::info!(
+            "relations ({}): {} scored, {} not covered: {:.4} ± {:.4} m, {:.3} ± {:.3} deg; {} over {:.0} s: \
+             {:.4} m; {:.1} % over {} m",
+            path.display(),
+            s.scored,
+            s.uncovered,
+            s.trans_mean_m,
+            s.trans_std_m,
+            s.rot_mean_deg,
+            s.rot_std_deg,
+            s.long_scored,
+            grid_slam::relations::LONG_SPAN_S,
+            s.long_trans_mean_m,
+            100.0 * s.over_far_share,
+            grid_slam::relations::FAR_OFF_M
+        );
+        run.relations = Some(s);
+        if self.closed.is_some() {
+            let fs = score(front_traj, &rel, self.settings.relations_offset_s, 2.0);
+            tracing::info!(
+                "relations of the filter alone (before the pose graph): {:.4} ± {:.4} m, {:.3} deg; over {:.0} s: {:.4} m; {:.1} % over {} m",
+                fs.trans_mean_m,
+                fs.trans_std_m,
+                fs.rot_mean_deg,
+                grid_slam::relations::LONG_SPAN_S,
+                fs.long_trans_mean_m,
+                100.0 * fs.over_far_share,
+                grid_slam::relations::FAR_OFF_M
+            );
+            run.relations_front_end = Some(fs);
         }
+    }
+
+    /// The planar ATE against the source's ground truth, when it wrote one.
+    fn score_against_truth(&self, traj: &[(f64, Pose2)]) -> Option<GridSlamAte> {
         let gt_path = self.out_dir.join(&self.settings.ground_truth);
         match geometry::tum::read_tum(&gt_path) {
             Ok(truth) if !truth.is_empty() => {
@@ -423,29 +463,17 @@ impl GridSlamStage {
                     traj.iter().map(|(t, p)| (*t, Vector3::new(p.x_m, p.y_m, 0.0))).collect();
                 let ate = geometry::trajectory::ate_nearest(&est, &truth_p, true);
                 tracing::info!("ATE (2-D, nearest stamp, against {}): grid SLAM {ate:.3} m", gt_path.display());
-                ate_m = Some(GridSlamAte { grid_slam: pipeline_runtime::summary::finite(ate) });
+                Some(GridSlamAte { grid_slam: pipeline_runtime::summary::finite(ate) })
             }
-            Ok(_) => tracing::info!("no accuracy evaluation: {} is empty", gt_path.display()),
-            Err(e) => tracing::info!("no accuracy evaluation: {e}"),
+            Ok(_) => {
+                tracing::info!("no accuracy evaluation: {} is empty", gt_path.display());
+                None
+            }
+            Err(e) => {
+                tracing::info!("no accuracy evaluation: {e}");
+                None
+            }
         }
-        if let Some(n) = f.n_eff_summary() {
-            tracing::info!(
-                mean = n.mean_share,
-                p10 = n.p10_share,
-                distinct_ancestors = n.distinct_ancestors,
-                "N_eff / N over the {} updates; particles of the first set with descendants at the end",
-                n.updates
-            );
-        }
-        tracing::info!(
-            scans = st.scans,
-            updates = st.updates,
-            resamples = st.resamples,
-            "grid SLAM done: grid.pgm, grid.yaml, grid.png, grid_slam.tum in {}",
-            self.out_dir.display()
-        );
-        let rejected = rejected.iter().map(|(k, n)| (k.to_string(), *n)).collect();
-        Ok(GridSlamPart { grid_slam: GridSlamSummary { scans: st.scans, rejected, run: Some(run) }, ate_m })
     }
 }
 

@@ -163,6 +163,102 @@ pub struct OctreeMapperStage {
     out_dir: std::path::PathBuf,
 }
 
+impl OctreeMapperStage {
+    /// Takes the poses of the configured source into the pose buffer (the others are drained).
+    fn take_poses(&mut self) -> Result<(), StageError> {
+        let (source, poses) = (self.settings.pose_source, &mut self.st.poses);
+        while let Some(s) = self.fused.receive()? {
+            // The refined poses only: a predicted one (published at once, refined later) would
+            // place clouds by an extrapolated buoy position.
+            if source == PoseSource::Fused && s.payload().flags & shared_types::FUSED_PREDICTED == 0 {
+                poses.push(s.user_header().stamp_ns as f64 / 1e9, s.payload().pose.frame_from_body());
+            }
+        }
+        while let Some(s) = self.slam.receive()? {
+            if source == PoseSource::Slam {
+                poses.push(s.user_header().stamp_ns as f64 / 1e9, s.payload().frame_from_body());
+            }
+        }
+        while let Some(s) = self.grid_slam.receive()? {
+            if source == PoseSource::GridSlam {
+                poses.push(s.user_header().stamp_ns as f64 / 1e9, s.payload().frame_from_body());
+            }
+        }
+        Ok(())
+    }
+
+    /// Takes clouds while the state takes them (with `when_behind = "wait"` none while
+    /// max_pending_clouds wait: the rest stays in the service's queue and a replay waits for the
+    /// mapper); counts sequence gaps. Returns whether the service's queue is empty.
+    fn take_clouds(&mut self) -> Result<bool, StageError> {
+        let now = Instant::now();
+        while self.st.takes_clouds() {
+            let Some(s) = self.clouds.receive()? else { return Ok(true) };
+            let h = s.user_header();
+            self.last_stamp = self.last_stamp.max(h.msg.stamp_ns);
+            if let Some(prev) = self.last_cloud_seq
+                && h.msg.seq > prev + 1
+            {
+                self.st.counters.clouds_missed += h.msg.seq - prev - 1;
+                self.clouds.count_dropped("missed: sequence gap", h.msg.seq - prev - 1);
+            }
+            self.last_cloud_seq = Some(h.msg.seq);
+            let own_pose = (h.flags & CLOUD_HAS_POSE != 0)
+                .then(|| convert::isometry_from_wire(&h.sensor_origin_m, &h.orientation_xyzw));
+            self.st.push_cloud(PendingCloud {
+                stamp_ns: h.msg.stamp_ns,
+                origin_ns: h.msg.origin_ns,
+                points_sensor_m: s.payload().iter().map(|p| [p.x_m, p.y_m, p.z_m]).collect(),
+                own_pose,
+                received: now,
+            });
+        }
+        Ok(false)
+    }
+
+    /// Commands for this process (or everyone): a full voxel set, a checkpoint of `map.bt`.
+    fn take_commands(&mut self, rt: &mut Runtime) -> Result<(), StageError> {
+        while let Some(s) = self.commands.receive()? {
+            let c = s.payload();
+            let target = name_from32(&c.target);
+            if (target.is_empty() || target == rt.name()) && c.command == COMMAND_VOXEL_SNAPSHOT {
+                self.voxel_stream.request_snapshot();
+            }
+            if (target.is_empty() || target == rt.name()) && c.command == COMMAND_CHECKPOINT {
+                let _alive = rt.hold_heartbeat(); // writing a large tree: seconds, not a hang
+                let path = self.out_dir.join("map.bt");
+                std::fs::create_dir_all(&self.out_dir)?;
+                self.st.tree.write_binary_file(&path).map_err(StageError::stage)?;
+                tracing::info!(path = %path.display(), "checkpoint written");
+            }
+        }
+        Ok(())
+    }
+
+    /// What is due by the clock: the restart checkpoint, the map statistics, the voxel stream.
+    fn periodic_outputs(&mut self, rt: &mut Runtime, inputs_ended: bool) -> Result<(), StageError> {
+        if self.checkpoint_every.is_some_and(|e| self.last_checkpoint.elapsed() >= e) && !inputs_ended {
+            self.last_checkpoint = Instant::now();
+            // Serialising and writing the whole tree takes seconds on a large map on a loaded
+            // machine: bounded work, not a hang, so the heartbeat goes on meanwhile.
+            let _alive = rt.hold_heartbeat();
+            let bytes = self.st.checkpoint()?;
+            rt.state().snapshot(CHECKPOINT, &bytes)?;
+        }
+        if self.stats_every.is_some_and(|e| self.last_stats.elapsed() >= e) {
+            self.last_stats = Instant::now();
+            let header = MsgHeader { stamp_ns: self.last_stamp, ..Default::default() };
+            self.stats_out.send_value(header, stats_msg(&self.st, 0, 0))?;
+        }
+        if self.voxels_every.is_some_and(|e| self.last_voxels.elapsed() >= e) {
+            self.last_voxels = Instant::now();
+            let _alive = rt.hold_heartbeat(); // a full set walks the whole tree
+            send_voxels(&mut self.voxels_out, &mut self.voxel_stream, &mut self.st, None, self.last_stamp)?;
+        }
+        Ok(())
+    }
+}
+
 impl Stage for OctreeMapperStage {
     type Settings = MapperSettings;
 
@@ -222,95 +318,18 @@ impl Stage for OctreeMapperStage {
     }
 
     fn step(&mut self, rt: &mut Runtime, _wake: Wake, inputs_ended: bool) -> Result<Step, StageError> {
-        let Self {
-            settings,
-            st,
-            checkpoint_every,
-            last_checkpoint,
-            clouds,
-            fused,
-            slam,
-            grid_slam,
-            commands,
-            stats_out,
-            voxels_out,
-            voxel_stream,
-            stats_every,
-            voxels_every,
-            last_stats,
-            last_voxels,
-            last_stamp,
-            last_cloud_seq,
-            out_dir,
-        } = self;
-        while let Some(s) = fused.receive()? {
-            // The refined poses only: a predicted one (published at once, refined later) would
-            // place clouds by an extrapolated buoy position.
-            if settings.pose_source == PoseSource::Fused && s.payload().flags & shared_types::FUSED_PREDICTED == 0 {
-                st.poses.push(s.user_header().stamp_ns as f64 / 1e9, s.payload().pose.frame_from_body());
-            }
-        }
-        while let Some(s) = slam.receive()? {
-            if settings.pose_source == PoseSource::Slam {
-                st.poses.push(s.user_header().stamp_ns as f64 / 1e9, s.payload().frame_from_body());
-            }
-        }
-        while let Some(s) = grid_slam.receive()? {
-            if settings.pose_source == PoseSource::GridSlam {
-                st.poses.push(s.user_header().stamp_ns as f64 / 1e9, s.payload().frame_from_body());
-            }
-        }
-        let now = Instant::now();
-        // With `when_behind = "wait"` no more clouds are taken while max_pending_clouds wait:
-        // the rest stays in the service's queue and a replay waits for the mapper.
-        let mut queue_empty = false;
-        while st.takes_clouds() {
-            let Some(s) = clouds.receive()? else {
-                queue_empty = true;
-                break;
-            };
-            let h = s.user_header();
-            *last_stamp = (*last_stamp).max(h.msg.stamp_ns);
-            if let Some(prev) = *last_cloud_seq
-                && h.msg.seq > prev + 1
-            {
-                st.counters.clouds_missed += h.msg.seq - prev - 1;
-                clouds.count_dropped("missed: sequence gap", h.msg.seq - prev - 1);
-            }
-            *last_cloud_seq = Some(h.msg.seq);
-            let own_pose = (h.flags & CLOUD_HAS_POSE != 0)
-                .then(|| convert::isometry_from_wire(&h.sensor_origin_m, &h.orientation_xyzw));
-            st.push_cloud(PendingCloud {
-                stamp_ns: h.msg.stamp_ns,
-                origin_ns: h.msg.origin_ns,
-                points_sensor_m: s.payload().iter().map(|p| [p.x_m, p.y_m, p.z_m]).collect(),
-                own_pose,
-                received: now,
-            });
-        }
-        let held_back = !queue_empty;
-        while let Some(s) = commands.receive()? {
-            let c = s.payload();
-            let target = name_from32(&c.target);
-            if (target.is_empty() || target == rt.name()) && c.command == COMMAND_VOXEL_SNAPSHOT {
-                voxel_stream.request_snapshot();
-            }
-            if (target.is_empty() || target == rt.name()) && c.command == COMMAND_CHECKPOINT {
-                let _alive = rt.hold_heartbeat(); // writing a large tree: seconds, not a hang
-                let path = out_dir.join("map.bt");
-                std::fs::create_dir_all(&*out_dir)?;
-                st.tree.write_binary_file(&path).map_err(StageError::stage)?;
-                tracing::info!(path = %path.display(), "checkpoint written");
-            }
-        }
+        self.take_poses()?;
+        let queue_empty = self.take_clouds()?;
+        self.take_commands(rt)?;
         // One cloud per wake-up, so the inputs are drained (and late clouds dropped) between.
+        let st = &mut self.st;
         let before = (st.counters.clouds_dropped_behind, st.counters.clouds_dropped_no_pose);
         st.step(Instant::now(), inputs_ended, 1)?;
-        clouds.count_dropped(
+        self.clouds.count_dropped(
             "insertion behind (when_behind = drop_oldest)",
             st.counters.clouds_dropped_behind - before.0,
         );
-        clouds.count_dropped("no pose within pose_wait_s", st.counters.clouds_dropped_no_pose - before.1);
+        self.clouds.count_dropped("no pose within pose_wait_s", st.counters.clouds_dropped_no_pose - before.1);
         if !st.pending.is_empty() {
             match st.next_deadline() {
                 Some(d) if st.settings().pose_source != PoseSource::Cloud => {
@@ -318,27 +337,11 @@ impl Stage for OctreeMapperStage {
                 }
                 _ => rt.wake_at(Instant::now()),
             }
-        } else if held_back {
+        } else if !queue_empty {
             rt.wake_at(Instant::now()); // clouds left in the service's queue: take them now
         }
-        if checkpoint_every.is_some_and(|e| last_checkpoint.elapsed() >= e) && !inputs_ended {
-            *last_checkpoint = Instant::now();
-            // Serialising and writing the whole tree takes seconds on a large map on a loaded
-            // machine: bounded work, not a hang, so the heartbeat goes on meanwhile.
-            let _alive = rt.hold_heartbeat();
-            let bytes = st.checkpoint()?;
-            rt.state().snapshot(CHECKPOINT, &bytes)?;
-        }
-        if stats_every.is_some_and(|e| last_stats.elapsed() >= e) {
-            *last_stats = Instant::now();
-            stats_out.send_value(MsgHeader { stamp_ns: *last_stamp, ..Default::default() }, stats_msg(st, 0, 0))?;
-        }
-        if voxels_every.is_some_and(|e| last_voxels.elapsed() >= e) {
-            *last_voxels = Instant::now();
-            let _alive = rt.hold_heartbeat(); // a full set walks the whole tree
-            send_voxels(voxels_out, voxel_stream, st, None, *last_stamp)?;
-        }
-        Ok(if queue_empty && st.pending.is_empty() { Step::Idle } else { Step::Pending })
+        self.periodic_outputs(rt, inputs_ended)?;
+        Ok(if queue_empty && self.st.pending.is_empty() { Step::Idle } else { Step::Pending })
     }
 
     type Summary = OctreeMapperPart;

@@ -119,37 +119,8 @@ pub struct SetupError(#[from] anyhow::Error);
 
 /// Runs the supervisor; returns the process exit code.
 pub fn run(cli: &Cli) -> anyhow::Result<u8> {
-    if let Some(Command::Doctor { config }) = &cli.command {
-        let r = doctor::report(config.as_deref());
-        print!("{}", r.render());
-        return Ok(r.exit_code());
-    }
-    if let Some(Command::Certs { dir, names, revoke, viewer_token, sans, days, ca_days }) = &cli.command {
-        let req = certs::CertsRequest {
-            dir: dir.clone(),
-            names: names.clone(),
-            revoke: revoke.clone(),
-            viewer_token: *viewer_token,
-            sans: sans.clone(),
-            days: *days,
-            ca_days: *ca_days,
-        };
-        let r = certs::make(&req).map_err(SetupError)?;
-        print!("{}", r.render());
-        return Ok(0);
-    }
-    if let Some(Command::Status { config, out }) = &cli.command {
-        let out_dir = match out {
-            Some(o) => o.clone(),
-            None => {
-                let c = pipeline_runtime::config::load_pipeline_config(config).map_err(|e| SetupError(e.into()))?;
-                // As the run resolves it: relative to the current directory.
-                std::path::absolute(&c.run.out_dir).unwrap_or(c.run.out_dir)
-            }
-        };
-        let v = status::view(&out_dir);
-        print!("{}", v.text);
-        return Ok(v.exit_code);
+    if let Some(command) = &cli.command {
+        return run_command(command);
     }
     let config = cli.config.as_deref().ok_or_else(|| SetupError(anyhow::anyhow!("--config is required")))?;
     let overrides = plan::Overrides {
@@ -176,29 +147,7 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
         );
         return Ok(0);
     }
-    let census = plan.scope.node_census().map_err(|e| SetupError(e.into()))?;
-    if !census.alive.is_empty() {
-        return Err(SetupError(anyhow::anyhow!(
-            "another pipeline is running with iceoryx2 prefix `{}` (live nodes: {}); stop it or choose another run.iceoryx_prefix / --iceoryx-prefix",
-            plan.scope.prefix,
-            census.alive.join(", ")
-        ))
-        .into());
-    }
-    let removed = plan
-        .scope
-        .remove_all_resources()
-        .with_context(|| format!("removing stale resources under {}", plan.scope.root.display()))?;
-    if removed > 0 || census.dead > 0 {
-        tracing::info!("removed {removed} stale iceoryx2 file(s) of {} dead node(s) from an earlier run", census.dead);
-    }
-    std::fs::create_dir_all(&plan.out_dir).with_context(|| format!("creating {}", plan.out_dir.display()))?;
-    for sub in ["parts", "stats"] {
-        let dir = plan.out_dir.join(sub);
-        if dir.exists() {
-            std::fs::remove_dir_all(&dir).with_context(|| format!("clearing {}", dir.display()))?;
-        }
-    }
+    prepare_run(&plan)?;
     let scope = plan.scope.clone();
     let out_dir = plan.out_dir.clone();
     // The supervisor opens the control services like every process of the run.
@@ -229,21 +178,94 @@ pub fn run(cli: &Cli) -> anyhow::Result<u8> {
     }
     report::write(&out_dir, &outcome.summary)
         .with_context(|| format!("writing {}", out_dir.join("summary.json").display()))?;
-    // The report goes to stdout; a closed stdout (piped into `head`) must not change the exit code.
+    print_report(&outcome.summary, &out_dir, log_path.as_deref());
+    Ok(outcome.exit_code)
+}
+
+/// `doctor`, `certs` and `status`: the subcommands that run no pipeline.
+fn run_command(command: &Command) -> anyhow::Result<u8> {
+    match command {
+        Command::Doctor { config } => {
+            let r = doctor::report(config.as_deref());
+            print!("{}", r.render());
+            Ok(r.exit_code())
+        }
+        Command::Certs { dir, names, revoke, viewer_token, sans, days, ca_days } => {
+            let req = certs::CertsRequest {
+                dir: dir.clone(),
+                names: names.clone(),
+                revoke: revoke.clone(),
+                viewer_token: *viewer_token,
+                sans: sans.clone(),
+                days: *days,
+                ca_days: *ca_days,
+            };
+            let r = certs::make(&req).map_err(SetupError)?;
+            print!("{}", r.render());
+            Ok(0)
+        }
+        Command::Status { config, out } => {
+            let out_dir = match out {
+                Some(o) => o.clone(),
+                None => {
+                    let c = pipeline_runtime::config::load_pipeline_config(config).map_err(|e| SetupError(e.into()))?;
+                    // As the run resolves it: relative to the current directory.
+                    std::path::absolute(&c.run.out_dir).unwrap_or(c.run.out_dir)
+                }
+            };
+            let v = status::view(&out_dir);
+            print!("{}", v.text);
+            Ok(v.exit_code)
+        }
+    }
+}
+
+/// Refuses a run while another pipeline lives under the same iceoryx2 prefix, removes what dead
+/// runs left there, and clears the output directory's `parts/` and `stats/`.
+fn prepare_run(plan: &plan::Plan) -> anyhow::Result<()> {
+    let census = plan.scope.node_census().map_err(|e| SetupError(e.into()))?;
+    if !census.alive.is_empty() {
+        return Err(SetupError(anyhow::anyhow!(
+            "another pipeline is running with iceoryx2 prefix `{}` (live nodes: {}); stop it or choose another run.iceoryx_prefix / --iceoryx-prefix",
+            plan.scope.prefix,
+            census.alive.join(", ")
+        ))
+        .into());
+    }
+    let removed = plan
+        .scope
+        .remove_all_resources()
+        .with_context(|| format!("removing stale resources under {}", plan.scope.root.display()))?;
+    if removed > 0 || census.dead > 0 {
+        tracing::info!("removed {removed} stale iceoryx2 file(s) of {} dead node(s) from an earlier run", census.dead);
+    }
+    std::fs::create_dir_all(&plan.out_dir).with_context(|| format!("creating {}", plan.out_dir.display()))?;
+    for sub in ["parts", "stats"] {
+        let dir = plan.out_dir.join(sub);
+        if dir.exists() {
+            std::fs::remove_dir_all(&dir).with_context(|| format!("clearing {}", dir.display()))?;
+        }
+    }
+    Ok(())
+}
+
+/// Prints the report: in a terminal the short summary (the whole report goes to `run.log`, at
+/// `log_path`), else the whole report. A closed stdout (piped into `head`) changes nothing.
+fn print_report(summary: &serde_json::Value, out_dir: &std::path::Path, log_path: Option<&std::path::Path>) {
     let mut out = std::io::stdout().lock();
-    let _ = match &log_path {
+    let _ = match log_path {
         // In a terminal: the short summary; the whole report goes to run.log.
         Some(p) => {
             let text = std::fs::read_to_string(p).unwrap_or_default();
             let warnings = text.lines().filter(|l| l.contains(" WARN ")).count();
-            let report = report::render(&outcome.summary);
+            let report = report::render(summary);
             let _ = std::fs::OpenOptions::new().append(true).open(p).and_then(|mut f| write!(f, "{report}"));
-            write!(out, "{}", report::render_short(&outcome.summary, &out_dir, warnings))
+            write!(out, "{}", report::render_short(summary, out_dir, warnings))
                 .and_then(|()| writeln!(out, "full log in {} (with the latency tables)", p.display()))
         }
-        None => write!(out, "{}", report::render(&outcome.summary))
-            .and_then(|()| writeln!(out, "outputs in {}", out_dir.display())),
+        None => {
+            write!(out, "{}", report::render(summary)).and_then(|()| writeln!(out, "outputs in {}", out_dir.display()))
+        }
     }
     .and_then(|()| out.flush());
-    Ok(outcome.exit_code)
 }

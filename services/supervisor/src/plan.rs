@@ -96,44 +96,7 @@ pub fn make_plan(config_path: &Path, overrides: &Overrides, bin_dir: &Path) -> R
             );
             continue;
         }
-        let binary = match &p.binary {
-            Some(b) => {
-                let config_dir = config_abs.parent().unwrap_or(Path::new("."));
-                let b = if b.is_absolute() {
-                    b.clone()
-                } else if b.components().count() > 1 {
-                    config_dir.join(b) // relative paths are relative to the config file
-                } else {
-                    which(b).unwrap_or_else(|| b.clone()) // a bare name is looked up in PATH
-                };
-                if !is_executable(&b) {
-                    issues.push(format!("{key}.binary"), format!("`{}` is not an executable file", b.display()));
-                    continue;
-                }
-                b
-            }
-            None if external => {
-                issues.push(format!("{key}.binary"), format!("kind `{kind_name}` needs `binary`"));
-                continue;
-            }
-            None => {
-                let b = kinds::conventional_binary(bin_dir, &kind_name);
-                if !is_executable(&b) {
-                    issues.push(
-                        format!("{key}.kind"),
-                        format!(
-                            "unknown kind `{kind_name}`: no executable `{}` (the binary of a kind is named after it \
-                             and sits next to the supervisor); build it (cargo build --release --workspace; `cargo \
-                             build --release` builds only the main job's), set {key}.binary, or use kind = \
-                             \"external\" for a program not built on the runtime",
-                            b.display()
-                        ),
-                    );
-                    continue;
-                }
-                b
-            }
-        };
+        let Some(binary) = find_binary(p, &kind_name, &key, &config_abs, bin_dir, &mut issues) else { continue };
         let shm_bytes = if external {
             issues.extend_absolute(kinds::check_external(name, &p.settings));
             0
@@ -174,6 +137,58 @@ pub fn make_plan(config_path: &Path, overrides: &Overrides, bin_dir: &Path) -> R
     };
     let out_dir = std::path::absolute(&config.run.out_dir).unwrap_or_else(|_| config.run.out_dir.clone());
     Ok(Plan { config, config_path: config_abs, processes, scope, out_dir })
+}
+
+/// The executable of process `key`: its `binary` (an absolute path, a path relative to the config
+/// file, or a name looked up in PATH), or the kind's binary beside the supervisor. `None`, with the
+/// issue recorded, when there is none.
+fn find_binary(
+    p: &ProcessConfig,
+    kind_name: &str,
+    key: &str,
+    config_abs: &Path,
+    bin_dir: &Path,
+    issues: &mut Issues,
+) -> Option<PathBuf> {
+    let external = kind_name == kinds::EXTERNAL;
+    match &p.binary {
+        Some(b) => {
+            let config_dir = config_abs.parent().unwrap_or(Path::new("."));
+            let b = if b.is_absolute() {
+                b.clone()
+            } else if b.components().count() > 1 {
+                config_dir.join(b) // relative paths are relative to the config file
+            } else {
+                which(b).unwrap_or_else(|| b.clone()) // a bare name is looked up in PATH
+            };
+            if !is_executable(&b) {
+                issues.push(format!("{key}.binary"), format!("`{}` is not an executable file", b.display()));
+                return None;
+            }
+            Some(b)
+        }
+        None if external => {
+            issues.push(format!("{key}.binary"), format!("kind `{kind_name}` needs `binary`"));
+            None
+        }
+        None => {
+            let b = kinds::conventional_binary(bin_dir, kind_name);
+            if !is_executable(&b) {
+                issues.push(
+                    format!("{key}.kind"),
+                    format!(
+                        "unknown kind `{kind_name}`: no executable `{}` (the binary of a kind is named after it \
+                         and sits next to the supervisor); build it (cargo build --release --workspace; `cargo \
+                         build --release` builds only the main job's), set {key}.binary, or use kind = \
+                         \"external\" for a program not built on the runtime",
+                        b.display()
+                    ),
+                );
+                return None;
+            }
+            Some(b)
+        }
+    }
 }
 
 fn which(name: &Path) -> Option<PathBuf> {

@@ -441,6 +441,75 @@ impl ViewerStage {
     }
 }
 
+/// Starts the Foxglove WebSocket server: on `host:port`, or with TLS and a token on loopback
+/// behind the gate (crate::gate) that listens on `host:port`. Returns the server, the gate and the
+/// port clients connect to.
+fn start_server(
+    context: &Arc<Context>,
+    ctx: &ProcessContext,
+    settings: &ViewerSettings,
+) -> Result<(WebSocketServerHandle, Option<crate::gate::Gate>, u16), StageError> {
+    // With TLS, the SDK's server listens on loopback only, behind the gate (crate::gate).
+    let secured = settings.tls.as_ref().zip(settings.token_file.as_ref());
+    let (sdk_host, sdk_port) = match secured {
+        Some(_) => ("127.0.0.1".to_string(), 0),
+        None => (settings.host.clone(), settings.port),
+    };
+    let server = context
+        .websocket_server()
+        .name(format!("slam pipeline: {}", ctx.name))
+        .bind(sdk_host.clone(), sdk_port)
+        .message_backlog_size(settings.client_backlog)
+        .start_blocking()
+        .map_err(|e| {
+            StageError::msg(format!(
+                "the Foxglove WebSocket server cannot listen on {sdk_host}:{sdk_port} (processes.{}.settings.host / \
+                     port): {e}",
+                ctx.name
+            ))
+        })?;
+    let mut port = server.port();
+    let gate = match secured {
+        None => None,
+        Some((tls, token_file)) => {
+            let name = &ctx.name;
+            let config = crate::gate::tls_config(&tls.certificate, &tls.private_key)
+                .map_err(|e| StageError::Settings(format!("processes.{name}.settings.tls: {e}")))?;
+            let token = crate::read_token(token_file)
+                .map_err(|e| StageError::Settings(format!("processes.{name}.settings.token_file: {e}")))?;
+            let ip: std::net::IpAddr = settings
+                .host
+                .parse()
+                .map_err(|e| StageError::Settings(format!("processes.{name}.settings.host: {e}")))?;
+            let upstream = std::net::SocketAddr::from(([127, 0, 0, 1], port));
+            let gate = crate::gate::start((ip, settings.port).into(), upstream, config, token).map_err(|e| {
+                StageError::msg(format!("the live view's TLS gate (processes.{name}.settings.host / port): {e}"))
+            })?;
+            port = gate.addr().port();
+            Some(gate)
+        }
+    };
+    if settings.insecure
+        && gate.is_none()
+        && !settings.host.parse::<std::net::IpAddr>().is_ok_and(|ip| ip.is_loopback())
+    {
+        tracing::warn!(host = %settings.host, port,
+                "insecure: the live view has no authentication or encryption, and anyone who reaches this address watches the run");
+    }
+    match &gate {
+        None => tracing::info!(
+            url = %format!("ws://{}:{port}", settings.host),
+            "live view: in Foxglove, Open connection → Foxglove WebSocket → ws://<this host>:{port}"
+        ),
+        Some(_) => tracing::info!(
+            url = %format!("wss://{}:{port}/?token=<token>", settings.host),
+            "live view over TLS with a token: in Foxglove, Open connection → Foxglove WebSocket → \
+             wss://<this host>:{port}/?token=<the token in token_file> (the CA, certs/ca.pem, trusted by the browser)"
+        ),
+    }
+    Ok((server, gate, port))
+}
+
 impl Stage for ViewerStage {
     type Settings = ViewerSettings;
 
@@ -482,64 +551,7 @@ impl Stage for ViewerStage {
         let octree_ch = context.channel_builder("/octree").build();
         let grid_ch = context.channel_builder("/grid").build();
         let processes_ch = context.channel_builder("/processes").build();
-        // With TLS, the SDK's server listens on loopback only, behind the gate (crate::gate).
-        let secured = settings.tls.as_ref().zip(settings.token_file.as_ref());
-        let (sdk_host, sdk_port) = match secured {
-            Some(_) => ("127.0.0.1".to_string(), 0),
-            None => (settings.host.clone(), settings.port),
-        };
-        let server = context
-            .websocket_server()
-            .name(format!("slam pipeline: {}", ctx.name))
-            .bind(sdk_host.clone(), sdk_port)
-            .message_backlog_size(settings.client_backlog)
-            .start_blocking()
-            .map_err(|e| {
-                StageError::msg(format!(
-                    "the Foxglove WebSocket server cannot listen on {sdk_host}:{sdk_port} (processes.{}.settings.host / \
-                     port): {e}",
-                    ctx.name
-                ))
-            })?;
-        let mut port = server.port();
-        let gate = match secured {
-            None => None,
-            Some((tls, token_file)) => {
-                let name = &ctx.name;
-                let config = crate::gate::tls_config(&tls.certificate, &tls.private_key)
-                    .map_err(|e| StageError::Settings(format!("processes.{name}.settings.tls: {e}")))?;
-                let token = crate::read_token(token_file)
-                    .map_err(|e| StageError::Settings(format!("processes.{name}.settings.token_file: {e}")))?;
-                let ip: std::net::IpAddr = settings
-                    .host
-                    .parse()
-                    .map_err(|e| StageError::Settings(format!("processes.{name}.settings.host: {e}")))?;
-                let upstream = std::net::SocketAddr::from(([127, 0, 0, 1], port));
-                let gate = crate::gate::start((ip, settings.port).into(), upstream, config, token).map_err(|e| {
-                    StageError::msg(format!("the live view's TLS gate (processes.{name}.settings.host / port): {e}"))
-                })?;
-                port = gate.addr().port();
-                Some(gate)
-            }
-        };
-        if settings.insecure
-            && gate.is_none()
-            && !settings.host.parse::<std::net::IpAddr>().is_ok_and(|ip| ip.is_loopback())
-        {
-            tracing::warn!(host = %settings.host, port,
-                "insecure: the live view has no authentication or encryption, and anyone who reaches this address watches the run");
-        }
-        match &gate {
-            None => tracing::info!(
-                url = %format!("ws://{}:{port}", settings.host),
-                "live view: in Foxglove, Open connection → Foxglove WebSocket → ws://<this host>:{port}"
-            ),
-            Some(_) => tracing::info!(
-                url = %format!("wss://{}:{port}/?token=<token>", settings.host),
-                "live view over TLS with a token: in Foxglove, Open connection → Foxglove WebSocket → \
-                 wss://<this host>:{port}/?token=<the token in token_file> (the CA, certs/ca.pem, trusted by the browser)"
-            ),
-        }
+        let (server, gate, port) = start_server(&context, ctx, &settings)?;
         Ok(Self {
             cloud_every: Every::hz(settings.cloud_max_hz),
             landmarks_every: Every::hz(settings.map_max_hz),

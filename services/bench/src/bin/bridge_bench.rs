@@ -365,7 +365,6 @@ fn bridged(
     tls: Option<&std::path::Path>,
 ) -> anyhow::Result<(Seen, usize)> {
     let port = free_port()?;
-    let host = &net.host;
     let scope = |tag: &str| IoxScope {
         prefix: format!("pbb{tag}{}_{n}_", std::process::id()),
         root: dir.join(format!("iox_{tag}{n}")),
@@ -378,7 +377,27 @@ fn bridged(
     if !bin.exists() {
         bail!("{} is missing: build it (cargo build --release --workspace --bins)", bin.display());
     }
-    // Plain TCP (`insecure`), or mutual TLS with the certificates in `tls`.
+    let (ca, cb) = link_configs(dir, n, &net.host, port, tls, &a, &b)?;
+    let _rb = spawn_bridge(&bin, &cb, net, cli.logs.as_deref())?;
+    // The receiving side: a thread with its own runtime in prefix B.
+    let receiver = spawn_receiver(b.clone(), cli.samples, burst)?;
+    let _ra = spawn_bridge(&bin, &ca, &Net::loopback(), cli.logs.as_deref())?;
+    let points = size.saturating_sub(96) / 12;
+    let seen = send_row(&a, points, cli, burst, receiver)?;
+    Ok((seen, 96 + 12 * points))
+}
+
+/// The two bridges' configs: robot `r` sends the clouds of prefix `a`, the base receives them into
+/// prefix `b`, over plain TCP (`insecure`) or mutual TLS with the certificates in `tls`.
+fn link_configs(
+    dir: &std::path::Path,
+    n: usize,
+    host: &str,
+    port: u16,
+    tls: Option<&std::path::Path>,
+    a: &IoxScope,
+    b: &IoxScope,
+) -> anyhow::Result<(std::path::PathBuf, std::path::PathBuf)> {
     let link = |name: &str| match tls {
         None => "insecure = true".to_string(),
         Some(d) => format!(
@@ -392,7 +411,7 @@ fn bridged(
     let ca = bridge_config(
         dir,
         &format!("a{n}{proto}"),
-        &a,
+        a,
         &format!(
             "robot = \"r\"\nend_ack_timeout_s = 0\nzenoh = {{ connect = [\"{proto}/{host}:{port}\"], {} }}\n\
              out = [{{ service = \"{CLOUD}\" }}]",
@@ -402,40 +421,54 @@ fn bridged(
     let cb = bridge_config(
         dir,
         &format!("b{n}{proto}"),
-        &b,
+        b,
         &format!(
             "zenoh = {{ listen = [\"{proto}/{host}:{port}\"], {} }}\n\
              accept = {{ max_rate_hz = 0 }}\nin = [{{ from = \"r\", service = \"{CLOUD}\" }}]",
             link("base")
         ),
     )?;
-    let spawn = |cfg: &std::path::Path, net: &Net| -> anyhow::Result<Killed> {
-        let stderr = match &cli.logs {
-            None => Stdio::null(),
-            Some(d) => {
-                std::fs::create_dir_all(d)?;
-                let name = cfg.file_stem().and_then(|n| n.to_str()).unwrap_or("bridge");
-                let file = d.join(format!("{}_{name}.log", std::process::id()));
-                std::fs::File::create(&file).with_context(|| format!("{}", file.display()))?.into()
-            }
-        };
-        Ok(Killed(
-            net.command(&bin)
-                .arg("--config")
-                .arg(cfg)
-                .args(["--name", "link"])
-                .stdout(Stdio::null())
-                .stderr(stderr)
-                .spawn()?,
-        ))
+    Ok((ca, cb))
+}
+
+/// Starts a bridge process on `cfg` in `net` (its stderr into `logs` when given), killed on drop.
+fn spawn_bridge(
+    bin: &std::path::Path,
+    cfg: &std::path::Path,
+    net: &Net,
+    logs: Option<&std::path::Path>,
+) -> anyhow::Result<Killed> {
+    let stderr = match logs {
+        None => Stdio::null(),
+        Some(d) => {
+            std::fs::create_dir_all(d)?;
+            let name = cfg.file_stem().and_then(|n| n.to_str()).unwrap_or("bridge");
+            let file = d.join(format!("{}_{name}.log", std::process::id()));
+            std::fs::File::create(&file).with_context(|| format!("{}", file.display()))?.into()
+        }
     };
-    let _rb = spawn(&cb, net)?;
-    // The receiving side: a thread with its own runtime in prefix B.
+    Ok(Killed(
+        net.command(bin)
+            .arg("--config")
+            .arg(cfg)
+            .args(["--name", "link"])
+            .stdout(Stdio::null())
+            .stderr(stderr)
+            .spawn()?,
+    ))
+}
+
+/// A thread with its own runtime in prefix `b` that takes the clouds: the samples' latencies and
+/// the burst's duration. Returns once its subscriber is open.
+fn spawn_receiver(
+    b: IoxScope,
+    samples: usize,
+    burst: usize,
+) -> anyhow::Result<std::thread::JoinHandle<anyhow::Result<Seen>>> {
     let (ready_tx, ready_rx) = std::sync::mpsc::channel::<()>();
-    let (samples, b_t) = (cli.samples, b.clone());
     let receiver = std::thread::spawn(move || -> anyhow::Result<Seen> {
         let options = RuntimeOptions { publish_control: false, ..Default::default() };
-        let mut rt = Runtime::new("bench_rx", &b_t, options)?;
+        let mut rt = Runtime::new("bench_rx", &b, options)?;
         let input = rt.input::<[CloudPoint], CloudHeader>(CLOUD)?;
         let _ = ready_tx.send(());
         let mut seen = Seen::default();
@@ -466,11 +499,22 @@ fn bridged(
         Ok(seen)
     });
     ready_rx.recv_timeout(Duration::from_secs(30)).context("the receiving runtime did not start")?;
-    let _ra = spawn(&ca, &Net::loopback())?;
+    Ok(receiver)
+}
+
+/// Sends, in prefix `a`, 20 probes and `samples` timed clouds of `points` points at `rate_hz`,
+/// then `burst` clouds as fast as the link takes them; returns what `receiver` saw (joined while
+/// the publisher still lives, so that nothing in flight loses its sender).
+fn send_row(
+    a: &IoxScope,
+    points: usize,
+    cli: &Cli,
+    burst: usize,
+    receiver: std::thread::JoinHandle<anyhow::Result<Seen>>,
+) -> anyhow::Result<Seen> {
     let options = RuntimeOptions { publish_control: false, ..Default::default() };
-    let mut rt = Runtime::new("bench_tx", &a, options)?;
+    let mut rt = Runtime::new("bench_tx", a, options)?;
     let qos = service_spec(CLOUD).context("cloud QoS")?.qos;
-    let points = size.saturating_sub(96) / 12;
     let mut out = rt.output_slice_with_qos::<CloudPoint, CloudHeader>(
         CLOUD,
         &qos,
@@ -499,8 +543,7 @@ fn bridged(
     for _ in 0..burst {
         send(BURST)?;
     }
-    let seen = receiver.join().map_err(|_| anyhow::anyhow!("the receiver panicked"))??;
-    Ok((seen, 96 + 12 * points))
+    receiver.join().map_err(|_| anyhow::anyhow!("the receiver panicked"))?
 }
 
 /// The median of `v` (NaN when empty).
@@ -541,19 +584,7 @@ fn main() -> anyhow::Result<()> {
         }
     }
     let loopback = Net::loopback();
-    // Certificates for the TLS row, made by `supervisor certs` (the address dialled in their SANs).
-    let certs = dir.path().join("certs");
-    let supervisor = std::env::current_exe()?.parent().context("bin dir")?.join("supervisor");
-    let mut made = Command::new(&supervisor);
-    made.args(["certs", "--days", "1", "--name", "r", "--name", "base", "--dir"]).arg(&certs);
-    for sh in links.iter().filter_map(|(_, s)| s.as_ref()) {
-        made.args(["--san", &sh.net.host]);
-    }
-    let out =
-        made.output().with_context(|| format!("{} certs (build the workspace's binaries)", supervisor.display()))?;
-    if !out.status.success() {
-        bail!("supervisor certs: {}", String::from_utf8_lossy(&out.stderr));
-    }
+    let certs = make_certs(dir.path(), &links)?;
     for (l, (what, shaped)) in links.iter().enumerate() {
         let net = shaped.as_ref().map_or(&loopback, |s| &s.net);
         println!("link: {what}; bridge = plain TCP (insecure), tls = the bridge over mutual TLS");
@@ -575,78 +606,108 @@ fn main() -> anyhow::Result<()> {
             "MB/s"
         );
         for (n, &size) in cli.sizes.iter().enumerate() {
-            let burst = (cli.burst_bytes / size.max(1)).clamp(20, 20_000);
-            let z = bare(size, &cli, burst, net)?;
-            let mbs = |s: &Seen, bytes: usize| s.burst_messages as f64 * bytes as f64 / 1e6 / s.burst_s.max(1e-9);
-            // Rounds of tcp then tls; the rows' columns pool the rounds, the ratios are per round.
-            let (mut b, mut t, mut sent_size) = (Seen::default(), Seen::default(), size);
-            let (mut p50_ratios, mut mbs_ratios) = (vec![], vec![]);
-            for round in 0..cli.rounds.max(1) {
-                let id = (l * 100 + n) * 100 + round;
-                let (rb, sz) = bridged(size, &cli, burst, dir.path(), id, net, None)?;
-                let (rt, _) = bridged(size, &cli, burst, dir.path(), id, net, Some(&certs))?;
-                sent_size = sz;
-                p50_ratios.push(pct(&rt.latencies_us, 0.5) / pct(&rb.latencies_us, 0.5));
-                mbs_ratios.push(mbs(&rt, sz) / mbs(&rb, sz));
-                b.pool(rb);
-                t.pool(rt);
-            }
-            println!(
-                "{:>9} | {:>9.0} {:>9.0} {:>8.1} | {:>10.0} {:>9.0} {:>8.1} {:>9.0} | {:>6.2} | {:>8.0} {:>9.0} {:>8.1} | {:>11.2} {:>9.2}",
-                size,
-                pct(&z.latencies_us, 0.5),
-                pct(&z.latencies_us, 0.99),
-                mbs(&z, size),
-                pct(&b.latencies_us, 0.5),
-                pct(&b.latencies_us, 0.99),
-                mbs(&b, sent_size),
-                pct(&b.last_hop_us, 0.5),
-                pct(&b.latencies_us, 0.5) / pct(&z.latencies_us, 0.5),
-                pct(&t.latencies_us, 0.5),
-                pct(&t.latencies_us, 0.99),
-                mbs(&t, sent_size),
-                median(&p50_ratios),
-                median(&mbs_ratios)
-            );
-            if p50_ratios.len() > 1 {
-                let range = |v: &[f64]| {
-                    let (lo, hi) = v.iter().fold((f64::MAX, f64::MIN), |(lo, hi), &x| (lo.min(x), hi.max(x)));
-                    format!("{lo:.2}-{hi:.2}")
-                };
-                println!(
-                    "          tls/tcp over {} rounds: p50 {}, MB/s {}",
-                    p50_ratios.len(),
-                    range(&p50_ratios),
-                    range(&mbs_ratios)
-                );
-            }
-            let (samples, bursts) = (cli.samples * cli.rounds.max(1), burst * cli.rounds.max(1));
-            if t.latencies_us.len() < samples || t.burst_messages < bursts {
-                println!(
-                    "          note: the tls row got {} of {} latency and {} of {bursts} burst messages",
-                    t.latencies_us.len(),
-                    samples,
-                    t.burst_messages
-                );
-            }
-            if b.latencies_us.len() < samples || b.burst_messages < bursts || sent_size != size {
-                println!(
-                    "          note: the bridge row sent {sent_size}-byte clouds; got {} of {} latency and {} of \
-                     {bursts} burst messages",
-                    b.latencies_us.len(),
-                    samples,
-                    b.burst_messages
-                );
-            }
-            if z.latencies_us.len() < cli.samples || z.burst_messages < burst {
-                println!(
-                    "          note: the zenoh row got {} of {} latency and {} of {burst} burst messages",
-                    z.latencies_us.len(),
-                    cli.samples,
-                    z.burst_messages
-                );
-            }
+            row(&cli, size, (l * 100 + n) * 100, dir.path(), net, &certs)?;
         }
+    }
+    Ok(())
+}
+
+/// Certificates for the TLS rows, made by `supervisor certs` (the addresses dialled in their SANs).
+fn make_certs(dir: &std::path::Path, links: &[(String, Option<Shaped>)]) -> anyhow::Result<std::path::PathBuf> {
+    let certs = dir.join("certs");
+    let supervisor = std::env::current_exe()?.parent().context("bin dir")?.join("supervisor");
+    let mut made = Command::new(&supervisor);
+    made.args(["certs", "--days", "1", "--name", "r", "--name", "base", "--dir"]).arg(&certs);
+    for sh in links.iter().filter_map(|(_, s)| s.as_ref()) {
+        made.args(["--san", &sh.net.host]);
+    }
+    let out =
+        made.output().with_context(|| format!("{} certs (build the workspace's binaries)", supervisor.display()))?;
+    if !out.status.success() {
+        bail!("supervisor certs: {}", String::from_utf8_lossy(&out.stderr));
+    }
+    Ok(certs)
+}
+
+/// One row of the table: bare Zenoh, then rounds of the bridge over TCP and over TLS.
+fn row(
+    cli: &Cli,
+    size: usize,
+    id0: usize,
+    dir: &std::path::Path,
+    net: &Net,
+    certs: &std::path::Path,
+) -> anyhow::Result<()> {
+    let burst = (cli.burst_bytes / size.max(1)).clamp(20, 20_000);
+    let z = bare(size, cli, burst, net)?;
+    let mbs = |s: &Seen, bytes: usize| s.burst_messages as f64 * bytes as f64 / 1e6 / s.burst_s.max(1e-9);
+    // Rounds of tcp then tls; the rows' columns pool the rounds, the ratios are per round.
+    let (mut b, mut t, mut sent_size) = (Seen::default(), Seen::default(), size);
+    let (mut p50_ratios, mut mbs_ratios) = (vec![], vec![]);
+    for round in 0..cli.rounds.max(1) {
+        let id = id0 + round;
+        let (rb, sz) = bridged(size, cli, burst, dir, id, net, None)?;
+        let (rt, _) = bridged(size, cli, burst, dir, id, net, Some(certs))?;
+        sent_size = sz;
+        p50_ratios.push(pct(&rt.latencies_us, 0.5) / pct(&rb.latencies_us, 0.5));
+        mbs_ratios.push(mbs(&rt, sz) / mbs(&rb, sz));
+        b.pool(rb);
+        t.pool(rt);
+    }
+    println!(
+        "{:>9} | {:>9.0} {:>9.0} {:>8.1} | {:>10.0} {:>9.0} {:>8.1} {:>9.0} | {:>6.2} | {:>8.0} {:>9.0} {:>8.1} | {:>11.2} {:>9.2}",
+        size,
+        pct(&z.latencies_us, 0.5),
+        pct(&z.latencies_us, 0.99),
+        mbs(&z, size),
+        pct(&b.latencies_us, 0.5),
+        pct(&b.latencies_us, 0.99),
+        mbs(&b, sent_size),
+        pct(&b.last_hop_us, 0.5),
+        pct(&b.latencies_us, 0.5) / pct(&z.latencies_us, 0.5),
+        pct(&t.latencies_us, 0.5),
+        pct(&t.latencies_us, 0.99),
+        mbs(&t, sent_size),
+        median(&p50_ratios),
+        median(&mbs_ratios)
+    );
+    if p50_ratios.len() > 1 {
+        let range = |v: &[f64]| {
+            let (lo, hi) = v.iter().fold((f64::MAX, f64::MIN), |(lo, hi), &x| (lo.min(x), hi.max(x)));
+            format!("{lo:.2}-{hi:.2}")
+        };
+        println!(
+            "          tls/tcp over {} rounds: p50 {}, MB/s {}",
+            p50_ratios.len(),
+            range(&p50_ratios),
+            range(&mbs_ratios)
+        );
+    }
+    let (samples, bursts) = (cli.samples * cli.rounds.max(1), burst * cli.rounds.max(1));
+    if t.latencies_us.len() < samples || t.burst_messages < bursts {
+        println!(
+            "          note: the tls row got {} of {} latency and {} of {bursts} burst messages",
+            t.latencies_us.len(),
+            samples,
+            t.burst_messages
+        );
+    }
+    if b.latencies_us.len() < samples || b.burst_messages < bursts || sent_size != size {
+        println!(
+            "          note: the bridge row sent {sent_size}-byte clouds; got {} of {} latency and {} of \
+             {bursts} burst messages",
+            b.latencies_us.len(),
+            samples,
+            b.burst_messages
+        );
+    }
+    if z.latencies_us.len() < cli.samples || z.burst_messages < burst {
+        println!(
+            "          note: the zenoh row got {} of {} latency and {} of {burst} burst messages",
+            z.latencies_us.len(),
+            cli.samples,
+            z.burst_messages
+        );
     }
     Ok(())
 }

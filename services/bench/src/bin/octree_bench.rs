@@ -155,45 +155,9 @@ fn run(mut args: Args) -> anyhow::Result<()> {
     let points = scans.num_points();
     let queries = query_points();
 
-    let mut cpp_runs: Vec<Vec<CppRun>> = resolutions.iter().map(|_| Vec::new()).collect();
-    let mut our_runs: Vec<Vec<OurRun>> = resolutions.iter().map(|_| Vec::new()).collect();
-    let mut first_trees: Vec<Option<OcTree>> = resolutions.iter().map(|_| None).collect();
-    for rep in 0..args.reps {
-        for (i, res) in resolutions.iter().enumerate() {
-            let tag = format!("[rep {}/{}] res {} m", rep + 1, args.reps, res.text);
-            // The first C++ run of a resolution also writes its maps (after everything timed).
-            let write = if rep == 0 { Some(maps_dir.as_path()) } else { None };
-            let cpp_first = rep % 2 == 0;
-            for side in if cpp_first { [true, false] } else { [false, true] } {
-                if side {
-                    eprintln!("{tag}: OctoMap bench_octomap ...");
-                    let c = run_cpp(&cpp_bin, &scans_path, &scene_path, res, write)?;
-                    eprintln!(
-                        "{tag}: OctoMap insert {:.3} s (CPU {:.3} s), {:.0} k points/s, query {:.1} ns",
-                        c.insert_s,
-                        c.insert_cpu_s,
-                        points as f64 / c.insert_s / 1e3,
-                        c.query_point_ns
-                    );
-                    cpp_runs[i].push(c);
-                } else {
-                    eprintln!("{tag}: ours ({} ray threads) ...", args.threads);
-                    let (o, tree) = run_ours(&scans, res.value, args.threads, args.track_changes, &queries)?;
-                    eprintln!(
-                        "{tag}: ours insert {:.3} s (CPU {:.3} s), {:.0} k points/s, query {:.1} ns",
-                        o.insert_s,
-                        o.insert_cpu_s,
-                        points as f64 / o.insert_s / 1e3,
-                        o.query_point_ns
-                    );
-                    if first_trees[i].is_none() {
-                        first_trees[i] = Some(tree);
-                    }
-                    our_runs[i].push(o);
-                }
-            }
-        }
-    }
+    let runs =
+        Interleaved { args: &args, scans: &scans, scans_path: &scans_path, scene_path: &scene_path, cpp_bin: &cpp_bin };
+    let (cpp_runs, our_runs, first_trees) = runs.run(&resolutions, &maps_dir, &queries)?;
     let load_after = load_average();
 
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
@@ -225,6 +189,65 @@ fn run(mut args: Args) -> anyhow::Result<()> {
         println!("WARNING: the maps do not agree (see above)");
     }
     Ok(())
+}
+
+/// The timed runs: per repetition and resolution, OctoMap's C++ bench and ours, the order
+/// alternating between repetitions (a machine that slows down does not favour one side).
+struct Interleaved<'a> {
+    args: &'a Args,
+    scans: &'a bench_data::ScanFile,
+    scans_path: &'a Path,
+    scene_path: &'a Path,
+    cpp_bin: &'a Path,
+}
+
+/// The C++ runs, our runs, and our first tree, per resolution.
+type Runs = (Vec<Vec<CppRun>>, Vec<Vec<OurRun>>, Vec<Option<OcTree>>);
+
+impl Interleaved<'_> {
+    fn run(&self, resolutions: &[Res], maps_dir: &Path, queries: &[[f32; 3]]) -> anyhow::Result<Runs> {
+        let mut cpp_runs: Vec<Vec<CppRun>> = resolutions.iter().map(|_| Vec::new()).collect();
+        let mut our_runs: Vec<Vec<OurRun>> = resolutions.iter().map(|_| Vec::new()).collect();
+        let mut first_trees: Vec<Option<OcTree>> = resolutions.iter().map(|_| None).collect();
+        for rep in 0..self.args.reps {
+            for (i, res) in resolutions.iter().enumerate() {
+                let tag = format!("[rep {}/{}] res {} m", rep + 1, self.args.reps, res.text);
+                // The first C++ run of a resolution also writes its maps (after everything timed).
+                let write = if rep == 0 { Some(maps_dir) } else { None };
+                let cpp_first = rep % 2 == 0;
+                for side in if cpp_first { [true, false] } else { [false, true] } {
+                    if side {
+                        eprintln!("{tag}: OctoMap bench_octomap ...");
+                        let c = run_cpp(self.cpp_bin, self.scans_path, self.scene_path, res, write)?;
+                        eprintln!(
+                            "{tag}: OctoMap insert {:.3} s (CPU {:.3} s), {:.0} k points/s, query {:.1} ns",
+                            c.insert_s,
+                            c.insert_cpu_s,
+                            self.scans.num_points() as f64 / c.insert_s / 1e3,
+                            c.query_point_ns
+                        );
+                        cpp_runs[i].push(c);
+                    } else {
+                        eprintln!("{tag}: ours ({} ray threads) ...", self.args.threads);
+                        let (o, tree) =
+                            run_ours(self.scans, res.value, self.args.threads, self.args.track_changes, queries)?;
+                        eprintln!(
+                            "{tag}: ours insert {:.3} s (CPU {:.3} s), {:.0} k points/s, query {:.1} ns",
+                            o.insert_s,
+                            o.insert_cpu_s,
+                            self.scans.num_points() as f64 / o.insert_s / 1e3,
+                            o.query_point_ns
+                        );
+                        if first_trees[i].is_none() {
+                            first_trees[i] = Some(tree);
+                        }
+                        our_runs[i].push(o);
+                    }
+                }
+            }
+        }
+        Ok((cpp_runs, our_runs, first_trees))
+    }
 }
 
 // ---------------------------------------------------------------------------------------- setup
@@ -755,6 +778,11 @@ fn print_table(res: &Res, points: usize, cpp: &[CppRun], ours: &[OurRun], agr: &
     );
     row("leaf hash", o0.leaf_hash.clone(), c0.leaf_hash.clone(), None, &hash_note);
 
+    hash_ok && print_agreement(agr)
+}
+
+/// The maps' voxel agreement (ours against OctoMap's); true when they agree in every voxel.
+fn print_agreement(agr: &Agreement) -> bool {
     let mut voxels_ok = true;
     if let Some((o, c, both, same)) = agr.occupied {
         let union = o + c - both;
@@ -782,7 +810,7 @@ fn print_table(res: &Res, points: usize, cpp: &[CppRun], ours: &[OurRun], agr: &
         voxels_ok = false;
         println!("voxel agreement not checked: {e}");
     }
-    hash_ok && voxels_ok
+    voxels_ok
 }
 
 /// Points per second as `x.xxx M/s`.

@@ -188,119 +188,8 @@ fn run_inner(cli: &Cli) -> anyhow::Result<()> {
         .stderr(log)
         .spawn()
         .context("starting the supervisor (build it: cargo build --release --workspace)")?;
-
-    let ctx = ros2_client::Context::new().map_err(|e| anyhow::anyhow!("DDS participant: {e:?}"))?;
-    let mut node = ctx
-        .new_node(NodeName::new("/", "ros2_bench").map_err(|e| anyhow::anyhow!("{e:?}"))?, NodeOptions::new())
-        .map_err(|e| anyhow::anyhow!("node: {e:?}"))?;
-    let qos = QosProfile::publisher_default().history(ros2_client::qos::History::KeepLast { depth: 4 });
-    let topic = |node: &mut ros2_client::Node, name: &str, ty: &str| {
-        let (pkg, t) = ty.split_once("/msg/").unwrap_or_default();
-        node.create_topic(&Name::parse(name).expect("topic name"), MessageTypeName::new(pkg, t), &qos)
-            .map_err(|e| anyhow::anyhow!("topic {name}: {e:?}"))
-    };
-    let scan_t = topic(&mut node, "/scan", LaserScan::TYPE_NAME)?;
-    let odom_t = topic(&mut node, "/odom", Odometry::TYPE_NAME)?;
-    let cloud_t = topic(&mut node, "/cloud", PointCloud2::TYPE_NAME)?;
-    let scan_p = node.create_publisher::<LaserScan>(&scan_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
-    let odom_p = node.create_publisher::<Odometry>(&odom_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
-    let cloud_p =
-        node.create_publisher::<PointCloud2<'static>>(&cloud_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
-    // Subscribers to the second gateway's outputs, as RViz would be: a route with no subscriber
-    // publishes nothing.
-    let map_t = topic(&mut node, "/map", OccupancyGrid::TYPE_NAME)?;
-    let pose_t = topic(&mut node, "/slam/grid/pose", PoseWithCovarianceStamped::TYPE_NAME)?;
-    let tf_t = topic(&mut node, "/tf", TFMessage::TYPE_NAME)?;
-    let _map_s =
-        node.create_subscription::<OccupancyGrid<'static>>(&map_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
-    let _pose_s =
-        node.create_subscription::<PoseWithCovarianceStamped>(&pose_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
-    let _tf_s = node.create_subscription::<TFMessage>(&tf_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
-    let t0 = Instant::now();
-    // The gateways' readers and writers, as DDS discovery knows them (ros2-client's matched
-    // counts need its spinner, which neither side runs).
-    while node.subscription_count("/scan") == 0
-        || node.subscription_count("/odom") == 0
-        || (cli.cloud_hz > 0.0 && node.subscription_count("/cloud") == 0)
-        || ["/map", "/slam/grid/pose", "/tf"].iter().any(|t| node.publisher_count(t) == 0)
-    {
-        if t0.elapsed() > Duration::from_secs(60) || sup.try_wait()?.is_some() {
-            let _ = sup.kill();
-            let log = std::fs::read_to_string(dir.path().join("supervisor.log")).unwrap_or_default();
-            bail!("the gateway's readers did not match within 60 s (or the run ended); the run's log:\n{log}");
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    std::thread::sleep(Duration::from_millis(500));
-
-    // A cloud of points on a 10 m sphere (x, y, z FLOAT32 and a padding float, as many drivers).
-    let n = cli.cloud_points;
-    let mut data = Vec::with_capacity(n * 16);
-    for i in 0..n {
-        let a = i as f32 * 0.001;
-        for v in [10.0 * a.cos(), 10.0 * a.sin(), (i % 100) as f32 * 0.01, 0.0] {
-            data.extend_from_slice(&v.to_le_bytes());
-        }
-    }
-    let fields: Vec<PointField> = ["x", "y", "z", "intensity"]
-        .iter()
-        .enumerate()
-        .map(|(k, f)| PointField { name: f.to_string(), offset: 4 * k as u32, datatype: POINT_FIELD_FLOAT32, count: 1 })
-        .collect();
-    let ranges: Vec<f32> = (0..cli.beams).map(|i| 2.0 + (i % 50) as f32 * 0.1).collect();
-    let inc = std::f32::consts::PI * 1.5 / cli.beams as f32;
-
-    let scan_period = Duration::from_secs_f64(1.0 / cli.scan_hz);
-    let cloud_period = (cli.cloud_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / cli.cloud_hz));
-    let start = Instant::now();
-    let (mut next_scan, mut next_cloud) = (start, start);
-    let (mut scans, mut clouds, mut x) = (0u64, 0u64, 0.0f64);
-    while start.elapsed().as_secs_f64() < cli.seconds {
-        let now = Instant::now();
-        if now >= next_scan {
-            let t = now_ns();
-            x += 0.01;
-            let mut odom = Odometry { child_frame_id: "base_link".into(), ..Default::default() };
-            odom.header = Header { stamp: unix_time(t), frame_id: "odom".into() };
-            odom.pose.pose.position.x = x;
-            odom_p.publish(odom).map_err(|e| anyhow::anyhow!("odometry: {e}"))?;
-            let scan = LaserScan {
-                header: Header { stamp: unix_time(t), frame_id: "laser".into() },
-                angle_min: -0.75 * std::f32::consts::PI,
-                angle_max: -0.75 * std::f32::consts::PI + inc * (cli.beams - 1) as f32,
-                angle_increment: inc,
-                range_min: 0.05,
-                range_max: 30.0,
-                ranges: ranges.clone(),
-                ..Default::default()
-            };
-            scan_p.publish(scan).map_err(|e| anyhow::anyhow!("scan: {e}"))?;
-            scans += 1;
-            next_scan += scan_period;
-        }
-        if let Some(p) = cloud_period
-            && now >= next_cloud
-        {
-            let cloud = PointCloud2 {
-                header: Header { stamp: unix_time(now_ns()), frame_id: "lidar".into() },
-                height: 1,
-                width: n as u32,
-                fields: fields.clone(),
-                is_bigendian: false,
-                point_step: 16,
-                row_step: 16 * n as u32,
-                data: Bytes::owned(data.clone()),
-                is_dense: true,
-            };
-            cloud_p.publish(cloud).map_err(|e| anyhow::anyhow!("cloud: {e}"))?;
-            clouds += 1;
-            next_cloud += p;
-        }
-        let wake = next_scan.min(if cloud_period.is_some() { next_cloud } else { next_scan });
-        if let Some(d) = wake.checked_duration_since(Instant::now()) {
-            std::thread::sleep(d);
-        }
-    }
+    let peer = Peer::open(cli, &mut sup, dir.path())?;
+    let (scans, clouds) = peer.publish(cli)?;
     eprintln!("published {scans} scans, {clouds} clouds; waiting for the run to end");
     let end = Instant::now() + Duration::from_secs(120);
     let status = loop {
@@ -320,7 +209,159 @@ fn run_inner(cli: &Cli) -> anyhow::Result<()> {
     if std::env::var_os("ROS2_BENCH_LOG").is_some() {
         eprintln!("{}", std::fs::read_to_string(dir.path().join("supervisor.log")).unwrap_or_default());
     }
-    let out = dir.path().join("out");
+    print_report(cli, &dir.path().join("out"))
+}
+
+/// The ROS 2 side, as a robot's drivers and RViz would be: publishers of scans, odometry and
+/// clouds, subscribers of the map, the pose and the transforms (a route with no subscriber
+/// publishes nothing).
+struct Peer {
+    scan_p: ros2_client::Publisher<LaserScan>,
+    odom_p: ros2_client::Publisher<Odometry>,
+    cloud_p: ros2_client::Publisher<PointCloud2<'static>>,
+    _subscriptions: (
+        ros2_client::Subscription<OccupancyGrid<'static>>,
+        ros2_client::Subscription<PoseWithCovarianceStamped>,
+        ros2_client::Subscription<TFMessage>,
+    ),
+    _node: ros2_client::Node,
+}
+
+impl Peer {
+    /// Opens the node and waits until DDS discovery matched the gateways' readers and writers
+    /// (60 s at most, or until the run ends).
+    fn open(cli: &Cli, sup: &mut std::process::Child, dir: &Path) -> anyhow::Result<Self> {
+        let ctx = ros2_client::Context::new().map_err(|e| anyhow::anyhow!("DDS participant: {e:?}"))?;
+        let mut node = ctx
+            .new_node(NodeName::new("/", "ros2_bench").map_err(|e| anyhow::anyhow!("{e:?}"))?, NodeOptions::new())
+            .map_err(|e| anyhow::anyhow!("node: {e:?}"))?;
+        let qos = QosProfile::publisher_default().history(ros2_client::qos::History::KeepLast { depth: 4 });
+        let topic = |node: &mut ros2_client::Node, name: &str, ty: &str| {
+            let (pkg, t) = ty.split_once("/msg/").unwrap_or_default();
+            node.create_topic(&Name::parse(name).expect("topic name"), MessageTypeName::new(pkg, t), &qos)
+                .map_err(|e| anyhow::anyhow!("topic {name}: {e:?}"))
+        };
+        let scan_t = topic(&mut node, "/scan", LaserScan::TYPE_NAME)?;
+        let odom_t = topic(&mut node, "/odom", Odometry::TYPE_NAME)?;
+        let cloud_t = topic(&mut node, "/cloud", PointCloud2::TYPE_NAME)?;
+        let scan_p = node.create_publisher::<LaserScan>(&scan_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        let odom_p = node.create_publisher::<Odometry>(&odom_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        let cloud_p =
+            node.create_publisher::<PointCloud2<'static>>(&cloud_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        // Subscribers to the second gateway's outputs, as RViz would be: a route with no subscriber
+        // publishes nothing.
+        let map_t = topic(&mut node, "/map", OccupancyGrid::TYPE_NAME)?;
+        let pose_t = topic(&mut node, "/slam/grid/pose", PoseWithCovarianceStamped::TYPE_NAME)?;
+        let tf_t = topic(&mut node, "/tf", TFMessage::TYPE_NAME)?;
+        let map_s =
+            node.create_subscription::<OccupancyGrid<'static>>(&map_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        let pose_s = node
+            .create_subscription::<PoseWithCovarianceStamped>(&pose_t, None)
+            .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        let tf_s = node.create_subscription::<TFMessage>(&tf_t, None).map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        let t0 = Instant::now();
+        // The gateways' readers and writers, as DDS discovery knows them (ros2-client's matched
+        // counts need its spinner, which neither side runs).
+        while node.subscription_count("/scan") == 0
+            || node.subscription_count("/odom") == 0
+            || (cli.cloud_hz > 0.0 && node.subscription_count("/cloud") == 0)
+            || ["/map", "/slam/grid/pose", "/tf"].iter().any(|t| node.publisher_count(t) == 0)
+        {
+            if t0.elapsed() > Duration::from_secs(60) || sup.try_wait()?.is_some() {
+                let _ = sup.kill();
+                let log = std::fs::read_to_string(dir.join("supervisor.log")).unwrap_or_default();
+                bail!("the gateway's readers did not match within 60 s (or the run ended); the run's log:\n{log}");
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        std::thread::sleep(Duration::from_millis(500));
+
+        Ok(Self { scan_p, odom_p, cloud_p, _subscriptions: (map_s, pose_s, tf_s), _node: node })
+    }
+
+    /// Publishes scans with their odometry at `scan_hz` and clouds at `cloud_hz` for `seconds`.
+    /// Returns how many of each.
+    fn publish(&self, cli: &Cli) -> anyhow::Result<(u64, u64)> {
+        let (scan_p, odom_p, cloud_p) = (&self.scan_p, &self.odom_p, &self.cloud_p);
+        // A cloud of points on a 10 m sphere (x, y, z FLOAT32 and a padding float, as many drivers).
+        let n = cli.cloud_points;
+        let mut data = Vec::with_capacity(n * 16);
+        for i in 0..n {
+            let a = i as f32 * 0.001;
+            for v in [10.0 * a.cos(), 10.0 * a.sin(), (i % 100) as f32 * 0.01, 0.0] {
+                data.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        let fields: Vec<PointField> = ["x", "y", "z", "intensity"]
+            .iter()
+            .enumerate()
+            .map(|(k, f)| PointField {
+                name: f.to_string(),
+                offset: 4 * k as u32,
+                datatype: POINT_FIELD_FLOAT32,
+                count: 1,
+            })
+            .collect();
+        let ranges: Vec<f32> = (0..cli.beams).map(|i| 2.0 + (i % 50) as f32 * 0.1).collect();
+        let inc = std::f32::consts::PI * 1.5 / cli.beams as f32;
+
+        let scan_period = Duration::from_secs_f64(1.0 / cli.scan_hz);
+        let cloud_period = (cli.cloud_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / cli.cloud_hz));
+        let start = Instant::now();
+        let (mut next_scan, mut next_cloud) = (start, start);
+        let (mut scans, mut clouds, mut x) = (0u64, 0u64, 0.0f64);
+        while start.elapsed().as_secs_f64() < cli.seconds {
+            let now = Instant::now();
+            if now >= next_scan {
+                let t = now_ns();
+                x += 0.01;
+                let mut odom = Odometry { child_frame_id: "base_link".into(), ..Default::default() };
+                odom.header = Header { stamp: unix_time(t), frame_id: "odom".into() };
+                odom.pose.pose.position.x = x;
+                odom_p.publish(odom).map_err(|e| anyhow::anyhow!("odometry: {e}"))?;
+                let scan = LaserScan {
+                    header: Header { stamp: unix_time(t), frame_id: "laser".into() },
+                    angle_min: -0.75 * std::f32::consts::PI,
+                    angle_max: -0.75 * std::f32::consts::PI + inc * (cli.beams - 1) as f32,
+                    angle_increment: inc,
+                    range_min: 0.05,
+                    range_max: 30.0,
+                    ranges: ranges.clone(),
+                    ..Default::default()
+                };
+                scan_p.publish(scan).map_err(|e| anyhow::anyhow!("scan: {e}"))?;
+                scans += 1;
+                next_scan += scan_period;
+            }
+            if let Some(p) = cloud_period
+                && now >= next_cloud
+            {
+                let cloud = PointCloud2 {
+                    header: Header { stamp: unix_time(now_ns()), frame_id: "lidar".into() },
+                    height: 1,
+                    width: n as u32,
+                    fields: fields.clone(),
+                    is_bigendian: false,
+                    point_step: 16,
+                    row_step: 16 * n as u32,
+                    data: Bytes::owned(data.clone()),
+                    is_dense: true,
+                };
+                cloud_p.publish(cloud).map_err(|e| anyhow::anyhow!("cloud: {e}"))?;
+                clouds += 1;
+                next_cloud += p;
+            }
+            let wake = next_scan.min(if cloud_period.is_some() { next_cloud } else { next_scan });
+            if let Some(d) = wake.checked_duration_since(Instant::now()) {
+                std::thread::sleep(d);
+            }
+        }
+        Ok((scans, clouds))
+    }
+}
+
+/// The tables: ROS 2 → pipeline per route, pipeline → ROS 2 per topic.
+fn print_report(cli: &Cli, out: &Path) -> anyhow::Result<()> {
     let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json"))?)?;
     let lat = std::fs::read_to_string(out.join("latency.csv"))?;
     let hop = |key: &str| -> (String, String) {
