@@ -13,6 +13,7 @@
 
 #[cfg(feature = "pose-graph")]
 pub mod backend;
+pub mod config;
 pub mod correlative;
 pub mod drift;
 pub mod export;

@@ -32,6 +32,7 @@ pub mod inbox;
 pub mod order;
 pub mod refusals;
 pub mod relay;
+pub mod routes;
 pub mod session;
 pub mod stage;
 pub mod summary;

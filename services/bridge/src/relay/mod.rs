@@ -48,6 +48,9 @@ use rustls::pki_types::{CertificateDer, PrivateKeyDer, ServerName, UnixTime};
 
 use pipeline_runtime::StageError;
 
+mod tls;
+use tls::*;
+
 /// The longest a TLS handshake and the peer's first Zenoh message may take.
 const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 /// Handshakes in progress at most (more: refused and counted, against a flood of half-open
@@ -270,105 +273,6 @@ pub struct RefusedLinks {
     pub reason: String,
     /// How many.
     pub links: u64,
-}
-
-/// Reads the certificates of a PEM file.
-fn certificates(path: &std::path::Path) -> Result<Vec<CertificateDer<'static>>, String> {
-    let certs: Vec<_> = CertificateDer::pem_file_iter(path)
-        .map_err(|e| format!("cannot read {}: {e}", path.display()))?
-        .collect::<Result<_, _>>()
-        .map_err(|e| format!("{}: not PEM certificates ({e})", path.display()))?;
-    if certs.is_empty() {
-        return Err(format!("{}: no certificate in it", path.display()));
-    }
-    Ok(certs)
-}
-
-/// A server certificate verifier that checks the chain and validity but not the name dialled
-/// (`verify_name = false`).
-#[derive(Debug)]
-struct ChainOnly(Arc<rustls::client::WebPkiServerVerifier>);
-
-impl rustls::client::danger::ServerCertVerifier for ChainOnly {
-    fn verify_server_cert(
-        &self,
-        end_entity: &CertificateDer<'_>,
-        intermediates: &[CertificateDer<'_>],
-        server_name: &ServerName<'_>,
-        ocsp_response: &[u8],
-        now: UnixTime,
-    ) -> Result<rustls::client::danger::ServerCertVerified, rustls::Error> {
-        match self.0.verify_server_cert(end_entity, intermediates, server_name, ocsp_response, now) {
-            Err(rustls::Error::InvalidCertificate(rustls::CertificateError::NotValidForName))
-            | Err(rustls::Error::InvalidCertificate(rustls::CertificateError::NotValidForNameContext { .. })) => {
-                Ok(rustls::client::danger::ServerCertVerified::assertion())
-            }
-            other => other,
-        }
-    }
-
-    fn verify_tls12_signature(
-        &self,
-        message: &[u8],
-        cert: &CertificateDer<'_>,
-        dss: &rustls::DigitallySignedStruct,
-    ) -> Result<rustls::client::danger::HandshakeSignatureValid, rustls::Error> {
-        self.0.verify_tls12_signature(message, cert, dss)
-    }
-
-    fn verify_tls13_signature(
-        &self,
-        message: &[u8],
-        cert: &CertificateDer<'_>,
-        dss: &rustls::DigitallySignedStruct,
-    ) -> Result<rustls::client::danger::HandshakeSignatureValid, rustls::Error> {
-        self.0.verify_tls13_signature(message, cert, dss)
-    }
-
-    fn supported_verify_schemes(&self) -> Vec<rustls::SignatureScheme> {
-        self.0.supported_verify_schemes()
-    }
-}
-
-/// The rustls configurations of `tls`: both sides present this host's certificate and require
-/// the peer's, signed by the CA.
-fn configs(tls: &crate::TlsSettings) -> Result<(rustls::ServerConfig, rustls::ClientConfig), String> {
-    let provider = Arc::new(rustls::crypto::aws_lc_rs::default_provider());
-    let mut roots = rustls::RootCertStore::empty();
-    for c in certificates(&tls.ca_certificate)? {
-        roots
-            .add(c)
-            .map_err(|e| format!("{}: not a CA certificate rustls takes ({e})", tls.ca_certificate.display()))?;
-    }
-    let roots = Arc::new(roots);
-    let chain = certificates(&tls.certificate)?;
-    let key = PrivateKeyDer::from_pem_file(&tls.private_key)
-        .map_err(|e| format!("{}: no private key read ({e})", tls.private_key.display()))?;
-    let client_verifier = rustls::server::WebPkiClientVerifier::builder_with_provider(roots.clone(), provider.clone())
-        .build()
-        .map_err(|e| format!("client certificate verifier: {e}"))?;
-    // TLS 1.3 only: no renegotiation or other 1.2 messages that need an answer mid-stream.
-    let server = rustls::ServerConfig::builder_with_provider(provider.clone())
-        .with_protocol_versions(&[&rustls::version::TLS13])
-        .map_err(|e| e.to_string())?
-        .with_client_cert_verifier(client_verifier)
-        .with_single_cert(chain.clone(), key.clone_key())
-        .map_err(|e| format!("{} with {}: {e}", tls.certificate.display(), tls.private_key.display()))?;
-    let server_verifier = rustls::client::WebPkiServerVerifier::builder_with_provider(roots.clone(), provider.clone())
-        .build()
-        .map_err(|e| format!("server certificate verifier: {e}"))?;
-    let builder = rustls::ClientConfig::builder_with_provider(provider)
-        .with_protocol_versions(&[&rustls::version::TLS13])
-        .map_err(|e| e.to_string())?;
-    let builder = if tls.verify_name {
-        builder.with_webpki_verifier(server_verifier)
-    } else {
-        builder.dangerous().with_custom_certificate_verifier(Arc::new(ChainOnly(server_verifier)))
-    };
-    let client = builder
-        .with_client_auth_cert(chain, key)
-        .map_err(|e| format!("{} with {}: {e}", tls.certificate.display(), tls.private_key.display()))?;
-    Ok((server, client))
 }
 
 /// The prefix of the session sockets' directories.
@@ -1062,51 +966,4 @@ impl Joined {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_zid_is_32_lowercase_hex_digits_without_a_leading_zero_and_differs_per_name() {
-        for n in ["auv1", "auv2", "base", ""] {
-            let h = zid_hex(n);
-            assert_eq!(h.len(), 32, "{n}: {h}");
-            assert!(!h.starts_with('0'));
-            assert!(h.chars().all(|c| c.is_ascii_digit() || ('a'..='f').contains(&c)));
-        }
-        assert_ne!(zid_of("auv1"), zid_of("auv2"));
-        // Pinned: peers of users' own compute it (docs/security.md's recipe gives this too).
-        assert_eq!(zid_hex("auv2"), "e7dcc051d576d4055cbf2766dd8d3631");
-        assert_eq!(zid_of("auv1"), zid_of("auv1"));
-    }
-
-    #[test]
-    fn counts_keep_at_most_max_pairs_apart_then_count_the_rest_together() {
-        let mut c = BTreeMap::new();
-        for i in 0..MAX_PAIRS + 10 {
-            count(&mut c, &format!("10.0.{}.{}", i / 256, i % 256), "TLS handshake failed");
-        }
-        assert_eq!(count(&mut c, "10.0.0.1", "TLS handshake failed"), 2, "a pair kept apart goes on counting");
-        assert_eq!(c.len(), MAX_PAIRS + 1);
-        assert_eq!(c[&(OTHER_PEERS.to_string(), "TLS handshake failed".to_string())], 10);
-        assert_eq!(c.values().sum::<u64>(), (MAX_PAIRS + 11) as u64, "every link counted");
-    }
-
-    #[test]
-    fn the_first_zid_is_read_from_an_init_message_and_anything_else_is_refused() {
-        let zid: u128 = 0x8123_4567_89ab_cdef_0011_2233_4455_6677;
-        let mut m = vec![0, 0, 0x01 | 0x20, 0x09, (15 << 4) | 0x01];
-        m.extend_from_slice(&zid.to_le_bytes());
-        m.extend_from_slice(&[1, 2, 3]);
-        let len = (m.len() - 2) as u16;
-        m[..2].copy_from_slice(&len.to_le_bytes());
-        assert_eq!(first_zid(&m), Ok(Some(zid)));
-        for k in 0..m.len().min(20) {
-            assert_eq!(first_zid(&m[..k]), Ok(None), "{k} bytes");
-        }
-        // A short id (Zenoh drops the most significant zero bytes).
-        let short = [3u8, 0, 0x01, 0x09, 0x01 << 4, 0x34, 0x12];
-        assert_eq!(first_zid(&short), Ok(Some(0x1234)));
-        // Not an InitSyn/InitAck (a frame: id 0x05).
-        assert!(first_zid(&[3, 0, 0x05, 0x09, 0x10, 1, 2]).is_err());
-    }
-}
+mod tests;
