@@ -1,8 +1,11 @@
 //! The layering rules of the docs/ARCHITECTURE.md ("What may depend on what"), checked on `cargo metadata`:
 //! - an algorithm crate (algorithms/) depends on no iceoryx2, shared_types or anything under
 //!   services/ (the maths stays pure and testable without IPC);
-//! - a stage crate (services/ minus the runtime, the supervisor, the test kit and the bench)
-//!   depends on no other stage;
+//! - every crate under services/ stands in one of its four rooms: platform/ (the runtime, the
+//!   supervisor), libraries/ (no process: ROS 2 messages, the byte topics), stages/ (one process
+//!   kind each), tools/ (benches, test processes);
+//! - a stage crate (services/stages/) depends on no other stage; the platform and the libraries
+//!   depend on no stage and no tool;
 //! - the supervisor depends on the runtime and shared_types only among the workspace's crates
 //!   (kinds are plug-ins it finds by name);
 //! - no crate's modules import each other in a loop (read from the sources).
@@ -50,11 +53,23 @@ fn algorithms_stages_and_the_supervisor_depend_only_on_what_the_readme_allows() 
     let (root, packages) = workspace();
     let under = |p: &Package, dir: &str| p.dir.starts_with(root.join(dir));
     let by_name: BTreeMap<&str, &Package> = packages.iter().map(|p| (p.name.as_str(), p)).collect();
-    let not_stages = ["pipeline_runtime", "supervisor", "testkit", "pipeline_bench", "ros2_interop", "wire_topics"];
-    let is_stage =
-        |name: &str| by_name.get(name).is_some_and(|p| under(p, "services") && !not_stages.contains(&p.name.as_str()));
+    let is_stage = |name: &str| by_name.get(name).is_some_and(|p| under(p, "services/stages"));
+    let is_tool = |name: &str| by_name.get(name).is_some_and(|p| under(p, "services/tools"));
     let is_service = |name: &str| by_name.get(name).is_some_and(|p| under(p, "services"));
     let mut violations = vec![];
+    let rooms = ["services/platform", "services/libraries", "services/stages", "services/tools"];
+    for p in packages.iter().filter(|p| under(p, "services")) {
+        if !rooms.iter().any(|r| under(p, r)) {
+            violations.push(format!("{} ({}) stands in none of {rooms:?}", p.name, p.dir.display()));
+        }
+        if under(p, "services/platform") || under(p, "services/libraries") {
+            for (d, kind) in p.deps.iter().filter(|(_, k)| k == "normal") {
+                if is_stage(d) || is_tool(d) {
+                    violations.push(format!("{} (platform or library) depends on {d} ({kind})", p.name));
+                }
+            }
+        }
+    }
     let stages: Vec<&str> = packages.iter().filter(|p| is_stage(&p.name)).map(|p| p.name.as_str()).collect();
     assert!(stages.len() >= 6, "stage crates not recognised: {stages:?}");
     let algorithms: Vec<&Package> = packages.iter().filter(|p| under(p, "algorithms")).collect();

@@ -12,7 +12,7 @@ use shared_types::{BuoyRange, MsgHeader};
 #[test]
 fn ranges_to_too_few_buoys_leave_the_filter_waiting_and_the_summary_says_why() {
     let dir = tempfile::tempdir().unwrap();
-    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/default.toml");
+    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../config/default.toml");
     let mut h = StageHarness::<BuoyEkfStage>::from_config_file(&config, "buoy", dir.path()).expect("opens");
     // Two of the five buoys answer; the default needs four distinct ones to start.
     for k in 1..=6u64 {
@@ -37,7 +37,7 @@ fn ranges_to_too_few_buoys_leave_the_filter_waiting_and_the_summary_says_why() {
 #[test]
 fn only_the_end_of_a_process_that_feeds_it_ends_the_stage() {
     let dir = tempfile::tempdir().unwrap();
-    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/default.toml");
+    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../config/default.toml");
     let mut h = StageHarness::<BuoyEkfStage>::from_config_file(&config, "buoy", dir.path()).expect("opens");
     let header = MsgHeader { stamp_ns: 1_000_000_000, ..Default::default() };
     let ranges = [BuoyRange { buoy_id: 0, _reserved: 0, range_m: 20.0, sigma_m: 0.3 }];

@@ -255,7 +255,7 @@ impl Interleaved<'_> {
 /// The workspace root: from the compile-time manifest dir, else the nearest ancestor of the
 /// current dir holding a `[workspace]` Cargo.toml, else the current dir.
 fn workspace_root() -> PathBuf {
-    let compiled = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let compiled = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../..");
     if compiled.join("Cargo.toml").is_file() {
         return compiled.canonicalize().unwrap_or(compiled);
     }

@@ -11,7 +11,7 @@ use shared_types::{BuoyFix, MsgHeader, PoseEstimate, SyncedPair};
 use synchronizer_stage::stage::SynchronizerStage;
 
 fn open(out: &Path) -> StageHarness<SynchronizerStage> {
-    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/default.toml");
+    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../config/default.toml");
     StageHarness::from_config_file(&config, "sync", out).expect("opens")
 }
 
