@@ -23,6 +23,14 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     // Every key of the main job's summary is declared in docs/summary.schema.json, with its type.
     let undeclared = crate::summary_schema::undeclared(&crate::summary_schema::schema(), &s);
     assert!(undeclared.is_empty(), "summary.json keys not in the schema: {undeclared:#?}");
+    // The keys are those the main job wrote before its summary was typed (issue 38), plus the two
+    // added on purpose (run.elapsed_s, processes.<name>.ready_rss_mib): nothing renamed or lost.
+    let listed = std::fs::read_to_string(format!("{}/main_job_summary_keys.txt", env!("CARGO_MANIFEST_DIR"))).unwrap();
+    let listed: std::collections::BTreeSet<String> =
+        listed.lines().filter(|l| !l.starts_with('#') && !l.is_empty()).map(String::from).collect();
+    let keys = crate::summary_schema::key_paths(&s);
+    let (gone, new): (Vec<_>, Vec<_>) = (listed.difference(&keys).collect(), keys.difference(&listed).collect());
+    assert!(gone.is_empty() && new.is_empty(), "summary keys gone: {gone:?}; new: {new:?}");
     // ... and the file validates against it by an implementation of JSON Schema we did not write.
     crate::summary_schema::assert_valid_by_jsonschema(&t.out_dir().join("summary.json"));
     // The tests read the parts as the structs the stages write.

@@ -95,22 +95,31 @@ port = PORT
     assert!(path["last"]["poses"].as_u64().unwrap_or(0) >= 2, "{seen:#}");
     assert_eq!(path["last"]["finite"], true, "{seen:#}");
     assert_eq!(path["last"]["frame_id"], "world", "{seen:#}");
-    let ate = summary["ate_m"]["grid_slam"].as_f64().expect("ATE");
-    let g = &summary["grid_slam"];
-    let m = &summary["octree_mapper"];
-    eprintln!("ATE {ate:.3} m; grid_slam {g}; mapper counters {} rebuild {}", m["counters"], m["rebuild"]);
+    use crate::summary_schema::part;
+    let grid: grid_slam_stage::summary::GridSlamPart = part(&summary);
+    let mapper: octree_mapper_stage::summary::OctreeMapperPart = part(&summary);
+    let ingest: ingest_stage::summary::IngestPart = part(&summary);
+    let ate = grid.ate_m.as_ref().and_then(|a| a.grid_slam).expect("ATE");
+    let g = grid.grid_slam.run.as_ref().expect("the filter ran");
+    let m = &mapper.octree_mapper;
+    let rebuild = m.end_of_stream.as_ref().and_then(|e| e.rebuild.as_ref()).expect("the map was rebuilt");
+    eprintln!(
+        "ATE {ate:.3} m; grid_slam {}; mapper counters {:?} rebuild {rebuild:?}",
+        summary["grid_slam"], m.counters
+    );
     assert!(ate <= 0.05, "ATE {ate}");
     // The pose graph ran behind the filter (the default) and closed the laps' loops.
-    let be = &g["back_end"];
-    assert_eq!(be["kind"], "pose_graph", "{be}");
-    assert!(be["error"].is_null(), "{be}");
-    assert!(be["report"]["loop_constraints"].as_u64().unwrap() > 20, "{be}");
-    assert!(be["report"]["max_correction_m"].as_f64().unwrap() < 0.5, "{be}");
-    assert_eq!(g["scans"], summary["ingest"]["messages"]["laser"], "every scan mapped");
-    let clouds = summary["ingest"]["messages"]["cloud"].as_u64().unwrap();
-    assert_eq!(m["counters"]["clouds_inserted"], clouds, "every cloud in the live map: {m}");
-    assert_eq!(m["rebuild"]["clouds"], clouds, "every cloud in the rebuilt map: {m}");
-    assert_eq!(m["rebuild"]["clouds_without_pose"], 0);
+    let be = &g.back_end;
+    assert_eq!(be.kind, grid_slam_stage::BackEndKind::PoseGraph, "{be:?}");
+    assert!(be.error.is_none(), "{be:?}");
+    let report = be.report.as_ref().expect("the back end's report");
+    assert!(report.loop_constraints > 20, "{report:?}");
+    assert!(report.max_correction_m < 0.5, "{report:?}");
+    assert_eq!(grid.grid_slam.scans, ingest.ingest.messages.laser, "every scan mapped");
+    let clouds = ingest.ingest.messages.cloud;
+    assert_eq!(m.counters.clouds_inserted, clouds, "every cloud in the live map: {m:?}");
+    assert_eq!(rebuild.clouds as u64, clouds, "every cloud in the rebuilt map: {rebuild:?}");
+    assert_eq!(rebuild.clouds_without_pose, 0);
 
     let out = run.out_dir();
     let scene: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("scene.json")).unwrap()).unwrap();

@@ -188,6 +188,31 @@ fn check(root: &Value, s: &Value, v: &Value, path: &str, out: &mut Vec<String>) 
     }
 }
 
+/// The dotted keys of `summary`, three levels deep (`latency_ms` two: its tables' keys are the
+/// hops); arrays are not entered. What tests/main_job_summary_keys.txt lists for the main job.
+pub fn key_paths(summary: &Value) -> std::collections::BTreeSet<String> {
+    fn walk(v: &Value, prefix: &str, depth: usize, out: &mut std::collections::BTreeSet<String>) {
+        let Value::Object(m) = v else { return };
+        for (k, x) in m {
+            let path = if prefix.is_empty() { k.clone() } else { format!("{prefix}.{k}") };
+            if depth + 1 < 3 && !path.starts_with("latency_ms.") {
+                walk(x, &path, depth + 1, out);
+            }
+            out.insert(path);
+        }
+    }
+    let mut out = std::collections::BTreeSet::new();
+    walk(summary, "", 0, &mut out);
+    out
+}
+
+/// A stage's part of `summary` as the struct the stage wrote it from (e.g.
+/// `part::<grid_slam_stage::summary::GridSlamPart>(&summary)`); panics naming what does not fit.
+pub fn part<T: serde::de::DeserializeOwned>(summary: &Value) -> T {
+    serde_json::from_value(summary.clone())
+        .unwrap_or_else(|e| panic!("summary.json does not hold a {}: {e}", std::any::type_name::<T>()))
+}
+
 /// Panics with the keys of `summary` that docs/summary.schema.json does not declare.
 pub fn assert_declared(summary: &Value) {
     let undeclared = undeclared(&schema(), summary);
