@@ -190,44 +190,48 @@ rate_hz = 0.0
     let (r, b) = (robot.summary(), base.summary());
     crate::summary_schema::assert_declared(&r);
     crate::summary_schema::assert_declared(&b);
-    let (rb, bb) = (&r["bridge"], &b["bridge"]);
+    use crate::summary_schema::part;
+    let (rp, bp): (bridge_stage::summary::BridgePart, bridge_stage::summary::BridgePart) = (part(&r), part(&b));
+    let (rb, bb) = (&rp.bridge, &bp.bridge);
+    let recorder: recorder_stage::summary::RecorderPart = part(&b);
     // Plain TCP only because the config says so, and the summary says it too.
     let mode = if certs.is_some() { "mutual_tls" } else { "insecure" };
-    assert_eq!(rb["security"]["mode"], mode, "{rb}");
-    assert_eq!(bb["security"]["mode"], mode, "{bb}");
-    eprintln!("robot bridge {rb:#}\nbase bridge {bb:#}");
-    assert_eq!(rb["end_acknowledged"], true, "{rb:#}");
-    assert_eq!(bb["ends_received"], serde_json::json!(["r1"]), "{bb:#}");
+    assert_eq!(rb.security.mode, mode, "{rb:?}");
+    assert_eq!(bb.security.mode, mode, "{bb:?}");
+    eprintln!("robot bridge {:#}\nbase bridge {:#}", r["bridge"], b["bridge"]);
+    assert_eq!(rb.end_acknowledged, Some(true), "{rb:?}");
+    assert_eq!(bb.ends_received, ["r1"], "{bb:?}");
     // `clock = "auto"`: the robot's bridge answered from this machine: origin_ns kept as is.
-    assert_eq!(bb["clock"]["r1"]["same_machine"], true, "{bb:#}");
-    assert_eq!(bb["clock"]["r1"]["shifted"], false, "{bb:#}");
+    let clock = &bb.clock["r1"];
+    assert_eq!((clock.same_machine, clock.shifted), (Some(true), false), "{clock:?}");
     for s in SERVICES {
-        let out = &rb["out"][s]["counts"];
-        let inn = &bb["in"][s]["counts"];
-        let sent = out["sent"].as_u64().unwrap();
-        assert!(sent > 5, "{s}: {out}");
-        assert_eq!(out["received"].as_u64(), Some(sent), "{s}: {out}");
+        let out = &rb.out[s].counts;
+        let inn = &bb.inbound[s].counts;
+        let sent = out.sent;
+        assert!(sent > 5, "{s}: {out:?}");
+        assert_eq!(out.received, sent, "{s}: {out:?}");
         let extra = if s == SERVICES[0] && certs.is_none() { 2 } else { 0 }; // the stranger's two
-        assert_eq!(inn["received"].as_u64(), Some(sent + extra), "{s}: {inn}");
-        assert_eq!(inn["published"].as_u64(), Some(sent), "{s}: {inn}");
-        assert_eq!(bb["in"][s]["lost_on_the_way"].as_u64(), Some(0), "{s}: {bb:#}");
-        assert_eq!(inn["undelivered"].as_u64(), Some(0), "{s}: {inn}");
-        assert_eq!(b["recorder"]["messages"][s].as_u64(), Some(sent), "{s}: {:#}", b["recorder"]);
+        assert_eq!(inn.received, sent + extra, "{s}: {inn:?}");
+        assert_eq!(inn.published, sent, "{s}: {inn:?}");
+        assert_eq!(bb.inbound[s].lost_on_the_way, Some(0), "{s}: {bb:?}");
+        assert_eq!(inn.undelivered, 0, "{s}: {inn:?}");
+        assert_eq!(recorder.recorder.messages.get(s), Some(&sent), "{s}: {:?}", recorder.recorder);
     }
-    let odo = &bb["in"][SERVICES[0]]["counts"];
+    let odo = &bb.inbound[SERVICES[0]].counts;
     if certs.is_none() {
-        assert_eq!((odo["wrong_type"].as_u64(), odo["bad_length"].as_u64()), (Some(1), Some(1)), "{odo}");
+        assert_eq!((odo.wrong_type, odo.bad_length), (1, 1), "{odo:?}");
         assert!(base.log().contains("refused a message with another wire signature"), "warned");
     }
 
     // Payload for payload, with the same origin; published anew (later) on the base station.
-    let ingest = &r["ingest"]["messages"];
+    let ingest: ingest_stage::summary::IngestPart = part(&r);
+    let ingest = &ingest.ingest.messages;
     let mut compared = BTreeMap::new();
     let mut reached = Reached::new();
-    for (s, key) in SERVICES.iter().zip(["odometry", "depth", "buoy_ranges"]) {
+    for (s, published) in SERVICES.iter().zip([ingest.odometry, ingest.depth, ingest.buoy_ranges]) {
         let here = messages(&robot.out_dir().join("recording.mcap"), s);
         let there = messages(&base.out_dir().join("recording.mcap"), s);
-        assert_eq!(here.len() as u64, ingest[key].as_u64().unwrap(), "{s}: the robot's recorder got everything");
+        assert_eq!(here.len() as u64, published, "{s}: the robot's recorder got everything");
         assert_eq!(here.len(), there.len(), "{s}");
         for (a, b) in here.iter().zip(&there) {
             assert_eq!(a.2, b.2, "{s}: payload");
@@ -235,7 +239,7 @@ rate_hz = 0.0
             assert!(b.1 >= a.1, "{s}: published anew on the base station, after the robot");
         }
         compared.insert(*s, here.len());
-        let sent = rb["out"][s]["counts"]["sent"].as_u64().unwrap();
+        let sent = rb.out[*s].counts.sent;
         reached.insert(*s, (sent, there.into_iter().map(|m| m.2).collect()));
     }
     eprintln!("compared {compared:?}");
@@ -460,44 +464,53 @@ height_px = 36
         assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new(), "iceoryx2 files left behind");
     }
     let (r, b) = (robot.summary(), base.summary());
-    let (rb, bb) = (&r["bridge"], &b["bridge"]);
-    assert_eq!(bb["security"]["mode"], "mutual_tls", "{bb}");
-    assert_eq!(bb["security"]["certificate"]["common_name"], "base", "{bb}");
-    assert_eq!(rb["security"]["certificate"]["common_name"], "auv", "{rb}");
+    use crate::summary_schema::part;
+    let (rp, bp): (bridge_stage::summary::BridgePart, bridge_stage::summary::BridgePart) = (part(&r), part(&b));
+    let (rb, bb) = (&rp.bridge, &bp.bridge);
+    let cert = |b: &bridge_stage::summary::BridgeSummary| {
+        b.security.tls.as_ref().and_then(|t| t.certificate.as_ref()).map(|c| c.common_name.clone())
+    };
+    assert_eq!(bb.security.mode, "mutual_tls", "{bb:?}");
+    assert_eq!(cert(bb).as_deref(), Some("base"), "{bb:?}");
+    assert_eq!(cert(rb).as_deref(), Some("auv"), "{rb:?}");
     eprintln!(
-        "link cut for 3 s during the run: {cut_during_run}\nrobot bridge {rb:#}\nbase bridge {bb:#}\nrobot map {:#}\nbase map {:#}",
-        r["octree_mapper"]["counters"], b["octree_mapper"]["counters"]
+        "link cut for 3 s during the run: {cut_during_run}\nrobot bridge {:#}\nbase bridge {:#}\nrobot map {:#}\nbase map {:#}",
+        r["bridge"], b["bridge"], r["octree_mapper"]["counters"], b["octree_mapper"]["counters"]
     );
-    assert_eq!(rb["end_acknowledged"], true, "{rb:#}");
+    assert_eq!(rb.end_acknowledged, Some(true), "{rb:?}");
     for s in ["pipeline/sensors/cloud", "pipeline/fusion/pose"] {
-        let (out, inn) = (&rb["out"][s]["counts"], &bb["in"][s]["counts"]);
-        assert!(out["sent"].as_u64().unwrap() > 3, "{s}: {out}");
-        assert_eq!(out["missed_locally"].as_u64(), Some(0), "{s}: {out}");
+        let (out, inn) = (&rb.out[s].counts, &bb.inbound[s].counts);
+        assert!(out.sent > 3, "{s}: {out:?}");
+        assert_eq!(out.missed_locally, 0, "{s}: {out:?}");
         assert_eq!(
-            inn["published"],
-            out["sent"],
-            "{s}: {inn} against {out}\nrobot's link:\n{}\nbase's link:\n{}",
+            inn.published,
+            out.sent,
+            "{s}: {inn:?} against {out:?}\nrobot's link:\n{}\nbase's link:\n{}",
             link_lines(&robot),
             link_lines(&base)
         );
-        assert_eq!(inn["digest"], out["digest"], "{s}: the same bytes arrived, in order");
-        assert_eq!(bb["in"][s]["lost_on_the_way"].as_u64(), Some(0), "{s}");
+        assert_eq!(inn.digest, out.digest, "{s}: the same bytes arrived, in order");
+        assert_eq!(bb.inbound[s].lost_on_the_way, Some(0), "{s}");
     }
     // The robot maps at the simulator's true poses (the clouds' own); the base station at the
     // bridged fused poses: every cloud from the first fused pose on is placed, and its map agrees
     // with the true-pose map leaf by leaf (as the indoor test and octree_bench compare maps).
-    let clouds = r["ingest"]["messages"]["cloud"].as_u64().unwrap();
-    let c = &r["octree_mapper"]["counters"];
-    assert_eq!(c["clouds_inserted"].as_u64(), Some(clouds), "robot: every cloud in the map: {c:#}");
-    let c = &b["octree_mapper"]["counters"];
-    let n = |k: &str| c[k].as_u64().unwrap_or_else(|| panic!("{k}: {c:#}"));
-    let inserted = n("clouds_inserted");
+    let ingest: ingest_stage::summary::IngestPart = part(&r);
+    let clouds = ingest.ingest.messages.cloud;
+    let (robot_map, base_map): (
+        octree_mapper_stage::summary::OctreeMapperPart,
+        octree_mapper_stage::summary::OctreeMapperPart,
+    ) = (part(&r), part(&b));
+    let c = &robot_map.octree_mapper.counters;
+    assert_eq!(c.clouds_inserted, clouds, "robot: every cloud in the map: {c:?}");
+    let c = &base_map.octree_mapper.counters;
+    let inserted = c.clouds_inserted;
     assert_eq!(
-        inserted + n("clouds_dropped_no_pose") + n("clouds_dropped_behind") + n("clouds_missed"),
+        inserted + c.clouds_dropped_no_pose + c.clouds_dropped_behind + c.clouds_missed,
         clouds,
-        "base: every cloud accounted for: {c:#}"
+        "base: every cloud accounted for: {c:?}"
     );
-    assert!(inserted as f64 >= 0.8 * clouds as f64, "base: {inserted} of {clouds} clouds placed at fused poses: {c:#}");
+    assert!(inserted as f64 >= 0.8 * clouds as f64, "base: {inserted} of {clouds} clouds placed at fused poses: {c:?}");
     let truth = octree::OcTree::read_binary_file(robot.out_dir().join("map.bt")).expect("the robot's map.bt");
     let fused = octree::OcTree::read_binary_file(base.out_dir().join("map.bt")).expect("the base's map.bt");
     let (mut occ_n, mut occ_ok, mut free_n, mut free_ok) = (0usize, 0usize, 0usize, 0usize);
@@ -533,7 +546,8 @@ height_px = 36
         ok as f64 / n.max(1) as f64
     };
     let (recall, precision) = (near(&truth, &fused, 3), near(&fused, &truth, 3));
-    let fused_ate = r["ate_m"]["fused"].as_f64().expect("the robot's fused ATE");
+    let fusion: fusion_stage::summary::FusionPart = part(&r);
+    let fused_ate = fusion.ate_m.as_ref().and_then(|a| a.fused).expect("the robot's fused ATE");
     let why = format!(
         "base map at the bridged fused poses against the robot's at the true poses: {:.1} % of {occ_n} occupied and \
          {:.1} % of {free_n} free leaves agree leaf by leaf; within 3 voxels, recall {recall:.3}, precision \
@@ -643,42 +657,49 @@ height_px = 24
     let bs = base.wait_supervisor(LONG).expect("the base station ends after both robots' ends of stream");
     assert_eq!(bs.code(), Some(0), "base:\n{}", base.log());
     let b = base.summary();
-    let bb = &b["bridge"];
-    eprintln!("base bridge {bb:#}\nbase map {:#}", b["octree_mapper"]["counters"]);
-    assert_eq!(bb["ends_received"], serde_json::json!(["r1", "r2"]), "{bb:#}");
+    use crate::summary_schema::part;
+    let bp: bridge_stage::summary::BridgePart = part(&b);
+    let bb = &bp.bridge;
+    eprintln!("base bridge {:#}\nbase map {:#}", b["bridge"], b["octree_mapper"]["counters"]);
+    assert_eq!(bb.ends_received, ["r1", "r2"], "{bb:?}");
     let mut clouds = 0;
     let mut digests = vec![];
     for (name, run) in ["r1", "r2"].iter().zip(&robots) {
         let r = run.summary();
-        let out = &r["bridge"]["out"];
-        let fix = &bb["in"][format!("{name}/pipeline/buoy/fix")]["counts"];
-        assert!(out["pipeline/buoy/fix"]["counts"]["sent"].as_u64().unwrap() > 3, "{out:#}");
+        let rp: bridge_stage::summary::BridgePart = part(&r);
+        let out = &rp.bridge.out;
+        let fix = &bb.inbound[&format!("{name}/pipeline/buoy/fix")].counts;
+        let sent_fix = &out["pipeline/buoy/fix"].counts;
+        assert!(sent_fix.sent > 3, "{out:?}");
         assert_eq!(
-            fix["published"],
-            out["pipeline/buoy/fix"]["counts"]["sent"],
-            "{name}: {fix}\nits link:\n{}\nthe base's link:\n{}",
+            fix.published,
+            sent_fix.sent,
+            "{name}: {fix:?}\nits link:\n{}\nthe base's link:\n{}",
             link_lines(run),
             link_lines(&base)
         );
-        assert_eq!(fix["digest"], out["pipeline/buoy/fix"]["counts"]["digest"], "{name}: its own fixes, apart");
-        digests.push(fix["digest"].clone());
-        let cloud = &bb["in"][format!("{name}:pipeline/sensors/cloud")]["counts"];
-        assert_eq!(cloud["published"], out["pipeline/sensors/cloud"]["counts"]["sent"], "{name}: {cloud}");
-        assert_eq!(cloud["digest"], out["pipeline/sensors/cloud"]["counts"]["digest"], "{name}");
-        clouds += r["ingest"]["messages"]["cloud"].as_u64().unwrap();
+        assert_eq!(fix.digest, sent_fix.digest, "{name}: its own fixes, apart");
+        digests.push(fix.digest);
+        let cloud = &bb.inbound[&format!("{name}:pipeline/sensors/cloud")].counts;
+        let sent_cloud = &out["pipeline/sensors/cloud"].counts;
+        assert_eq!(cloud.published, sent_cloud.sent, "{name}: {cloud:?}");
+        assert_eq!(cloud.digest, sent_cloud.digest, "{name}");
+        let ingest: ingest_stage::summary::IngestPart = part(&r);
+        clouds += ingest.ingest.messages.cloud;
         // `clock = "measure"` on one machine: the true offset is 0, so the estimate must lie
         // within half its round trip (the remote stamp falls between the query and the answer).
-        let clock = &bb["clock"][name];
-        assert!(clock["answered"].as_u64().unwrap() > 0, "{name}: {clock}");
-        assert_eq!(clock["same_machine"], true, "{name}: {clock}");
-        let (off, rtt) = (clock["offset_ns"].as_i64().unwrap(), clock["rtt_ns"].as_i64().unwrap());
-        assert!(off.abs() <= rtt / 2 + 1, "{name}: offset within the round trip's bound: {clock}");
-        assert!(rtt < 1_000_000_000, "{name}: {clock}");
-        assert_eq!(clock["shifted"], true, "{name}: measure shifts even on one machine: {clock}");
+        let clock = &bb.clock[*name];
+        assert!(clock.answered > 0, "{name}: {clock:?}");
+        assert_eq!(clock.same_machine, Some(true), "{name}: {clock:?}");
+        let (off, rtt) = (clock.offset_ns.expect("an offset"), clock.rtt_ns.expect("a round trip") as i64);
+        assert!(off.abs() <= rtt / 2 + 1, "{name}: offset within the round trip's bound: {clock:?}");
+        assert!(rtt < 1_000_000_000, "{name}: {clock:?}");
+        assert!(clock.shifted, "{name}: measure shifts even on one machine: {clock:?}");
     }
     assert_ne!(digests[0], digests[1], "two robots, two different fix streams");
-    let c = &b["octree_mapper"]["counters"];
-    assert_eq!(c["clouds_inserted"].as_u64(), Some(clouds), "both robots' clouds in one map: {c:#}");
+    let map: octree_mapper_stage::summary::OctreeMapperPart = part(&b);
+    let c = &map.octree_mapper.counters;
+    assert_eq!(c.clouds_inserted, clouds, "both robots' clouds in one map: {c:?}");
     assert_eq!(base.leftovers(), Vec::<std::path::PathBuf>::new());
 }
 
@@ -755,15 +776,17 @@ rate_hz = 0.0
     assert_eq!(bs.code(), Some(0), "base:\n{}", base.log());
     assert!(base.started_pids("link").len() >= 2, "restarted:\n{}", base.log());
     let (r, b) = (robot.summary(), base.summary());
-    let (rb, bb) = (&r["bridge"], &b["bridge"]);
-    eprintln!("robot bridge {rb:#}\nbase bridge {bb:#}");
-    assert_eq!(rb["end_acknowledged"], true, "the restarted bridge got the end of stream: {rb:#}");
+    use crate::summary_schema::part;
+    let (rp, bp): (bridge_stage::summary::BridgePart, bridge_stage::summary::BridgePart) = (part(&r), part(&b));
+    let (rb, bb) = (&rp.bridge, &bp.bridge);
+    eprintln!("robot bridge {:#}\nbase bridge {:#}", r["bridge"], b["bridge"]);
+    assert_eq!(rb.end_acknowledged, Some(true), "the restarted bridge got the end of stream: {rb:?}");
     let s = "pipeline/sensors/odometry";
-    let sent = rb["out"][s]["counts"]["sent"].as_u64().unwrap();
-    let got = bb["in"][s]["counts"]["received"].as_u64().unwrap();
-    let lost = bb["in"][s]["lost_on_the_way"].as_u64().unwrap();
-    assert!(got > 0 && lost > 0, "the new instance received the rest and counts the loss: {bb:#}");
-    assert_eq!(got + lost, sent, "{bb:#}");
+    let sent = rb.out[s].counts.sent;
+    let got = bb.inbound[s].counts.received;
+    let lost = bb.inbound[s].lost_on_the_way.expect("the robot's end said what it sent");
+    assert!(got > 0 && lost > 0, "the new instance received the rest and counts the loss: {bb:?}");
+    assert_eq!(got + lost, sent, "{bb:?}");
     assert!(base.log().contains("messages lost or refused across the bridge"), "warned");
     // The robot's side knows what it sent while nobody on the other side subscribed: counted as
     // dropped, in the status line and summary.json like any other loss.
@@ -771,21 +794,22 @@ rate_hz = 0.0
     // the subscriber exists: what it sends in between counts as unmatched on this side and
     // arrives on the other (seen in CI: 310 unmatched and 309 lost; under load 313 and 308, the
     // status ~17 ms late at ~280 msg/s). Allowed: what the robot sends in a quarter of a second.
-    let unmatched = rb["out"][s]["counts"]["no_subscriber"].as_u64().unwrap();
-    let wall_s = rb["wall_s"].as_f64().expect("the robot bridge's wall_s");
-    let lag = (sent as f64 / wall_s * 0.25).ceil() as u64;
+    let unmatched = rb.out[s].counts.no_subscriber;
+    let lag = (sent as f64 / rb.wall_s * 0.25).ceil() as u64;
     assert!(
         unmatched > 0 && unmatched <= lost + lag,
-        "{unmatched} sent unmatched, {lost} lost (allowed {lag} more, a quarter second's worth): {rb:#}"
+        "{unmatched} sent unmatched, {lost} lost (allowed {lag} more, a quarter second's worth): {rb:?}"
     );
-    assert!(unmatched + lag >= lost, "{unmatched} sent unmatched but {lost} lost: {rb:#}");
-    let dropped = r["dropped"].as_array().expect("dropped list");
+    assert!(unmatched + lag >= lost, "{unmatched} sent unmatched but {lost} lost: {rb:?}");
+    let (robot_sup, base_sup): (supervisor::report::SupervisorPart, supervisor::report::SupervisorPart) =
+        (part(&r), part(&b));
+    let dropped = &robot_sup.dropped;
     assert!(
-        dropped.iter().any(|d| d["process"] == "link" && d["reason"] == "no subscriber on the other side"),
+        dropped.iter().any(|d| d.process == "link" && d.reason == "no subscriber on the other side"),
         "{dropped:#?}"
     );
-    let bd = b["dropped"].as_array().expect("dropped list");
-    assert!(bd.iter().any(|d| d["process"] == "link" && d["reason"] == "lost on the way"), "{bd:#?}");
+    let bd = &base_sup.dropped;
+    assert!(bd.iter().any(|d| d.process == "link" && d.reason == "lost on the way"), "{bd:#?}");
     assert_eq!(base.leftovers(), Vec::<std::path::PathBuf>::new());
 }
 
@@ -855,25 +879,28 @@ rate_hz = 0.0
     assert!(robot.started_pids("link").len() >= 2, "restarted:\n{}", robot.log());
     assert!(robot.log().contains("restarted: counting on from the killed instance's counts"), "{}", robot.log());
     let (r, b) = (robot.summary(), base.summary());
-    let (rb, bb) = (&r["bridge"], &b["bridge"]);
-    eprintln!("robot bridge {rb:#}\nbase bridge {bb:#}");
+    use crate::summary_schema::part;
+    let (rp, bp): (bridge_stage::summary::BridgePart, bridge_stage::summary::BridgePart) = (part(&r), part(&b));
+    let (rb, bb) = (&rp.bridge, &bp.bridge);
+    eprintln!("robot bridge {:#}\nbase bridge {:#}", r["bridge"], b["bridge"]);
     let s = "pipeline/sensors/odometry";
-    let out = &rb["out"][s]["counts"];
-    let (sent, missed) = (out["sent"].as_u64().unwrap(), out["missed_locally"].as_u64().unwrap());
-    let published = r["ingest"]["messages"]["odometry"].as_u64().unwrap();
+    let out = &rb.out[s].counts;
+    let (sent, missed) = (out.sent, out.missed_locally);
+    let ingest: ingest_stage::summary::IngestPart = part(&r);
+    let published = ingest.ingest.messages.odometry;
     // The restarted bridge counts on from the killed one's counts and last sequence numbers: what
     // the ingest published while no bridge took it shows as a sequence gap (missed locally), and
     // sent + missed covers the run, short of what the killed one handled after its last snapshot.
-    assert!(missed > 0, "the gap while the bridge was down: {out}");
+    assert!(missed > 0, "the gap while the bridge was down: {out:?}");
     assert!(sent + missed <= published, "{sent} + {missed} of {published}");
-    assert!((sent + missed) as f64 >= 0.9 * published as f64, "{sent} + {missed} of {published}: {out}");
-    let inn = &bb["in"][s]["counts"];
-    let got = inn["received"].as_u64().unwrap();
-    assert_eq!(bb["ends_received"], serde_json::json!(["r1"]), "{bb:#}");
+    assert!((sent + missed) as f64 >= 0.9 * published as f64, "{sent} + {missed} of {published}: {out:?}");
+    let inn = &bb.inbound[s].counts;
+    let got = inn.received;
+    assert_eq!(bb.ends_received, ["r1"], "{bb:?}");
     // The base sees the true gap; the robot's count of it also holds what the killed bridge sent
     // after its last snapshot (taken again by nobody, so counted as missed: never less than lost).
-    let gaps = inn["seq_gaps"].as_u64().unwrap();
-    assert!(gaps > 0 && gaps <= missed, "{gaps} gaps at the base, {missed} missed at the robot: {inn}");
-    assert!(got + gaps <= published && (got + gaps) as f64 >= 0.9 * published as f64, "{inn}: of {published}");
+    let gaps = inn.seq_gaps;
+    assert!(gaps > 0 && gaps <= missed, "{gaps} gaps at the base, {missed} missed at the robot: {inn:?}");
+    assert!(got + gaps <= published && (got + gaps) as f64 >= 0.9 * published as f64, "{inn:?}: of {published}");
     assert_eq!(robot.leftovers(), Vec::<std::path::PathBuf>::new());
 }
