@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
+use bridge_stage::summary::BridgePart;
 use pipeline_tests::{NetNs, TestRun};
 
 const LONG: Duration = Duration::from_secs(240);
@@ -136,24 +137,28 @@ fn a_compromised_robot_gets_only_sound_messages_in_at_a_bounded_rate() {
 
     let b = base.summary();
     crate::summary_schema::assert_declared(&b);
-    let c = &b["bridge"]["in"][ODOMETRY]["counts"];
-    eprintln!("sent {sent}\nin {c}");
+    use crate::summary_schema::part;
+    let bp: bridge_stage::summary::BridgePart = part(&b);
+    let recorder: recorder_stage::summary::RecorderPart = part(&b);
+    let c = &bp.bridge.inbound[ODOMETRY].counts;
+    eprintln!("sent {sent}\nin {c:?}");
+    // What the compromised robot's script says it sent (its own JSON line).
     let n = |v: &serde_json::Value, k: &str| v[k].as_u64().unwrap_or_else(|| panic!("{k} in {v}"));
     let s = &sent["sent"];
-    assert_eq!(n(c, "refused_non_finite"), n(s, "nan"), "{c}");
-    assert_eq!(n(c, "refused_going_back"), n(s, "repeated"), "{c}");
-    assert_eq!(n(c, "refused_time"), n(s, "future") + n(s, "past"), "{c}");
-    assert_eq!(n(c, "wrong_type") + n(c, "bad_length") + n(c, "queue_dropped"), 0, "{c}");
+    assert_eq!(c.refused_non_finite, n(s, "nan"), "{c:?}");
+    assert_eq!(c.refused_going_back, n(s, "repeated"), "{c:?}");
+    assert_eq!(c.refused_time, n(s, "future") + n(s, "past"), "{c:?}");
+    assert_eq!(c.wrong_type + c.bad_length + c.queue_dropped, 0, "{c:?}");
     let flood = n(s, "flood");
-    let (rate_dropped, published) = (n(c, "rate_dropped"), n(c, "published"));
+    let (rate_dropped, published) = (c.rate_dropped, c.published);
     // The bucket holds one second's worth (1000) and refills at 1000/s while the flood lasts.
-    assert!(rate_dropped > 0 && rate_dropped < flood, "{c}");
-    assert_eq!(n(c, "seq_gaps"), 0, "dropped here is not lost on the way: {c}");
-    assert!(published >= n(s, "good") + 900, "{c}");
+    assert!(rate_dropped > 0 && rate_dropped < flood, "{c:?}");
+    assert_eq!(c.seq_gaps, 0, "dropped here is not lost on the way: {c:?}");
+    assert!(published >= n(s, "good") + 900, "{c:?}");
     // Every message accounted for: taken in (published or refused) or dropped over the rate.
-    assert_eq!(n(c, "received") + rate_dropped, n(&sent, "total"), "{c}");
-    assert_eq!(n(c, "received"), published + n(s, "nan") + n(s, "repeated") + n(s, "future") + n(s, "past"));
-    assert_eq!(b["recorder"]["messages"][ODOMETRY].as_u64(), Some(published), "{:#}", b["recorder"]);
+    assert_eq!(c.received + rate_dropped, n(&sent, "total"), "{c:?}");
+    assert_eq!(c.received, published + n(s, "nan") + n(s, "repeated") + n(s, "future") + n(s, "past"));
+    assert_eq!(recorder.recorder.messages.get(ODOMETRY), Some(&published), "{:?}", recorder.recorder);
     let log = base.log();
     for reason in ["reason=non_finite", "reason=going_back", "reason=time", "over the route's rate limit"] {
         assert!(log.contains(reason), "no warning with `{reason}`:\n{log}");
@@ -255,34 +260,32 @@ in = [
     for s in [&a1, &a2, &b] {
         crate::summary_schema::assert_declared(s);
     }
-    let bb = &b["bridge"];
-    eprintln!("base bridge {bb:#}");
-    assert_eq!(bb["security"]["revoked"], serde_json::json!(["auv2"]), "{bb:#}");
-    assert_eq!(bb["ends_received"], serde_json::json!(["auv1"]), "{bb:#}");
+    use crate::summary_schema::part;
+    let (p1, p2, bp): (BridgePart, BridgePart, BridgePart) = (part(&a1), part(&a2), part(&b));
+    let bb = &bp.bridge;
+    eprintln!("base bridge {:#}", b["bridge"]);
+    let tls = bb.security.tls.as_ref().expect("mutual TLS");
+    assert_eq!(tls.revoked.iter().collect::<Vec<_>>(), ["auv2"], "{bb:?}");
+    assert_eq!(bb.ends_received, ["auv1"], "{bb:?}");
     // auv1: everything it sent arrived, or is counted as lost (the restart).
-    let sent1 = a1["bridge"]["out"][ODOMETRY]["counts"]["sent"].as_u64().expect("sent");
-    let in1 = &bb["in"][ODOMETRY];
-    let got1 = in1["counts"]["received"].as_u64().expect("received");
-    let lost1 = in1["lost_on_the_way"].as_u64().expect("lost");
-    assert!(got1 > sent1 / 2, "{in1}");
-    assert_eq!(got1 + lost1, sent1, "{in1}");
+    let sent1 = p1.bridge.out[ODOMETRY].counts.sent;
+    let in1 = &bb.inbound[ODOMETRY];
+    let got1 = in1.counts.received;
+    let lost1 = in1.lost_on_the_way.expect("lost");
+    assert!(got1 > sent1 / 2, "{in1:?}");
+    assert_eq!(got1 + lost1, sent1, "{in1:?}");
     // auv2: what it sent before the revocation got in; after it, its links are refused at the
     // TLS relay (counted with its certificate's name), so nothing more of it gets in.
-    let sent2 = a2["bridge"]["out"][ODOMETRY]["counts"]["sent"].as_u64().expect("sent");
-    let in2 = &bb["in"][format!("auv2/{ODOMETRY}")];
-    let got2 = in2["counts"]["received"].as_u64().unwrap();
+    let sent2 = p2.bridge.out[ODOMETRY].counts.sent;
+    let in2 = &bb.inbound[&format!("auv2/{ODOMETRY}")];
+    let got2 = in2.counts.received;
     eprintln!("auv2 sent {sent2}, received {got2}");
-    assert!(got2 > 0 && got2 < sent2, "{in2}");
-    let links = &bb["security"]["links"];
-    let revoked_links: u64 = links["refused"]
-        .as_array()
-        .expect("links.refused")
-        .iter()
-        .filter(|r| r["reason"] == "certificate of `auv2` revoked")
-        .filter_map(|r| r["links"].as_u64())
-        .sum();
-    assert!(revoked_links > 0, "{links}");
-    assert_eq!(bb["security"]["refused_unauthenticated"].as_u64(), Some(revoked_links), "{links}");
+    assert!(got2 > 0 && got2 < sent2, "{in2:?}");
+    let links = tls.links.as_ref().expect("the relays' counts");
+    let revoked_links: u64 =
+        links.refused.iter().filter(|r| r.reason == "certificate of `auv2` revoked").map(|r| r.links).sum();
+    assert!(revoked_links > 0, "{links:?}");
+    assert_eq!(tls.refused_unauthenticated, Some(revoked_links), "{links:?}");
     assert!(base.log().contains("TLS link refused: certificate of `auv2` revoked"), "warned");
     for run in [&r1, &r2, &base] {
         assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new(), "iceoryx2 files left behind");
@@ -373,40 +376,46 @@ rate_hz = 0.0
     let (r, b) = (robot.summary(), base.summary());
     crate::summary_schema::assert_declared(&r);
     crate::summary_schema::assert_declared(&b);
-    let out = &r["bridge"]["out"][ODOMETRY]["counts"];
-    let inn = &b["bridge"]["in"][ODOMETRY]["counts"];
-    eprintln!("rogue (peers, put): no certificate {no_cert:?}, auv2 {auv2:?}, plain {plain:?}\nout {out}\nin {inn}");
-    let sent = out["sent"].as_u64().expect("sent");
-    assert!(sent > 10, "{out}");
+    use crate::summary_schema::part;
+    let (rp, bp): (BridgePart, BridgePart) = (part(&r), part(&b));
+    let recorder: recorder_stage::summary::RecorderPart = part(&b);
+    let sup: supervisor::report::SupervisorPart = part(&b);
+    let out = &rp.bridge.out[ODOMETRY].counts;
+    let inn = &bp.bridge.inbound[ODOMETRY].counts;
+    eprintln!(
+        "rogue (peers, put): no certificate {no_cert:?}, auv2 {auv2:?}, plain {plain:?}\nout {out:?}\nin {inn:?}"
+    );
+    let sent = out.sent;
+    assert!(sent > 10, "{out:?}");
     // Everything that reached the base's bridge under auv1 is auv1's: the count and the digest
     // of the bytes are the robot's, and nothing came with a wrong signature or length.
-    assert_eq!(inn["received"].as_u64(), Some(sent), "{inn} against {out}");
-    assert_eq!(inn["published"].as_u64(), Some(sent), "{inn}");
-    assert_eq!(inn["digest"], out["digest"], "the same bytes, in order");
-    assert_eq!(inn["wrong_type"].as_u64(), Some(0), "{inn}");
-    assert_eq!(inn["bad_length"].as_u64(), Some(0), "{inn}");
-    assert_eq!(b["recorder"]["messages"][ODOMETRY].as_u64(), Some(sent), "{:#}", b["recorder"]);
-    assert_eq!(b["bridge"]["security"]["mode"], "mutual_tls");
+    assert_eq!(inn.received, sent, "{inn:?} against {out:?}");
+    assert_eq!(inn.published, sent, "{inn:?}");
+    assert_eq!(inn.digest, out.digest, "the same bytes, in order");
+    assert_eq!(inn.wrong_type, 0, "{inn:?}");
+    assert_eq!(inn.bad_length, 0, "{inn:?}");
+    assert_eq!(recorder.recorder.messages.get(ODOMETRY), Some(&sent), "{:?}", recorder.recorder);
+    assert_eq!(bp.bridge.security.mode, "mutual_tls");
     // The rogue without a certificate, the plain-TCP one and the one with another Zenoh id: each
     // attempt refused and counted, with its reason.
-    let refused = b["bridge"]["security"]["refused_unauthenticated"].as_u64().expect("refused_unauthenticated");
-    let links = &b["bridge"]["security"]["links"];
-    eprintln!("refused links: {refused}: {links}");
+    let tls = bp.bridge.security.tls.as_ref().expect("mutual TLS");
+    let refused = tls.refused_unauthenticated.expect("refused_unauthenticated");
+    let links = tls.links.as_ref().expect("the relays' counts");
+    eprintln!("refused links: {refused}: {links:?}");
     assert!(refused >= 3, "refused_unauthenticated {refused}: {}", b["bridge"]["security"]);
-    let reasons: Vec<&str> =
-        links["refused"].as_array().expect("links.refused").iter().filter_map(|r| r["reason"].as_str()).collect();
+    let reasons: Vec<&str> = links.refused.iter().map(|r| r.reason.as_str()).collect();
     assert!(reasons.iter().any(|r| r.contains("came as another Zenoh id")), "{reasons:?}");
     assert!(reasons.iter().any(|r| r.contains("handshake")), "{reasons:?}");
     assert!(base.log().contains("TLS link refused"), "warned");
     // auv2's puts under auv1 reached the base station (it declares its subscriptions to every
     // host) and were refused there by the access control, counted on the route with the host.
-    let wrong = b["bridge"]["in"][ODOMETRY]["refused_wrong_robot"].as_u64().expect("refused_wrong_robot");
-    let hosts = &b["bridge"]["security"]["refused"]["refused_wrong_robot"];
-    eprintln!("refused for the wrong robot: {wrong} of auv2's {}: {hosts}", auv2.1);
+    let wrong = bp.bridge.inbound[ODOMETRY].refused_wrong_robot.expect("refused_wrong_robot");
+    let hosts = &tls.refused.as_ref().expect("the access control's refusals").refused_wrong_robot;
+    eprintln!("refused for the wrong robot: {wrong} of auv2's {}: {hosts:?}", auv2.1);
     assert!(wrong >= auv2.1 * 9 / 10 && wrong <= auv2.1, "{wrong} of {}: {}", auv2.1, b["bridge"]);
-    assert_eq!(hosts[0]["certificate"], "auv2", "{hosts}");
+    assert_eq!(hosts[0].certificate.as_deref(), Some("auv2"), "{hosts:?}");
     assert!(base.log().contains("the access control refused messages from a host"), "warned");
-    assert_eq!(b["run"]["end_reason"], "end_of_stream", "{}", b["run"]);
+    assert_eq!(sup.run.end_reason, supervisor::outcome::EndReason::EndOfStream, "{:?}", sup.run);
 
     // The capture holds the run's traffic, none of it readable: the wire signature travels with
     // every message (the Zenoh attachment), and over plain TCP it would be in the clear.
@@ -511,13 +520,14 @@ rate_hz = 0.0
 
     let st = run.wait_supervisor(LONG).expect("the run ends with the mission");
     assert_eq!(st.code(), Some(0), "{}", run.log());
-    let v = &run.summary()["viewer"];
-    eprintln!("viewer {v}");
-    assert_eq!(v["tls"], true, "{v}");
-    let g = &v["gate"];
-    assert!(g["admitted"].as_u64() >= Some(1), "{g}");
-    assert_eq!(g["refused_token"].as_u64(), Some(2), "{g}");
-    assert!(g["refused_tls"].as_u64() >= Some(2), "{g}");
+    let viewer: viewer_stage::summary::ViewerPart = crate::summary_schema::part(&run.summary());
+    let v = &viewer.viewer;
+    eprintln!("viewer {v:?}");
+    assert!(v.tls, "{v:?}");
+    let g = v.gate.as_ref().expect("the TLS gate's counts");
+    assert!(g.admitted >= 1, "{g:?}");
+    assert_eq!(g.refused_token, 2, "{g:?}");
+    assert!(g.refused_tls >= 2, "{g:?}");
     assert!(run.log().contains("refused a client without the token"), "warned");
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new(), "iceoryx2 files left behind");
 }
