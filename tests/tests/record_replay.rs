@@ -173,44 +173,48 @@ rate_hz = 0.0
 "#
     );
     let s = orig.run_to_end("end = \"end_of_stream\"\nend_of_stream_from = [\"rec\"]\nduration_s = 200", &procs, LONG);
-    let rec = &s["recorder"];
-    eprintln!("original run: recorder {rec:#}\ningest {:#}", s["ingest"]);
+    use crate::summary_schema::part;
+    let recorder: recorder_stage::summary::RecorderPart = part(&s);
+    let ingest: ingest_stage::summary::IngestPart = part(&s);
+    let buoy: buoy_ekf_stage::summary::BuoyEkfPart = part(&s);
+    let rec = &recorder.recorder;
+    eprintln!("original run: recorder {:#}\ningest {:#}", s["recorder"], s["ingest"]);
     let file = orig.out_dir().join("recording.mcap");
-    assert_eq!(rec["file"].as_str(), Some(file.to_str().unwrap()), "{rec:#}");
-    assert_eq!(rec["ended_by"], "end of stream", "{rec:#}");
+    assert_eq!(rec.file, file.to_str().unwrap(), "{rec:?}");
+    assert_eq!(rec.ended_by, "end of stream", "{rec:?}");
     // Every message the stages sent is in the file, none missed.
-    let ingest = &s["ingest"]["messages"];
-    for (service, key) in [
-        ("pipeline/sensors/odometry", "odometry"),
-        ("pipeline/sensors/stereo", "stereo"),
-        ("pipeline/sensors/buoy_ranges", "buoy_ranges"),
-        ("pipeline/sensors/depth", "depth"),
+    let m = &ingest.ingest.messages;
+    for (service, published) in [
+        ("pipeline/sensors/odometry", m.odometry),
+        ("pipeline/sensors/stereo", m.stereo),
+        ("pipeline/sensors/buoy_ranges", m.buoy_ranges),
+        ("pipeline/sensors/depth", m.depth),
     ] {
-        assert!(ingest[key].as_u64().unwrap() > 0, "{key}");
-        assert_eq!(rec["messages"][service], ingest[key], "{service}: {rec:#}");
+        assert!(published > 0, "{service}");
+        assert_eq!(rec.messages.get(service), Some(&published), "{service}: {rec:?}");
     }
-    let fixes_sent = s["buoy_ekf"]["fixes"].as_u64().unwrap();
+    let fixes_sent = buoy.buoy_ekf.fixes;
     assert!(fixes_sent > 10, "{:#}", s["buoy_ekf"]);
-    assert_eq!(rec["messages"]["pipeline/buoy/fix"].as_u64(), Some(fixes_sent), "{rec:#}");
+    assert_eq!(rec.messages.get("pipeline/buoy/fix"), Some(&fixes_sent), "{rec:?}");
     assert!(
-        rec["messages"]["pipeline/control/end_of_stream"].as_u64().unwrap() >= 4,
-        "ingest, buoy, slam, sync: {rec:#}"
+        rec.messages.get("pipeline/control/end_of_stream").is_some_and(|&n| n >= 4),
+        "ingest, buoy, slam, sync: {rec:?}"
     );
     // Sensors (back-pressure), estimates (256-sample queues) and control lose nothing; the
     // particle sets and diagnostics are lossy streams (newest wins) and may drop under load.
-    for (service, missed) in rec["missed"].as_object().unwrap() {
+    for (service, &missed) in &rec.missed {
         if !["pipeline/slam/particles", "pipeline/slam/diagnostics"].contains(&service.as_str()) {
-            assert_eq!(missed.as_u64(), Some(0), "{service}: {rec:#}");
+            assert_eq!(missed, 0, "{service}: {rec:?}");
         }
     }
     // Readable by the mcap crate and by Python's reader, with the same counts.
     let (counts, orig_fixes) = read_mcap(&file);
-    for (service, n) in rec["messages"].as_object().unwrap() {
-        assert_eq!(counts.get(service).copied(), n.as_u64(), "{service}: {counts:?}");
+    for (service, n) in &rec.messages {
+        assert_eq!(counts.get(service), Some(n), "{service}: {counts:?}");
     }
     assert_eq!(counts.get("pipeline/buoy/fix/json").copied(), Some(fixes_sent), "JSON mirror: {counts:?}");
     assert_eq!(read_mcap_python(&file), counts, "Python's reader and the mcap crate disagree");
-    assert_eq!(rec["file_bytes"].as_u64(), Some(std::fs::metadata(&file).unwrap().len()));
+    assert_eq!(rec.file_bytes, std::fs::metadata(&file).unwrap().len());
     let orig_tum = std::fs::read(orig.out_dir().join("buoy_ekf.tum")).expect("original buoy_ekf.tum");
     assert!(orig_tum.len() > 1000);
     let orig_slam = std::fs::read(orig.out_dir().join("slam_local.tum")).expect("original slam_local.tum");
@@ -221,17 +225,19 @@ rate_hz = 0.0
     for tag in ["replaya", "replayb"] {
         let topics = ["pipeline/sensors/odometry", "pipeline/sensors/buoy_ranges", "pipeline/sensors/depth"];
         let (run, s) = replay(tag, &file, (BUOY, "buoy", "pipeline/buoy/fix"), &topics);
-        let r = &s["replayer"];
-        eprintln!("{tag}: replayer {r:#}");
-        assert_eq!(r["complete"], true, "{r:#}");
+        let replayer: recorder_stage::summary::ReplayerPart = part(&s);
+        let r = &replayer.replayer;
+        eprintln!("{tag}: replayer {:#}", s["replayer"]);
+        assert!(r.complete, "{r:?}");
         for service in ["pipeline/sensors/odometry", "pipeline/sensors/buoy_ranges", "pipeline/sensors/depth"] {
-            assert_eq!(r["sent"][service], rec["messages"][service], "{service}: {r:#}");
+            assert_eq!(r.sent.get(service), rec.messages.get(service), "{service}: {r:?}");
         }
-        assert_eq!(r["undelivered"], serde_json::json!({}), "{r:#}");
+        assert!(r.undelivered.is_empty(), "{r:?}");
         // Only ingest's, slam's and sync's ends of stream are replayed: buoy and rec are part of
         // the replay config.
-        assert_eq!(r["sent"]["pipeline/control/end_of_stream"], 3, "{r:#}");
-        assert_eq!(s["buoy_ekf"]["fixes"].as_u64(), Some(fixes_sent), "{:#}", s["buoy_ekf"]);
+        assert_eq!(r.sent.get("pipeline/control/end_of_stream"), Some(&3), "{r:?}");
+        let replayed_buoy: buoy_ekf_stage::summary::BuoyEkfPart = part(&s);
+        assert_eq!(replayed_buoy.buoy_ekf.fixes, fixes_sent, "{:#}", s["buoy_ekf"]);
         let (_, fixes) = read_mcap(&run.out_dir().join("recording.mcap"));
         assert_eq!(fixes.len(), orig_fixes.len());
         assert!(fixes == orig_fixes, "{tag}: the replayed buoy fixes differ from the original run's");
@@ -247,10 +253,11 @@ rate_hz = 0.0
         let stage = SLAM.replace("after = [\"rec\"]", "");
         let topics = ["pipeline/sensors/odometry", "pipeline/sensors/stereo"];
         let (run, s) = replay(tag, &file, (&stage, "slam", "pipeline/slam/pose"), &topics);
-        let r = &s["replayer"];
-        assert_eq!(r["complete"], true, "{r:#}");
-        assert_eq!(r["sent"]["pipeline/sensors/stereo"], rec["messages"]["pipeline/sensors/stereo"], "{r:#}");
-        assert_eq!(r["undelivered"], serde_json::json!({}), "{r:#}");
+        let replayer: recorder_stage::summary::ReplayerPart = part(&s);
+        let r = &replayer.replayer;
+        assert!(r.complete, "{r:?}");
+        assert_eq!(r.sent.get("pipeline/sensors/stereo"), rec.messages.get("pipeline/sensors/stereo"), "{r:?}");
+        assert!(r.undelivered.is_empty(), "{r:?}");
         slams.push(std::fs::read(run.out_dir().join("slam_local.tum")).expect("slam_local.tum"));
     }
     assert!(slams[0] == slams[1], "two replays with the same config gave different slam_local.tum");
@@ -271,9 +278,9 @@ rate_hz = 0.0
         let stage = SYNC.replace("after = [\"rec\"]", "");
         let topics = ["pipeline/slam/pose", "pipeline/buoy/fix"];
         let (run, s) = replay(tag, &file, (&stage, "sync", "pipeline/sync/pair"), &topics);
-        let r = &s["replayer"];
-        assert_eq!(r["complete"], true, "{r:#}");
-        assert_eq!(r["undelivered"], serde_json::json!({}), "{r:#}");
+        let replayer: recorder_stage::summary::ReplayerPart = part(&s);
+        assert!(replayer.replayer.complete, "{:?}", replayer.replayer);
+        assert!(replayer.replayer.undelivered.is_empty(), "{:?}", replayer.replayer);
         pairs.push(proper(payloads(&run.out_dir().join("recording.mcap"), "pipeline/sync/pair")));
     }
     let differ = |a: &Fixes, b: &Fixes| (0..a.len().min(b.len())).filter(|&i| a[i] != b[i]).count();

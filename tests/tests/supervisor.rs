@@ -5,6 +5,7 @@ use std::time::Duration;
 
 use nix::sys::signal::Signal;
 use pipeline_tests::{TestRun, process_alive};
+use supervisor::outcome::EndReason;
 
 const PAIR: &str = r#"
 [processes.consumer]
@@ -27,6 +28,11 @@ fn consumer_counters(run: &TestRun) -> serde_json::Value {
     run.summary()["test_consumer"].clone()
 }
 
+/// The supervisor's part of summary.json, as the supervisor wrote it.
+fn report(summary: &serde_json::Value) -> supervisor::report::SupervisorPart {
+    crate::summary_schema::part(summary)
+}
+
 #[test]
 fn data_flows_and_sigterm_stops_everything_leaving_no_shared_memory() {
     let mut run = TestRun::new("sigterm");
@@ -43,17 +49,19 @@ fn data_flows_and_sigterm_stops_everything_leaving_no_shared_memory() {
         assert!(!process_alive(pid), "child {pid} survived the stop");
     }
     let s = run.summary();
+    let sup = report(&s);
     for p in ["consumer", "producer"] {
-        assert_eq!(s["processes"][p]["restarts"], 0);
-        assert_eq!(s["processes"][p]["last_exit"]["code"], 0, "{p} stops cleanly on SIGTERM: {s:#}");
+        let process = &sup.processes[p];
+        assert_eq!(process.restarts, 0);
+        assert_eq!(process.last_exit.as_ref().and_then(|e| e.code), Some(0), "{p} stops cleanly on SIGTERM: {s:#}");
     }
     let c = consumer_counters(&run);
     assert!(c["frames_ok"].as_u64().unwrap() >= 5, "{c}");
     assert_eq!(c["frames_bad"], 0, "{c}");
-    let hop = &s["latency_ms"]["hops"]["pipeline/sensors/cloud -> consumer"];
-    assert!(hop["count"].as_u64().unwrap() >= 5, "{s:#}");
-    assert!(hop["p50"].as_f64().unwrap() > 0.0 && hop["p50"].as_f64().unwrap() <= hop["max"].as_f64().unwrap());
-    assert!(s["latency_ms"]["end_to_end"]["pipeline/sensors/cloud -> consumer"]["count"].as_u64().unwrap() >= 5);
+    let hop = &sup.latency_ms.hops["pipeline/sensors/cloud -> consumer"];
+    assert!(hop.count >= 5, "{s:#}");
+    assert!(hop.p50 > 0.0 && hop.p50 <= hop.max, "{hop:?}");
+    assert!(sup.latency_ms.end_to_end["pipeline/sensors/cloud -> consumer"].count >= 5);
     assert!(run.out_dir().join("latency.csv").exists());
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new(), "iceoryx2 files left behind");
 }
@@ -67,26 +75,24 @@ fn end_of_stream_ends_the_run_with_every_frame_verified() {
     let status = run.wait_supervisor(LONG).expect("run ends on end of stream");
     assert_eq!(status.code(), Some(0), "{}", run.log());
     let s = run.summary();
-    assert_eq!(s["run"]["end_reason"], "end_of_stream");
+    let sup = report(&s);
+    assert_eq!(sup.run.end_reason, EndReason::EndOfStream);
     // The configured bound as in the config, and the run's own wall time (30 frames at 100 Hz).
-    assert_eq!(s["run"]["duration_s"], 60.0, "{:#}", s["run"]);
-    assert!(s["run"]["elapsed_s"].as_f64().is_some_and(|e| e > 0.2 && e < 60.0), "{:#}", s["run"]);
+    assert_eq!(sup.run.duration_s, 60.0, "{:?}", sup.run);
+    assert!(sup.run.elapsed_s > 0.2 && sup.run.elapsed_s < 60.0, "{:?}", sup.run);
     let c = consumer_counters(&run);
     assert_eq!(c["frames_ok"], 30, "{c}");
     assert_eq!(c["frames_missed"], 0, "{c}");
-    assert_eq!(s["processes"]["producer"]["messages_out"], 31, "30 clouds + end of stream: {s:#}");
+    assert_eq!(sup.processes["producer"].messages_out, 31, "30 clouds + end of stream: {s:#}");
     // The kernel's accounting of each reaped child: some CPU time, a resident set of a real
     // process (more than 1 MiB, less than 1 GiB for this pair).
     for p in ["producer", "consumer"] {
-        let (cpu, rss) = (&s["processes"][p]["cpu_s"], &s["processes"][p]["peak_rss_mib"]);
-        assert!(cpu.as_f64().is_some_and(|c| c > 0.0 && c < 60.0), "{p} cpu_s {cpu}");
-        assert!(rss.as_f64().is_some_and(|m| m > 1.0 && m < 1024.0), "{p} peak_rss_mib {rss}");
+        let (cpu, rss) = (sup.processes[p].cpu_s, sup.processes[p].peak_rss_mib);
+        assert!(cpu > 0.0 && cpu < 60.0, "{p} cpu_s {cpu}");
+        assert!(rss > 1.0 && rss < 1024.0, "{p} peak_rss_mib {rss}");
         // Its memory when it reported ready, before any data: a real process's, at most the peak.
-        let ready = &s["processes"][p]["ready_rss_mib"];
-        assert!(
-            ready.as_f64().is_some_and(|m| m > 1.0 && m <= rss.as_f64().unwrap_or(0.0)),
-            "{p} ready_rss_mib {ready}, peak {rss}"
-        );
+        let ready = sup.processes[p].ready_rss_mib;
+        assert!(ready > 1.0 && ready <= rss, "{p} ready_rss_mib {ready}, peak {rss}");
     }
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
 }
@@ -109,8 +115,8 @@ fn a_child_killed_with_sigkill_is_restarted_its_stale_resources_cleaned_and_data
     run.signal_supervisor(Signal::SIGTERM);
     run.wait_supervisor(LONG).expect("stops");
     let s = run.summary();
-    assert_eq!(s["processes"]["producer"]["restarts"], 1, "{s:#}");
-    assert_eq!(s["processes"]["producer"]["instances"], 2, "{s:#}");
+    let producer = &report(&s).processes["producer"];
+    assert_eq!((producer.restarts, producer.instances), (1, 2), "{s:#}");
     let c = consumer_counters(&run);
     let (ok, last) = (c["frames_ok"].as_u64().unwrap(), c["last_seq"].as_u64().unwrap());
     // The new instance numbers its clouds from 0 again: more good frames than the last sequence
@@ -131,12 +137,13 @@ fn a_crash_looping_required_child_is_given_up_after_max_restarts_and_ends_the_ru
     let status = run.wait_supervisor(LONG).expect("the run ends once the required process is given up");
     assert_eq!(status.code(), Some(1), "{}", run.log());
     let s = run.summary();
-    let p = &s["processes"]["producer"];
-    assert_eq!(p["state"], "FAILED", "{s:#}");
-    assert_eq!(p["restarts"], 2);
-    assert_eq!(p["last_exit"]["signal"], 6, "SIGABRT: {p}");
-    assert!(p["failure"].as_str().unwrap().contains("gave up after 2 restart(s)"), "{p}");
-    assert_eq!(s["run"]["end_reason"]["required_process_failed"], "producer");
+    let sup = report(&s);
+    let p = &sup.processes["producer"];
+    assert_eq!(p.state, "FAILED", "{s:#}");
+    assert_eq!(p.restarts, 2);
+    assert_eq!(p.last_exit.as_ref().and_then(|e| e.signal), Some(6), "SIGABRT: {p:?}");
+    assert!(p.failure.as_deref().unwrap_or_default().contains("gave up after 2 restart(s)"), "{p:?}");
+    assert_eq!(sup.run.end_reason, EndReason::RequiredProcessFailed("producer".into()));
     assert_eq!(run.started_pids("producer").len(), 3);
     assert!(run.log().contains("gave up after 2 restart(s)"));
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
@@ -155,10 +162,12 @@ fn a_child_that_stops_heartbeating_is_killed_and_reported() {
     run.signal_supervisor(Signal::SIGINT);
     let status = run.wait_supervisor(LONG).expect("stops on SIGINT");
     assert_eq!(status.code(), Some(130));
-    let p = &run.summary()["processes"]["producer"];
-    assert_eq!(p["state"], "FAILED", "{p}");
-    assert_eq!(p["last_exit"]["signal"], 9, "{p}");
-    assert!(p["last_exit"]["killed_because"].as_str().unwrap().starts_with("no heartbeat"), "{p}");
+    let sup = report(&run.summary());
+    let p = &sup.processes["producer"];
+    assert_eq!(p.state, "FAILED", "{p:?}");
+    let exit = p.last_exit.as_ref().expect("its exit");
+    assert_eq!(exit.signal, Some(9), "{p:?}");
+    assert!(exit.killed_because.as_deref().unwrap_or_default().starts_with("no heartbeat"), "{p:?}");
 }
 
 #[test]
@@ -214,8 +223,9 @@ fn a_child_restarted_after_its_upstream_ended_gets_the_end_of_stream_again() {
     assert_eq!(status.code(), Some(0), "{}", run.log());
     assert!(run.log().contains("replaying end of stream to the restarted process"), "{}", run.log());
     let s = run.summary();
-    assert_eq!(s["run"]["end_reason"], "end_of_stream", "{s:#}");
-    assert_eq!(s["processes"]["consumer"]["restarts"], 1, "{s:#}");
+    let sup = report(&s);
+    assert_eq!(sup.run.end_reason, EndReason::EndOfStream, "{s:#}");
+    assert_eq!(sup.processes["consumer"].restarts, 1, "{s:#}");
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
 }
 
@@ -389,7 +399,6 @@ fn in_a_terminal_the_run_is_a_live_block_and_the_full_log_goes_to_run_log() {
     for needle in ["[supervisor]", "starting pipeline", "[producer]", "[consumer]", "end of stream", "hop latency"] {
         assert!(log.contains(needle), "`{needle}` not in run.log:\n{log}");
     }
-    let s = run.summary();
-    assert_eq!(s["run"]["end_reason"], "end_of_stream", "{s:#}");
+    assert_eq!(report(&run.summary()).run.end_reason, EndReason::EndOfStream);
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
 }
