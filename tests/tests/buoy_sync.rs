@@ -4,6 +4,8 @@
 
 use std::time::Duration;
 
+use crate::summary_schema::part;
+use buoy_ekf_stage::summary::BuoyEkfPart;
 use pipeline_tests::TestRun;
 
 const LONG: Duration = Duration::from_secs(150);
@@ -42,21 +44,22 @@ dir = "{dir}"
 "#
     );
     let s = run_to_end(&mut run, &procs, "\"buoy\"");
-    let ate = s["ate_m"]["buoy_ekf"].as_f64().expect("ate_m.buoy_ekf");
-    let dr = s["ate_m"]["dead_reckoning"].as_f64().expect("ate_m.dead_reckoning");
+    let buoy: BuoyEkfPart = part(&s);
+    let ates = buoy.ate_m.as_ref().expect("ate_m");
+    let ate = ates.buoy_ekf.expect("ate_m.buoy_ekf");
+    let dr = ates.dead_reckoning.expect("ate_m.dead_reckoning");
     // The goal is 0.5 m; docs/buoy_ekf.md and the README claim 0.407 m (a batch smoother with
     // GTSAM: 0.41 m): the claim is what is held.
     assert!(ate <= 0.41, "buoy EKF ATE {ate} m over the 0.41 m the docs claim (goal 0.5 m): {s:#}");
-    let b = &s["buoy_ekf"];
+    let b = &buoy.buoy_ekf;
     // Every odometry message applied in stamp order: none arrived after a range it should have
     // come before (the stage drains the ranges before the odometry), so dead reckoning is the
     // reference's.
-    assert_eq!(b["invalid_inputs"], serde_json::json!({}), "{b:#}");
+    assert!(b.invalid_inputs.is_empty(), "{b:?}");
     assert!((dr - 31.6).abs() < 0.5, "dead reckoning {dr} m, the reference measured 31.6 m: {s:#}");
     // One fix per range message once initialised (Plaza2 has 1816; the first few initialise).
-    let fixes = b["fixes"].as_u64().unwrap();
-    assert!((1800..=1816).contains(&fixes), "{b:#}");
-    assert_eq!(b["filter_errors"], serde_json::json!({}));
+    assert!((1800..=1816).contains(&b.fixes), "{b:?}");
+    assert!(b.filter_errors.is_empty(), "{b:?}");
     for f in ["buoy_ekf.tum", "dead_reckoning.tum"] {
         let text = std::fs::read_to_string(run.out_dir().join(f)).unwrap();
         assert!(text.lines().count() > 1000, "{f}");
@@ -107,23 +110,26 @@ leg_length_m = 40.0
 rate_hz = 0.0
 "#;
     let s = run_to_end(&mut run, procs, "\"sync\"");
-    let frames = s["slam"]["frames"].as_u64().unwrap();
-    let sync = &s["synchronizer"];
-    let poses = &sync["poses"];
-    let paired = poses["interpolated"].as_u64().unwrap() + poses["extrapolated"].as_u64().unwrap();
-    let unavailable = poses["unavailable"].as_u64().unwrap();
-    assert_eq!(paired + unavailable, frames, "every SLAM pose accounted for: {sync:#}");
-    assert_eq!(sync["pairs"].as_u64().unwrap(), paired);
+    let slam: fastslam_stage::summary::FastSlamPart = part(&s);
+    let sync: synchronizer_stage::summary::SynchronizerPart = part(&s);
+    let sup: supervisor::report::SupervisorPart = part(&s);
+    let frames = slam.slam.frames as u64;
+    let sync = &sync.synchronizer;
+    let poses = &sync.poses;
+    let paired = poses.interpolated + poses.extrapolated;
+    assert_eq!(paired + poses.unavailable, frames, "every SLAM pose accounted for: {sync:?}");
+    assert_eq!(sync.pairs, paired);
     // Poses before the buoy EKF's first fix (trilateration needs a depth reading and 4 buoys)
     // may be unavailable or extrapolated; everything after is interpolated.
-    assert!(poses["interpolated"].as_u64().unwrap() as f64 >= 0.8 * frames as f64, "{sync:#}");
+    assert!(poses.interpolated as f64 >= 0.8 * frames as f64, "{sync:?}");
     // The added latency (pose arrival to pair publication, wall time) stays within the
     // configured wait plus scheduling slack on a loaded 2-core machine.
-    let max_ms = sync["added_latency_ms"]["max"].as_f64().unwrap();
-    assert!(max_ms <= 300.0 + 250.0, "added latency {max_ms} ms over the 300 ms bound: {sync:#}");
-    assert!(s["processes"]["sync"]["messages_out"].as_u64().unwrap() >= paired, "{s:#}");
-    let ate = s["ate_m"]["buoy_ekf"].as_f64().unwrap();
-    let dr = s["ate_m"]["dead_reckoning"].as_f64().unwrap();
+    let max_ms = sync.added_latency_ms.max.expect("pairs were published");
+    assert!(max_ms <= 300.0 + 250.0, "added latency {max_ms} ms over the 300 ms bound: {sync:?}");
+    assert!(sup.processes["sync"].messages_out >= paired, "{s:#}");
+    let buoy: BuoyEkfPart = part(&s);
+    let ates = buoy.ate_m.as_ref().expect("ate_m");
+    let (ate, dr) = (ates.buoy_ekf.unwrap(), ates.dead_reckoning.unwrap());
     assert!(ate < dr, "buoy EKF {ate} m against dead reckoning {dr} m");
 }
 
@@ -166,21 +172,20 @@ fn the_heavy_outlier_mission_stays_within_1_2x_of_the_same_mission_with_the_outl
         let mut run = TestRun::new(tag);
         summaries.push(run_to_end(&mut run, &p, "\"buoy\""));
     }
-    let ate = |s: &serde_json::Value| s["ate_m"]["buoy_ekf"].as_f64().expect("ate_m.buoy_ekf");
+    let ate = |s: &serde_json::Value| part::<BuoyEkfPart>(s).ate_m.and_then(|a| a.buoy_ekf).expect("ate_m.buoy_ekf");
     let (with, removed) = (ate(&summaries[0]), ate(&summaries[1]));
     assert!(with <= 1.2 * removed, "ATE {with} m with the outliers, {removed} m with them removed");
     assert!(with < 0.5, "ATE {with} m: {:#}", summaries[0]);
     // The outliers are rejected and said so per buoy; with them removed next to nothing is.
     for (s, lo, hi) in [(&summaries[0], 0.08, 0.25), (&summaries[1], 0.0, 0.05)] {
-        let b = &s["buoy_ekf"];
-        assert_eq!(b["initialised"], true, "{b:#}");
-        let per_buoy = b["per_buoy"].as_array().expect("per_buoy");
-        assert_eq!(per_buoy.len(), 3, "{b:#}");
-        for p in per_buoy {
-            let share = p["rejected_share"].as_f64().unwrap();
-            assert!((lo..=hi).contains(&share), "rejected share {share} outside {lo}-{hi}: {b:#}");
+        let b = part::<BuoyEkfPart>(s).buoy_ekf;
+        assert!(b.initialised, "{b:?}");
+        assert_eq!(b.per_buoy.len(), 3, "{b:?}");
+        for p in &b.per_buoy {
+            let share = p.rejected_share;
+            assert!((lo..=hi).contains(&share), "rejected share {share} outside {lo}-{hi}: {b:?}");
         }
-        assert!(b["start_checks"].as_u64().unwrap() >= 1, "{b:#}");
-        assert_eq!(b["invalid_inputs"], serde_json::json!({}), "{b:#}");
+        assert!(b.start_checks >= 1, "{b:?}");
+        assert!(b.invalid_inputs.is_empty(), "{b:?}");
     }
 }

@@ -5,6 +5,9 @@
 
 use std::time::Duration;
 
+use crate::summary_schema::part;
+use fastslam_stage::summary::FastSlamPart;
+use ingest_stage::summary::IngestPart;
 use pipeline_tests::TestRun;
 
 const LONG: Duration = Duration::from_secs(120);
@@ -37,15 +40,17 @@ leg_length_m = 40.0
 rate_hz = 0.0
 "#;
     let s = run_to_end(&mut run, procs, "\"slam\"");
-    let frames = s["slam"]["frames"].as_u64().unwrap();
-    assert_eq!(frames, s["ingest"]["messages"]["stereo"].as_u64().unwrap(), "every stereo frame processed: {s:#}");
-    let ate = s["ate_m"]["slam"].as_f64().expect("ATE against the simulator's ground truth");
+    let (slam, ingest): (FastSlamPart, IngestPart) = (part(&s), part(&s));
+    let frames = slam.slam.frames as u64;
+    assert_eq!(frames, ingest.ingest.messages.stereo, "every stereo frame processed: {s:#}");
+    let ate = slam.ate_m.as_ref().and_then(|a| a.slam).expect("ATE against the simulator's ground truth");
     assert!(ate.is_finite() && ate < 1.0, "ATE {ate} m");
-    assert!(s["nees"]["slam"].as_f64().unwrap().is_finite());
+    assert!(slam.nees.as_ref().and_then(|n| n.slam).is_some_and(f64::is_finite), "{:#}", s["nees"]);
     let tum = std::fs::read_to_string(run.out_dir().join("slam_local.tum")).unwrap();
     assert_eq!(tum.lines().count() as u64, frames);
     // Pose, particles and diagnostics went out once per frame (plus end of stream).
-    assert!(s["processes"]["slam"]["messages_out"].as_u64().unwrap() >= 3 * frames);
+    let sup: supervisor::report::SupervisorPart = part(&s);
+    assert!(sup.processes["slam"].messages_out >= 3 * frames);
 }
 
 #[test]
@@ -78,7 +83,7 @@ dir = "{dir}"
 "#
     );
     let s = run_to_end(&mut run, &procs, "\"slam\"");
-    assert_eq!(s["slam"]["frames"], 26, "{s:#}");
+    assert_eq!(part::<FastSlamPart>(&s).slam.frames, 26, "{s:#}");
     let tum = std::fs::read_to_string(run.out_dir().join("slam_local.tum")).unwrap();
     assert_eq!(tum.lines().count(), 26);
 }
@@ -108,17 +113,18 @@ fn stereo_sim_processes(frames: usize, drive: &str) -> String {
 fn camera_only_fastslam_tracks_the_kitti_like_drive_with_the_source_track_ids() {
     let mut run = TestRun::new("slamroad");
     let s = run_to_end(&mut run, &stereo_sim_processes(150, ""), "\"slam\"");
-    let slam = &s["slam"];
-    eprintln!("ate {} nees {} slam {slam}", s["ate_m"], s["nees"]);
-    assert_eq!(slam["motion_model"], "stereo", "{slam:#}");
-    let frames = slam["frames"].as_u64().unwrap();
-    assert_eq!(frames, s["ingest"]["messages"]["stereo"].as_u64().unwrap(), "every frame processed: {s:#}");
-    let fe = &slam["frontend"];
-    assert_eq!(fe["frames"].as_u64(), Some(frames), "{fe:#}");
-    assert_eq!(fe["failed"], 0, "the front end registered every frame: {fe:#}");
-    assert!(fe["by_track_ids"].as_u64().unwrap() > frames / 2, "ingest's track ids reach the front end: {fe:#}");
+    let (part_slam, ingest): (FastSlamPart, IngestPart) = (part(&s), part(&s));
+    let slam = &part_slam.slam;
+    eprintln!("ate {} nees {} slam {}", s["ate_m"], s["nees"], s["slam"]);
+    assert_eq!(slam.motion_model, fastslam_stage::MotionModel::Stereo, "{slam:?}");
+    let frames = slam.frames as u64;
+    assert_eq!(frames, ingest.ingest.messages.stereo, "every frame processed: {s:#}");
+    let fe = slam.frontend.as_ref().expect("the front end's counts");
+    assert_eq!(fe.frames, frames, "{fe:?}");
+    assert_eq!(fe.failed, 0, "the front end registered every frame: {fe:?}");
+    assert!(fe.by_track_ids > frames / 2, "ingest's track ids reach the front end: {fe:?}");
     // 150 frames, ~150 m: 0.031 m here (2026-12-05); docs/fastslam.md 0.035 m over 400 frames.
-    let ate = s["ate_m"]["slam"].as_f64().expect("ATE against the drive's ground truth");
+    let ate = part_slam.ate_m.as_ref().and_then(|a| a.slam).expect("ATE against the drive's ground truth");
     assert!(ate <= 0.08, "ATE {ate} m over 150 frames of the simulated drive: {s:#}");
     assert!(!run.log().contains("found no motion"), "no front-end failure was warned about");
 }
@@ -128,14 +134,15 @@ fn a_camera_only_drive_the_front_end_cannot_register_is_warned_counted_and_still
     // Four features a frame: too few for the stereo front end to find the motion, every frame.
     let mut run = TestRun::new("slamroadfail");
     let s = run_to_end(&mut run, &stereo_sim_processes(30, "max_features = 4"), "\"slam\"");
-    let fe = &s["slam"]["frontend"];
-    let frames = s["slam"]["frames"].as_u64().unwrap();
-    assert_eq!(frames, s["ingest"]["messages"]["stereo"].as_u64().unwrap(), "every frame still processed: {s:#}");
+    let (slam, ingest): (FastSlamPart, IngestPart) = (part(&s), part(&s));
+    let fe = slam.slam.frontend.as_ref().expect("the front end's counts");
+    let frames = slam.slam.frames as u64;
+    assert_eq!(frames, ingest.ingest.messages.stereo, "every frame still processed: {s:#}");
     // The first frame has nothing to register against; every later one fails.
-    assert!(fe["failed"].as_u64().unwrap() + 1 >= frames, "{fe:#}");
+    assert!(fe.failed + 1 >= frames, "{fe:?}");
     let log = run.log();
     assert!(log.contains("stereo front end found no motion"), "each failure warned (the first ten): {log}");
-    assert!(log.contains(&format!("found no motion for {} of {frames} frames", fe["failed"])), "and in summary: {log}");
+    assert!(log.contains(&format!("found no motion for {} of {frames} frames", fe.failed)), "and in summary: {log}");
 }
 
 #[test]

@@ -78,40 +78,40 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     // The octree mapper on the fused poses. The replay waits for it (back-pressure, `when_behind
     // = "wait"`), so every cloud arrives; it drops only a cloud whose pose does not come within
     // pose_wait_s (possible on a loaded machine), and every drop is in summary.json's `dropped`.
-    let m = &s["octree_mapper"];
-    let c = &m["counters"];
-    let inserted = c["clouds_inserted"].as_u64().unwrap();
-    let dropped = c["clouds_dropped_behind"].as_u64().unwrap() + c["clouds_dropped_no_pose"].as_u64().unwrap();
-    let sent = s["ingest"]["messages"]["cloud"].as_u64().unwrap();
+    let mapper: octree_mapper_stage::summary::OctreeMapperPart = crate::summary_schema::part(&s);
+    let ingest: ingest_stage::summary::IngestPart = crate::summary_schema::part(&s);
+    let sup: supervisor::report::SupervisorPart = crate::summary_schema::part(&s);
+    let m = &mapper.octree_mapper;
+    let c = &m.counters;
+    let inserted = c.clouds_inserted;
+    let dropped = c.clouds_dropped_behind + c.clouds_dropped_no_pose;
+    let sent = ingest.ingest.messages.cloud;
     // On failure: the mapper's process record (restarts, last exit) and what the log says of it.
     let why = || {
         let log: Vec<String> =
             t.log().lines().filter(|l| l.contains("[map]") || l.contains("process=map")).map(String::from).collect();
         format!(
-            "{m:#}\nprocess: {:#}\nlog (map, last 40 lines):\n{}",
+            "{:#}\nprocess: {:#}\nlog (map, last 40 lines):\n{}",
+            s["octree_mapper"],
             s["processes"]["map"],
             log[log.len().saturating_sub(40)..].join("\n")
         )
     };
-    assert_eq!(c["clouds_missed"], 0, "{}", why());
+    assert_eq!(c.clouds_missed, 0, "{}", why());
     assert_eq!(inserted + dropped, sent, "every cloud inserted or counted as dropped: {}", why());
-    assert!(inserted * 100 >= sent * 98, "{inserted} of {sent} clouds inserted: {m:#}");
-    let listed: u64 = s["dropped"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|d| d["process"] == "map")
-        .map(|d| d["messages"].as_u64().unwrap())
-        .sum();
+    assert!(inserted * 100 >= sent * 98, "{inserted} of {sent} clouds inserted: {m:?}");
+    let listed: u64 = sup.dropped.iter().filter(|d| d.process == "map").map(|d| d.messages).sum();
     assert_eq!(listed, dropped, "the mapper's drops are listed in summary.json: {:#}", s["dropped"]);
-    assert_eq!(s["processes"]["map"]["dropped"], dropped);
-    assert_eq!(s["undelivered"], serde_json::json!([]), "nothing undelivered in a replay");
-    assert!(m["occupied_leaves"].as_u64().unwrap() > 10_000, "{m:#}");
-    assert!(m["navigable_regions"].as_u64().unwrap() > 0 && m["obstacles"].as_u64().unwrap() > 0, "{m:#}");
+    assert_eq!(sup.processes["map"].dropped, dropped);
+    assert!(sup.undelivered.is_empty(), "nothing undelivered in a replay: {:?}", sup.undelivered);
+    assert!(m.occupied_leaves > 10_000, "{m:?}");
+    let end = m.end_of_stream.as_ref().expect("the end of stream's navigable space");
+    assert!(end.navigable_regions > 0 && end.obstacles > 0, "{m:?}");
     // End-to-end latency of the whole pipeline, as measured by its last stages.
-    let lat = &s["pipeline_latency_ms"];
-    for k in ["stereo_to_fused_pose", "cloud_to_octree"] {
-        assert!(lat[k]["count"].as_u64().unwrap_or(0) > 0 && lat[k]["p50"].as_f64().unwrap() > 0.0, "{k}: {lat:#}");
+    let fused_lat = &fusion_part.pipeline_latency_ms.stereo_to_fused_pose;
+    let cloud_lat = &mapper.pipeline_latency_ms.as_ref().expect("the mapper's latency").cloud_to_octree;
+    for (k, lat) in [("stereo_to_fused_pose", fused_lat), ("cloud_to_octree", cloud_lat)] {
+        assert!(lat.count > 0 && lat.p50.is_some_and(|p| p > 0.0), "{k}: {lat:?}");
     }
     let bt = std::fs::read(out.join("map.bt")).expect("map.bt");
     assert!(bt.starts_with(b"# Octomap OcTree binary file"));
