@@ -4,7 +4,10 @@
 use std::process::Command;
 use std::time::Duration;
 
+use crate::summary_schema::part;
+use pipeline_runtime::validate::GuardReport;
 use pipeline_tests::{TestRun, bin};
+use supervisor::report::SupervisorPart;
 
 const LONG: Duration = Duration::from_secs(60);
 
@@ -18,8 +21,20 @@ fn pipeline(run: &TestRun, producer_args: &[&str]) -> std::path::PathBuf {
     run.write_config("end = \"end_of_stream\"\nend_of_stream_from = [\"monitor\"]\nduration_s = 60", &procs)
 }
 
-fn counts(s: &serde_json::Value, service: &str) -> serde_json::Value {
-    s["sensor_monitor"][service].clone()
+/// The sensor monitor's counters of `service`.
+fn counts(s: &serde_json::Value, service: &str) -> GuardReport {
+    let monitor: sensor_monitor_stage::summary::SensorMonitorPart = part(s);
+    monitor.sensor_monitor.streams.get(service).cloned().unwrap_or_else(|| panic!("{service}: {s:#}"))
+}
+
+/// The exit code of process `p`'s last instance.
+fn exit_code(s: &serde_json::Value, p: &str) -> Option<i32> {
+    part::<SupervisorPart>(s).processes[p].last_exit.as_ref().and_then(|e| e.code)
+}
+
+/// `reason → count` as the counters hold them.
+fn reasons(pairs: &[(&str, u64)]) -> std::collections::BTreeMap<String, u64> {
+    pairs.iter().map(|(k, n)| (k.to_string(), *n)).collect()
 }
 
 #[test]
@@ -30,13 +45,14 @@ fn the_rust_external_producer_feeds_the_pipeline() {
     let status = run.wait_supervisor(LONG).expect("run ends");
     assert_eq!(status.code(), Some(0), "{}", run.log());
     let s = run.summary();
-    assert_eq!(counts(&s, "pipeline/sensors/odometry")["accepted"], 60, "{s:#}");
-    assert_eq!(counts(&s, "pipeline/sensors/buoy_ranges")["accepted"], 6);
-    assert_eq!(counts(&s, "pipeline/sensors/cloud")["accepted"], 12);
-    assert_eq!(s["sensor_monitor"]["cloud_points"], 12 * 2000);
+    assert_eq!(counts(&s, "pipeline/sensors/odometry").accepted, 60, "{s:#}");
+    assert_eq!(counts(&s, "pipeline/sensors/buoy_ranges").accepted, 6);
+    assert_eq!(counts(&s, "pipeline/sensors/cloud").accepted, 12);
+    let monitor: sensor_monitor_stage::summary::SensorMonitorPart = part(&s);
+    assert_eq!(monitor.sensor_monitor.cloud_points, 12 * 2000);
     for svc in ["pipeline/sensors/odometry", "pipeline/sensors/buoy_ranges", "pipeline/sensors/cloud"] {
-        assert_eq!(counts(&s, svc)["rejected"], serde_json::json!({}), "{svc}");
-        assert_eq!(counts(&s, svc)["missed"], 0, "{svc}");
+        assert!(counts(&s, svc).rejected.is_empty(), "{svc}");
+        assert_eq!(counts(&s, svc).missed, 0, "{svc}");
     }
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
 }
@@ -53,20 +69,16 @@ fn a_hostile_producer_is_rejected_by_reason_and_crashes_nothing() {
     assert_eq!(status.code(), Some(0), "{}", run.log());
     let s = run.summary();
     let odo = counts(&s, "pipeline/sensors/odometry");
-    assert_eq!(odo["accepted"], 120, "every valid message still arrives: {odo}");
-    assert_eq!(
-        odo["rejected"],
-        serde_json::json!({"non_finite": 2, "bad_value": 2, "stamp_not_increasing": 2}),
-        "{odo}"
-    );
+    assert_eq!(odo.accepted, 120, "every valid message still arrives: {odo:?}");
+    assert_eq!(odo.rejected, reasons(&[("non_finite", 2), ("bad_value", 2), ("stamp_not_increasing", 2)]), "{odo:?}");
     let buoys = counts(&s, "pipeline/sensors/buoy_ranges");
-    assert_eq!(buoys["accepted"], 12);
-    assert_eq!(buoys["rejected"], serde_json::json!({"unknown_buoy": 2}));
+    assert_eq!(buoys.accepted, 12);
+    assert_eq!(buoys.rejected, reasons(&[("unknown_buoy", 2)]));
     let cloud = counts(&s, "pipeline/sensors/cloud");
-    assert_eq!(cloud["accepted"], 24);
-    assert_eq!(cloud["rejected"], serde_json::json!({"oversized": 2, "non_finite": 2}));
-    assert_eq!(s["processes"]["monitor"]["restarts"], 0);
-    assert_eq!(s["processes"]["monitor"]["last_exit"]["code"], 0);
+    assert_eq!(cloud.accepted, 24);
+    assert_eq!(cloud.rejected, reasons(&[("oversized", 2), ("non_finite", 2)]));
+    assert_eq!(part::<SupervisorPart>(&s).processes["monitor"].restarts, 0);
+    assert_eq!(exit_code(&s, "monitor"), Some(0));
     assert!(run.log().contains("rejected message"), "a warning names the problem");
 }
 
@@ -88,7 +100,7 @@ fn a_wrong_layout_under_a_contract_service_name_is_refused() {
     run.signal_supervisor(nix::sys::signal::Signal::SIGTERM);
     run.wait_supervisor(LONG).expect("stops");
     let s = run.summary();
-    assert_eq!(s["processes"]["monitor"]["last_exit"]["code"], 0, "the monitor is unharmed: {s:#}");
+    assert_eq!(exit_code(&s, "monitor"), Some(0), "the monitor is unharmed: {s:#}");
 }
 
 #[test]
@@ -136,24 +148,21 @@ restart = "never"
     let status = run.wait_supervisor(LONG).expect("run ends");
     assert_eq!(status.code(), Some(0), "{}", run.log());
     let s = run.summary();
+    let sup: SupervisorPart = part(&s);
     for p in ["buoy", "map", "slam"] {
-        assert_eq!(s["processes"][p]["restarts"], 0, "{p}: {s:#}");
-        assert_eq!(s["processes"][p]["last_exit"]["code"], 0, "{p}: {s:#}");
+        assert_eq!(sup.processes[p].restarts, 0, "{p}: {s:#}");
+        assert_eq!(exit_code(&s, p), Some(0), "{p}: {s:#}");
     }
     // The bad messages are counted by reason, the good ones used.
-    let b = &s["buoy_ekf"];
-    let bad: u64 = b["invalid_inputs"].as_object().unwrap().values().map(|v| v.as_u64().unwrap()).sum::<u64>()
-        + b["filter_errors"].as_object().unwrap().values().map(|v| v.as_u64().unwrap()).sum::<u64>();
-    assert!(bad > 0, "{b:#}");
-    let m = &s["octree_mapper"]["counters"];
-    let clouds = m["clouds_inserted"].as_u64().unwrap()
-        + m["clouds_dropped_no_pose"].as_u64().unwrap()
-        + m["clouds_dropped_behind"].as_u64().unwrap()
-        + m["clouds_missed"].as_u64().unwrap();
-    assert!(clouds >= 24, "every cloud accounted for: {m:#}");
+    let b = part::<buoy_ekf_stage::summary::BuoyEkfPart>(&s).buoy_ekf;
+    let bad: u64 = b.invalid_inputs.values().sum::<u64>() + b.filter_errors.values().sum::<u64>();
+    assert!(bad > 0, "{b:?}");
+    let m = part::<octree_mapper_stage::summary::OctreeMapperPart>(&s).octree_mapper.counters;
+    let clouds = m.clouds_inserted + m.clouds_dropped_no_pose + m.clouds_dropped_behind + m.clouds_missed;
+    assert!(clouds >= 24, "every cloud accounted for: {m:?}");
     // FastSLAM dropped the bad observations and odometry and went on with the good frames.
-    let f = &s["slam"];
-    assert!(f["rejected_observations"].as_u64().unwrap() > 0, "{f:#}");
-    assert!(f["rejected_odometry"].as_u64().unwrap() > 0, "{f:#}");
-    assert!(f["frames"].as_u64().unwrap_or(0) >= 30, "good stereo frames processed: {f:#}");
+    let f = part::<fastslam_stage::summary::FastSlamPart>(&s).slam;
+    assert!(f.rejected_observations > 0, "{f:?}");
+    assert!(f.rejected_odometry > 0, "{f:?}");
+    assert!(f.frames >= 30, "good stereo frames processed: {f:?}");
 }
