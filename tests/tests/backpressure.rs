@@ -4,7 +4,10 @@
 
 use std::time::Duration;
 
+use crate::summary_schema::part;
+use ingest_stage::summary::IngestPart;
 use pipeline_tests::TestRun;
+use supervisor::report::SupervisorPart;
 
 /// A short simulated stereo drive with few features (the consumer does not look at them).
 fn drive(frames: usize) -> String {
@@ -40,14 +43,16 @@ fn a_slow_consumer_loses_no_frame_however_long_it_waits() {
         &procs,
         Duration::from_secs(90),
     );
-    let sent = s["ingest"]["messages"]["stereo"].as_u64().unwrap();
+    let (ingest, sup): (IngestPart, SupervisorPart) = (part(&s), part(&s));
+    let sent = ingest.ingest.messages.stereo;
     assert_eq!(sent, 12, "{s:#}");
+    // The test consumer (a test program, not a stage) writes its counts untyped.
     assert_eq!(s["test_consumer"]["stereo_frames"], sent, "every frame reached the slow consumer: {s:#}");
     assert_eq!(s["test_consumer"]["stereo_missed"], 0);
-    assert!(s["ingest"]["backpressure_wait_s"].as_f64().unwrap() > 1.0, "the source did wait: {s:#}");
-    assert_eq!(s["undelivered"], serde_json::json!([]), "{s:#}");
-    assert_eq!(s["processes"]["ingest"]["undelivered"], 0);
-    assert_eq!(s["processes"]["ingest"]["restarts"], 0, "waiting is not a hang");
+    assert!(ingest.ingest.backpressure_wait_s > 1.0, "the source did wait: {s:#}");
+    assert!(sup.undelivered.is_empty(), "{s:#}");
+    assert_eq!(sup.processes["ingest"].undelivered, 0);
+    assert_eq!(sup.processes["ingest"].restarts, 0, "waiting is not a hang");
     assert!(!run.log().contains("never reached"), "{}", run.log());
 }
 
@@ -68,14 +73,15 @@ fn a_dead_consumer_is_skipped_and_what_it_missed_is_reported() {
     let log = run.log();
     assert!(status.code().is_some(), "{log}");
     let s = run.summary();
-    assert_eq!(s["ingest"]["messages"]["stereo"], 40, "the source went on without the dead consumer: {s:#}");
-    let lost = s["undelivered"].as_array().expect("undelivered list");
-    let stereo = lost
+    let (ingest, sup): (IngestPart, SupervisorPart) = (part(&s), part(&s));
+    assert_eq!(ingest.ingest.messages.stereo, 40, "the source went on without the dead consumer: {s:#}");
+    let stereo = sup
+        .undelivered
         .iter()
-        .find(|l| l["service"] == "pipeline/sensors/stereo" && l["consumer"] == "c")
+        .find(|l| l.service == "pipeline/sensors/stereo" && l.consumer == "c")
         .unwrap_or_else(|| panic!("stereo frames missed by `c` are listed: {s:#}"));
-    assert_eq!(stereo["publisher"], "ingest");
-    let missed = stereo["messages"].as_u64().unwrap();
+    assert_eq!(stereo.publisher, "ingest");
+    let missed = stereo.messages;
     let received = s["test_consumer"]["stereo_frames"].as_u64().unwrap_or(0);
     assert!(missed > 0 && missed + received <= 40, "missed {missed}, received {received}");
     assert!(
@@ -121,18 +127,19 @@ height_px = 36
         procs,
         Duration::from_secs(90),
     );
-    let sent = s["ingest"]["messages"]["cloud"].as_u64().unwrap();
+    let (ingest, sup): (IngestPart, SupervisorPart) = (part(&s), part(&s));
+    let sent = ingest.ingest.messages.cloud;
     assert!(sent >= 3, "{s:#}");
-    let c = &s["octree_mapper"]["counters"];
-    assert_eq!(c["clouds_dropped_no_pose"], sent, "every cloud arrived and was dropped without a pose: {c:#}");
-    assert_eq!(s["undelivered"], serde_json::json!([]), "{s:#}");
-    let dropped = s["dropped"].as_array().expect("dropped list");
+    let c = part::<octree_mapper_stage::summary::OctreeMapperPart>(&s).octree_mapper.counters;
+    assert_eq!(c.clouds_dropped_no_pose, sent, "every cloud arrived and was dropped without a pose: {c:?}");
+    assert!(sup.undelivered.is_empty(), "{s:#}");
+    let dropped = &sup.dropped;
     assert_eq!(dropped.len(), 1, "{dropped:#?}");
-    assert_eq!(dropped[0]["process"], "map");
-    assert_eq!(dropped[0]["service"], "pipeline/sensors/cloud");
-    assert_eq!(dropped[0]["reason"], "no pose within pose_wait_s");
-    assert_eq!(dropped[0]["messages"], sent);
-    assert_eq!(s["processes"]["map"]["dropped"], sent);
+    let d = &dropped[0];
+    assert_eq!((d.process.as_str(), d.service.as_str()), ("map", "pipeline/sensors/cloud"));
+    assert_eq!(d.reason, "no pose within pose_wait_s");
+    assert_eq!(d.messages, sent);
+    assert_eq!(sup.processes["map"].dropped, sent);
     let log = run.log();
     assert!(
         log.lines().any(|l| l.contains("WARN")

@@ -65,23 +65,27 @@ fn the_main_job_leaves_room_for_a_viewer_and_a_recorder_on_every_service() {
     );
     let log = run.log();
     assert!(!log.contains("ExceedsMaxSupportedSubscribers"), "{log}");
+    use crate::summary_schema::part;
+    let sup: supervisor::report::SupervisorPart = part(&s);
     for name in ["monitor", "slam", "buoy", "sync", "fusion", "map", "ingest", "rec1", "rec2"] {
-        assert_eq!(s["processes"][name]["state"], "done", "{name}: {:#}", s["processes"][name]);
+        assert_eq!(sup.processes[name].state, "done", "{name}: {:?}", sup.processes[name]);
     }
+    let recorders = part::<recorder_stage::summary::RecorderPart>(&s).recorders;
     for rec in ["rec1", "rec2"] {
-        let r = &s["recorders"][rec];
-        assert_eq!(r["not_recorded"], serde_json::json!({}), "{rec}: {r:#}");
+        let r = &recorders[rec];
+        assert!(r.not_recorded.is_empty(), "{rec}: {r:?}");
         for service in
             ["pipeline/sensors/cloud", "pipeline/map/voxels", "pipeline/fusion/pose", "pipeline/slam/landmarks"]
         {
-            assert!(r["messages"][service].as_u64().unwrap_or(0) > 0, "{rec} recorded no {service}: {r:#}");
+            assert!(r.messages.get(service).is_some_and(|&n| n > 0), "{rec} recorded no {service}: {r:?}");
         }
         // Sensor data waits for every subscriber in a replay: the recorders lose none of it.
-        assert_eq!(r["missed"]["pipeline/sensors/cloud"].as_u64(), Some(0), "{rec}: {r:#}");
+        assert_eq!(r.missed.get("pipeline/sensors/cloud"), Some(&0), "{rec}: {r:?}");
     }
     // The mapper inserted every cloud the recorders saw.
-    let clouds = s["recorders"]["rec1"]["messages"]["pipeline/sensors/cloud"].as_u64().unwrap();
-    assert_eq!(s["octree_mapper"]["counters"]["clouds_inserted"].as_u64(), Some(clouds), "{:#}", s["octree_mapper"]);
+    let clouds = recorders["rec1"].messages["pipeline/sensors/cloud"];
+    let mapper = part::<octree_mapper_stage::summary::OctreeMapperPart>(&s).octree_mapper;
+    assert_eq!(mapper.counters.clouds_inserted, clouds, "{:#}", s["octree_mapper"]);
 
     // The recording opens in Foxglove: Python's mcap reader finds Foxglove's schemas next to the
     // raw channels and decodes a cloud, the poses and the octree with the schemas in the file.
@@ -93,7 +97,7 @@ fn the_main_job_leaves_room_for_a_viewer_and_a_recorder_on_every_service() {
         .expect("python3 runs tests/python/mcap_foxglove.py");
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let fox: serde_json::Value = serde_json::from_slice(&out.stdout).expect("its JSON");
-    let rec = &s["recorders"]["rec1"];
+    let rec = &recorders["rec1"];
     for (topic, schema, service) in [
         ("/cloud", "foxglove.PointCloud", "pipeline/sensors/cloud"),
         ("/fused/pose", "foxglove.PoseInFrame", "pipeline/fusion/pose"),
@@ -103,8 +107,8 @@ fn the_main_job_leaves_room_for_a_viewer_and_a_recorder_on_every_service() {
     ] {
         assert_eq!(fox[topic]["schema"], schema, "{topic}: {fox:#}");
         // One Foxglove message per raw one, counted the same by the recorder and Python.
-        assert_eq!(fox[topic]["count"], rec["messages"][service], "{topic}: {fox:#}\n{rec:#}");
-        assert_eq!(fox[topic]["count"], rec["foxglove_messages"][topic], "{topic}: {rec:#}");
+        assert_eq!(fox[topic]["count"], rec.messages[service], "{topic}: {fox:#}\n{rec:?}");
+        assert_eq!(fox[topic]["count"], rec.foxglove_messages[topic], "{topic}: {rec:?}");
     }
     assert_eq!(fox["/fused/pose"]["last"]["finite"], true, "{fox:#}");
     assert_eq!(fox["/fused/pose"]["last"]["frame_id"], "world", "{fox:#}");
