@@ -5,6 +5,7 @@
 use std::path::Path;
 use std::time::Duration;
 
+use crate::summary_schema::part;
 use pipeline_tests::TestRun;
 
 const LONG: Duration = Duration::from_secs(150);
@@ -67,15 +68,16 @@ fn a_source_that_fails_for_good_ends_the_run_and_its_consumers_finish_with_what_
     assert!(log.contains("Plaza2_TD.txt:2: column 4: `abc` is not a number"), "the error names file:line:\n{log}");
     assert!(log.contains("`ingest` failed for good"), "the consumer says why its input ended:\n{log}");
     let s = run.summary();
-    assert_eq!(s["run"]["end_reason"], "end_of_stream", "{s:#}");
-    assert_eq!(s["processes"]["ingest"]["state"], "FAILED", "{s:#}");
-    assert_eq!(s["processes"]["ingest"]["restarts"], 1, "{s:#}");
-    let failed = s["run"]["failed_processes"].as_array().expect("failed_processes").clone();
-    assert!(failed.len() == 1 && failed[0].as_str().unwrap().starts_with("ingest ("), "{s:#}");
-    assert_eq!(s["run"]["streams_ended_for_failure"], serde_json::json!(["ingest"]), "{s:#}");
+    let sup: supervisor::report::SupervisorPart = part(&s);
+    assert_eq!(sup.run.end_reason, supervisor::outcome::EndReason::EndOfStream, "{s:#}");
+    assert_eq!(sup.processes["ingest"].state, "FAILED", "{s:#}");
+    assert_eq!(sup.processes["ingest"].restarts, 1, "{s:#}");
+    let failed = &sup.run.failed_processes;
+    assert!(failed.len() == 1 && failed[0].starts_with("ingest ("), "{s:#}");
+    assert_eq!(sup.run.streams_ended_for_failure.iter().collect::<Vec<_>>(), ["ingest"], "{s:#}");
     // The consumer finished normally and wrote its part (no fixes: nothing came).
-    assert_eq!(s["processes"]["buoy"]["last_exit"]["code"], 0, "{s:#}");
-    assert_eq!(s["buoy_ekf"]["fixes"], 0, "{s:#}");
+    assert_eq!(sup.processes["buoy"].last_exit.as_ref().and_then(|e| e.code), Some(0), "{s:#}");
+    assert_eq!(part::<buoy_ekf_stage::summary::BuoyEkfPart>(&s).buoy_ekf.fixes, 0, "{s:#}");
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
 }
 
@@ -95,14 +97,15 @@ fn a_replay_with_lines_out_of_time_order_under_another_prefix_runs_counts_and_wa
     let procs = buoy_on_replay(data.path(), "restart = \"never\"");
     let s = run.run_to_end("end = \"end_of_stream\"\nend_of_stream_from = [\"buoy\"]\nduration_s = 200", &procs, LONG);
     let log = run.log();
-    let warts = &s["ingest"]["data_warts"];
-    assert_eq!(warts["lines_out_of_time_order"], 1, "{s:#}");
+    let ingest: ingest_stage::summary::IngestPart = part(&s);
+    assert_eq!(ingest.ingest.data_warts.get("lines_out_of_time_order"), Some(&1), "{s:#}");
     let warnings: Vec<&str> = log.lines().filter(|l| l.contains("out of time order")).collect();
     assert_eq!(warnings.len(), 1, "one warning per file:\n{log}");
     assert!(warnings[0].contains("Plaza1_TD.txt:102: time"), "{}", warnings[0]);
     // Nothing else is lost: every range is replayed and the filter meets its goal as on the
     // original file.
-    assert_eq!(s["ingest"]["messages"]["buoy_ranges"], 1816, "{s:#}");
-    let ate = s["ate_m"]["buoy_ekf"].as_f64().expect("ate_m.buoy_ekf");
+    assert_eq!(ingest.ingest.messages.buoy_ranges, 1816, "{s:#}");
+    let buoy: buoy_ekf_stage::summary::BuoyEkfPart = part(&s);
+    let ate = buoy.ate_m.and_then(|a| a.buoy_ekf).expect("ate_m.buoy_ekf");
     assert!(ate <= 0.5, "buoy EKF ATE {ate} m: {s:#}");
 }

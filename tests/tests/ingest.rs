@@ -2,7 +2,12 @@
 
 use std::time::Duration;
 
+use crate::summary_schema::part;
+use ingest_stage::summary::IngestPart;
 use pipeline_tests::TestRun;
+use sensor_monitor_stage::summary::SensorMonitorSummary;
+use supervisor::outcome::EndReason;
+use supervisor::report::SupervisorPart;
 
 const LONG: Duration = Duration::from_secs(60);
 
@@ -32,36 +37,41 @@ const RUN_EOS: &str = "end = \"end_of_stream\"\nend_of_stream_from = [\"monitor\
 
 fn run_to_end(run: &mut TestRun, processes: &str) -> serde_json::Value {
     let s = run.run_to_end(RUN_EOS, processes, LONG);
-    assert_eq!(s["run"]["end_reason"], "end_of_stream", "{s:#}");
+    assert_eq!(part::<SupervisorPart>(&s).run.end_reason, EndReason::EndOfStream, "{s:#}");
     s
 }
 
+/// The sensor monitor's part.
+fn monitor_part(s: &serde_json::Value) -> SensorMonitorSummary {
+    part::<sensor_monitor_stage::summary::SensorMonitorPart>(s).sensor_monitor
+}
+
+/// (accepted, rejected, missed) of `service` at the sensor monitor.
 fn monitor(s: &serde_json::Value, service: &str) -> (u64, u64, u64) {
-    let m = &s["sensor_monitor"][service];
-    let rejected: u64 = m["rejected"].as_object().map(|o| o.values().filter_map(|v| v.as_u64()).sum()).unwrap_or(0);
-    (m["accepted"].as_u64().unwrap_or(0), rejected, m["missed"].as_u64().unwrap_or(0))
+    let m = monitor_part(s).streams.remove(service).unwrap_or_else(|| panic!("{service} not monitored: {s:#}"));
+    (m.accepted, m.rejected.values().sum(), m.missed)
 }
 
 #[test]
 fn the_simulated_mission_reaches_the_monitor_complete_with_ground_truth() {
     let mut run = TestRun::new("simmission");
     let s = run_to_end(&mut run, &format!("{MONITOR}{SHORT_SIM}"));
-    let sent = &s["ingest"]["messages"];
-    for (svc, key) in [
-        ("pipeline/sensors/odometry", "odometry"),
-        ("pipeline/sensors/stereo", "stereo"),
-        ("pipeline/sensors/buoy_ranges", "buoy_ranges"),
-        ("pipeline/sensors/depth", "depth"),
-        ("pipeline/sensors/cloud", "cloud"),
+    let sent = part::<IngestPart>(&s).ingest.messages;
+    for (svc, published) in [
+        ("pipeline/sensors/odometry", sent.odometry),
+        ("pipeline/sensors/stereo", sent.stereo),
+        ("pipeline/sensors/buoy_ranges", sent.buoy_ranges),
+        ("pipeline/sensors/depth", sent.depth),
+        ("pipeline/sensors/cloud", sent.cloud),
     ] {
         let (accepted, rejected, missed) = monitor(&s, svc);
         assert!(accepted > 0, "{svc}: nothing arrived: {s:#}");
-        assert_eq!(accepted, sent[key].as_u64().unwrap(), "{svc}: sent vs accepted");
+        assert_eq!(accepted, published, "{svc}: sent vs accepted");
         assert_eq!((rejected, missed), (0, 0), "{svc}");
     }
-    assert_eq!(s["processes"]["ingest"]["undelivered"], 0);
+    assert_eq!(part::<SupervisorPart>(&s).processes["ingest"].undelivered, 0);
     let gt = std::fs::read_to_string(run.out_dir().join("ground_truth.tum")).unwrap();
-    let odometry = sent["odometry"].as_u64().unwrap() as usize;
+    let odometry = sent.odometry as usize;
     assert_eq!(gt.lines().count(), odometry + 1, "one true pose per odometry step plus the start");
     let fields: Vec<f64> = gt.lines().nth(10).unwrap().split(' ').map(|f| f.parse().unwrap()).collect();
     assert_eq!(fields.len(), 8, "TUM: t tx ty tz qx qy qz qw");
@@ -80,7 +90,7 @@ fn the_same_seed_publishes_identical_messages_and_another_seed_does_not() {
         let procs = format!("{MONITOR}{SHORT_SIM}")
             .replace("source = \"sim\"", &format!("source = \"sim\"\nsim.seed = {seed}"));
         let s = run_to_end(&mut run, &procs);
-        s["sensor_monitor"]["digests"].clone()
+        monitor_part(&s).digests
     };
     let a = digests(7);
     let b = digests(7);
@@ -117,8 +127,8 @@ fn a_real_time_factor_paces_the_data_clock() {
     let mut run = TestRun::new("rtf");
     let procs = format!("{MONITOR}{}", SHORT_SIM.replace("real_time_factor = 0.0", "real_time_factor = 25.0"));
     let s = run_to_end(&mut run, &procs);
-    let data = s["ingest"]["data_duration_s"].as_f64().unwrap();
-    let wall = s["ingest"]["wall_duration_s"].as_f64().unwrap();
+    let ingest = part::<IngestPart>(&s).ingest;
+    let (data, wall) = (ingest.data_duration_s, ingest.wall_duration_s);
     assert!(data > 20.0, "{data}");
     // Never faster than 25× (slower is allowed on a loaded machine).
     assert!(wall >= data / 25.0 * 0.95, "{data} s of data in {wall} s");
@@ -134,7 +144,7 @@ fn the_octomap_scan_file_is_replayed_as_one_cloud() {
     );
     let s = run_to_end(&mut run, &procs);
     assert_eq!(monitor(&s, "pipeline/sensors/cloud"), (2, 0, 0));
-    assert_eq!(s["sensor_monitor"]["cloud_points"], 2 * 88_206);
+    assert_eq!(monitor_part(&s).cloud_points, 2 * 88_206);
 }
 
 #[test]
@@ -157,7 +167,7 @@ fn depth_images_are_back_projected_into_clouds() {
     );
     let s = run_to_end(&mut run, &procs);
     assert_eq!(monitor(&s, "pipeline/sensors/cloud"), (3, 0, 0), "{s:#}");
-    assert_eq!(s["sensor_monitor"]["cloud_points"], 3 * 56 * 48);
+    assert_eq!(monitor_part(&s).cloud_points, 3 * 56 * 48);
 }
 
 #[test]
@@ -174,7 +184,7 @@ fn the_kitti_stereo_features_are_replayed_when_the_data_set_is_present() {
     );
     let s = run_to_end(&mut run, &procs);
     assert_eq!(monitor(&s, "pipeline/sensors/stereo"), (26, 0, 0));
-    assert_eq!(s["sensor_monitor"]["stereo_observations"], 8189);
+    assert_eq!(monitor_part(&s).stereo_observations, 8189);
     assert!(run.out_dir().join("vo_camera_poses.tum").exists());
 }
 

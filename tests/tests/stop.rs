@@ -63,24 +63,35 @@ height_px = 60
     assert_eq!(status.code(), Some(143), "{}", run.log());
     // No stage needed SIGKILL: each wrote its outputs within the stop timeout.
     let s = run.summary();
+    use crate::summary_schema::part;
+    let sup: supervisor::report::SupervisorPart = part(&s);
     for p in ["map", "fusion", "sync", "buoy", "slam", "ingest"] {
-        assert_eq!(s["processes"][p]["last_exit"]["code"], 0, "{p} did not exit cleanly: {s:#}");
+        let code = sup.processes[p].last_exit.as_ref().and_then(|e| e.code);
+        assert_eq!(code, Some(0), "{p} did not exit cleanly: {s:#}");
     }
     let out = run.out_dir();
     for f in ["slam_local.tum", "buoy_ekf.tum", "fused_global.tum", "map.bt"] {
         let len = std::fs::metadata(out.join(f)).map(|m| m.len()).unwrap_or(0);
         assert!(len > 0, "{f} not written on the stop:\n{}", run.log());
     }
-    assert!(s["slam"]["frames"].as_u64().unwrap() > 0 && s["fusion"]["poses"].as_u64().unwrap() > 0, "{s:#}");
-    assert!(s["octree_mapper"]["stopped_early"].as_bool().unwrap_or(false), "{s:#}");
+    let slam: fastslam_stage::summary::FastSlamPart = part(&s);
+    let fusion: fusion_stage::summary::FusionPart = part(&s);
+    assert!(slam.slam.frames > 0 && fusion.fusion.poses > 0, "{s:#}");
+    assert!(part::<octree_mapper_stage::summary::OctreeMapperPart>(&s).octree_mapper.stopped_early, "{s:#}");
     // A run cut short keeps its evaluation: the ground truth of everything published is on disk
     // (written as the source goes), so every estimator scores what it processed.
     let truth = std::fs::read_to_string(out.join("ground_truth.tum")).unwrap_or_default();
     assert!(truth.lines().count() > 10, "ground_truth.tum not written before the end of the source");
-    assert_eq!(s["ingest"]["completed"], false, "{s:#}");
-    assert!(s["ingest"]["ground_truth_samples"].as_u64().unwrap() > 10, "{s:#}");
-    for estimator in ["slam", "buoy_ekf", "fused"] {
-        let ate = s["ate_m"][estimator].as_f64();
+    let ingest = part::<ingest_stage::summary::IngestPart>(&s).ingest;
+    assert!(!ingest.completed, "{s:#}");
+    assert!(ingest.ground_truth_samples > 10, "{s:#}");
+    let buoy: buoy_ekf_stage::summary::BuoyEkfPart = part(&s);
+    let ates = [
+        ("slam", slam.ate_m.and_then(|a| a.slam)),
+        ("buoy_ekf", buoy.ate_m.and_then(|a| a.buoy_ekf)),
+        ("fused", fusion.ate_m.and_then(|a| a.fused)),
+    ];
+    for (estimator, ate) in ates {
         assert!(ate.is_some_and(|a| a.is_finite() && a >= 0.0), "no ate_m.{estimator} after the stop: {s:#}");
     }
     eprintln!("stopped in {stop_s:.2} s");

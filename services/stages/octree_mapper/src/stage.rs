@@ -101,7 +101,9 @@ fn end_of_run(
     let (nav, steep, nonplanar, sparse) = d.counts();
     let (occ, free) = st.tree.num_occupied_free_leaves();
     let part = OctreeMapperPart {
-        pipeline_latency_ms: Some(MapperLatency { cloud_to_octree: CountedPercentiles::of(&st.cloud_to_octree_ms) }),
+        pipeline_latency_ms: Some(MapperLatency {
+            cloud_to_octree: Some(CountedPercentiles::of(&st.cloud_to_octree_ms)),
+        }),
         octree_mapper: MapperSummary {
             resolution_m: st.tree.resolution(),
             stopped_early: false,

@@ -137,6 +137,8 @@ impl From<&VoxelStreamCounters> for VoxelStreamSummary {
 /// `pipeline_latency_ms` (the mapper's key), ms.
 #[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
 pub struct MapperLatency {
-    /// From a depth cloud's origin to its insertion into the map.
-    pub cloud_to_octree: CountedPercentiles,
+    /// From a depth cloud's origin to its insertion into the map (`null` when the run stopped
+    /// before the end of stream; the key is shared with fusion's latencies).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cloud_to_octree: Option<CountedPercentiles>,
 }
