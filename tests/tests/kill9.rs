@@ -169,11 +169,14 @@ fn kill_9_of_each_stage_once_is_survived_with_complete_outputs() {
         assert!(log.contains(&format!("[{stage}]")) && log.contains(line), "{stage}: no `{line}` in the log:\n{log}");
     }
     let s = run.summary();
-    assert_eq!(s["run"]["end_reason"], "end_of_stream", "{:#}", s["run"]);
+    use crate::summary_schema::part;
+    let sup: supervisor::report::SupervisorPart = part(&s);
+    assert_eq!(sup.run.end_reason, supervisor::outcome::EndReason::EndOfStream, "{:?}", sup.run);
     for name in VICTIMS {
-        let p = &s["processes"][name];
-        assert_eq!(p["restarts"], 1, "{name}: {p:#}");
-        assert_eq!(p["last_exit"]["code"], 0, "{name}: the restarted instance must end cleanly: {p:#}");
+        let p = &sup.processes[name];
+        assert_eq!(p.restarts, 1, "{name}: {p:?}");
+        let code = p.last_exit.as_ref().and_then(|e| e.code);
+        assert_eq!(code, Some(0), "{name}: the restarted instance must end cleanly: {p:?}");
     }
 
     // Outputs: every file exists and parses.
@@ -217,10 +220,20 @@ fn kill_9_of_each_stage_once_is_survived_with_complete_outputs() {
     // Accuracy within loose bounds (a quiet run: fused 0.2 m, buoy 0.23 m, SLAM 0.3 m).
     let ate = &s["ate_m"];
     eprintln!("ate_m after the kills: {ate}");
-    for (k, bound) in [("fused", 1.5), ("buoy", 1.5), ("buoy_ekf", 1.5), ("slam", 2.0), ("slam_global", 3.0)] {
-        let v = ate[k].as_f64().unwrap_or(f64::NAN);
+    let fused = part::<fusion_stage::summary::FusionPart>(&s).ate_m.expect("fusion's ATEs");
+    let slam = part::<fastslam_stage::summary::FastSlamPart>(&s).ate_m.and_then(|a| a.slam);
+    let buoy_ekf = part::<buoy_ekf_stage::summary::BuoyEkfPart>(&s).ate_m.and_then(|a| a.buoy_ekf);
+    let ates = [
+        ("fused", fused.fused, 1.5),
+        ("buoy", fused.buoy, 1.5),
+        ("buoy_ekf", buoy_ekf, 1.5),
+        ("slam", slam, 2.0),
+        ("slam_global", fused.slam_global, 3.0),
+    ];
+    for (k, v, bound) in ates {
+        let v = v.unwrap_or(f64::NAN);
         assert!(v.is_finite() && v > 0.0 && v < bound, "ate_m.{k} = {v} (bound {bound} m): {ate:#}");
     }
-    let m = &s["octree_mapper"];
-    assert!(m["counters"]["clouds_inserted"].as_u64().unwrap_or(0) > 100, "{m:#}");
+    let m = part::<octree_mapper_stage::summary::OctreeMapperPart>(&s).octree_mapper;
+    assert!(m.counters.clouds_inserted > 100, "{m:?}");
 }
