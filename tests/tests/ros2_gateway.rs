@@ -17,7 +17,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
+use crate::summary_schema::part;
+use grid_slam_stage::summary::GridSlamPart;
 use pipeline_tests::{NetNs, TestRun, carmen_source, fr079_grid_slam, ingest_after_slam2d};
+use ros2_stage::summary::Ros2Part;
 
 /// Cyclone on the namespace's loopback, multicast on (its default skips loopback).
 const CYCLONE: &str = "<CycloneDDS><Domain><General><Interfaces><NetworkInterface name=\"lo\" multicast=\"true\"/>\
@@ -57,7 +60,7 @@ fn carmen_data() -> (String, String) {
     (data, log)
 }
 
-const SCANS: usize = 300;
+const SCANS: u64 = 300;
 
 const RELIABLE_IN: &str =
     r#"when_full = "wait", qos = { reliability = "reliable", durability = "volatile", depth = 1000 }"#;
@@ -125,22 +128,22 @@ in = [
     let s = run.summary();
     crate::summary_schema::assert_declared(&s);
 
-    let gw_in = &s["ros2"]["ros_in"]["in"];
+    let gateways = part::<Ros2Part>(&s).ros2;
+    let gw_in = &gateways["ros_in"].inbound;
     for topic in ["/scan", "/odom"] {
-        let c = &gw_in[topic]["counts"];
-        assert_eq!(c["published"], SCANS, "{topic}: {c}");
-        for k in ["undecodable", "invalid", "lost_in_dds", "port_failed"] {
-            assert_eq!(c[k], 0, "{topic} {k}: {c}");
-        }
-        eprintln!("{topic} latency: {}", gw_in[topic]["latency_ms"]);
+        let c = &gw_in[topic].counts;
+        assert_eq!(c.published, SCANS, "{topic}: {c:?}");
+        assert_eq!((c.undecodable, c.invalid, c.lost_in_dds, c.port_failed), (0, 0, 0, 0), "{topic}: {c:?}");
+        eprintln!("{topic} latency: {:?}", gw_in[topic].latency_ms);
     }
-    assert_eq!(s["grid_slam"]["scans"], SCANS, "every scan reached grid SLAM");
-    let out = &s["ros2"]["ros_out"]["out"];
-    assert_eq!(out["/slam/grid/odometry"]["published"], SCANS, "{out}");
-    assert_eq!(out["/tf"]["published"], 2 * SCANS, "odom -> base_link and map -> odom per scan: {out}");
-    assert_eq!(s["ros2"]["ros_out"]["not_carried"], 0);
+    assert_eq!(part::<GridSlamPart>(&s).grid_slam.scans, SCANS, "every scan reached grid SLAM");
+    let out = &gateways["ros_out"].out;
+    assert_eq!(out["/slam/grid/odometry"].counts.published, SCANS, "{out:?}");
+    assert_eq!(out["/tf"].counts.published, 2 * SCANS, "odom -> base_link and map -> odom per scan: {out:?}");
+    assert_eq!(gateways["ros_out"].not_carried, 0);
     // Nobody subscribes to /pose: nothing is published on it, every pose is counted.
-    assert_eq!((&out["/pose"]["published"], &out["/pose"]["no_subscriber"]), (&0.into(), &SCANS.into()), "{out}");
+    let pose = &out["/pose"].counts;
+    assert_eq!((pose.published, pose.no_subscriber), (0, SCANS), "{out:?}");
 
     // What Cyclone received.
     assert_eq!(heard["/slam/grid/odometry"]["count"], SCANS, "{heard}");
@@ -153,9 +156,9 @@ in = [
     let (w, h) = (map["width"].as_u64().unwrap(), map["height"].as_u64().unwrap());
     assert_eq!(map["cells"], w * h, "{map}");
     assert!(map["occupied"].as_u64().unwrap() > 500 && map["known"].as_u64().unwrap() > 10_000, "{map}");
-    assert!(heard["/slam/grid/path"]["last"]["poses"].as_u64().unwrap() >= SCANS as u64 - 5, "{heard}");
+    assert!(heard["/slam/grid/path"]["last"]["poses"].as_u64().unwrap() >= SCANS - 5, "{heard}");
     let tf = heard["/tf"]["count"].as_u64().unwrap();
-    assert_eq!(tf, 2 * SCANS as u64, "{heard}");
+    assert_eq!(tf, 2 * SCANS, "{heard}");
     let statics = &heard["/tf_static"]["last"]["transforms"][0];
     assert_eq!((&statics[0], &statics[1]), (&"base_link".into(), &"laser".into()), "{heard}");
     // Both gateways are ROS nodes as `ros2 node list` finds them (rmw's ros_discovery_info), with
@@ -168,13 +171,16 @@ in = [
     let mut file_run = TestRun::new("ros2gwfile");
     let from_file = file_run.run_to_end(
         "end = \"end_of_stream\"\nend_of_stream_from = [\"slam2d\"]",
-        &format!("{}{}", fr079_grid_slam(&data, 8, 1, 10.0), ingest_after_slam2d(&carmen_source(&log, SCANS))),
+        &format!("{}{}", fr079_grid_slam(&data, 8, 1, 10.0), ingest_after_slam2d(&carmen_source(&log, SCANS as usize))),
         Duration::from_secs(120),
     );
-    let (a, b) = (&s["grid_slam"]["relations"], &from_file["grid_slam"]["relations"]);
-    eprintln!("relations through ROS 2: {a}\nfrom the file: {b}");
-    assert_eq!(a["scored"], b["scored"]);
-    let (x, y) = (a["trans_mean_m"].as_f64().unwrap(), b["trans_mean_m"].as_f64().unwrap());
+    let relations = |s: &serde_json::Value| {
+        part::<GridSlamPart>(s).grid_slam.run.and_then(|r| r.relations).expect("scored against the relations")
+    };
+    let (a, b) = (relations(&s), relations(&from_file));
+    eprintln!("relations through ROS 2: {a:?}\nfrom the file: {b:?}");
+    assert_eq!(a.scored, b.scored);
+    let (x, y) = (a.trans_mean_m, b.trans_mean_m);
     assert!((x - y).abs() <= 0.1 * y, "trans_mean_m {x} through ROS 2 vs {y} from the file");
 }
 
@@ -210,18 +216,21 @@ in = [
     let status = run.wait_supervisor(Duration::from_secs(60)).expect("the run ends");
     assert_eq!(status.code(), Some(0), "{}", run.log());
     let s = run.summary();
-    let r = &s["ros2"]["ros_in"]["in"];
-    assert_eq!((&r["/scan"]["counts"]["invalid"], &r["/scan"]["counts"]["published"]), (&1.into(), &1.into()), "{r}");
-    assert_eq!(r["/odom"]["counts"]["invalid"], 1, "{r}");
-    assert_eq!(r["/cloud"]["counts"]["invalid"], 1, "{r}");
-    assert_eq!(s["ros2"]["ros_in"]["not_carried"], 3);
-    assert_eq!(r["/scan_be"]["counts"]["qos_incompatible"], 1, "a best-effort publisher, a reliable route: {r}");
-    assert_eq!(r["/scan_typed"]["counts"]["type_mismatch"], 1, "an Odometry publisher on a LaserScan route: {r}");
-    assert_eq!((&r["/scan_be"]["counts"]["received"], &r["/scan_typed"]["counts"]["received"]), (&0.into(), &0.into()));
-    assert_eq!(s["ros2"]["ros_in"]["endpoints_unmatched"], 2);
-    let d = &r["/depth"]["counts"];
-    assert_eq!((&d["camera_infos"], &d["published"], &d["invalid"]), (&1.into(), &1.into(), &0.into()), "{d}");
-    assert_eq!(s["sensor_monitor"]["cloud_points"], 2, "the depth image's two points: {}", s["sensor_monitor"]);
+    let gateway = part::<Ros2Part>(&s).ros2.remove("ros_in").expect("the gateway's part");
+    let r = &gateway.inbound;
+    let c = |t: &str| &r[t].counts;
+    assert_eq!((c("/scan").invalid, c("/scan").published), (1, 1), "{r:?}");
+    assert_eq!(c("/odom").invalid, 1, "{r:?}");
+    assert_eq!(c("/cloud").invalid, 1, "{r:?}");
+    assert_eq!(gateway.not_carried, 3);
+    assert_eq!(c("/scan_be").qos_incompatible, 1, "a best-effort publisher, a reliable route: {r:?}");
+    assert_eq!(c("/scan_typed").type_mismatch, 1, "an Odometry publisher on a LaserScan route: {r:?}");
+    assert_eq!((c("/scan_be").received, c("/scan_typed").received), (0, 0));
+    assert_eq!(gateway.endpoints_unmatched, 2);
+    let d = c("/depth");
+    assert_eq!((d.camera_infos, d.published, d.invalid), (1, 1, 0), "{d:?}");
+    let monitor = part::<sensor_monitor_stage::summary::SensorMonitorPart>(&s).sensor_monitor;
+    assert_eq!(monitor.cloud_points, 2, "the depth image's two points: {}", s["sensor_monitor"]);
     let log = run.log();
     for needle in [
         "angle_increment",
@@ -276,12 +285,12 @@ fn the_main_jobs_outputs_reach_a_cyclone_subscriber_near_the_ground_truth() {
     assert!(run.leftovers().is_empty());
     let s = run.summary();
     let heard = stop_listener(&mut run, pid);
-    let gw = &s["ros2"]["ros"];
-    assert_eq!(gw["not_carried"], 0, "{gw}");
-    let fused = gw["out"]["/slam/fused/odometry"]["published"].as_u64().unwrap();
-    assert!(fused > 20, "{gw}");
+    let gw = part::<Ros2Part>(&s).ros2.remove("ros").expect("the gateway's part");
+    assert_eq!(gw.not_carried, 0, "{gw:?}");
+    let fused = gw.out["/slam/fused/odometry"].counts.published;
+    assert!(fused > 20, "{gw:?}");
     assert_eq!(heard["/slam/fused/odometry"]["count"], fused, "every fused pose reached Cyclone: {heard}");
-    assert_eq!(heard["/tf"]["count"], gw["out"]["/tf"]["published"], "{heard}");
+    assert_eq!(heard["/tf"]["count"], gw.out["/tf"].counts.published, "{heard}");
     // Near the ground truth (the same ATE the run reports, here per pose).
     let truth = std::fs::read_to_string(run.out_dir().join("ground_truth.tum")).unwrap();
     let truth: Vec<[f64; 4]> = truth
@@ -323,11 +332,11 @@ fn the_main_jobs_outputs_reach_a_cyclone_subscriber_near_the_ground_truth() {
         .unwrap();
     assert!(o.status.success(), "rosbags cannot read {}: {}", bag.display(), String::from_utf8_lossy(&o.stderr));
     let read: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    for (topic, r) in gw["out"].as_object().unwrap() {
+    for (topic, r) in &gw.out {
         // Published, or (nobody subscribed yet, or at all: /slam/local/path) only written.
-        let routed = r["published"].as_u64().unwrap() + r["no_subscriber"].as_u64().unwrap();
+        let routed = r.counts.published + r.counts.no_subscriber;
         assert_eq!(read[topic]["count"], routed, "{topic}: {read}");
-        assert_eq!(read[topic]["type"], r["type"], "{topic}");
+        assert_eq!(read[topic]["type"], r.ros_type, "{topic}");
     }
     assert_eq!(read["/tf_static"]["first"]["transforms"].as_array().unwrap().len(), 5, "{read}");
     assert_eq!(read["/slam/fused/odometry"]["last"]["frame_id"], "map");

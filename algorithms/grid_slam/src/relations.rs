@@ -61,7 +61,13 @@ pub const LONG_SPAN_S: f64 = 60.0;
 /// A relation whose translation error is over this, m, counts as failed (`over_far_share`).
 pub const FAR_OFF_M: f64 = 0.5;
 
-/// The score of a trajectory against relations.
+/// Reads `null` back as NaN: JSON has no NaN, so a score of nothing (no relation scored, none
+/// that long) is written as `null`.
+fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(<Option<f64> as serde::Deserialize>::deserialize(d)?.unwrap_or(f64::NAN))
+}
+
+/// The score of a trajectory against relations (a mean of nothing is NaN, written as `null`).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 pub struct RelationScore {
@@ -71,22 +77,38 @@ pub struct RelationScore {
     /// the allowed one).
     pub uncovered: usize,
     /// Mean translational error, m.
+    #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub trans_mean_m: f64,
     /// Its std dev, m.
+    #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub trans_std_m: f64,
     /// Largest translational error, m.
+    #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub trans_max_m: f64,
     /// Mean rotational error, deg.
+    #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub rot_mean_deg: f64,
     /// Its std dev, deg.
+    #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub rot_std_deg: f64,
     /// Largest rotational error, deg.
+    #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub rot_max_deg: f64,
     /// Relations scored that span more than [`LONG_SPAN_S`].
     pub long_scored: usize,
     /// Their mean translational error, m (NaN, written as null, when there are none).
+    #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub long_trans_mean_m: f64,
     /// Share of the scored relations whose translation error is over [`FAR_OFF_M`] (0..1).
+    #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub over_far_share: f64,
 }
 
