@@ -33,11 +33,13 @@ height_px = 12
         procs,
         Duration::from_secs(120),
     );
-    let o = &s["odometer"];
-    let messages = o["messages"].as_u64().expect("the stage's own part is in summary.json");
-    assert_eq!(o["implausible"], 0, "{o}");
-    assert_eq!(s["processes"]["odo"]["kind"], "odometer");
-    assert_eq!(messages, s["ingest"]["messages"]["odometry"].as_u64().unwrap(), "every odometry message counted");
+    // The user's stage writes its own part, as its own struct.
+    let o = crate::summary_schema::part::<odometer::OdometerPart>(&s).odometer;
+    assert_eq!(o.implausible, 0, "{o:?}");
+    let sup: supervisor::report::SupervisorPart = crate::summary_schema::part(&s);
+    assert_eq!(sup.processes["odo"].kind, "odometer");
+    let ingest: ingest_stage::summary::IngestPart = crate::summary_schema::part(&s);
+    assert_eq!(o.messages, ingest.ingest.messages.odometry, "every odometry message counted");
     // The distance it integrated is the length of the simulated path (odometry noise aside).
     let truth = std::fs::read_to_string(run.out_dir().join("ground_truth.tum")).unwrap();
     let p: Vec<[f64; 3]> = truth
@@ -51,7 +53,7 @@ height_px = 12
         .windows(2)
         .map(|w| ((w[1][0] - w[0][0]).powi(2) + (w[1][1] - w[0][1]).powi(2) + (w[1][2] - w[0][2]).powi(2)).sqrt())
         .sum();
-    let d = o["distance_m"].as_f64().unwrap();
+    let d = o.distance_m;
     assert!(length > 20.0 && (d - length).abs() < 0.05 * length, "odometer {d:.2} m, path {length:.2} m");
 }
 

@@ -56,18 +56,19 @@ heartbeat = false
     let status = run.wait_supervisor(Duration::from_secs(60)).expect("run ends on end of stream");
     assert_eq!(status.code(), Some(0), "{}", run.log());
     let s = run.summary();
-    assert_eq!(s["run"]["end_reason"], "end_of_stream", "{s:#}");
+    let sup: supervisor::report::SupervisorPart = crate::summary_schema::part(&s);
+    assert_eq!(sup.run.end_reason, supervisor::outcome::EndReason::EndOfStream, "{s:#}");
     let c = &s["test_consumer"];
     assert_eq!(c["frames_ok"], FRAMES, "every cloud verifies: {c}\nlog:\n{}", run.log());
     assert_eq!(c["frames_bad"], 0, "{c}");
     assert_eq!(c["frames_missed"], 0, "{c}");
     assert_eq!(c["points_checked"], POINTS * FRAMES, "{c}");
     assert_eq!(c["end_of_stream_seen"], 1, "the producer's end of stream reached the consumer: {c}");
-    let hop = &s["latency_ms"]["hops"]["pipeline/sensors/cloud -> consumer"];
-    assert!(hop["count"].as_u64().unwrap_or(0) >= FRAMES, "hop latency recorded for every cloud: {s:#}");
-    assert!(hop["p50"].as_f64().unwrap() >= 0.0 && hop["p50"].as_f64().unwrap() <= hop["max"].as_f64().unwrap());
-    let camera = &s["processes"]["camera"];
-    assert_eq!(camera["restarts"], 0, "{s:#}");
-    assert_eq!(camera["last_exit"]["code"], 0, "the producer exits 0 on SIGTERM: {s:#}");
+    let hop = &sup.latency_ms.hops["pipeline/sensors/cloud -> consumer"];
+    assert!(hop.count >= FRAMES, "hop latency recorded for every cloud: {s:#}");
+    assert!(hop.p50 >= 0.0 && hop.p50 <= hop.max, "{hop:?}");
+    let camera = &sup.processes["camera"];
+    assert_eq!(camera.restarts, 0, "{s:#}");
+    assert_eq!(camera.last_exit.as_ref().and_then(|e| e.code), Some(0), "the producer exits 0 on SIGTERM: {s:#}");
     assert_eq!(run.leftovers(), Vec::<PathBuf>::new(), "iceoryx2 files left behind");
 }

@@ -128,25 +128,24 @@ fn a_third_watcher_needs_extra_subscribers_and_says_so() {
     let run_extra = format!("end = \"end_of_stream\"\nend_of_stream_from = [{}]\nduration_s = 200", ends.join(", "));
     let s = run.run_to_end(&run_extra, &procs, LONG);
     // Which of the three lost the race for the last slot depends on start-up order.
-    let losers: Vec<serde_json::Value> = ["rec1", "rec2", "rec3"]
-        .iter()
-        .map(|r| s["recorders"][r]["not_recorded"]["pipeline/sensors/cloud"].clone())
-        .filter(|v| !v.is_null())
-        .collect();
+    use crate::summary_schema::part;
+    let recorders = part::<recorder_stage::summary::RecorderPart>(&s).recorders;
+    let losers: Vec<&String> =
+        recorders.values().filter_map(|r| r.not_recorded.get("pipeline/sensors/cloud")).collect();
     assert_eq!(losers.len(), 1, "one recorder without the clouds: {losers:?}");
-    let cloud = losers[0].as_str().unwrap();
-    assert!(cloud.contains("run.extra_subscribers"), "{cloud}");
+    assert!(losers[0].contains("run.extra_subscribers"), "{}", losers[0]);
     // The pipeline's own consumers started after the recorders and still got their inputs.
+    let sup: supervisor::report::SupervisorPart = part(&s);
     for name in ["monitor", "slam", "buoy", "sync", "fusion", "map", "ingest"] {
-        assert_eq!(s["processes"][name]["state"], "done", "{name}: {:#}", s["processes"][name]);
+        assert_eq!(sup.processes[name].state, "done", "{name}: {:?}", sup.processes[name]);
     }
 
     // With one extra subscriber per service all three record everything.
     let mut run = TestRun::new("watch3x");
     let s = run.run_to_end(&format!("{run_extra}\nextra_subscribers = 1"), &procs, LONG);
+    let recorders = part::<recorder_stage::summary::RecorderPart>(&s).recorders;
     for rec in ["rec1", "rec2", "rec3"] {
-        let r = &s["recorders"][rec];
-        assert_eq!(r["not_recorded"], serde_json::json!({}), "{rec}: {r:#}");
+        assert!(recorders[rec].not_recorded.is_empty(), "{rec}: {:?}", recorders[rec]);
     }
-    assert_eq!(s["processes"]["map"]["state"], "done");
+    assert_eq!(part::<supervisor::report::SupervisorPart>(&s).processes["map"].state, "done");
 }
