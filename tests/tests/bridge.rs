@@ -190,6 +190,8 @@ rate_hz = 0.0
     let (r, b) = (robot.summary(), base.summary());
     crate::summary_schema::assert_declared(&r);
     crate::summary_schema::assert_declared(&b);
+    crate::summary_schema::assert_valid_by_jsonschema(&robot.out_dir().join("summary.json"));
+    crate::summary_schema::assert_valid_by_jsonschema(&base.out_dir().join("summary.json"));
     use crate::summary_schema::part;
     let (rp, bp): (bridge_stage::summary::BridgePart, bridge_stage::summary::BridgePart) = (part(&r), part(&b));
     let (rb, bb) = (&rp.bridge, &bp.bridge);

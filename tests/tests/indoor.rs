@@ -80,6 +80,7 @@ port = PORT
     // Every key is declared in docs/summary.schema.json (ingest, grid_slam, octree_mapper, viewer).
     let undeclared = crate::summary_schema::undeclared(&crate::summary_schema::schema(), &summary);
     assert!(undeclared.is_empty(), "summary.json keys not in the schema: {undeclared:#?}");
+    crate::summary_schema::assert_valid_by_jsonschema(&run.out_dir().join("summary.json"));
     let seen = client.wait_with_output().expect("the client ends");
     let stdout = String::from_utf8_lossy(&seen.stdout);
     assert!(seen.status.success(), "client: {}\n{stdout}", String::from_utf8_lossy(&seen.stderr));
