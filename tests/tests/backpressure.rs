@@ -46,9 +46,9 @@ fn a_slow_consumer_loses_no_frame_however_long_it_waits() {
     let (ingest, sup): (IngestPart, SupervisorPart) = (part(&s), part(&s));
     let sent = ingest.ingest.messages.stereo;
     assert_eq!(sent, 12, "{s:#}");
-    // The test consumer (a test program, not a stage) writes its counts untyped.
-    assert_eq!(s["test_consumer"]["stereo_frames"], sent, "every frame reached the slow consumer: {s:#}");
-    assert_eq!(s["test_consumer"]["stereo_missed"], 0);
+    let c = part::<testkit::ConsumerPart>(&s).test_consumer;
+    assert_eq!(c.stereo_frames, sent, "every frame reached the slow consumer: {s:#}");
+    assert_eq!(c.stereo_missed, 0);
     assert!(ingest.ingest.backpressure_wait_s > 1.0, "the source did wait: {s:#}");
     assert!(sup.undelivered.is_empty(), "{s:#}");
     assert_eq!(sup.processes["ingest"].undelivered, 0);
@@ -82,7 +82,8 @@ fn a_dead_consumer_is_skipped_and_what_it_missed_is_reported() {
         .unwrap_or_else(|| panic!("stereo frames missed by `c` are listed: {s:#}"));
     assert_eq!(stereo.publisher, "ingest");
     let missed = stereo.messages;
-    let received = s["test_consumer"]["stereo_frames"].as_u64().unwrap_or(0);
+    // The consumer was killed: it wrote no part of its own, so it counts nothing received.
+    let received = s.get("test_consumer").map_or(0, |_| part::<testkit::ConsumerPart>(&s).test_consumer.stereo_frames);
     assert!(missed > 0 && missed + received <= 40, "missed {missed}, received {received}");
     assert!(
         log.lines()

@@ -20,9 +20,15 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
         format!("end = {}\nend_of_stream_from = {}\nduration_s = 600", run["end"], run["end_of_stream_from"]);
     let mut t = TestRun::new("fusiondefault");
     let s = t.run_to_end(&run_extra, &processes, Duration::from_secs(600));
-    // Every key of the main job's summary is declared in docs/summary.schema.json, with its type.
-    let undeclared = crate::summary_schema::undeclared(&crate::summary_schema::schema(), &s);
-    assert!(undeclared.is_empty(), "summary.json keys not in the schema: {undeclared:#?}");
+    // Every key of the main job's summary is declared in docs/summary.schema.json, with its type,
+    // and the whole file reads as its parts' structs.
+    let all = crate::summary_schema::assert_declared(&s);
+    assert_eq!(
+        all.kinds(),
+        ["sensor_monitor", "ingest", "fastslam", "buoy_ekf", "synchronizer", "fusion", "octree_mapper"],
+        "the main job's stage kinds"
+    );
+    assert_eq!(all.supervisor.run.exit_code, 0, "{:#}", s["run"]);
     // The keys are those the main job wrote before its summary was typed (issue 38), plus the two
     // added on purpose (run.elapsed_s, processes.<name>.ready_rss_mib): nothing renamed or lost.
     let listed = std::fs::read_to_string(format!("{}/main_job_summary_keys.txt", env!("CARGO_MANIFEST_DIR"))).unwrap();
@@ -34,9 +40,7 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     // ... and the file validates against it by an implementation of JSON Schema we did not write.
     crate::summary_schema::assert_valid_by_jsonschema(&t.out_dir().join("summary.json"));
     // The tests read the parts as the structs the stages write.
-    let fusion_part: fusion_stage::summary::FusionPart = serde_json::from_value(s.clone()).expect("fusion's part");
-    let slam_part: fastslam_stage::summary::FastSlamPart = serde_json::from_value(s.clone()).expect("fastslam's part");
-    let buoy_part: buoy_ekf_stage::summary::BuoyEkfPart = serde_json::from_value(s.clone()).expect("buoy_ekf's part");
+    let (fusion_part, slam_part, buoy_part) = (all.fusion.unwrap(), all.fastslam.unwrap(), all.buoy_ekf.unwrap());
     let ate = &s["ate_m"];
     let fused_ate = fusion_part.ate_m.as_ref().expect("fused ATE");
     let (fused, buoy, slam) = (

@@ -49,8 +49,7 @@ add_drift = true
         &processes,
         Duration::from_secs(300),
     );
-    let undeclared = crate::summary_schema::undeclared(&crate::summary_schema::schema(), &summary);
-    assert!(undeclared.is_empty(), "summary.json keys not in the schema: {undeclared:#?}");
+    crate::summary_schema::assert_declared(&summary);
     crate::summary_schema::assert_valid_by_jsonschema(&run.out_dir().join("summary.json"));
     use crate::summary_schema::part;
     let ingest: ingest_stage::summary::IngestPart = part(&summary);

@@ -9,15 +9,21 @@ use std::path::Path;
 use std::time::Duration;
 
 use buoy_ekf_stage::stage::BuoyEkfStage;
+use buoy_ekf_stage::summary::BuoyEkfPart;
 use fastslam_stage::stage::FastSlamStage;
+use fastslam_stage::summary::FastSlamPart;
 use fusion_stage::stage::FusionStage;
+use fusion_stage::summary::FusionPart;
 use ingest_stage::stage::IngestStage;
+use ingest_stage::summary::IngestPart;
 use octree_mapper_stage::stage::OctreeMapperStage;
+use octree_mapper_stage::summary::OctreeMapperPart;
 use pipeline_runtime::testing::StageHarness;
 use pipeline_runtime::{Stage, Step};
 use shared_types::services::*;
 use shared_types::*;
 use synchronizer_stage::stage::SynchronizerStage;
+use synchronizer_stage::summary::SynchronizerPart;
 
 /// Moves what `$from` published on `$svc` to every `$to` (fixed-size messages); returns the count.
 macro_rules! pipe {
@@ -195,12 +201,22 @@ fn run_chain(out: &Path, restart_at: Option<u64>) -> anyhow::Result<Flow> {
     Ok(Flow { clouds, stereo, fixes, poses, pairs, fused, restarted })
 }
 
-fn part(out: &Path, name: &str) -> anyhow::Result<serde_json::Value> {
-    Ok(serde_json::from_slice(&std::fs::read(out.join("parts").join(format!("{name}.json")))?)?)
+/// The part file process `name` wrote (`parts/<name>.json`), read as its stage's summary struct.
+fn part<T: serde::de::DeserializeOwned>(out: &Path, name: &str) -> anyhow::Result<T> {
+    let path = out.join("parts").join(format!("{name}.json"));
+    let value: serde_json::Value = serde_json::from_slice(&std::fs::read(&path)?)?;
+    let undeclared = crate::summary_schema::undeclared(&crate::summary_schema::schema(), &value);
+    assert!(undeclared.is_empty(), "{}: keys not in the schema: {undeclared:#?}", path.display());
+    serde_json::from_value(value).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
 }
 
-fn ate(p: &serde_json::Value, k: &str) -> f64 {
-    p["ate_m"][k].as_f64().unwrap_or(f64::NAN)
+/// The buoy EKF's, SLAM's and the fused ATE (m; NaN when a part has none).
+fn ates(out: &Path) -> anyhow::Result<[f64; 3]> {
+    let buoy: BuoyEkfPart = part(out, "buoy")?;
+    let slam: FastSlamPart = part(out, "slam")?;
+    let fusion: FusionPart = part(out, "fusion")?;
+    Ok([buoy.ate_m.and_then(|a| a.buoy_ekf), slam.ate_m.and_then(|a| a.slam), fusion.ate_m.and_then(|a| a.fused)]
+        .map(|v| v.unwrap_or(f64::NAN)))
 }
 
 #[test]
@@ -214,26 +230,23 @@ fn the_main_job_runs_stage_by_stage_in_one_process() -> anyhow::Result<()> {
     assert!(fixes >= 15, "{fixes} buoy fixes in 30 s at 1 Hz");
     assert_eq!(poses, stereo, "one SLAM pose per stereo frame");
     // Every SLAM pose is paired; those that waited for their fix were also predicted at once.
-    let sync_part = part(out, "sync")?;
-    let predicted = sync_part["synchronizer"]["poses"]["predicted"].as_u64().unwrap();
-    assert_eq!(pairs, poses + predicted, "the synchronizer pairs every SLAM pose: {sync_part}");
+    let sync_part: SynchronizerPart = part(out, "sync")?;
+    let predicted = sync_part.synchronizer.poses.predicted;
+    assert_eq!(pairs, poses + predicted, "the synchronizer pairs every SLAM pose: {sync_part:?}");
     assert_eq!(fused, pairs, "fusion publishes a pose per pair, predicted or refined");
 
     // Each stage's summary part, as the process writes it for the supervisor.
-    let part = |name: &str| part(out, name);
-    let ingest_part = part("ingest")?;
-    assert_eq!(ingest_part["ingest"]["completed"], true, "{ingest_part}");
-    let map_part = part("map")?;
-    assert_eq!(map_part["octree_mapper"]["counters"]["clouds_inserted"].as_u64(), Some(clouds), "{map_part}");
-    assert_eq!(sync_part["synchronizer"]["pairs"].as_u64(), Some(poses), "pairs proper: {sync_part}");
-    let fusion_part = part("fusion")?;
-    assert_eq!(fusion_part["fusion"]["predicted"].as_u64(), Some(predicted), "{fusion_part}");
+    let ingest_part: IngestPart = part(out, "ingest")?;
+    assert!(ingest_part.ingest.completed, "{ingest_part:?}");
+    let map_part: OctreeMapperPart = part(out, "map")?;
+    assert_eq!(map_part.octree_mapper.counters.clouds_inserted, clouds, "{map_part:?}");
+    assert_eq!(sync_part.synchronizer.pairs, poses, "pairs proper: {sync_part:?}");
+    let fusion_part: FusionPart = part(out, "fusion")?;
+    assert_eq!(fusion_part.fusion.predicted as u64, predicted, "{fusion_part:?}");
 
     // Scores against the ground truth the ingest stage wrote (30 s of the mission: a short
     // drive, so the bounds are loose; the full mission's numbers are in docs/).
-    let buoy_ate = ate(&part("buoy")?, "buoy_ekf");
-    let slam_ate = ate(&part("slam")?, "slam");
-    let fused_ate = ate(&part("fusion")?, "fused");
+    let [buoy_ate, slam_ate, fused_ate] = ates(out)?;
     println!("30 s in one process: ATE buoy {buoy_ate:.3} m, SLAM {slam_ate:.3} m, fused {fused_ate:.3} m");
     assert!(buoy_ate < 1.0, "buoy ATE {buoy_ate}");
     assert!(slam_ate < 1.0, "SLAM ATE {slam_ate}");
@@ -251,11 +264,11 @@ fn every_stage_killed_and_restarted_mid_run_keeps_what_it_had() -> anyhow::Resul
     for name in ["slam", "buoy", "sync", "fusion", "map"] {
         assert!(flow.restarted.contains(&name), "{name} was not running any more at the restart: {flow:?}");
     }
-    let slam = part(out, "slam")?;
-    assert_eq!(slam["slam"]["segments"], 2, "the restarted fastslam went on in a new local map: {slam}");
+    let slam: FastSlamPart = part(out, "slam")?;
+    assert_eq!(slam.slam.segments, 2, "the restarted fastslam went on in a new local map: {slam:?}");
     // The restarted ingest went on after what it had published: nothing twice.
-    let ingest = part(out, "ingest")?;
-    assert_eq!(ingest["ingest"]["completed"], true, "{ingest}");
+    let ingest: IngestPart = part(out, "ingest")?;
+    assert!(ingest.ingest.completed, "{ingest:?}");
     assert!(flow.stereo >= 300, "{flow:?}");
     // The trajectories cover the whole mission, not only the part after the restart: the
     // restarted stages kept what the killed ones had (journals), and the mapper its map.
@@ -268,16 +281,15 @@ fn every_stage_killed_and_restarted_mid_run_keeps_what_it_had() -> anyhow::Resul
         // 1-2 s into this mission, whose vehicle is under way from the start.)
         assert!(a - t0 <= 2.5 && t1 - b < 2.0, "{f} covers {a:.1}..{b:.1} s of {t0:.1}..{t1:.1} s");
     }
-    for (name, key) in [("buoy", "buoy_ekf"), ("slam", "slam"), ("fusion", "fused")] {
-        let v = ate(&part(out, name)?, key);
+    for (key, v) in ["buoy_ekf", "slam", "fused"].into_iter().zip(ates(out)?) {
         println!("after a restart of every stage: ATE {key} {v:.3} m");
         assert!(v < 1.5, "{key}: ATE {v} m");
     }
-    let map = part(out, "map")?;
-    let inserted = map["octree_mapper"]["counters"]["clouds_inserted"].as_u64().unwrap_or(0);
+    let map: OctreeMapperPart = part(out, "map")?;
+    let inserted = map.octree_mapper.counters.clouds_inserted;
     assert!(
         inserted + 3 >= flow.clouds && inserted > 0,
-        "{inserted} of {} clouds after the restart: {map}",
+        "{inserted} of {} clouds after the restart: {map:?}",
         flow.clouds
     );
     assert!(out.join("state/map/map.bt").is_file() || inserted > 0);

@@ -58,12 +58,12 @@ heartbeat = false
     let s = run.summary();
     let sup: supervisor::report::SupervisorPart = crate::summary_schema::part(&s);
     assert_eq!(sup.run.end_reason, supervisor::outcome::EndReason::EndOfStream, "{s:#}");
-    let c = &s["test_consumer"];
-    assert_eq!(c["frames_ok"], FRAMES, "every cloud verifies: {c}\nlog:\n{}", run.log());
-    assert_eq!(c["frames_bad"], 0, "{c}");
-    assert_eq!(c["frames_missed"], 0, "{c}");
-    assert_eq!(c["points_checked"], POINTS * FRAMES, "{c}");
-    assert_eq!(c["end_of_stream_seen"], 1, "the producer's end of stream reached the consumer: {c}");
+    let c = crate::summary_schema::part::<testkit::ConsumerPart>(&s).test_consumer;
+    assert_eq!(c.frames_ok, FRAMES, "every cloud verifies: {c:?}\nlog:\n{}", run.log());
+    assert_eq!(c.frames_bad, 0, "{c:?}");
+    assert_eq!(c.frames_missed, 0, "{c:?}");
+    assert_eq!(c.points_checked, POINTS * FRAMES, "{c:?}");
+    assert_eq!(c.end_of_stream_seen, 1, "the producer's end of stream reached the consumer: {c:?}");
     let hop = &sup.latency_ms.hops["pipeline/sensors/cloud -> consumer"];
     assert!(hop.count >= FRAMES, "hop latency recorded for every cloud: {s:#}");
     assert!(hop.p50 >= 0.0 && hop.p50 <= hop.max, "{hop:?}");

@@ -18,23 +18,71 @@ fn schema_of<T: schemars::JsonSchema>() -> Value {
     serde_json::to_value(schemars::schema_for!(T)).expect("a schema is JSON")
 }
 
-/// The parts of summary.json with a typed struct, by the kind that writes them.
-fn parts() -> Vec<(&'static str, Value)> {
-    vec![
-        ("sensor_monitor", schema_of::<sensor_monitor_stage::summary::SensorMonitorPart>()),
-        ("ingest", schema_of::<ingest_stage::summary::IngestPart>()),
-        ("fastslam", schema_of::<fastslam_stage::summary::FastSlamPart>()),
-        ("buoy_ekf", schema_of::<buoy_ekf_stage::summary::BuoyEkfPart>()),
-        ("synchronizer", schema_of::<synchronizer_stage::summary::SynchronizerPart>()),
-        ("fusion", schema_of::<fusion_stage::summary::FusionPart>()),
-        ("octree_mapper", schema_of::<octree_mapper_stage::summary::OctreeMapperPart>()),
-        ("grid_slam", schema_of::<grid_slam_stage::summary::GridSlamPart>()),
-        ("viewer", schema_of::<viewer_stage::summary::ViewerPart>()),
-        ("recorder", schema_of::<recorder_stage::summary::RecorderPart>()),
-        ("replayer", schema_of::<recorder_stage::summary::ReplayerPart>()),
-        ("bridge", schema_of::<bridge_stage::summary::BridgePart>()),
-        ("ros2", schema_of::<ros2_stage::summary::Ros2Part>()),
-    ]
+/// summary.json as one struct, and the list of parts its schema merges, from one table: the
+/// kind, the struct the kind's stage returns from `finish`, and the top-level key whose presence
+/// says a process of that kind ran.
+macro_rules! run_summary {
+    ($($field:ident: $ty:ty = $key:literal),* $(,)?) => {
+        /// A run's summary.json: the supervisor's part, and the part of every stage kind that
+        /// ran (`None`: no process of that kind wrote its key). Each part is read from the whole
+        /// file (parts share `ate_m`, `nees` and `pipeline_latency_ms`), strictly: a part whose
+        /// key is there but whose content does not fit its struct is an error.
+        #[derive(Debug, Clone)]
+        pub struct RunSummary {
+            /// The supervisor's own part (`run`, `processes`, `undelivered`, `dropped`, `latency_ms`).
+            pub supervisor: supervisor::report::SupervisorPart,
+            $(
+                #[doc = concat!("The `", stringify!($field), "` kind's part (key `", $key, "`).")]
+                pub $field: Option<$ty>,
+            )*
+        }
+
+        impl RunSummary {
+            /// Reads `summary` (a whole summary.json) into its parts.
+            pub fn from_value(summary: &Value) -> Result<Self, String> {
+                fn read<T: serde::de::DeserializeOwned>(v: &Value) -> Result<T, String> {
+                    serde_json::from_value(v.clone()).map_err(|e| format!("{}: {e}", std::any::type_name::<T>()))
+                }
+                Ok(Self {
+                    supervisor: read(summary)?,
+                    $($field: if summary.get($key).is_some() { Some(read(summary)?) } else { None },)*
+                })
+            }
+
+            /// The stage kinds whose part is there.
+            pub fn kinds(&self) -> Vec<&'static str> {
+                let mut out = vec![];
+                $(if self.$field.is_some() { out.push(stringify!($field)); })*
+                out
+            }
+        }
+
+        /// The parts of summary.json with a typed struct, by the kind that writes them.
+        fn parts() -> Vec<(&'static str, Value)> {
+            vec![$((stringify!($field), schema_of::<$ty>()),)*]
+        }
+    };
+}
+
+run_summary! {
+    sensor_monitor: sensor_monitor_stage::summary::SensorMonitorPart = "sensor_monitor",
+    ingest: ingest_stage::summary::IngestPart = "ingest",
+    fastslam: fastslam_stage::summary::FastSlamPart = "slam",
+    buoy_ekf: buoy_ekf_stage::summary::BuoyEkfPart = "buoy_ekf",
+    synchronizer: synchronizer_stage::summary::SynchronizerPart = "synchronizer",
+    fusion: fusion_stage::summary::FusionPart = "fusion",
+    octree_mapper: octree_mapper_stage::summary::OctreeMapperPart = "octree_mapper",
+    grid_slam: grid_slam_stage::summary::GridSlamPart = "grid_slam",
+    viewer: viewer_stage::summary::ViewerPart = "viewer",
+    recorder: recorder_stage::summary::RecorderPart = "recorder",
+    replayer: recorder_stage::summary::ReplayerPart = "replayer",
+    bridge: bridge_stage::summary::BridgePart = "bridge",
+    ros2: ros2_stage::summary::Ros2Part = "ros2",
+}
+
+/// A run's summary.json read as [`RunSummary`]; panics naming the part that does not fit.
+pub fn run_summary(summary: &Value) -> RunSummary {
+    RunSummary::from_value(summary).unwrap_or_else(|e| panic!("summary.json does not read as its parts: {e}"))
 }
 
 /// The merged schema of summary.json.
@@ -45,7 +93,8 @@ pub fn schema() -> Value {
     root["description"] = json!(
         "What a run reports: the supervisor's part (run, processes, undelivered, dropped, latency_ms) and the parts \
          of the stages that ran, merged key by key. Generated from the summary structs by \
-         tests/tests/summary_schema.rs; units are in the key names (_m, _s, _ms, _mib) or the descriptions."
+         tests/tests/summary_schema.rs; units are in the key names (_m, _s, _ms, _mib) or the descriptions. \
+         A real number (format double) may be null: it was not finite (NaN: nothing to measure; JSON has no NaN)."
     );
     for (kind, part) in parts() {
         merge_defs(&mut root, &part, kind);
@@ -58,7 +107,24 @@ pub fn schema() -> Value {
             root["properties"][&key] = merged;
         }
     }
+    nullable_reals(&mut root);
     root
+}
+
+/// Every real number (an `f64`, `"format": "double"`) declared `number` or `null`: serde_json
+/// writes a NaN or an infinity as `null`, so that is what a reader must take.
+fn nullable_reals(s: &mut Value) {
+    match s {
+        Value::Object(m) => {
+            let real = m.get("format").is_some_and(|f| f == "double" || f == "float");
+            if real && m.get("type") == Some(&json!("number")) {
+                m.insert("type".into(), json!(["number", "null"]));
+            }
+            m.values_mut().for_each(nullable_reals);
+        }
+        Value::Array(a) => a.iter_mut().for_each(nullable_reals),
+        _ => {}
+    }
 }
 
 fn merge_defs(root: &mut Value, part: &Value, kind: &str) {
@@ -114,7 +180,7 @@ fn merge_objects(root: &Value, a: Value, b: Value, what: &str) -> Value {
 }
 
 /// Every key of `value` (a summary.json) the schema does not declare, as dotted paths; and every
-/// value whose JSON type the schema does not allow. `null` passes for a number (JSON has no NaN).
+/// value whose JSON type the schema does not allow.
 pub fn undeclared(schema: &Value, value: &Value) -> Vec<String> {
     let mut out = vec![];
     check(schema, schema, value, "", &mut out);
@@ -156,7 +222,6 @@ fn check(root: &Value, s: &Value, v: &Value, path: &str, out: &mut Vec<String>) 
         Value::Object(_) => "object",
     };
     let ok = allows(s, ty)
-        || (ty == "null" && allows(s, "number"))
         || s.get("const") == Some(v)
         || s.get("enum").and_then(Value::as_array).is_some_and(|e| e.contains(v));
     if !ok {
@@ -213,10 +278,12 @@ pub fn part<T: serde::de::DeserializeOwned>(summary: &Value) -> T {
         .unwrap_or_else(|e| panic!("summary.json does not hold a {}: {e}", std::any::type_name::<T>()))
 }
 
-/// Panics with the keys of `summary` that docs/summary.schema.json does not declare.
-pub fn assert_declared(summary: &Value) {
+/// Panics with the keys of `summary` (a whole summary.json) that docs/summary.schema.json does
+/// not declare, or with the part that does not read as its struct; else the summary as its parts.
+pub fn assert_declared(summary: &Value) -> RunSummary {
     let undeclared = undeclared(&schema(), summary);
     assert!(undeclared.is_empty(), "summary.json keys not in docs/summary.schema.json: {undeclared:#?}");
+    run_summary(summary)
 }
 
 /// Validates the summary.json at `path` against the committed docs/summary.schema.json with
@@ -267,4 +334,9 @@ fn the_checker_finds_undeclared_keys_and_wrong_types() {
     for key in ["run.exit_code", "run.elapsed:", "synchronizer.pears", "mystery"] {
         assert!(found.iter().any(|f| f.starts_with(key)), "{key} in {found:?}");
     }
+    // A real may be null (it was NaN), a count may not.
+    let nan = json!({ "run": { "exit_code": 0, "elapsed_s": null } });
+    assert_eq!(undeclared(&s, &nan), Vec::<String>::new());
+    let found = undeclared(&s, &json!({ "run": { "exit_code": null, "elapsed_s": 1.0 } }));
+    assert!(found.iter().any(|f| f.starts_with("run.exit_code")), "{found:?}");
 }

@@ -24,8 +24,8 @@ rate_hz = 50.0
 
 const LONG: Duration = Duration::from_secs(20);
 
-fn consumer_counters(run: &TestRun) -> serde_json::Value {
-    run.summary()["test_consumer"].clone()
+fn consumer_counters(run: &TestRun) -> testkit::ConsumerCounters {
+    crate::summary_schema::part::<testkit::ConsumerPart>(&run.summary()).test_consumer
 }
 
 /// The supervisor's part of summary.json, as the supervisor wrote it.
@@ -56,8 +56,8 @@ fn data_flows_and_sigterm_stops_everything_leaving_no_shared_memory() {
         assert_eq!(process.last_exit.as_ref().and_then(|e| e.code), Some(0), "{p} stops cleanly on SIGTERM: {s:#}");
     }
     let c = consumer_counters(&run);
-    assert!(c["frames_ok"].as_u64().unwrap() >= 5, "{c}");
-    assert_eq!(c["frames_bad"], 0, "{c}");
+    assert!(c.frames_ok >= 5, "{c:?}");
+    assert_eq!(c.frames_bad, 0, "{c:?}");
     let hop = &sup.latency_ms.hops["pipeline/sensors/cloud -> consumer"];
     assert!(hop.count >= 5, "{s:#}");
     assert!(hop.p50 > 0.0 && hop.p50 <= hop.max, "{hop:?}");
@@ -81,8 +81,8 @@ fn end_of_stream_ends_the_run_with_every_frame_verified() {
     assert_eq!(sup.run.duration_s, 60.0, "{:?}", sup.run);
     assert!(sup.run.elapsed_s > 0.2 && sup.run.elapsed_s < 60.0, "{:?}", sup.run);
     let c = consumer_counters(&run);
-    assert_eq!(c["frames_ok"], 30, "{c}");
-    assert_eq!(c["frames_missed"], 0, "{c}");
+    assert_eq!(c.frames_ok, 30, "{c:?}");
+    assert_eq!(c.frames_missed, 0, "{c:?}");
     assert_eq!(sup.processes["producer"].messages_out, 31, "30 clouds + end of stream: {s:#}");
     // The kernel's accounting of each reaped child: some CPU time, a resident set of a real
     // process (more than 1 MiB, less than 1 GiB for this pair).
@@ -118,11 +118,11 @@ fn a_child_killed_with_sigkill_is_restarted_its_stale_resources_cleaned_and_data
     let producer = &report(&s).processes["producer"];
     assert_eq!((producer.restarts, producer.instances), (1, 2), "{s:#}");
     let c = consumer_counters(&run);
-    let (ok, last) = (c["frames_ok"].as_u64().unwrap(), c["last_seq"].as_u64().unwrap());
+    let (ok, last) = (c.frames_ok, c.last_seq.expect("a sequence number was seen"));
     // The new instance numbers its clouds from 0 again: more good frames than the last sequence
     // number explains means frames of both instances arrived and verified.
-    assert!(last >= 3 && ok > last + 1, "no data after the restart: {c}");
-    assert_eq!(c["frames_bad"], 0);
+    assert!(last >= 3 && ok > last + 1, "no data after the restart: {c:?}");
+    assert_eq!(c.frames_bad, 0);
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
 }
 
@@ -196,7 +196,7 @@ fn sigkill_of_the_supervisor_leaves_no_orphan_and_the_next_run_cleans_the_stale_
     let status = run.wait_supervisor(LONG).expect("second run ends");
     assert_eq!(status.code(), Some(0), "{}", run.log());
     assert!(run.log().contains("stale iceoryx2 file(s)"), "{}", run.log());
-    assert_eq!(consumer_counters(&run)["frames_ok"], 5);
+    assert_eq!(consumer_counters(&run).frames_ok, 5);
     assert_eq!(run.leftovers(), Vec::<std::path::PathBuf>::new());
 }
 

@@ -51,6 +51,33 @@ impl CountedPercentiles {
     }
 }
 
+/// Reads a `#[serde(flatten)]` `Option<T>` strictly: `None` when none of `T`'s own keys (its
+/// schema's properties) is there, else `T`, whose errors propagate. serde alone reads a
+/// flattened `Option` whose keys do not fit `T` as `None`, which would hide a broken or renamed
+/// key. Use it as `#[serde(flatten, deserialize_with = "pipeline_runtime::summary::flattened_option")]`
+/// in a struct without `deny_unknown_fields` (serde does not support that next to `flatten`, and
+/// `T`'s keys stay in the map the outer struct sees).
+pub fn flattened_option<'de, D, T>(d: D) -> Result<Option<T>, D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: serde::de::DeserializeOwned + JsonSchema,
+{
+    use serde::de::Error;
+    let map = serde_json::Map::<String, serde_json::Value>::deserialize(d)?;
+    let schema = schemars::schema_for!(T);
+    let own: Vec<&str> = schema
+        .get("properties")
+        .and_then(serde_json::Value::as_object)
+        .map(|p| p.keys().map(String::as_str).collect())
+        .unwrap_or_default();
+    if !own.iter().any(|k| map.contains_key(*k)) {
+        return Ok(None);
+    }
+    let fields: serde_json::Map<String, serde_json::Value> =
+        map.into_iter().filter(|(k, _)| own.contains(&k.as_str())).collect();
+    T::deserialize(serde_json::Value::Object(fields)).map(Some).map_err(D::Error::custom)
+}
+
 /// A number that may be undefined: serialised as the number, or `null` (JSON has no NaN).
 pub fn finite(v: f64) -> Option<f64> {
     v.is_finite().then_some(v)
@@ -59,6 +86,32 @@ pub fn finite(v: f64) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[derive(Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+    struct Outer {
+        always: u32,
+        #[serde(flatten, deserialize_with = "flattened_option")]
+        more: Option<Inner>,
+    }
+
+    #[derive(Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+    struct Inner {
+        count: u32,
+        mean_m: f64,
+    }
+
+    #[test]
+    fn a_flattened_option_reads_strictly() {
+        let read = |v: serde_json::Value| serde_json::from_value::<Outer>(v);
+        let some = Outer { always: 1, more: Some(Inner { count: 2, mean_m: 0.5 }) };
+        assert_eq!(read(serde_json::to_value(&some).unwrap()).unwrap(), some);
+        assert_eq!(read(serde_json::json!({"always": 1, "other": 3})).unwrap(), Outer { always: 1, more: None });
+        // Half of Inner (a key renamed or lost) is an error, not None.
+        let err = read(serde_json::json!({"always": 1, "count": 2, "mean": 0.5})).unwrap_err();
+        assert!(err.to_string().contains("mean_m"), "{err}");
+        let err = read(serde_json::json!({"always": 1, "count": "two", "mean_m": 0.5})).unwrap_err();
+        assert!(err.to_string().contains("invalid type"), "{err}");
+    }
 
     #[test]
     fn percentiles_of_samples_and_of_none() {

@@ -29,7 +29,7 @@ pub struct GridSlamSummary {
     /// Inputs refused, by reason.
     pub rejected: BTreeMap<String, u64>,
     /// The rest, once a scan was processed.
-    #[serde(flatten)]
+    #[serde(flatten, deserialize_with = "pipeline_runtime::summary::flattened_option")]
     pub run: Option<GridSlamRun>,
 }
 

@@ -41,7 +41,7 @@ pub struct MapperSummary {
     /// Clouds and points inserted, dropped and skipped.
     pub counters: MapperCounters,
     /// The end of stream's navigable space and obstacles ([6D]), and how the voxels were streamed.
-    #[serde(flatten)]
+    #[serde(flatten, deserialize_with = "pipeline_runtime::summary::flattened_option")]
     pub end_of_stream: Option<MapperEnd>,
 }
 

@@ -118,6 +118,14 @@ pub struct ConsumerCounters {
     pub stereo_missed: u64,
 }
 
+/// The verifying consumer's part of summary.json: its counters under `test_consumer`. A test
+/// program, not a stage: docs/summary.schema.json does not list it.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+pub struct ConsumerPart {
+    /// The counters.
+    pub test_consumer: ConsumerCounters,
+}
+
 /// Why a cloud failed verification.
 #[derive(Debug, Clone, PartialEq)]
 pub enum CloudFault {

@@ -10,7 +10,7 @@ use testkit::{ConsumerCounters, ConsumerSettings, verify_cloud};
 
 fn write_part(path: &std::path::Path, counters: &ConsumerCounters) -> anyhow::Result<()> {
     std::fs::create_dir_all(path.parent().expect("part path has a parent"))?;
-    std::fs::write(path, serde_json::to_vec_pretty(&serde_json::json!({ "test_consumer": counters }))?)?;
+    std::fs::write(path, serde_json::to_vec_pretty(&testkit::ConsumerPart { test_consumer: counters.clone() })?)?;
     Ok(())
 }
 
