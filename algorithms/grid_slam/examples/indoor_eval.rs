@@ -102,6 +102,12 @@ fn main() {
             if let Some(v) = num("--proposal-step-m") {
                 cfg.proposal_step_m = v;
             }
+            if let Some(v) = num("--proposal-min-sd-m") {
+                cfg.proposal_min_sd_m = v;
+            }
+            if let Some(v) = num("--proposal-min-sd-rad") {
+                cfg.proposal_min_sd_rad = v;
+            }
             if let Some(v) = num("--proposal-step-rad") {
                 cfg.proposal_step_rad = v;
             }
