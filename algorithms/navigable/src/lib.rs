@@ -19,6 +19,10 @@
 //!    are associated by the Bhattacharyya distance ([`associate_obstacles`]).
 //! 5. [`write_navigable_ply`] and [`write_obstacles_ply`] write the two layers (navigable voxel
 //!    patches with their region, obstacles as meshes of their voxels' outer faces).
+//! 6. [`truth::score`] scores a discovery against a scene's truth (voxel classes, objects found,
+//!    the largest region's share of the ground).
+
+pub mod truth;
 
 use std::collections::{BTreeMap, HashMap};
 use std::io::Write;

@@ -28,6 +28,19 @@ pub struct Wreck {
     pub yaw_rad: f64,
 }
 
+/// What the scene holds at a point ([`Scene::truth_at`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SceneTruth {
+    /// The seabed.
+    Seabed,
+    /// Rock `i` (index into [`Scene::rocks`]).
+    Rock(usize),
+    /// The wreck.
+    Wreck,
+    /// Nothing: open water.
+    Nothing,
+}
+
 /// A natural landmark: a 3-D point with a constant 32-byte descriptor.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SceneLandmark {
@@ -195,6 +208,28 @@ impl Scene {
             + c.seabed_slope * x
     }
 
+    /// What the scene holds at `p` (world frame, m), within `tolerance_m` of a surface: a rock
+    /// or the wreck first (they stand on the seabed), then the seabed, else nothing. The truth
+    /// that navigable space and obstacles are scored against.
+    pub fn truth_at(&self, p: &Vector3<f64>, tolerance_m: f64) -> SceneTruth {
+        for (i, r) in self.rocks.iter().enumerate() {
+            if (p - Vector3::from(r.center_m)).norm() <= r.radius_m + tolerance_m {
+                return SceneTruth::Rock(i);
+            }
+        }
+        let w = &self.wreck;
+        let d = p - Vector3::from(w.center_m);
+        let (s, c) = w.yaw_rad.sin_cos();
+        let local = [c * d.x + s * d.y, -s * d.x + c * d.y, d.z];
+        if local.iter().zip(&w.size_m).all(|(v, size)| v.abs() <= 0.5 * size + tolerance_m) {
+            return SceneTruth::Wreck;
+        }
+        if (p.z - self.terrain_z(p.x, p.y)).abs() <= tolerance_m {
+            return SceneTruth::Seabed;
+        }
+        SceneTruth::Nothing
+    }
+
     /// Lipschitz bound of [`Scene::terrain_z`] (max slope), used by the ray marcher.
     fn terrain_lipschitz(&self) -> f64 {
         let a = self.config.terrain_amplitude_m;
@@ -282,5 +317,46 @@ fn random_unit(rng: &mut impl Rng) -> Vector3<f64> {
         if n > 1e-3 && n <= 1.0 {
             return v / n;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    #[test]
+    fn the_truth_knows_rocks_the_wreck_the_seabed_and_open_water() {
+        let scene = Scene::build(&SceneConfig::default(), &mut rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(3));
+        let tol = 0.1;
+        for (i, r) in scene.rocks.iter().enumerate() {
+            let top = Vector3::from(r.center_m) + Vector3::new(0.0, 0.0, r.radius_m + 0.05);
+            let truth = scene.truth_at(&top, tol);
+            // Rocks may overlap: the top of one may lie in an earlier one.
+            assert!(matches!(truth, SceneTruth::Rock(j) if j <= i), "rock {i}'s top: {truth:?}");
+            assert_ne!(scene.truth_at(&(top + Vector3::new(0.0, 0.0, 0.2)), tol), SceneTruth::Rock(i));
+        }
+        let w = &scene.wreck;
+        let deck = Vector3::from(w.center_m) + Vector3::new(0.0, 0.0, 0.5 * w.size_m[2]);
+        assert_eq!(scene.truth_at(&deck, tol), SceneTruth::Wreck);
+        // Along the wreck's length axis, just inside its end and just beyond it.
+        let (s, c) = w.yaw_rad.sin_cos();
+        let along = |d: f64| Vector3::from(w.center_m) + Vector3::new(c * d, s * d, 0.0);
+        assert_eq!(scene.truth_at(&along(0.5 * w.size_m[0] - 0.05), tol), SceneTruth::Wreck);
+        assert_ne!(scene.truth_at(&along(0.5 * w.size_m[0] + 0.5), tol), SceneTruth::Wreck);
+        // The seabed away from every object, and the water above it.
+        let clear = |x: f64, y: f64| {
+            let z = scene.terrain_z(x, y);
+            let p = Vector3::new(x, y, z);
+            let far = scene.rocks.iter().all(|r| (p - Vector3::from(r.center_m)).norm() > r.radius_m + 1.0)
+                && (p - Vector3::from(w.center_m)).norm() > w.size_m.iter().cloned().fold(0.0, f64::max) + 1.0;
+            far.then_some(p)
+        };
+        let p = (0..400)
+            .find_map(|k| clear(-50.0 + (k % 20) as f64 * 5.0, -50.0 + (k / 20) as f64 * 5.0))
+            .expect("a clear spot");
+        assert_eq!(scene.truth_at(&p, tol), SceneTruth::Seabed);
+        assert_eq!(scene.truth_at(&(p + Vector3::new(0.0, 0.0, 0.05)), tol), SceneTruth::Seabed);
+        assert_eq!(scene.truth_at(&(p + Vector3::new(0.0, 0.0, 2.0)), tol), SceneTruth::Nothing);
     }
 }
