@@ -111,6 +111,13 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     assert!(m.occupied_leaves > 10_000, "{m:?}");
     let end = m.end_of_stream.as_ref().expect("the end of stream's navigable space");
     assert!(end.navigable_regions > 0 && end.obstacles > 0, "{m:?}");
+    // Scored against the simulated scene (`truth_scene`): every classified voxel judged, the
+    // seabed and most of the 31 objects seen (issue 39's targets are not met yet: docs/mapping.md).
+    let truth = end.truth.as_ref().expect("the navigable space scored against scene.json");
+    let v = &end.voxels;
+    assert_eq!(truth.voxels, v.navigable + v.steep + v.non_planar + v.sparse, "{truth:?}");
+    assert!(truth.ground.voxels > truth.voxels / 10 && truth.objects_observed >= 10, "{truth:?}");
+    assert_eq!(truth.regions, end.navigable_regions, "{truth:?}");
     // End-to-end latency of the whole pipeline, as measured by its last stages.
     let fused_lat = &fusion_part.pipeline_latency_ms.stereo_to_fused_pose;
     let cloud_lat =
@@ -132,6 +139,7 @@ fn invalid_octree_mapper_settings_name_their_keys() {
         ("[processes.p.settings.sensor]\nprob_hit = 0.3", "processes.p.settings.sensor"),
         ("[processes.p.settings]\npose_source = \"gps\"", "processes.p.settings.pose_source"),
         ("[processes.p.settings.nsd]\nmin_points = 1", "processes.p.settings.nsd.min_points"),
+        ("[processes.p.settings]\ntruth_tolerance_m = -1.0", "processes.p.settings.truth_tolerance_m"),
     ] {
         let mut run = TestRun::new("badmapper");
         let procs = format!("[processes.p]\nkind = \"octree_mapper\"\n{settings}\n");

@@ -162,6 +162,13 @@ pub struct MapperSettings {
     /// `<out>/state/<process>/map.bt`) a restarted mapper starts
     /// from, s (0 = none: a restarted mapper starts with an empty map).
     pub checkpoint_interval_s: f64,
+    /// At the end, score the navigable space and the obstacles against the simulated scene's
+    /// truth in this file (relative to the output directory; the `sim` source writes
+    /// `scene.json`): summary.json `octree_mapper.truth`. Empty: no scoring.
+    pub truth_scene: String,
+    /// A voxel belongs to a surface of the scene when the mean of its points lies within this of
+    /// it, m (0: the voxel size).
+    pub truth_tolerance_m: f64,
 }
 
 impl Default for MapperSettings {
@@ -186,6 +193,8 @@ impl Default for MapperSettings {
             checkpoint_interval_s: 10.0,
             rebuild_from: String::new(),
             rebuild_max_clouds: 5000,
+            truth_scene: String::new(),
+            truth_tolerance_m: 0.0,
         }
     }
 }
@@ -224,6 +233,11 @@ impl Validate for MapperSettings {
             self.obstacle_max_bhattacharyya.is_finite() && self.obstacle_max_bhattacharyya >= 0.0,
             "obstacle_max_bhattacharyya",
             "must be >= 0",
+        );
+        issues.check(
+            self.truth_tolerance_m.is_finite() && self.truth_tolerance_m >= 0.0,
+            "truth_tolerance_m",
+            "must be >= 0 (0: the voxel size)",
         );
         issues.nested("nsd", &self.nsd);
     }

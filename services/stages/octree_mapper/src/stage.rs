@@ -128,6 +128,7 @@ fn end_of_run(
                     .count(),
                 rebuild: None,
                 voxel_stream: VoxelStreamSummary::from(&VoxelStreamCounters::default()),
+                truth: None,
             }),
         },
     };
@@ -166,6 +167,58 @@ pub struct OctreeMapperStage {
 }
 
 impl OctreeMapperStage {
+    /// The discovery `d` scored against the scene in `truth_scene` (`None` when unset; a file
+    /// that cannot be read is warned about and scores nothing).
+    fn score_against_truth(&self, d: &navigable::Discovery) -> Option<navigable::truth::TruthScore> {
+        if self.settings.truth_scene.is_empty() {
+            return None;
+        }
+        let path = self.out_dir.join(&self.settings.truth_scene);
+        /// The simulated source's scene.json: the scene under `scene`, next to the mission.
+        #[derive(serde::Deserialize)]
+        struct SceneFile {
+            scene: sim::scene::Scene,
+        }
+        let scene = match std::fs::read(&path)
+            .map_err(|e| e.to_string())
+            .and_then(|b| serde_json::from_slice::<SceneFile>(&b).map_err(|e| e.to_string()))
+        {
+            Ok(f) => f.scene,
+            Err(e) => {
+                tracing::warn!("not scored against the truth: {}: {e}", path.display());
+                return None;
+            }
+        };
+        let tolerance = if self.settings.truth_tolerance_m > 0.0 {
+            self.settings.truth_tolerance_m
+        } else {
+            self.st.points.resolution_m()
+        };
+        let rocks = scene.rocks.len() as u32;
+        let score = navigable::truth::score(d, &self.st.points, |p| match scene.truth_at(p, tolerance) {
+            sim::scene::SceneTruth::Seabed => navigable::truth::TruthClass::Ground,
+            sim::scene::SceneTruth::Rock(i) => navigable::truth::TruthClass::Object(i as u32),
+            sim::scene::SceneTruth::Wreck => navigable::truth::TruthClass::Object(rocks),
+            sim::scene::SceneTruth::Nothing => navigable::truth::TruthClass::Nothing,
+        });
+        let share = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.3}"));
+        tracing::info!(
+            "against the truth ({}): voxels in agreement {}, seabed navigable {}, object voxels in obstacles {}; \
+             objects found {} of {} observed ({} split), obstacle precision {}; {} regions, the largest holds {} of the seabed",
+            path.display(),
+            share(score.agreement),
+            share(score.ground.share()),
+            share(score.object.share()),
+            score.objects_found,
+            score.objects_observed,
+            score.objects_split,
+            share(score.precision),
+            score.regions,
+            share(score.largest_region_ground_share)
+        );
+        Some(score)
+    }
+
     /// Takes the poses of the configured source into the pose buffer (the others are drained).
     fn take_poses(&mut self) -> Result<(), StageError> {
         let (source, poses) = (self.settings.pose_source, &mut self.st.poses);
@@ -403,6 +456,7 @@ impl Stage for OctreeMapperStage {
             if let Some(end) = part.octree_mapper.end_of_stream.as_mut() {
                 end.rebuild = rebuild;
                 end.voxel_stream = VoxelStreamSummary::from(&self.voxel_stream.counters);
+                end.truth = self.score_against_truth(&d);
             }
             return Ok(part);
         }

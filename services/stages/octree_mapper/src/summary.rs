@@ -67,6 +67,9 @@ pub struct MapperEnd {
     pub rebuild: Option<RebuildReport>,
     /// The voxel stream to the viewer and the bridge.
     pub voxel_stream: VoxelStreamSummary,
+    /// Navigable space and obstacles against the simulated scene's truth (`truth_scene`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub truth: Option<navigable::truth::TruthScore>,
 }
 
 /// Occupied voxels by class.
