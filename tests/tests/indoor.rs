@@ -43,6 +43,7 @@ pose_source = "grid_slam"
 max_range_m = 6.0
 end_after = ["ingest", "slam2d"]
 rebuild_from = "grid_slam.tum"
+truth_scene = "scene.json"
 [processes.map.settings.mount]
 offset_m = [0.1, 0.0, 0.6]
 pitch_down_deg = 10.0
@@ -120,6 +121,15 @@ port = PORT
     assert_eq!(m.counters.clouds_inserted, clouds, "every cloud in the live map: {m:?}");
     assert_eq!(rebuild.clouds as u64, clouds, "every cloud in the rebuilt map: {rebuild:?}");
     assert_eq!(rebuild.clouds_without_pose, 0);
+    // The navigable space and obstacles scored against the scene's boxes (issue 39; its targets
+    // are not met yet, docs/octree_mapper.md): every classified voxel judged, the floor and the
+    // furniture seen.
+    let end = m.end_of_stream.as_ref().expect("the end of stream's navigable space");
+    let truth = end.truth.as_ref().expect("the layers scored against scene.json");
+    let v = &end.voxels;
+    eprintln!("against the truth: {truth:?}");
+    assert_eq!(truth.voxels, v.navigable + v.steep + v.non_planar + v.sparse, "{truth:?}");
+    assert!(truth.ground.voxels > 0 && truth.objects_observed >= 3, "{truth:?}");
 
     let out = run.out_dir();
     let scene: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("scene.json")).unwrap()).unwrap();

@@ -5,13 +5,13 @@
 //! than the voxel's centre) by a `truth` function that says what the scene holds there
 //! ([`TruthClass`]: the seabed or floor, object `i`, or nothing: noise, far points). Then:
 //! - **per true class**, the share of its observed voxels the map puts in the matching class:
-//!   seabed → navigable (in a region), object → obstacle, nothing → neither;
+//!   ground (the seabed, a floor) → navigable (in a region), object → obstacle, nothing → neither;
 //! - **objects**: the obstacles are joined into components where their voxels touch
 //!   (26-neighbourhood); a component is matched to the object most of its voxels belong to
 //!   (none when most belong to no object). Recall: objects with a matched component over the
 //!   objects observed (with at least one voxel judged theirs); precision: matched components over
 //!   all components; and how many objects got more than one component;
-//! - **regions**: how many, and the share of the observed seabed voxels in the largest.
+//! - **regions**: how many, and the share of the observed ground voxels in the largest.
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 
@@ -54,7 +54,7 @@ impl ClassAgreement {
 pub struct TruthScore {
     /// Voxels judged (every voxel the discovery classified).
     pub voxels: usize,
-    /// Seabed voxels put in a navigable region.
+    /// Ground voxels (the seabed, a floor) put in a navigable region.
     pub ground: ClassAgreement,
     /// Object voxels put in an obstacle.
     pub object: ClassAgreement,
@@ -78,7 +78,7 @@ pub struct TruthScore {
     pub precision: Option<f64>,
     /// Navigable regions.
     pub regions: usize,
-    /// Share of the observed seabed voxels in the largest region (`null` without seabed voxels).
+    /// Share of the observed ground voxels in the largest region (`null` without ground voxels).
     pub largest_region_ground_share: Option<f64>,
 }
 

@@ -87,6 +87,90 @@ pub enum Building {
     Ring,
 }
 
+/// What an indoor scene holds at a point ([`IndoorTruth::at`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum IndoorTruthAt {
+    /// The floor's top: where the robot drives.
+    Floor,
+    /// Object `i`: a group of touching boxes of one kind, walls with walls (the building's
+    /// shell) and furniture with furniture (a table's top and legs are one table).
+    Object(u32),
+    /// Nothing the scene knows.
+    Nothing,
+}
+
+/// The truth of an indoor scene: its boxes grouped into objects, for scoring a 3-D map's
+/// navigable space and obstacles.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IndoorTruth {
+    /// (lower corner, upper corner, `None` for the floor or the object's index), m.
+    boxes: Vec<([f64; 3], [f64; 3], Option<u32>)>,
+    objects: u32,
+}
+
+impl IndoorTruth {
+    /// Groups `boxes` (lower corner, upper corner, what: `floor`, `wall` or a kind of furniture)
+    /// into objects: boxes of the same category (wall or furniture) that touch or overlap.
+    pub fn new<'a>(boxes: impl IntoIterator<Item = ([f64; 3], [f64; 3], &'a str)>) -> Self {
+        let all: Vec<([f64; 3], [f64; 3], &str)> = boxes.into_iter().collect();
+        let mut parent: Vec<usize> = (0..all.len()).collect();
+        fn root(p: &mut [usize], mut i: usize) -> usize {
+            while p[i] != i {
+                p[i] = p[p[i]];
+                i = p[i];
+            }
+            i
+        }
+        let touch = |a: &([f64; 3], [f64; 3], &str), b: &([f64; 3], [f64; 3], &str)| {
+            (0..3).all(|k| a.0[k] <= b.1[k] + 1e-6 && b.0[k] <= a.1[k] + 1e-6)
+        };
+        for i in 0..all.len() {
+            for j in i + 1..all.len() {
+                let (a, b) = (&all[i], &all[j]);
+                if a.2 != "floor" && b.2 != "floor" && (a.2 == "wall") == (b.2 == "wall") && touch(a, b) {
+                    let (ri, rj) = (root(&mut parent, i), root(&mut parent, j));
+                    parent[ri.max(rj)] = ri.min(rj);
+                }
+            }
+        }
+        let mut ids = std::collections::BTreeMap::new();
+        let boxes = (0..all.len())
+            .map(|i| {
+                let (min, max, what) = all[i];
+                let id = (what != "floor").then(|| {
+                    let r = root(&mut parent, i);
+                    let n = ids.len() as u32;
+                    *ids.entry(r).or_insert(n)
+                });
+                (min, max, id)
+            })
+            .collect();
+        Self { boxes, objects: ids.len() as u32 }
+    }
+
+    /// Objects (groups of boxes).
+    pub fn objects(&self) -> u32 {
+        self.objects
+    }
+
+    /// What the scene holds at `p` (m), within `tolerance_m` of a box: an object first, then the
+    /// floor's top face, else nothing.
+    pub fn at(&self, p: &Vector3<f64>, tolerance_m: f64) -> IndoorTruthAt {
+        let near = |min: &[f64; 3], max: &[f64; 3]| {
+            (0..3).all(|k| p[k] >= min[k] - tolerance_m && p[k] <= max[k] + tolerance_m)
+        };
+        if let Some(id) = self.boxes.iter().filter(|b| near(&b.0, &b.1)).find_map(|b| b.2) {
+            return IndoorTruthAt::Object(id);
+        }
+        let on_floor = self.boxes.iter().any(|(min, max, id)| {
+            id.is_none()
+                && (0..2).all(|k| p[k] >= min[k] - tolerance_m && p[k] <= max[k] + tolerance_m)
+                && (p.z - max[2]).abs() <= tolerance_m
+        });
+        if on_floor { IndoorTruthAt::Floor } else { IndoorTruthAt::Nothing }
+    }
+}
+
 /// The building: walls, furniture and floor.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct IndoorScene {
@@ -726,6 +810,33 @@ pub fn truly_occupied(scene: &IndoorScene, p: &Point3<f64>) -> bool {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn the_indoor_truth_groups_a_tables_parts_and_knows_the_floor() {
+        let scene = IndoorScene::two_rooms();
+        let truth = IndoorTruth::new(scene.boxes.iter().map(|b| (b.min, b.max, b.what)));
+        let id_of = |what: &str| {
+            let b = scene.boxes.iter().find(|b| b.what == what).expect(what);
+            let c = Vector3::new((b.min[0] + b.max[0]) / 2.0, (b.min[1] + b.max[1]) / 2.0, (b.min[2] + b.max[2]) / 2.0);
+            truth.at(&c, 0.05)
+        };
+        // A table's top and its legs are one object; the walls are another; a crate a third.
+        let (top, leg, wall, krate) = (id_of("table_top"), id_of("table_leg"), id_of("wall"), id_of("crate"));
+        assert!(matches!(top, IndoorTruthAt::Object(_)), "{top:?}");
+        assert_eq!(top, leg);
+        assert_ne!(top, wall);
+        assert_ne!(krate, top);
+        assert_ne!(krate, wall);
+        // The floor's top, away from everything; the air above it.
+        let floor = scene.boxes.iter().find(|b| b.what == "floor").expect("floor");
+        let clear = (0..400)
+            .map(|k| Vector3::new(-7.5 + 0.75 * (k % 20) as f64, -4.5 + 0.55 * (k / 20) as f64, floor.max[2]))
+            .find(|p| truth.at(p, 0.05) == IndoorTruthAt::Floor)
+            .expect("a free spot of floor");
+        assert_eq!(truth.at(&(clear + Vector3::new(0.0, 0.0, 1.0)), 0.05), IndoorTruthAt::Nothing);
+        assert!(truth.objects() >= 3);
+    }
+
     use super::*;
 
     #[test]

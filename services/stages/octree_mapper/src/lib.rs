@@ -163,8 +163,8 @@ pub struct MapperSettings {
     /// from, s (0 = none: a restarted mapper starts with an empty map).
     pub checkpoint_interval_s: f64,
     /// At the end, score the navigable space and the obstacles against the simulated scene's
-    /// truth in this file (relative to the output directory; the `sim` source writes
-    /// `scene.json`): summary.json `octree_mapper.truth`. Empty: no scoring.
+    /// truth in this file (relative to the output directory; the `sim` and `indoor` sources
+    /// write `scene.json`): summary.json `octree_mapper.truth`. Empty: no scoring.
     pub truth_scene: String,
     /// A voxel belongs to a surface of the scene when the mean of its points lies within this of
     /// it, m (0: the voxel size).

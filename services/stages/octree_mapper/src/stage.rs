@@ -166,45 +166,72 @@ pub struct OctreeMapperStage {
     out_dir: std::path::PathBuf,
 }
 
+/// A simulated source's scene.json, as far as the truth needs it.
+#[derive(serde::Deserialize)]
+#[serde(untagged)]
+enum SceneFile {
+    /// The underwater simulator's: the scene under `scene`, next to the mission.
+    Underwater { scene: sim::scene::Scene },
+    /// The indoor simulator's boxes.
+    Indoor { boxes: Vec<SceneBox> },
+}
+
+/// One box of the indoor scene.json.
+#[derive(serde::Deserialize)]
+struct SceneBox {
+    min: [f64; 3],
+    max: [f64; 3],
+    what: String,
+}
+
 impl OctreeMapperStage {
     /// The discovery `d` scored against the scene in `truth_scene` (`None` when unset; a file
-    /// that cannot be read is warned about and scores nothing).
+    /// that cannot be read is warned about and scores nothing): the underwater simulator's
+    /// scene (under `scene`) or the indoor one's boxes (`kind = "indoor"`).
     fn score_against_truth(&self, d: &navigable::Discovery) -> Option<navigable::truth::TruthScore> {
+        use navigable::truth::TruthClass;
         if self.settings.truth_scene.is_empty() {
             return None;
         }
         let path = self.out_dir.join(&self.settings.truth_scene);
-        /// The simulated source's scene.json: the scene under `scene`, next to the mission.
-        #[derive(serde::Deserialize)]
-        struct SceneFile {
-            scene: sim::scene::Scene,
-        }
-        let scene = match std::fs::read(&path)
-            .map_err(|e| e.to_string())
-            .and_then(|b| serde_json::from_slice::<SceneFile>(&b).map_err(|e| e.to_string()))
-        {
-            Ok(f) => f.scene,
-            Err(e) => {
-                tracing::warn!("not scored against the truth: {}: {e}", path.display());
-                return None;
-            }
-        };
         let tolerance = if self.settings.truth_tolerance_m > 0.0 {
             self.settings.truth_tolerance_m
         } else {
             self.st.points.resolution_m()
         };
-        let rocks = scene.rocks.len() as u32;
-        let score = navigable::truth::score(d, &self.st.points, |p| match scene.truth_at(p, tolerance) {
-            sim::scene::SceneTruth::Seabed => navigable::truth::TruthClass::Ground,
-            sim::scene::SceneTruth::Rock(i) => navigable::truth::TruthClass::Object(i as u32),
-            sim::scene::SceneTruth::Wreck => navigable::truth::TruthClass::Object(rocks),
-            sim::scene::SceneTruth::Nothing => navigable::truth::TruthClass::Nothing,
-        });
+        let file = match std::fs::read(&path)
+            .map_err(|e| e.to_string())
+            .and_then(|b| serde_json::from_slice::<SceneFile>(&b).map_err(|e| e.to_string()))
+        {
+            Ok(f) => f,
+            Err(e) => {
+                tracing::warn!("not scored against the truth: {}: {e}", path.display());
+                return None;
+            }
+        };
+        let score = match file {
+            SceneFile::Underwater { scene } => {
+                let rocks = scene.rocks.len() as u32;
+                navigable::truth::score(d, &self.st.points, |p| match scene.truth_at(p, tolerance) {
+                    sim::scene::SceneTruth::Seabed => TruthClass::Ground,
+                    sim::scene::SceneTruth::Rock(i) => TruthClass::Object(i as u32),
+                    sim::scene::SceneTruth::Wreck => TruthClass::Object(rocks),
+                    sim::scene::SceneTruth::Nothing => TruthClass::Nothing,
+                })
+            }
+            SceneFile::Indoor { boxes } => {
+                let truth = sim::indoor::IndoorTruth::new(boxes.iter().map(|b| (b.min, b.max, b.what.as_str())));
+                navigable::truth::score(d, &self.st.points, |p| match truth.at(p, tolerance) {
+                    sim::indoor::IndoorTruthAt::Floor => TruthClass::Ground,
+                    sim::indoor::IndoorTruthAt::Object(i) => TruthClass::Object(i),
+                    sim::indoor::IndoorTruthAt::Nothing => TruthClass::Nothing,
+                })
+            }
+        };
         let share = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.3}"));
         tracing::info!(
-            "against the truth ({}): voxels in agreement {}, seabed navigable {}, object voxels in obstacles {}; \
-             objects found {} of {} observed ({} split), obstacle precision {}; {} regions, the largest holds {} of the seabed",
+            "against the truth ({}): voxels in agreement {}, ground navigable {}, object voxels in obstacles {}; \
+             objects found {} of {} observed ({} split), obstacle precision {}; {} regions, the largest holds {} of the ground",
             path.display(),
             share(score.agreement),
             share(score.ground.share()),

@@ -67,7 +67,8 @@ pub struct MapperEnd {
     pub rebuild: Option<RebuildReport>,
     /// The voxel stream to the viewer and the bridge.
     pub voxel_stream: VoxelStreamSummary,
-    /// Navigable space and obstacles against the simulated scene's truth (`truth_scene`).
+    /// Navigable space and obstacles against the simulated scene's truth (`truth_scene`: the
+    /// underwater scene's seabed, rocks and wreck, or the indoor scene's floor and boxes).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub truth: Option<navigable::truth::TruthScore>,
 }
