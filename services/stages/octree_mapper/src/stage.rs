@@ -171,7 +171,7 @@ pub struct OctreeMapperStage {
 #[serde(untagged)]
 enum SceneFile {
     /// The underwater simulator's: the scene under `scene`, next to the mission.
-    Underwater { scene: sim::scene::Scene },
+    Underwater { scene: Box<sim::scene::Scene> },
     /// The indoor simulator's boxes.
     Indoor { boxes: Vec<SceneBox> },
 }
