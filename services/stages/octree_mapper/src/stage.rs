@@ -72,25 +72,33 @@ fn end_of_run(
     out_dir: &std::path::Path,
 ) -> Result<(navigable::Discovery, Vec<Voxel>, OctreeMapperPart), StageError> {
     std::fs::create_dir_all(out_dir)?;
-    let (d, voxels) = std::thread::scope(|s| {
-        let worker = s.spawn(|| -> Result<(navigable::Discovery, Vec<Voxel>), StageError> {
+    type EndOfRun = (navigable::Discovery, Vec<Voxel>, Option<navigable::truth::TruthScore>);
+    let (d, voxels, truth) = std::thread::scope(|s| {
+        let worker = s.spawn(|| -> Result<EndOfRun, StageError> {
             let t0 = Instant::now();
             st.tree.write_binary_file(out_dir.join("map.bt")).map_err(StageError::stage)?;
             let t1 = Instant::now();
             let d = st.discover()?;
             let t2 = Instant::now();
-            navigable::write_navigable_ply(&out_dir.join("navigable.ply"), &st.points, &d)
-                .map_err(StageError::stage)?;
-            navigable::write_obstacles_ply(&out_dir.join("obstacles.ply"), &st.points, &d)
-                .map_err(StageError::stage)?;
-            let voxels = build_voxels(st, Some(&d));
+            // The score against the truth beside the layers (the machine's second core).
+            let (voxels, truth) = std::thread::scope(|inner| -> Result<_, StageError> {
+                let scoring = inner.spawn(|| score_against_truth(st.settings(), out_dir, &st.points, &d));
+                navigable::write_navigable_ply(&out_dir.join("navigable.ply"), &st.points, &d)
+                    .map_err(StageError::stage)?;
+                navigable::write_obstacles_ply(&out_dir.join("obstacles.ply"), &st.points, &d)
+                    .map_err(StageError::stage)?;
+                let voxels = build_voxels(st, Some(&d));
+                let truth = scoring.join().map_err(|_| StageError::msg("the truth scoring panicked"))?;
+                Ok((voxels, truth))
+            })?;
             tracing::info!(
-                "end of run: map.bt in {:.0} ms, navigable space in {:.0} ms, PLY layers and voxels in {:.0} ms",
+                "end of run: map.bt in {:.0} ms, navigable space in {:.0} ms, PLY layers, voxels and the truth's \
+                 score in {:.0} ms",
                 (t1 - t0).as_secs_f64() * 1e3,
                 (t2 - t1).as_secs_f64() * 1e3,
                 t2.elapsed().as_secs_f64() * 1e3
             );
-            Ok((d, voxels))
+            Ok((d, voxels, truth))
         });
         while !worker.is_finished() {
             rt.keep_alive();
@@ -128,7 +136,7 @@ fn end_of_run(
                     .count(),
                 rebuild: None,
                 voxel_stream: VoxelStreamSummary::from(&VoxelStreamCounters::default()),
-                truth: None,
+                truth,
             }),
         },
     };
@@ -166,6 +174,68 @@ pub struct OctreeMapperStage {
     out_dir: std::path::PathBuf,
 }
 
+/// The discovery `d` scored against the scene in `truth_scene` (`None` when unset; a file
+/// that cannot be read is warned about and scores nothing): the underwater simulator's
+/// scene (under `scene`) or the indoor one's boxes (`kind = "indoor"`).
+fn score_against_truth(
+    settings: &MapperSettings,
+    out_dir: &std::path::Path,
+    points: &navigable::PointAccumulator,
+    d: &navigable::Discovery,
+) -> Option<navigable::truth::TruthScore> {
+    use navigable::truth::TruthClass;
+    if settings.truth_scene.is_empty() {
+        return None;
+    }
+    let path = out_dir.join(&settings.truth_scene);
+    let tolerance = if settings.truth_tolerance_m > 0.0 { settings.truth_tolerance_m } else { points.resolution_m() };
+    let file = match std::fs::read(&path)
+        .map_err(|e| e.to_string())
+        .and_then(|b| serde_json::from_slice::<SceneFile>(&b).map_err(|e| e.to_string()))
+    {
+        Ok(f) => f,
+        Err(e) => {
+            tracing::warn!("not scored against the truth: {}: {e}", path.display());
+            return None;
+        }
+    };
+    let score = match file {
+        SceneFile::Underwater { scene } => {
+            let rocks = scene.rocks.len() as u32;
+            navigable::truth::score(d, points, |p| match scene.truth_at(p, tolerance) {
+                sim::scene::SceneTruth::Seabed => TruthClass::Ground,
+                sim::scene::SceneTruth::Rock(i) => TruthClass::Object(i as u32),
+                sim::scene::SceneTruth::Wreck => TruthClass::Object(rocks),
+                sim::scene::SceneTruth::Nothing => TruthClass::Nothing,
+            })
+        }
+        SceneFile::Indoor { boxes } => {
+            let truth = sim::indoor::IndoorTruth::new(boxes.iter().map(|b| (b.min, b.max, b.what.as_str())));
+            navigable::truth::score(d, points, |p| match truth.at(p, tolerance) {
+                sim::indoor::IndoorTruthAt::Floor => TruthClass::Ground,
+                sim::indoor::IndoorTruthAt::Object(i) => TruthClass::Object(i),
+                sim::indoor::IndoorTruthAt::Nothing => TruthClass::Nothing,
+            })
+        }
+    };
+    let share = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.3}"));
+    tracing::info!(
+        "against the truth ({}): voxels in agreement {}, ground navigable {}, object voxels in obstacles {}; \
+         objects found {} of {} observed ({} split), obstacle precision {}; {} regions, the largest holds {} of the ground",
+        path.display(),
+        share(score.agreement),
+        share(score.ground.share()),
+        share(score.object.share()),
+        score.objects_found,
+        score.objects_observed,
+        score.objects_split,
+        share(score.precision),
+        score.regions,
+        share(score.largest_region_ground_share)
+    );
+    Some(score)
+}
+
 /// A simulated source's scene.json, as far as the truth needs it.
 #[derive(serde::Deserialize)]
 #[serde(untagged)]
@@ -185,67 +255,6 @@ struct SceneBox {
 }
 
 impl OctreeMapperStage {
-    /// The discovery `d` scored against the scene in `truth_scene` (`None` when unset; a file
-    /// that cannot be read is warned about and scores nothing): the underwater simulator's
-    /// scene (under `scene`) or the indoor one's boxes (`kind = "indoor"`).
-    fn score_against_truth(&self, d: &navigable::Discovery) -> Option<navigable::truth::TruthScore> {
-        use navigable::truth::TruthClass;
-        if self.settings.truth_scene.is_empty() {
-            return None;
-        }
-        let path = self.out_dir.join(&self.settings.truth_scene);
-        let tolerance = if self.settings.truth_tolerance_m > 0.0 {
-            self.settings.truth_tolerance_m
-        } else {
-            self.st.points.resolution_m()
-        };
-        let file = match std::fs::read(&path)
-            .map_err(|e| e.to_string())
-            .and_then(|b| serde_json::from_slice::<SceneFile>(&b).map_err(|e| e.to_string()))
-        {
-            Ok(f) => f,
-            Err(e) => {
-                tracing::warn!("not scored against the truth: {}: {e}", path.display());
-                return None;
-            }
-        };
-        let score = match file {
-            SceneFile::Underwater { scene } => {
-                let rocks = scene.rocks.len() as u32;
-                navigable::truth::score(d, &self.st.points, |p| match scene.truth_at(p, tolerance) {
-                    sim::scene::SceneTruth::Seabed => TruthClass::Ground,
-                    sim::scene::SceneTruth::Rock(i) => TruthClass::Object(i as u32),
-                    sim::scene::SceneTruth::Wreck => TruthClass::Object(rocks),
-                    sim::scene::SceneTruth::Nothing => TruthClass::Nothing,
-                })
-            }
-            SceneFile::Indoor { boxes } => {
-                let truth = sim::indoor::IndoorTruth::new(boxes.iter().map(|b| (b.min, b.max, b.what.as_str())));
-                navigable::truth::score(d, &self.st.points, |p| match truth.at(p, tolerance) {
-                    sim::indoor::IndoorTruthAt::Floor => TruthClass::Ground,
-                    sim::indoor::IndoorTruthAt::Object(i) => TruthClass::Object(i),
-                    sim::indoor::IndoorTruthAt::Nothing => TruthClass::Nothing,
-                })
-            }
-        };
-        let share = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.3}"));
-        tracing::info!(
-            "against the truth ({}): voxels in agreement {}, ground navigable {}, object voxels in obstacles {}; \
-             objects found {} of {} observed ({} split), obstacle precision {}; {} regions, the largest holds {} of the ground",
-            path.display(),
-            share(score.agreement),
-            share(score.ground.share()),
-            share(score.object.share()),
-            score.objects_found,
-            score.objects_observed,
-            score.objects_split,
-            share(score.precision),
-            score.regions,
-            share(score.largest_region_ground_share)
-        );
-        Some(score)
-    }
-
     /// Takes the poses of the configured source into the pose buffer (the others are drained).
     fn take_poses(&mut self) -> Result<(), StageError> {
         let (source, poses) = (self.settings.pose_source, &mut self.st.poses);
@@ -483,7 +492,6 @@ impl Stage for OctreeMapperStage {
             if let Some(end) = part.octree_mapper.end_of_stream.as_mut() {
                 end.rebuild = rebuild;
                 end.voxel_stream = VoxelStreamSummary::from(&self.voxel_stream.counters);
-                end.truth = self.score_against_truth(&d);
             }
             return Ok(part);
         }
