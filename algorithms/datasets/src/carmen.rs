@@ -319,36 +319,65 @@ fn wrap(a: f64) -> f64 {
 
 impl CarmenLog {
     /// The odometry pose at each scan (`None` where there is none: no pose fields, or outside
-    /// the ODOM lines' span), by `source`.
+    /// the span of the ODOM lines in [`CarmenLog::odometry_in_order`]), by `source`.
     pub fn scan_odometry(&self, source: OdometrySource) -> Vec<Option<Pose2d>> {
-        let use_odom = match source {
-            OdometrySource::Auto => !self.odometry.is_empty(),
-            OdometrySource::OdomLines => true,
-            OdometrySource::LaserLines => false,
-        };
-        if !use_odom {
+        if !self.uses_odom_lines(source) {
             return self.scans.iter().map(|s| s.odometry).collect();
         }
-        let mut odo: Vec<&CarmenOdom> = self.odometry.iter().collect();
-        odo.sort_by(|a, b| a.stamp_s.total_cmp(&b.stamp_s));
+        let (odo, _) = self.odometry_in_order();
         self.scans
             .iter()
             .map(|s| {
-                let i = odo.partition_point(|o| o.stamp_s < s.stamp_s);
+                let i = odo.partition_point(|o| o.0 < s.stamp_s);
                 if let Some(o) = odo.get(i)
-                    && o.stamp_s == s.stamp_s
+                    && o.0 == s.stamp_s
                 {
-                    return Some(o.pose);
+                    return Some(o.1);
                 }
                 let (a, b) = (odo.get(i.checked_sub(1)?)?, odo.get(i)?);
-                let f = (s.stamp_s - a.stamp_s) / (b.stamp_s - a.stamp_s);
+                let f = (s.stamp_s - a.0) / (b.0 - a.0);
                 Some([
-                    a.pose[0] + f * (b.pose[0] - a.pose[0]),
-                    a.pose[1] + f * (b.pose[1] - a.pose[1]),
-                    wrap(a.pose[2] + f * wrap(b.pose[2] - a.pose[2])),
+                    a.1[0] + f * (b.1[0] - a.1[0]),
+                    a.1[1] + f * (b.1[1] - a.1[1]),
+                    wrap(a.1[2] + f * wrap(b.1[2] - a.1[2])),
                 ])
             })
             .collect()
+    }
+
+    /// Whether `source` takes the odometry from the ODOM lines.
+    pub fn uses_odom_lines(&self, source: OdometrySource) -> bool {
+        match source {
+            OdometrySource::Auto => !self.odometry.is_empty(),
+            OdometrySource::OdomLines => true,
+            OdometrySource::LaserLines => false,
+        }
+    }
+
+    /// The ODOM lines as (stamp, pose) in file order, each only if its stamp is after the last
+    /// one kept, and how many were left out. The Radish corrected logs write, after each scan, an
+    /// ODOM line with stamp 0 (the pose reset to the scan's), and a few lines whose stamps are
+    /// out of order (fr079 holds a second stream with two-decimal stamps, ~1 m off the robot);
+    /// sorting them in would make the path jump back and forth.
+    pub fn odometry_in_order(&self) -> (Vec<(f64, Pose2d)>, usize) {
+        let mut t: Vec<(f64, Pose2d)> = Vec::with_capacity(self.odometry.len());
+        for o in &self.odometry {
+            if t.last().is_none_or(|l| o.stamp_s > l.0) {
+                t.push((o.stamp_s, o.pose));
+            }
+        }
+        let left_out = self.odometry.len() - t.len();
+        (t, left_out)
+    }
+
+    /// [`CarmenLog::odometry_in_order`] when `source` takes the odometry from the ODOM lines;
+    /// empty otherwise. Odometry usually runs faster than the laser (the subsampled Intel and
+    /// ACES logs: a scan every 2-3 s, an ODOM line every 0.1-0.2 s).
+    pub fn odometry_track(&self, source: OdometrySource) -> Vec<(f64, Pose2d)> {
+        if !self.uses_odom_lines(source) {
+            return Vec::new();
+        }
+        self.odometry_in_order().0
     }
 }
 
@@ -395,6 +424,28 @@ mod tests {
         let auto = log.scan_odometry(OdometrySource::Auto);
         assert_eq!(auto[0], None, "before the first ODOM line");
         assert_eq!(log.scan_odometry(OdometrySource::LaserLines)[0], Some([0.5, 0.0, 0.0]));
+    }
+
+    #[test]
+    fn odom_lines_out_of_order_are_left_out_not_sorted_in() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let p = dir.path().join("c.log");
+        // As the Radish corrected logs write them: a reset to the scan's pose with stamp 0 after
+        // each scan, and a stray line whose stamp belongs far back.
+        let mut text = String::new();
+        for (x, t) in [(0.0, 1.0), (0.1, 1.1), (0.2, 1.2), (0.2, 0.0), (0.3, 1.3), (9.0, 0.71), (0.4, 1.4)] {
+            text += &format!("ODOM {x} 0 0 0 0 0 {t} host {t}\n");
+        }
+        text += &flaser(3, 2.0, 0.25, 1.25);
+        std::fs::write(&p, text).expect("write");
+        let log = read_carmen(&p).expect("read");
+        let (track, left_out) = log.odometry_in_order();
+        assert_eq!(left_out, 2);
+        assert_eq!(track.iter().map(|o| o.0).collect::<Vec<_>>(), vec![1.0, 1.1, 1.2, 1.3, 1.4]);
+        assert_eq!(log.odometry_track(OdometrySource::Auto), track);
+        assert!(log.odometry_track(OdometrySource::LaserLines).is_empty());
+        let at = log.scan_odometry(OdometrySource::OdomLines)[0].expect("inside the ODOM lines");
+        assert!((at[0] - 0.25).abs() < 1e-12, "interpolated between 1.2 and 1.3 s: {at:?}");
     }
 
     #[test]

@@ -4,6 +4,7 @@
 //! - [`grid`]: log-odds grids in tiles shared copy-on-write between particles;
 //! - [`matcher`]: the scan matcher (score and likelihood of a pose against a particle's map);
 //! - [`filter`]: the filter (improved proposal, N_eff resampling, tracking between updates);
+//! - [`densify`]: poses between scans, shaped by the odometry;
 //! - [`drift`]: seeded synthetic odometry drift for SLAM-corrected logs;
 //! - [`relations`]: the relations metric of Kümmerle et al. 2009;
 //! - [`export`]: the map_server files, a PNG, TUM trajectories.
@@ -15,6 +16,7 @@
 pub mod backend;
 pub mod config;
 pub mod correlative;
+pub mod densify;
 pub mod drift;
 pub mod export;
 pub mod filter;

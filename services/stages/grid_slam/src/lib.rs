@@ -54,6 +54,13 @@ pub struct GridSlamSettings {
     /// runtime's restart state every this many seconds of data time, so a restarted instance
     /// goes on from there instead of from an empty map (0: never).
     pub snapshot_every_s: f64,
+    /// `grid_slam.tum` also holds a pose at every odometry stamp between two scans: the
+    /// odometry's motion from the scan before, with its disagreement with the scan after spread
+    /// over the interval (`algorithms/grid_slam/src/densify.rs`). Odometry often runs faster than
+    /// the laser (the subsampled Intel and ACES logs: a scan every 2-3 s, odometry every 0.2 s),
+    /// and a trajectory read at a stamp between scans is then more than a straight line. The
+    /// odometry is kept for the whole run (32 bytes a sample). `false`: the scans' poses only.
+    pub trajectory_between_scans: bool,
 }
 
 impl Default for GridSlamSettings {
@@ -70,6 +77,7 @@ impl Default for GridSlamSettings {
             relations: PathBuf::new(),
             relations_offset_s: 0.0,
             snapshot_every_s: 30.0,
+            trajectory_between_scans: true,
         }
     }
 }

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use grid_slam::backend::{BackEnd, BackEndResult};
+use grid_slam::densify::densify;
 use grid_slam::export::{Occupancy, write_tum2};
 use grid_slam::relations::{read_relations, score};
 use grid_slam::{GridSlam, GridSlamError, Pose2, ScanGeometry};
@@ -38,6 +39,8 @@ pub struct GridSlamStage {
     particles: Output<[Particle], ParticleSetHeader>,
     grid: Output<[OccupancyCell], OccupancyGridHeader>,
     queue: ScanQueue,
+    /// Every odometry sample accepted, (stamp s, pose), with `trajectory_between_scans`.
+    odometry_track: Vec<(f64, Pose2)>,
     geometry: Option<ScanGeometry>,
     filter: Option<GridSlam>,
     /// The pose-graph back end's nodes (`back_end = "pose_graph"`).
@@ -102,6 +105,8 @@ impl GridSlamStage {
             let before = self.queue.rejected.clone();
             if !self.queue.push_odometry(h.stamp_ns, pose) {
                 warn_new(&before, &self.queue.rejected);
+            } else if self.settings.trajectory_between_scans {
+                self.odometry_track.push((s_of(h.stamp_ns), pose));
             }
         }
         while let Some(s) = self.laser.receive()? {
@@ -316,11 +321,18 @@ impl GridSlamStage {
             tracing::warn!("no scan was processed: no map, no trajectory");
             return Ok(GridSlamPart { grid_slam: GridSlamSummary { scans: 0, rejected, run: None }, ate_m: None });
         };
-        let front_traj = f.trajectory();
+        let front_traj = densify(&f.trajectory(), &self.odometry_track);
         let traj = match &self.closed {
-            Some(r) => f.trajectory_with(&r.nodes),
+            Some(r) => densify(&f.trajectory_with(&r.nodes), &self.odometry_track),
             None => front_traj.clone(),
         };
+        if self.settings.trajectory_between_scans {
+            tracing::info!(
+                "grid_slam.tum: {} poses, {} of them between scans (shaped by the odometry)",
+                traj.len(),
+                traj.len() - f.trajectory().len()
+            );
+        }
         write_tum2(&self.out_dir.join("grid_slam.tum"), &traj).map_err(StageError::stage)?;
         let mut run = self.run_summary(f, self.write_grid(&traj)?);
         self.score_relations(&traj, &front_traj, &mut run);
@@ -515,6 +527,7 @@ impl Stage for GridSlamStage {
             particles,
             grid,
             queue: ScanQueue::default(),
+            odometry_track: Vec::new(),
             geometry: None,
             filter: None,
             back_end,

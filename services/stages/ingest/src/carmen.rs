@@ -102,6 +102,11 @@ pub struct CarmenSource {
     log: CarmenLog,
     /// (scan index, odometry published with it), in file order.
     scans: Vec<(usize, Pose2)>,
+    /// Per scan, the odometry published before its own (stamp, pose): the ODOM lines strictly
+    /// between the scan before it and it (drifted like the scans' with `add_drift`).
+    between: Vec<Vec<(f64, Pose2)>>,
+    /// How many of the current scan's `between` went out.
+    between_sent: usize,
     truth: Vec<(f64, Isometry3<f64>)>,
     settings: CarmenSettings,
     next: usize,
@@ -175,21 +180,41 @@ impl CarmenSource {
                 settings.odometry
             )));
         }
+        if log.uses_odom_lines(settings.odometry) {
+            let (_, left_out) = log.odometry_in_order();
+            if left_out > 0 {
+                warts.insert("odom_lines_out_of_order", left_out as u64);
+                tracing::warn!(
+                    lines = left_out,
+                    "ODOM lines whose stamp is not after the one before (resets with stamp 0, stray stamps): left out"
+                );
+            }
+        }
         let mut truth = Vec::new();
-        if settings.add_drift {
-            let poses: Vec<Pose2> = scans.iter().map(|s| s.1).collect();
-            truth = scans.iter().map(|(i, p)| (log.scans[*i].stamp_s, iso(p))).collect();
+        let track: Vec<(f64, Pose2)> = log
+            .odometry_track(settings.odometry)
+            .into_iter()
+            .map(|(t, o)| (t, Pose2 { x_m: o[0], y_m: o[1], theta_rad: o[2] }))
+            .collect();
+        let at_scans: Vec<(f64, Pose2)> = scans.iter().map(|(i, p)| (log.scans[*i].stamp_s, *p)).collect();
+        let between = if settings.add_drift {
+            truth = at_scans.iter().map(|(t, p)| (*t, iso(p))).collect();
             truth.sort_by(|a, b| a.0.total_cmp(&b.0));
             truth.dedup_by(|a, b| a.0 == b.0);
-            let drifted = settings.drift.apply(&poses);
+            let (drifted, between) = settings.drift.apply_between(&at_scans, &track);
             for (s, d) in scans.iter_mut().zip(drifted) {
                 s.1 = d;
             }
-        }
+            between
+        } else {
+            grid_slam::densify::between(&at_scans, &track)
+        };
         Ok(Self {
             path,
             log,
             scans,
+            between,
+            between_sent: 0,
             truth,
             settings: settings.clone(),
             next: 0,
@@ -203,6 +228,12 @@ impl CarmenSource {
 impl Source for CarmenSource {
     fn next_item(&mut self) -> Result<Option<Item>, SourceError> {
         let Some(&(i, odom)) = self.scans.get(self.next) else { return Ok(None) };
+        if let Some((t, o)) = self.between.get(self.next).and_then(|b| b.get(self.between_sent)) {
+            self.between_sent += 1;
+            let odometry =
+                PlanarOdometry { position_m: [o.x_m, o.y_m], yaw_rad: o.theta_rad, flags: 0, ..Default::default() };
+            return Ok(Some(Item::PlanarOdometry { stamp_ns: stamp_ns(*t), odometry }));
+        }
         let scan = &self.log.scans[i];
         let stamp = stamp_ns(scan.stamp_s);
         if !self.odometry_sent {
@@ -231,6 +262,7 @@ impl Source for CarmenSource {
         }
         self.odometry_sent = false;
         self.next += 1;
+        self.between_sent = 0;
         let [x, y, yaw] = self.settings.body_from_laser;
         let header = LaserScanHeader {
             angle_min_rad: scan.angle_min_rad,
@@ -330,5 +362,55 @@ mod tests {
             .err()
             .expect("missing file");
         assert!(e.to_string().contains("none.log"), "{e}");
+    }
+
+    #[test]
+    fn odom_lines_between_scans_go_out_before_the_next_scan_drifted_like_it() {
+        let dir = tempfile::tempdir().expect("tmp");
+        // Scans every second, ODOM lines every 0.25 s along x (1 m/s), a reset line with stamp 0
+        // after each scan as the Radish logs write them.
+        let mut text = String::new();
+        for k in 0..=12 {
+            let t = 1.0 + k as f64 * 0.25;
+            text += &format!("ODOM {} 0 0 0 0 0 {t} h {t}\n", t - 1.0);
+            if k % 4 == 0 {
+                text += &flaser(t, t - 1.0);
+                text += &format!("ODOM {} 0 0 0 0 0 0 h 0\n", t - 1.0);
+            }
+        }
+        std::fs::write(dir.path().join("a.log"), text).expect("write");
+        let items = |add_drift: bool| {
+            let settings = CarmenSettings { file: "a.log".into(), add_drift, ..Default::default() };
+            let mut s = CarmenSource::load(dir.path(), &settings).expect("load");
+            let mut out = vec![];
+            while let Some(i) = s.next_item().expect("item") {
+                out.push(match i {
+                    Item::PlanarOdometry { stamp_ns, odometry } => (stamp_ns, Some(odometry.position_m[0])),
+                    Item::Laser { stamp_ns, .. } => (stamp_ns, None),
+                    other => panic!("{other:?}"),
+                });
+            }
+            (out, s.warts())
+        };
+        let (plain, warts) = items(false);
+        assert_eq!(warts.get("odom_lines_out_of_order"), Some(&4), "the resets: {warts:?}");
+        let stamps: Vec<u64> = plain.iter().map(|i| i.0 / 250_000_000).collect();
+        // 1 s: odometry, scan; 1.25-1.75 s: odometry; 2 s: odometry, scan; ...
+        assert_eq!(stamps, vec![4, 4, 5, 6, 7, 8, 8, 9, 10, 11, 12, 12, 13, 14, 15, 16, 16]);
+        for (stamp_ns, x) in &plain {
+            if let Some(x) = x {
+                assert!((x - (*stamp_ns as f64 * 1e-9 - 1.0)).abs() < 1e-9, "the log's own poses without drift");
+            }
+        }
+        // With drift: the scans' odometry is what it was without the samples between, and the
+        // samples between lie between their scans' (1 m/s along x, drift of a few per cent).
+        let (drifted, _) = items(true);
+        assert_eq!(drifted.len(), plain.len());
+        let scans_only: Vec<Pose2> = (0..4).map(|k| Pose2 { x_m: k as f64, y_m: 0.0, theta_rad: 0.0 }).collect();
+        let expected = DriftModel::default().apply(&scans_only);
+        let at_scans: Vec<f64> = drifted.windows(2).filter(|w| w[1].1.is_none()).filter_map(|w| w[0].1).collect();
+        assert_eq!(at_scans, expected.iter().map(|p| p.x_m).collect::<Vec<_>>());
+        let xs: Vec<f64> = drifted.iter().filter_map(|i| i.1).collect();
+        assert!(xs.windows(2).all(|w| w[1] >= w[0] && w[1] - w[0] < 0.3), "{xs:?}");
     }
 }

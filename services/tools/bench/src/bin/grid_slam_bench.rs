@@ -15,6 +15,7 @@ use anyhow::{Context, Result, bail};
 use clap::Parser;
 use datasets::carmen::{OdometrySource, read_carmen};
 use grid_slam::backend::{BackEnd, BackEndConfig};
+use grid_slam::densify::{densify, interleave};
 use grid_slam::drift::DriftModel;
 use grid_slam::export::{Occupancy, write_tum2};
 use grid_slam::relations::{read_relations, score};
@@ -63,6 +64,10 @@ struct Args {
     /// Back-end settings as TOML (the `[back_end]` keys of a pipeline config's `pose_graph`), over the defaults.
     #[arg(long)]
     back_end_settings: Option<PathBuf>,
+    /// Score the poses at the scans only, as before the trajectories held poses between scans
+    /// shaped by the odometry (the ODOM lines).
+    #[arg(long)]
+    scan_poses_only: bool,
     /// Where the maps and trajectories go.
     #[arg(long, default_value = "target/grid_slam_bench")]
     out: PathBuf,
@@ -181,11 +186,24 @@ fn run_set(args: &Args, set: &Set, base: &GridSlamConfig, be_cfg: BackEndConfig,
     if args.max_scans > 0 {
         scans.truncate(args.max_scans);
     }
-    let truth: Vec<Pose2> = scans.iter().map(|s| s.1).collect();
     // The log's own corrected poses scored alike: the floor the scans' spacing leaves (the
     // relations' stamps fall between scans and the poses are interpolated there).
     let truth_traj: Vec<(f64, Pose2)> = scans.iter().map(|(i, p)| (log.scans[*i].stamp_s, *p)).collect();
-    let truth_score = score(&truth_traj, &relations, set.offset_s, 2.0);
+    // The ODOM lines (the subsampled logs keep them at full rate): poses between scans.
+    let track: Vec<(f64, Pose2)> = if args.scan_poses_only {
+        Vec::new()
+    } else {
+        log.odometry_track(OdometrySource::OdomLines)
+            .into_iter()
+            .map(|(t, o)| (t, Pose2 { x_m: o[0], y_m: o[1], theta_rad: o[2] }))
+            .collect()
+    };
+    // The log's poses between scans: the ODOM lines where no scan is.
+    let mut merged = truth_traj.clone();
+    merged.extend(&track);
+    merged.sort_by(|a, b| a.0.total_cmp(&b.0));
+    merged.dedup_by(|later, earlier| later.0 == earlier.0);
+    let truth_score = score(&densify(&truth_traj, &merged), &relations, set.offset_s, 2.0);
     let first = &log.scans[scans[0].0];
     let geom = ScanGeometry {
         angle_min_rad: first.angle_min_rad,
@@ -200,15 +218,16 @@ fn run_set(args: &Args, set: &Set, base: &GridSlamConfig, be_cfg: BackEndConfig,
         body_from_laser: Pose2::default(),
     };
     for &seed in &args.seeds {
-        let drifted = DriftModel { seed, ..Default::default() }.apply(&truth);
-        let odo_traj: Vec<(f64, Pose2)> =
-            scans.iter().zip(&drifted).map(|((i, _), p)| (log.scans[*i].stamp_s, *p)).collect();
+        let (drifted, between) = DriftModel { seed, ..Default::default() }.apply_between(&truth_traj, &track);
+        let at_scans: Vec<(f64, Pose2)> = truth_traj.iter().zip(&drifted).map(|(t, p)| (t.0, *p)).collect();
+        let odo_traj = interleave(&at_scans, &between);
         let run = Run {
             args,
             set,
             log: &log,
             scans: &scans,
             drifted: &drifted,
+            odo_traj: &odo_traj,
             relations: &relations,
             geom,
             seed,
@@ -259,6 +278,8 @@ struct Run<'a> {
     log: &'a datasets::carmen::CarmenLog,
     scans: &'a [(usize, Pose2)],
     drifted: &'a [Pose2],
+    /// The drifted odometry at the scans and between them (the ODOM lines').
+    odo_traj: &'a [(f64, Pose2)],
     relations: &'a [grid_slam::relations::Relation],
     geom: ScanGeometry,
     seed: u64,
@@ -274,7 +295,7 @@ impl Run<'_> {
         let t0 = Instant::now();
         let (back_end, refused, mem_trace) = self.front_end(&mut f, be_cfg)?;
         let front_wall = t0.elapsed().as_secs_f64();
-        let front_traj = f.trajectory();
+        let front_traj = densify(&f.trajectory(), self.odo_traj);
         let mut back_grid = None;
         let traj = if args.front_end_only {
             front_traj
@@ -282,7 +303,7 @@ impl Run<'_> {
             let front_sc = score(&front_traj, self.relations, set.offset_s, 2.0);
             let r = back_end.run(&f)?;
             print_back_end(&front_sc, front_wall, &r.report, t0.elapsed().as_secs_f64() - front_wall);
-            let t = f.trajectory_with(&r.nodes);
+            let t = densify(&f.trajectory_with(&r.nodes), self.odo_traj);
             back_grid = Some(r.grid);
             t
         };
