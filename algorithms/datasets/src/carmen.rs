@@ -358,7 +358,8 @@ impl CarmenLog {
     /// one kept, and how many were left out. The Radish corrected logs write, after each scan, an
     /// ODOM line with stamp 0 (the pose reset to the scan's), and a few lines whose stamps are
     /// out of order (fr079 holds a second stream with two-decimal stamps, ~1 m off the robot);
-    /// sorting them in would make the path jump back and forth.
+    /// sorting them in would make the path jump back and forth. Whatever the scans' odometry source,
+    /// these are the odometry between scans (ingest replays them, grid_slam places poses there).
     pub fn odometry_in_order(&self) -> (Vec<(f64, Pose2d)>, usize) {
         let mut t: Vec<(f64, Pose2d)> = Vec::with_capacity(self.odometry.len());
         for o in &self.odometry {
@@ -368,16 +369,6 @@ impl CarmenLog {
         }
         let left_out = self.odometry.len() - t.len();
         (t, left_out)
-    }
-
-    /// [`CarmenLog::odometry_in_order`] when `source` takes the odometry from the ODOM lines;
-    /// empty otherwise. Odometry usually runs faster than the laser (the subsampled Intel and
-    /// ACES logs: a scan every 2-3 s, an ODOM line every 0.1-0.2 s).
-    pub fn odometry_track(&self, source: OdometrySource) -> Vec<(f64, Pose2d)> {
-        if !self.uses_odom_lines(source) {
-            return Vec::new();
-        }
-        self.odometry_in_order().0
     }
 }
 
@@ -442,8 +433,6 @@ mod tests {
         let (track, left_out) = log.odometry_in_order();
         assert_eq!(left_out, 2);
         assert_eq!(track.iter().map(|o| o.0).collect::<Vec<_>>(), vec![1.0, 1.1, 1.2, 1.3, 1.4]);
-        assert_eq!(log.odometry_track(OdometrySource::Auto), track);
-        assert!(log.odometry_track(OdometrySource::LaserLines).is_empty());
         let at = log.scan_odometry(OdometrySource::OdomLines)[0].expect("inside the ODOM lines");
         assert!((at[0] - 0.25).abs() < 1e-12, "interpolated between 1.2 and 1.3 s: {at:?}");
     }

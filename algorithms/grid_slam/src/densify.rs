@@ -71,6 +71,28 @@ pub fn between(poses: &[(f64, Pose2)], track: &[(f64, Pose2)]) -> Vec<Vec<(f64, 
     out
 }
 
+/// [`between`] with the shape taken from `samples` where they are and from `shape_at_poses` (the
+/// shape's own value at each of `poses`' stamps) at the poses: the odometry's motion from a pose
+/// starts at the value it had there, not at a sample near it, and a pose is never a sample (a
+/// pose out of stamp order is not put between others). The poses between are at `samples`'
+/// stamps only.
+pub fn between_samples(
+    poses: &[(f64, Pose2)],
+    shape_at_poses: &[(f64, Pose2)],
+    samples: &[(f64, Pose2)],
+) -> Vec<Vec<(f64, Pose2)>> {
+    let mut track: Vec<(f64, Pose2)> = shape_at_poses.to_vec();
+    track.extend(samples.iter().filter(|(t, _)| t.is_finite()));
+    track.sort_by(|a, b| a.0.total_cmp(&b.0));
+    track.dedup_by(|later, earlier| later.0 == earlier.0);
+    let at_poses: std::collections::HashSet<u64> = shape_at_poses.iter().map(|s| s.0.to_bits()).collect();
+    let mut b = between(poses, &track);
+    for list in &mut b {
+        list.retain(|(t, _)| !at_poses.contains(&t.to_bits()));
+    }
+    b
+}
+
 /// `poses` with the poses [`between`] them inserted, in order.
 pub fn densify(poses: &[(f64, Pose2)], track: &[(f64, Pose2)]) -> Vec<(f64, Pose2)> {
     interleave(poses, &between(poses, track))

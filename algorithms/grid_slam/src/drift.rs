@@ -90,17 +90,7 @@ impl DriftModel {
         let poses: Vec<Pose2> = scans.iter().map(|s| s.1).collect();
         let drifted = self.apply(&poses);
         let anchors: Vec<(f64, Pose2)> = scans.iter().map(|s| s.0).zip(drifted.iter().copied()).collect();
-        // The shape: the scans' own poses where they are, the samples between elsewhere.
-        let mut track: Vec<(f64, Pose2)> = scans.to_vec();
-        track.extend(between.iter().filter(|(t, _)| t.is_finite()));
-        track.sort_by(|a, b| a.0.total_cmp(&b.0));
-        track.dedup_by(|later, earlier| later.0 == earlier.0);
-        // Poses at the samples' stamps only: a scan out of order is not a sample between others.
-        let scan_stamps: std::collections::HashSet<u64> = scans.iter().map(|s| s.0.to_bits()).collect();
-        let mut b = crate::densify::between(&anchors, &track);
-        for list in &mut b {
-            list.retain(|(t, _)| !scan_stamps.contains(&t.to_bits()));
-        }
+        let b = crate::densify::between_samples(&anchors, scans, between);
         (drifted, b)
     }
 }

@@ -180,7 +180,7 @@ impl CarmenSource {
                 settings.odometry
             )));
         }
-        if log.uses_odom_lines(settings.odometry) {
+        {
             let (_, left_out) = log.odometry_in_order();
             if left_out > 0 {
                 warts.insert("odom_lines_out_of_order", left_out as u64);
@@ -192,7 +192,8 @@ impl CarmenSource {
         }
         let mut truth = Vec::new();
         let track: Vec<(f64, Pose2)> = log
-            .odometry_track(settings.odometry)
+            .odometry_in_order()
+            .0
             .into_iter()
             .map(|(t, o)| (t, Pose2 { x_m: o[0], y_m: o[1], theta_rad: o[2] }))
             .collect();
@@ -207,7 +208,7 @@ impl CarmenSource {
             }
             between
         } else {
-            grid_slam::densify::between(&at_scans, &track)
+            grid_slam::densify::between_samples(&at_scans, &at_scans, &track)
         };
         Ok(Self {
             path,

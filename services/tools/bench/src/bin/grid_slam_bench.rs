@@ -193,7 +193,8 @@ fn run_set(args: &Args, set: &Set, base: &GridSlamConfig, be_cfg: BackEndConfig,
     let track: Vec<(f64, Pose2)> = if args.scan_poses_only {
         Vec::new()
     } else {
-        log.odometry_track(OdometrySource::OdomLines)
+        log.odometry_in_order()
+            .0
             .into_iter()
             .map(|(t, o)| (t, Pose2 { x_m: o[0], y_m: o[1], theta_rad: o[2] }))
             .collect()
