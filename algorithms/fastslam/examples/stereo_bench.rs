@@ -4,7 +4,8 @@
 //!
 //! Run: `cargo run --release -p fastslam --example stereo_bench`
 //! (options: `--particles 25,50,100,200 --frames 120 --warmup 10 --threads 2 --reps 2
-//! --proposal optimal|motion --seed 1`).
+//! --proposal optimal|motion --seed 1 --per-frame`; `--per-frame` prints every frame's times to
+//! stderr).
 //!
 //! The frames come from the KITTI-like simulated drive (`sim::road`, defaults): about 700
 //! observations per frame (the nearest 700 of the visible landmarks, 90 % detected, plus 3 %
@@ -35,6 +36,7 @@ struct Options {
     reps: usize,
     proposal: Proposal,
     seed: u64,
+    per_frame: bool,
 }
 
 fn parse() -> Result<Options, String> {
@@ -46,6 +48,7 @@ fn parse() -> Result<Options, String> {
         reps: 2,
         proposal: Proposal::Optimal,
         seed: 1,
+        per_frame: false,
     };
     let mut it = std::env::args().skip(1);
     let num = |v: Option<String>, k: &str| v.and_then(|v| v.parse::<usize>().ok()).ok_or(format!("{k} needs a number"));
@@ -62,6 +65,7 @@ fn parse() -> Result<Options, String> {
             "--frames" => o.frames = num(it.next(), "--frames")?,
             "--warmup" => o.warmup = num(it.next(), "--warmup")?,
             "--threads" => o.threads = num(it.next(), "--threads")?,
+            "--per-frame" => o.per_frame = true,
             "--reps" => o.reps = num(it.next(), "--reps")?.max(1),
             "--seed" => o.seed = num(it.next(), "--seed")? as u64,
             "--proposal" => {
@@ -179,6 +183,20 @@ fn run(d: &Drive, o: &Options, particles: usize, assign_tracks: bool) -> Run {
         r.resample.push(rep.timing.resample_ms);
         r.update.push(rep.timing.update_ms);
         r.copies.push(rep.timing.copies_ms);
+        if o.per_frame {
+            eprintln!(
+                "frame {k} N={particles} tracks={assign_tracks} total {total:.1} front {:.1} weigh {:.1} resample {:.2} update {:.1} copies {:.1} obs {} matched {} new {} resampled {}",
+                (t1 - t0).as_secs_f64() * 1e3,
+                rep.timing.weigh_ms,
+                rep.timing.resample_ms,
+                rep.timing.update_ms,
+                rep.timing.copies_ms,
+                obs.len(),
+                rep.matched,
+                rep.new,
+                rep.resampled
+            );
+        }
         cands += rep.candidates_per_observation * obs.len() as f64;
         matched += rep.matched;
         n_obs += obs.len();

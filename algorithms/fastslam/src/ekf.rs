@@ -81,15 +81,37 @@ impl InverseDepth {
     }
 
     /// The predicted stereo coordinates from a camera at `world_from_camera` and their
-    /// Jacobian with respect to (a, b, w), in the homogeneous form that stays finite as w → 0:
-    /// h = R_cᵀ·(R_a·(a, b, 1) + w·(t_a − t_c)), s = (h_x/h_z, h_y/h_z, w/h_z). `None` when the
-    /// landmark is not in front of the camera.
+    /// Jacobian with respect to (a, b, w) ([`Projection::predict`]). `None` when the landmark is
+    /// not in front of the camera.
     pub fn predict(&self, world_from_camera: &Isometry3<f64>) -> Option<(Vector3<f64>, Matrix3<f64>)> {
+        Projection::new(world_from_camera, &self.world_from_anchor).predict(&self.s)
+    }
+}
+
+/// The part of an inverse-depth landmark's projection that depends only on the anchor and the
+/// camera, not on (a, b, w): h = M·(a, b, 1) + w·d with M = R_cᵀ·R_a and d = R_cᵀ·(t_a − t_c).
+/// Made once, it predicts the landmark at any (a, b, w) with a matrix-vector product (the
+/// iterated update relinearises several times from the same camera).
+#[derive(Debug, Clone, Copy)]
+pub struct Projection {
+    M: Matrix3<f64>,
+    d: Vector3<f64>,
+}
+
+impl Projection {
+    /// The projection from a camera at `world_from_camera` of landmarks anchored at `world_from_anchor`.
+    pub fn new(world_from_camera: &Isometry3<f64>, world_from_anchor: &Isometry3<f64>) -> Self {
         let Rct = world_from_camera.rotation.inverse().to_rotation_matrix().into_inner();
-        let Ra = self.world_from_anchor.rotation.to_rotation_matrix().into_inner();
-        let dt = Rct * (self.world_from_anchor.translation.vector - world_from_camera.translation.vector);
-        let M = Rct * Ra;
-        let (a, b, w) = (self.s.x, self.s.y, self.s.z);
+        let Ra = world_from_anchor.rotation.to_rotation_matrix().into_inner();
+        Self { M: Rct * Ra, d: Rct * (world_from_anchor.translation.vector - world_from_camera.translation.vector) }
+    }
+
+    /// The predicted stereo coordinates of s = (a, b, w) and their Jacobian with respect to it,
+    /// in the homogeneous form that stays finite as w → 0: h = M·(a, b, 1) + w·d, s = (h_x/h_z,
+    /// h_y/h_z, w/h_z). `None` when the landmark is not in front of the camera.
+    pub fn predict(&self, s: &Vector3<f64>) -> Option<(Vector3<f64>, Matrix3<f64>)> {
+        let (M, dt) = (&self.M, &self.d);
+        let (a, b, w) = (s.x, s.y, s.z);
         let h = M * Vector3::new(a, b, 1.0) + dt * w;
         // In front: depth 1/w·h_z above the minimum (h_z > 0 and w·MIN < h_z).
         if !(h.z > 0.0 && h.z > w * MIN_STEREO_DEPTH_M) {
@@ -98,7 +120,7 @@ impl InverseDepth {
         let iz = 1.0 / h.z;
         let s = Vector3::new(h.x * iz, h.y * iz, w * iz);
         let ds_dh = Matrix3::new(iz, 0.0, -h.x * iz * iz, 0.0, iz, -h.y * iz * iz, 0.0, 0.0, -w * iz * iz);
-        let dh = Matrix3::from_columns(&[M.column(0).into_owned(), M.column(1).into_owned(), dt]);
+        let dh = Matrix3::from_columns(&[M.column(0).into_owned(), M.column(1).into_owned(), *dt]);
         let mut H = ds_dh * dh;
         H[(2, 2)] += iz;
         Some((s, H))
@@ -234,44 +256,65 @@ pub fn innovation_inverse_depth(
 }
 
 /// Iterated EKF update of an inverse-depth landmark with a stereo observation (`s_obs`, `Cs`)
-/// from a camera at `world_from_camera` (Gauss-Newton relinearisation, up to `iterations`, a step
-/// that raises the MAP cost or leaves the camera's front halved), then the Cartesian view.
+/// from a camera at `world_from_camera` (Gauss-Newton relinearisation, up to `iterations` or
+/// until a step is below 10⁻³ of the prior's σ; a step that raises the MAP cost or leaves the
+/// camera's front halved), then the Cartesian view. Returns the observation's normalised innovation squared against the landmark before the
+/// update (its NIS, νᵀS⁻¹ν at the prior: what [`innovation_inverse_depth`] gives).
 pub fn update_inverse_depth(
     lm: &mut LandmarkEkf,
     world_from_camera: &Isometry3<f64>,
     s_obs: &Vector3<f64>,
     Cs: &Matrix3<f64>,
     iterations: usize,
-) -> Result<(), FilterError> {
+) -> Result<f64, FilterError> {
     let inv = lm.inverse_depth.as_ref().ok_or(FilterError::NonFinite("inverse depth"))?;
     let (x0, P) = (inv.s, inv.cov);
+    let proj = Projection::new(world_from_camera, &inv.world_from_anchor);
+    let innovation_chol = |H: &Matrix3<f64>| {
+        let S = H * P * H.transpose() + Cs;
+        Chol3::new(&((S + S.transpose()) * 0.5)).ok_or(FilterError::NotPositiveDefinite("innovation covariance S"))
+    };
+    // The prior's prediction: the NIS, and the first linearisation.
+    let (mut s, mut H) = proj.predict(&x0).ok_or(FilterError::BehindCamera)?;
+    let mut chol = innovation_chol(&H)?;
+    let nis = chol.mahalanobis(&(s_obs - s));
+    if !nis.is_finite() {
+        return Err(FilterError::NonFinite("innovation"));
+    }
     let P_inv = Chol3::new(&P).ok_or(FilterError::NotPositiveDefinite("landmark covariance"))?.inverse();
     let Cs_inv = Chol3::new(Cs).ok_or(FilterError::NotPositiveDefinite("stereo covariance"))?.inverse();
-    let at = |x: &Vector3<f64>| InverseDepth { s: *x, ..inv.clone() };
-    let cost = |x: &Vector3<f64>| -> Option<f64> {
-        let (s, _) = at(x).predict(world_from_camera)?;
+    // The MAP cost at x, with the prediction there (for the next linearisation).
+    let cost = |x: &Vector3<f64>| -> Option<(f64, Vector3<f64>, Matrix3<f64>)> {
+        let (s, H) = proj.predict(x)?;
         let r = s_obs - s;
         let d = x - x0;
-        Some(r.dot(&(Cs_inv * r)) + d.dot(&(P_inv * d)))
+        Some((r.dot(&(Cs_inv * r)) + d.dot(&(P_inv * d)), s, H))
     };
     let mut x = x0;
-    let mut c_x = cost(&x).ok_or(FilterError::BehindCamera)?;
+    let r0 = s_obs - s;
+    let mut c_x = r0.dot(&(Cs_inv * r0));
+    let mut chol_at_x = true;
     for _ in 0..iterations.max(1) {
-        let (s, H) = at(&x).predict(world_from_camera).ok_or(FilterError::BehindCamera)?;
-        let S = H * P * H.transpose() + Cs;
-        let chol = Chol3::new(&((S + S.transpose()) * 0.5))
-            .ok_or(FilterError::NotPositiveDefinite("innovation covariance S"))?;
+        if !chol_at_x {
+            chol = innovation_chol(&H)?;
+        }
         let K = P * H.transpose() * chol.inverse();
         let step = x0 + K * (s_obs - s - H * (x0 - x)) - x;
+        // Converged: the step would move the estimate by less than a thousandth of the prior's
+        // standard deviation (stepᵀP⁻¹step < 10⁻⁶). The first step of a stereo observation is
+        // of the order of one σ, the second 10⁻³-10⁻⁴ σ, the third below 10⁻⁶ σ.
+        if step.dot(&(P_inv * step)) < 1e-6 {
+            break;
+        }
         let mut alpha = 1.0;
         let mut moved = false;
         while alpha > 1e-3 {
             let trial = x + step * alpha;
-            if let Some(c) = cost(&trial)
+            if let Some((c, s_t, H_t)) = cost(&trial)
                 && c <= c_x
             {
-                x = trial;
-                c_x = c;
+                (x, s, H, c_x) = (trial, s_t, H_t, c);
+                chol_at_x = false;
                 moved = true;
                 break;
             }
@@ -281,25 +324,22 @@ pub fn update_inverse_depth(
             break;
         }
     }
-    let (_, H) = at(&x).predict(world_from_camera).ok_or(FilterError::BehindCamera)?;
-    let S = H * P * H.transpose() + Cs;
-    let K = P
-        * H.transpose()
-        * Chol3::new(&((S + S.transpose()) * 0.5))
-            .ok_or(FilterError::NotPositiveDefinite("innovation covariance S"))?
-            .inverse();
+    if !chol_at_x {
+        chol = innovation_chol(&H)?;
+    }
+    let K = P * H.transpose() * chol.inverse();
     let IKH = Matrix3::identity() - K * H;
     let cov = IKH * P * IKH.transpose() + K * Cs * K.transpose();
     let cov = (cov + cov.transpose()) * 0.5;
     if !(x.iter().all(|v| v.is_finite()) && cov.iter().all(|v| v.is_finite())) {
         return Err(FilterError::NonFinite("landmark update"));
     }
-    let new = InverseDepth { s: x, cov, ..inv.clone() };
+    let new = InverseDepth { s: x, cov, world_from_anchor: inv.world_from_anchor };
     let (mean, cart) = new.cartesian();
     lm.mean_m = mean;
     lm.cov_m2 = cart;
     lm.inverse_depth = Some(new);
-    Ok(())
+    Ok(nis)
 }
 
 /// A new landmark from a stereo observation (`s_obs`, `Cs`) made by a camera at
@@ -621,7 +661,9 @@ mod tests {
                         Matrix3::from_diagonal(&Vector3::new(0.25 / (f * f), 0.25 / (f * f), 0.5 / (f * bl).powi(2)));
                     match &mut lm {
                         None => lm = Some(init_landmark_inverse_depth(&cam, &s_obs, &Cs, None, 0)),
-                        Some(l) => update_inverse_depth(l, &cam, &s_obs, &Cs, 3).unwrap(),
+                        Some(l) => {
+                            update_inverse_depth(l, &cam, &s_obs, &Cs, 3).unwrap();
+                        }
                     }
                 }
                 let l = lm.unwrap();

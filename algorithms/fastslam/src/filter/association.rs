@@ -254,25 +254,26 @@ impl FastSlam {
                 Decision::Matched(id) => {
                     let pose = p.pose;
                     let Some(lm) = p.map.get_mut(id) else { continue };
-                    let Ok(inn) = observe(&pose, lm, o) else { continue };
-                    if lm.hits >= a.confirm_after {
-                        out.nis_sum += inn.mahalanobis;
-                    }
-                    let updated = match (&o.stereo, lm.inverse_depth.is_some()) {
+                    // The update, and the observation's NIS against the landmark before it.
+                    let nis = match (&o.stereo, lm.inverse_depth.is_some()) {
                         (Some(st), true) => {
                             ekf::update_inverse_depth(lm, &(pose * st.body_from_camera), &st.s, &st.cov, 3)
                         }
                         (Some(st), false) => {
+                            let Ok(inn) = observe(&pose, lm, o) else { continue };
                             ekf::update_stereo_iterated(lm, &(pose * st.body_from_camera), &st.s, &st.cov, 4)
+                                .map(|_| inn.mahalanobis)
                         }
                         (None, _) => {
+                            let Ok(inn) = observe(&pose, lm, o) else { continue };
                             // A Cartesian observation: the Cartesian view takes over.
                             lm.inverse_depth = None;
-                            ekf::update(lm, &inn, &o.Rz)
+                            ekf::update(lm, &inn, &o.Rz).map(|_| inn.mahalanobis)
                         }
                     };
-                    if updated.is_err() {
-                        continue;
+                    let Ok(nis) = nis else { continue };
+                    if lm.hits >= a.confirm_after {
+                        out.nis_sum += nis;
                     }
                     lm.hits += 1;
                     lm.last_seen_frame = frame;
