@@ -71,13 +71,17 @@ const MIN_VIEW_INVERSE_DEPTH: f64 = 1e-3;
 impl InverseDepth {
     /// The Cartesian mean and first-order covariance in the map.
     pub fn cartesian(&self) -> (Vector3<f64>, Matrix3<f64>) {
+        self.cartesian_with(&self.world_from_anchor.rotation.to_rotation_matrix().into_inner())
+    }
+
+    /// [`InverseDepth::cartesian`] with the anchor's rotation matrix R_wa at hand.
+    fn cartesian_with(&self, R: &Matrix3<f64>) -> (Vector3<f64>, Matrix3<f64>) {
         let (a, b, w) = (self.s.x, self.s.y, self.s.z.max(MIN_VIEW_INVERSE_DEPTH));
         let p = Vector3::new(a / w, b / w, 1.0 / w);
         let Jp = Matrix3::new(1.0 / w, 0.0, -a / (w * w), 0.0, 1.0 / w, -b / (w * w), 0.0, 0.0, -1.0 / (w * w));
-        let R = self.world_from_anchor.rotation.to_rotation_matrix().into_inner();
         let J = R * Jp;
         let c = J * self.cov * J.transpose();
-        (self.world_from_anchor.transform_point(&p.into()).coords, (c + c.transpose()) * 0.5)
+        (R * p + self.world_from_anchor.translation.vector, (c + c.transpose()) * 0.5)
     }
 
     /// The predicted stereo coordinates from a camera at `world_from_camera` and their
@@ -101,9 +105,21 @@ pub struct Projection {
 impl Projection {
     /// The projection from a camera at `world_from_camera` of landmarks anchored at `world_from_anchor`.
     pub fn new(world_from_camera: &Isometry3<f64>, world_from_anchor: &Isometry3<f64>) -> Self {
-        let Rct = world_from_camera.rotation.inverse().to_rotation_matrix().into_inner();
-        let Ra = world_from_anchor.rotation.to_rotation_matrix().into_inner();
-        Self { M: Rct * Ra, d: Rct * (world_from_anchor.translation.vector - world_from_camera.translation.vector) }
+        Self::from_camera(&CameraPose::new(world_from_camera), world_from_anchor)
+    }
+
+    /// [`Projection::new`] from a camera whose rotation matrix is already at hand.
+    pub fn from_camera(camera: &CameraPose, world_from_anchor: &Isometry3<f64>) -> Self {
+        Self::from_rotations(camera, world_from_anchor, &world_from_anchor.rotation.to_rotation_matrix().into_inner())
+    }
+
+    /// ... and the anchor's rotation matrix R_wa too.
+    fn from_rotations(camera: &CameraPose, world_from_anchor: &Isometry3<f64>, Ra: &Matrix3<f64>) -> Self {
+        let Rct = &camera.camera_from_world_rot;
+        Self {
+            M: Rct * Ra,
+            d: Rct * (world_from_anchor.translation.vector - camera.world_from_camera.translation.vector),
+        }
     }
 
     /// The predicted stereo coordinates of s = (a, b, w) and their Jacobian with respect to it,
@@ -124,6 +140,67 @@ impl Projection {
         let mut H = ds_dh * dh;
         H[(2, 2)] += iz;
         Some((s, H))
+    }
+}
+
+/// A camera pose with its world-to-camera rotation as a matrix: what predicting many landmarks
+/// from one camera shares.
+#[derive(Debug, Clone, Copy)]
+pub struct CameraPose {
+    /// `world_from_camera` (optical frame).
+    pub world_from_camera: Isometry3<f64>,
+    /// R_wcᵀ.
+    camera_from_world_rot: Matrix3<f64>,
+}
+
+impl CameraPose {
+    /// The camera at `world_from_camera`.
+    pub fn new(world_from_camera: &Isometry3<f64>) -> Self {
+        Self {
+            world_from_camera: *world_from_camera,
+            camera_from_world_rot: world_from_camera.rotation.inverse().to_rotation_matrix().into_inner(),
+        }
+    }
+}
+
+/// A body pose and a camera on it, with the rotations as matrices: what the stereo predictions
+/// and pose Jacobians of one particle's observations in one frame share.
+#[derive(Debug, Clone, Copy)]
+pub struct StereoRig {
+    /// `world_from_body`.
+    pub world_from_body: Isometry3<f64>,
+    /// `body_from_camera`.
+    pub body_from_camera: Isometry3<f64>,
+    /// The camera in the world.
+    pub camera: CameraPose,
+    /// R_wbᵀ.
+    body_from_world_rot: Matrix3<f64>,
+    /// R_bcᵀ.
+    camera_from_body_rot: Matrix3<f64>,
+}
+
+impl StereoRig {
+    /// The camera `body_from_camera` on the body at `world_from_body`.
+    pub fn new(world_from_body: &Isometry3<f64>, body_from_camera: &Isometry3<f64>) -> Self {
+        Self {
+            world_from_body: *world_from_body,
+            body_from_camera: *body_from_camera,
+            camera: CameraPose::new(&(world_from_body * body_from_camera)),
+            body_from_world_rot: world_from_body.rotation.inverse().to_rotation_matrix().into_inner(),
+            camera_from_body_rot: body_from_camera.rotation.inverse().to_rotation_matrix().into_inner(),
+        }
+    }
+
+    /// ∂s/∂(δp, δφ) of the stereo measurement of landmark `L` (perturbation p + δp, R·Exp(δφ)):
+    /// J_s·R_bcᵀ·[−R_wbᵀ, [p_b]×], p_b = R_wbᵀ·(L − p) (as [`stereo_pose_jacobian`]).
+    pub fn pose_jacobian(&self, L: &Vector3<f64>) -> Matrix3x6<f64> {
+        let p_b = self.body_from_world_rot * (L - self.world_from_body.translation.vector);
+        let p_c = self.camera_from_body_rot * (p_b - self.body_from_camera.translation.vector);
+        let JR = stereo_jacobian(&p_c) * self.camera_from_body_rot;
+        let mut H = Matrix3x6::zeros();
+        H.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-(JR * self.body_from_world_rot)));
+        H.fixed_view_mut::<3, 3>(0, 3).copy_from(&(JR * p_b.cross_matrix()));
+        H
     }
 }
 
@@ -171,6 +248,11 @@ impl Innovation {
     /// S⁻¹.
     pub fn S_inv(&self) -> Matrix3<f64> {
         self.chol.inverse()
+    }
+
+    /// The Cholesky factor L of S (S = L·Lᵀ): `whiten` gives L⁻¹·B, so Bᵀ·S⁻¹·B = (L⁻¹B)ᵀ(L⁻¹B).
+    pub fn chol(&self) -> &Chol3 {
+        &self.chol
     }
 }
 
@@ -243,7 +325,18 @@ pub fn innovation_inverse_depth(
     s_obs: &Vector3<f64>,
     Cs: &Matrix3<f64>,
 ) -> Result<Innovation, FilterError> {
-    let (s, HL) = inv.predict(world_from_camera).ok_or(FilterError::BehindCamera)?;
+    innovation_inverse_depth_from(&CameraPose::new(world_from_camera), inv, s_obs, Cs)
+}
+
+/// [`innovation_inverse_depth`] from a camera whose rotation matrix is already at hand.
+pub fn innovation_inverse_depth_from(
+    camera: &CameraPose,
+    inv: &InverseDepth,
+    s_obs: &Vector3<f64>,
+    Cs: &Matrix3<f64>,
+) -> Result<Innovation, FilterError> {
+    let (s, HL) =
+        Projection::from_camera(camera, &inv.world_from_anchor).predict(&inv.s).ok_or(FilterError::BehindCamera)?;
     let S = HL * inv.cov * HL.transpose() + Cs;
     let S = (S + S.transpose()) * 0.5;
     let chol = Chol3::new(&S).ok_or(FilterError::NotPositiveDefinite("innovation covariance S"))?;
@@ -267,9 +360,21 @@ pub fn update_inverse_depth(
     Cs: &Matrix3<f64>,
     iterations: usize,
 ) -> Result<f64, FilterError> {
+    update_inverse_depth_from(lm, &CameraPose::new(world_from_camera), s_obs, Cs, iterations)
+}
+
+/// [`update_inverse_depth`] from a camera whose rotation matrix is already at hand.
+pub fn update_inverse_depth_from(
+    lm: &mut LandmarkEkf,
+    camera: &CameraPose,
+    s_obs: &Vector3<f64>,
+    Cs: &Matrix3<f64>,
+    iterations: usize,
+) -> Result<f64, FilterError> {
     let inv = lm.inverse_depth.as_ref().ok_or(FilterError::NonFinite("inverse depth"))?;
     let (x0, P) = (inv.s, inv.cov);
-    let proj = Projection::new(world_from_camera, &inv.world_from_anchor);
+    let Ra = inv.world_from_anchor.rotation.to_rotation_matrix().into_inner();
+    let proj = Projection::from_rotations(camera, &inv.world_from_anchor, &Ra);
     let innovation_chol = |H: &Matrix3<f64>| {
         let S = H * P * H.transpose() + Cs;
         Chol3::new(&((S + S.transpose()) * 0.5)).ok_or(FilterError::NotPositiveDefinite("innovation covariance S"))
@@ -335,7 +440,7 @@ pub fn update_inverse_depth(
         return Err(FilterError::NonFinite("landmark update"));
     }
     let new = InverseDepth { s: x, cov, world_from_anchor: inv.world_from_anchor };
-    let (mean, cart) = new.cartesian();
+    let (mean, cart) = new.cartesian_with(&Ra);
     lm.mean_m = mean;
     lm.cov_m2 = cart;
     lm.inverse_depth = Some(new);
@@ -351,8 +456,19 @@ pub fn init_landmark_inverse_depth(
     descriptor: Option<[u8; 32]>,
     frame: u32,
 ) -> LandmarkEkf {
-    let inv = InverseDepth { world_from_anchor: *world_from_camera, s: *s_obs, cov: *Cs };
-    let (mean_m, cov_m2) = inv.cartesian();
+    init_landmark_inverse_depth_from(&CameraPose::new(world_from_camera), s_obs, Cs, descriptor, frame)
+}
+
+/// [`init_landmark_inverse_depth`] from a camera whose rotation matrix is already at hand.
+pub fn init_landmark_inverse_depth_from(
+    camera: &CameraPose,
+    s_obs: &Vector3<f64>,
+    Cs: &Matrix3<f64>,
+    descriptor: Option<[u8; 32]>,
+    frame: u32,
+) -> LandmarkEkf {
+    let inv = InverseDepth { world_from_anchor: camera.world_from_camera, s: *s_obs, cov: *Cs };
+    let (mean_m, cov_m2) = inv.cartesian_with(&camera.camera_from_world_rot.transpose());
     LandmarkEkf { mean_m, cov_m2, descriptor, hits: 1, last_seen_frame: frame, inverse_depth: Some(inv) }
 }
 
@@ -364,11 +480,7 @@ pub fn stereo_pose_jacobian(
     body_from_camera: &Isometry3<f64>,
     L: &Vector3<f64>,
 ) -> Matrix3x6<f64> {
-    let (_, Hb) = jacobians(world_from_body, L);
-    let p_b = predict_measurement(world_from_body, L);
-    let p_c = body_from_camera.inverse_transform_point(&p_b.into()).coords;
-    let Rcb = body_from_camera.rotation.inverse().to_rotation_matrix().into_inner();
-    stereo_jacobian(&p_c) * Rcb * Hb
+    StereoRig::new(world_from_body, body_from_camera).pose_jacobian(L)
 }
 
 /// EKF update of `lm` with the innovation `inn` (EQUATIONS §4): K = Σ·H_Lᵀ·S⁻¹, μ += K·ν,

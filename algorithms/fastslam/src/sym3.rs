@@ -48,6 +48,22 @@ impl Chol3 {
         Vector3::new(y0, y1, y2)
     }
 
+    /// L⁻¹·B column by column: with W = L⁻¹·B, Bᵀ·S⁻¹·B = Wᵀ·W (the whitened Jacobian).
+    #[inline]
+    pub fn whiten<const C: usize>(&self, b: &nalgebra::SMatrix<f64, 3, C>) -> nalgebra::SMatrix<f64, 3, C> {
+        let mut w = nalgebra::SMatrix::<f64, 3, C>::zeros();
+        for c in 0..C {
+            w.set_column(c, &self.forward(&b.column(c).into_owned()));
+        }
+        w
+    }
+
+    /// L⁻¹·b.
+    #[inline]
+    pub fn whiten_vector(&self, b: &Vector3<f64>) -> Vector3<f64> {
+        self.forward(b)
+    }
+
     /// S⁻¹·b.
     #[inline]
     pub fn solve(&self, b: &Vector3<f64>) -> Vector3<f64> {

@@ -34,6 +34,7 @@ impl FastSlam {
         cfg: &FastSlamConfig,
         candidates: &[u32],
         p: &Particle,
+        view: &View,
         o: &Observation,
         pose_q: &(Matrix3<f64>, Matrix3<f64>),
         by_track: bool,
@@ -49,7 +50,7 @@ impl FastSlam {
             // against the χ² gate (a tracker's wrong match is left out, not fused).
             for &id in candidates {
                 let Some(lm) = p.map.get(id) else { continue };
-                return match observe(&p.pose, lm, o) {
+                return match view.observe(lm, o) {
                     Ok(inn) if gated(&inn).is_some_and(|m| m <= a.gate_chi2) => Association::Matched(id, inn),
                     _ => Association::Rejected,
                 };
@@ -71,7 +72,7 @@ impl FastSlam {
             if d2 > a.duplicate_gate_chi2 * (lm.cov_m2.trace() + tr_rz) {
                 continue;
             }
-            let Ok(inn) = observe(&p.pose, lm, o) else { continue };
+            let Ok(inn) = view.observe(lm, o) else { continue };
             let Some(m) = gated(&inn) else { continue };
             if m > a.duplicate_gate_chi2 {
                 continue;
@@ -141,34 +142,43 @@ impl FastSlam {
     ) -> Vec<Decision> {
         let a = &cfg.association;
         let ln2pi = (2.0 * std::f64::consts::PI).ln();
+        let view = View::new(&p.pose, obs);
         let decisions: Vec<Association> = obs
             .iter()
             .zip(candidates)
             .zip(pose_q)
             .zip(known)
-            .map(|(((o, c), q), k)| Self::associate(cfg, c, p, o, q, *k))
+            .map(|(((o, c), q), k)| Self::associate(cfg, c, p, &view, o, q, *k))
             .collect();
         // One observation per landmark and frame: of several matched to one landmark the one
         // with the smallest normalised innovation keeps it, the others are left out.
+        // (Landmark and observation packed in one u64 and sorted; in each landmark's run the
+        // smallest innovation keeps it, the earlier observation on a tie.)
         let mut decisions = decisions;
-        let mut owner: HashMap<u32, (usize, f64)> = HashMap::new();
-        let mut losers = vec![];
-        for (j, d) in decisions.iter().enumerate() {
-            if let Association::Matched(id, inn) = d {
-                match owner.get(id) {
-                    Some(&(_, m)) if m <= inn.mahalanobis => losers.push(j),
-                    Some(&(k, _)) => {
-                        losers.push(k);
-                        owner.insert(*id, (j, inn.mahalanobis));
-                    }
-                    None => {
-                        owner.insert(*id, (j, inn.mahalanobis));
-                    }
+        let mut matched: Vec<u64> = decisions
+            .iter()
+            .enumerate()
+            .filter_map(|(j, d)| match d {
+                Association::Matched(id, _) => Some(((*id as u64) << 32) | j as u64),
+                _ => None,
+            })
+            .collect();
+        matched.sort_unstable();
+        let m_of = |d: &Association| if let Association::Matched(_, inn) = d { inn.mahalanobis } else { f64::INFINITY };
+        let mut run = 0;
+        while run < matched.len() {
+            let id = matched[run] >> 32;
+            let end = run + matched[run..].iter().take_while(|k| *k >> 32 == id).count();
+            if end - run > 1 {
+                let j_of = |k: u64| (k & 0xffff_ffff) as usize;
+                let best = (run..end)
+                    .min_by(|&a, &b| m_of(&decisions[j_of(matched[a])]).total_cmp(&m_of(&decisions[j_of(matched[b])])))
+                    .expect("a run of two or more");
+                for k in (run..end).filter(|&k| k != best) {
+                    decisions[j_of(matched[k])] = Association::Ambiguous;
                 }
             }
-        }
-        for j in losers {
-            decisions[j] = Association::Ambiguous;
+            run = end;
         }
         let confirmed = |p: &Particle, id: u32| p.map.get(id).is_some_and(|l| l.hits >= a.confirm_after);
         if cfg.proposal == Proposal::Optimal
@@ -182,11 +192,10 @@ impl FastSlam {
             for (d, o) in decisions.iter().zip(obs) {
                 let Association::Matched(id, inn) = d else { continue };
                 let Some(lm) = p.map.get(*id).filter(|l| l.hits >= a.confirm_after) else { continue };
-                let Hx = pose_jacobian(&p.pose, &lm.mean_m, o);
-                let S_inv = inn.S_inv();
-                let HtSi = Hx.transpose() * S_inv;
-                A += HtSi * Hx;
-                b += HtSi * inn.nu;
+                // Hxᵀ·S⁻¹·Hx and Hxᵀ·S⁻¹·ν through the whitened W = L⁻¹·Hx (S = L·Lᵀ).
+                let W = inn.chol().whiten(&view.pose_jacobian(&lm.mean_m, o));
+                A.gemm_tr(1.0, &W, &W, 1.0);
+                b.gemv_tr(1.0, &W, &inn.chol().whiten_vector(&inn.nu), 1.0);
                 quad += inn.mahalanobis;
                 log_det_s += inn.log_det();
                 n += 1;
@@ -249,6 +258,7 @@ impl FastSlam {
     ) -> ParticleFrame {
         let a = &cfg.association;
         let mut out = ParticleFrame { associations: vec![None; obs.len()], ..Default::default() };
+        let view = View::new(&p.pose, obs);
         for (j, (o, d)) in obs.iter().zip(decisions).enumerate() {
             match *d {
                 Decision::Matched(id) => {
@@ -256,9 +266,10 @@ impl FastSlam {
                     let Some(lm) = p.map.get_mut(id) else { continue };
                     // The update, and the observation's NIS against the landmark before it.
                     let nis = match (&o.stereo, lm.inverse_depth.is_some()) {
-                        (Some(st), true) => {
-                            ekf::update_inverse_depth(lm, &(pose * st.body_from_camera), &st.s, &st.cov, 3)
-                        }
+                        (Some(st), true) => match view.rig_for(o) {
+                            Some(r) => ekf::update_inverse_depth_from(lm, &r.camera, &st.s, &st.cov, 3),
+                            None => ekf::update_inverse_depth(lm, &(pose * st.body_from_camera), &st.s, &st.cov, 3),
+                        },
                         (Some(st), false) => {
                             let Ok(inn) = observe(&pose, lm, o) else { continue };
                             ekf::update_stereo_iterated(lm, &(pose * st.body_from_camera), &st.s, &st.cov, 4)
@@ -289,15 +300,18 @@ impl FastSlam {
                 Decision::Rejected => out.rejected += 1,
                 Decision::New => {
                     let id = first_new_id + j as u32;
-                    let lm = match &o.stereo {
-                        Some(st) => ekf::init_landmark_inverse_depth(
+                    let lm = match (&o.stereo, view.rig_for(o)) {
+                        (Some(st), Some(r)) => {
+                            ekf::init_landmark_inverse_depth_from(&r.camera, &st.s, &st.cov, o.descriptor, frame)
+                        }
+                        (Some(st), None) => ekf::init_landmark_inverse_depth(
                             &(p.pose * st.body_from_camera),
                             &st.s,
                             &st.cov,
                             o.descriptor,
                             frame,
                         ),
-                        None => init_landmark(&p.pose, &o.z_m, &o.Rz, o.descriptor, frame),
+                        (None, _) => init_landmark(&p.pose, &o.z_m, &o.Rz, o.descriptor, frame),
                     };
                     out.created.push((id, lm.mean_m));
                     p.map.insert(id, lm);

@@ -125,6 +125,42 @@ fn observe(pose: &Isometry3<f64>, lm: &ekf::LandmarkEkf, o: &Observation) -> Res
     }
 }
 
+/// A particle's pose in one frame with the stereo rig of the frame's first stereo observation
+/// placed there: the rotations every observation's prediction and pose Jacobian share.
+pub(super) struct View {
+    pub(super) pose: Isometry3<f64>,
+    rig: Option<ekf::StereoRig>,
+}
+
+impl View {
+    pub(super) fn new(pose: &Isometry3<f64>, obs: &[Observation]) -> Self {
+        let rig = obs.iter().find_map(|o| o.stereo.as_ref()).map(|st| ekf::StereoRig::new(pose, &st.body_from_camera));
+        Self { pose: *pose, rig }
+    }
+
+    /// The rig, when `o` was made by its camera.
+    pub(super) fn rig_for(&self, o: &Observation) -> Option<&ekf::StereoRig> {
+        let st = o.stereo.as_ref()?;
+        self.rig.as_ref().filter(|r| r.body_from_camera == st.body_from_camera)
+    }
+
+    /// [`observe`] from this view.
+    pub(super) fn observe(&self, lm: &ekf::LandmarkEkf, o: &Observation) -> Result<Innovation, FilterError> {
+        match (self.rig_for(o), &o.stereo, &lm.inverse_depth) {
+            (Some(r), Some(st), Some(inv)) => ekf::innovation_inverse_depth_from(&r.camera, inv, &st.s, &st.cov),
+            _ => observe(&self.pose, lm, o),
+        }
+    }
+
+    /// [`pose_jacobian`] from this view.
+    pub(super) fn pose_jacobian(&self, l_map: &Vector3<f64>, o: &Observation) -> nalgebra::Matrix3x6<f64> {
+        match self.rig_for(o) {
+            Some(r) => r.pose_jacobian(l_map),
+            None => pose_jacobian(&self.pose, l_map, o),
+        }
+    }
+}
+
 /// The predicted stereo coordinates of `lm` from a camera at `world_from_camera` and their
 /// covariance from the landmark's uncertainty; `None` when it is not in front of the camera.
 fn predict_stereo(lm: &ekf::LandmarkEkf, world_from_camera: &Isometry3<f64>) -> Option<(Vector3<f64>, Matrix3<f64>)> {
