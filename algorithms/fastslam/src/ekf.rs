@@ -386,18 +386,15 @@ pub fn update_inverse_depth_from(
     if !nis.is_finite() {
         return Err(FilterError::NonFinite("innovation"));
     }
-    let P_inv = Chol3::new(&P).ok_or(FilterError::NotPositiveDefinite("landmark covariance"))?.inverse();
-    let Cs_inv = Chol3::new(Cs).ok_or(FilterError::NotPositiveDefinite("stereo covariance"))?.inverse();
+    let P_chol = Chol3::new(&P).ok_or(FilterError::NotPositiveDefinite("landmark covariance"))?;
+    let Cs_chol = Chol3::new(Cs).ok_or(FilterError::NotPositiveDefinite("stereo covariance"))?;
     // The MAP cost at x, with the prediction there (for the next linearisation).
     let cost = |x: &Vector3<f64>| -> Option<(f64, Vector3<f64>, Matrix3<f64>)> {
         let (s, H) = proj.predict(x)?;
-        let r = s_obs - s;
-        let d = x - x0;
-        Some((r.dot(&(Cs_inv * r)) + d.dot(&(P_inv * d)), s, H))
+        Some((Cs_chol.mahalanobis(&(s_obs - s)) + P_chol.mahalanobis(&(x - x0)), s, H))
     };
     let mut x = x0;
-    let r0 = s_obs - s;
-    let mut c_x = r0.dot(&(Cs_inv * r0));
+    let mut c_x = Cs_chol.mahalanobis(&(s_obs - s));
     let mut chol_at_x = true;
     for _ in 0..iterations.max(1) {
         if !chol_at_x {
@@ -408,7 +405,7 @@ pub fn update_inverse_depth_from(
         // Converged: the step would move the estimate by less than a thousandth of the prior's
         // standard deviation (stepᵀP⁻¹step < 10⁻⁶). The first step of a stereo observation is
         // of the order of one σ, the second 10⁻³-10⁻⁴ σ, the third below 10⁻⁶ σ.
-        if step.dot(&(P_inv * step)) < 1e-6 {
+        if P_chol.mahalanobis(&step) < 1e-6 {
             break;
         }
         let mut alpha = 1.0;
