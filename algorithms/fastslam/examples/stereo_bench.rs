@@ -1,6 +1,7 @@
 //! Camera-only FastSLAM on frames shaped like real stereo data: time per frame and where it
-//! goes, against the goal "p50 ≤ 30 ms and p99 ≤ 60 ms per frame at 100 particles on 2 cores,
-//! growing at most linearly with the particles".
+//! goes, against the goals "p50 ≤ 30 ms and p99 ≤ 60 ms per frame at 100 particles on 2 cores,
+//! growing at most linearly with the particles" and, with `--threads 1`, "p50 ≤ 20 ms and p99 ≤
+//! 40 ms on one thread".
 //!
 //! Run: `cargo run --release -p fastslam --example stereo_bench`
 //! (options: `--particles 25,50,100,200 --frames 120 --warmup 10 --threads 2 --reps 2
@@ -304,9 +305,12 @@ fn main() {
             _ => "source track ids",
         };
         if let (Some(p50), Some(p99)) = (p50s.get(&(mode, 100)), p99s.get(&(mode, 100))) {
-            let ok = *p50 <= 30.0 && *p99 <= 60.0;
+            // Two threads: p50 ≤ 30 ms and p99 ≤ 60 ms; on one thread: p50 ≤ 20 ms, p99 ≤ 40 ms.
+            let (g50, g99) = if o.threads == 1 { (20.0, 40.0) } else { (30.0, 60.0) };
+            let ok = *p50 <= g50 && *p99 <= g99;
             println!(
-                "goal ({tag}): N = 100 p50 {p50:.1} ms (≤ 30), p99 {p99:.1} ms (≤ 60): {}",
+                "goal ({tag}, {} thread(s)): N = 100 p50 {p50:.1} ms (≤ {g50}), p99 {p99:.1} ms (≤ {g99}): {}",
+                o.threads,
                 if ok { "met" } else { "NOT met" }
             );
         }
