@@ -262,7 +262,8 @@ struct Row {
     path_m: f64,
     times: Vec<f64>,
     failed: usize,
-    nees: Option<(f64, f64)>,
+    /// Mean position NEES, the share of poses inside χ²₃'s 95 % interval, and the poses scored.
+    nees: Option<(f64, f64, usize)>,
 }
 
 fn main() {
@@ -274,8 +275,8 @@ fn main() {
         }
     };
     println!(
-        "{:<36} {:>8} {:>8} {:>7} {:>8} {:>8} {:>8} {:>7} {:>7} {:>6}",
-        "run", "RMSE m", "end %", "path m", "p50 ms", "p99 ms", "max ms", "failed", "NEESp", "in95"
+        "{:<36} {:>8} {:>8} {:>7} {:>8} {:>8} {:>8} {:>7} {:>7} {:>6} {:>5}",
+        "run", "RMSE m", "end %", "path m", "p50 ms", "p99 ms", "max ms", "failed", "NEESp", "in95", "B-S"
     );
     let seeds: Vec<u64> = if args.source == "road" { (args.seed..args.seed + args.seeds).collect() } else { vec![0] };
     let mut all: Vec<(String, Vec<Row>)> = vec![];
@@ -330,14 +331,22 @@ fn main() {
                 times: rows.iter().flat_map(|r| r.times.clone()).collect(),
                 failed: rows.iter().map(|r| r.failed).sum(),
                 nees: rows[0].nees.map(|_| {
-                    (mean(&|r| r.nees.map_or(f64::NAN, |x| x.0)), mean(&|r| r.nees.map_or(f64::NAN, |x| x.1)))
+                    // Pooled over every pose of every seed.
+                    let n: usize = rows.iter().filter_map(|r| r.nees.map(|x| x.2)).sum();
+                    let pooled = |f: &dyn Fn(&(f64, f64, usize)) -> f64| {
+                        rows.iter().filter_map(|r| r.nees.as_ref()).map(|x| f(x) * x.2 as f64).sum::<f64>()
+                            / n.max(1) as f64
+                    };
+                    (pooled(&|x| x.0), pooled(&|x| x.1), n)
                 }),
             };
             print_row(name, &row);
         }
     }
     println!(
-        "(NEESp: mean position NEES, consistent within [{:.2}, {:.2}]; in95: share of poses inside)",
+        "(NEESp: mean position NEES over the poses (3 for a consistent filter); in95: share of poses inside χ²₃'s 95 % \
+         interval [{:.2}, {:.2}]; B-S: the mean inside Bar-Shalom's 95 % interval for a mean of n χ²₃ samples \
+         (n = poses; 390 poses: [2.76, 3.25]), or below (covariance too large) or above it (too small))",
         CHI2_3_95.0, CHI2_3_95.1
     );
 }
@@ -451,7 +460,8 @@ fn run(input: &Input, args: &Args, assign_tracks: bool) -> (Row, Row) {
     }
     let nees = input.truth.then(|| {
         let scores = evaluate(&samples, &input.reference, &origins);
-        (weighted_mean(&scores, |s| s.nees_position), weighted_mean(&scores, |s| s.nees_position_in_95))
+        let n = scores.iter().map(|s| s.samples).sum();
+        (weighted_mean(&scores, |s| s.nees_position), weighted_mean(&scores, |s| s.nees_position_in_95), n)
     });
     (fe_row, row(&traj, &input.reference, times, failed, nees))
 }
@@ -472,7 +482,7 @@ fn row(
     reference: &[(f64, Isometry3<f64>)],
     times: Vec<f64>,
     failed: usize,
-    nees: Option<(f64, f64)>,
+    nees: Option<(f64, f64, usize)>,
 ) -> Row {
     let s = score(traj, reference);
     Row {
@@ -487,10 +497,17 @@ fn row(
 
 fn print_row(name: &str, r: &Row) {
     let (p50, p99, max) = percentiles(&r.times);
-    let (n, i) =
-        r.nees.map_or(("-".to_string(), "-".to_string()), |(n, i)| (format!("{n:.2}"), format!("{:.0}%", i * 100.0)));
+    let (n, i, bs) = r.nees.map_or(("-".to_string(), "-".to_string(), "-"), |(n, i, poses)| {
+        let bs = match geometry::stats::mean_chi2_interval(3, poses, 0.95) {
+            Some((lo, _)) if n < lo => "below",
+            Some((_, hi)) if n > hi => "above",
+            Some(_) => "in",
+            None => "-",
+        };
+        (format!("{n:.2}"), format!("{:.0}%", i * 100.0), bs)
+    });
     println!(
-        "{name:<36} {:>8.3} {:>7.2}% {:>7.1} {:>8.1} {:>8.1} {:>8.1} {:>7} {:>7} {:>6}",
-        r.rmse_m, r.end_pct, r.path_m, p50, p99, max, r.failed, n, i
+        "{name:<36} {:>8.3} {:>7.2}% {:>7.1} {:>8.1} {:>8.1} {:>8.1} {:>7} {:>7} {:>6} {:>5}",
+        r.rmse_m, r.end_pct, r.path_m, p50, p99, max, r.failed, n, i, bs
     );
 }

@@ -102,4 +102,19 @@ fn main() {
         update_s * 1e3 / frames as f64,
         matched as f64 / frames as f64
     );
+    // Bar-Shalom's test of the mean position NEES over every pose scored.
+    let poses: usize = scores.iter().map(|s| s.samples).sum();
+    let nees = fastslam::eval::weighted_mean(&scores, |s| s.nees_position);
+    if let Some((lo, hi)) = geometry::stats::mean_chi2_interval(3, poses, 0.95) {
+        let verdict = if nees < lo {
+            "below it: the covariance is too large"
+        } else if nees > hi {
+            "above it: the covariance is too small"
+        } else {
+            "inside: consistent"
+        };
+        println!(
+            "position NEES {nees:.2} over {poses} poses; Bar-Shalom's 95 % interval for the mean [{lo:.2}, {hi:.2}]: {verdict}"
+        );
+    }
 }
