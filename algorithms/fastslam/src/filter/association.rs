@@ -7,11 +7,25 @@ use super::*;
 // per matched observation in the hottest loop.
 #[allow(clippy::large_enum_variant)]
 pub(super) enum Association {
-    Matched(u32, Innovation),
+    Matched(u32, Innovation, Seen),
     Ambiguous,
     /// An attribute match outside the χ² gate.
     Rejected,
     New,
+}
+
+/// What the weighing needs of a matched landmark, kept from the association so the map is
+/// not searched for it again.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Seen {
+    hits: u32,
+    mean_m: Vector3<f64>,
+}
+
+impl Seen {
+    fn of(lm: &ekf::LandmarkEkf) -> Self {
+        Self { hits: lm.hits, mean_m: lm.mean_m }
+    }
 }
 
 /// A particle's association decision for one observation, kept between weighing and updating.
@@ -51,17 +65,19 @@ impl FastSlam {
             for &id in candidates {
                 let Some(lm) = p.map.get(id) else { continue };
                 return match view.observe(lm, o) {
-                    Ok(inn) if gated(&inn).is_some_and(|m| m <= a.gate_chi2) => Association::Matched(id, inn),
+                    Ok(inn) if gated(&inn).is_some_and(|m| m <= a.gate_chi2) => {
+                        Association::Matched(id, inn, Seen::of(lm))
+                    }
                     _ => Association::Rejected,
                 };
             }
             return Association::New;
         }
         let w = p.pose.transform_point(&o.z_m.into()).coords;
-        let mut ml: Option<(f64, u32, Innovation)> = None;
+        let mut ml: Option<(f64, u32, Innovation, Seen)> = None;
         let mut second_ml = f64::INFINITY;
         let mut near_dup = false;
-        let mut best_d: Option<(u32, u32, Innovation)> = None; // (hamming, id, innovation)
+        let mut best_d: Option<(u32, u32, Innovation, Seen)> = None; // (hamming, id, innovation, landmark)
         let mut second_d = u32::MAX;
         let tr_rz = o.Rz.trace() + pose_q_body.trace();
         for &id in candidates {
@@ -84,36 +100,36 @@ impl FastSlam {
             if let (Some(od), Some(ld)) = (&o.descriptor, &lm.descriptor) {
                 let d = hamming(od, ld);
                 match &best_d {
-                    Some((bd, _, _)) if d >= *bd => second_d = second_d.min(d),
+                    Some((bd, _, _, _)) if d >= *bd => second_d = second_d.min(d),
                     _ => {
-                        if let Some((bd, _, _)) = &best_d {
+                        if let Some((bd, _, _, _)) = &best_d {
                             second_d = second_d.min(*bd);
                         }
-                        best_d = Some((d, id, inn.clone()));
+                        best_d = Some((d, id, inn.clone(), Seen::of(lm)));
                     }
                 }
             }
             match &ml {
-                Some((mm, _, _)) if m >= *mm => second_ml = second_ml.min(m),
+                Some((mm, _, _, _)) if m >= *mm => second_ml = second_ml.min(m),
                 _ => {
-                    if let Some((mm, _, _)) = &ml {
+                    if let Some((mm, _, _, _)) = &ml {
                         second_ml = second_ml.min(*mm);
                     }
-                    ml = Some((m, id, inn));
+                    ml = Some((m, id, inn, Seen::of(lm)));
                 }
             }
         }
         if o.descriptor.is_some() {
-            if let Some((d, id, inn)) = best_d
+            if let Some((d, id, inn, seen)) = best_d
                 && d <= a.max_hamming
                 && (second_d == u32::MAX || (d as f64) < a.ratio * second_d as f64)
             {
-                return Association::Matched(id, inn);
+                return Association::Matched(id, inn, seen);
             }
-        } else if let Some((m, id, inn)) = ml {
+        } else if let Some((m, id, inn, seen)) = ml {
             // Two landmarks about as likely: rather none than maybe the wrong one.
             if second_ml - m >= a.ml_margin_chi2 {
-                return Association::Matched(id, inn);
+                return Association::Matched(id, inn, seen);
             }
             return Association::Ambiguous;
         }
@@ -159,12 +175,13 @@ impl FastSlam {
             .iter()
             .enumerate()
             .filter_map(|(j, d)| match d {
-                Association::Matched(id, _) => Some(((*id as u64) << 32) | j as u64),
+                Association::Matched(id, _, _) => Some(((*id as u64) << 32) | j as u64),
                 _ => None,
             })
             .collect();
         matched.sort_unstable();
-        let m_of = |d: &Association| if let Association::Matched(_, inn) = d { inn.mahalanobis } else { f64::INFINITY };
+        let m_of =
+            |d: &Association| if let Association::Matched(_, inn, _) = d { inn.mahalanobis } else { f64::INFINITY };
         let mut run = 0;
         while run < matched.len() {
             let id = matched[run] >> 32;
@@ -180,7 +197,6 @@ impl FastSlam {
             }
             run = end;
         }
-        let confirmed = |p: &Particle, id: u32| p.map.get(id).is_some_and(|l| l.hits >= a.confirm_after);
         if cfg.proposal == Proposal::Optimal
             && let Some(cP) = Cholesky::new(*motion_cov)
         {
@@ -190,10 +206,12 @@ impl FastSlam {
             let mut log_det_s = 0.0;
             let mut n = 0usize;
             for (d, o) in decisions.iter().zip(obs) {
-                let Association::Matched(id, inn) = d else { continue };
-                let Some(lm) = p.map.get(*id).filter(|l| l.hits >= a.confirm_after) else { continue };
+                let Association::Matched(_, inn, seen) = d else { continue };
+                if seen.hits < a.confirm_after {
+                    continue;
+                }
                 // Hxᵀ·S⁻¹·Hx and Hxᵀ·S⁻¹·ν through the whitened W = L⁻¹·Hx (S = L·Lᵀ).
-                let W = inn.chol().whiten(&view.pose_jacobian(&lm.mean_m, o));
+                let W = inn.chol().whiten(&view.pose_jacobian(&seen.mean_m, o));
                 A.gemm_tr(1.0, &W, &W, 1.0);
                 b.gemv_tr(1.0, &W, &inn.chol().whiten_vector(&inn.nu), 1.0);
                 quad += inn.mahalanobis;
@@ -223,8 +241,8 @@ impl FastSlam {
         obs.iter()
             .zip(decisions)
             .map(|(o, d)| match d {
-                Association::Matched(id, inn) => {
-                    if cfg.proposal != Proposal::Optimal && confirmed(p, id) {
+                Association::Matched(id, inn, seen) => {
+                    if cfg.proposal != Proposal::Optimal && seen.hits >= a.confirm_after {
                         p.log_w += inn.log_likelihood();
                     }
                     Decision::Matched(id)
