@@ -7,24 +7,33 @@ use super::*;
 // per matched observation in the hottest loop.
 #[allow(clippy::large_enum_variant)]
 pub(super) enum Association {
-    Matched(u32, Innovation, Seen),
+    Matched(u32, Fit),
     Ambiguous,
     /// An attribute match outside the χ² gate.
     Rejected,
     New,
 }
 
-/// What the weighing needs of a matched landmark, kept from the association so the map is
-/// not searched for it again.
+/// What the weighing needs of a match: of the innovation ν, the Cholesky factor of S and
+/// νᵀS⁻¹ν; of the landmark, its hits and mean (kept so the map is not searched for it again).
+/// A third of an [`Innovation`] and its landmark's size: ~700 of them per particle and frame.
 #[derive(Debug, Clone, Copy)]
-pub(super) struct Seen {
+pub(super) struct Fit {
+    nu: Vector3<f64>,
+    chol: Chol3,
+    mahalanobis: f64,
     hits: u32,
     mean_m: Vector3<f64>,
 }
 
-impl Seen {
-    fn of(lm: &ekf::LandmarkEkf) -> Self {
-        Self { hits: lm.hits, mean_m: lm.mean_m }
+impl Fit {
+    fn new(inn: &Innovation, lm: &ekf::LandmarkEkf) -> Self {
+        Self { nu: inn.nu, chol: *inn.chol(), mahalanobis: inn.mahalanobis, hits: lm.hits, mean_m: lm.mean_m }
+    }
+
+    /// ln N(ν; 0, S) (as [`Innovation::log_likelihood`]).
+    fn log_likelihood(&self) -> f64 {
+        -0.5 * (self.mahalanobis + self.chol.log_det() + 3.0 * (2.0 * std::f64::consts::PI).ln())
     }
 }
 
@@ -66,7 +75,7 @@ impl FastSlam {
                 let Some(lm) = p.map.get(id) else { continue };
                 return match view.observe(lm, o) {
                     Ok(inn) if gated(&inn).is_some_and(|m| m <= a.gate_chi2) => {
-                        Association::Matched(id, inn, Seen::of(lm))
+                        Association::Matched(id, Fit::new(&inn, lm))
                     }
                     _ => Association::Rejected,
                 };
@@ -74,10 +83,10 @@ impl FastSlam {
             return Association::New;
         }
         let w = p.pose.transform_point(&o.z_m.into()).coords;
-        let mut ml: Option<(f64, u32, Innovation, Seen)> = None;
+        let mut ml: Option<(f64, u32, Fit)> = None;
         let mut second_ml = f64::INFINITY;
         let mut near_dup = false;
-        let mut best_d: Option<(u32, u32, Innovation, Seen)> = None; // (hamming, id, innovation, landmark)
+        let mut best_d: Option<(u32, u32, Fit)> = None; // (hamming, id, fit)
         let mut second_d = u32::MAX;
         let tr_rz = o.Rz.trace() + pose_q_body.trace();
         for &id in candidates {
@@ -100,36 +109,36 @@ impl FastSlam {
             if let (Some(od), Some(ld)) = (&o.descriptor, &lm.descriptor) {
                 let d = hamming(od, ld);
                 match &best_d {
-                    Some((bd, _, _, _)) if d >= *bd => second_d = second_d.min(d),
+                    Some((bd, _, _)) if d >= *bd => second_d = second_d.min(d),
                     _ => {
-                        if let Some((bd, _, _, _)) = &best_d {
+                        if let Some((bd, _, _)) = &best_d {
                             second_d = second_d.min(*bd);
                         }
-                        best_d = Some((d, id, inn.clone(), Seen::of(lm)));
+                        best_d = Some((d, id, Fit::new(&inn, lm)));
                     }
                 }
             }
             match &ml {
-                Some((mm, _, _, _)) if m >= *mm => second_ml = second_ml.min(m),
+                Some((mm, _, _)) if m >= *mm => second_ml = second_ml.min(m),
                 _ => {
-                    if let Some((mm, _, _, _)) = &ml {
+                    if let Some((mm, _, _)) = &ml {
                         second_ml = second_ml.min(*mm);
                     }
-                    ml = Some((m, id, inn, Seen::of(lm)));
+                    ml = Some((m, id, Fit::new(&inn, lm)));
                 }
             }
         }
         if o.descriptor.is_some() {
-            if let Some((d, id, inn, seen)) = best_d
+            if let Some((d, id, fit)) = best_d
                 && d <= a.max_hamming
                 && (second_d == u32::MAX || (d as f64) < a.ratio * second_d as f64)
             {
-                return Association::Matched(id, inn, seen);
+                return Association::Matched(id, fit);
             }
-        } else if let Some((m, id, inn, seen)) = ml {
+        } else if let Some((m, id, fit)) = ml {
             // Two landmarks about as likely: rather none than maybe the wrong one.
             if second_ml - m >= a.ml_margin_chi2 {
-                return Association::Matched(id, inn, seen);
+                return Association::Matched(id, fit);
             }
             return Association::Ambiguous;
         }
@@ -175,13 +184,12 @@ impl FastSlam {
             .iter()
             .enumerate()
             .filter_map(|(j, d)| match d {
-                Association::Matched(id, _, _) => Some(((*id as u64) << 32) | j as u64),
+                Association::Matched(id, _) => Some(((*id as u64) << 32) | j as u64),
                 _ => None,
             })
             .collect();
         matched.sort_unstable();
-        let m_of =
-            |d: &Association| if let Association::Matched(_, inn, _) = d { inn.mahalanobis } else { f64::INFINITY };
+        let m_of = |d: &Association| if let Association::Matched(_, fit) = d { fit.mahalanobis } else { f64::INFINITY };
         let mut run = 0;
         while run < matched.len() {
             let id = matched[run] >> 32;
@@ -206,16 +214,16 @@ impl FastSlam {
             let mut log_det_s = 0.0;
             let mut n = 0usize;
             for (d, o) in decisions.iter().zip(obs) {
-                let Association::Matched(_, inn, seen) = d else { continue };
-                if seen.hits < a.confirm_after {
+                let Association::Matched(_, fit) = d else { continue };
+                if fit.hits < a.confirm_after {
                     continue;
                 }
                 // Hxᵀ·S⁻¹·Hx and Hxᵀ·S⁻¹·ν through the whitened W = L⁻¹·Hx (S = L·Lᵀ).
-                let W = inn.chol().whiten(&view.pose_jacobian(&seen.mean_m, o));
+                let W = fit.chol.whiten(&view.pose_jacobian(&fit.mean_m, o));
                 A.gemm_tr(1.0, &W, &W, 1.0);
-                b.gemv_tr(1.0, &W, &inn.chol().whiten_vector(&inn.nu), 1.0);
-                quad += inn.mahalanobis;
-                log_det_s += inn.log_det();
+                b.gemv_tr(1.0, &W, &fit.chol.whiten_vector(&fit.nu), 1.0);
+                quad += fit.mahalanobis;
+                log_det_s += fit.chol.log_det();
                 n += 1;
             }
             if n > 0
@@ -241,9 +249,9 @@ impl FastSlam {
         obs.iter()
             .zip(decisions)
             .map(|(o, d)| match d {
-                Association::Matched(id, inn, seen) => {
-                    if cfg.proposal != Proposal::Optimal && seen.hits >= a.confirm_after {
-                        p.log_w += inn.log_likelihood();
+                Association::Matched(id, fit) => {
+                    if cfg.proposal != Proposal::Optimal && fit.hits >= a.confirm_after {
+                        p.log_w += fit.log_likelihood();
                     }
                     Decision::Matched(id)
                 }
