@@ -57,29 +57,88 @@ pub enum NavigableError {
 }
 
 /// Point statistics of one voxel.
+///
+/// Besides the sums over all its points, a voxel keeps the scatter of each scan's points about
+/// that scan's own mean, pooled over the scans ([`VoxelStats::within_scatter`]): a surface seen
+/// from two poses that disagree by a few centimetres is two parallel sheets of points, which the
+/// whole voxel's covariance calls thick, but each scan's points still lie on one plane. A voxel
+/// filled point by point ([`VoxelStats::add`]) is one scan until it is merged with another.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct VoxelStats {
     /// Points.
     pub n: u32,
     /// Sum of the points, m.
     pub sum_m: Vector3<f64>,
-    /// Sum of p·pᵀ, m².
-    pub sum_sq_m2: Matrix3<f64>,
+    /// Sum of p·pᵀ, m² (upper triangle xx, xy, xz, yy, yz, zz; [`VoxelStats::sum_sq_m2`]).
+    sum_sq: [f64; 6],
+    /// The scans' scatter about their own means, summed (upper triangle xx, xy, xz, yy, yz, zz;
+    /// m²); only meaningful when `scans > 0`.
+    within_m2: [f32; 6],
+    /// Scans merged (0: filled point by point, one scan).
+    scans: u32,
+}
+
+fn packed(m: &Matrix3<f64>) -> [f32; 6] {
+    [m[(0, 0)], m[(0, 1)], m[(0, 2)], m[(1, 1)], m[(1, 2)], m[(2, 2)]].map(|v| v as f32)
+}
+
+fn unpacked(p: &[f32; 6]) -> Matrix3<f64> {
+    let v = p.map(f64::from);
+    Matrix3::new(v[0], v[1], v[2], v[1], v[3], v[4], v[2], v[4], v[5])
 }
 
 impl VoxelStats {
-    /// Adds a point.
+    /// Adds a point (of the same scan as the points before it).
     pub fn add(&mut self, p: &Vector3<f64>) {
         self.n += 1;
         self.sum_m += p;
-        self.sum_sq_m2 += p * p.transpose();
+        for (s, v) in self.sum_sq.iter_mut().zip([p.x * p.x, p.x * p.y, p.x * p.z, p.y * p.y, p.y * p.z, p.z * p.z]) {
+            *s += v;
+        }
     }
 
-    /// Merges another voxel's statistics.
+    /// Merges another voxel's statistics (another scan's, or another set of scans').
     pub fn merge(&mut self, o: &VoxelStats) {
+        if o.n == 0 {
+            return;
+        }
+        if self.n == 0 {
+            *self = *o;
+            return;
+        }
+        let within = self.within_scatter() + o.within_scatter();
+        self.scans = self.scans() + o.scans();
+        self.within_m2 = packed(&within);
         self.n += o.n;
         self.sum_m += o.sum_m;
-        self.sum_sq_m2 += o.sum_sq_m2;
+        for (s, v) in self.sum_sq.iter_mut().zip(o.sum_sq) {
+            *s += v;
+        }
+    }
+
+    /// Sum of p·pᵀ over the points, m².
+    pub fn sum_sq_m2(&self) -> Matrix3<f64> {
+        let v = &self.sum_sq;
+        Matrix3::new(v[0], v[1], v[2], v[1], v[3], v[4], v[2], v[4], v[5])
+    }
+
+    /// Scans whose points are in the voxel.
+    pub fn scans(&self) -> u32 {
+        if self.n == 0 { 0 } else { self.scans.max(1) }
+    }
+
+    /// Σ over the scans of Σ (p − mean of the scan)(p − mean of the scan)ᵀ, m²: the scatter
+    /// left when every scan's points are moved to a common mean (what is left of a surface when
+    /// the poses' disagreement between scans is taken out).
+    pub fn within_scatter(&self) -> Matrix3<f64> {
+        if self.scans > 0 {
+            unpacked(&self.within_m2)
+        } else {
+            match self.mean_cov() {
+                Some((_, cov)) => cov * self.n as f64,
+                None => Matrix3::zeros(),
+            }
+        }
     }
 
     /// Mean and (population) covariance of the points.
@@ -89,7 +148,7 @@ impl VoxelStats {
         }
         let n = self.n as f64;
         let mean = self.sum_m / n;
-        let cov = self.sum_sq_m2 / n - mean * mean.transpose();
+        let cov = self.sum_sq_m2() / n - mean * mean.transpose();
         Some((mean, (cov + cov.transpose()) * 0.5))
     }
 }
@@ -168,6 +227,10 @@ pub struct NsdConfig {
     pub max_normal_angle_deg: f64,
     /// Obstacles with fewer voxels are dropped (isolated noise).
     pub min_obstacle_voxels: usize,
+    /// Navigable regions smaller than this are no space a vehicle can use (its footprint), m²:
+    /// they join the obstacles they touch (planar patches on an object's surface) or are left
+    /// as patches.
+    pub min_region_area_m2: f64,
 }
 
 impl Default for NsdConfig {
@@ -179,6 +242,7 @@ impl Default for NsdConfig {
             max_step_m: 0.03,
             max_normal_angle_deg: 20.0,
             min_obstacle_voxels: 2,
+            min_region_area_m2: 0.25,
         }
     }
 }
@@ -194,6 +258,11 @@ impl Validate for NsdConfig {
         issues.check((0.0..=90.0).contains(&self.max_slope_deg), "max_slope_deg", "must be in [0, 90]");
         issues.check(self.max_step_m.is_finite() && self.max_step_m >= 0.0, "max_step_m", "must be >= 0");
         issues.check((0.0..=90.0).contains(&self.max_normal_angle_deg), "max_normal_angle_deg", "must be in [0, 90]");
+        issues.check(
+            self.min_region_area_m2.is_finite() && self.min_region_area_m2 >= 0.0,
+            "min_region_area_m2",
+            "must be >= 0",
+        );
     }
 }
 
@@ -206,6 +275,12 @@ pub struct PlaneFit {
     pub normal: Vector3<f64>,
     /// Mean squared distance of the points to the plane, m².
     pub mse_m2: f64,
+    /// The points' spread along the plane's narrower in-plane direction (the middle eigenvalue),
+    /// m²: about as small as `mse_m2` when the points lie along a line, which no plane fits.
+    pub spread_m2: f64,
+    /// The fit is of the scans' pooled scatter about their own means (the poses' disagreement
+    /// between scans taken out), not of all the points together.
+    pub within_scans: bool,
 }
 
 impl PlaneFit {
@@ -221,6 +296,11 @@ impl PlaneFit {
 }
 
 /// PCA plane fit of a voxel's points (`None` under 3 points or with non-finite statistics).
+///
+/// The normal and the MSE come from the scans' pooled scatter about their own means
+/// ([`VoxelStats::within_scatter`], divided by its degrees of freedom, points − scans) when the
+/// voxel holds several scans with at least 3 degrees of freedom left; else from the covariance
+/// of all its points. The centroid is the mean of all the points.
 pub fn fit_plane(s: &VoxelStats) -> Option<PlaneFit> {
     if s.n < 3 {
         return None;
@@ -229,13 +309,60 @@ pub fn fit_plane(s: &VoxelStats) -> Option<PlaneFit> {
     if !cov.iter().all(|v| v.is_finite()) {
         return None;
     }
-    let eig = SymmetricEigen::new(cov);
+    let mut eig = SymmetricEigen::new(cov);
+    let mut within_scans = false;
+    let dof = s.n.saturating_sub(s.scans());
+    if s.scans() > 1 && dof >= 3 {
+        // Only when the scans' own points spread over the voxel (not each a line of one or two
+        // points): at least half the RMS extent of all the points in the narrower direction.
+        let within = SymmetricEigen::new(s.within_scatter() / dof as f64);
+        if within.eigenvalues.iter().all(|v| v.is_finite())
+            && middle(&within.eigenvalues) >= 0.25 * middle(&eig.eigenvalues)
+        {
+            eig = within;
+            within_scans = true;
+        }
+    }
     let i = eig.eigenvalues.imin();
     let mut normal: Vector3<f64> = eig.eigenvectors.column(i).into_owned();
     if normal.z < 0.0 {
         normal = -normal;
     }
-    Some(PlaneFit { centroid_m: mean, normal: normal.normalize(), mse_m2: eig.eigenvalues[i].max(0.0) })
+    Some(PlaneFit {
+        centroid_m: mean,
+        normal: normal.normalize(),
+        mse_m2: eig.eigenvalues[i].max(0.0),
+        spread_m2: middle(&eig.eigenvalues).max(0.0),
+        within_scans,
+    })
+}
+
+/// The median over the navigable voxels seen in several scans of the RMS distance of all their
+/// points to their plane, m (0 without such voxels).
+fn surface_sigma(acc: &PointAccumulator, keys: &[VoxelKey], classes: &[VoxelClass]) -> f64 {
+    let mut spread: Vec<f64> = keys
+        .iter()
+        .zip(classes)
+        .filter_map(|(k, c)| {
+            let VoxelClass::Navigable(p) = c else { return None };
+            let s = &acc.cells[k];
+            if s.scans() < 2 {
+                return None;
+            }
+            let (_, cov) = s.mean_cov()?;
+            Some((p.normal.transpose() * cov * p.normal)[(0, 0)].max(0.0).sqrt())
+        })
+        .collect();
+    if spread.is_empty() {
+        return 0.0;
+    }
+    let mid = spread.len() / 2;
+    *spread.select_nth_unstable_by(mid, f64::total_cmp).1
+}
+
+/// The middle of three eigenvalues.
+fn middle(v: &Vector3<f64>) -> f64 {
+    v.x + v.y + v.z - v.max() - v.min()
 }
 
 /// What a voxel is.
@@ -247,6 +374,9 @@ pub enum VoxelClass {
     Steep(PlaneFit),
     /// Not planar (MSE over the threshold).
     NonPlanar,
+    /// Planar and climbable, but in a patch smaller than `min_region_area_m2` that touches no
+    /// obstacle: no region.
+    Patch(PlaneFit),
     /// Too few points to tell.
     Sparse,
 }
@@ -284,18 +414,41 @@ pub struct Discovery {
     pub regions: Vec<NavigableRegion>,
     /// Obstacles, largest first.
     pub obstacles: Vec<Obstacle>,
+    /// How thick the map's surfaces are: the median, over the navigable voxels seen in several
+    /// scans, of the RMS distance of their points to their plane (the sensor's noise and the
+    /// poses' disagreement between scans), m.
+    pub surface_sigma_m: f64,
+    /// The step regions do not cross and obstacles must rise by: `max_step_m`, or 3
+    /// `surface_sigma_m` when larger, m.
+    pub step_m: f64,
+}
+
+/// Classified voxels by class.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct ClassCounts {
+    /// [`VoxelClass::Navigable`].
+    pub navigable: usize,
+    /// [`VoxelClass::Steep`].
+    pub steep: usize,
+    /// [`VoxelClass::NonPlanar`].
+    pub non_planar: usize,
+    /// [`VoxelClass::Sparse`].
+    pub sparse: usize,
+    /// [`VoxelClass::Patch`].
+    pub patch: usize,
 }
 
 impl Discovery {
-    /// Counts by class: (navigable, steep, non-planar, sparse).
-    pub fn counts(&self) -> (usize, usize, usize, usize) {
-        let mut c = (0, 0, 0, 0);
+    /// Counts by class.
+    pub fn counts(&self) -> ClassCounts {
+        let mut c = ClassCounts::default();
         for v in self.classes.values() {
             match v {
-                VoxelClass::Navigable(_) => c.0 += 1,
-                VoxelClass::Steep(_) => c.1 += 1,
-                VoxelClass::NonPlanar => c.2 += 1,
-                VoxelClass::Sparse => c.3 += 1,
+                VoxelClass::Navigable(_) => c.navigable += 1,
+                VoxelClass::Steep(_) => c.steep += 1,
+                VoxelClass::NonPlanar => c.non_planar += 1,
+                VoxelClass::Sparse => c.sparse += 1,
+                VoxelClass::Patch(_) => c.patch += 1,
             }
         }
         c
@@ -331,7 +484,7 @@ pub fn discover(
     let mut keys: Vec<VoxelKey> = acc.cells.keys().filter(|k| occupied(k)).copied().collect();
     keys.sort_unstable();
     let index: HashMap<VoxelKey, usize> = keys.iter().enumerate().map(|(i, k)| (*k, i)).collect();
-    let classes: Vec<VoxelClass> = keys
+    let mut classes: Vec<VoxelClass> = keys
         .iter()
         .map(|k| {
             let s = &acc.cells[k];
@@ -339,6 +492,18 @@ pub fn discover(
                 return VoxelClass::Sparse;
             }
             match fit_plane(s) {
+                // Points along a line (a single scan line through the voxel): no plane to tell.
+                Some(p) if p.spread_m2 < cfg.max_plane_mse_m2 => VoxelClass::Sparse,
+                // Steep or not planar over several scans that each say too little on their own:
+                // the poses' disagreement between the scans can make a flat surface look so. Left
+                // to its neighbours, as a voxel with too few points.
+                Some(p)
+                    if !p.within_scans
+                        && s.scans() > 1
+                        && (p.mse_m2 > cfg.max_plane_mse_m2 || p.slope_deg() > cfg.max_slope_deg) =>
+                {
+                    VoxelClass::Sparse
+                }
                 Some(p) if p.mse_m2 <= cfg.max_plane_mse_m2 => {
                     if p.slope_deg() <= cfg.max_slope_deg {
                         VoxelClass::Navigable(p)
@@ -350,9 +515,19 @@ pub fn discover(
             }
         })
         .collect();
+    // How thick the map's surfaces are: the points' spread off their voxel's plane, over all of
+    // a voxel's scans (the sensor's noise plus the poses' disagreement between scans; the median
+    // over the navigable voxels seen in several scans). Two planes of one surface may differ by
+    // this much at their boundary, so the step a region does not cross is at least 3 of it.
+    let surface_sigma_m = surface_sigma(acc, &keys, &classes);
+    let step_m = cfg.max_step_m.max(3.0 * surface_sigma_m);
     // Navigable regions: union of adjacent navigable voxels whose planes meet.
     let max_cos = cfg.max_normal_angle_deg.to_radians().cos();
     let mut parent: Vec<usize> = (0..keys.len()).collect();
+    let join = |parent: &mut Vec<usize>, i: usize, j: usize| {
+        let (ri, rj) = (find(parent, i), find(parent, j));
+        parent[ri.max(rj)] = ri.min(rj);
+    };
     for (i, k) in keys.iter().enumerate() {
         let VoxelClass::Navigable(a) = classes[i] else { continue };
         for n in neighbours(k) {
@@ -366,10 +541,129 @@ pub fn discover(
             }
             // Where the two voxels touch: both planes must pass there within max_step_m.
             let touch = (acc.centre(k) + acc.centre(&n)) * 0.5;
-            if (a.project(&touch) - b.project(&touch)).norm() <= cfg.max_step_m {
-                let (ri, rj) = (find(&mut parent, i), find(&mut parent, j));
-                parent[ri.max(rj)] = ri.min(rj);
+            if (a.project(&touch) - b.project(&touch)).norm() <= step_m {
+                join(&mut parent, i, j);
             }
+        }
+    }
+    // Voxels with too few points for a plane of their own join the regions of the navigable
+    // neighbours whose plane their points' mean lies on (within max_step_m), taking that plane:
+    // the holes of a sparsely sampled surface are filled where the surface continues, and not
+    // across a step. Breadth first, so a run of sparse voxels follows the surface.
+    let mut queue: std::collections::VecDeque<usize> =
+        (0..keys.len()).filter(|i| matches!(classes[*i], VoxelClass::Navigable(_))).collect();
+    while let Some(i) = queue.pop_front() {
+        let VoxelClass::Navigable(plane) = classes[i] else { continue };
+        for n in neighbours(&keys[i]) {
+            let Some(&j) = index.get(&n) else { continue };
+            if classes[j] != VoxelClass::Sparse {
+                continue;
+            }
+            let Some((mean, _)) = acc.cells[&n].mean_cov() else { continue };
+            if plane.normal.dot(&(mean - plane.centroid_m)).abs() <= step_m {
+                classes[j] = VoxelClass::Navigable(PlaneFit { centroid_m: mean, ..plane });
+                join(&mut parent, i, j);
+                queue.push_back(j);
+            }
+        }
+    }
+    for i in 0..keys.len() {
+        // A sparse voxel between two regions it lies on joins them.
+        if !matches!(classes[i], VoxelClass::Navigable(_)) || acc.cells[&keys[i]].n >= cfg.min_points {
+            continue;
+        }
+        let Some((mean, _)) = acc.cells[&keys[i]].mean_cov() else { continue };
+        for n in neighbours(&keys[i]) {
+            let Some(&j) = index.get(&n) else { continue };
+            if let VoxelClass::Navigable(b) = classes[j]
+                && b.normal.dot(&(mean - b.centroid_m)).abs() <= step_m
+            {
+                join(&mut parent, i, j);
+            }
+        }
+    }
+    // Obstacles ([6D] §V: the occupied voxels that are not navigable): grown from the non-planar
+    // and steep voxels through adjacent voxels that are not navigable (sparse ones included).
+    let seed = |c: &VoxelClass| matches!(c, VoxelClass::NonPlanar | VoxelClass::Steep(_));
+    let blocking = |c: &VoxelClass| !matches!(c, VoxelClass::Navigable(_));
+    let mut obstacle_of: Vec<Option<usize>> = vec![None; keys.len()];
+    let mut members_of: Vec<Vec<usize>> = vec![];
+    for s in 0..keys.len() {
+        if obstacle_of[s].is_some() || !seed(&classes[s]) {
+            continue;
+        }
+        let o = members_of.len();
+        let mut stack = vec![s];
+        obstacle_of[s] = Some(o);
+        let mut members = vec![];
+        while let Some(i) = stack.pop() {
+            members.push(i);
+            for n in neighbours(&keys[i]) {
+                if let Some(&j) = index.get(&n)
+                    && obstacle_of[j].is_none()
+                    && blocking(&classes[j])
+                {
+                    obstacle_of[j] = Some(o);
+                    stack.push(j);
+                }
+            }
+        }
+        members_of.push(members);
+    }
+    // An obstacle that does not rise out of the surface around it by more than the step (a rough
+    // or doubled patch of the seabed where two passes disagree) is that surface: its voxels take
+    // the plane of the navigable voxels around it and join the regions they lie on.
+    for members in members_of.iter_mut() {
+        let mut around: Vec<usize> = members
+            .iter()
+            .flat_map(|&i| neighbours(&keys[i]).filter_map(|n| index.get(&n).copied()))
+            .filter(|&j| matches!(classes[j], VoxelClass::Navigable(_)))
+            .collect();
+        around.sort_unstable();
+        around.dedup();
+        if around.is_empty() {
+            continue;
+        }
+        let (mut normal, mut centre) = (Vector3::zeros(), Vector3::zeros());
+        for &j in &around {
+            if let VoxelClass::Navigable(p) = classes[j] {
+                normal += p.normal;
+                centre += p.centroid_m;
+            }
+        }
+        let (normal, centre) = (normal.normalize(), centre / around.len() as f64);
+        let rises = members
+            .iter()
+            .any(|&i| acc.cells[&keys[i]].mean_cov().is_none_or(|(m, _)| normal.dot(&(m - centre)).abs() > step_m));
+        if rises || !normal.iter().all(|v| v.is_finite()) {
+            continue;
+        }
+        for &i in members.iter() {
+            let Some((mean, _)) = acc.cells[&keys[i]].mean_cov() else { continue };
+            classes[i] = VoxelClass::Navigable(PlaneFit {
+                centroid_m: mean,
+                normal,
+                mse_m2: 0.0,
+                spread_m2: 0.0,
+                within_scans: false,
+            });
+            obstacle_of[i] = None;
+            for n in neighbours(&keys[i]) {
+                if let Some(&j) = index.get(&n)
+                    && let VoxelClass::Navigable(b) = classes[j]
+                    && b.normal.dot(&(mean - b.centroid_m)).abs() <= step_m
+                {
+                    join(&mut parent, i, j);
+                }
+            }
+        }
+        members.clear();
+    }
+    // Obstacles too small to be more than noise are none (before they could claim a region as
+    // their top).
+    for members in members_of.iter_mut().filter(|m| m.len() < cfg.min_obstacle_voxels) {
+        for i in members.drain(..) {
+            obstacle_of[i] = None;
         }
     }
     let mut regions: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
@@ -379,7 +673,70 @@ pub fn discover(
             regions.entry(r).or_default().push(i);
         }
     }
+    // A region that lies on top of an obstacle (most of the obstacle voxels it touches are below
+    // its own: a rock's or a wreck's top, a table) is that obstacle's top, not ground a vehicle
+    // reaches: it joins the obstacle it touches most.
+    let mut tops = vec![];
+    for (root, members) in &regions {
+        let mut below: BTreeMap<usize, usize> = BTreeMap::new();
+        let (mut n_below, mut n_beside_or_above) = (0usize, 0usize);
+        for &i in members {
+            for n in neighbours(&keys[i]) {
+                let Some(&j) = index.get(&n) else { continue };
+                let Some(o) = obstacle_of[j] else { continue };
+                if n[2] < keys[i][2] {
+                    n_below += 1;
+                    *below.entry(o).or_default() += 1;
+                } else {
+                    n_beside_or_above += 1;
+                }
+            }
+        }
+        if n_below > n_beside_or_above
+            && let Some((&o, _)) = below.iter().max_by_key(|(o, n)| (**n, std::cmp::Reverse(**o)))
+        {
+            tops.push((*root, o));
+        }
+    }
+    for (root, o) in tops {
+        for i in regions.remove(&root).unwrap_or_default() {
+            obstacle_of[i] = Some(o);
+            members_of[o].push(i);
+        }
+    }
+    // A region smaller than `min_region_area_m2` is no space a vehicle can use: when it touches
+    // obstacles it is part of their surface (a planar patch on a rock's flank) and joins them
+    // into one; otherwise its voxels are left as patches ([`VoxelClass::Patch`]).
     let res2 = acc.res_m * acc.res_m;
+    let small: Vec<usize> =
+        regions.iter().filter(|(_, m)| (m.len() as f64) * res2 < cfg.min_region_area_m2).map(|(r, _)| *r).collect();
+    for root in small {
+        let members = regions.remove(&root).unwrap_or_default();
+        let mut touched: Vec<usize> = members
+            .iter()
+            .flat_map(|&i| neighbours(&keys[i]).filter_map(|n| index.get(&n).and_then(|&j| obstacle_of[j])))
+            .collect();
+        touched.sort_unstable();
+        touched.dedup();
+        let Some(&into) = touched.iter().max_by_key(|o| members_of[**o].len()) else {
+            for &i in &members {
+                if let VoxelClass::Navigable(p) = classes[i] {
+                    classes[i] = VoxelClass::Patch(p);
+                }
+            }
+            continue;
+        };
+        for &o in touched.iter().filter(|o| **o != into) {
+            for i in std::mem::take(&mut members_of[o]) {
+                obstacle_of[i] = Some(into);
+                members_of[into].push(i);
+            }
+        }
+        for i in members {
+            obstacle_of[i] = Some(into);
+            members_of[into].push(i);
+        }
+    }
     let mut regions: Vec<NavigableRegion> = regions
         .into_values()
         .map(|members| {
@@ -396,29 +753,8 @@ pub fn discover(
         })
         .collect();
     regions.sort_by_key(|r| std::cmp::Reverse(r.voxels.len()));
-    // Obstacles: grown from non-planar seeds through adjacent non-navigable occupied voxels.
-    let blocking = |c: &VoxelClass| matches!(c, VoxelClass::NonPlanar | VoxelClass::Steep(_));
-    let mut seen = vec![false; keys.len()];
     let mut obstacles = vec![];
-    for seed in 0..keys.len() {
-        if seen[seed] || classes[seed] != VoxelClass::NonPlanar {
-            continue;
-        }
-        let mut stack = vec![seed];
-        seen[seed] = true;
-        let mut members = vec![];
-        while let Some(i) = stack.pop() {
-            members.push(i);
-            for n in neighbours(&keys[i]) {
-                if let Some(&j) = index.get(&n)
-                    && !seen[j]
-                    && blocking(&classes[j])
-                {
-                    seen[j] = true;
-                    stack.push(j);
-                }
-            }
-        }
+    for members in members_of {
         if members.len() < cfg.min_obstacle_voxels {
             continue;
         }
@@ -436,7 +772,7 @@ pub fn discover(
     }
     obstacles.sort_by_key(|o| std::cmp::Reverse(o.voxels.len()));
     let classes = keys.into_iter().zip(classes).collect();
-    Ok(Discovery { classes, regions, obstacles })
+    Ok(Discovery { classes, regions, obstacles, surface_sigma_m, step_m })
 }
 
 /// What an occupied voxel of the map is, for a viewer.
@@ -745,7 +1081,7 @@ mod tests {
         for (k, a) in one_by_one.cells() {
             let b = &merged.cells()[k];
             assert_eq!(a.n, b.n, "{k:?}");
-            assert!((a.sum_m - b.sum_m).norm() < 1e-9 && (a.sum_sq_m2 - b.sum_sq_m2).norm() < 1e-9, "{k:?}");
+            assert!((a.sum_m - b.sum_m).norm() < 1e-9 && (a.sum_sq_m2() - b.sum_sq_m2()).norm() < 1e-9, "{k:?}");
         }
         let err = merged.merge(&PointAccumulator::new(0.05)).unwrap_err();
         assert!(err.to_string().contains("0.05 m"), "{err}");
@@ -805,9 +1141,9 @@ mod tests {
         surface(&mut steep, (0.0, 1.0), (0.0, 1.0), |x, _| 0.02 + x * 45f64.to_radians().tan());
         let d = run(&steep);
         assert!(d.regions.is_empty());
-        let (nav, st, _, _) = d.counts();
-        assert_eq!(nav, 0);
-        assert!(st > 50);
+        let c = d.counts();
+        assert_eq!(c.navigable, 0);
+        assert!(c.steep > 50);
     }
 
     #[test]
@@ -846,12 +1182,15 @@ mod tests {
             }
         }
         let d = run(&acc);
-        // The floor ring and the box top are separate regions; the box sides (steep planes and
-        // the non-planar edges) form one obstacle around the box's middle.
-        assert!(d.regions.len() >= 2, "{:?}", d.regions.iter().map(|r| r.voxels.len()).collect::<Vec<_>>());
-        assert!(d.regions.iter().any(|r| r.voxels.iter().all(|k| k[2] == 5)), "a region on top of the box");
+        // The floor ring is one region; the box sides (steep planes and the non-planar edges)
+        // form one obstacle, and the box's top, which lies on that obstacle, is part of it.
+        assert_eq!(d.regions.len(), 1, "{:?}", d.regions.iter().map(|r| r.voxels.len()).collect::<Vec<_>>());
+        assert!(d.regions[0].voxels.iter().all(|k| k[2] == 0), "the floor");
+        assert_eq!(d.regions[0].voxels.len(), 400 - 36, "the floor ring");
         assert_eq!(d.obstacles.len(), 1, "{:?}", d.obstacles.iter().map(|o| o.voxels.len()).collect::<Vec<_>>());
         let o = &d.obstacles[0];
+        let top = o.voxels.iter().filter(|k| k[2] == 5).count();
+        assert!(top >= 16, "the box's top is the obstacle's: {top} voxels at its height");
         assert!((o.mean_m.x - 1.0).abs() < 0.05 && (o.mean_m.y - 1.0).abs() < 0.05, "{}", o.mean_m);
         // Written as layers.
         let dir = std::env::temp_dir().join(format!("nsd-{}", std::process::id()));
@@ -862,6 +1201,123 @@ mod tests {
         let text = String::from_utf8_lossy(&bytes);
         assert!(text.contains("format binary_little_endian 1.0") && text.contains("element face"));
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A reproducible uniform number in [-0.5, 0.5).
+    fn uniform(state: &mut u64) -> f64 {
+        *state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (*state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+    }
+
+    /// `scans` scans of the floor z = `z` over [0, 2] × [0, 1] m, each a jittered 2.5 cm grid
+    /// with 2 mm of noise (about 16 points per voxel and scan).
+    fn floor_scans(scans: usize, z: f64, rng: &mut u64) -> Vec<Vec<Vector3<f64>>> {
+        (0..scans)
+            .map(|_| {
+                let (ox, oy) = (uniform(rng) * 0.025, uniform(rng) * 0.025);
+                let mut points = vec![];
+                for i in 0..80 {
+                    for j in 0..40 {
+                        let x = (i as f64 + 0.5) * 0.025 + ox;
+                        let y = (j as f64 + 0.5) * 0.025 + oy;
+                        if (0.0..2.0).contains(&x) && (0.0..1.0).contains(&y) {
+                            points.push(Vector3::new(x, y, z + uniform(rng) * 0.007));
+                        }
+                    }
+                }
+                points
+            })
+            .collect()
+    }
+
+    #[test]
+    fn two_passes_that_disagree_by_centimetres_are_one_floor_and_not_when_pooled_as_one_scan() {
+        let mut rng = 7;
+        // Two passes over the same floor whose poses disagree by 4 cm in height.
+        let mut all = floor_scans(5, 0.033, &mut rng);
+        all.extend(floor_scans(5, 0.073, &mut rng));
+        let mut by_scan = PointAccumulator::new(RES);
+        let mut pooled = PointAccumulator::new(RES);
+        for scan in &all {
+            let mut s = PointAccumulator::new(RES);
+            for p in scan {
+                s.add(p);
+                pooled.add(p);
+            }
+            by_scan.merge(&s).unwrap();
+        }
+        let cell = &by_scan.cells()[&[5, 5, 0]];
+        assert_eq!(cell.scans(), 10);
+        assert_eq!(pooled.cells()[&[5, 5, 0]].scans(), 1);
+        // Each scan's own points lie on a plane: the floor is one region, and its surfaces are
+        // about 2 cm thick (the two passes 4 cm apart).
+        let d = run(&by_scan);
+        assert_eq!(d.regions.len(), 1, "{:?}", d.regions.iter().map(|r| r.voxels.len()).collect::<Vec<_>>());
+        assert_eq!(d.regions[0].voxels.len(), 200);
+        assert!(d.obstacles.is_empty());
+        assert!((0.015..0.025).contains(&d.surface_sigma_m), "{}", d.surface_sigma_m);
+        let plane = fit_plane(cell).unwrap();
+        assert!(plane.within_scans && plane.mse_m2 < 1e-5, "{plane:?}");
+        // The same points as one scan are two sheets 4 cm apart in every voxel: not planar.
+        let d = run(&pooled);
+        assert!(d.regions.is_empty(), "{:?}", d.regions.iter().map(|r| r.voxels.len()).collect::<Vec<_>>());
+        assert_eq!(d.counts().non_planar, 200);
+    }
+
+    #[test]
+    fn sparsely_sampled_voxels_on_the_floor_fill_the_region_and_a_line_of_points_is_no_plane() {
+        let mut acc = PointAccumulator::new(RES);
+        // Dense except a strip x in [0.9, 1.1] with two points per voxel: the strip would cut
+        // the floor in two.
+        surface(&mut acc, (0.0, 0.9), (0.0, 1.0), |_, _| 0.033);
+        surface(&mut acc, (1.1, 2.0), (0.0, 1.0), |_, _| 0.033);
+        for i in 0..2 {
+            for j in 0..10 {
+                for d in [0.02, 0.07] {
+                    acc.add(&Vector3::new(0.9 + i as f64 * 0.1 + d, j as f64 * 0.1 + d, 0.033));
+                }
+            }
+        }
+        let d = run(&acc);
+        assert_eq!(d.regions.len(), 1, "{:?}", d.regions.iter().map(|r| r.voxels.len()).collect::<Vec<_>>());
+        assert_eq!(d.regions[0].voxels.len(), 200);
+        // Points along one line fit any plane through it: too few to tell.
+        let mut line = VoxelStats::default();
+        for i in 0..10 {
+            line.add(&Vector3::new(0.005 + i as f64 * 0.01, 0.05, 0.05));
+        }
+        let p = fit_plane(&line).unwrap();
+        assert!(p.spread_m2 < 1e-12, "{p:?}");
+        let mut one = PointAccumulator::new(RES);
+        for i in 0..10 {
+            one.add(&Vector3::new(0.005 + i as f64 * 0.01, 0.05, 0.05));
+        }
+        assert_eq!(run(&one).classes[&[0, 0, 0]], VoxelClass::Sparse);
+    }
+
+    #[test]
+    fn a_patch_smaller_than_a_vehicle_is_no_region_and_a_rough_spot_is_no_obstacle() {
+        let mut acc = PointAccumulator::new(RES);
+        surface(&mut acc, (0.0, 2.0), (0.0, 1.0), |_, _| 0.033);
+        // A 0.3 m square shelf high above the floor, touching nothing: 0.09 m² < 0.25 m².
+        surface(&mut acc, (0.5, 0.8), (0.3, 0.6), |_, _| 1.533);
+        // A ridge on the floor, a 45° face 4 cm high whose points lie 2 cm above the floor on
+        // average (within the 3 cm step): steep voxels that do not rise out of the floor.
+        for k in [[15, 5, 0], [15, 6, 0]] {
+            acc.cells.remove(&k);
+        }
+        surface(&mut acc, (1.5, 1.54), (0.5, 0.7), |x, _| 0.033 + (x - 1.5));
+        let ridge = fit_plane(&acc.cells()[&[15, 5, 0]]).unwrap();
+        assert!(ridge.slope_deg() > 40.0 && ridge.spread_m2 > 1e-4, "{ridge:?}");
+        let d = run(&acc);
+        assert!(matches!(d.classes[&[15, 5, 0]], VoxelClass::Navigable(_)), "{:?}", d.classes[&[15, 5, 0]]);
+        assert_eq!(d.regions.len(), 1, "{:?}", d.regions.iter().map(|r| r.voxels.len()).collect::<Vec<_>>());
+        assert_eq!(d.regions[0].voxels.len(), 200);
+        assert_eq!(d.counts().patch, 9);
+        assert!(d.obstacles.is_empty(), "{:?}", d.obstacles.iter().map(|o| o.voxels.clone()).collect::<Vec<_>>());
+        // With a 0.05 m² footprint the shelf is a region of its own.
+        let cfg = NsdConfig { min_region_area_m2: 0.05, ..Default::default() };
+        assert_eq!(discover(&acc, |_| true, &cfg).unwrap().regions.len(), 2);
     }
 
     #[test]

@@ -82,16 +82,68 @@ pub struct TruthScore {
     pub largest_region_ground_share: Option<f64>,
 }
 
-/// Scores `d` (computed over `acc`) against `truth` (see the module's documentation).
+/// Scores `d` (computed over `acc`) against `truth` (see the module's documentation), each voxel
+/// judged at the mean of its points: where the map puts it.
 pub fn score(d: &Discovery, acc: &PointAccumulator, truth: impl Fn(&Vector3<f64>) -> TruthClass) -> TruthScore {
-    let judged: HashMap<VoxelKey, TruthClass> = d
-        .classes
-        .keys()
-        .map(|k| {
-            let at = acc.cells().get(k).and_then(|s| s.mean_cov()).map_or_else(|| acc.centre(k), |(m, _)| m);
-            (*k, truth(&at))
-        })
-        .collect();
+    score_with(d, |k| {
+        let at = acc.cells().get(k).and_then(|s| s.mean_cov()).map_or_else(|| acc.centre(k), |(m, _)| m);
+        truth(&at)
+    })
+}
+
+/// What the points in each voxel truly are: per voxel, how many of its points came from each
+/// [`TruthClass`] (judged where each scan's points truly were, e.g. at the simulator's true pose,
+/// while the voxel is where the map put them). Scoring with [`PointLabels::class_of`] measures the
+/// classification alone, without the poses' error.
+#[derive(Debug, Clone, Default)]
+pub struct PointLabels {
+    counts: HashMap<VoxelKey, Vec<(TruthClass, u32)>>,
+}
+
+impl PointLabels {
+    /// Adds one scan: each point's voxel in the map and its true position. The points of one
+    /// voxel are judged together, at their true mean.
+    pub fn add_scan(&mut self, points: &[(VoxelKey, Vector3<f64>)], truth: impl Fn(&Vector3<f64>) -> TruthClass) {
+        let mut by_voxel: HashMap<VoxelKey, (Vector3<f64>, u32)> = HashMap::new();
+        for (k, p) in points {
+            let e = by_voxel.entry(*k).or_insert((Vector3::zeros(), 0));
+            e.0 += p;
+            e.1 += 1;
+        }
+        for (k, (sum, n)) in by_voxel {
+            let class = truth(&(sum / n as f64));
+            let counts = self.counts.entry(k).or_default();
+            match counts.iter_mut().find(|(c, _)| *c == class) {
+                Some((_, m)) => *m += n,
+                None => counts.push((class, n)),
+            }
+        }
+    }
+
+    /// The class most of a voxel's points came from ([`TruthClass::Nothing`] for a voxel
+    /// without labelled points).
+    pub fn class_of(&self, k: &VoxelKey) -> TruthClass {
+        self.counts
+            .get(k)
+            .and_then(|c| c.iter().max_by_key(|(class, n)| (*n, std::cmp::Reverse(*class))))
+            .map_or(TruthClass::Nothing, |(class, _)| *class)
+    }
+
+    /// Voxels with labels.
+    pub fn len(&self) -> usize {
+        self.counts.len()
+    }
+
+    /// No voxel has labels.
+    pub fn is_empty(&self) -> bool {
+        self.counts.is_empty()
+    }
+}
+
+/// Scores `d` against the truth, each classified voxel judged by `judge` (see the module's
+/// documentation).
+pub fn score_with(d: &Discovery, judge: impl Fn(&VoxelKey) -> TruthClass) -> TruthScore {
+    let judged: HashMap<VoxelKey, TruthClass> = d.classes.keys().map(|k| (*k, judge(k))).collect();
     let navigable: HashSet<VoxelKey> = d.regions.iter().flat_map(|r| r.voxels.iter().copied()).collect();
     let obstacle: HashSet<VoxelKey> = d.obstacles.iter().flat_map(|o| o.voxels.iter().copied()).collect();
     let mut s = TruthScore { voxels: judged.len(), regions: d.regions.len(), ..Default::default() };

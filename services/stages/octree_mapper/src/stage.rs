@@ -106,7 +106,7 @@ fn end_of_run(
         }
         worker.join().map_err(|_| StageError::msg("end-of-run worker panicked"))?
     })?;
-    let (nav, steep, nonplanar, sparse) = d.counts();
+    let c = d.counts();
     let (occ, free) = st.tree.num_occupied_free_leaves();
     let part = OctreeMapperPart {
         pipeline_latency_ms: Some(MapperLatency {
@@ -123,7 +123,13 @@ fn end_of_run(
             counters: st.counters.clone(),
             end_of_stream: Some(MapperEnd {
                 insert_ms: Percentiles::of(&st.insert_ms),
-                voxels: VoxelClasses { navigable: nav, steep, non_planar: nonplanar, sparse },
+                voxels: VoxelClasses {
+                    navigable: c.navigable,
+                    steep: c.steep,
+                    non_planar: c.non_planar,
+                    sparse: c.sparse,
+                    patch: c.patch,
+                },
                 navigable_regions: d.regions.len(),
                 navigable_area_m2: d.regions.iter().map(|r| r.area_m2).sum::<f64>(),
                 obstacles: d.obstacles.len(),

@@ -83,8 +83,10 @@ pub struct VoxelClasses {
     pub steep: usize,
     /// Not planar.
     pub non_planar: usize,
-    /// Too few points to fit a plane.
+    /// Too few points to fit a plane (or points along a line).
     pub sparse: usize,
+    /// Planar and level, in a patch smaller than `nsd.min_region_area_m2` touching no obstacle.
+    pub patch: usize,
 }
 
 /// `octree_mapper.voxel_stream`: messages and MB of full sets and deltas, and the MB a stream of
