@@ -68,7 +68,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut tree = octree::OcTree::new(res)?;
     tree.set_ray_threads(2);
     let mut acc = PointAccumulator::new(res);
-    let mut labels = navigable::truth::PointLabels::default();
+    let mut origins = navigable::truth::TrueOrigins::new(res);
     let (mut clouds, mut without_pose, mut moved) = (0usize, 0usize, 0.0);
     let t0 = Instant::now();
     let mut next = 0usize;
@@ -106,17 +106,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .collect();
         tree.insert_point_cloud(&world, [origin.x, origin.y, origin.z], 14.0, false)?;
         let mut scan = PointAccumulator::new(res);
-        let mut truly = Vec::with_capacity(world.len());
         for (p, s) in world.iter().zip(&c.points_sensor_m) {
             let v = Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
             if (v - origin).norm() <= 14.0 {
                 scan.add(&v);
                 let t = c.world_from_sensor.transform_point(&Point3::new(s[0] as f64, s[1] as f64, s[2] as f64));
-                truly.push((acc.key(&v), t.coords));
+                origins.add(acc.key(&v), &t.coords);
             }
         }
         acc.merge(&scan)?;
-        labels.add_scan(&truly, judge);
         clouds += 1;
     }
     let inserted_s = t0.elapsed().as_secs_f64();
@@ -144,7 +142,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         d.obstacles.len()
     );
     let at_map = navigable::truth::score(&d, &acc, judge);
-    let by_points = navigable::truth::score_with(&d, |k| labels.class_of(k));
+    let by_points = origins.score(&d, judge);
     for (name, s) in [("judged where the map puts it", at_map), ("judged by its points' true origin", by_points)] {
         println!(
             "{name}: agreement {:.3}; ground navigable {:.3} ({} voxels); object in obstacles {:.3} ({}); nothing in neither {:.3} ({}); objects {} / {} (split {}), components {} (precision {:.3}); regions {}, largest {:.3} of the ground",

@@ -25,6 +25,8 @@
 pub mod truth;
 
 use std::collections::{BTreeMap, HashMap};
+
+use rustc_hash::FxHashMap;
 use std::io::Write;
 use std::path::Path;
 
@@ -34,6 +36,10 @@ use validation::{Issues, Validate};
 
 /// A voxel index, ⌊x/res⌋ per axis.
 pub type VoxelKey = [i32; 3];
+
+/// A map from voxels, hashed with the fast non-cryptographic Fx hash (the keys are ours, not an
+/// attacker's; SipHash was a third of the discovery's time).
+pub type VoxelMap<V> = FxHashMap<VoxelKey, V>;
 
 /// Errors.
 #[derive(Debug, thiserror::Error)]
@@ -157,13 +163,13 @@ impl VoxelStats {
 #[derive(Debug, Clone, Default)]
 pub struct PointAccumulator {
     res_m: f64,
-    cells: HashMap<VoxelKey, VoxelStats>,
+    cells: VoxelMap<VoxelStats>,
 }
 
 impl PointAccumulator {
     /// An empty accumulator with voxels of `res_m` (> 0).
     pub fn new(res_m: f64) -> Self {
-        Self { res_m, cells: HashMap::new() }
+        Self { res_m, cells: VoxelMap::default() }
     }
 
     /// The voxel size, m.
@@ -206,7 +212,7 @@ impl PointAccumulator {
     }
 
     /// The statistics of every voxel with points.
-    pub fn cells(&self) -> &HashMap<VoxelKey, VoxelStats> {
+    pub fn cells(&self) -> &VoxelMap<VoxelStats> {
         &self.cells
     }
 }
@@ -409,7 +415,7 @@ pub struct Obstacle {
 #[derive(Debug, Clone, Default)]
 pub struct Discovery {
     /// Class per voxel considered.
-    pub classes: HashMap<VoxelKey, VoxelClass>,
+    pub classes: VoxelMap<VoxelClass>,
     /// Navigable regions, largest first.
     pub regions: Vec<NavigableRegion>,
     /// Obstacles, largest first.
@@ -471,6 +477,12 @@ fn neighbours(k: &VoxelKey) -> impl Iterator<Item = VoxelKey> + '_ {
     })
 }
 
+/// The 13 neighbours after `k` in the keys' order (the offsets after (0, 0, 0)): each pair of
+/// neighbours once.
+fn forward_neighbours(k: &VoxelKey) -> impl Iterator<Item = VoxelKey> + '_ {
+    neighbours(k).skip(13)
+}
+
 /// Navigable space and obstacles over the voxels of `acc` for which `occupied` is true (the
 /// occupancy map's verdict; pass `|_| true` to use every voxel with points).
 pub fn discover(
@@ -483,38 +495,43 @@ pub fn discover(
     }
     let mut keys: Vec<VoxelKey> = acc.cells.keys().filter(|k| occupied(k)).copied().collect();
     keys.sort_unstable();
-    let index: HashMap<VoxelKey, usize> = keys.iter().enumerate().map(|(i, k)| (*k, i)).collect();
-    let mut classes: Vec<VoxelClass> = keys
-        .iter()
-        .map(|k| {
-            let s = &acc.cells[k];
-            if s.n < cfg.min_points {
-                return VoxelClass::Sparse;
+    let index: VoxelMap<usize> = keys.iter().enumerate().map(|(i, k)| (*k, i)).collect();
+    let classify = |k: &VoxelKey| {
+        let s = &acc.cells[k];
+        if s.n < cfg.min_points {
+            return VoxelClass::Sparse;
+        }
+        match fit_plane(s) {
+            // Points along a line (a single scan line through the voxel): no plane to tell.
+            Some(p) if p.spread_m2 < cfg.max_plane_mse_m2 => VoxelClass::Sparse,
+            // Steep or not planar over several scans that each say too little on their own: the
+            // poses' disagreement between the scans can make a flat surface look so. Left to its
+            // neighbours, as a voxel with too few points.
+            Some(p)
+                if !p.within_scans
+                    && s.scans() > 1
+                    && (p.mse_m2 > cfg.max_plane_mse_m2 || p.slope_deg() > cfg.max_slope_deg) =>
+            {
+                VoxelClass::Sparse
             }
-            match fit_plane(s) {
-                // Points along a line (a single scan line through the voxel): no plane to tell.
-                Some(p) if p.spread_m2 < cfg.max_plane_mse_m2 => VoxelClass::Sparse,
-                // Steep or not planar over several scans that each say too little on their own:
-                // the poses' disagreement between the scans can make a flat surface look so. Left
-                // to its neighbours, as a voxel with too few points.
-                Some(p)
-                    if !p.within_scans
-                        && s.scans() > 1
-                        && (p.mse_m2 > cfg.max_plane_mse_m2 || p.slope_deg() > cfg.max_slope_deg) =>
-                {
-                    VoxelClass::Sparse
+            Some(p) if p.mse_m2 <= cfg.max_plane_mse_m2 => {
+                if p.slope_deg() <= cfg.max_slope_deg {
+                    VoxelClass::Navigable(p)
+                } else {
+                    VoxelClass::Steep(p)
                 }
-                Some(p) if p.mse_m2 <= cfg.max_plane_mse_m2 => {
-                    if p.slope_deg() <= cfg.max_slope_deg {
-                        VoxelClass::Navigable(p)
-                    } else {
-                        VoxelClass::Steep(p)
-                    }
-                }
-                _ => VoxelClass::NonPlanar,
             }
-        })
-        .collect();
+            _ => VoxelClass::NonPlanar,
+        }
+    };
+    // Two halves on two threads (the plane fits are most of the time).
+    let (first, second) = keys.split_at(keys.len() / 2);
+    let mut classes: Vec<VoxelClass> = std::thread::scope(|s| {
+        let other = s.spawn(|| second.iter().map(classify).collect::<Vec<_>>());
+        let mut classes: Vec<VoxelClass> = first.iter().map(classify).collect();
+        classes.extend(other.join().unwrap_or_else(|e| std::panic::resume_unwind(e)));
+        classes
+    });
     // How thick the map's surfaces are: the points' spread off their voxel's plane, over all of
     // a voxel's scans (the sensor's noise plus the poses' disagreement between scans; the median
     // over the navigable voxels seen in several scans). Two planes of one surface may differ by
@@ -530,11 +547,8 @@ pub fn discover(
     };
     for (i, k) in keys.iter().enumerate() {
         let VoxelClass::Navigable(a) = classes[i] else { continue };
-        for n in neighbours(k) {
+        for n in forward_neighbours(k) {
             let Some(&j) = index.get(&n) else { continue };
-            if j < i {
-                continue;
-            }
             let VoxelClass::Navigable(b) = classes[j] else { continue };
             if a.normal.dot(&b.normal) < max_cos {
                 continue;
@@ -547,38 +561,41 @@ pub fn discover(
         }
     }
     // Voxels with too few points for a plane of their own join the regions of the navigable
-    // neighbours whose plane their points' mean lies on (within max_step_m), taking that plane:
-    // the holes of a sparsely sampled surface are filled where the surface continues, and not
-    // across a step. Breadth first, so a run of sparse voxels follows the surface.
-    let mut queue: std::collections::VecDeque<usize> =
-        (0..keys.len()).filter(|i| matches!(classes[*i], VoxelClass::Navigable(_))).collect();
-    while let Some(i) = queue.pop_front() {
-        let VoxelClass::Navigable(plane) = classes[i] else { continue };
-        for n in neighbours(&keys[i]) {
-            let Some(&j) = index.get(&n) else { continue };
-            if classes[j] != VoxelClass::Sparse {
-                continue;
-            }
-            let Some((mean, _)) = acc.cells[&n].mean_cov() else { continue };
-            if plane.normal.dot(&(mean - plane.centroid_m)).abs() <= step_m {
-                classes[j] = VoxelClass::Navigable(PlaneFit { centroid_m: mean, ..plane });
-                join(&mut parent, i, j);
-                queue.push_back(j);
-            }
-        }
+    // neighbours whose plane their points' mean lies on (within the step), taking that plane: the
+    // holes of a sparsely sampled surface are filled where the surface continues, and not across
+    // a step; one that lies on two regions joins them. A voxel that joins puts its sparse
+    // neighbours back on the work list, so a run of sparse voxels follows the surface.
+    let mut work: std::collections::VecDeque<usize> =
+        (0..keys.len()).filter(|i| classes[*i] == VoxelClass::Sparse).collect();
+    let mut queued = vec![false; keys.len()];
+    for &j in &work {
+        queued[j] = true;
     }
-    for i in 0..keys.len() {
-        // A sparse voxel between two regions it lies on joins them.
-        if !matches!(classes[i], VoxelClass::Navigable(_)) || acc.cells[&keys[i]].n >= cfg.min_points {
+    while let Some(j) = work.pop_front() {
+        queued[j] = false;
+        if classes[j] != VoxelClass::Sparse {
             continue;
         }
-        let Some((mean, _)) = acc.cells[&keys[i]].mean_cov() else { continue };
-        for n in neighbours(&keys[i]) {
-            let Some(&j) = index.get(&n) else { continue };
-            if let VoxelClass::Navigable(b) = classes[j]
+        let Some((mean, _)) = acc.cells[&keys[j]].mean_cov() else { continue };
+        let mut plane = None;
+        for n in neighbours(&keys[j]) {
+            if let Some(&i) = index.get(&n)
+                && let VoxelClass::Navigable(b) = classes[i]
                 && b.normal.dot(&(mean - b.centroid_m)).abs() <= step_m
             {
+                plane.get_or_insert(b);
                 join(&mut parent, i, j);
+            }
+        }
+        let Some(plane) = plane else { continue };
+        classes[j] = VoxelClass::Navigable(PlaneFit { centroid_m: mean, ..plane });
+        for n in neighbours(&keys[j]) {
+            if let Some(&i) = index.get(&n)
+                && classes[i] == VoxelClass::Sparse
+                && !queued[i]
+            {
+                queued[i] = true;
+                work.push_back(i);
             }
         }
     }
@@ -676,26 +693,38 @@ pub fn discover(
     // A region that lies on top of an obstacle (most of the obstacle voxels it touches are below
     // its own: a rock's or a wreck's top, a table) is that obstacle's top, not ground a vehicle
     // reaches: it joins the obstacle it touches most.
-    let mut tops = vec![];
-    for (root, members) in &regions {
-        let mut below: BTreeMap<usize, usize> = BTreeMap::new();
-        let (mut n_below, mut n_beside_or_above) = (0usize, 0usize);
-        for &i in members {
-            for n in neighbours(&keys[i]) {
-                let Some(&j) = index.get(&n) else { continue };
-                let Some(o) = obstacle_of[j] else { continue };
-                if n[2] < keys[i][2] {
-                    n_below += 1;
-                    *below.entry(o).or_default() += 1;
+    // (root of the region, obstacle) → the obstacle voxels below the region's; root → the
+    // obstacle voxels beside or above.
+    let mut below: BTreeMap<(usize, usize), usize> = BTreeMap::new();
+    let mut beside_or_above: BTreeMap<usize, usize> = BTreeMap::new();
+    for (o, members) in members_of.iter().enumerate() {
+        for &j in members {
+            for n in neighbours(&keys[j]) {
+                let Some(&i) = index.get(&n) else { continue };
+                if !matches!(classes[i], VoxelClass::Navigable(_)) {
+                    continue;
+                }
+                let root = find(&mut parent, i);
+                if keys[j][2] < n[2] {
+                    *below.entry((root, o)).or_default() += 1;
                 } else {
-                    n_beside_or_above += 1;
+                    *beside_or_above.entry(root).or_default() += 1;
                 }
             }
         }
-        if n_below > n_beside_or_above
-            && let Some((&o, _)) = below.iter().max_by_key(|(o, n)| (**n, std::cmp::Reverse(**o)))
+    }
+    let mut below_by_region: BTreeMap<usize, (usize, Vec<(usize, usize)>)> = BTreeMap::new();
+    for ((root, o), n) in below {
+        let e = below_by_region.entry(root).or_default();
+        e.0 += n;
+        e.1.push((o, n));
+    }
+    let mut tops = vec![];
+    for (root, (n_below, by_obstacle)) in below_by_region {
+        if n_below > beside_or_above.get(&root).copied().unwrap_or(0)
+            && let Some(&(o, _)) = by_obstacle.iter().max_by_key(|(o, n)| (*n, std::cmp::Reverse(*o)))
         {
-            tops.push((*root, o));
+            tops.push((root, o));
         }
     }
     for (root, o) in tops {
@@ -1115,6 +1144,14 @@ mod tests {
 
     fn run(acc: &PointAccumulator) -> Discovery {
         discover(acc, |_| true, &NsdConfig::default()).unwrap()
+    }
+
+    #[test]
+    fn forward_neighbours_are_the_neighbours_after_the_voxel() {
+        let k = [3, -2, 7];
+        let after: Vec<VoxelKey> = neighbours(&k).filter(|n| n > &k).collect();
+        assert_eq!(after.len(), 13);
+        assert_eq!(forward_neighbours(&k).collect::<Vec<_>>(), after);
     }
 
     #[test]

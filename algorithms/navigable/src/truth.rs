@@ -18,7 +18,7 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
-use crate::{Discovery, PointAccumulator, VoxelKey, neighbours};
+use crate::{Discovery, PointAccumulator, VoxelKey, VoxelMap, neighbours};
 
 /// What the scene holds at a point.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -91,59 +91,67 @@ pub fn score(d: &Discovery, acc: &PointAccumulator, truth: impl Fn(&Vector3<f64>
     })
 }
 
-/// What the points in each voxel truly are: per voxel, how many of its points came from each
-/// [`TruthClass`] (judged where each scan's points truly were, e.g. at the simulator's true pose,
-/// while the voxel is where the map put them). Scoring with [`PointLabels::class_of`] measures the
-/// classification alone, without the poses' error.
-#[derive(Debug, Clone, Default)]
-pub struct PointLabels {
-    counts: HashMap<VoxelKey, Vec<(TruthClass, u32)>>,
+/// Where the points in each voxel truly came from: per voxel of the map (where the map put the
+/// points), the mean of their true positions (e.g. at the simulator's true poses). Judging each
+/// voxel there ([`score_with`] and [`TrueOrigins::mean`]) scores the classification alone,
+/// without the poses' error. Kept compactly: the sum of the offsets from the voxel's centre in
+/// `f32` and a count, 16 bytes a voxel.
+#[derive(Debug, Clone)]
+pub struct TrueOrigins {
+    res_m: f64,
+    sums: VoxelMap<([f32; 3], u32)>,
 }
 
-impl PointLabels {
-    /// Adds one scan: each point's voxel in the map and its true position. The points of one
-    /// voxel are judged together, at their true mean.
-    pub fn add_scan(&mut self, points: &[(VoxelKey, Vector3<f64>)], truth: impl Fn(&Vector3<f64>) -> TruthClass) {
-        let mut by_voxel: HashMap<VoxelKey, (Vector3<f64>, u32)> = HashMap::new();
-        for (k, p) in points {
-            let e = by_voxel.entry(*k).or_insert((Vector3::zeros(), 0));
-            e.0 += p;
-            e.1 += 1;
-        }
-        for (k, (sum, n)) in by_voxel {
-            let class = truth(&(sum / n as f64));
-            let counts = self.counts.entry(k).or_default();
-            match counts.iter_mut().find(|(c, _)| *c == class) {
-                Some((_, m)) => *m += n,
-                None => counts.push((class, n)),
-            }
-        }
+impl TrueOrigins {
+    /// Empty, for voxels of `res_m`.
+    pub fn new(res_m: f64) -> Self {
+        Self { res_m, sums: VoxelMap::default() }
     }
 
-    /// The class most of a voxel's points came from ([`TruthClass::Nothing`] for a voxel
-    /// without labelled points).
-    pub fn class_of(&self, k: &VoxelKey) -> TruthClass {
-        self.counts
-            .get(k)
-            .and_then(|c| c.iter().max_by_key(|(class, n)| (*n, std::cmp::Reverse(*class))))
-            .map_or(TruthClass::Nothing, |(class, _)| *class)
+    fn centre(&self, k: &VoxelKey) -> Vector3<f64> {
+        Vector3::new(k[0] as f64 + 0.5, k[1] as f64 + 0.5, k[2] as f64 + 0.5) * self.res_m
     }
 
-    /// Voxels with labels.
+    /// A point the map put in voxel `k` truly came from `true_m` (non-finite points are skipped).
+    pub fn add(&mut self, k: VoxelKey, true_m: &Vector3<f64>) {
+        if !true_m.iter().all(|v| v.is_finite()) {
+            return;
+        }
+        let d = true_m - self.centre(&k);
+        let e = self.sums.entry(k).or_insert(([0.0; 3], 0));
+        for (s, v) in e.0.iter_mut().zip(d.iter()) {
+            *s += *v as f32;
+        }
+        e.1 += 1;
+    }
+
+    /// The mean true position of voxel `k`'s points (`None` without any).
+    pub fn mean(&self, k: &VoxelKey) -> Option<Vector3<f64>> {
+        let (sum, n) = self.sums.get(k)?;
+        (*n > 0).then(|| self.centre(k) + Vector3::new(sum[0] as f64, sum[1] as f64, sum[2] as f64) / *n as f64)
+    }
+
+    /// Voxels with points.
     pub fn len(&self) -> usize {
-        self.counts.len()
+        self.sums.len()
     }
 
-    /// No voxel has labels.
+    /// No voxel has points.
     pub fn is_empty(&self) -> bool {
-        self.counts.is_empty()
+        self.sums.is_empty()
+    }
+
+    /// Scores `d` against `truth`, each voxel judged at its points' mean true position (at the
+    /// voxel's centre when none of its points has one).
+    pub fn score(&self, d: &Discovery, truth: impl Fn(&Vector3<f64>) -> TruthClass) -> TruthScore {
+        score_with(d, |k| truth(&self.mean(k).unwrap_or_else(|| self.centre(k))))
     }
 }
 
 /// Scores `d` against the truth, each classified voxel judged by `judge` (see the module's
 /// documentation).
 pub fn score_with(d: &Discovery, judge: impl Fn(&VoxelKey) -> TruthClass) -> TruthScore {
-    let judged: HashMap<VoxelKey, TruthClass> = d.classes.keys().map(|k| (*k, judge(k))).collect();
+    let judged: VoxelMap<TruthClass> = d.classes.keys().map(|k| (*k, judge(k))).collect();
     let navigable: HashSet<VoxelKey> = d.regions.iter().flat_map(|r| r.voxels.iter().copied()).collect();
     let obstacle: HashSet<VoxelKey> = d.obstacles.iter().flat_map(|o| o.voxels.iter().copied()).collect();
     let mut s = TruthScore { voxels: judged.len(), regions: d.regions.len(), ..Default::default() };
@@ -184,7 +192,7 @@ pub fn score_with(d: &Discovery, judge: impl Fn(&VoxelKey) -> TruthClass) -> Tru
 }
 
 /// The object most of `voxels` belong to, when that is more than half of them.
-fn majority_object(voxels: &[VoxelKey], judged: &HashMap<VoxelKey, TruthClass>) -> Option<u32> {
+fn majority_object(voxels: &[VoxelKey], judged: &VoxelMap<TruthClass>) -> Option<u32> {
     let mut votes: BTreeMap<u32, usize> = BTreeMap::new();
     for k in voxels {
         if let Some(TruthClass::Object(i)) = judged.get(k) {

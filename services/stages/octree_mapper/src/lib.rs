@@ -306,11 +306,19 @@ pub struct MapperState {
     pub obstacles: navigable::ObstacleTracker,
     /// Latency from the cloud entering the pipeline to the octree updated with it, ms.
     pub cloud_to_octree_ms: Vec<f64>,
-    /// Clouds kept for the end-of-run rebuild (stamp s, points in the sensor frame).
-    pub kept: VecDeque<(f64, Vec<[f32; 3]>)>,
+    /// Clouds kept for the end-of-run rebuild.
+    pub kept: VecDeque<KeptCloud>,
+    /// With `truth_scene` set: where the points of each voxel truly came from, by the clouds'
+    /// own poses (the simulators' true poses), to score the classification without the poses'
+    /// error (summary.json `octree_mapper.truth_by_origin`).
+    pub true_origins: Option<navigable::truth::TrueOrigins>,
     /// Clouds let go from `kept` (beyond `rebuild_max_clouds`).
     pub kept_dropped: u64,
 }
+
+/// A cloud kept for the end-of-run rebuild: stamp (s), points in the sensor frame (m), the
+/// cloud's own `world_from_sensor` when its header had one.
+pub type KeptCloud = (f64, Vec<[f32; 3]>, Option<Isometry3<f64>>);
 
 /// What a rebuild did.
 #[derive(Debug, Clone, Default, Serialize, Deserialize, schemars::JsonSchema)]
@@ -383,6 +391,8 @@ impl MapperState {
             cloud_to_octree_ms: vec![],
             kept: VecDeque::new(),
             kept_dropped: 0,
+            true_origins: (!settings.truth_scene.is_empty())
+                .then(|| navigable::truth::TrueOrigins::new(settings.resolution_m)),
             settings,
         })
     }
@@ -399,7 +409,7 @@ impl MapperState {
             RebuildReport { trajectory: name.to_string(), clouds_not_kept: self.kept_dropped, ..Default::default() };
         let (mut moved, mut compared) = (0.0, 0usize);
         let kept = std::mem::take(&mut self.kept);
-        for (t, points) in &kept {
+        for (t, points, own_pose) in &kept {
             while next < trajectory.len() && trajectory[next].0 <= t + self.settings.max_pose_gap_s {
                 buf.push(trajectory[next].0, trajectory[next].1);
                 next += 1;
@@ -418,7 +428,7 @@ impl MapperState {
                 stamp_ns: (t * 1e9) as u64,
                 points_sensor_m: points.clone(),
                 origin_ns: 0,
-                own_pose: None,
+                own_pose: *own_pose,
                 received: Instant::now(),
             };
             fresh.insert(&c, &world_from_sensor)?;
@@ -428,6 +438,7 @@ impl MapperState {
         self.tree = fresh.tree;
         self.points = fresh.points;
         self.obstacles = fresh.obstacles;
+        self.true_origins = fresh.true_origins;
         self.kept = kept;
         Ok(report)
     }
@@ -539,10 +550,15 @@ impl MapperState {
             self.tree.insert_point_cloud(&world, [origin.x, origin.y, origin.z], self.settings.max_range_m, false)?;
         let max_range = if self.settings.max_range_m < 0.0 { f64::INFINITY } else { self.settings.max_range_m };
         let mut scan = PointAccumulator::new(self.settings.resolution_m);
-        for p in &world {
+        let mut origins = self.true_origins.as_mut().zip(c.own_pose.as_ref());
+        for (p, s) in world.iter().zip(&c.points_sensor_m) {
             let v = Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
             if (v - origin).norm() <= max_range {
                 scan.add(&v);
+                if let Some((o, own)) = origins.as_mut() {
+                    let t = own.transform_point(&nalgebra::Point3::new(s[0] as f64, s[1] as f64, s[2] as f64));
+                    o.add(scan.key(&v), &t.coords);
+                }
             }
         }
         self.points.merge(&scan)?;
@@ -553,7 +569,7 @@ impl MapperState {
             self.counters.obstacles_new += u.new;
         }
         if !self.settings.rebuild_from.is_empty() {
-            self.kept.push_back((c.stamp_ns as f64 / 1e9, c.points_sensor_m.clone()));
+            self.kept.push_back((c.stamp_ns as f64 / 1e9, c.points_sensor_m.clone(), c.own_pose));
             while self.kept.len() > self.settings.rebuild_max_clouds.max(1) {
                 self.kept.pop_front();
                 self.kept_dropped += 1;

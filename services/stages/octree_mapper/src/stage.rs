@@ -72,8 +72,9 @@ fn end_of_run(
     out_dir: &std::path::Path,
 ) -> Result<(navigable::Discovery, Vec<Voxel>, OctreeMapperPart), StageError> {
     std::fs::create_dir_all(out_dir)?;
-    type EndOfRun = (navigable::Discovery, Vec<Voxel>, Option<navigable::truth::TruthScore>);
-    let (d, voxels, truth) = std::thread::scope(|s| {
+    type Scores = (Option<navigable::truth::TruthScore>, Option<navigable::truth::TruthScore>);
+    type EndOfRun = (navigable::Discovery, Vec<Voxel>, Scores);
+    let (d, voxels, (truth, truth_by_origin)) = std::thread::scope(|s| {
         let worker = s.spawn(|| -> Result<EndOfRun, StageError> {
             let t0 = Instant::now();
             st.tree.write_binary_file(out_dir.join("map.bt")).map_err(StageError::stage)?;
@@ -82,7 +83,8 @@ fn end_of_run(
             let t2 = Instant::now();
             // The score against the truth beside the layers (the machine's second core).
             let (voxels, truth) = std::thread::scope(|inner| -> Result<_, StageError> {
-                let scoring = inner.spawn(|| score_against_truth(st.settings(), out_dir, &st.points, &d));
+                let scoring = inner
+                    .spawn(|| score_against_truth(st.settings(), out_dir, &st.points, st.true_origins.as_ref(), &d));
                 navigable::write_navigable_ply(&out_dir.join("navigable.ply"), &st.points, &d)
                     .map_err(StageError::stage)?;
                 navigable::write_obstacles_ply(&out_dir.join("obstacles.ply"), &st.points, &d)
@@ -143,6 +145,7 @@ fn end_of_run(
                 rebuild: None,
                 voxel_stream: VoxelStreamSummary::from(&VoxelStreamCounters::default()),
                 truth,
+                truth_by_origin,
             }),
         },
     };
@@ -182,16 +185,18 @@ pub struct OctreeMapperStage {
 
 /// The discovery `d` scored against the scene in `truth_scene` (`None` when unset; a file
 /// that cannot be read is warned about and scores nothing): the underwater simulator's
-/// scene (under `scene`) or the indoor one's boxes (`kind = "indoor"`).
+/// scene (under `scene`) or the indoor one's boxes (`kind = "indoor"`). Each voxel is judged
+/// where the map put its points, and (with `origins`) where they truly came from.
 fn score_against_truth(
     settings: &MapperSettings,
     out_dir: &std::path::Path,
     points: &navigable::PointAccumulator,
+    origins: Option<&navigable::truth::TrueOrigins>,
     d: &navigable::Discovery,
-) -> Option<navigable::truth::TruthScore> {
-    use navigable::truth::TruthClass;
+) -> (Option<navigable::truth::TruthScore>, Option<navigable::truth::TruthScore>) {
+    use navigable::truth::{TruthClass, TruthScore};
     if settings.truth_scene.is_empty() {
-        return None;
+        return (None, None);
     }
     let path = out_dir.join(&settings.truth_scene);
     let tolerance = if settings.truth_tolerance_m > 0.0 { settings.truth_tolerance_m } else { points.resolution_m() };
@@ -202,13 +207,18 @@ fn score_against_truth(
         Ok(f) => f,
         Err(e) => {
             tracing::warn!("not scored against the truth: {}: {e}", path.display());
-            return None;
+            return (None, None);
         }
     };
-    let score = match file {
+    let both = |judge: &(dyn Fn(&nalgebra::Vector3<f64>) -> TruthClass + Sync)| {
+        let at_map = navigable::truth::score(d, points, judge);
+        let by_origin = origins.filter(|o| !o.is_empty()).map(|o| o.score(d, judge));
+        (at_map, by_origin)
+    };
+    let (at_map, by_origin) = match file {
         SceneFile::Underwater { scene } => {
             let rocks = scene.rocks.len() as u32;
-            navigable::truth::score(d, points, |p| match scene.truth_at(p, tolerance) {
+            both(&|p| match scene.truth_at(p, tolerance) {
                 sim::scene::SceneTruth::Seabed => TruthClass::Ground,
                 sim::scene::SceneTruth::Rock(i) => TruthClass::Object(i as u32),
                 sim::scene::SceneTruth::Wreck => TruthClass::Object(rocks),
@@ -217,7 +227,7 @@ fn score_against_truth(
         }
         SceneFile::Indoor { boxes } => {
             let truth = sim::indoor::IndoorTruth::new(boxes.iter().map(|b| (b.min, b.max, b.what.as_str())));
-            navigable::truth::score(d, points, |p| match truth.at(p, tolerance) {
+            both(&|p| match truth.at(p, tolerance) {
                 sim::indoor::IndoorTruthAt::Floor => TruthClass::Ground,
                 sim::indoor::IndoorTruthAt::Object(i) => TruthClass::Object(i),
                 sim::indoor::IndoorTruthAt::Nothing => TruthClass::Nothing,
@@ -225,21 +235,27 @@ fn score_against_truth(
         }
     };
     let share = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.3}"));
-    tracing::info!(
-        "against the truth ({}): voxels in agreement {}, ground navigable {}, object voxels in obstacles {}; \
-         objects found {} of {} observed ({} split), obstacle precision {}; {} regions, the largest holds {} of the ground",
-        path.display(),
-        share(score.agreement),
-        share(score.ground.share()),
-        share(score.object.share()),
-        score.objects_found,
-        score.objects_observed,
-        score.objects_split,
-        share(score.precision),
-        score.regions,
-        share(score.largest_region_ground_share)
-    );
-    Some(score)
+    let log = |what: &str, score: &TruthScore| {
+        tracing::info!(
+            "against the truth ({}), {what}: voxels in agreement {}, ground navigable {}, object voxels in obstacles {}; \
+             objects found {} of {} observed ({} split), obstacle precision {}; {} regions, the largest holds {} of the ground",
+            path.display(),
+            share(score.agreement),
+            share(score.ground.share()),
+            share(score.object.share()),
+            score.objects_found,
+            score.objects_observed,
+            score.objects_split,
+            share(score.precision),
+            score.regions,
+            share(score.largest_region_ground_share)
+        )
+    };
+    log("each voxel where the map put it", &at_map);
+    if let Some(s) = &by_origin {
+        log("each voxel where its points truly came from", s);
+    }
+    (Some(at_map), by_origin)
 }
 
 /// A simulated source's scene.json, as far as the truth needs it.

@@ -71,6 +71,11 @@ pub struct MapperEnd {
     /// underwater scene's seabed, rocks and wreck, or the indoor scene's floor and boxes).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub truth: Option<navigable::truth::TruthScore>,
+    /// The same, each voxel judged where its points truly came from (by the clouds' own poses,
+    /// which the simulators set to the true ones) instead of where the map put them: the
+    /// classification alone, without the poses' error (`null` when the clouds carry no pose).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub truth_by_origin: Option<navigable::truth::TruthScore>,
 }
 
 /// Occupied voxels by class.
