@@ -112,12 +112,26 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     let end = m.end_of_stream.as_ref().expect("the end of stream's navigable space");
     assert!(end.navigable_regions > 0 && end.obstacles > 0, "{m:?}");
     // Scored against the simulated scene (`truth_scene`): every classified voxel judged, the
-    // seabed and most of the 31 objects seen (issue 39's targets are not met yet: docs/mapping.md).
+    // seabed and most of the 31 objects seen (docs/octree_mapper.md, "Navigable space and
+    // obstacles against the truth").
     let truth = end.truth.as_ref().expect("the navigable space scored against scene.json");
     let v = &end.voxels;
-    assert_eq!(truth.voxels, v.navigable + v.steep + v.non_planar + v.sparse, "{truth:?}");
+    assert_eq!(truth.voxels, v.navigable + v.steep + v.non_planar + v.sparse + v.patch, "{truth:?}");
     assert!(truth.ground.voxels > truth.voxels / 10 && truth.objects_observed >= 10, "{truth:?}");
     assert_eq!(truth.regions, end.navigable_regions, "{truth:?}");
+    // Judged where each voxel's points truly came from (the classification without the fused
+    // poses' error; 2026-12-05: agreement 0.943, the largest region 0.946 of the seabed, 38
+    // regions, every observed object found, precision 0.667): issue 39's targets but the
+    // obstacles' precision (0.9), which the poses' disagreement between passes keeps lower.
+    let by_origin = end.truth_by_origin.as_ref().expect("the clouds carry the simulator's true poses");
+    let at_least = |v: Option<f64>, min: f64, what: &str| {
+        assert!(v.is_some_and(|v| v >= min), "{what} {v:?} under {min}: {by_origin:?}")
+    };
+    at_least(by_origin.agreement, 0.9, "voxel agreement");
+    at_least(by_origin.largest_region_ground_share, 0.9, "the largest region's share of the seabed");
+    at_least(by_origin.recall, 0.9, "objects found");
+    at_least(by_origin.precision, 0.5, "obstacle precision");
+    assert!(by_origin.regions <= 50, "{by_origin:?}");
     // End-to-end latency of the whole pipeline, as measured by its last stages.
     let fused_lat = &fusion_part.pipeline_latency_ms.stereo_to_fused_pose;
     let cloud_lat =

@@ -6,15 +6,20 @@
 //!
 //! ```sh
 //! cargo run --release -p navigable --example nsd_eval -- [--poses truth|out/default/fused_live.tum]
-//!     [--settings nsd.toml] [--res 0.1] [--clouds N] [--tolerance M]
+//!     [--settings nsd.toml] [--res 0.1] [--clouds N] [--tolerance M] [--landmarks] [--indoor]
 //! ```
+//!
+//! `--indoor`: the indoor mission's depth clouds instead (`sim::indoor`, its default building,
+//! 0.05 m voxels, 6 m range, true poses only) against its boxes.
 //!
 //! `--poses FILE`: TUM `world_from_body` poses (interpolated at each cloud's stamp; the depth
 //! camera's mounting from the simulator's settings). `--settings`: a TOML file with the keys of
-//! `[processes.map.settings.nsd]`. Prints the score twice: each voxel judged where the map puts
+//! `[processes.map.settings.nsd]` (keys it does not give take the crate's defaults; without it,
+//! the main job's settings: the defaults with `max_plane_mse_m2 = 0.0004`). Prints the score twice: each voxel judged where the map puts
 //! it (the mean of its points, as summary.json `octree_mapper.truth`) and judged by where its
 //! points truly came from (each cloud's points at the true pose: the classification alone,
-//! without the poses' error).
+//! without the poses' error). `--landmarks`: also tracks the obstacles of each scan as the mapper
+//! does (Bhattacharyya distance 1.0) and judges the landmarks against the objects.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -29,6 +34,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut res = 0.1;
     let mut max_clouds = usize::MAX;
     let mut tolerance = 0.0;
+    let mut track = false;
+    let mut indoor = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut value = || args.next().ok_or_else(|| format!("{a} needs a value"));
@@ -41,6 +48,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "--res" => res = value()?.parse()?,
             "--clouds" => max_clouds = value()?.parse()?,
             "--tolerance" => tolerance = value()?.parse()?,
+            "--landmarks" => track = true,
+            "--indoor" => indoor = true,
             other => return Err(format!("unknown argument {other}").into()),
         }
     }
@@ -48,6 +57,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         Some(p) => toml::from_str(&std::fs::read_to_string(p)?)?,
         None => NsdConfig { max_plane_mse_m2: 0.0004, ..Default::default() },
     };
+    if indoor {
+        if poses.is_some() {
+            return Err("--indoor takes the true poses only (no --poses FILE)".into());
+        }
+        res = 0.05;
+    }
+    let max_range = if indoor { 6.0 } else { 14.0 };
     let tolerance = if tolerance > 0.0 { tolerance } else { res };
     let sim_cfg = sim::SimConfig::default();
     let pitch = sim_cfg.sensors.depth_camera.pitch_down_deg.to_radians();
@@ -56,36 +72,67 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         Some(p) => Some(geometry::tum::read_tum(p)?),
         None => None,
     };
-    let simulator = sim::Simulator::new(sim_cfg)?;
-    let scene = simulator.scene().clone();
-    let rocks = scene.rocks.len() as u32;
-    let judge = |p: &Vector3<f64>| match scene.truth_at(p, tolerance) {
-        sim::scene::SceneTruth::Seabed => TruthClass::Ground,
-        sim::scene::SceneTruth::Rock(i) => TruthClass::Object(i as u32),
-        sim::scene::SceneTruth::Wreck => TruthClass::Object(rocks),
-        sim::scene::SceneTruth::Nothing => TruthClass::Nothing,
+    // The clouds (stamp, true world_from_sensor, points) and the truth: the underwater mission,
+    // or with --indoor the indoor one (its default building, 0.05 m voxels, 6 m range).
+    type Cloud = (f64, Isometry3<f64>, Vec<[f32; 3]>);
+    type Judge = Box<dyn Fn(&Vector3<f64>) -> TruthClass + Sync>;
+    let (clouds_in, judge): (Box<dyn Iterator<Item = Cloud>>, Judge) = if indoor {
+        let mut sim = sim::indoor::IndoorSim::new(sim::indoor::IndoorConfig::default())?;
+        let truth = sim::indoor::IndoorTruth::new(sim.scene().boxes.iter().map(|b| (b.min, b.max, b.what)));
+        let clouds = std::iter::from_fn(move || sim.next_events()).flatten().filter_map(|e| match e {
+            sim::indoor::IndoorEvent::Cloud { t_s, world_from_camera, points } => {
+                Some((t_s, world_from_camera, points))
+            }
+            _ => None,
+        });
+        (
+            Box::new(clouds),
+            Box::new(move |p: &Vector3<f64>| match truth.at(p, tolerance) {
+                sim::indoor::IndoorTruthAt::Floor => TruthClass::Ground,
+                sim::indoor::IndoorTruthAt::Object(i) => TruthClass::Object(i),
+                sim::indoor::IndoorTruthAt::Nothing => TruthClass::Nothing,
+            }),
+        )
+    } else {
+        let simulator = sim::Simulator::new(sim_cfg)?;
+        let scene = simulator.scene().clone();
+        let rocks = scene.rocks.len() as u32;
+        let clouds = simulator.filter_map(|e| match e {
+            sim::SimEvent::Cloud(c) => Some((c.t_s, c.world_from_sensor, c.points_sensor_m)),
+            _ => None,
+        });
+        (
+            Box::new(clouds),
+            Box::new(move |p: &Vector3<f64>| match scene.truth_at(p, tolerance) {
+                sim::scene::SceneTruth::Seabed => TruthClass::Ground,
+                sim::scene::SceneTruth::Rock(i) => TruthClass::Object(i as u32),
+                sim::scene::SceneTruth::Wreck => TruthClass::Object(rocks),
+                sim::scene::SceneTruth::Nothing => TruthClass::Nothing,
+            }),
+        )
     };
+    let judge = &*judge;
     let mut tree = octree::OcTree::new(res)?;
     tree.set_ray_threads(2);
     let mut acc = PointAccumulator::new(res);
     let mut origins = navigable::truth::TrueOrigins::new(res);
+    let mut tracker = navigable::ObstacleTracker::default();
     let (mut clouds, mut without_pose, mut moved) = (0usize, 0usize, 0.0);
     let t0 = Instant::now();
     let mut next = 0usize;
     let mut buf = geometry::trajectory::PoseBuffer::default();
-    for event in simulator {
-        let sim::SimEvent::Cloud(c) = event else { continue };
+    for (t_s, true_pose, points) in clouds_in {
         if clouds >= max_clouds {
             break;
         }
         let world_from_sensor: Isometry3<f64> = match &trajectory {
-            None => c.world_from_sensor,
+            None => true_pose,
             Some(tr) => {
-                while next < tr.len() && tr[next].0 <= c.t_s + 1.0 {
+                while next < tr.len() && tr[next].0 <= t_s + 1.0 {
                     buf.push(tr[next].0, tr[next].1);
                     next += 1;
                 }
-                match buf.at(c.t_s, 1.0) {
+                match buf.at(t_s, 1.0) {
                     geometry::trajectory::PoseLookup::Ready(body) => body * body_from_sensor,
                     _ => {
                         without_pose += 1;
@@ -94,27 +141,29 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 }
             }
         };
-        moved += (world_from_sensor.translation.vector - c.world_from_sensor.translation.vector).norm();
+        moved += (world_from_sensor.translation.vector - true_pose.translation.vector).norm();
         let origin = world_from_sensor.translation.vector;
-        let world: Vec<[f32; 3]> = c
-            .points_sensor_m
+        let world: Vec<[f32; 3]> = points
             .iter()
             .map(|p| {
                 let w = world_from_sensor.transform_point(&Point3::new(p[0] as f64, p[1] as f64, p[2] as f64));
                 [w.x as f32, w.y as f32, w.z as f32]
             })
             .collect();
-        tree.insert_point_cloud(&world, [origin.x, origin.y, origin.z], 14.0, false)?;
+        tree.insert_point_cloud(&world, [origin.x, origin.y, origin.z], max_range, false)?;
         let mut scan = PointAccumulator::new(res);
-        for (p, s) in world.iter().zip(&c.points_sensor_m) {
+        for (p, s) in world.iter().zip(&points) {
             let v = Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-            if (v - origin).norm() <= 14.0 {
+            if (v - origin).norm() <= max_range {
                 scan.add(&v);
-                let t = c.world_from_sensor.transform_point(&Point3::new(s[0] as f64, s[1] as f64, s[2] as f64));
+                let t = true_pose.transform_point(&Point3::new(s[0] as f64, s[1] as f64, s[2] as f64));
                 origins.add(acc.key(&v), &t.coords);
             }
         }
         acc.merge(&scan)?;
+        if track {
+            tracker.update(&scan, &cfg, 1.0, (res * 0.5).powi(2))?;
+        }
         clouds += 1;
     }
     let inserted_s = t0.elapsed().as_secs_f64();
@@ -141,7 +190,22 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         c.patch,
         d.obstacles.len()
     );
-    let at_map = navigable::truth::score(&d, &acc, judge);
+    let mut at_map = navigable::truth::score(&d, &acc, judge);
+    if track {
+        let means: Vec<(Vector3<f64>, u32)> =
+            tracker.landmarks.iter().filter_map(|l| Some((l.stats.mean_cov()?.0, l.scans))).collect();
+        let l = navigable::truth::score_landmarks(&means, 2, judge);
+        println!(
+            "obstacle landmarks: {} in all, {} seen in 2 or more scans, {} of them on objects; {} objects with one, {} with several (at most {})",
+            tracker.landmarks.len(),
+            l.landmarks,
+            l.on_objects,
+            l.objects_with_one,
+            l.objects_with_several,
+            l.most_on_one_object
+        );
+        at_map.landmarks = Some(l);
+    }
     let by_points = origins.score(&d, judge);
     for (name, s) in [("judged where the map puts it", at_map), ("judged by its points' true origin", by_points)] {
         println!(

@@ -231,7 +231,8 @@ pub struct NsdConfig {
     pub max_step_m: f64,
     /// ... and their normals by at most this, deg.
     pub max_normal_angle_deg: f64,
-    /// Obstacles with fewer voxels are dropped (isolated noise).
+    /// Obstacles with fewer voxels of their own shape (steep or not planar; sparse voxels they
+    /// grew through do not count) are dropped: noise, or a surface the poses smeared.
     pub min_obstacle_voxels: usize,
     /// Navigable regions smaller than this are no space a vehicle can use (its footprint), m²:
     /// they join the obstacles they touch (planar patches on an object's surface) or are left
@@ -247,7 +248,7 @@ impl Default for NsdConfig {
             max_slope_deg: 30.0,
             max_step_m: 0.03,
             max_normal_angle_deg: 20.0,
-            min_obstacle_voxels: 2,
+            min_obstacle_voxels: 3,
             min_region_area_m2: 0.25,
         }
     }
@@ -496,41 +497,53 @@ pub fn discover(
     let mut keys: Vec<VoxelKey> = acc.cells.keys().filter(|k| occupied(k)).copied().collect();
     keys.sort_unstable();
     let index: VoxelMap<usize> = keys.iter().enumerate().map(|(i, k)| (*k, i)).collect();
-    let classify = |k: &VoxelKey| {
+    // The class, and whether the voxel is thick only as far as the scans disagree.
+    let classify = |k: &VoxelKey| -> (VoxelClass, bool) {
         let s = &acc.cells[k];
         if s.n < cfg.min_points {
-            return VoxelClass::Sparse;
+            return (VoxelClass::Sparse, false);
         }
         match fit_plane(s) {
-            // Points along a line (a single scan line through the voxel): no plane to tell.
-            Some(p) if p.spread_m2 < cfg.max_plane_mse_m2 => VoxelClass::Sparse,
+            // Points along a line (a single scan line through the voxel): no plane to tell. The
+            // normal's tilt about the points' long axis is uncertain by about
+            // sqrt(mse / (n · spread)) rad; over half the angle neighbours may differ by, or
+            // with the points all but collinear (a hundredth of the voxel), the voxel is left to
+            // its neighbours.
+            Some(p)
+                if p.spread_m2 < (acc.res_m / 100.0).powi(2)
+                    || p.mse_m2
+                        > p.spread_m2 * s.n as f64 * (0.5 * cfg.max_normal_angle_deg).to_radians().tan().powi(2) =>
+            {
+                (VoxelClass::Sparse, false)
+            }
             // Steep or not planar over several scans that each say too little on their own: the
-            // poses' disagreement between the scans can make a flat surface look so. Left to its
-            // neighbours, as a voxel with too few points.
+            // poses' disagreement between the scans can make a flat surface look so (two sheets
+            // a few centimetres apart fit a tilted plane). Left to its neighbours, as a voxel
+            // with too few points.
             Some(p)
                 if !p.within_scans
                     && s.scans() > 1
                     && (p.mse_m2 > cfg.max_plane_mse_m2 || p.slope_deg() > cfg.max_slope_deg) =>
             {
-                VoxelClass::Sparse
+                (VoxelClass::Sparse, true)
             }
             Some(p) if p.mse_m2 <= cfg.max_plane_mse_m2 => {
                 if p.slope_deg() <= cfg.max_slope_deg {
-                    VoxelClass::Navigable(p)
+                    (VoxelClass::Navigable(p), false)
                 } else {
-                    VoxelClass::Steep(p)
+                    (VoxelClass::Steep(p), false)
                 }
             }
-            _ => VoxelClass::NonPlanar,
+            _ => (VoxelClass::NonPlanar, false),
         }
     };
     // Two halves on two threads (the plane fits are most of the time).
     let (first, second) = keys.split_at(keys.len() / 2);
-    let mut classes: Vec<VoxelClass> = std::thread::scope(|s| {
+    let (mut classes, thick): (Vec<VoxelClass>, Vec<bool>) = std::thread::scope(|s| {
         let other = s.spawn(|| second.iter().map(classify).collect::<Vec<_>>());
-        let mut classes: Vec<VoxelClass> = first.iter().map(classify).collect();
+        let mut classes: Vec<(VoxelClass, bool)> = first.iter().map(classify).collect();
         classes.extend(other.join().unwrap_or_else(|e| std::panic::resume_unwind(e)));
-        classes
+        classes.into_iter().unzip()
     });
     // How thick the map's surfaces are: the points' spread off their voxel's plane, over all of
     // a voxel's scans (the sensor's noise plus the poses' disagreement between scans; the median
@@ -588,7 +601,11 @@ pub fn discover(
             }
         }
         let Some(plane) = plane else { continue };
-        classes[j] = VoxelClass::Navigable(PlaneFit { centroid_m: mean, ..plane });
+        // A voxel thick only where the scans disagree is that surface where the map put it: the
+        // plane through its points' mean. A voxel with too few points takes the plane it lies on
+        // unchanged, so that a run of them cannot creep away from the surface a step at a time
+        // (up a wall, one row of voxels after another).
+        classes[j] = VoxelClass::Navigable(if thick[j] { PlaneFit { centroid_m: mean, ..plane } } else { plane });
         for n in neighbours(&keys[j]) {
             if let Some(&i) = index.get(&n)
                 && classes[i] == VoxelClass::Sparse
@@ -676,9 +693,11 @@ pub fn discover(
         }
         members.clear();
     }
-    // Obstacles too small to be more than noise are none (before they could claim a region as
-    // their top).
-    for members in members_of.iter_mut().filter(|m| m.len() < cfg.min_obstacle_voxels) {
+    // Obstacles with too few voxels of their own shape (steep or not planar; the sparse ones
+    // they grew through show nothing) are noise, or surfaces the poses smeared: none (before
+    // they could claim a region as their top).
+    let shaped = |m: &Vec<usize>| m.iter().filter(|i| seed(&classes[**i])).count();
+    for members in members_of.iter_mut().filter(|m| shaped(m) < cfg.min_obstacle_voxels) {
         for i in members.drain(..) {
             obstacle_of[i] = None;
         }
@@ -901,6 +920,8 @@ pub struct TrackUpdate {
     pub associated: u64,
     /// Scan obstacles that started a new landmark.
     pub new: u64,
+    /// Landmarks merged into another (their Gaussians came within the gate).
+    pub merged: u64,
 }
 
 /// Obstacles tracked across scans ([6D] §VI): the obstacles of each scan ([`discover`] on its
@@ -954,13 +975,56 @@ impl ObstacleTracker {
             self.landmarks[*l].scans += 1;
             update.associated += 1;
         }
+        let mut touched: Vec<usize> = pairs.iter().map(|(l, _, _)| *l).collect();
         for (o, obstacle) in found.obstacles.iter().enumerate() {
             if !matched[o] {
+                touched.push(self.landmarks.len());
                 self.landmarks.push(ObstacleLandmark { stats: stats_of(obstacle), scans: 1 });
                 update.new += 1;
             }
         }
+        update.merged = self.merge_overlapping(&touched, max_bhattacharyya, regularise_m2);
         Ok(update)
+    }
+
+    /// Merges each landmark in `touched` with every other landmark within `max_bhattacharyya` of
+    /// it, nearest first, until none is: one object seen part by part from several poses starts
+    /// a landmark per part, and the parts' Gaussians come together as more of it is seen.
+    /// Returns the merges.
+    fn merge_overlapping(&mut self, touched: &[usize], max_bhattacharyya: f64, regularise_m2: f64) -> u64 {
+        let reg = Matrix3::identity() * regularise_m2.max(0.0);
+        let gaussian = |l: &ObstacleLandmark| l.stats.mean_cov().map(|(m, c)| (m, c + reg));
+        let mut alive = vec![true; self.landmarks.len()];
+        let mut work: Vec<usize> = touched.to_vec();
+        let mut merges = 0;
+        while let Some(a) = work.pop() {
+            if !alive[a] {
+                continue;
+            }
+            let Some((ma, ca)) = gaussian(&self.landmarks[a]) else { continue };
+            let nearest = (0..self.landmarks.len())
+                .filter(|b| *b != a && alive[*b])
+                .filter_map(|b| {
+                    let (mb, cb) = gaussian(&self.landmarks[b])?;
+                    let d = geometry::gaussian::bhattacharyya(&ma, &ca, &mb, &cb).ok()?;
+                    (d <= max_bhattacharyya).then_some((b, d))
+                })
+                .min_by(|x, y| x.1.total_cmp(&y.1));
+            if let Some((b, _)) = nearest {
+                let other = self.landmarks[b].clone();
+                self.landmarks[a].stats.merge(&other.stats);
+                self.landmarks[a].scans += other.scans;
+                alive[b] = false;
+                merges += 1;
+                work.push(a);
+            }
+        }
+        let mut i = 0;
+        self.landmarks.retain(|_| {
+            i += 1;
+            alive[i - 1]
+        });
+        merges
     }
 }
 
@@ -1355,6 +1419,29 @@ mod tests {
         // With a 0.05 m² footprint the shelf is a region of its own.
         let cfg = NsdConfig { min_region_area_m2: 0.05, ..Default::default() };
         assert_eq!(discover(&acc, |_| true, &cfg).unwrap().regions.len(), 2);
+    }
+
+    #[test]
+    fn an_obstacle_needs_min_obstacle_voxels_of_its_own_shape() {
+        let mut acc = PointAccumulator::new(RES);
+        surface(&mut acc, (0.0, 2.0), (0.0, 1.0), |_, _| 0.033);
+        // A post 0.1 m square and 0.2 m tall on the floor: two voxels whose points lie on its
+        // four faces (not planar).
+        acc.cells.remove(&[10, 5, 0]);
+        for z in 0..20 {
+            for i in 0..10 {
+                let (z, t) = (0.005 + z as f64 * 0.01, 1.0 + 0.005 + i as f64 * 0.01);
+                for p in [[t, 0.5, z], [t, 0.5999, z], [1.0, t - 0.5, z], [1.0999, t - 0.5, z]] {
+                    acc.add(&Vector3::from(p));
+                }
+            }
+        }
+        let d = run(&acc);
+        assert!(d.obstacles.is_empty(), "{:?}", d.obstacles.iter().map(|o| o.voxels.clone()).collect::<Vec<_>>());
+        let cfg = NsdConfig { min_obstacle_voxels: 2, ..Default::default() };
+        let d = discover(&acc, |_| true, &cfg).unwrap();
+        assert_eq!(d.obstacles.len(), 1);
+        assert!(d.obstacles[0].voxels.contains(&[10, 5, 1]), "{:?}", d.obstacles[0].voxels);
     }
 
     #[test]

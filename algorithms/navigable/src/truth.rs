@@ -80,6 +80,54 @@ pub struct TruthScore {
     pub regions: usize,
     /// Share of the observed ground voxels in the largest region (`null` without ground voxels).
     pub largest_region_ground_share: Option<f64>,
+    /// The obstacle landmarks tracked across scans against the objects ([`score_landmarks`];
+    /// `null` when not scored).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub landmarks: Option<LandmarkScore>,
+}
+
+/// Obstacle landmarks against the scene's objects: each landmark is judged at its mean.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
+pub struct LandmarkScore {
+    /// Landmarks judged (those seen in at least `min_scans` scans).
+    pub landmarks: usize,
+    /// The scans a landmark needs to be judged.
+    pub min_scans: u32,
+    /// Landmarks whose mean lies on an object.
+    pub on_objects: usize,
+    /// Objects with exactly one landmark.
+    pub objects_with_one: usize,
+    /// Objects with more than one.
+    pub objects_with_several: usize,
+    /// The most landmarks one object has.
+    pub most_on_one_object: usize,
+}
+
+/// Judges landmark means (with the scans each was seen in) by `truth`: how many lie on objects,
+/// and how many objects got one landmark or several. Landmarks seen in fewer than `min_scans`
+/// scans are left out.
+pub fn score_landmarks(
+    landmarks: &[(Vector3<f64>, u32)],
+    min_scans: u32,
+    truth: impl Fn(&Vector3<f64>) -> TruthClass,
+) -> LandmarkScore {
+    let mut per_object: BTreeMap<u32, usize> = BTreeMap::new();
+    let mut s = LandmarkScore { min_scans, ..Default::default() };
+    for (mean, scans) in landmarks {
+        if *scans < min_scans {
+            continue;
+        }
+        s.landmarks += 1;
+        if let TruthClass::Object(i) = truth(mean) {
+            s.on_objects += 1;
+            *per_object.entry(i).or_default() += 1;
+        }
+    }
+    s.objects_with_one = per_object.values().filter(|n| **n == 1).count();
+    s.objects_with_several = per_object.values().filter(|n| **n > 1).count();
+    s.most_on_one_object = per_object.values().copied().max().unwrap_or(0);
+    s
 }
 
 /// Scores `d` (computed over `acc`) against `truth` (see the module's documentation), each voxel

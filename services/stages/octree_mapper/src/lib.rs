@@ -281,6 +281,9 @@ pub struct MapperCounters {
     pub obstacles_associated: u64,
     /// Scan obstacles that started a new obstacle landmark.
     pub obstacles_new: u64,
+    /// Obstacle landmarks merged into another (their Gaussians came within the gate).
+    #[serde(default)]
+    pub obstacle_landmarks_merged: u64,
 }
 
 /// The process state.
@@ -567,6 +570,7 @@ impl MapperState {
             let u = self.obstacles.update(&scan, &self.settings.nsd, self.settings.obstacle_max_bhattacharyya, reg)?;
             self.counters.obstacles_associated += u.associated;
             self.counters.obstacles_new += u.new;
+            self.counters.obstacle_landmarks_merged += u.merged;
         }
         if !self.settings.rebuild_from.is_empty() {
             self.kept.push_back((c.stamp_ns as f64 / 1e9, c.points_sensor_m.clone(), c.own_pose));

@@ -83,8 +83,11 @@ fn end_of_run(
             let t2 = Instant::now();
             // The score against the truth beside the layers (the machine's second core).
             let (voxels, truth) = std::thread::scope(|inner| -> Result<_, StageError> {
-                let scoring = inner
-                    .spawn(|| score_against_truth(st.settings(), out_dir, &st.points, st.true_origins.as_ref(), &d));
+                let scoring = inner.spawn(|| {
+                    let landmarks: Vec<(nalgebra::Vector3<f64>, u32)> =
+                        st.obstacles.landmarks.iter().filter_map(|l| Some((l.stats.mean_cov()?.0, l.scans))).collect();
+                    score_against_truth(st.settings(), out_dir, &st.points, st.true_origins.as_ref(), &landmarks, &d)
+                });
                 navigable::write_navigable_ply(&out_dir.join("navigable.ply"), &st.points, &d)
                     .map_err(StageError::stage)?;
                 navigable::write_obstacles_ply(&out_dir.join("obstacles.ply"), &st.points, &d)
@@ -192,6 +195,7 @@ fn score_against_truth(
     out_dir: &std::path::Path,
     points: &navigable::PointAccumulator,
     origins: Option<&navigable::truth::TrueOrigins>,
+    landmarks: &[(nalgebra::Vector3<f64>, u32)],
     d: &navigable::Discovery,
 ) -> (Option<navigable::truth::TruthScore>, Option<navigable::truth::TruthScore>) {
     use navigable::truth::{TruthClass, TruthScore};
@@ -211,7 +215,8 @@ fn score_against_truth(
         }
     };
     let both = |judge: &(dyn Fn(&nalgebra::Vector3<f64>) -> TruthClass + Sync)| {
-        let at_map = navigable::truth::score(d, points, judge);
+        let mut at_map = navigable::truth::score(d, points, judge);
+        at_map.landmarks = Some(navigable::truth::score_landmarks(landmarks, 2, judge));
         let by_origin = origins.filter(|o| !o.is_empty()).map(|o| o.score(d, judge));
         (at_map, by_origin)
     };
@@ -252,6 +257,18 @@ fn score_against_truth(
         )
     };
     log("each voxel where the map put it", &at_map);
+    if let Some(l) = &at_map.landmarks {
+        tracing::info!(
+            "obstacle landmarks seen in {} or more scans against the truth: {} of {} on objects; {} objects with one, {} with \
+             several (at most {})",
+            l.min_scans,
+            l.on_objects,
+            l.landmarks,
+            l.objects_with_one,
+            l.objects_with_several,
+            l.most_on_one_object
+        );
+    }
     if let Some(s) = &by_origin {
         log("each voxel where its points truly came from", s);
     }
