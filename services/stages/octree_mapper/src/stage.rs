@@ -97,10 +97,12 @@ fn end_of_run(
                 Ok((voxels, truth))
             })?;
             tracing::info!(
-                "end of run: map.bt in {:.0} ms, navigable space in {:.0} ms, PLY layers, voxels and the truth's \
-                 score in {:.0} ms",
+                "end of run: map.bt in {:.0} ms, navigable space in {:.0} ms (surfaces {:.1} mm thick, regions do \
+                 not cross steps over {:.0} mm), PLY layers, voxels and the truth's score in {:.0} ms",
                 (t1 - t0).as_secs_f64() * 1e3,
                 (t2 - t1).as_secs_f64() * 1e3,
+                d.surface_sigma_m * 1e3,
+                d.step_m * 1e3,
                 t2.elapsed().as_secs_f64() * 1e3
             );
             Ok((d, voxels, truth))
