@@ -144,6 +144,26 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     for file in ["navigable.ply", "obstacles.ply"] {
         assert!(std::fs::read(out.join(file)).unwrap_or_default().starts_with(b"ply\n"), "{file}");
     }
+    // The 2.5-D traversability grid: map_server files whose image is mostly navigable seabed
+    // with the rocks and the wreck blocked, and a height for every known cell.
+    let yaml = std::fs::read_to_string(out.join("traversability.yaml")).expect("traversability.yaml");
+    assert!(yaml.contains("image: traversability.pgm") && yaml.contains("resolution: 0.1"), "{yaml}");
+    let pgm = std::fs::read(out.join("traversability.pgm")).expect("traversability.pgm");
+    let header: Vec<&[u8]> = pgm.splitn(5, |b| *b == b'\n').collect();
+    assert_eq!(header[0], b"P5");
+    let size = String::from_utf8_lossy(header[2]).to_string();
+    let (w, h) = size.split_once(' ').map(|(w, h)| (w.parse::<usize>().unwrap(), h.parse::<usize>().unwrap())).unwrap();
+    let image = header[4];
+    assert_eq!(image.len(), w * h, "{size}");
+    let count = |v: u8| image.iter().filter(|b| **b == v).count();
+    let (free, blocked) = (count(254), count(0));
+    assert!(free > 100_000 && blocked > 100 && free > 10 * blocked, "{free} navigable, {blocked} obstacle cells");
+    let pfm = std::fs::read(out.join("traversability_height.pfm")).expect("traversability_height.pfm");
+    let head = format!("Pf\n{w} {h}\n-1.0\n");
+    assert!(pfm.starts_with(head.as_bytes()) && pfm.len() == head.len() + 4 * w * h);
+    let known =
+        pfm[head.len()..].chunks(4).filter(|c| f32::from_le_bytes((*c).try_into().unwrap()).is_finite()).count();
+    assert_eq!(known, free + blocked, "a height for every known cell");
 }
 
 #[test]
@@ -154,6 +174,7 @@ fn invalid_octree_mapper_settings_name_their_keys() {
         ("[processes.p.settings]\npose_source = \"gps\"", "processes.p.settings.pose_source"),
         ("[processes.p.settings.nsd]\nmin_points = 1", "processes.p.settings.nsd.min_points"),
         ("[processes.p.settings]\ntruth_tolerance_m = -1.0", "processes.p.settings.truth_tolerance_m"),
+        ("[processes.p.settings.nsd]\nmin_region_area_m2 = -1.0", "processes.p.settings.nsd.min_region_area_m2"),
     ] {
         let mut run = TestRun::new("badmapper");
         let procs = format!("[processes.p]\nkind = \"octree_mapper\"\n{settings}\n");

@@ -19,9 +19,12 @@
 //!    are associated by the Bhattacharyya distance ([`associate_obstacles`]).
 //! 5. [`write_navigable_ply`] and [`write_obstacles_ply`] write the two layers (navigable voxel
 //!    patches with their region, obstacles as meshes of their voxels' outer faces).
-//! 6. [`truth::score`] scores a discovery against a scene's truth (voxel classes, objects found,
+//! 6. [`traversability::TraversabilityGrid`]: a 2.5-D grid of class, height and slope per
+//!    column of voxels, as map_server files plus float layers.
+//! 7. [`truth::score`] scores a discovery against a scene's truth (voxel classes, objects found,
 //!    the largest region's share of the ground).
 
+pub mod traversability;
 pub mod truth;
 
 use std::collections::{BTreeMap, HashMap};

@@ -92,6 +92,16 @@ fn end_of_run(
                     .map_err(StageError::stage)?;
                 navigable::write_obstacles_ply(&out_dir.join("obstacles.ply"), &st.points, &d)
                     .map_err(StageError::stage)?;
+                let grid = navigable::traversability::TraversabilityGrid::from_discovery(&st.points, &d);
+                grid.write(out_dir, "traversability").map_err(StageError::stage)?;
+                let (nav, blocked, unknown) = grid.counts();
+                tracing::info!(
+                    "traversability grid {} x {} cells of {} m: {nav} navigable, {blocked} obstacle, {unknown} unknown \
+                     (traversability.pgm/.yaml, traversability_height.pfm, traversability_slope.pfm)",
+                    grid.width,
+                    grid.height,
+                    grid.resolution_m
+                );
                 let voxels = build_voxels(st, Some(&d));
                 let truth = scoring.join().map_err(|_| StageError::msg("the truth scoring panicked"))?;
                 Ok((voxels, truth))
