@@ -912,6 +912,9 @@ fn leaf_voxel(
 pub struct ObstacleLandmark {
     /// Point statistics of every associated scan obstacle.
     pub stats: VoxelStats,
+    /// Point statistics of the scan obstacle last associated with it: the part of the object
+    /// the last scan saw, which the next scan, from nearly the same pose, sees again.
+    pub last: VoxelStats,
     /// Scans it was seen in.
     pub scans: u32,
 }
@@ -952,15 +955,37 @@ impl ObstacleTracker {
         if found.obstacles.is_empty() {
             return Ok(update);
         }
-        let landmarks: Vec<Obstacle> = self
-            .landmarks
-            .iter()
-            .filter_map(|l| {
-                let (mean_m, cov_m2) = l.stats.mean_cov()?;
-                Some(Obstacle { voxels: vec![], mean_m, cov_m2, points: l.stats.n })
-            })
-            .collect();
-        let pairs = associate_obstacles(&landmarks, &found.obstacles, max_bhattacharyya, regularise_m2);
+        // Each scan obstacle against each landmark's Gaussian over all its points and against
+        // the part the last scan saw ([6D] §VI matches the obstacles of consecutive scans): a
+        // rock seen part by part from a moving vehicle stays one landmark while its parts
+        // overlap from one scan to the next.
+        let reg = Matrix3::identity() * regularise_m2.max(0.0);
+        let gaussian = |s: &VoxelStats| s.mean_cov().map(|(m, c)| (m, c + reg));
+        let mut pairs = vec![];
+        for (l, landmark) in self.landmarks.iter().enumerate() {
+            let views: Vec<_> = [gaussian(&landmark.stats), gaussian(&landmark.last)].into_iter().flatten().collect();
+            for (o, obstacle) in found.obstacles.iter().enumerate() {
+                let d = views
+                    .iter()
+                    .filter_map(|(m, c)| {
+                        geometry::gaussian::bhattacharyya(m, c, &obstacle.mean_m, &(obstacle.cov_m2 + reg)).ok()
+                    })
+                    .fold(f64::INFINITY, f64::min);
+                if d <= max_bhattacharyya {
+                    pairs.push((l, o, d));
+                }
+            }
+        }
+        pairs.sort_by(|p, q| p.2.total_cmp(&q.2));
+        let (mut used_l, mut used_o) = (vec![false; self.landmarks.len()], vec![false; found.obstacles.len()]);
+        pairs.retain(|(l, o, _)| {
+            let free = !used_l[*l] && !used_o[*o];
+            if free {
+                used_l[*l] = true;
+                used_o[*o] = true;
+            }
+            free
+        });
         let stats_of = |o: &Obstacle| {
             let mut stats = VoxelStats::default();
             for k in &o.voxels {
@@ -975,6 +1000,7 @@ impl ObstacleTracker {
             matched[*o] = true;
             let stats = stats_of(&found.obstacles[*o]);
             self.landmarks[*l].stats.merge(&stats);
+            self.landmarks[*l].last = stats;
             self.landmarks[*l].scans += 1;
             update.associated += 1;
         }
@@ -982,7 +1008,8 @@ impl ObstacleTracker {
         for (o, obstacle) in found.obstacles.iter().enumerate() {
             if !matched[o] {
                 touched.push(self.landmarks.len());
-                self.landmarks.push(ObstacleLandmark { stats: stats_of(obstacle), scans: 1 });
+                let stats = stats_of(obstacle);
+                self.landmarks.push(ObstacleLandmark { stats, last: stats, scans: 1 });
                 update.new += 1;
             }
         }
@@ -1445,6 +1472,38 @@ mod tests {
         let d = discover(&acc, |_| true, &cfg).unwrap();
         assert_eq!(d.obstacles.len(), 1);
         assert!(d.obstacles[0].voxels.contains(&[10, 5, 1]), "{:?}", d.obstacles[0].voxels);
+    }
+
+    #[test]
+    fn a_boulder_seen_part_by_part_from_a_vehicle_going_round_it_is_one_landmark() {
+        // A sphere of 0.8 m radius; scan i sees the part of it facing azimuth 15° · i (points
+        // every ~2 cm whose outward normal is within 46° of the view), as a vehicle passing it
+        // would. Against the Gaussian of all the points so far alone, the twelfth part is too
+        // far from the first eleven and starts a second landmark ([11, 1]); against the part
+        // the last scan saw it is the same boulder.
+        let (r, centre) = (0.8, Vector3::new(2.0, 2.0, 1.0));
+        let mut tracker = ObstacleTracker::default();
+        let cfg = NsdConfig::default();
+        for i in 0..12 {
+            let a = (15.0 * i as f64).to_radians();
+            let view = Vector3::new(a.cos(), a.sin(), 0.6).normalize();
+            let mut scan = PointAccumulator::new(RES);
+            for t in 0..126 {
+                let theta = t as f64 * std::f64::consts::PI / 125.0;
+                for p in 0..252 {
+                    let phi = p as f64 * 2.0 * std::f64::consts::PI / 252.0;
+                    let n = Vector3::new(theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos());
+                    if n.dot(&view) > 0.7 {
+                        scan.add(&(centre + n * r));
+                    }
+                }
+            }
+            tracker.update(&scan, &cfg, 1.0, (RES * 0.5).powi(2)).unwrap();
+        }
+        let seen: Vec<u32> = tracker.landmarks.iter().map(|l| l.scans).collect();
+        assert_eq!(seen, vec![12], "one landmark seen in every scan: {seen:?}");
+        let (mean, _) = tracker.landmarks[0].stats.mean_cov().unwrap();
+        assert!((mean - centre).norm() < r, "{mean}");
     }
 
     #[test]
