@@ -111,6 +111,9 @@ fn main() {
             if let Some(v) = num("--proposal-step-rad") {
                 cfg.proposal_step_rad = v;
             }
+            if let Some(v) = num("--gauss-newton") {
+                cfg.matcher.gauss_newton = v != 0.0;
+            }
             if let Some(v) = num("--point-to-line") {
                 cfg.matcher.point_to_line = v != 0.0;
             }

@@ -173,6 +173,11 @@ impl Validate for GridSlamConfig {
         );
         issues.check(self.matcher.beam_stride != 0, "matcher.beam_stride", "must be at least 1");
         issues.check(
+            self.matcher.min_point_spacing_m.is_finite() && self.matcher.min_point_spacing_m >= 0.0,
+            "matcher.min_point_spacing_m",
+            "must be a finite distance ≥ 0",
+        );
+        issues.check(
             self.matcher.coarse_stride != 0,
             "matcher.coarse_stride",
             "must be at least 1 (1: every point at every step size)",

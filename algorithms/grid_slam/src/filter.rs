@@ -313,6 +313,8 @@ impl GridSlam {
         let mut pts = ScanPoints::default();
         let mut beams = Vec::with_capacity(ranges.len());
         let mut invalid = 0;
+        let spacing2 = self.cfg.matcher.min_point_spacing_m.powi(2);
+        let mut last_kept: Option<(f64, f64)> = None;
         for (k, (&r, &(c, s))) in ranges.iter().zip(&self.dirs).enumerate() {
             let r = r as f64;
             if !r.is_finite() || r < g.range_min_m || r <= 0.0 {
@@ -333,7 +335,11 @@ impl GridSlam {
             let at = |d: f64| lp.compose(&Pose2 { x_m: d * c, y_m: d * s, theta_rad: 0.0 });
             let end = at(len);
             beams.push(MapBeam { end: (end.x_m, end.y_m), hit });
-            if hit && k % self.cfg.matcher.beam_stride == 0 {
+            if hit
+                && k % self.cfg.matcher.beam_stride == 0
+                && last_kept.is_none_or(|q| (q.0 - end.x_m).powi(2) + (q.1 - end.y_m).powi(2) >= spacing2)
+            {
+                last_kept = Some((end.x_m, end.y_m));
                 let free = at((len - res).max(0.0));
                 pts.points.push(BeamPoint { hit: (end.x_m, end.y_m), free: (free.x_m, free.y_m) });
             }
@@ -777,31 +783,11 @@ fn propose(
         let x = Pose2 { x_m: mu[0], y_m: mu[1], theta_rad: wrap_angle(star.theta_rad + mu[2]) };
         return (x, log_eta, false);
     }
-    let Some(l) = cholesky3(&cov) else { return fallback(rng) };
+    let Some(l) = matcher::cholesky3(&cov) else { return fallback(rng) };
     let n = [normal(rng), normal(rng), normal(rng)];
     let dx = [l[0][0] * n[0], l[1][0] * n[0] + l[1][1] * n[1], l[2][0] * n[0] + l[2][1] * n[1] + l[2][2] * n[2]];
     let x = Pose2 { x_m: mu[0] + dx[0], y_m: mu[1] + dx[1], theta_rad: wrap_angle(star.theta_rad + mu[2] + dx[2]) };
     (x, log_eta, false)
-}
-
-/// Lower Cholesky factor of a 3×3 symmetric matrix; `None` if it is not positive definite.
-fn cholesky3(a: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
-    let mut l = [[0.0; 3]; 3];
-    for i in 0..3 {
-        for j in 0..=i {
-            let s: f64 = (0..j).map(|k| l[i][k] * l[j][k]).sum();
-            if i == j {
-                let d = a[i][i] - s;
-                if d.is_nan() || d <= 0.0 {
-                    return None;
-                }
-                l[i][j] = d.sqrt();
-            } else {
-                l[i][j] = (a[i][j] - s) / l[j][j];
-            }
-        }
-    }
-    Some(l)
 }
 
 /// Numbers the particles of a new set as their own ancestors.
@@ -905,5 +891,37 @@ mod tests {
         let m = MatcherParams { coarse_refinements: 9, ..Default::default() };
         let e = GridSlamConfig { matcher: m, ..Default::default() }.issues();
         assert!(e.to_string().contains("matcher.coarse_refinements"), "{e}");
+        for bad in [-0.1, f64::NAN] {
+            let m = MatcherParams { min_point_spacing_m: bad, ..Default::default() };
+            let e = GridSlamConfig { matcher: m, ..Default::default() }.issues();
+            assert!(e.to_string().contains("matcher.min_point_spacing_m"), "{e}");
+        }
+    }
+
+    #[test]
+    fn points_closer_than_the_spacing_along_the_scan_are_left_out_of_matching() {
+        // 360 beams 1° apart, all 2 m away: end points 3.5 cm apart. A spacing of 5 cm keeps
+        // every second one; the map still gets every beam.
+        let geom = ScanGeometry {
+            angle_min_rad: -std::f64::consts::PI,
+            angle_increment_rad: std::f64::consts::TAU / 360.0,
+            beams: 360,
+            range_min_m: 0.05,
+            range_max_m: 10.0,
+            body_from_laser: Pose2::default(),
+        };
+        let ranges = vec![2.0f32; 360];
+        let all = GridSlam::new(GridSlamConfig::default(), geom).expect("filter").prepare_scan(&ranges);
+        let m = MatcherParams { min_point_spacing_m: 0.05, ..Default::default() };
+        let spaced = GridSlam::new(GridSlamConfig { matcher: m, ..Default::default() }, geom)
+            .expect("filter")
+            .prepare_scan(&ranges);
+        assert_eq!(all.points.points.len(), 360);
+        assert_eq!(spaced.points.points.len(), 180);
+        assert_eq!(spaced.beams.len(), 360);
+        for w in spaced.points.points.windows(2) {
+            let d = (w[1].hit.0 - w[0].hit.0).hypot(w[1].hit.1 - w[0].hit.1);
+            assert!(d >= 0.05, "{d}");
+        }
     }
 }
