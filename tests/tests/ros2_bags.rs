@@ -142,8 +142,12 @@ routes = [{{ topic = "/scan", service = "laser" }}, {{ topic = "/odom", service 
     for (k, x, y) in
         [("trans_mean_m", a.trans_mean_m, b.trans_mean_m), ("rot_mean_deg", a.rot_mean_deg, b.rot_mean_deg)]
     {
-        // The issue asks for 10 %; the same scans decode to the same inputs, so they agree to 1e-6 here.
-        assert!((x - y).abs() <= 0.01 * y.max(1e-3), "{k}: bag {x} vs file {y}: not within 1 %");
+        // The issue asks for 10 %. The inputs agree to about 1e-8, not bitwise (sensor_msgs/LaserScan
+        // carries the beam angles as float32, the CARMEN line's geometry is f64), and since the
+        // matcher ends by Gauss-Newton (continuous, where hill climbing's fixed steps absorbed such
+        // differences) the particle set's resampling amplifies them: 0.0314 against 0.0307 m on
+        // 2026-12-06, 2.5 % apart.
+        assert!((x - y).abs() <= 0.10 * y.max(1e-3), "{k}: bag {x} vs file {y}: not within 10 %");
     }
 }
 
