@@ -736,6 +736,7 @@ fn propose(
     }
     // τ_j = p(z | m, x_j) · p(x_j | x', u) at a 3×3×3 lattice around the match.
     let (sm, sr) = (cfg.proposal_step_m, cfg.proposal_step_rad);
+    let lattice = matcher::log_likelihood_lattice(&p.grid, pts, &star, &cfg.matcher, sm, sr);
     let mut samples = Vec::with_capacity(27);
     for a in -1..=1 {
         for b in -1..=1 {
@@ -745,7 +746,7 @@ fn propose(
                     y_m: star.y_m + b as f64 * sm,
                     theta_rad: wrap_angle(star.theta_rad + t as f64 * sr),
                 };
-                let ll = matcher::log_likelihood(&p.grid, pts, &x, &cfg.matcher) + motion_ll(&x);
+                let ll = lattice[(9 * (a + 1) + 3 * (b + 1) + (t + 1)) as usize] + motion_ll(&x);
                 samples.push((x, ll));
             }
         }

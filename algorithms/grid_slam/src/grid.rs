@@ -261,6 +261,17 @@ impl Grid {
         self.mean_of(self.cell(i, j)?, i, j, threshold)
     }
 
+    /// The tile holding every cell of the window (i0..=i1, j0..=j1), `None` if the window spans
+    /// more than one tile (`TileRef::Empty` where nothing was written there).
+    #[inline(always)]
+    pub fn tile_holding(&self, (i0, j0): (i32, i32), (i1, j1): (i32, i32)) -> Option<TileRef<'_>> {
+        let (tx, ty) = (i0 >> TILE_BITS, j0 >> TILE_BITS);
+        if i1 >> TILE_BITS != tx || j1 >> TILE_BITS != ty {
+            return None;
+        }
+        self.tile_around(i0, j0, 0)
+    }
+
     /// The tile holding cell (i, j), when every cell within `margin` cells of it lies in that
     /// tile too: lookups around (i, j) then skip the tile search (the matcher's fast path).
     #[inline(always)]

@@ -209,18 +209,9 @@ struct Nearest {
 /// finds it; `None` where it matches nothing.
 #[inline(always)]
 fn nearest_surface(grid: &Grid, p: &MatcherParams, pose: &Pose2, (s, c): (f64, f64), b: &BeamPoint) -> Option<Nearest> {
-    let to_world = |q: (f64, f64)| (pose.x_m + c * q.0 - s * q.1, pose.y_m + s * q.0 + c * q.1);
-    let k = p.kernel_cells;
-    let hit = to_world(b.hit);
-    let free = to_world(b.free);
+    let (hit, free) = end_points(pose, (s, c), b);
     let (hi, hj) = grid.cell_of(hit.0, hit.1);
-    // One cell towards the sensor, from the beam's direction quantised to the 8 neighbours
-    // (the same whichever cell the end point falls in, so the score has no jumps where it
-    // crosses a cell border).
-    let (bx, by) = (free.0 - hit.0, free.1 - hit.1);
-    let t = 0.414 * bx.abs().max(by.abs());
-    let (di, dj) =
-        (if bx.abs() >= t { bx.signum() as i32 } else { 0 }, if by.abs() >= t { by.signum() as i32 } else { 0 });
+    let k = p.kernel_cells;
     // Within one tile (the window and the cells beside it): no tile search per cell.
     let tile = grid.tile_around(hi, hj, k + 1);
     if matches!(tile, Some(TileRef::Empty)) {
@@ -230,45 +221,230 @@ fn nearest_surface(grid: &Grid, p: &MatcherParams, pose: &Pose2, (s, c): (f64, f
         Some(t) => t.cell(i, j),
         None => grid.cell(i, j),
     };
-    let mut best = f64::INFINITY;
-    let mut m1 = (0.0, 0.0);
-    let (mut second, mut m2) = (f64::INFINITY, (0.0, 0.0));
+    nearest_in_window(
+        p,
+        grid.resolution_m(),
+        hit,
+        (hi, hj),
+        beam_direction(hit, free),
+        |i, j| cell(i, j).and_then(|c| grid.mean_of(c, i, j, p.occupied_log_odds)),
+        |i, j| cell(i, j).is_some_and(|f| f.log_odds > p.occupied_log_odds),
+    )
+}
+
+/// Beam `b`'s end point and the point one cell nearer, in the world at `pose` ((sin θ, cos θ)
+/// given).
+#[inline(always)]
+fn end_points(pose: &Pose2, (s, c): (f64, f64), b: &BeamPoint) -> ((f64, f64), (f64, f64)) {
+    let to_world = |q: (f64, f64)| (pose.x_m + c * q.0 - s * q.1, pose.y_m + s * q.0 + c * q.1);
+    (to_world(b.hit), to_world(b.free))
+}
+
+/// One cell towards the sensor, from the beam's direction quantised to the 8 neighbours (the
+/// same whichever cell the end point falls in, so the score has no jumps where it crosses a
+/// cell border).
+#[inline(always)]
+fn beam_direction(hit: (f64, f64), free: (f64, f64)) -> (i32, i32) {
+    let (bx, by) = (free.0 - hit.0, free.1 - hit.1);
+    let t = 0.414 * bx.abs().max(by.abs());
+    (if bx.abs() >= t { bx.signum() as i32 } else { 0 }, if by.abs() >= t { by.signum() as i32 } else { 0 })
+}
+
+/// The nearest surface to the end point `hit` in cell (hi, hj): among the occupied cells of the
+/// window of `kernel_cells` around it whose neighbour towards the sensor (`dir`) is not occupied,
+/// the nearest mean hit point, and the line through the two nearest. `mean` gives an occupied
+/// cell's mean hit point (`None` if not occupied), `occupied` whether a cell is occupied.
+#[inline(always)]
+fn nearest_in_window(
+    p: &MatcherParams,
+    resolution_m: f64,
+    hit: (f64, f64),
+    (hi, hj): (i32, i32),
+    (di, dj): (i32, i32),
+    mean: impl Fn(i32, i32) -> Option<(f64, f64)>,
+    occupied: impl Fn(i32, i32) -> bool,
+) -> Option<Nearest> {
+    let k = p.kernel_cells;
+    let mut two = TwoNearest::new(hit);
     for yy in -k..=k {
         for xx in -k..=k {
             let (i, j) = (hi + xx, hj + yy);
-            let Some(c) = cell(i, j) else { continue };
-            let Some((mx, my)) = grid.mean_of(c, i, j, p.occupied_log_odds) else { continue };
-            if cell(i + di, j + dj).is_some_and(|f| f.log_odds > p.occupied_log_odds) {
+            let Some(m) = mean(i, j) else { continue };
+            if occupied(i + di, j + dj) {
                 continue;
             }
-            let d2 = (mx - hit.0).powi(2) + (my - hit.1).powi(2);
-            if d2 < best {
-                (second, m2) = (best, m1);
-                (best, m1) = (d2, (mx, my));
-            } else if d2 < second {
-                (second, m2) = (d2, (mx, my));
+            two.push(m);
+        }
+    }
+    two.surface(resolution_m, p.point_to_line)
+}
+
+/// The two mean hit points nearest to an end point, as they are offered.
+struct TwoNearest {
+    hit: (f64, f64),
+    best: f64,
+    m1: (f64, f64),
+    second: f64,
+    m2: (f64, f64),
+}
+
+impl TwoNearest {
+    #[inline(always)]
+    fn new(hit: (f64, f64)) -> Self {
+        Self { hit, best: f64::INFINITY, m1: (0.0, 0.0), second: f64::INFINITY, m2: (0.0, 0.0) }
+    }
+
+    /// Offers mean hit point `m` (ties keep the earlier).
+    #[inline(always)]
+    fn push(&mut self, m: (f64, f64)) {
+        let d2 = (m.0 - self.hit.0).powi(2) + (m.1 - self.hit.1).powi(2);
+        if d2 < self.best {
+            (self.second, self.m2) = (self.best, self.m1);
+            (self.best, self.m1) = (d2, m);
+        } else if d2 < self.second {
+            (self.second, self.m2) = (d2, m);
+        }
+    }
+
+    /// The surface: the nearest point, or the line through the two nearest when
+    /// `point_to_line` and they are at least half a cell apart and the line is nearer; `None`
+    /// if no point was offered.
+    #[inline(always)]
+    fn surface(self, resolution_m: f64, point_to_line: bool) -> Option<Nearest> {
+        let Self { hit, mut best, m1, second, m2 } = self;
+        if !best.is_finite() {
+            return None;
+        }
+        let mut line = None;
+        if point_to_line && second.is_finite() {
+            // The surface through the two nearest mean points; only when they are apart enough
+            // to give it a direction.
+            let (ux, uy) = (m2.0 - m1.0, m2.1 - m1.1);
+            let len2 = ux * ux + uy * uy;
+            if len2 > 0.25 * resolution_m * resolution_m {
+                let cross = ux * (hit.1 - m1.1) - uy * (hit.0 - m1.0);
+                let line2 = cross * cross / len2;
+                if line2 < best {
+                    best = line2;
+                    line = Some((ux, uy, len2));
+                }
+            }
+        }
+        Some(Nearest { hit, m1, line, d2: best })
+    }
+}
+
+/// Side of the largest window of cells [`log_likelihood_lattice`] reads once for the nine
+/// translations of a beam (wider windows: the cells are read per pose).
+const LATTICE_WINDOW: usize = 8;
+
+/// [`log_likelihood`] at the 27 poses of a lattice around `center`: (x + a·step_m, y + b·step_m,
+/// θ + t·step_rad) for a, b, t in −1, 0, 1, at index 9(a+1) + 3(b+1) + (t+1). The same values as
+/// 27 calls, to the last bit; each beam's window of cells is read once per rotation and shared by
+/// the nine translations (the proposal's samples, docs/EQUATIONS.md §8).
+pub fn log_likelihood_lattice(
+    grid: &Grid,
+    scan: &ScanPoints,
+    center: &Pose2,
+    p: &MatcherParams,
+    step_m: f64,
+    step_rad: f64,
+) -> [f64; 27] {
+    let inv_lik = 1.0 / (2.0 * p.likelihood_sigma_m * p.likelihood_sigma_m);
+    let k = p.kernel_cells;
+    let mut out = [0.0; 27];
+    let mut poses = [Pose2::default(); 9];
+    for t in -1..=1 {
+        let theta = omni::wrap_angle(center.theta_rad + t as f64 * step_rad);
+        let sc = theta.sin_cos();
+        for (n, pose) in poses.iter_mut().enumerate() {
+            let (a, b) = (n as i32 / 3 - 1, n as i32 % 3 - 1);
+            *pose =
+                Pose2 { x_m: center.x_m + a as f64 * step_m, y_m: center.y_m + b as f64 * step_m, theta_rad: theta };
+        }
+        let index = |n: usize| 3 * n + (t + 1) as usize;
+        let mut candidates = [(0, 0, (0.0, 0.0)); LATTICE_WINDOW * LATTICE_WINDOW];
+        for beam in &scan.points {
+            let mut ends = [((0.0, 0.0), (0, 0), (0, 0)); 9];
+            let (mut lo, mut hi) = ((i32::MAX, i32::MAX), (i32::MIN, i32::MIN));
+            for (end, pose) in ends.iter_mut().zip(&poses) {
+                let (hit, free) = end_points(pose, sc, beam);
+                let cell = grid.cell_of(hit.0, hit.1);
+                (lo, hi) = ((lo.0.min(cell.0), lo.1.min(cell.1)), (hi.0.max(cell.0), hi.1.max(cell.1)));
+                *end = (hit, cell, beam_direction(hit, free));
+            }
+            // Every cell a translation's window or its neighbours towards the sensor can touch.
+            let (i0, j0) = (lo.0 - k - 1, lo.1 - k - 1);
+            let (i1, j1) = (hi.0 + k + 1, hi.1 + k + 1);
+            let (w, h) = ((i1 - i0 + 1) as usize, (j1 - j0 + 1) as usize);
+            if w > LATTICE_WINDOW || h > LATTICE_WINDOW {
+                for (n, pose) in poses.iter().enumerate() {
+                    out[index(n)] += match nearest_surface(grid, p, pose, sc, beam) {
+                        Some(near) => -near.d2 * inv_lik,
+                        None => p.null_log_likelihood,
+                    };
+                }
+                continue;
+            }
+            let tile = grid.tile_holding((i0, j0), (i1, j1));
+            if matches!(tile, Some(TileRef::Empty)) {
+                for n in 0..9 {
+                    out[index(n)] += p.null_log_likelihood;
+                }
+                continue;
+            }
+            // The window's matchable cells (occupied, the neighbour towards the sensor not), in
+            // the order nearest_in_window visits them; the nine translations' directions agree
+            // unless rounding splits them, and then each reads its own.
+            let dir = ends[0].2;
+            let shared_dir = ends.iter().all(|e| e.2 == dir);
+            let cell_at = |i: i32, j: i32| match &tile {
+                Some(t) => t.cell(i, j),
+                None => grid.cell(i, j),
+            };
+            let mut count = 0;
+            if shared_dir {
+                for j in j0 + 1..j1 {
+                    for i in i0 + 1..i1 {
+                        let Some(m) = cell_at(i, j).and_then(|c| grid.mean_of(c, i, j, p.occupied_log_odds)) else {
+                            continue;
+                        };
+                        if cell_at(i + dir.0, j + dir.1).is_some_and(|f| f.log_odds > p.occupied_log_odds) {
+                            continue;
+                        }
+                        candidates[count] = (i, j, m);
+                        count += 1;
+                    }
+                }
+            }
+            for (n, &(hit, (hi, hj), d)) in ends.iter().enumerate() {
+                let near = if shared_dir {
+                    let mut two = TwoNearest::new(hit);
+                    for &(i, j, m) in &candidates[..count] {
+                        if (i - hi).abs() <= k && (j - hj).abs() <= k {
+                            two.push(m);
+                        }
+                    }
+                    two.surface(grid.resolution_m(), p.point_to_line)
+                } else {
+                    nearest_in_window(
+                        p,
+                        grid.resolution_m(),
+                        hit,
+                        (hi, hj),
+                        d,
+                        |i, j| cell_at(i, j).and_then(|c| grid.mean_of(c, i, j, p.occupied_log_odds)),
+                        |i, j| cell_at(i, j).is_some_and(|c| c.log_odds > p.occupied_log_odds),
+                    )
+                };
+                out[index(n)] += match near {
+                    Some(near) => -near.d2 * inv_lik,
+                    None => p.null_log_likelihood,
+                };
             }
         }
     }
-    if !best.is_finite() {
-        return None;
-    }
-    let mut line = None;
-    if p.point_to_line && second.is_finite() {
-        // The surface through the two nearest mean points; only when they are apart enough to
-        // give it a direction.
-        let (ux, uy) = (m2.0 - m1.0, m2.1 - m1.1);
-        let len2 = ux * ux + uy * uy;
-        if len2 > 0.25 * grid.resolution_m() * grid.resolution_m() {
-            let cross = ux * (hit.1 - m1.1) - uy * (hit.0 - m1.0);
-            let line2 = cross * cross / len2;
-            if line2 < best {
-                best = line2;
-                line = Some((ux, uy, len2));
-            }
-        }
-    }
-    Some(Nearest { hit, m1, line, d2: best })
+    out
 }
 
 /// Gauss-Newton on the score from `start`: steps −H⁻¹g, halved until the score rises (at most
@@ -560,6 +736,48 @@ mod tests {
         assert!(after[0].abs() < 0.5 * start.x_m.abs(), "{after:?}");
         assert!(after[1].abs() < 0.5 * start.y_m.abs(), "{after:?}");
         assert!(after[2].abs() < 0.5 * start.theta_rad.abs(), "{after:?}");
+    }
+
+    #[test]
+    fn the_lattice_evaluation_equals_27_evaluations_to_the_last_bit() {
+        // The shared-window evaluation of the proposal's lattice gives what 27 calls of
+        // log_likelihood give, exactly: around the room's centre (windows across tile borders
+        // and inside tiles), with steps wider than the shared window (read per pose), and with
+        // point-to-point distances.
+        let (g, pts) = room();
+        let p = MatcherParams::default();
+        let centres =
+            [Pose2 { x_m: 0.013, y_m: -0.021, theta_rad: 0.004 }, Pose2 { x_m: -0.4, y_m: 0.3, theta_rad: 2.9 }];
+        for params in [p, MatcherParams { point_to_line: false, kernel_cells: 2, ..p }] {
+            for centre in &centres {
+                for (sm, sr) in [(0.02, 0.01), (0.2, 0.05)] {
+                    let got = log_likelihood_lattice(&g, &pts, centre, &params, sm, sr);
+                    for a in -1..=1 {
+                        for b in -1..=1 {
+                            for t in -1..=1 {
+                                let x = Pose2 {
+                                    x_m: centre.x_m + a as f64 * sm,
+                                    y_m: centre.y_m + b as f64 * sm,
+                                    theta_rad: omni::wrap_angle(centre.theta_rad + t as f64 * sr),
+                                };
+                                let want = log_likelihood(&g, &pts, &x, &params);
+                                let n = (9 * (a + 1) + 3 * (b + 1) + (t + 1)) as usize;
+                                assert_eq!(
+                                    got[n].to_bits(),
+                                    want.to_bits(),
+                                    "{x:?} ({sm}, {sr}): {} against {want}",
+                                    got[n]
+                                );
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        // Beyond the mapped area every beam matches nothing.
+        let far = Pose2 { x_m: 100.0, y_m: 100.0, theta_rad: 0.0 };
+        let got = log_likelihood_lattice(&g, &pts, &far, &p, 0.02, 0.01);
+        assert!(got.iter().all(|&l| l == p.null_log_likelihood * pts.points.len() as f64), "{got:?}");
     }
 
     /// A room 8 × 5 m turned 17° against the grid, scanned (360 beams, noiseless) at `pose`.
