@@ -9,7 +9,7 @@
 //! in the laser's plane (double walls where a loop is not closed).
 
 use grid_slam::backend::{BackEnd, BackEndConfig};
-use grid_slam::{GridSlam, GridSlamConfig, Pose2, ScanGeometry};
+use grid_slam::{GridSlam, GridSlamConfig, Pose2, ProposalLikelihood, ScanGeometry};
 use sim::indoor::{Building, IndoorConfig, IndoorEvent, IndoorScene, IndoorSim};
 use std::time::Instant;
 
@@ -114,6 +114,10 @@ fn main() {
             if let Some(v) = num("--gauss-newton") {
                 cfg.matcher.gauss_newton = v != 0.0;
             }
+            if let Some(v) = num("--modelled-proposal") {
+                cfg.proposal_likelihood =
+                    if v != 0.0 { ProposalLikelihood::Modelled } else { ProposalLikelihood::Evaluated };
+            }
             if let Some(v) = num("--point-to-line") {
                 cfg.matcher.point_to_line = v != 0.0;
             }
@@ -126,7 +130,11 @@ fn main() {
                 cfg.motion.str_ = v;
             }
             let mut f = GridSlam::new(cfg, geom).expect("filter");
-            let mut be = BackEnd::new(BackEndConfig { threads, ..Default::default() }).expect("back end");
+            let mut be_cfg = BackEndConfig { threads, ..Default::default() };
+            if let Some(v) = num("--be-rounds") {
+                be_cfg.rounds = v as usize;
+            }
+            let mut be = BackEnd::new(be_cfg).expect("back end");
             let started = Instant::now();
             let mut odom = Pose2::default();
             for e in &events {

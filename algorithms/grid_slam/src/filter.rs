@@ -13,7 +13,7 @@
 //! particle's path (loop closures included) at every scan.
 
 use crate::GridSlamError;
-pub use crate::config::{GridSlamConfig, MotionNoise, ScanGeometry};
+pub use crate::config::{GridSlamConfig, MotionNoise, ProposalLikelihood, ScanGeometry};
 use crate::grid::{Grid, LogOddsParams};
 use crate::matcher::{self, BeamPoint, ScanPoints};
 use omni::{Pose2, wrap_angle};
@@ -730,13 +730,29 @@ fn propose(
     if pts.points.is_empty() {
         return fallback(rng);
     }
-    let (star, f) = matcher::optimize(&p.grid, pts, &predicted, &cfg.matcher);
-    if f.score < min_score {
-        return fallback(rng);
-    }
-    // τ_j = p(z | m, x_j) · p(x_j | x', u) at a 3×3×3 lattice around the match.
     let (sm, sr) = (cfg.proposal_step_m, cfg.proposal_step_rad);
-    let lattice = matcher::log_likelihood_lattice(&p.grid, pts, &star, &cfg.matcher, sm, sr);
+    // τ_j = p(z | m, x_j) · p(x_j | x', u) at a 3×3×3 lattice around the match.
+    let (star, lattice) = match cfg.proposal_likelihood {
+        ProposalLikelihood::Evaluated => {
+            let (star, f) = matcher::optimize(&p.grid, pts, &predicted, &cfg.matcher);
+            if f.score < min_score {
+                return fallback(rng);
+            }
+            (star, matcher::log_likelihood_lattice(&p.grid, pts, &star, &cfg.matcher, sm, sr))
+        }
+        ProposalLikelihood::Modelled => {
+            let (star, f, model) = matcher::optimize_modelled(&p.grid, pts, &predicted, &cfg.matcher);
+            if f.score < min_score {
+                return fallback(rng);
+            }
+            let mut lattice = [0.0; 27];
+            for (n, ll) in lattice.iter_mut().enumerate() {
+                let (a, b, t) = ((n / 9) as f64 - 1.0, ((n / 3) % 3) as f64 - 1.0, (n % 3) as f64 - 1.0);
+                *ll = model.at([a * sm, b * sm, t * sr]);
+            }
+            (star, lattice)
+        }
+    };
     let mut samples = Vec::with_capacity(27);
     for a in -1..=1 {
         for b in -1..=1 {

@@ -28,7 +28,7 @@ pub mod relations;
 
 pub use filter::{
     GridSlam, GridSlamConfig, GridSlamStats, MapBeam, MemoryStats, MotionNoise, NeffSummary, PreparedScan,
-    ScanGeometry, ScanOutcome,
+    ProposalLikelihood, ScanGeometry, ScanOutcome,
 };
 pub use omni::Pose2;
 

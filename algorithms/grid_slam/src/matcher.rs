@@ -153,18 +153,27 @@ fn fit_every(grid: &Grid, scan: &ScanPoints, stride: usize, pose: &Pose2, p: &Ma
 /// through the two nearest mean points, or the offset from the nearest), J = ∂r/∂(x, y, θ),
 /// w = exp(−d²/2σ_s²): a step −H⁻¹g is the reweighted least-squares step towards the score's
 /// maximum (docs/EQUATIONS.md §8).
-fn linearize(grid: &Grid, scan: &ScanPoints, pose: &Pose2, p: &MatcherParams) -> (Fit, [[f64; 3]; 3], [f64; 3]) {
+///
+/// Also the log-likelihood's own Gauss-Newton model there ([`LikelihoodModel`]: the same
+/// residuals and Jacobians, unweighted, scaled by 1/σ_l²), which the proposal can take instead of
+/// evaluating its lattice.
+fn linearize(grid: &Grid, scan: &ScanPoints, pose: &Pose2, p: &MatcherParams) -> Linearized {
     let (s, c) = pose.theta_rad.sin_cos();
     let inv_score = 1.0 / (2.0 * p.score_sigma_m * p.score_sigma_m);
     let inv_lik = 1.0 / (2.0 * p.likelihood_sigma_m * p.likelihood_sigma_m);
     let (mut score, mut ll, mut matched) = (0.0, 0.0, 0usize);
     let mut h = [[0.0; 3]; 3];
     let mut g = [0.0; 3];
+    // Σ JᵀJ and Σ J r over the matched beams, unweighted (the log-likelihood's model).
+    let mut hl = [[0.0; 3]; 3];
+    let mut gl = [0.0; 3];
     let mut add = |w: f64, r: f64, j: [f64; 3]| {
         for a in 0..3 {
             g[a] += w * j[a] * r;
+            gl[a] += j[a] * r;
             for b in 0..3 {
                 h[a][b] += w * j[a] * j[b];
+                hl[a][b] += j[a] * j[b];
             }
         }
     };
@@ -192,7 +201,51 @@ fn linearize(grid: &Grid, scan: &ScanPoints, pose: &Pose2, p: &MatcherParams) ->
             }
         }
     }
-    (Fit { score, log_likelihood: ll, matched }, h, g)
+    // ll = −Σ r²/2σ_l²: its gradient is −Σ J r/σ_l², the Hessian of −ll ≈ Σ JᵀJ/σ_l².
+    let k = 2.0 * inv_lik;
+    let model = LikelihoodModel {
+        log_likelihood: ll,
+        gradient: gl.map(|v| -k * v),
+        curvature: hl.map(|row| row.map(|v| k * v)),
+    };
+    Linearized { fit: Fit { score, log_likelihood: ll, matched }, h, g, model }
+}
+
+/// What [`linearize`] gives at a pose.
+struct Linearized {
+    fit: Fit,
+    /// The score's normal equations (weighted): H and g.
+    h: [[f64; 3]; 3],
+    g: [f64; 3],
+    /// The log-likelihood's quadratic model.
+    model: LikelihoodModel,
+}
+
+/// The log-likelihood's Gauss-Newton model around a pose: ln p(z | m, x + δ) ≈ ℓ + gᵀδ −
+/// ½ δᵀCδ, δ = (dx, dy, dθ) in the world frame with the rotation about the pose's own origin
+/// (docs/EQUATIONS.md §8). The beams keep the surfaces they matched at the pose, and the beams
+/// that matched nothing keep their constant term.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LikelihoodModel {
+    /// ℓ, the log-likelihood at the pose ([`Fit::log_likelihood`]).
+    pub log_likelihood: f64,
+    /// g = ∂ℓ/∂(x, y, θ), per m and per rad.
+    pub gradient: [f64; 3],
+    /// C = Σ JᵀJ / σ_l², the Gauss-Newton curvature of −ℓ (positive semi-definite).
+    pub curvature: [[f64; 3]; 3],
+}
+
+impl LikelihoodModel {
+    /// The model's log-likelihood at offset `d` = (dx m, dy m, dθ rad).
+    pub fn at(&self, d: [f64; 3]) -> f64 {
+        let mut q = 0.0;
+        for a in 0..3 {
+            for b in 0..3 {
+                q += d[a] * self.curvature[a][b] * d[b];
+            }
+        }
+        self.log_likelihood + self.gradient[0] * d[0] + self.gradient[1] * d[1] + self.gradient[2] * d[2] - 0.5 * q
+    }
 }
 
 /// What a beam's end point matched: the end point (world), the nearest mean point, the line's
@@ -460,6 +513,8 @@ const STEP_TOLERANCE_RAD: f64 = 1e-3;
 struct GaussNewton {
     pose: Pose2,
     fit: Fit,
+    /// The log-likelihood's model at `pose`.
+    model: LikelihoodModel,
     /// It converged or raised the score (`false`: `pose` is the start, where no step raised the
     /// score).
     done: bool,
@@ -487,7 +542,7 @@ fn gauss_newton(
     };
     let mut done = false;
     for _ in 0..MAX_ITERATIONS {
-        let (f, h, g) = &lin;
+        let Linearized { fit: f, h, g, .. } = &lin;
         // Levenberg's damping, relative to the diagonal, keeps a step defined where the scan
         // constrains a direction weakly (a corridor's length).
         let mut a = *h;
@@ -511,7 +566,7 @@ fn gauss_newton(
             };
             let next = linearize(grid, scan, &cand, p);
             evaluations += 1;
-            if next.0.score > f.score {
+            if next.fit.score > f.score {
                 (pose, lin) = (cand, next);
                 done = true;
                 accepted = true;
@@ -523,7 +578,7 @@ fn gauss_newton(
             break;
         }
     }
-    GaussNewton { pose, fit: lin.0, done, evaluations }
+    GaussNewton { pose, fit: lin.fit, model: lin.model, done, evaluations }
 }
 
 /// Lower Cholesky factor of a 3×3 symmetric matrix; `None` if it is not positive definite.
@@ -591,6 +646,25 @@ pub fn exp_neg(y: f64) -> f64 {
 /// this visits the same optimum with about 63 instead of 82 fits per match (indoor mission).
 /// Returns the best pose found and its fit.
 pub fn optimize(grid: &Grid, scan: &ScanPoints, start: &Pose2, p: &MatcherParams) -> (Pose2, Fit) {
+    let (pose, fit, _) = search(grid, scan, start, p);
+    (pose, fit)
+}
+
+/// [`optimize`], with the log-likelihood's quadratic model at the match (Gauss-Newton's last
+/// linearisation, or one more where the match did not end by Gauss-Newton).
+pub fn optimize_modelled(
+    grid: &Grid,
+    scan: &ScanPoints,
+    start: &Pose2,
+    p: &MatcherParams,
+) -> (Pose2, Fit, LikelihoodModel) {
+    let (pose, fit, model) = search(grid, scan, start, p);
+    let model = model.unwrap_or_else(|| linearize(grid, scan, &pose, p).model);
+    (pose, fit, model)
+}
+
+/// [`optimize`]'s search; the log-likelihood's model at the result where Gauss-Newton ended it.
+fn search(grid: &Grid, scan: &ScanPoints, start: &Pose2, p: &MatcherParams) -> (Pose2, Fit, Option<LikelihoodModel>) {
     let mut current = *start;
     // Coarse to fine: the first `coarse_refinements` step sizes poll every `coarse_stride`-th
     // point, the finer ones all of them.
@@ -630,7 +704,7 @@ pub fn optimize(grid: &Grid, scan: &ScanPoints, start: &Pose2, p: &MatcherParams
                 gauss_newton_tried = true;
                 let gn = gauss_newton(grid, scan, &current, p, (STEP_TOLERANCE_M, STEP_TOLERANCE_RAD));
                 if gn.done {
-                    return (gn.pose, gn.fit);
+                    return (gn.pose, gn.fit, Some(gn.model));
                 }
             }
             if refinement >= p.refinements {
@@ -652,7 +726,7 @@ pub fn optimize(grid: &Grid, scan: &ScanPoints, start: &Pose2, p: &MatcherParams
     if stride > 1 {
         current_fit = fit(grid, scan, &current, p);
     }
-    (current, current_fit)
+    (current, current_fit, None)
 }
 
 #[cfg(test)]
@@ -798,7 +872,7 @@ mod tests {
         let (g, pts) = room();
         let p = MatcherParams::default();
         let start = Pose2 { x_m: 0.02, y_m: -0.015, theta_rad: 0.01 };
-        let (f, h, grad) = linearize(&g, &pts, &start, &p);
+        let Linearized { fit: f, h, g: grad, .. } = linearize(&g, &pts, &start, &p);
         assert_eq!(f, fit(&g, &pts, &start, &p));
         let step = solve3(&h, &grad).expect("positive definite");
         let after = [start.x_m - step[0], start.y_m - step[1], start.theta_rad - step[2]];
@@ -847,6 +921,36 @@ mod tests {
         let far = Pose2 { x_m: 100.0, y_m: 100.0, theta_rad: 0.0 };
         let got = log_likelihood_lattice(&g, &pts, &far, &p, 0.02, 0.01);
         assert!(got.iter().all(|&l| l == p.null_log_likelihood * pts.points.len() as f64), "{got:?}");
+    }
+
+    #[test]
+    fn the_likelihood_model_is_the_evaluated_likelihood_near_the_match() {
+        // At the match the model's value is the fit's own; over the proposal's lattice (2 cm,
+        // 0.01 rad) it follows the evaluated log-likelihood's drop from there to a fifth (the
+        // beams keep the surfaces they matched); its curvature is positive definite where the
+        // room constrains every direction. With hill climbing alone the model is made at its
+        // own match.
+        let (g, pts) = room();
+        let p = MatcherParams::default();
+        let start = Pose2 { x_m: 0.03, y_m: -0.02, theta_rad: 0.015 };
+        for params in [p, MatcherParams { gauss_newton: false, ..p }] {
+            let (star, f, model) = optimize_modelled(&g, &pts, &start, &params);
+            assert_eq!((star, f), optimize(&g, &pts, &start, &params));
+            assert_eq!(model.log_likelihood, f.log_likelihood);
+            assert!(cholesky3(&model.curvature).is_some(), "{model:?}");
+            let evaluated = log_likelihood_lattice(&g, &pts, &star, &params, 0.02, 0.01);
+            for (n, &want) in evaluated.iter().enumerate() {
+                let d =
+                    [0.02 * ((n / 9) as f64 - 1.0), 0.02 * (((n / 3) % 3) as f64 - 1.0), 0.01 * ((n % 3) as f64 - 1.0)];
+                let got = model.at(d);
+                let drop = f.log_likelihood - want;
+                assert!(
+                    (got - want).abs() <= 0.2 * drop.abs() + 0.5,
+                    "{d:?}: model {got}, evaluated {want} (at the match {})",
+                    f.log_likelihood
+                );
+            }
+        }
     }
 
     /// A room 8 × 5 m turned 17° against the grid, scanned (360 beams, noiseless) at `pose`.
