@@ -4,7 +4,9 @@
 //! summary.json's `ate_m.grid_slam`), the heading error at the end and the wall time.
 //!
 //! `cargo run --release -p grid_slam --example indoor_eval -- --sim-seeds 1 --filter-seeds 1-4 [--particles 30]`
-//! `[--building ring]` (the 148 m corridor ring) `[--back-end]` (the pose graph behind the filter):
+//! `[--building ring]` (the 148 m corridor ring) `[--back-end]` (the pose graph behind the filter)
+//! `[--probe [--gauss-newton 0|1] [--probe-dth DEG]]` (the matcher alone: each scan matched on a map
+//! built at the true poses, from the true pose turned by DEG degrees; prints the mean offset):
 //! then also the share of the final grid's occupied cells more than 0.1 m from every true surface
 //! in the laser's plane (double walls where a loop is not closed).
 
@@ -69,7 +71,11 @@ fn main() {
             body_from_laser: Pose2 { x_m: l.offset_m[0], y_m: l.offset_m[1], theta_rad: 0.0 },
         };
         if args.iter().any(|a| a == "--probe") {
-            probe(&events, &truth, &geom, &GridSlamConfig::default());
+            let mut cfg = GridSlamConfig::default();
+            if let Some(v) = arg("--gauss-newton") {
+                cfg.matcher.gauss_newton = v != "0";
+            }
+            probe(&events, &truth, &geom, &cfg);
             continue;
         }
         for &fs in &filter_seeds {
@@ -258,6 +264,10 @@ fn probe(events: &[IndoorEvent], truth: &[(f64, Pose2)], geom: &ScanGeometry, cf
     let mut grid = Grid::new(cfg.resolution_m);
     let mut last: Option<Pose2> = None;
     let (mut n, mut sx, mut sy, mut st, mut s2) = (0, 0.0, 0.0, 0.0, 0.0);
+    let probe_dth_deg: f64 = std::env::args()
+        .skip_while(|a| a != "--probe-dth")
+        .nth(1)
+        .map_or(0.0, |v| v.parse().expect("--probe-dth: degrees"));
     for e in events {
         let IndoorEvent::Laser { t_s, ranges } = e else { continue };
         let k = truth.partition_point(|(s, _)| s < t_s).min(truth.len() - 1);
@@ -280,7 +290,9 @@ fn probe(events: &[IndoorEvent], truth: &[(f64, Pose2)], geom: &ScanGeometry, cf
             ends.push((h.x_m, h.y_m));
         }
         if last.is_some() {
-            let (m, _) = optimize(&grid, &pts, &tp, &cfg.matcher);
+            // Matched from the true pose turned by `--probe-dth` degrees (0: from the truth).
+            let start = tp.compose(&Pose2 { x_m: 0.0, y_m: 0.0, theta_rad: probe_dth_deg.to_radians() });
+            let (m, _) = optimize(&grid, &pts, &start, &cfg.matcher);
             let e = tp.between(&m);
             n += 1;
             sx += e.x_m;
