@@ -75,6 +75,9 @@ fn main() {
             if let Some(v) = arg("--gauss-newton") {
                 cfg.matcher.gauss_newton = v != "0";
             }
+            if let Some(v) = arg("--angular-step") {
+                cfg.matcher.angular_step_rad = v.parse().expect("--angular-step: rad");
+            }
             probe(&events, &truth, &geom, &cfg);
             continue;
         }
@@ -119,6 +122,9 @@ fn main() {
             }
             if let Some(v) = num("--gauss-newton") {
                 cfg.matcher.gauss_newton = v != 0.0;
+            }
+            if let Some(v) = num("--angular-step") {
+                cfg.matcher.angular_step_rad = v;
             }
             if let Some(v) = num("--modelled-proposal") {
                 cfg.proposal_likelihood =
