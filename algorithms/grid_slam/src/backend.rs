@@ -177,13 +177,18 @@ pub struct BackEndReport {
     pub mean_correction_m: f64,
     /// Optimiser iterations over all rounds.
     pub iterations: usize,
-    /// Seconds spent building submaps and their search grids.
+    /// Seconds spent building submaps and their search grids, summed over the threads (the
+    /// submaps are built and searched on all threads, a submap per thread at a time).
     pub submaps_s: f64,
-    /// ... searching (wall time over the threads).
+    /// Wall time of building and searching the submaps.
     pub search_s: f64,
     /// ... optimising.
     pub optimise_s: f64,
 }
+
+/// One submap's search: the matches (anchor, node, `anchor_from_node`), the pairs tried and the
+/// seconds spent building its grid.
+type SubmapSearch = (Vec<(usize, usize, Pose2)>, Vec<(usize, usize)>, f64);
 
 /// The back end's result.
 #[derive(Debug, Clone)]
@@ -343,8 +348,9 @@ impl BackEnd {
         let mut tried = std::collections::HashSet::new();
         let params = OptimizeParams { fixed: 0, ..Default::default() };
         for _round in 0..cfg.rounds {
-            let mut found = Vec::new();
-            for &s0 in &starts {
+            // Each submap (its candidates, its grid, their matches) goes to a thread from a queue;
+            // the pairs tried and the matches are merged after the round, in submap order.
+            let search_submap = |s0: usize| -> Option<SubmapSearch> {
                 let members = s0..(s0 + k).min(n);
                 let anchor = front[s0];
                 let anchor_est = est[s0];
@@ -391,7 +397,7 @@ impl BackEnd {
                     }
                 }
                 if cands.is_empty() {
-                    continue;
+                    return None;
                 }
                 let t_build = std::time::Instant::now();
                 let mut grid = Grid::new(fcfg.resolution_m);
@@ -400,47 +406,55 @@ impl BackEnd {
                     let sm = scan(m);
                     GridSlam::integrate(&mut grid, &local, sm.origin, &sm.beams, &fcfg.log_odds);
                 }
-                let Some(lookup) = LookupGrid::new(&grid, fcfg.matcher.occupied_log_odds, cfg.depth) else {
-                    continue;
-                };
-                report.submaps_s += t_build.elapsed().as_secs_f64();
-                let t_search = std::time::Instant::now();
-                for &(i, _, _) in &cands {
-                    tried.insert((s0, i));
+                let lookup = LookupGrid::new(&grid, fcfg.matcher.occupied_log_odds, cfg.depth)?;
+                let build_s = t_build.elapsed().as_secs_f64();
+                let mut matched = Vec::new();
+                for &(i, initial, w) in &cands {
+                    let Some(m) = correlative::search(&lookup, &points[i], &initial, w, cfg.min_score) else {
+                        continue;
+                    };
+                    // Refine with the filter's matcher on the submap's grid.
+                    let (refined, _) = matcher::optimize(&grid, &scan(i).points, &m.pose, &fcfg.matcher);
+                    let moved = (refined.x_m - m.pose.x_m).hypot(refined.y_m - m.pose.y_m);
+                    let pose = if moved <= 2.0 * fcfg.resolution_m
+                        && omni::wrap_angle(refined.theta_rad - m.pose.theta_rad).abs() < 0.02
+                    {
+                        refined
+                    } else {
+                        m.pose
+                    };
+                    matched.push((s0, i, pose));
                 }
-                report.searched += cands.len();
-                let next = std::sync::atomic::AtomicUsize::new(0);
-                let results = std::sync::Mutex::new(Vec::new());
-                std::thread::scope(|scope| {
-                    for _ in 0..threads.min(cands.len()).max(1) {
-                        scope.spawn(|| {
-                            loop {
-                                let c = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                                let Some(&(i, initial, w)) = cands.get(c) else { break };
-                                let Some(m) = correlative::search(&lookup, &points[i], &initial, w, cfg.min_score)
-                                else {
-                                    continue;
-                                };
-                                // Refine with the filter's matcher on the submap's grid.
-                                let (refined, _) = matcher::optimize(&grid, &scan(i).points, &m.pose, &fcfg.matcher);
-                                let moved = (refined.x_m - m.pose.x_m).hypot(refined.y_m - m.pose.y_m);
-                                let pose = if moved <= 2.0 * fcfg.resolution_m
-                                    && omni::wrap_angle(refined.theta_rad - m.pose.theta_rad).abs() < 0.02
-                                {
-                                    refined
-                                } else {
-                                    m.pose
-                                };
-                                if let Ok(mut r) = results.lock() {
-                                    r.push((i, pose));
-                                }
+                let pairs: Vec<(usize, usize)> = cands.iter().map(|&(i, _, _)| (s0, i)).collect();
+                Some((matched, pairs, build_s))
+            };
+            let t_phase = std::time::Instant::now();
+            let next = std::sync::atomic::AtomicUsize::new(0);
+            let results = std::sync::Mutex::new(Vec::new());
+            std::thread::scope(|scope| {
+                for _ in 0..threads.min(starts.len()).max(1) {
+                    scope.spawn(|| {
+                        loop {
+                            let c = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                            let Some(&s0) = starts.get(c) else { break };
+                            if let Some(r) = search_submap(s0)
+                                && let Ok(mut all) = results.lock()
+                            {
+                                all.push((s0, r));
                             }
-                        });
-                    }
-                });
-                report.search_s += t_search.elapsed().as_secs_f64();
-                let r = results.into_inner().unwrap_or_default();
-                found.extend(r.into_iter().map(|(i, pose)| (s0, i, pose)));
+                        }
+                    });
+                }
+            });
+            report.search_s += t_phase.elapsed().as_secs_f64();
+            let mut results = results.into_inner().unwrap_or_default();
+            results.sort_by_key(|r| r.0);
+            let mut found = Vec::new();
+            for (_, (matched, pairs, build_s)) in results {
+                report.submaps_s += build_s;
+                report.searched += pairs.len();
+                tried.extend(pairs);
+                found.extend(matched);
             }
             report.matches += found.len();
             let new_edges = found.len();
