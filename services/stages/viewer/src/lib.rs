@@ -8,7 +8,7 @@
 //! | `/ground_truth/path`, `/slam/path`, `/buoy/path`, `/fused/path`, `/grid_slam/path` | `foxglove.PosesInFrame` | the trajectories so far (world frame; ground truth from `<out_dir>/ground_truth.tum` as the source writes it) |
 //! | `/fused/pose` | `foxglove.PoseInFrame` | the latest fused pose |
 //! | `/cloud` | `foxglove.PointCloud` | the current point cloud (x, y, z float32; placed at the sensor pose when it has one) |
-//! | `/landmarks` | `foxglove.PointCloud` | the landmark map (the fused global map, else SLAM's) |
+//! | `/landmarks` | `foxglove.PointCloud` | the landmark map (the fused global map once it holds a landmark, else SLAM's) |
 //! | `/octree` | `foxglove.PointCloud` | the octree's occupied voxels (centres; x, y, z, occupancy, class) |
 //! | `/grid` | `foxglove.Grid` | the 2-D SLAM's occupancy grid (int8, -1 unknown, 0-100) |
 //! | `/processes` | `foxglove.Log` | each process's state from its heartbeats, once a second |

@@ -152,6 +152,9 @@ pub struct ViewerStage {
     counts: BTreeMap<&'static str, Counts>,
     cloud_every: Every,
     landmarks_every: Every,
+    /// A fused global map with at least one landmark has come: `/landmarks` shows fusion's map
+    /// from then on.
+    fused_landmarks: bool,
     octree_every: Every,
     grid_every: Every,
     path_every: Every,
@@ -322,10 +325,19 @@ impl ViewerStage {
 
     fn drain_landmarks(&mut self) -> Result<(), StageError> {
         let watched = self.landmarks_ch.has_sinks();
-        // The fused global map when there is one, else SLAM's best particle's map.
-        for input in [&self.fusion_map, &self.slam_landmarks].into_iter().flatten() {
+        // The fused global map once it holds a landmark, else SLAM's best particle's map (an
+        // empty fused map, before fusion's first local map is done, hides nothing: it is not
+        // shown or counted for the channel).
+        for (fused, input) in [(true, &self.fusion_map), (false, &self.slam_landmarks)] {
+            let Some(input) = input else { continue };
             let mut latest = None;
             while let Some(s) = input.receive()? {
+                if fused && !self.fused_landmarks {
+                    if s.payload().is_empty() {
+                        continue;
+                    }
+                    self.fused_landmarks = true;
+                }
                 let c = self.counts.entry("/landmarks").or_default();
                 if Self::wanted(c, watched, &mut self.landmarks_every) {
                     latest = Some(fx::landmarks(s.user_header(), s.payload()));
@@ -334,8 +346,8 @@ impl ViewerStage {
             if let Some(m) = latest {
                 self.landmarks_ch.log(&m);
             }
-            if self.fusion_map.is_some() && self.counts.get("/landmarks").is_some_and(|c| c.received > 0) {
-                // Once the fused map comes, SLAM's is not shown (it is drained all the same).
+            if fused && self.fused_landmarks {
+                // Once the fused map has landmarks, SLAM's is not shown (it is drained all the same).
                 if let Some(i) = &self.slam_landmarks {
                     while i.receive()?.is_some() {}
                 }
@@ -555,6 +567,7 @@ impl Stage for ViewerStage {
         Ok(Self {
             cloud_every: Every::hz(settings.cloud_max_hz),
             landmarks_every: Every::hz(settings.map_max_hz),
+            fused_landmarks: false,
             octree_every: Every::hz(settings.map_max_hz),
             grid_every: Every::hz(settings.map_max_hz),
             path_every: Every::hz(settings.path_max_hz),
