@@ -168,6 +168,12 @@ impl<S: Stage> StageHarness<S> {
         header
     }
 
+    /// Skips `n` sequence numbers of `service`, as if a publisher had sent `n` messages that
+    /// never reached the stage (lost in a full queue, or sent before it connected).
+    pub fn lose(&self, service: &str, n: u64) {
+        *self.seqs.borrow_mut().entry(service.to_string()).or_default() += n;
+    }
+
     /// Queues a fixed-size message for every input of the stage on `service` (`seq`,
     /// `publish_ns` and a zero `origin_ns` are stamped as a publisher would). An error when the
     /// stage has no input on `service`, or one of another type.

@@ -195,6 +195,8 @@ pub struct OctreeMapperStage {
     last_voxels: Instant,
     last_stamp: u64,
     last_cloud_seq: Option<u64>,
+    /// A restarted instance (its first cloud is not the stream's first).
+    restarted: bool,
     out_dir: std::path::PathBuf,
 }
 
@@ -338,11 +340,18 @@ impl OctreeMapperStage {
             let Some(s) = self.clouds.receive()? else { return Ok(true) };
             let h = s.user_header();
             self.last_stamp = self.last_stamp.max(h.msg.stamp_ns);
-            if let Some(prev) = self.last_cloud_seq
-                && h.msg.seq > prev + 1
+            // A publisher numbers its messages from 0: a first cloud with a later number means
+            // the ones before it never reached this mapper (its queue overflowed before the first
+            // wake-up, or it connected late). A restarted mapper starts mid-stream on purpose.
+            let expected = match self.last_cloud_seq {
+                Some(prev) => Some(prev + 1),
+                None => (!self.restarted).then_some(0),
+            };
+            if let Some(expected) = expected
+                && h.msg.seq > expected
             {
-                self.st.counters.clouds_missed += h.msg.seq - prev - 1;
-                self.clouds.count_dropped("missed: sequence gap", h.msg.seq - prev - 1);
+                self.st.counters.clouds_missed += h.msg.seq - expected;
+                self.clouds.count_dropped("missed: sequence gap", h.msg.seq - expected);
             }
             self.last_cloud_seq = Some(h.msg.seq);
             let own_pose = (h.flags & CLOUD_HAS_POSE != 0)
@@ -435,6 +444,7 @@ impl Stage for OctreeMapperStage {
             last_voxels: Instant::now(),
             last_stamp: 0,
             last_cloud_seq: None,
+            restarted: false,
             out_dir: ctx.out_dir.clone(),
             settings,
         })
@@ -450,6 +460,7 @@ impl Stage for OctreeMapperStage {
 
     /// A restarted instance starts from the killed one's last occupancy checkpoint.
     fn restore(&mut self, restart: Restart) -> Result<usize, StageError> {
+        self.restarted = true;
         if let Some(path) = restart.snapshots.get(CHECKPOINT)
             && self.st.restore_checkpoint(path)?
         {
