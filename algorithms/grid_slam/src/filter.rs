@@ -98,6 +98,10 @@ pub struct GridSlamStats {
     pub tracking_failures: u64,
     /// Tiles written at updates that became deltas over another particle's like tile.
     pub shared_tiles: u64,
+    /// Scan matches (with the proposal's lattice) at updates: one for each group of copies of
+    /// a particle, which share it, so fewer than particles × updates after resamplings.
+    #[serde(default)]
+    pub matches: u64,
 }
 
 /// How peaked the weights were over a run ([`GridSlam::n_eff_summary`]).
@@ -163,6 +167,9 @@ pub struct GridSlam {
     dirs: Vec<(f64, f64)>,
     particles: Vec<Particle>,
     threads: usize,
+    /// Copies of one particle share their match and proposal ([`copy_groups`]); `false` only
+    /// in the test that checks this changes nothing.
+    share_copies: bool,
     last_stamp_s: Option<f64>,
     last_update_odom: Pose2,
     updates: u32,
@@ -224,6 +231,7 @@ impl GridSlam {
             dirs,
             particles: Vec::new(),
             threads,
+            share_copies: true,
             last_stamp_s: None,
             last_update_odom: Pose2::default(),
             updates: 0,
@@ -446,13 +454,53 @@ impl GridSlam {
         let cfg = &self.cfg;
         let seed = cfg.seed;
         let fallbacks = std::sync::atomic::AtomicU64::new(0);
-        // Workers take the next particle from a shared queue (particles differ in work: a fixed
-        // split left one core idle at the end of most updates).
+        // Copies of one particle (a resampling's picks of one parent: the same path node, pose
+        // and map) get the same match and proposal: computed once for each group, by its first.
+        let leaders =
+            if self.share_copies { copy_groups(&self.particles) } else { (0..self.particles.len()).collect() };
+        let firsts: Vec<usize> = (0..leaders.len()).filter(|&i| leaders[i] == i).collect();
+        self.stats.matches += firsts.len() as u64;
+        // Workers take the next job from a shared queue (jobs differ in work: a fixed split left
+        // one core idle at the end of most updates): the groups' proposals, then each
+        // particle's draw and map update.
         let workers = self.threads.min(self.particles.len()).max(1);
+        let mut proposals = vec![Proposal::MotionModel; self.particles.len()];
+        {
+            let particles = &self.particles;
+            let queue = std::sync::Mutex::new(firsts.iter().copied());
+            let done: Vec<Vec<(usize, Proposal)>> = std::thread::scope(|scope| {
+                let handles: Vec<_> = (0..workers.min(firsts.len()).max(1))
+                    .map(|_| {
+                        let (pts, delta, queue) = (&pts, &delta, &queue);
+                        scope.spawn(move || {
+                            let mut out = Vec::new();
+                            loop {
+                                // A poisoned lock means another worker panicked: the scope
+                                // re-raises that.
+                                let next = match queue.lock() {
+                                    Ok(mut q) => q.next(),
+                                    Err(_) => None,
+                                };
+                                let Some(index) = next else { break };
+                                let p = &particles[index];
+                                out.push((index, proposal(cfg, &p.pose, &p.grid, delta, pts, min_score)));
+                            }
+                            out
+                        })
+                    })
+                    .collect();
+                handles.into_iter().map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect()
+            });
+            for (index, pr) in done.into_iter().flatten() {
+                proposals[index] = pr;
+            }
+        }
+        let proposals = &proposals;
+        let leaders = &leaders;
         let queue = std::sync::Mutex::new(self.particles.iter_mut().enumerate());
         std::thread::scope(|scope| {
             for _ in 0..workers {
-                let (pts, beams, fallbacks, queue) = (&pts, &beams, &fallbacks, &queue);
+                let (pts, beams, fallbacks, queue, delta) = (&pts, &beams, &fallbacks, &queue, &delta);
                 scope.spawn(move || {
                     loop {
                         // A poisoned lock means another worker panicked: the scope re-raises that.
@@ -462,7 +510,7 @@ impl GridSlam {
                         };
                         let Some((index, p)) = next else { break };
                         let mut rng = Xoshiro256PlusPlus::seed_from_u64(mix(seed, update as u64, index as u64));
-                        let (pose, log_eta, fell_back) = propose(cfg, p, &delta, pts, min_score, &mut rng);
+                        let (pose, log_eta, fell_back) = draw(cfg, &proposals[leaders[index]], p, delta, pts, &mut rng);
                         if fell_back {
                             fallbacks.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                         }
@@ -704,46 +752,52 @@ pub fn systematic_resample(weights: &[f64], u: f64) -> Vec<usize> {
     out
 }
 
-/// The improved proposal for one particle: (new pose, ln η, whether it fell back to the motion
-/// model).
-fn propose(
+/// What the improved proposal computes for one particle before its draw: the scan match, the
+/// Gaussian fitted at the lattice around it and ln η. It depends only on the particle's pose and
+/// map, so copies of one particle (a resampling's picks of one parent, which share its pose and
+/// every tile of its map) share it: each then draws its own pose from it.
+#[derive(Debug, Clone, Copy)]
+enum Proposal {
+    /// The match failed (or the scan has no points): the motion model, per particle.
+    MotionModel,
+    /// The proposal's Gaussian: its mean (μ, with θ as the match's plus an offset), its
+    /// covariance and ln η.
+    Gaussian { star: Pose2, mu: [f64; 3], cov: [[f64; 3]; 3], log_eta: f64 },
+}
+
+/// The improved proposal's deterministic part for a particle at `p_pose` with map `grid`
+/// (Grisetti et al. 2007, docs/EQUATIONS.md §8).
+fn proposal(
     cfg: &GridSlamConfig,
-    p: &Particle,
+    p_pose: &Pose2,
+    grid: &Grid,
     delta: &Pose2,
     pts: &ScanPoints,
     min_score: f64,
-    rng: &mut Xoshiro256PlusPlus,
-) -> (Pose2, f64, bool) {
-    let predicted = p.pose.compose(delta);
+) -> Proposal {
+    let predicted = p_pose.compose(delta);
     let sd = cfg.motion.sd(delta);
     let motion_ll = |x: &Pose2| {
         let e = predicted.between(x);
         -0.5 * ((e.x_m / sd[0]).powi(2) + (e.y_m / sd[1]).powi(2) + (e.theta_rad / sd[2]).powi(2))
     };
-    let normal = |rng: &mut Xoshiro256PlusPlus| rng.sample::<f64, _>(StandardNormal);
-    let fallback = |rng: &mut Xoshiro256PlusPlus| {
-        let n = Pose2 { x_m: sd[0] * normal(rng), y_m: sd[1] * normal(rng), theta_rad: sd[2] * normal(rng) };
-        let x = predicted.compose(&n);
-        let ll = matcher::log_likelihood(&p.grid, pts, &x, &cfg.matcher);
-        (x, ll, true)
-    };
     if pts.points.is_empty() {
-        return fallback(rng);
+        return Proposal::MotionModel;
     }
     let (sm, sr) = (cfg.proposal_step_m, cfg.proposal_step_rad);
     // τ_j = p(z | m, x_j) · p(x_j | x', u) at a 3×3×3 lattice around the match.
     let (star, lattice) = match cfg.proposal_likelihood {
         ProposalLikelihood::Evaluated => {
-            let (star, f) = matcher::optimize(&p.grid, pts, &predicted, &cfg.matcher);
+            let (star, f) = matcher::optimize(grid, pts, &predicted, &cfg.matcher);
             if f.score < min_score {
-                return fallback(rng);
+                return Proposal::MotionModel;
             }
-            (star, matcher::log_likelihood_lattice(&p.grid, pts, &star, &cfg.matcher, sm, sr))
+            (star, matcher::log_likelihood_lattice(grid, pts, &star, &cfg.matcher, sm, sr))
         }
         ProposalLikelihood::Modelled => {
-            let (star, f, model) = matcher::optimize_modelled(&p.grid, pts, &predicted, &cfg.matcher);
+            let (star, f, model) = matcher::optimize_modelled(grid, pts, &predicted, &cfg.matcher);
             if f.score < min_score {
-                return fallback(rng);
+                return Proposal::MotionModel;
             }
             let mut lattice = [0.0; 27];
             for (n, ll) in lattice.iter_mut().enumerate() {
@@ -792,6 +846,29 @@ fn propose(
     cov[0][0] += cfg.proposal_min_sd_m.powi(2);
     cov[1][1] += cfg.proposal_min_sd_m.powi(2);
     cov[2][2] += cfg.proposal_min_sd_rad.powi(2);
+    Proposal::Gaussian { star, mu, cov, log_eta }
+}
+
+/// One particle's draw from `proposal` (its own `rng`): (new pose, ln η, whether it fell back to
+/// the motion model).
+fn draw(
+    cfg: &GridSlamConfig,
+    proposal: &Proposal,
+    p: &Particle,
+    delta: &Pose2,
+    pts: &ScanPoints,
+    rng: &mut Xoshiro256PlusPlus,
+) -> (Pose2, f64, bool) {
+    let normal = |rng: &mut Xoshiro256PlusPlus| rng.sample::<f64, _>(StandardNormal);
+    let fallback = |rng: &mut Xoshiro256PlusPlus| {
+        let predicted = p.pose.compose(delta);
+        let sd = cfg.motion.sd(delta);
+        let n = Pose2 { x_m: sd[0] * normal(rng), y_m: sd[1] * normal(rng), theta_rad: sd[2] * normal(rng) };
+        let x = predicted.compose(&n);
+        let ll = matcher::log_likelihood(&p.grid, pts, &x, &cfg.matcher);
+        (x, ll, true)
+    };
+    let Proposal::Gaussian { star, mu, cov, log_eta } = *proposal else { return fallback(rng) };
     if cfg.particles == 1 {
         // One particle represents no distribution: a draw from the proposal would only add its
         // spread as noise at every update (a random walk: on the simulated ring, ATE 0.90 m drawn
@@ -805,6 +882,21 @@ fn propose(
     let dx = [l[0][0] * n[0], l[1][0] * n[0] + l[1][1] * n[1], l[2][0] * n[0] + l[2][1] * n[1] + l[2][2] * n[2]];
     let x = Pose2 { x_m: mu[0] + dx[0], y_m: mu[1] + dx[1], theta_rad: wrap_angle(star.theta_rad + mu[2] + dx[2]) };
     (x, log_eta, false)
+}
+
+/// For each particle, the first particle it is a copy of (itself if none before it is): copies
+/// share their path node (a resampling's picks of one parent, the first set, a restart), and
+/// with it their pose and every tile of their map.
+fn copy_groups(particles: &[Particle]) -> Vec<usize> {
+    let mut first: std::collections::HashMap<*const PathNode, usize> = std::collections::HashMap::new();
+    particles
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let k = *first.entry(Arc::as_ptr(&p.path)).or_insert(i);
+            if particles[k].pose == p.pose { k } else { i }
+        })
+        .collect()
 }
 
 /// Numbers the particles of a new set as their own ancestors.
@@ -940,5 +1032,57 @@ mod tests {
             let d = (w[1].hit.0 - w[0].hit.0).hypot(w[1].hit.1 - w[0].hit.1);
             assert!(d >= 0.05, "{d}");
         }
+    }
+
+    /// The best particle's path and the counts over the first `scans` scans of the simulated
+    /// indoor mission, with 6 particles on 2 threads.
+    fn indoor_run(share_copies: bool, scans: usize) -> (Vec<(f64, Pose2)>, GridSlamStats) {
+        use sim::indoor::{IndoorConfig, IndoorEvent, IndoorSim};
+        let mut sc = IndoorConfig { seed: 2, ..Default::default() };
+        sc.depth.rate_hz = 0.0;
+        let mut sim = IndoorSim::new(sc.clone()).expect("simulator");
+        let l = &sc.laser;
+        let geom = ScanGeometry {
+            angle_min_rad: -std::f64::consts::PI,
+            angle_increment_rad: std::f64::consts::TAU / l.beams as f64,
+            beams: l.beams,
+            range_min_m: 0.05,
+            range_max_m: l.max_range_m,
+            body_from_laser: Pose2 { x_m: l.offset_m[0], y_m: l.offset_m[1], theta_rad: 0.0 },
+        };
+        let cfg = GridSlamConfig { particles: 6, threads: 2, seed: 3, usable_range_m: 12.0, ..Default::default() };
+        let mut f = GridSlam::new(cfg, geom).expect("filter");
+        f.share_copies = share_copies;
+        let (mut odom, mut seen) = (Pose2::default(), 0);
+        while let Some(events) = sim.next_events() {
+            for e in events {
+                match e {
+                    IndoorEvent::Odometry { pose, .. } => odom = pose,
+                    IndoorEvent::Laser { t_s, ranges } => {
+                        f.process(t_s, odom, &ranges).expect("scan");
+                        seen += 1;
+                    }
+                    IndoorEvent::Cloud { .. } => {}
+                }
+            }
+            if seen >= scans {
+                break;
+            }
+        }
+        (f.trajectory(), f.stats())
+    }
+
+    /// Copies of one particle (after a resampling) have the same pose and map, so the same match
+    /// and proposal: computed once for them, the filter's result is the same to the last bit.
+    #[test]
+    fn copies_of_a_particle_share_one_match_and_the_result_is_the_same() {
+        let (shared, s) = indoor_run(true, 300);
+        let (each, e) = indoor_run(false, 300);
+        assert!(s.updates >= 20 && s.resamples >= 5, "the robot moved and the set was resampled: {s:?}");
+        assert_eq!(e.matches, 6 * e.updates, "without sharing, one match per particle and update: {e:?}");
+        assert!(s.matches < e.matches && s.matches >= s.updates, "copies shared their match: {s:?} against {e:?}");
+        assert_eq!(shared.len(), each.len());
+        assert!(shared.iter().zip(&each).all(|(a, b)| a == b), "the same path to the last bit");
+        assert_eq!(GridSlamStats { matches: 0, ..s }, GridSlamStats { matches: 0, ..e }, "the same counts");
     }
 }

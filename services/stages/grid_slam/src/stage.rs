@@ -392,6 +392,7 @@ impl GridSlamStage {
             invalid_beams: st.invalid_beams,
             tracking_failures: st.tracking_failures,
             proposal_fallbacks: st.proposal_fallbacks,
+            update_matches: st.matches,
             memory: GridMemory {
                 peak_bytes: mem.map(|m| m.bytes),
                 one_map_bytes: one_map,

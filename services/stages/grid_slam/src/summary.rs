@@ -58,6 +58,11 @@ pub struct GridSlamRun {
     pub tracking_failures: u64,
     /// Updates whose proposal fell back to the motion model.
     pub proposal_fallbacks: u64,
+    /// Scan matches at filter updates, each with its proposal: one per particle and update,
+    /// less one for each copy that shared its parent's after a resampling (copies have the
+    /// same pose and map).
+    #[serde(default)]
+    pub update_matches: u64,
     /// The particles' maps in memory.
     pub memory: GridMemory,
     /// The final grid's files and geometry (`null` when there is none).

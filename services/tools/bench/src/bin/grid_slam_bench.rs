@@ -446,6 +446,12 @@ fn print_details(f: &GridSlam, refused: usize, mem_trace: &[f64]) {
             ne.distinct_ancestors
         );
     }
+    if st.updates > 0 {
+        println!(
+            "       scan matches per update: {:.1} of {n} particles (copies of one particle after a resampling share theirs)",
+            st.matches as f64 / st.updates as f64
+        );
+    }
     if refused > 0 || st.tracking_failures > 0 || st.proposal_fallbacks > 0 {
         println!(
             "       refused scans {refused}, tracking failures {}, proposal fallbacks {}, invalid beams {}",
