@@ -167,6 +167,12 @@ fn a_room_loop_is_mapped_and_bad_input_is_counted_without_losing_the_rest() {
     assert_eq!(rejected["scan_stamp_not_increasing"], 1, "{g}");
     assert_eq!(rejected["odometry_stamp_not_increasing"], 1, "{g}");
     assert!(g["invalid_beams"].as_u64().unwrap() >= 2 * good_scans as u64, "{g}");
+    // One scan match per particle and update, less the copies that shared their parent's.
+    let (updates, matches) = (g["updates"].as_u64().unwrap(), g["update_matches"].as_u64().unwrap());
+    assert!(matches >= updates && matches <= 6 * updates, "{g}");
+    if g["resamples"].as_u64().unwrap() > 0 {
+        assert!(matches < 6 * updates, "copies after a resampling share their match: {g}");
+    }
     // Accuracy against the truth at the same stamps.
     let mut sq = 0.0;
     for ((hd, p), (t, tp)) in poses.iter().zip(truth.iter().filter(|(t, _)| {
