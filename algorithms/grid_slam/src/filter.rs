@@ -1083,6 +1083,10 @@ mod tests {
         assert!(s.matches < e.matches && s.matches >= s.updates, "copies shared their match: {s:?} against {e:?}");
         assert_eq!(shared.len(), each.len());
         assert!(shared.iter().zip(&each).all(|(a, b)| a == b), "the same path to the last bit");
-        assert_eq!(GridSlamStats { matches: 0, ..s }, GridSlamStats { matches: 0, ..e }, "the same counts");
+        // The same counts, but for the tiles shared: which of two copies writing a tile they share
+        // on two threads copies it first decides which one's tile stays whole (the cells read the
+        // same either way), so that count varies from run to run by a few.
+        let counts = |s: GridSlamStats| GridSlamStats { matches: 0, shared_tiles: 0, ..s };
+        assert_eq!(counts(s), counts(e), "the same counts");
     }
 }
