@@ -155,14 +155,14 @@ fn kill_9_of_each_stage_once_is_survived_with_complete_outputs() {
 
     // Each restarted stage took over what its killed instance had done (see docs/stages.md, Restarts):
     // ingest resumed where the killed one was instead of replaying the mission (and held back
-    // while a consumer of its services restarted), SLAM and the buoy EKF kept their trajectories,
-    // fusion replayed its inputs, the mapper loaded its checkpoint.
+    // while a consumer of its services restarted), SLAM kept its trajectory, the buoy EKF and
+    // fusion replayed their inputs, the mapper loaded its checkpoint.
     let log = run.log();
     for (stage, line) in [
         ("ingest", "resumed after the"),
         ("ingest", "the lost subscriber is back"),
         ("slam", "kept the killed instance's trajectory; its local maps are lost"),
-        ("buoy", "kept the killed instance's trajectory; the filter starts over"),
+        ("buoy", "replayed the inputs the killed instance's filter took; it goes on from there"),
         ("fusion", "replayed the killed instance's inputs"),
         ("map", "the map starts from the killed instance's last checkpoint"),
     ] {

@@ -1,77 +1,94 @@
-//! What a restarted `buoy_ekf` keeps: the stage records its trajectory (the estimate after every
-//! input) and the odometry inputs it applied in the runtime's journal as it goes
+//! What a restarted `buoy_ekf` keeps: the stage records every input its filter takes, in the
+//! order it takes them ([`crate::Applied`]), in the runtime's journal as it goes
 //! ([`pipeline_runtime::Runtime::state`]). A restarted instance (the supervisor sets
-//! `SLAM_PIPELINE_RESTARTS` > 0) reads them back ([`parse`]), so `buoy_ekf.tum`,
-//! `dead_reckoning.tum` and the accuracy at the end cover the whole run; the filter itself starts
-//! over (trilateration of the next ranges, heading hypotheses), so its estimate is unavailable for
-//! the first ranges after the restart.
+//! `SLAM_PIPELINE_RESTARTS` > 0) reads them back ([`parse`]) and replays them
+//! ([`crate::BuoyState::replay`]): its filter, trajectory and counters are the killed instance's,
+//! so it goes on from the killed instance's estimate (instead of starting over from the next
+//! ranges, whose first fixes are metres off until the filter has settled again), and
+//! `buoy_ekf.tum`, `dead_reckoning.tum` and the accuracy at the end cover the whole run.
 //!
-//! Lines are `t <t_s> <x> <y> <z> <heading or NaN>` and `u <t_s> <v> <δθx> <δθy> <δθz> <δt>`, numbers
-//! in Rust's shortest round-trip form.
+//! Lines, numbers in Rust's shortest round-trip form (`NaN` and `inf` as Rust writes them: an
+//! invalid input is replayed, and counted, as it was the first time):
+//! - `o <stamp_ns> <v> <δθx> <δθy> <δθz> <δt> <16 covariance entries, row-major>`: odometry;
+//! - `r <stamp_ns> <origin_ns> <n> (<buoy_id> <range_m> <sigma_m>)×n`: a ranges message;
+//! - `d <stamp_ns> <depth_m> <sigma_m>`: a depth reading.
 
 use std::fmt::Write as _;
 
-use geometry::ProcessInput;
-use nalgebra::Vector3;
 use pipeline_runtime::StateStore;
+use shared_types::{BuoyRange, DepthReading, OdometryInput};
 
-/// What a killed instance had done.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct Restored {
-    /// Its trajectory: (t, position, heading if known).
-    pub trajectory: Vec<(f64, Vector3<f64>, Option<f64>)>,
-    /// The odometry inputs it applied, with their stamps.
-    pub inputs: Vec<(f64, ProcessInput)>,
-}
+use crate::Applied;
 
-fn numbers(fields: &[&str], n: usize) -> Option<Vec<f64>> {
-    if fields.len() != n {
-        return None;
-    }
+fn floats(fields: &[&str]) -> Option<Vec<f64>> {
     fields.iter().map(|x| x.parse().ok()).collect()
 }
 
-/// Reads journal lines in order up to the first that does not parse; returns what they hold
-/// and how many were read.
-pub fn parse(lines: &[String]) -> (Restored, usize) {
-    let mut r = Restored::default();
-    let mut n = 0;
-    for line in lines {
-        let fields: Vec<&str> = line.split_whitespace().collect();
-        let ok = match fields.split_first() {
-            Some((&"t", rest)) => numbers(rest, 5)
-                .filter(|v| v[..4].iter().all(|x| x.is_finite()))
-                .map(|v| r.trajectory.push((v[0], Vector3::new(v[1], v[2], v[3]), v[4].is_finite().then_some(v[4]))))
-                .is_some(),
-            Some((&"u", rest)) => numbers(rest, 6)
-                .filter(|v| v.iter().all(|x| x.is_finite()))
-                .map(|v| {
-                    let u = ProcessInput { v_mps: v[1], delta_theta_rad: Vector3::new(v[2], v[3], v[4]), dt_s: v[5] };
-                    r.inputs.push((v[0], u))
-                })
-                .is_some(),
-            _ => false,
-        };
-        if !ok {
-            break;
+fn parse_line(line: &str) -> Option<Applied> {
+    let fields: Vec<&str> = line.split_whitespace().collect();
+    let (&kind, rest) = fields.split_first()?;
+    let stamp_ns: u64 = rest.first()?.parse().ok()?;
+    match kind {
+        "o" if rest.len() == 22 => {
+            let v = floats(&rest[1..])?;
+            let mut input_covariance = [0.0; 16];
+            input_covariance.copy_from_slice(&v[5..]);
+            let input =
+                OdometryInput { v_mps: v[0], delta_theta_rad: [v[1], v[2], v[3]], dt_s: v[4], input_covariance };
+            Some(Applied::Odometry { stamp_ns, input })
         }
-        n += 1;
+        "r" if rest.len() >= 3 => {
+            let origin_ns: u64 = rest[1].parse().ok()?;
+            let n: usize = rest[2].parse().ok()?;
+            if rest.len() != 3 + 3 * n {
+                return None;
+            }
+            let ranges = rest[3..]
+                .chunks(3)
+                .map(|c| {
+                    Some(BuoyRange {
+                        buoy_id: c[0].parse().ok()?,
+                        _reserved: 0,
+                        range_m: c[1].parse().ok()?,
+                        sigma_m: c[2].parse().ok()?,
+                    })
+                })
+                .collect::<Option<Vec<_>>>()?;
+            Some(Applied::Ranges { stamp_ns, origin_ns, ranges })
+        }
+        "d" if rest.len() == 3 => {
+            let v = floats(&rest[1..])?;
+            Some(Applied::Depth { stamp_ns, reading: DepthReading { depth_m: v[0], sigma_m: v[1] } })
+        }
+        _ => None,
     }
-    (r, n)
 }
 
-/// Records trajectory samples and inputs as journal lines.
-pub fn record(state: &mut StateStore, trajectory: &[(f64, Vector3<f64>, Option<f64>)], inputs: &[(f64, ProcessInput)]) {
-    let mut line = String::with_capacity(128);
-    for (t, p, h) in trajectory {
+/// Reads journal lines in order up to the first that does not parse; returns the inputs they
+/// hold and how many lines were read.
+pub fn parse(lines: &[String]) -> (Vec<Applied>, usize) {
+    let inputs: Vec<Applied> = lines.iter().map_while(|l| parse_line(l)).collect();
+    let n = inputs.len();
+    (inputs, n)
+}
+
+/// Records inputs as journal lines.
+pub fn record(state: &mut StateStore, inputs: &[Applied]) {
+    let mut line = String::with_capacity(256);
+    for a in inputs {
         line.clear();
-        let _ = write!(line, "t {t} {} {} {} {}", p.x, p.y, p.z, h.unwrap_or(f64::NAN));
-        state.record(&line);
-    }
-    for (t, u) in inputs {
-        line.clear();
-        let d = u.delta_theta_rad;
-        let _ = write!(line, "u {t} {} {} {} {} {}", u.v_mps, d.x, d.y, d.z, u.dt_s);
+        let _ = match a {
+            Applied::Odometry { stamp_ns, input: u } => {
+                let d = u.delta_theta_rad;
+                let _ = write!(line, "o {stamp_ns} {} {} {} {} {}", u.v_mps, d[0], d[1], d[2], u.dt_s);
+                u.input_covariance.iter().try_for_each(|c| write!(line, " {c}"))
+            }
+            Applied::Ranges { stamp_ns, origin_ns, ranges } => {
+                let _ = write!(line, "r {stamp_ns} {origin_ns} {}", ranges.len());
+                ranges.iter().try_for_each(|b| write!(line, " {} {} {}", b.buoy_id, b.range_m, b.sigma_m))
+            }
+            Applied::Depth { stamp_ns, reading: d } => write!(line, "d {stamp_ns} {} {}", d.depth_m, d.sigma_m),
+        };
         state.record(&line);
     }
 }
@@ -84,19 +101,48 @@ mod tests {
     fn journal_lines_read_back_exactly_up_to_one_that_does_not_parse() {
         let dir = tempfile::tempdir().expect("temp dir");
         let (mut store, _) = StateStore::open(dir.path(), "buoy", false).expect("store");
-        let traj = vec![(1.0, Vector3::new(0.1, 0.2, -1.0 / 3.0), None), (1.1, Vector3::new(1.0, 2.0, 3.0), Some(0.5))];
-        let u = ProcessInput { v_mps: 1.5, delta_theta_rad: Vector3::new(0.0, 0.01, -0.02), dt_s: 0.1 };
-        record(&mut store, &traj, &[(1.0, u)]);
+        let mut input_covariance = [0.0; 16];
+        input_covariance[0] = 0.01;
+        input_covariance[15] = f64::NAN; // invalid inputs are replayed as they came
+        let inputs = vec![
+            Applied::Odometry {
+                stamp_ns: 1_000_000_000,
+                input: OdometryInput {
+                    v_mps: 1.5,
+                    delta_theta_rad: [0.0, 0.01, -1.0 / 3.0],
+                    dt_s: 0.1,
+                    input_covariance,
+                },
+            },
+            Applied::Ranges {
+                stamp_ns: 1_050_000_000,
+                origin_ns: 77,
+                ranges: vec![
+                    BuoyRange { buoy_id: 3, _reserved: 0, range_m: 20.125, sigma_m: 0.3 },
+                    BuoyRange { buoy_id: 0, _reserved: 0, range_m: f64::INFINITY, sigma_m: 0.3 },
+                ],
+            },
+            Applied::Ranges { stamp_ns: 1_060_000_000, origin_ns: 0, ranges: vec![] },
+            Applied::Depth { stamp_ns: 1_100_000_000, reading: DepthReading { depth_m: 5.5, sigma_m: 0.05 } },
+        ];
+        record(&mut store, &inputs);
         store.flush().expect("flush");
         drop(store);
         let (_, restart) = StateStore::open(dir.path(), "buoy", true).expect("reopen");
         let mut lines = restart.expect("a restart").journal;
-        lines.push("t 1.2 0.5".into());
-        lines.push("t 1.3 0 0 0 NaN".into());
-        let (r, n) = parse(&lines);
-        assert_eq!(n, 3, "the line that does not parse ends the journal");
-        assert_eq!(r.trajectory, traj);
-        assert_eq!(r.inputs.len(), 1);
-        assert_eq!(r.inputs[0].1.delta_theta_rad, u.delta_theta_rad);
+        lines.push("r 1200000000 0 2 1 20.0 0.3".into()); // fewer ranges than it says
+        lines.push("d 1300000000 5.0 0.05".into());
+        let (back, n) = parse(&lines);
+        assert_eq!(n, 4, "the line that does not parse ends the journal");
+        assert_eq!(back.len(), inputs.len());
+        assert_eq!(back[1], inputs[1]);
+        assert_eq!(back[2], inputs[2]);
+        assert_eq!(back[3], inputs[3]);
+        // (NaN is not equal to itself: the odometry field by field.)
+        let (Applied::Odometry { input: x, .. }, Applied::Odometry { input: y, .. }) = (&back[0], &inputs[0]) else {
+            panic!("{back:?}")
+        };
+        assert_eq!((x.v_mps, x.delta_theta_rad, x.dt_s), (y.v_mps, y.delta_theta_rad, y.dt_s));
+        assert!(x.input_covariance[15].is_nan() && x.input_covariance[..15] == y.input_covariance[..15]);
     }
 }

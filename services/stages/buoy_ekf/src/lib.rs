@@ -102,6 +102,36 @@ pub struct Fix {
     pub rejected: u32,
 }
 
+/// An input as the filter took it, in the order it took them: the journal's unit. Replaying
+/// them in order ([`BuoyState::replay`]) rebuilds the filter exactly as it was (a restarted
+/// instance goes on from the killed one's state instead of starting over).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Applied {
+    /// An odometry message.
+    Odometry {
+        /// Its stamp, ns.
+        stamp_ns: u64,
+        /// The message.
+        input: OdometryInput,
+    },
+    /// A ranges message.
+    Ranges {
+        /// Its stamp, ns.
+        stamp_ns: u64,
+        /// Its origin time, ns.
+        origin_ns: u64,
+        /// The ranges.
+        ranges: Vec<BuoyRange>,
+    },
+    /// A depth reading.
+    Depth {
+        /// Its stamp, ns.
+        stamp_ns: u64,
+        /// The reading.
+        reading: DepthReading,
+    },
+}
+
 struct PendingRanges {
     stamp_ns: u64,
     origin_ns: u64,
@@ -144,6 +174,10 @@ pub struct BuoyState {
     waiting_since_s: Option<f64>,
     /// Time of the last event applied, ns.
     last_ns: Option<u64>,
+    /// The inputs taken since the last [`BuoyState::take_applied`] (for the journal).
+    applied: Vec<Applied>,
+    /// Replaying a journal: the log stays quiet (the killed instance said it all already).
+    replaying: bool,
 }
 
 /// Wall time between two warnings that the filter still waits for its initialisation.
@@ -178,7 +212,46 @@ impl BuoyState {
             waiting_warned: None,
             waiting_since_s: None,
             last_ns: None,
+            applied: vec![],
+            replaying: false,
         }
+    }
+
+    /// The inputs the filter took since the last call, in the order it took them.
+    pub fn take_applied(&mut self) -> Vec<Applied> {
+        std::mem::take(&mut self.applied)
+    }
+
+    /// Takes `inputs` (a killed instance's journal, [`BuoyState::take_applied`]) as they were
+    /// taken then, without publishing: the filter, trajectory and counters end up as the killed
+    /// instance left them. Returns the fixes it had published.
+    pub fn replay(&mut self, inputs: Vec<Applied>) -> usize {
+        self.replaying = true;
+        let mut fixes = 0;
+        for a in inputs {
+            match a {
+                Applied::Odometry { stamp_ns, input } => {
+                    if self.settings.use_odometry {
+                        self.newest_odometry_ns = Some(self.newest_odometry_ns.map_or(stamp_ns, |s| s.max(stamp_ns)));
+                    }
+                    self.saw(stamp_ns);
+                    self.apply_odometry(stamp_ns, &input);
+                }
+                Applied::Ranges { stamp_ns, origin_ns, ranges } => {
+                    self.saw(stamp_ns);
+                    let r = PendingRanges { stamp_ns, origin_ns, ranges, received: Instant::now() };
+                    fixes += usize::from(self.apply_ranges(r).is_some());
+                }
+                Applied::Depth { stamp_ns, reading } => {
+                    self.saw(stamp_ns);
+                    self.apply_depth(stamp_ns, &reading);
+                }
+            }
+        }
+        self.settled_newest_ns = self.newest_stamp_ns;
+        self.applied.clear();
+        self.replaying = false;
+        fixes
     }
 
     /// The estimator, once the first message has started it.
@@ -276,14 +349,21 @@ impl BuoyState {
             }
             if t_odo == Some(t) {
                 let (stamp, u) = self.odometry.pop_front().expect("front exists");
+                self.applied.push(Applied::Odometry { stamp_ns: stamp, input: u });
                 self.apply_odometry(stamp, &u);
             } else if t_rng == Some(t) {
                 let r = self.ranges.pop_front().expect("front exists");
+                self.applied.push(Applied::Ranges {
+                    stamp_ns: r.stamp_ns,
+                    origin_ns: r.origin_ns,
+                    ranges: r.ranges.clone(),
+                });
                 if let Some(fix) = self.apply_ranges(r) {
                     out.push(fix);
                 }
             } else {
                 let (stamp, d) = self.depth.pop_front().expect("front exists");
+                self.applied.push(Applied::Depth { stamp_ns: stamp, reading: d });
                 self.apply_depth(stamp, &d);
             }
         }
@@ -365,6 +445,7 @@ impl BuoyState {
         }
         let t = stamp_s(r.stamp_ns);
         let (mut used, mut rejected) = (0u32, 0u32);
+        let quiet = self.replaying;
         let ekf = match self.ekf_at(t) {
             Ok(e) => e,
             Err(e) => {
@@ -397,7 +478,7 @@ impl BuoyState {
             }
         }
         let estimate = ekf.is_initialised().then(|| ekf.estimate());
-        if ekf.counters().reinitialisations > restarts_before {
+        if ekf.counters().reinitialisations > restarts_before && !quiet {
             tracing::warn!(
                 data_time_s = t,
                 restarts = ekf.counters().reinitialisations,
@@ -405,7 +486,7 @@ impl BuoyState {
                  odometry window (`ekf.recovery.check_rejected_share`, `ekf.init.odometry_window_s`)"
             );
         }
-        if ekf.counters().start_corrections > corrections_before {
+        if ekf.counters().start_corrections > corrections_before && !quiet {
             tracing::info!(
                 data_time_s = t,
                 corrections = ekf.counters().start_corrections,
@@ -413,7 +494,7 @@ impl BuoyState {
                  re-started there (`ekf.recovery.confirm_checks`)"
             );
         }
-        if ekf.counters().outlier_branch_switches > switches_before {
+        if ekf.counters().outlier_branch_switches > switches_before && !quiet {
             tracing::warn!(
                 data_time_s = t,
                 undone = ekf.counters().outlier_branch_switches,
@@ -427,6 +508,7 @@ impl BuoyState {
             self.waiting_since_s.get_or_insert(t);
         }
         if estimate.is_none()
+            && !quiet
             && let Some(reason) = &self.waiting_reason
             && self.waiting_since_s.is_some_and(|t0| t - t0 >= WAIT_WARN_AFTER_S)
             && self.waiting_warned.is_none_or(|w| w.elapsed() >= WAIT_WARN_EVERY)

@@ -24,8 +24,6 @@ pub struct BuoyEkfStage {
     ranges: Input<[BuoyRange], MsgHeader>,
     depth: Input<DepthReading, MsgHeader>,
     fixes: Output<BuoyFix, MsgHeader>,
-    /// Trajectory samples and inputs journalled so far.
-    journalled: (usize, usize),
     was_initialised: bool,
     out_dir: std::path::PathBuf,
 }
@@ -40,17 +38,7 @@ impl Stage for BuoyEkfStage {
         let fixes = rt.output(BUOY_FIX)?;
         let st = BuoyState::new(settings.clone());
         tracing::info!(buoys = settings.ekf.buoys.len(), mode = ?settings.ekf.mode, odometry = settings.use_odometry, "buoy EKF ready");
-        Ok(Self {
-            settings,
-            st,
-            odometry,
-            ranges,
-            depth,
-            fixes,
-            journalled: (0, 0),
-            was_initialised: false,
-            out_dir: ctx.out_dir.clone(),
-        })
+        Ok(Self { settings, st, odometry, ranges, depth, fixes, was_initialised: false, out_dir: ctx.out_dir.clone() })
     }
 
     fn end_after(&self) -> EndAfter {
@@ -61,17 +49,19 @@ impl Stage for BuoyEkfStage {
         Some(Duration::from_millis(100))
     }
 
-    /// A restarted instance keeps the killed one's trajectory and inputs (the filter starts over).
+    /// A restarted instance replays the inputs the killed one's filter took: it goes on from the
+    /// killed one's state (nothing is published during the replay).
     fn restore(&mut self, restart: Restart) -> Result<usize, StageError> {
-        let (r, lines) = crate::journal::parse(&restart.journal);
+        let (inputs, lines) = crate::journal::parse(&restart.journal);
+        let n = inputs.len();
+        let fixes = self.st.replay(inputs);
+        self.was_initialised = self.st.ekf().is_some_and(|e| e.is_initialised());
         tracing::info!(
-            samples = r.trajectory.len(),
-            inputs = r.inputs.len(),
-            "restarted: kept the killed instance's trajectory; the filter starts over"
+            inputs = n,
+            fixes,
+            initialised = self.was_initialised,
+            "restarted: replayed the inputs the killed instance's filter took; it goes on from there"
         );
-        self.st.trajectory = r.trajectory;
-        self.st.inputs = r.inputs;
-        self.journalled = (self.st.trajectory.len(), self.st.inputs.len());
         Ok(lines)
     }
 
@@ -90,9 +80,8 @@ impl Stage for BuoyEkfStage {
         }
         let out = st.step(inputs_ended, now);
         // Journal before publishing: a restarted instance resumes from what was journalled.
-        crate::journal::record(rt.state(), &st.trajectory[self.journalled.0..], &st.inputs[self.journalled.1..]);
+        crate::journal::record(rt.state(), &st.take_applied());
         rt.state().flush()?;
-        self.journalled = (st.trajectory.len(), st.inputs.len());
         for f in out {
             let e = &f.estimate;
             self.fixes.send_value(
