@@ -68,6 +68,9 @@ struct Flow {
     fused: u64,
     /// The stages restarted.
     restarted: Vec<&'static str>,
+    /// Stereo frames the restarted SLAM counted as lost in the restart (they sat in the killed
+    /// instance's queue).
+    slam_stereo_lost: u64,
 }
 
 /// Runs the main job's stages on a 30 s mission into `out`; with `restart_at`, every stage is
@@ -198,7 +201,16 @@ fn run_chain(out: &Path, restart_at: Option<u64>) -> anyhow::Result<Flow> {
             map.run_to_end(Duration::from_secs(300))?;
         }
     }
-    Ok(Flow { clouds, stereo, fixes, poses, pairs, fused, restarted })
+    let report = slam.runtime().stats_report();
+    let slam_stereo_lost = report
+        .ports
+        .iter()
+        .filter(|p| p.input && p.service == STEREO)
+        .flat_map(|p| p.dropped_by.iter())
+        .filter(|(r, _)| r == pipeline_runtime::stats::LOST_IN_RESTART)
+        .map(|(_, n)| *n)
+        .sum();
+    Ok(Flow { clouds, stereo, fixes, poses, pairs, fused, restarted, slam_stereo_lost })
 }
 
 /// The part file process `name` wrote (`parts/<name>.json`), read as its stage's summary struct.
@@ -266,6 +278,9 @@ fn every_stage_killed_and_restarted_mid_run_keeps_what_it_had() -> anyhow::Resul
     }
     let slam: FastSlamPart = part(out, "slam")?;
     assert_eq!(slam.slam.segments, 2, "the restarted fastslam went on in a new local map: {slam:?}");
+    // What sat in the killed SLAM's queue is counted as lost by the restarted one: every stereo
+    // frame is either a pose or counted.
+    assert_eq!(flow.stereo, flow.poses + flow.slam_stereo_lost, "{flow:?}");
     // The restarted ingest went on after what it had published: nothing twice.
     let ingest: IngestPart = part(out, "ingest")?;
     assert!(ingest.ingest.completed, "{ingest:?}");

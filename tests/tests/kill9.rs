@@ -169,6 +169,19 @@ fn kill_9_of_each_stage_once_is_survived_with_complete_outputs() {
         assert!(log.contains(&format!("[{stage}]")) && log.contains(line), "{stage}: no `{line}` in the log:\n{log}");
     }
     let s = run.summary();
+    // What sat in a killed process's queues (or its own, unprocessed) is counted by its restarted
+    // instance, nothing is lost silently; only killed processes lose anything that way.
+    let lost: Vec<&serde_json::Value> = s["dropped"]
+        .as_array()
+        .expect("dropped rows")
+        .iter()
+        .filter(|r| r["reason"] == pipeline_runtime::stats::LOST_IN_RESTART)
+        .collect();
+    assert!(!lost.is_empty(), "nothing counted as lost in the restarts: {:#}", s["dropped"]);
+    for r in &lost {
+        let process = r["process"].as_str().unwrap_or_default();
+        assert!(VICTIMS.contains(&process) && r["messages"].as_u64().unwrap_or(0) > 0, "{r:#}");
+    }
     use crate::summary_schema::part;
     let sup: supervisor::report::SupervisorPart = part(&s);
     assert_eq!(sup.run.end_reason, supervisor::outcome::EndReason::EndOfStream, "{:?}", sup.run);

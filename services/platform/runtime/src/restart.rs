@@ -76,6 +76,10 @@ pub struct Restart {
     /// The snapshots, by key: their files (read them with [`Restart::read_snapshot`], or hand
     /// the path to a library that reads files).
     pub snapshots: std::collections::BTreeMap<String, PathBuf>,
+    /// Per input service and publisher, the last sequence number the killed instance had
+    /// received (kept by the runtime, [`StateStore::save_inputs`]): the runtime counts what the
+    /// restarted instance finds missing after it.
+    pub input_seqs: Vec<(String, u128, u64)>,
 }
 
 impl Restart {
@@ -98,6 +102,8 @@ impl Restart {
 pub struct StateStore {
     dir: Option<PathBuf>,
     journal: Option<File>,
+    /// `.inputs`: the inputs' last sequence numbers, overwritten in place.
+    inputs: Option<File>,
     buffer: String,
     /// Journal lines recorded (and flushed) so far.
     lines: u64,
@@ -106,7 +112,7 @@ pub struct StateStore {
 impl StateStore {
     /// A store that keeps nothing (a process without restart state, or a test fixture).
     pub fn disabled() -> Self {
-        Self { dir: None, journal: None, buffer: String::new(), lines: 0 }
+        Self { dir: None, journal: None, inputs: None, buffer: String::new(), lines: 0 }
     }
 
     /// `<out_dir>/state/<process>/`.
@@ -131,7 +137,18 @@ impl StateStore {
             File::create(&path)
         }
         .map_err(StateError::io("creating", &path))?;
-        Ok((Self { dir: Some(dir), journal: Some(journal), buffer: String::new(), lines: 0 }, restored))
+        let inputs_path = dir.join(INPUTS_FILE);
+        // A restart keeps what is there until its first save (which carries it on).
+        let inputs = std::fs::OpenOptions::new()
+            .create(true)
+            .write(true)
+            .truncate(!restart)
+            .open(&inputs_path)
+            .map_err(StateError::io("creating", &inputs_path))?;
+        Ok((
+            Self { dir: Some(dir), journal: Some(journal), inputs: Some(inputs), buffer: String::new(), lines: 0 },
+            restored,
+        ))
     }
 
     fn read(dir: &Path) -> Result<Restart, StateError> {
@@ -146,6 +163,9 @@ impl StateStore {
             for l in &mut r.journal {
                 l.pop();
             }
+        }
+        if let Some(text) = read_state_text(&dir.join(INPUTS_FILE))? {
+            r.input_seqs = parse_inputs(&text);
         }
         if let Ok(entries) = std::fs::read_dir(dir) {
             for e in entries.flatten() {
@@ -209,6 +229,20 @@ impl StateStore {
         Ok(())
     }
 
+    /// Overwrites the inputs' last sequence numbers (`(service, publisher, seq)`), in place with
+    /// one write: the runtime calls it after every wake-up in which an input received something,
+    /// so that a restarted instance knows where its killed predecessor stopped.
+    pub fn save_inputs(&mut self, seqs: &[(String, u128, u64)]) -> Result<(), StateError> {
+        use std::os::unix::fs::FileExt as _;
+        let (Some(file), Some(dir)) = (self.inputs.as_ref(), &self.dir) else { return Ok(()) };
+        let mut text = String::with_capacity(64 * seqs.len() + 4);
+        for (service, publisher, seq) in seqs {
+            text.push_str(&format!("{service}\t{publisher:x}\t{seq}\n"));
+        }
+        text.push_str("end\n");
+        file.write_all_at(text.as_bytes(), 0).map_err(StateError::io("writing", &dir.join(INPUTS_FILE)))
+    }
+
     /// Journal lines written so far (kept from a predecessor included).
     pub fn journal_lines(&self) -> u64 {
         self.lines
@@ -237,9 +271,50 @@ impl StateStore {
     }
 }
 
+/// The runtime's own file in a process's state directory: its inputs' last sequence numbers
+/// (`<service>\t<publisher, hex>\t<seq>` lines, then `end`; a dot file, so not a snapshot).
+const INPUTS_FILE: &str = ".inputs";
+
+/// The lines of [`INPUTS_FILE`] up to `end` (none without it: a file cut short says nothing).
+fn parse_inputs(text: &str) -> Vec<(String, u128, u64)> {
+    let mut out = vec![];
+    for line in text.lines() {
+        if line == "end" {
+            return out;
+        }
+        let mut f = line.split('\t');
+        let (Some(service), Some(publisher), Some(seq), None) = (f.next(), f.next(), f.next(), f.next()) else {
+            return vec![];
+        };
+        let (Ok(publisher), Ok(seq)) = (u128::from_str_radix(publisher, 16), seq.parse()) else { return vec![] };
+        out.push((service.to_string(), publisher, seq));
+    }
+    vec![]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_inputs_last_sequence_numbers_come_back_to_a_restart_and_a_shorter_save_overwrites_a_longer() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let (mut st, _) = StateStore::open(dir.path(), "map", false).expect("open");
+        let long =
+            vec![("pipeline/sensors/cloud".to_string(), 0xabc_u128, 41), ("pipeline/slam/pose".to_string(), 7, 9)];
+        st.save_inputs(&long).expect("save");
+        st.save_inputs(&long[..1]).expect("save");
+        drop(st);
+        let (mut st, r) = StateStore::open(dir.path(), "map", true).expect("reopen");
+        assert_eq!(r.expect("a restart").input_seqs, long[..1].to_vec());
+        // A restarted instance that has not saved yet leaves its predecessor's for the next one.
+        drop(st.journal.take());
+        let (_, r) = StateStore::open(dir.path(), "map", true).expect("reopen");
+        assert_eq!(r.expect("a restart").input_seqs, long[..1].to_vec());
+        // A file without its end marker (cut short) says nothing.
+        assert!(parse_inputs("pipeline/sensors/cloud\tabc\t41\n").is_empty());
+        assert!(parse_inputs("pipeline/sensors/cloud\tzz\t41\nend\n").is_empty());
+    }
 
     #[test]
     fn a_store_keeps_the_journal_and_snapshots_for_a_restart_and_a_first_instance_starts_empty() {

@@ -378,6 +378,47 @@ impl Runtime {
         self.restart_state = state;
     }
 
+    /// A restarted instance: where the killed one's inputs stopped (per service and publisher,
+    /// the last sequence number received), so that the first later message counts what was lost
+    /// in between ([`PortStats::note_seq`]).
+    pub(crate) fn resume_inputs(&mut self, seqs: &[(String, u128, u64)]) {
+        for port in self.ports.iter().filter(|p| p.borrow().input) {
+            let mut st = port.borrow_mut();
+            for (service, publisher, seq) in seqs {
+                if *service == st.service {
+                    st.lost_after.insert(*publisher, *seq);
+                }
+            }
+            st.seq_dirty = !st.lost_after.is_empty();
+        }
+    }
+
+    /// Writes the inputs' last sequence numbers to the restart state when they changed (after a
+    /// wake-up); the publishers a restarted instance has not heard from again keep its
+    /// predecessor's.
+    pub(crate) fn save_inputs(&mut self) -> Result<(), crate::restart::StateError> {
+        if !self.ports.iter().any(|p| p.borrow().seq_dirty) {
+            return Ok(());
+        }
+        let mut seqs = vec![];
+        for port in self.ports.iter() {
+            let mut st = port.borrow_mut();
+            st.seq_dirty = false;
+            if !st.input || st.service == shared_types::services::END_OF_STREAM {
+                continue;
+            }
+            for (publisher, seq) in st.lost_after.iter().filter(|(p, _)| !st.last_seq.contains_key(p)) {
+                seqs.push((st.service.clone(), *publisher, *seq));
+            }
+            for (publisher, seq) in &st.last_seq {
+                // The messages the stage still holds are the newest publisher's newest.
+                let held = if st.last_publisher == Some(*publisher) { st.held } else { 0 };
+                seqs.push((st.service.clone(), *publisher, seq.saturating_sub(held)));
+            }
+        }
+        self.restart_state.save_inputs(&seqs)
+    }
+
     /// Takes the deadline set with [`Runtime::wake_at`] (for a test driving a stage).
     pub(crate) fn take_wake_at(&mut self) -> Option<Instant> {
         self.wake_at.take()

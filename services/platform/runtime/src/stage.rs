@@ -175,6 +175,7 @@ impl Driver {
         restart: bool,
     ) -> Result<Self, StageError> {
         let (mut store, restored) = StateStore::open(&ctx.out_dir, &ctx.name, restart)?;
+        let restored_seqs = restored.as_ref().map(|r| r.input_seqs.clone());
         if let Some(r) = restored {
             let lines = r.journal.len();
             let kept = stage.restore(r.clone())?.min(lines);
@@ -193,6 +194,9 @@ impl Driver {
             }
         }
         rt.set_state(store);
+        if let Some(r) = &restored_seqs {
+            rt.resume_inputs(r);
+        }
         Ok(Self {
             eos: rt.input::<EndOfStream, MsgHeader>(END_OF_STREAM)?,
             end_after: stage.end_after(),
@@ -241,6 +245,7 @@ impl Driver {
         let over = self.end_after.inputs_ended(&self.ended, &self.fed);
         let step = stage.step(rt, wake, over)?;
         rt.state().flush()?;
+        rt.save_inputs()?;
         if step == Step::Busy {
             rt.wake_at(Instant::now());
         }

@@ -21,6 +21,10 @@ pub fn new_histogram() -> Histogram<u64> {
     Histogram::new_with_bounds(1, MAX_LATENCY_NS, 3).expect("static histogram bounds are valid")
 }
 
+/// The reason under which a restarted instance counts the messages its killed predecessor never
+/// took (they sat in its queue when it died, or were sent while no instance ran).
+pub const LOST_IN_RESTART: &str = "lost in a restart: queued for the killed instance";
+
 /// Statistics of one port of a process.
 #[derive(Debug, Clone)]
 pub struct PortStats {
@@ -42,6 +46,21 @@ pub struct PortStats {
     /// Input messages the consuming stage received (or knows it missed) and dropped, by reason
     /// (e.g. "no pose within pose_wait_s"): counted by the stage with [`crate::Input::count_dropped`].
     pub dropped_by: std::collections::BTreeMap<String, u64>,
+    /// An input's last sequence number received, per publisher: written to the restart state
+    /// after every wake-up ([`crate::restart::StateStore::save_inputs`]).
+    pub last_seq: std::collections::BTreeMap<u128, u64>,
+    /// A restarted instance's input: per publisher, the last sequence number its killed
+    /// predecessor had received. The first later message from that publisher tells how many
+    /// were lost in between (queued for the killed instance when it died, or sent while no
+    /// instance ran): counted in `dropped_by` as [`LOST_IN_RESTART`].
+    pub lost_after: std::collections::BTreeMap<u128, u64>,
+    /// `last_seq` changed since it was last saved.
+    pub seq_dirty: bool,
+    /// The publisher of the newest message received.
+    pub last_publisher: Option<u128>,
+    /// Messages of this input the stage has received and still holds unprocessed (the newest
+    /// ones: [`crate::Input::set_held`]); a restart resumes before them, so they count as lost.
+    pub held: u64,
     /// Hop latency, ns.
     pub hop: Histogram<u64>,
     /// End-to-end latency, ns.
@@ -59,9 +78,32 @@ impl PortStats {
             undelivered: 0,
             undelivered_by: Default::default(),
             dropped_by: Default::default(),
+            last_seq: Default::default(),
+            lost_after: Default::default(),
+            seq_dirty: false,
+            last_publisher: None,
+            held: 0,
             hop: new_histogram(),
             e2e: new_histogram(),
         }
+    }
+
+    /// Notes an input message's sequence number `seq` from `publisher`; in a restarted instance
+    /// the first one after what the killed instance had received counts the messages between as
+    /// lost ([`PortStats::lost_after`]).
+    pub fn note_seq(&mut self, publisher: u128, seq: u64) {
+        if let Some(&last) = self.lost_after.get(&publisher) {
+            if seq <= last {
+                return; // one the killed instance had (a history replayed on connecting)
+            }
+            self.lost_after.remove(&publisher);
+            if seq > last + 1 {
+                *self.dropped_by.entry(LOST_IN_RESTART.to_string()).or_default() += seq - last - 1;
+            }
+        }
+        self.last_seq.insert(publisher, seq);
+        self.last_publisher = Some(publisher);
+        self.seq_dirty = true;
     }
 
     /// Records one received message with header times `publish_ns` and `origin_ns` at `now_ns`.

@@ -130,14 +130,20 @@ impl<S: Stage> StageHarness<S> {
         Ok(Self { ctx, bus, rt, stage, driver, seqs: Default::default() })
     }
 
-    /// Kills this instance (nothing more is written; what its inputs held is lost) and starts
-    /// a restarted one, as the supervisor would: a new stage with the settings of the context's
-    /// config, given the restart state the killed one kept ([`Stage::restore`]).
+    /// Kills this instance (nothing more is written; what its inputs held is lost, and the
+    /// restarted instance counts it as [`crate::stats::LOST_IN_RESTART`] when the next message
+    /// comes) and starts a restarted one, as the supervisor would: a new stage with the settings
+    /// of the context's config, given the restart state the killed one kept
+    /// ([`Stage::restore`]). The test's publishers go on numbering where they were.
     pub fn restart(self) -> Result<Self, TestError> {
         let ctx = self.ctx.clone();
+        // The publishers go on: their sequence numbers continue after the restart.
+        let seqs = self.seqs.take();
         drop(self);
         let settings: S::Settings = ctx.settings()?;
-        Self::open_instance(ctx, settings, true)
+        let h = Self::open_instance(ctx, settings, true)?;
+        *h.seqs.borrow_mut() = seqs;
+        Ok(h)
     }
 
     /// The process context the stage was opened with.

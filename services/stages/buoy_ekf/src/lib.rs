@@ -291,6 +291,11 @@ impl BuoyState {
         self.newest_stamp_ns = Some(self.newest_stamp_ns.map_or(stamp_ns, |s| s.max(stamp_ns)));
     }
 
+    /// Messages waiting, per input: (odometry, ranges, depth).
+    pub fn held(&self) -> (usize, usize, usize) {
+        (self.odometry.len(), self.ranges.len(), self.depth.len())
+    }
+
     /// Messages waiting.
     pub fn pending(&self) -> usize {
         self.odometry.len() + self.ranges.len() + self.depth.len()

@@ -104,6 +104,11 @@ impl Stage for BuoyEkfStage {
         if let Some(deadline) = st.next_deadline() {
             rt.wake_at(deadline);
         }
+        // Inputs waiting to be applied in stamp order: lost (and counted) if it is killed now.
+        let (odometry, ranges, depth) = st.held();
+        self.odometry.set_held(odometry as u64);
+        self.ranges.set_held(ranges as u64);
+        self.depth.set_held(depth as u64);
         Ok(if st.pending() == 0 { Step::Idle } else { Step::Pending })
     }
 

@@ -126,3 +126,39 @@ fn a_restarted_filter_goes_on_from_the_killed_ones_state() {
     // The trajectory covers the whole run: the killed instance's part was replayed.
     assert_eq!(restarted_samples, whole_samples);
 }
+
+#[test]
+fn what_sat_in_the_killed_instances_queues_is_counted_as_lost_by_the_restarted_one() {
+    use pipeline_runtime::stats::LOST_IN_RESTART;
+    let dir = tempfile::tempdir().unwrap();
+    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../config/default.toml");
+    let mut h = StageHarness::<BuoyEkfStage>::from_config_file(&config, "buoy", dir.path()).expect("opens");
+    for s in 1..=10u64 {
+        feed_second(&h, s);
+        h.wake().unwrap();
+    }
+    // Two seconds of inputs wait in its queues when it is killed: 20 odometry messages, 2
+    // depth readings and 2 ranges messages lost.
+    feed_second(&h, 11);
+    feed_second(&h, 12);
+    let mut h = h.restart().unwrap();
+    for s in 13..=20u64 {
+        feed_second(&h, s);
+        h.wake().unwrap();
+    }
+    let lost = |service: &str| {
+        let report = h.runtime().stats_report();
+        let port = report.ports.iter().find(|p| p.input && p.service == service).expect("the input");
+        port.dropped_by.iter().find(|(r, _)| r == LOST_IN_RESTART).map_or(0, |(_, n)| *n)
+    };
+    assert_eq!((lost(ODOMETRY), lost(DEPTH), lost(BUOY_RANGES)), (20, 2, 2));
+    // A second restart with nothing queued loses nothing more (the restarted instance's own
+    // inputs are where the next one resumes).
+    let mut h = h.restart().unwrap();
+    feed_second(&h, 21);
+    h.wake().unwrap();
+    let report = h.runtime().stats_report();
+    assert!(report.ports.iter().all(|p| p.dropped_by.is_empty()), "{report:?}");
+    h.end_upstream("ingest").unwrap();
+    h.run_to_end(Duration::from_secs(5)).unwrap();
+}

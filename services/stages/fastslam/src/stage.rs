@@ -290,6 +290,8 @@ impl Stage for FastSlamStage {
         let processed = self.st.step(inputs_ended, 1);
         // Journal before publishing: a restarted instance resumes from what was journalled.
         self.journal(rt, processed.len())?;
+        // Frames in the own queue are not processed yet: lost (and counted) if it is killed now.
+        self.stereo.set_held(self.st.frames.len() as u64);
         let busy = !self.st.frames.is_empty() || more_waiting;
         let per_frame =
             if processed.is_empty() { 0.0 } else { t0.elapsed().as_secs_f64() * 1e3 / processed.len() as f64 };

@@ -494,6 +494,8 @@ impl Stage for OctreeMapperStage {
             rt.wake_at(Instant::now()); // clouds left in the service's queue: take them now
         }
         self.periodic_outputs(rt, inputs_ended)?;
+        // Clouds waiting for their pose: lost (and counted) if it is killed now.
+        self.clouds.set_held(self.st.pending.len() as u64);
         Ok(if queue_empty && self.st.pending.is_empty() { Step::Idle } else { Step::Pending })
     }
 

@@ -78,6 +78,8 @@ impl Stage for SynchronizerStage {
         if let Some(deadline) = self.st.next_deadline() {
             rt.wake_at(deadline);
         }
+        // Poses waiting for their fix: lost (and counted) if it is killed now.
+        self.poses.set_held(self.st.pending.len() as u64);
         Ok(if self.st.pending.is_empty() { Step::Idle } else { Step::Pending })
     }
 

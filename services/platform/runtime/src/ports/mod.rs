@@ -761,6 +761,18 @@ impl<P: Payload + ?Sized, H: Header> Input<P, H> {
         }
     }
 
+    /// Tells the runtime that the stage holds the newest `n` messages it received from this
+    /// input unprocessed (in its own queue). A restarted instance resumes before them: if the
+    /// process is killed, they count as lost in the restart, as what sat in the service's queue
+    /// does (exact for a service with one publisher, the pipeline's own case).
+    pub fn set_held(&self, n: u64) {
+        let mut st = self.stats.borrow_mut();
+        if st.held != n {
+            st.held = n;
+            st.seq_dirty = true;
+        }
+    }
+
     /// Messages dropped so far, over all reasons.
     pub fn dropped(&self) -> u64 {
         self.stats.borrow().dropped_by.values().sum()
@@ -774,7 +786,9 @@ impl<P: Payload + ?Sized, H: Header> Input<P, H> {
         };
         if let Some(s) = &s {
             let h = s.user_header().msg();
-            self.stats.borrow_mut().record_receive(monotonic_ns(), h.publish_ns, h.origin_ns);
+            let mut stats = self.stats.borrow_mut();
+            stats.record_receive(monotonic_ns(), h.publish_ns, h.origin_ns);
+            stats.note_seq(s.publisher_id(), h.seq);
         }
         Ok(s)
     }
