@@ -76,9 +76,9 @@ pub struct Restart {
     /// The snapshots, by key: their files (read them with [`Restart::read_snapshot`], or hand
     /// the path to a library that reads files).
     pub snapshots: std::collections::BTreeMap<String, PathBuf>,
-    /// Per input service and publisher, the last sequence number the killed instance had
-    /// received (kept by the runtime, [`StateStore::save_inputs`]): the runtime counts what the
-    /// restarted instance finds missing after it.
+    /// Per input service and publisher, the first sequence number the killed instance had not
+    /// received or not kept (kept by the runtime, [`StateStore::save_inputs`]): the runtime
+    /// counts what the restarted instance finds missing from there.
     pub input_seqs: Vec<(String, u128, u64)>,
 }
 
@@ -102,7 +102,7 @@ impl Restart {
 pub struct StateStore {
     dir: Option<PathBuf>,
     journal: Option<File>,
-    /// `.inputs`: the inputs' last sequence numbers, overwritten in place.
+    /// `.inputs`: where the inputs stand, overwritten in place.
     inputs: Option<File>,
     buffer: String,
     /// Journal lines recorded (and flushed) so far.
@@ -229,9 +229,10 @@ impl StateStore {
         Ok(())
     }
 
-    /// Overwrites the inputs' last sequence numbers (`(service, publisher, seq)`), in place with
-    /// one write: the runtime calls it after every wake-up in which an input received something,
-    /// so that a restarted instance knows where its killed predecessor stopped.
+    /// Overwrites where the inputs stand (`(service, publisher, first sequence number not
+    /// received or kept)`), in place with one write: the runtime calls it after every wake-up in
+    /// which that changed, so that a restarted instance knows where its killed predecessor
+    /// stopped.
     pub fn save_inputs(&mut self, seqs: &[(String, u128, u64)]) -> Result<(), StateError> {
         use std::os::unix::fs::FileExt as _;
         let (Some(file), Some(dir)) = (self.inputs.as_ref(), &self.dir) else { return Ok(()) };
@@ -271,8 +272,9 @@ impl StateStore {
     }
 }
 
-/// The runtime's own file in a process's state directory: its inputs' last sequence numbers
-/// (`<service>\t<publisher, hex>\t<seq>` lines, then `end`; a dot file, so not a snapshot).
+/// The runtime's own file in a process's state directory: where its inputs stand
+/// (`<service>\t<publisher, hex>\t<first seq not received or kept>` lines, then `end`; a dot
+/// file, so not a snapshot).
 const INPUTS_FILE: &str = ".inputs";
 
 /// The lines of [`INPUTS_FILE`] up to `end` (none without it: a file cut short says nothing).
@@ -297,7 +299,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_inputs_last_sequence_numbers_come_back_to_a_restart_and_a_shorter_save_overwrites_a_longer() {
+    fn where_the_inputs_stand_comes_back_to_a_restart_and_a_shorter_save_overwrites_a_longer() {
         let dir = tempfile::tempdir().expect("temp dir");
         let (mut st, _) = StateStore::open(dir.path(), "map", false).expect("open");
         let long =

@@ -379,23 +379,24 @@ impl Runtime {
     }
 
     /// A restarted instance: where the killed one's inputs stopped (per service and publisher,
-    /// the last sequence number received), so that the first later message counts what was lost
-    /// in between ([`PortStats::note_seq`]).
+    /// the first sequence number it had not received or kept), so that the first later message
+    /// counts what was lost from there ([`PortStats::note_seq`]).
     pub(crate) fn resume_inputs(&mut self, seqs: &[(String, u128, u64)]) {
         for port in self.ports.iter().filter(|p| p.borrow().input) {
             let mut st = port.borrow_mut();
             for (service, publisher, seq) in seqs {
                 if *service == st.service {
-                    st.lost_after.insert(*publisher, *seq);
+                    st.resume_at.insert(*publisher, *seq);
                 }
             }
-            st.seq_dirty = !st.lost_after.is_empty();
+            st.seq_dirty = !st.resume_at.is_empty();
         }
     }
 
-    /// Writes the inputs' last sequence numbers to the restart state when they changed (after a
-    /// wake-up); the publishers a restarted instance has not heard from again keep its
-    /// predecessor's.
+    /// Writes where each input stands to the restart state when it changed (after a wake-up):
+    /// per publisher the first sequence number not received or not kept (the stage's held
+    /// messages are the newest publisher's newest); the publishers a restarted instance has not
+    /// heard from again keep its predecessor's.
     pub(crate) fn save_inputs(&mut self) -> Result<(), crate::restart::StateError> {
         if !self.ports.iter().any(|p| p.borrow().seq_dirty) {
             return Ok(());
@@ -407,13 +408,12 @@ impl Runtime {
             if !st.input || st.service == shared_types::services::END_OF_STREAM {
                 continue;
             }
-            for (publisher, seq) in st.lost_after.iter().filter(|(p, _)| !st.last_seq.contains_key(p)) {
-                seqs.push((st.service.clone(), *publisher, *seq));
+            for (publisher, next) in st.resume_at.iter().filter(|(p, _)| !st.last_seq.contains_key(p)) {
+                seqs.push((st.service.clone(), *publisher, *next));
             }
             for (publisher, seq) in &st.last_seq {
-                // The messages the stage still holds are the newest publisher's newest.
                 let held = if st.last_publisher == Some(*publisher) { st.held } else { 0 };
-                seqs.push((st.service.clone(), *publisher, seq.saturating_sub(held)));
+                seqs.push((st.service.clone(), *publisher, (seq + 1).saturating_sub(held)));
             }
         }
         self.restart_state.save_inputs(&seqs)

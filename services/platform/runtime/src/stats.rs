@@ -22,8 +22,10 @@ pub fn new_histogram() -> Histogram<u64> {
 }
 
 /// The reason under which a restarted instance counts the messages its killed predecessor never
-/// took (they sat in its queue when it died, or were sent while no instance ran).
-pub const LOST_IN_RESTART: &str = "lost in a restart: queued for the killed instance";
+/// took (they sat in its queue when it died, or were sent while no instance ran) or took and did
+/// not keep (its stage still held them, [`crate::Input::set_held`]: e.g. clouds the mapper
+/// inserted after its last checkpoint).
+pub const LOST_IN_RESTART: &str = "lost in a restart: queued for the killed instance or not kept by it";
 
 /// Statistics of one port of a process.
 #[derive(Debug, Clone)]
@@ -49,11 +51,11 @@ pub struct PortStats {
     /// An input's last sequence number received, per publisher: written to the restart state
     /// after every wake-up ([`crate::restart::StateStore::save_inputs`]).
     pub last_seq: std::collections::BTreeMap<u128, u64>,
-    /// A restarted instance's input: per publisher, the last sequence number its killed
-    /// predecessor had received. The first later message from that publisher tells how many
-    /// were lost in between (queued for the killed instance when it died, or sent while no
-    /// instance ran): counted in `dropped_by` as [`LOST_IN_RESTART`].
-    pub lost_after: std::collections::BTreeMap<u128, u64>,
+    /// A restarted instance's input: per publisher, the first sequence number its killed
+    /// predecessor had not received or not kept. The first later message from that publisher
+    /// tells how many were lost from there (queued for the killed instance when it died, held by
+    /// its stage, or sent while no instance ran): counted in `dropped_by` as [`LOST_IN_RESTART`].
+    pub resume_at: std::collections::BTreeMap<u128, u64>,
     /// `last_seq` changed since it was last saved.
     pub seq_dirty: bool,
     /// The publisher of the newest message received.
@@ -79,7 +81,7 @@ impl PortStats {
             undelivered_by: Default::default(),
             dropped_by: Default::default(),
             last_seq: Default::default(),
-            lost_after: Default::default(),
+            resume_at: Default::default(),
             seq_dirty: false,
             last_publisher: None,
             held: 0,
@@ -89,16 +91,16 @@ impl PortStats {
     }
 
     /// Notes an input message's sequence number `seq` from `publisher`; in a restarted instance
-    /// the first one after what the killed instance had received counts the messages between as
-    /// lost ([`PortStats::lost_after`]).
+    /// the first one from where the killed instance stopped counts the messages before it as
+    /// lost ([`PortStats::resume_at`]).
     pub fn note_seq(&mut self, publisher: u128, seq: u64) {
-        if let Some(&last) = self.lost_after.get(&publisher) {
-            if seq <= last {
-                return; // one the killed instance had (a history replayed on connecting)
+        if let Some(&next) = self.resume_at.get(&publisher) {
+            if seq < next {
+                return; // one the killed instance had kept (a history replayed on connecting)
             }
-            self.lost_after.remove(&publisher);
-            if seq > last + 1 {
-                *self.dropped_by.entry(LOST_IN_RESTART.to_string()).or_default() += seq - last - 1;
+            self.resume_at.remove(&publisher);
+            if seq > next {
+                *self.dropped_by.entry(LOST_IN_RESTART.to_string()).or_default() += seq - next;
             }
         }
         self.last_seq.insert(publisher, seq);

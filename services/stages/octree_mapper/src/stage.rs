@@ -181,6 +181,9 @@ pub struct OctreeMapperStage {
     st: MapperState,
     checkpoint_every: Option<Duration>,
     last_checkpoint: Instant,
+    /// Clouds this instance had inserted at its last checkpoint (those after it are lost from the
+    /// map if it is killed).
+    inserted_at_checkpoint: u64,
     clouds: Input<[CloudPoint], CloudHeader>,
     fused: Input<FusedPose, MsgHeader>,
     slam: Input<PoseEstimate, MsgHeader>,
@@ -395,6 +398,7 @@ impl OctreeMapperStage {
             let _alive = rt.hold_heartbeat();
             let bytes = self.st.checkpoint()?;
             rt.state().snapshot(CHECKPOINT, &bytes)?;
+            self.inserted_at_checkpoint = self.st.counters.clouds_inserted;
         }
         if self.stats_every.is_some_and(|e| self.last_stats.elapsed() >= e) {
             self.last_stats = Instant::now();
@@ -423,6 +427,7 @@ impl Stage for OctreeMapperStage {
             st,
             checkpoint_every,
             last_checkpoint: Instant::now(),
+            inserted_at_checkpoint: 0,
             clouds: rt.input(CLOUD)?,
             fused: rt.input(FUSION_POSE)?,
             slam: rt.input(SLAM_POSE)?,
@@ -494,8 +499,10 @@ impl Stage for OctreeMapperStage {
             rt.wake_at(Instant::now()); // clouds left in the service's queue: take them now
         }
         self.periodic_outputs(rt, inputs_ended)?;
-        // Clouds waiting for their pose: lost (and counted) if it is killed now.
-        self.clouds.set_held(self.st.pending.len() as u64);
+        // Clouds waiting for their pose, and those inserted since the last checkpoint (a restarted
+        // mapper starts from it): lost (and counted) if it is killed now.
+        let since_checkpoint = self.st.counters.clouds_inserted - self.inserted_at_checkpoint;
+        self.clouds.set_held(self.st.pending.len() as u64 + since_checkpoint);
         Ok(if queue_empty && self.st.pending.is_empty() { Step::Idle } else { Step::Pending })
     }
 

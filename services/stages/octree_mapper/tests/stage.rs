@@ -1,5 +1,6 @@
 //! The octree_mapper stage fed through `pipeline_runtime::testing::StageHarness` (no iceoryx2):
-//! clouds that never reached the mapper are counted, also when they are the stream's first.
+//! clouds that never reached the mapper are counted, also when they are the stream's first, and
+//! so are those a restart lost.
 
 use std::time::Duration;
 
@@ -74,4 +75,39 @@ fn a_stream_that_arrives_whole_misses_nothing() {
     map.end_upstream("ingest").unwrap();
     let summary = map.run_to_end(Duration::from_secs(60)).unwrap();
     assert_eq!(counters(&summary), (3, 0), "{:#}", summary["octree_mapper"]["counters"]);
+}
+
+/// Clouds the killed mapper received, `(queued, inserted since its last checkpoint)`, then lost
+/// counted by the restarted one, with checkpoints every `checkpoint_interval_s`.
+fn lost_in_restart(checkpoint_interval_s: f64) -> u64 {
+    let dir = tempfile::tempdir().unwrap();
+    let config = format!("{CONFIG}checkpoint_interval_s = {checkpoint_interval_s}\n");
+    let mut map: StageHarness<OctreeMapperStage> =
+        StageHarness::from_config_str(&config, &dir.path().join("config.toml"), "map", dir.path()).unwrap();
+    for t in [0.2, 0.3, 0.4] {
+        let (h, points) = cloud(t);
+        map.feed_slice(CLOUD, h, &points).unwrap();
+        map.wake().unwrap();
+    }
+    // A checkpoint is written on a wake-up once the interval has passed.
+    std::thread::sleep(Duration::from_millis(30));
+    map.wake().unwrap();
+    let (h, points) = cloud(0.5);
+    map.feed_slice(CLOUD, h, &points).unwrap(); // queued when it is killed
+    let mut map = map.restart().unwrap();
+    let (h, points) = cloud(0.6);
+    map.feed_slice(CLOUD, h, &points).unwrap();
+    map.wake().unwrap();
+    let report = map.runtime().stats_report();
+    let port = report.ports.iter().find(|p| p.input && p.service == CLOUD).expect("the cloud input");
+    port.dropped_by.iter().find(|(r, _)| r == pipeline_runtime::stats::LOST_IN_RESTART).map_or(0, |(_, n)| *n)
+}
+
+#[test]
+fn a_restarted_mapper_counts_the_clouds_its_map_lost() {
+    // No checkpoint within the test: the restarted map lacks the three inserted clouds and the
+    // queued one.
+    assert_eq!(lost_in_restart(60.0), 4);
+    // A checkpoint after the three: only the queued one is lost.
+    assert_eq!(lost_in_restart(0.01), 1);
 }

@@ -761,10 +761,11 @@ impl<P: Payload + ?Sized, H: Header> Input<P, H> {
         }
     }
 
-    /// Tells the runtime that the stage holds the newest `n` messages it received from this
-    /// input unprocessed (in its own queue). A restarted instance resumes before them: if the
-    /// process is killed, they count as lost in the restart, as what sat in the service's queue
-    /// does (exact for a service with one publisher, the pipeline's own case).
+    /// Tells the runtime that the newest `n` messages the stage received from this input are not
+    /// kept yet: unprocessed in its own queue, or processed into state a restart would not get
+    /// back (the mapper's clouds since its last checkpoint). A restarted instance resumes before
+    /// them: if the process is killed, they count as lost in the restart, as what sat in the
+    /// service's queue does (exact for a service with one publisher, the pipeline's own case).
     pub fn set_held(&self, n: u64) {
         let mut st = self.stats.borrow_mut();
         if st.held != n {
