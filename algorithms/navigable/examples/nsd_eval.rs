@@ -7,7 +7,13 @@
 //! ```sh
 //! cargo run --release -p navigable --example nsd_eval -- [--poses truth|out/default/fused_live.tum]
 //!     [--settings nsd.toml] [--res 0.1] [--clouds N] [--tolerance M] [--landmarks] [--indoor]
+//!     [--refresh-every 85]
 //! ```
+//!
+//! `--refresh-every N`: the plane fits refreshed every N clouds, as the mapper does every
+//! `fits_refresh_interval_s` (5 s: about 85 of the main job's clouds), so that the discovery
+//! at the end, whose time is printed, fits only what changed after the last refresh (0: no
+//! refreshes, every voxel fitted at the end).
 //!
 //! `--indoor`: the indoor mission's depth clouds instead (`sim::indoor`, its default building,
 //! 0.05 m voxels, 6 m range, true poses only) against its boxes.
@@ -36,6 +42,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut tolerance = 0.0;
     let mut track = false;
     let mut indoor = false;
+    let mut refresh_every = 85usize;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut value = || args.next().ok_or_else(|| format!("{a} needs a value"));
@@ -50,6 +57,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "--tolerance" => tolerance = value()?.parse()?,
             "--landmarks" => track = true,
             "--indoor" => indoor = true,
+            "--refresh-every" => refresh_every = value()?.parse()?,
             other => return Err(format!("unknown argument {other}").into()),
         }
     }
@@ -115,6 +123,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut tree = octree::OcTree::new(res)?;
     tree.set_ray_threads(2);
     let mut acc = PointAccumulator::new(res);
+    acc.track_changes();
+    let mut fits = navigable::PlaneFits::new();
     let mut origins = navigable::truth::TrueOrigins::new(res);
     let mut tracker = navigable::ObstacleTracker::default();
     let (mut clouds, mut without_pose, mut moved) = (0usize, 0usize, 0.0);
@@ -165,6 +175,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             tracker.update(&scan, &cfg, 1.0, (res * 0.5).powi(2))?;
         }
         clouds += 1;
+        if refresh_every > 0 && clouds % refresh_every == 0 {
+            let changed = acc.take_changed();
+            fits.refresh(&acc, changed);
+        }
     }
     let inserted_s = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
@@ -172,12 +186,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let c = [(k[0] as f64 + 0.5) * res, (k[1] as f64 + 0.5) * res, (k[2] as f64 + 0.5) * res];
         tree.is_occupied(c).unwrap_or(false)
     };
-    let d = navigable::discover(&acc, occupied, &cfg)?;
+    let d = navigable::discover_with(&acc, occupied, &cfg, &fits)?;
     let discover_s = t1.elapsed().as_secs_f64();
     let c = d.counts();
     println!(
-        "{clouds} clouds ({without_pose} without a pose; mean offset from the true sensor position {:.3} m) in {inserted_s:.1} s; discovery {discover_s:.2} s",
-        moved / clouds.max(1) as f64
+        "{clouds} clouds ({without_pose} without a pose; mean offset from the true sensor position {:.3} m) in {inserted_s:.1} s (plane fits refreshed: {}); discovery {discover_s:.2} s ({} of {} voxels fitted at the end)",
+        moved / clouds.max(1) as f64,
+        fits.fitted(),
+        d.fitted,
+        d.classes.len()
     );
     println!(
         "surface sigma {:.4} m, step {:.3} m; voxels: navigable {}, steep {}, non-planar {}, sparse {}, patches {}; obstacles {}",

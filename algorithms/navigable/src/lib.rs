@@ -163,16 +163,33 @@ impl VoxelStats {
 }
 
 /// The end points of the inserted scans, by voxel.
+///
+/// A voxel only gains points (its count grows with every change), which is what lets
+/// [`PlaneFits`] tell a kept fit from a stale one by the count alone.
 #[derive(Debug, Clone, Default)]
 pub struct PointAccumulator {
     res_m: f64,
     cells: VoxelMap<VoxelStats>,
+    /// With [`PointAccumulator::track_changes`]: the voxels that gained points since the last
+    /// [`PointAccumulator::take_changed`].
+    changed: Option<rustc_hash::FxHashSet<VoxelKey>>,
 }
 
 impl PointAccumulator {
     /// An empty accumulator with voxels of `res_m` (> 0).
     pub fn new(res_m: f64) -> Self {
-        Self { res_m, cells: VoxelMap::default() }
+        Self { res_m, cells: VoxelMap::default(), changed: None }
+    }
+
+    /// From now on, remembers which voxels gain points (for [`PointAccumulator::take_changed`]).
+    pub fn track_changes(&mut self) {
+        self.changed.get_or_insert_with(Default::default);
+    }
+
+    /// The voxels that gained points since the last call (or since
+    /// [`PointAccumulator::track_changes`]); none without tracking.
+    pub fn take_changed(&mut self) -> Vec<VoxelKey> {
+        self.changed.as_mut().map(|c| c.drain().collect()).unwrap_or_default()
     }
 
     /// The voxel size, m.
@@ -195,6 +212,9 @@ impl PointAccumulator {
         if p.iter().all(|v| v.is_finite()) {
             let k = self.key(p);
             self.cells.entry(k).or_default().add(p);
+            if let Some(c) = &mut self.changed {
+                c.insert(k);
+            }
         }
     }
 
@@ -209,7 +229,13 @@ impl PointAccumulator {
             });
         }
         for (k, v) in &other.cells {
+            if v.n == 0 {
+                continue;
+            }
             self.cells.entry(*k).or_default().merge(v);
+            if let Some(c) = &mut self.changed {
+                c.insert(*k);
+            }
         }
         Ok(())
     }
@@ -347,27 +373,24 @@ pub fn fit_plane(s: &VoxelStats) -> Option<PlaneFit> {
     })
 }
 
-/// The median over the navigable voxels seen in several scans of the RMS distance of all their
-/// points to their plane, m (0 without such voxels).
-fn surface_sigma(acc: &PointAccumulator, keys: &[VoxelKey], classes: &[VoxelClass]) -> f64 {
-    let mut spread: Vec<f64> = keys
-        .iter()
-        .zip(classes)
-        .filter_map(|(k, c)| {
-            let VoxelClass::Navigable(p) = c else { return None };
-            let s = &acc.cells[k];
-            if s.scans() < 2 {
-                return None;
-            }
-            let (_, cov) = s.mean_cov()?;
-            Some((p.normal.transpose() * cov * p.normal)[(0, 0)].max(0.0).sqrt())
-        })
-        .collect();
-    if spread.is_empty() {
+/// For a navigable voxel seen in several scans, the RMS distance of all its points to its
+/// plane, m ([`Discovery::surface_sigma_m`] is the median).
+fn surface_spread(s: &VoxelStats, c: &VoxelClass) -> Option<f64> {
+    let VoxelClass::Navigable(p) = c else { return None };
+    if s.scans() < 2 {
+        return None;
+    }
+    let (_, cov) = s.mean_cov()?;
+    Some((p.normal.transpose() * cov * p.normal)[(0, 0)].max(0.0).sqrt())
+}
+
+/// The median (the upper one of an even count; 0 when empty).
+fn median(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
         return 0.0;
     }
-    let mid = spread.len() / 2;
-    *spread.select_nth_unstable_by(mid, f64::total_cmp).1
+    let mid = v.len() / 2;
+    *v.select_nth_unstable_by(mid, f64::total_cmp).1
 }
 
 /// The middle of three eigenvalues.
@@ -419,7 +442,7 @@ pub struct Obstacle {
 #[derive(Debug, Clone, Default)]
 pub struct Discovery {
     /// Class per voxel considered.
-    pub classes: VoxelMap<VoxelClass>,
+    pub classes: ClassMap,
     /// Navigable regions, largest first.
     pub regions: Vec<NavigableRegion>,
     /// Obstacles, largest first.
@@ -431,6 +454,59 @@ pub struct Discovery {
     /// The step regions do not cross and obstacles must rise by: `max_step_m`, or 3
     /// `surface_sigma_m` when larger, m.
     pub step_m: f64,
+    /// Voxels this discovery fitted a plane to itself (the others' fits were kept in the
+    /// [`PlaneFits`] given to [`discover_with`]).
+    pub fitted: usize,
+}
+
+/// The class of each voxel a discovery considered, in the voxels' order ([`ClassMap::iter`]:
+/// by key), looked up by key through the discovery's own index.
+#[derive(Debug, Clone, Default)]
+pub struct ClassMap {
+    keys: Vec<VoxelKey>,
+    classes: Vec<VoxelClass>,
+    index: ChunkIndex,
+}
+
+impl ClassMap {
+    /// The class of voxel `k`, if it was considered.
+    pub fn get(&self, k: &VoxelKey) -> Option<&VoxelClass> {
+        self.index.get(k).map(|i| &self.classes[i])
+    }
+
+    /// Voxels considered.
+    pub fn len(&self) -> usize {
+        self.keys.len()
+    }
+
+    /// Whether none was.
+    pub fn is_empty(&self) -> bool {
+        self.keys.is_empty()
+    }
+
+    /// The voxels, by key.
+    pub fn keys(&self) -> impl Iterator<Item = &VoxelKey> {
+        self.keys.iter()
+    }
+
+    /// Their classes, in the same order.
+    pub fn values(&self) -> impl Iterator<Item = &VoxelClass> {
+        self.classes.iter()
+    }
+
+    /// Voxel and class, by key.
+    pub fn iter(&self) -> impl Iterator<Item = (&VoxelKey, &VoxelClass)> {
+        self.keys.iter().zip(&self.classes)
+    }
+}
+
+impl std::ops::Index<&VoxelKey> for ClassMap {
+    type Output = VoxelClass;
+
+    /// Panics when `k` was not considered.
+    fn index(&self, k: &VoxelKey) -> &VoxelClass {
+        self.get(k).unwrap_or_else(|| panic!("voxel {k:?} was not classified"))
+    }
 }
 
 /// Classified voxels by class.
@@ -487,26 +563,246 @@ fn forward_neighbours(k: &VoxelKey) -> impl Iterator<Item = VoxelKey> + '_ {
     neighbours(k).skip(13)
 }
 
+/// A voxel's plane fit as [`PlaneFits`] keeps it: what the classification reads, at the point
+/// count it was fitted at (the centroid is the mean of the voxel's points, taken from its
+/// statistics when used).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct KeptFit {
+    /// Points the voxel had when fitted: the fit holds while the voxel still has this many.
+    n: u32,
+    /// Unit normal, z ≥ 0 (NaN: no fit, under 3 points or non-finite statistics).
+    normal: [f32; 3],
+    mse_m2: f32,
+    spread_m2: f32,
+    within_scans: bool,
+}
+
+impl KeptFit {
+    fn of(s: &VoxelStats) -> Self {
+        match fit_plane(s) {
+            Some(p) => KeptFit {
+                n: s.n,
+                normal: [p.normal.x as f32, p.normal.y as f32, p.normal.z as f32],
+                mse_m2: p.mse_m2 as f32,
+                spread_m2: p.spread_m2 as f32,
+                within_scans: p.within_scans,
+            },
+            None => KeptFit { n: s.n, normal: [f32::NAN; 3], mse_m2: 0.0, spread_m2: 0.0, within_scans: false },
+        }
+    }
+
+    fn plane(&self, s: &VoxelStats) -> Option<PlaneFit> {
+        if self.normal[0].is_nan() {
+            return None;
+        }
+        let (centroid_m, _) = s.mean_cov()?;
+        Some(PlaneFit {
+            centroid_m,
+            normal: Vector3::new(self.normal[0] as f64, self.normal[1] as f64, self.normal[2] as f64).normalize(),
+            mse_m2: self.mse_m2 as f64,
+            spread_m2: self.spread_m2 as f64,
+            within_scans: self.within_scans,
+        })
+    }
+}
+
+/// The voxels' plane fits, kept from one discovery to the next ([`discover_with`]): a voxel is
+/// fitted again only when points were added to it since (its point count changed), so a mapper
+/// that keeps them up to date during the run ([`PlaneFits::refresh`] with the voxels
+/// [`PointAccumulator::take_changed`] names) leaves only the voxels changed since its last
+/// refresh to the discovery at the end. The plane fits were about a quarter of a discovery's
+/// time (docs/octree_mapper.md). The fits are kept in single precision (28 bytes a voxel): a
+/// discovery with kept fits and one with fresh fits give the same result to the last bit.
+#[derive(Debug, Clone, Default)]
+pub struct PlaneFits {
+    fits: VoxelMap<KeptFit>,
+    fitted: u64,
+}
+
+impl PlaneFits {
+    /// No fits yet.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Fits the voxels `keys` of `acc` whose fit is missing or older than their points (keys
+    /// without points are skipped).
+    pub fn refresh(&mut self, acc: &PointAccumulator, keys: impl IntoIterator<Item = VoxelKey>) {
+        for k in keys {
+            let Some(s) = acc.cells.get(&k) else { continue };
+            if self.fits.get(&k).is_none_or(|f| f.n != s.n) {
+                self.fits.insert(k, KeptFit::of(s));
+                self.fitted += 1;
+            }
+        }
+    }
+
+    /// Voxels with a kept fit.
+    pub fn len(&self) -> usize {
+        self.fits.len()
+    }
+
+    /// Whether no fit is kept.
+    pub fn is_empty(&self) -> bool {
+        self.fits.is_empty()
+    }
+
+    /// Plane fits computed so far (refreshes and discoveries): against the voxels' count, how
+    /// often a voxel was fitted again.
+    pub fn fitted(&self) -> u64 {
+        self.fitted
+    }
+}
+
+/// Voxels per chunk edge of [`ChunkIndex`] (as a shift).
+const CHUNK_SHIFT: i32 = 3;
+const CHUNK_MASK: i32 = (1 << CHUNK_SHIFT) - 1;
+const CHUNK_CELLS: usize = 1 << (3 * CHUNK_SHIFT);
+
+/// The positions of the discovery's voxels in its sorted key list, by chunks of 8 × 8 × 8
+/// voxels: a voxel's 26 neighbours lie in at most 8 chunks, which [`Near`] looks up once each
+/// instead of hashing every neighbour's key (the neighbour lookups were half a discovery's time).
+#[derive(Debug, Clone, Default)]
+struct ChunkIndex {
+    chunks: VoxelMap<Box<[u32; CHUNK_CELLS]>>,
+}
+
+fn chunk_of(k: &VoxelKey) -> ([i32; 3], usize) {
+    let c = [k[0] >> CHUNK_SHIFT, k[1] >> CHUNK_SHIFT, k[2] >> CHUNK_SHIFT];
+    let cell = (((k[0] & CHUNK_MASK) as usize) << (2 * CHUNK_SHIFT))
+        | (((k[1] & CHUNK_MASK) as usize) << CHUNK_SHIFT)
+        | ((k[2] & CHUNK_MASK) as usize);
+    (c, cell)
+}
+
+impl ChunkIndex {
+    fn new(keys: &[VoxelKey]) -> Self {
+        let mut chunks: VoxelMap<Box<[u32; CHUNK_CELLS]>> = VoxelMap::default();
+        for (i, k) in keys.iter().enumerate() {
+            let (c, cell) = chunk_of(k);
+            chunks.entry(c).or_insert_with(|| Box::new([u32::MAX; CHUNK_CELLS]))[cell] = i as u32;
+        }
+        Self { chunks }
+    }
+
+    /// The position of voxel `k`, if it is there.
+    fn get(&self, k: &VoxelKey) -> Option<usize> {
+        let (c, cell) = chunk_of(k);
+        let i = self.chunks.get(&c)?[cell];
+        (i != u32::MAX).then_some(i as usize)
+    }
+
+    /// A lookup cache over the 3 × 3 × 3 chunks around the last voxel looked up.
+    fn near(&self) -> Near<'_> {
+        Near { index: self, centre: [i32::MIN; 3], cache: [None; 27] }
+    }
+}
+
+/// Looks voxels up in a [`ChunkIndex`], remembering the chunks around the last one: lookups of
+/// one voxel's neighbours, and of the next voxel's, find their chunks without hashing.
+struct Near<'a> {
+    index: &'a ChunkIndex,
+    centre: [i32; 3],
+    cache: [Option<Option<&'a [u32; CHUNK_CELLS]>>; 27],
+}
+
+impl Near<'_> {
+    /// The position of voxel `k` in the key list, if it is there.
+    #[inline]
+    fn get(&mut self, k: &VoxelKey) -> Option<usize> {
+        let (c, cell) = chunk_of(k);
+        let mut d =
+            [c[0].wrapping_sub(self.centre[0]), c[1].wrapping_sub(self.centre[1]), c[2].wrapping_sub(self.centre[2])];
+        if d.iter().any(|v| !(-1..=1).contains(v)) {
+            self.centre = c;
+            self.cache = [None; 27];
+            d = [0; 3];
+        }
+        let slot = ((d[0] + 1) * 9 + (d[1] + 1) * 3 + (d[2] + 1)) as usize;
+        let index = self.index;
+        let chunk = *self.cache[slot].get_or_insert_with(|| index.chunks.get(&c).map(|b| &**b));
+        chunk.and_then(|b| (b[cell] != u32::MAX).then_some(b[cell] as usize))
+    }
+}
+
+/// Below this many voxels a discovery's plane fits and occupancy tests stay on one thread (a
+/// scan's own discovery, [`ObstacleTracker::update`]).
+const PARALLEL_MIN_VOXELS: usize = 4096;
+
+/// `f(offset, part)` over `out` split at `mid` (`offset` the part's start in `out`): the part
+/// after `mid` on a second thread when `parallel`. The threads write into `out` and allocate
+/// nothing large of their own: memory a thread's allocator arena keeps after it ends is not
+/// the main thread's to reuse, and over a million voxels that raised the mapper's peak by
+/// about 100 MiB (2026-12-06).
+fn in_two<T: Send>(parallel: bool, out: &mut [T], mid: usize, f: &(dyn Fn(usize, &mut [T]) + Sync)) {
+    if !parallel {
+        return f(0, out);
+    }
+    let (a, b) = out.split_at_mut(mid);
+    std::thread::scope(|s| {
+        let other = s.spawn(|| f(mid, b));
+        f(0, a);
+        other.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
+    });
+}
+
+/// `f` over `0..len`, in two halves on two threads when `parallel`; the results in order.
+fn two_ways<T: Send>(parallel: bool, len: usize, f: &(dyn Fn(std::ops::Range<usize>) -> Vec<T> + Sync)) -> Vec<T> {
+    if !parallel {
+        return f(0..len);
+    }
+    std::thread::scope(|s| {
+        let other = s.spawn(|| f(len / 2..len));
+        let mut v = f(0..len / 2);
+        v.extend(other.join().unwrap_or_else(|e| std::panic::resume_unwind(e)));
+        v
+    })
+}
+
 /// Navigable space and obstacles over the voxels of `acc` for which `occupied` is true (the
 /// occupancy map's verdict; pass `|_| true` to use every voxel with points).
 pub fn discover(
     acc: &PointAccumulator,
-    occupied: impl Fn(&VoxelKey) -> bool,
+    occupied: impl Fn(&VoxelKey) -> bool + Sync,
     cfg: &NsdConfig,
+) -> Result<Discovery, NavigableError> {
+    discover_with(acc, occupied, cfg, &PlaneFits::new())
+}
+
+/// [`discover`] with the plane fits kept in `fits`: only the voxels whose points changed since
+/// their kept fit are fitted (and not kept: [`PlaneFits::refresh`] keeps them); the result is
+/// the same as [`discover`]'s, to the last bit.
+pub fn discover_with(
+    acc: &PointAccumulator,
+    occupied: impl Fn(&VoxelKey) -> bool + Sync,
+    cfg: &NsdConfig,
+    fits: &PlaneFits,
 ) -> Result<Discovery, NavigableError> {
     if let Some(validation::ConfigIssue { key, message }) = cfg.issues().into_iter().next() {
         return Err(NavigableError::Config { key, message });
     }
-    let mut keys: Vec<VoxelKey> = acc.cells.keys().filter(|k| occupied(k)).copied().collect();
-    keys.sort_unstable();
-    let index: VoxelMap<usize> = keys.iter().enumerate().map(|(i, k)| (*k, i)).collect();
+    // On two threads when there are many: the occupancy tests, then the plane fits.
+    let parallel = acc.cells.len() >= PARALLEL_MIN_VOXELS;
+    let all: Vec<(&VoxelKey, &VoxelStats)> = acc.cells.iter().collect();
+    let mut is_occupied = vec![false; all.len()];
+    in_two(parallel, &mut is_occupied, all.len() / 2, &|offset, part| {
+        for (o, (k, _)) in part.iter_mut().zip(&all[offset..]) {
+            *o = occupied(k);
+        }
+    });
+    let mut cells: Vec<(VoxelKey, &VoxelStats)> =
+        all.iter().zip(&is_occupied).filter(|(_, o)| **o).map(|((k, s), _)| (**k, *s)).collect();
+    drop((all, is_occupied));
+    cells.sort_unstable_by_key(|(k, _)| *k);
+    let (keys, stats): (Vec<VoxelKey>, Vec<&VoxelStats>) = cells.into_iter().unzip();
+    let index = ChunkIndex::new(&keys);
+    let mut near = index.near();
     // The class, and whether the voxel is thick only as far as the scans disagree.
-    let classify = |k: &VoxelKey| -> (VoxelClass, bool) {
-        let s = &acc.cells[k];
+    let classify = |s: &VoxelStats, f: &KeptFit| -> (VoxelClass, bool) {
         if s.n < cfg.min_points {
             return (VoxelClass::Sparse, false);
         }
-        match fit_plane(s) {
+        match f.plane(s) {
             // Points along a line (a single scan line through the voxel): no plane to tell. The
             // normal's tilt about the points' long axis is uncertain by about
             // sqrt(mse / (n · spread)) rad; over half the angle neighbours may differ by, or
@@ -540,19 +836,49 @@ pub fn discover(
             _ => (VoxelClass::NonPlanar, false),
         }
     };
-    // Two halves on two threads (the plane fits are most of the time).
-    let (first, second) = keys.split_at(keys.len() / 2);
-    let (mut classes, thick): (Vec<VoxelClass>, Vec<bool>) = std::thread::scope(|s| {
-        let other = s.spawn(|| second.iter().map(classify).collect::<Vec<_>>());
-        let mut classes: Vec<(VoxelClass, bool)> = first.iter().map(classify).collect();
-        classes.extend(other.join().unwrap_or_else(|e| std::panic::resume_unwind(e)));
-        classes.into_iter().unzip()
-    });
+    // The plane fits (the kept ones where the voxel's points did not change since, new ones
+    // else: not kept, `fits` is the caller's to refresh), the classes, and each navigable
+    // voxel's spread off its plane over all its scans, on two threads.
+    // Written in place, each thread into its half (a class is 80 bytes: a million voxels' are
+    // not copied from halves into a whole).
+    let mut classes = vec![VoxelClass::Sparse; keys.len()];
+    let mut thick = vec![false; keys.len()];
+    let classify_into = |offset: usize, classes: &mut [VoxelClass], thick: &mut [bool]| -> (usize, Vec<f64>) {
+        let (mut fitted, mut spread) = (0, vec![]);
+        for (j, (c, t)) in classes.iter_mut().zip(thick.iter_mut()).enumerate() {
+            let i = offset + j;
+            let s = stats[i];
+            let f = match fits.fits.get(&keys[i]) {
+                Some(f) if f.n == s.n => *f,
+                _ => {
+                    fitted += 1;
+                    KeptFit::of(s)
+                }
+            };
+            (*c, *t) = classify(s, &f);
+            spread.extend(surface_spread(s, c));
+        }
+        (fitted, spread)
+    };
+    let (fitted, mut spread) = if parallel {
+        let half = keys.len() / 2;
+        let (c0, c1) = classes.split_at_mut(half);
+        let (t0, t1) = thick.split_at_mut(half);
+        std::thread::scope(|s| {
+            let other = s.spawn(|| classify_into(half, c1, t1));
+            let (f0, mut s0) = classify_into(0, c0, t0);
+            let (f1, s1) = other.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
+            s0.extend(s1);
+            (f0 + f1, s0)
+        })
+    } else {
+        classify_into(0, &mut classes, &mut thick)
+    };
     // How thick the map's surfaces are: the points' spread off their voxel's plane, over all of
     // a voxel's scans (the sensor's noise plus the poses' disagreement between scans; the median
     // over the navigable voxels seen in several scans). Two planes of one surface may differ by
     // this much at their boundary, so the step a region does not cross is at least 3 of it.
-    let surface_sigma_m = surface_sigma(acc, &keys, &classes);
+    let surface_sigma_m = median(&mut spread);
     let step_m = cfg.max_step_m.max(3.0 * surface_sigma_m);
     // Navigable regions: union of adjacent navigable voxels whose planes meet.
     let max_cos = cfg.max_normal_angle_deg.to_radians().cos();
@@ -561,19 +887,35 @@ pub fn discover(
         let (ri, rj) = (find(parent, i), find(parent, j));
         parent[ri.max(rj)] = ri.min(rj);
     };
-    for (i, k) in keys.iter().enumerate() {
-        let VoxelClass::Navigable(a) = classes[i] else { continue };
-        for n in forward_neighbours(k) {
-            let Some(&j) = index.get(&n) else { continue };
-            let VoxelClass::Navigable(b) = classes[j] else { continue };
-            if a.normal.dot(&b.normal) < max_cos {
-                continue;
+    // The pairs to join are found on two threads, a block of voxels at a time (the pairs of a
+    // block are few), and joined in order; a component's root is its lowest index whatever the
+    // order of the joins.
+    const BLOCK: usize = 1 << 16;
+    for start in (0..keys.len()).step_by(BLOCK) {
+        let end = (start + BLOCK).min(keys.len());
+        let pairs: Vec<(u32, u32)> = two_ways(parallel, end - start, &|r| {
+            let mut near = index.near();
+            let mut pairs = vec![];
+            for i in r.start + start..r.end + start {
+                let VoxelClass::Navigable(a) = classes[i] else { continue };
+                let k = &keys[i];
+                for n in forward_neighbours(k) {
+                    let Some(j) = near.get(&n) else { continue };
+                    let VoxelClass::Navigable(b) = classes[j] else { continue };
+                    if a.normal.dot(&b.normal) < max_cos {
+                        continue;
+                    }
+                    // Where the two voxels touch: both planes must pass there within the step.
+                    let touch = (acc.centre(k) + acc.centre(&n)) * 0.5;
+                    if (a.project(&touch) - b.project(&touch)).norm() <= step_m {
+                        pairs.push((i as u32, j as u32));
+                    }
+                }
             }
-            // Where the two voxels touch: both planes must pass there within max_step_m.
-            let touch = (acc.centre(k) + acc.centre(&n)) * 0.5;
-            if (a.project(&touch) - b.project(&touch)).norm() <= step_m {
-                join(&mut parent, i, j);
-            }
+            pairs
+        });
+        for (i, j) in pairs {
+            join(&mut parent, i as usize, j as usize);
         }
     }
     // Voxels with too few points for a plane of their own join the regions of the navigable
@@ -581,8 +923,48 @@ pub fn discover(
     // holes of a sparsely sampled surface are filled where the surface continues, and not across
     // a step; one that lies on two regions joins them. A voxel that joins puts its sparse
     // neighbours back on the work list, so a run of sparse voxels follows the surface.
-    let mut work: std::collections::VecDeque<usize> =
-        (0..keys.len()).filter(|i| classes[*i] == VoxelClass::Sparse).collect();
+    // Each sparse voxel's neighbours in the map are looked up once (a voxel may be examined
+    // again each time a neighbour joins; most voxels of a map at poses that disagree start
+    // sparse), as lists one after the other: `near_of[slot_of[j]]..near_of[slot_of[j] + 1]`.
+    let sparse: Vec<usize> = (0..keys.len()).filter(|i| classes[*i] == VoxelClass::Sparse).collect();
+    let mut slot_of = vec![u32::MAX; keys.len()];
+    for (slot, &j) in sparse.iter().enumerate() {
+        slot_of[j] = slot as u32;
+    }
+    // Two passes on two threads into the lists' place: how many neighbours, then which.
+    let mut near_of = vec![0u32; sparse.len() + 1];
+    in_two(parallel, &mut near_of[1..], sparse.len() / 2, &|offset, counts| {
+        let mut near = index.near();
+        for (c, &j) in counts.iter_mut().zip(&sparse[offset..]) {
+            *c = neighbours(&keys[j]).filter(|n| near.get(n).is_some()).count() as u32;
+        }
+    });
+    for s in 1..near_of.len() {
+        near_of[s] += near_of[s - 1];
+    }
+    let mut flat = vec![0u32; near_of[sparse.len()] as usize];
+    let mid = near_of[sparse.len() / 2] as usize;
+    in_two(parallel, &mut flat, mid, &|offset, part| {
+        let mut near = index.near();
+        let first = near_of.partition_point(|o| (*o as usize) < offset).min(sparse.len());
+        let first = if offset == 0 { 0 } else { first };
+        let mut out = part.iter_mut();
+        for &j in &sparse[first..] {
+            if out.len() == 0 {
+                break;
+            }
+            for i in neighbours(&keys[j]).filter_map(|n| near.get(&n)) {
+                if let Some(o) = out.next() {
+                    *o = i as u32;
+                }
+            }
+        }
+    });
+    let around = |j: usize| {
+        let s = slot_of[j] as usize;
+        flat[near_of[s] as usize..near_of[s + 1] as usize].iter().map(|i| *i as usize)
+    };
+    let mut work: std::collections::VecDeque<usize> = sparse.iter().copied().collect();
     let mut queued = vec![false; keys.len()];
     for &j in &work {
         queued[j] = true;
@@ -592,11 +974,10 @@ pub fn discover(
         if classes[j] != VoxelClass::Sparse {
             continue;
         }
-        let Some((mean, _)) = acc.cells[&keys[j]].mean_cov() else { continue };
+        let Some((mean, _)) = stats[j].mean_cov() else { continue };
         let mut plane = None;
-        for n in neighbours(&keys[j]) {
-            if let Some(&i) = index.get(&n)
-                && let VoxelClass::Navigable(b) = classes[i]
+        for i in around(j) {
+            if let VoxelClass::Navigable(b) = classes[i]
                 && b.normal.dot(&(mean - b.centroid_m)).abs() <= step_m
             {
                 plane.get_or_insert(b);
@@ -609,16 +990,14 @@ pub fn discover(
         // unchanged, so that a run of them cannot creep away from the surface a step at a time
         // (up a wall, one row of voxels after another).
         classes[j] = VoxelClass::Navigable(if thick[j] { PlaneFit { centroid_m: mean, ..plane } } else { plane });
-        for n in neighbours(&keys[j]) {
-            if let Some(&i) = index.get(&n)
-                && classes[i] == VoxelClass::Sparse
-                && !queued[i]
-            {
+        for i in around(j) {
+            if classes[i] == VoxelClass::Sparse && !queued[i] {
                 queued[i] = true;
                 work.push_back(i);
             }
         }
     }
+    drop((flat, near_of, slot_of));
     // Obstacles ([6D] §V: the occupied voxels that are not navigable): grown from the non-planar
     // and steep voxels through adjacent voxels that are not navigable (sparse ones included).
     let seed = |c: &VoxelClass| matches!(c, VoxelClass::NonPlanar | VoxelClass::Steep(_));
@@ -636,7 +1015,7 @@ pub fn discover(
         while let Some(i) = stack.pop() {
             members.push(i);
             for n in neighbours(&keys[i]) {
-                if let Some(&j) = index.get(&n)
+                if let Some(j) = near.get(&n)
                     && obstacle_of[j].is_none()
                     && blocking(&classes[j])
                 {
@@ -651,11 +1030,16 @@ pub fn discover(
     // or doubled patch of the seabed where two passes disagree) is that surface: its voxels take
     // the plane of the navigable voxels around it and join the regions they lie on.
     for members in members_of.iter_mut() {
-        let mut around: Vec<usize> = members
-            .iter()
-            .flat_map(|&i| neighbours(&keys[i]).filter_map(|n| index.get(&n).copied()))
-            .filter(|&j| matches!(classes[j], VoxelClass::Navigable(_)))
-            .collect();
+        let mut around: Vec<usize> = vec![];
+        for &i in members.iter() {
+            for n in neighbours(&keys[i]) {
+                if let Some(j) = near.get(&n)
+                    && matches!(classes[j], VoxelClass::Navigable(_))
+                {
+                    around.push(j);
+                }
+            }
+        }
         around.sort_unstable();
         around.dedup();
         if around.is_empty() {
@@ -669,14 +1053,13 @@ pub fn discover(
             }
         }
         let (normal, centre) = (normal.normalize(), centre / around.len() as f64);
-        let rises = members
-            .iter()
-            .any(|&i| acc.cells[&keys[i]].mean_cov().is_none_or(|(m, _)| normal.dot(&(m - centre)).abs() > step_m));
+        let rises =
+            members.iter().any(|&i| stats[i].mean_cov().is_none_or(|(m, _)| normal.dot(&(m - centre)).abs() > step_m));
         if rises || !normal.iter().all(|v| v.is_finite()) {
             continue;
         }
         for &i in members.iter() {
-            let Some((mean, _)) = acc.cells[&keys[i]].mean_cov() else { continue };
+            let Some((mean, _)) = stats[i].mean_cov() else { continue };
             classes[i] = VoxelClass::Navigable(PlaneFit {
                 centroid_m: mean,
                 normal,
@@ -686,7 +1069,7 @@ pub fn discover(
             });
             obstacle_of[i] = None;
             for n in neighbours(&keys[i]) {
-                if let Some(&j) = index.get(&n)
+                if let Some(j) = near.get(&n)
                     && let VoxelClass::Navigable(b) = classes[j]
                     && b.normal.dot(&(mean - b.centroid_m)).abs() <= step_m
                 {
@@ -722,7 +1105,7 @@ pub fn discover(
     for (o, members) in members_of.iter().enumerate() {
         for &j in members {
             for n in neighbours(&keys[j]) {
-                let Some(&i) = index.get(&n) else { continue };
+                let Some(i) = near.get(&n) else { continue };
                 if !matches!(classes[i], VoxelClass::Navigable(_)) {
                     continue;
                 }
@@ -763,10 +1146,10 @@ pub fn discover(
         regions.iter().filter(|(_, m)| (m.len() as f64) * res2 < cfg.min_region_area_m2).map(|(r, _)| *r).collect();
     for root in small {
         let members = regions.remove(&root).unwrap_or_default();
-        let mut touched: Vec<usize> = members
-            .iter()
-            .flat_map(|&i| neighbours(&keys[i]).filter_map(|n| index.get(&n).and_then(|&j| obstacle_of[j])))
-            .collect();
+        let mut touched: Vec<usize> = vec![];
+        for &i in &members {
+            touched.extend(neighbours(&keys[i]).filter_map(|n| near.get(&n).and_then(|j| obstacle_of[j])));
+        }
         touched.sort_unstable();
         touched.dedup();
         let Some(&into) = touched.iter().max_by_key(|o| members_of[**o].len()) else {
@@ -809,21 +1192,15 @@ pub fn discover(
         if members.len() < cfg.min_obstacle_voxels {
             continue;
         }
-        let mut stats = VoxelStats::default();
+        let mut all = VoxelStats::default();
         for i in &members {
-            stats.merge(&acc.cells[&keys[*i]]);
+            all.merge(stats[*i]);
         }
-        let Some((mean_m, cov_m2)) = stats.mean_cov() else { continue };
-        obstacles.push(Obstacle {
-            voxels: members.iter().map(|i| keys[*i]).collect(),
-            mean_m,
-            cov_m2,
-            points: stats.n,
-        });
+        let Some((mean_m, cov_m2)) = all.mean_cov() else { continue };
+        obstacles.push(Obstacle { voxels: members.iter().map(|i| keys[*i]).collect(), mean_m, cov_m2, points: all.n });
     }
     obstacles.sort_by_key(|o| std::cmp::Reverse(o.voxels.len()));
-    let classes = keys.into_iter().zip(classes).collect();
-    Ok(Discovery { classes, regions, obstacles, surface_sigma_m, step_m })
+    Ok(Discovery { classes: ClassMap { keys, classes, index }, regions, obstacles, surface_sigma_m, step_m, fitted })
 }
 
 /// What an occupied voxel of the map is, for a viewer.
@@ -1098,8 +1475,9 @@ fn io_err(path: &Path) -> impl Fn(std::io::Error) -> NavigableError + '_ {
     move |source| NavigableError::Io { path: path.display().to_string(), source }
 }
 
-/// ASCII PLY of the navigable voxels: one vertex per voxel, its centre projected on its plane,
-/// with the normal and `region` (index into [`Discovery::regions`]).
+/// Binary (little-endian) PLY of the navigable voxels: one vertex per voxel, its centre
+/// projected on its plane, with the normal and `region` (index into [`Discovery::regions`]).
+/// (ASCII until 2026-12-06: formatting the text took 2.8 s of the main job's end of run.)
 pub fn write_navigable_ply(path: &Path, acc: &PointAccumulator, d: &Discovery) -> Result<(), NavigableError> {
     let mut rows = vec![];
     for (r, region) in d.regions.iter().enumerate() {
@@ -1109,16 +1487,19 @@ pub fn write_navigable_ply(path: &Path, acc: &PointAccumulator, d: &Discovery) -
             }
         }
     }
-    let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(io_err(path))?);
-    let mut text = format!(
-        "ply\nformat ascii 1.0\ncomment navigable space: voxel centres on their planes\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nproperty int region\nend_header\n",
+    let header = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment navigable space: voxel centres on their planes\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nproperty int region\nend_header\n",
         rows.len()
     );
+    let mut bytes = header.into_bytes();
+    bytes.reserve(rows.len() * 28);
     for (p, n, r) in rows {
-        text += &format!("{:.4} {:.4} {:.4} {:.4} {:.4} {:.4} {r}\n", p.x, p.y, p.z, n.x, n.y, n.z);
+        for v in [p.x, p.y, p.z, n.x, n.y, n.z] {
+            bytes.extend_from_slice(&(v as f32).to_le_bytes());
+        }
+        bytes.extend_from_slice(&(r as i32).to_le_bytes());
     }
-    w.write_all(text.as_bytes()).map_err(io_err(path))?;
-    w.flush().map_err(io_err(path))
+    std::fs::write(path, bytes).map_err(io_err(path))
 }
 
 /// Binary (little-endian) PLY of the obstacles as a mesh: the voxel faces of each obstacle that
@@ -1327,6 +1708,12 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("nsd-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         write_navigable_ply(&dir.join("navigable.ply"), &acc, &d).unwrap();
+        let nav = std::fs::read(dir.join("navigable.ply")).unwrap();
+        let end = nav.windows(11).position(|w| w == b"end_header\n").expect("a PLY header") + 11;
+        let navigable: usize = d.regions.iter().map(|r| r.voxels.len()).sum();
+        assert_eq!(nav.len() - end, navigable * 28, "7 four-byte values per navigable voxel");
+        let first_z = f32::from_le_bytes(nav[end + 8..end + 12].try_into().unwrap());
+        assert!((first_z - 0.033).abs() < 0.01, "the floor's height: {first_z}");
         write_obstacles_ply(&dir.join("obstacles.ply"), &acc, &d).unwrap();
         let bytes = std::fs::read(dir.join("obstacles.ply")).unwrap();
         let text = String::from_utf8_lossy(&bytes);
@@ -1359,6 +1746,101 @@ mod tests {
                 points
             })
             .collect()
+    }
+
+    /// Scan `i` of a vehicle passing over a floor (z = 0.033 m, 2 mm of noise) with a 0.6 m box
+    /// on it, across the origin (negative keys, many chunks of [`ChunkIndex`]): the part of the
+    /// scene within 1.5 m of x = −4 + 0.5 i, a jittered 2.5 cm grid.
+    fn passing_scan(i: usize, rng: &mut u64) -> PointAccumulator {
+        let mut scan = PointAccumulator::new(RES);
+        let cx = -4.0 + 0.5 * i as f64;
+        let (ox, oy) = (uniform(rng) * 0.025, uniform(rng) * 0.025);
+        let in_box = |x: f64, y: f64| (0.2..0.8).contains(&x) && (-0.3..0.3).contains(&y);
+        for a in 0..120 {
+            for b in 0..240 {
+                let (x, y) = (cx - 1.5 + a as f64 * 0.025 + ox, -3.0 + b as f64 * 0.025 + oy);
+                let z = if in_box(x, y) { 0.633 } else { 0.033 };
+                scan.add(&Vector3::new(x, y, z + uniform(rng) * 0.004));
+            }
+        }
+        for a in 0..24 {
+            for h in 0..24 {
+                let (t, z) = (0.2 + a as f64 * 0.025 + 0.0125, 0.045 + h as f64 * 0.025);
+                for p in [[0.203, t - 0.5, z], [0.797, t - 0.5, z], [t, -0.297, z], [t, 0.297, z]] {
+                    if (p[0] - cx).abs() < 1.5 {
+                        scan.add(&Vector3::new(p[0], p[1], p[2] + uniform(rng) * 0.004));
+                    }
+                }
+            }
+        }
+        scan
+    }
+
+    #[test]
+    fn kept_plane_fits_give_the_discovery_of_fresh_ones_to_the_last_bit() {
+        let mut rng = 11;
+        let mut acc = PointAccumulator::new(RES);
+        acc.track_changes();
+        let mut fits = PlaneFits::new();
+        let cfg = NsdConfig::default();
+        let same = |a: &Discovery, b: &Discovery| {
+            let differ = a.classes.iter().filter(|(k, c)| b.classes.get(k) != Some(*c)).count();
+            assert!(differ == 0 && a.classes.len() == b.classes.len(), "{differ} voxels' classes differ");
+            assert_eq!(a.regions, b.regions);
+            assert_eq!(a.obstacles, b.obstacles);
+            assert_eq!((a.surface_sigma_m, a.step_m), (b.surface_sigma_m, b.step_m));
+        };
+        for i in 0..16 {
+            acc.merge(&passing_scan(i, &mut rng)).unwrap();
+            if i % 5 == 4 {
+                let changed = acc.take_changed();
+                assert!(
+                    !changed.is_empty() && (i == 4 || changed.len() < acc.cells().len()),
+                    "{} changed",
+                    changed.len()
+                );
+                fits.refresh(&acc, changed);
+            }
+        }
+        // Scan 15 came after the last refresh: its voxels are fitted again, the others are kept.
+        let changed_since = acc.take_changed();
+        let fresh = discover(&acc, |_| true, &cfg).unwrap();
+        let kept = discover_with(&acc, |_| true, &cfg, &fits).unwrap();
+        assert!(fresh.classes.len() > PARALLEL_MIN_VOXELS, "{} voxels: the two-thread path", fresh.classes.len());
+        assert_eq!(fresh.fitted, fresh.classes.len());
+        assert_eq!(kept.fitted, changed_since.len());
+        same(&fresh, &kept);
+        // What the scene is: the floor one region, the box one obstacle with its top.
+        assert_eq!(kept.regions.len(), 1, "{:?}", kept.regions.iter().map(|r| r.voxels.len()).collect::<Vec<_>>());
+        assert_eq!(kept.obstacles.len(), 1);
+        assert!(kept.obstacles[0].voxels.iter().any(|k| k[2] == 6), "the box's top is the obstacle's");
+        fits.refresh(&acc, changed_since);
+        let all_kept = discover_with(&acc, |_| true, &cfg, &fits).unwrap();
+        assert_eq!(all_kept.fitted, 0);
+        same(&fresh, &all_kept);
+        // Only the occupied voxels, and the same whichever way.
+        let occupied = |k: &VoxelKey| k[0] % 3 != 0;
+        same(&discover(&acc, occupied, &cfg).unwrap(), &discover_with(&acc, occupied, &cfg, &fits).unwrap());
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn the_chunk_index_finds_every_voxel_and_no_other(
+            keys in proptest::collection::btree_set(
+                proptest::strategy::Strategy::prop_map((-20i32..20, -20i32..20, -20i32..20), |(x, y, z)| [x, y, z]), 1..400),
+            probes in proptest::collection::vec((-21i32..21, -21i32..21, -21i32..21), 1..400),
+        ) {
+            let keys: Vec<VoxelKey> = keys.into_iter().collect();
+            let index = ChunkIndex::new(&keys);
+            let mut near = index.near();
+            for (i, k) in keys.iter().enumerate() {
+                proptest::prop_assert_eq!(near.get(k), Some(i));
+            }
+            for (x, y, z) in probes {
+                let k = [x, y, z];
+                proptest::prop_assert_eq!(near.get(&k), keys.iter().position(|o| *o == k));
+            }
+        }
     }
 
     #[test]

@@ -162,6 +162,10 @@ pub struct MapperSettings {
     /// `<out>/state/<process>/map.bt`) a restarted mapper starts
     /// from, s (0 = none: a restarted mapper starts with an empty map).
     pub checkpoint_interval_s: f64,
+    /// Period of the plane fits' refresh during the run (wall time), s: the voxels that gained
+    /// points since the last refresh get their plane fit, so that the navigable-space discovery
+    /// at the end fits only what changed after the last one (0 = none: it fits every voxel).
+    pub fits_refresh_interval_s: f64,
     /// At the end, score the navigable space and the obstacles against the simulated scene's
     /// truth in this file (relative to the output directory; the `sim` and `indoor` sources
     /// write `scene.json`): summary.json `octree_mapper.truth`. Empty: no scoring.
@@ -191,6 +195,7 @@ impl Default for MapperSettings {
             obstacle_max_bhattacharyya: 1.0,
             end_after: vec!["ingest".into(), "fusion".into()],
             checkpoint_interval_s: 10.0,
+            fits_refresh_interval_s: 5.0,
             rebuild_from: String::new(),
             rebuild_max_clouds: 5000,
             truth_scene: String::new(),
@@ -224,11 +229,12 @@ impl Validate for MapperSettings {
             issues.check(v.is_finite() && v >= 0.0, k, "must be >= 0");
         }
         issues.check(self.ray_threads >= 1, "ray_threads", "must be >= 1");
-        issues.check(
-            self.checkpoint_interval_s.is_finite() && self.checkpoint_interval_s >= 0.0,
-            "checkpoint_interval_s",
-            "must be >= 0",
-        );
+        for (k, v) in [
+            ("checkpoint_interval_s", self.checkpoint_interval_s),
+            ("fits_refresh_interval_s", self.fits_refresh_interval_s),
+        ] {
+            issues.check(v.is_finite() && v >= 0.0, k, "must be >= 0");
+        }
         issues.check(
             self.obstacle_max_bhattacharyya.is_finite() && self.obstacle_max_bhattacharyya >= 0.0,
             "obstacle_max_bhattacharyya",
@@ -292,8 +298,12 @@ pub struct MapperState {
     body_from_sensor: Isometry3<f64>,
     /// The occupancy map.
     pub tree: OcTree,
-    /// End-point statistics for the navigable-space discovery.
+    /// End-point statistics for the navigable-space discovery (tracking the voxels that change).
     pub points: PointAccumulator,
+    /// The plane fits of `points`' voxels, refreshed during the run
+    /// ([`MapperState::refresh_fits`]), so that the discovery at the end fits only the voxels
+    /// changed since the last refresh.
+    pub fits: navigable::PlaneFits,
     /// Poses.
     pub poses: PoseBuffer,
     /// Clouds waiting.
@@ -381,8 +391,11 @@ impl MapperState {
         tree.set_ray_threads(settings.ray_threads);
         let m = &settings.mount;
         let body_from_sensor = geometry::body_from_camera(&Vector3::from(m.offset_m), m.pitch_down_deg.to_radians());
+        let mut points = PointAccumulator::new(settings.resolution_m);
+        points.track_changes();
         Ok(Self {
-            points: PointAccumulator::new(settings.resolution_m),
+            points,
+            fits: navigable::PlaneFits::new(),
             body_from_sensor,
             tree,
             poses: PoseBuffer::default(),
@@ -440,6 +453,8 @@ impl MapperState {
         report.mean_pose_change_m = if compared > 0 { moved / compared as f64 } else { 0.0 };
         self.tree = fresh.tree;
         self.points = fresh.points;
+        // Other points in the voxels: the live map's fits say nothing about them.
+        self.fits = navigable::PlaneFits::new();
         self.obstacles = fresh.obstacles;
         self.true_origins = fresh.true_origins;
         self.kept = kept;
@@ -590,7 +605,17 @@ impl MapperState {
         Ok(())
     }
 
-    /// Navigable space and obstacles over the occupied voxels of the map.
+    /// Fits a plane to each voxel that gained points since the last refresh, and keeps the fits
+    /// for [`MapperState::discover`]. Returns the voxels fitted.
+    pub fn refresh_fits(&mut self) -> usize {
+        let changed = self.points.take_changed();
+        let before = self.fits.fitted();
+        self.fits.refresh(&self.points, changed);
+        (self.fits.fitted() - before) as usize
+    }
+
+    /// Navigable space and obstacles over the occupied voxels of the map (with the plane fits
+    /// kept by [`MapperState::refresh_fits`] where the voxels did not change since).
     pub fn discover(&self) -> Result<Discovery, MapperError> {
         let res = self.settings.resolution_m;
         let tree = &self.tree;
@@ -598,7 +623,7 @@ impl MapperState {
             let c = [(k[0] as f64 + 0.5) * res, (k[1] as f64 + 0.5) * res, (k[2] as f64 + 0.5) * res];
             tree.is_occupied(c).unwrap_or(false)
         };
-        Ok(navigable::discover(&self.points, occupied, &self.settings.nsd)?)
+        Ok(navigable::discover_with(&self.points, occupied, &self.settings.nsd, &self.fits)?)
     }
 }
 
@@ -711,6 +736,42 @@ mod tests {
         assert!(st.counters.obstacles_new >= 1, "{:?}", st.counters);
         assert!(st.counters.obstacles_associated >= 1, "the second scan's blob matches the first: {:?}", st.counters);
         assert_eq!(st.obstacles.landmarks.iter().filter(|l| l.scans == 2).count(), 1);
+    }
+
+    #[test]
+    fn plane_fits_refreshed_during_the_run_leave_only_the_changed_voxels_to_the_end() {
+        let settings = MapperSettings { pose_source: PoseSource::Cloud, ..Default::default() };
+        let mut st = MapperState::new(settings.clone()).unwrap();
+        let now = Instant::now();
+        // A floor 2 m below the sensor (optical z down), seen from positions 0.5 m apart.
+        let floor: Vec<[f32; 3]> =
+            (0..4000).map(|i| [(i % 80) as f32 * 0.025 - 1.0, (i / 80) as f32 * 0.025 - 0.6, 2.0]).collect();
+        let push = |st: &mut MapperState, x: f64| {
+            st.push_cloud(PendingCloud {
+                stamp_ns: 0,
+                origin_ns: 0,
+                points_sensor_m: floor.clone(),
+                own_pose: Some(Isometry3::translation(x, 0.0, 0.0)),
+                received: now,
+            });
+            assert_eq!(st.step(now, false, 10).unwrap(), 1);
+        };
+        for x in [0.0, 0.5, 1.0] {
+            push(&mut st, x);
+        }
+        let fitted = st.refresh_fits();
+        assert_eq!(fitted, st.points.cells().len(), "every voxel so far");
+        assert_eq!(st.discover().unwrap().fitted, 0, "nothing changed since the refresh");
+        push(&mut st, 1.5);
+        let d = st.discover().unwrap();
+        assert!(d.fitted > 0 && d.fitted < d.classes.len(), "{} of {} fitted at the end", d.fitted, d.classes.len());
+        let fresh = navigable::discover(&st.points, |_| true, &settings.nsd).unwrap();
+        assert_eq!((d.regions.len(), d.counts()), (fresh.regions.len(), fresh.counts()));
+        assert!(!d.regions.is_empty(), "the floor");
+        // A rebuild replaces the points: no fit of the live map is kept for them.
+        st.kept.clear();
+        st.rebuild(&[], "none").unwrap();
+        assert!(st.fits.is_empty());
     }
 
     #[test]

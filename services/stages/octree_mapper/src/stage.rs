@@ -13,7 +13,9 @@ const CHECKPOINT: &str = "map.bt";
 use shared_types::services::{CLOUD, COMMAND, FUSION_POSE, GRID_SLAM_POSE3D, MAP_STATS, MAP_VOXELS, SLAM_POSE};
 use shared_types::*;
 
-use crate::summary::{MapperEnd, MapperLatency, MapperSummary, OctreeMapperPart, VoxelClasses, VoxelStreamSummary};
+use crate::summary::{
+    EndOfRunWork, MapperEnd, MapperLatency, MapperSummary, OctreeMapperPart, VoxelClasses, VoxelStreamSummary,
+};
 use crate::voxels::{VoxelStream, VoxelStreamCounters};
 use crate::{MapperSettings, MapperState, PendingCloud, PoseSource};
 use pipeline_runtime::summary::{CountedPercentiles, Percentiles};
@@ -73,8 +75,8 @@ fn end_of_run(
 ) -> Result<(navigable::Discovery, Vec<Voxel>, OctreeMapperPart), StageError> {
     std::fs::create_dir_all(out_dir)?;
     type Scores = (Option<navigable::truth::TruthScore>, Option<navigable::truth::TruthScore>);
-    type EndOfRun = (navigable::Discovery, Vec<Voxel>, Scores);
-    let (d, voxels, (truth, truth_by_origin)) = std::thread::scope(|s| {
+    type EndOfRun = (navigable::Discovery, Vec<Voxel>, Scores, EndOfRunWork);
+    let (d, voxels, (truth, truth_by_origin), work) = std::thread::scope(|s| {
         let worker = s.spawn(|| -> Result<EndOfRun, StageError> {
             let t0 = Instant::now();
             st.tree.write_binary_file(out_dir.join("map.bt")).map_err(StageError::stage)?;
@@ -106,16 +108,26 @@ fn end_of_run(
                 let truth = scoring.join().map_err(|_| StageError::msg("the truth scoring panicked"))?;
                 Ok((voxels, truth))
             })?;
+            let work = EndOfRunWork {
+                map_bt_ms: (t1 - t0).as_secs_f64() * 1e3,
+                navigable_ms: (t2 - t1).as_secs_f64() * 1e3,
+                layers_ms: t2.elapsed().as_secs_f64() * 1e3,
+                voxels_discovered: d.classes.len(),
+                voxels_fitted: d.fitted,
+            };
             tracing::info!(
-                "end of run: map.bt in {:.0} ms, navigable space in {:.0} ms (surfaces {:.1} mm thick, regions do \
-                 not cross steps over {:.0} mm), PLY layers, voxels and the truth's score in {:.0} ms",
-                (t1 - t0).as_secs_f64() * 1e3,
-                (t2 - t1).as_secs_f64() * 1e3,
+                "end of run: map.bt in {:.0} ms, navigable space in {:.0} ms ({} of {} voxels fitted now, the rest's \
+                 fits kept from the run; surfaces {:.1} mm thick, regions do not cross steps over {:.0} mm), PLY \
+                 layers, voxels and the truth's score in {:.0} ms",
+                work.map_bt_ms,
+                work.navigable_ms,
+                work.voxels_fitted,
+                work.voxels_discovered,
                 d.surface_sigma_m * 1e3,
                 d.step_m * 1e3,
-                t2.elapsed().as_secs_f64() * 1e3
+                work.layers_ms
             );
-            Ok((d, voxels, truth))
+            Ok((d, voxels, truth, work))
         });
         while !worker.is_finished() {
             rt.keep_alive();
@@ -161,6 +173,7 @@ fn end_of_run(
                 voxel_stream: VoxelStreamSummary::from(&VoxelStreamCounters::default()),
                 truth,
                 truth_by_origin,
+                end_of_run: Some(work),
             }),
         },
     };
@@ -194,8 +207,10 @@ pub struct OctreeMapperStage {
     voxel_stream: VoxelStream,
     stats_every: Option<Duration>,
     voxels_every: Option<Duration>,
+    fits_every: Option<Duration>,
     last_stats: Instant,
     last_voxels: Instant,
+    last_fits: Instant,
     last_stamp: u64,
     last_cloud_seq: Option<u64>,
     /// A restarted instance (its first cloud is not the stream's first).
@@ -389,8 +404,14 @@ impl OctreeMapperStage {
         Ok(())
     }
 
-    /// What is due by the clock: the restart checkpoint, the map statistics, the voxel stream.
+    /// What is due by the clock: the restart checkpoint, the map statistics, the voxel stream,
+    /// the plane fits' refresh.
     fn periodic_outputs(&mut self, rt: &mut Runtime, inputs_ended: bool) -> Result<(), StageError> {
+        if self.fits_every.is_some_and(|e| self.last_fits.elapsed() >= e) && !inputs_ended {
+            self.last_fits = Instant::now();
+            let fitted = self.st.refresh_fits();
+            tracing::debug!(fitted, kept = self.st.fits.len(), "plane fits refreshed");
+        }
         if self.checkpoint_every.is_some_and(|e| self.last_checkpoint.elapsed() >= e) && !inputs_ended {
             self.last_checkpoint = Instant::now();
             // Serialising and writing the whole tree takes seconds on a large map on a loaded
@@ -445,8 +466,11 @@ impl Stage for OctreeMapperStage {
             ),
             stats_every: every(settings.stats_rate_hz),
             voxels_every: every(settings.voxels_rate_hz),
+            fits_every: (settings.fits_refresh_interval_s > 0.0)
+                .then(|| Duration::from_secs_f64(settings.fits_refresh_interval_s)),
             last_stats: Instant::now(),
             last_voxels: Instant::now(),
+            last_fits: Instant::now(),
             last_stamp: 0,
             last_cloud_seq: None,
             restarted: false,

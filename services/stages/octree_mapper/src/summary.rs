@@ -76,6 +76,27 @@ pub struct MapperEnd {
     /// classification alone, without the poses' error (`null` when the clouds carry no pose).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub truth_by_origin: Option<navigable::truth::TruthScore>,
+    /// What the end of the run took.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub end_of_run: Option<EndOfRunWork>,
+}
+
+/// The end of the run's work (wall time), and how much of the navigable-space discovery the
+/// plane fits refreshed during the run (`fits_refresh_interval_s`) left to it.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct EndOfRunWork {
+    /// Writing `map.bt`, ms.
+    pub map_bt_ms: f64,
+    /// The navigable-space discovery (plane fits, regions, obstacles), ms.
+    pub navigable_ms: f64,
+    /// The PLY layers, the traversability grid, the classified voxels and the truth's score, ms.
+    pub layers_ms: f64,
+    /// Occupied voxels the discovery classified.
+    pub voxels_discovered: usize,
+    /// Of those, the ones it fitted a plane to itself (changed since the last refresh, or all
+    /// without refreshes).
+    pub voxels_fitted: usize,
 }
 
 /// Occupied voxels by class.
