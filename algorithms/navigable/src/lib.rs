@@ -23,6 +23,10 @@
 //!    column of voxels, as map_server files plus float layers.
 //! 7. [`truth::score`] scores a discovery against a scene's truth (voxel classes, objects found,
 //!    the largest region's share of the ground).
+//!
+//! A map that grows during a run keeps its voxels' plane fits in [`PlaneFits`], refreshed from
+//! the voxels that gained points ([`PointAccumulator::take_changed`]); [`discover_with`] then
+//! fits only the voxels changed since, with the same result as [`discover`].
 
 pub mod traversability;
 pub mod truth;
