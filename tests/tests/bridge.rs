@@ -11,8 +11,10 @@
 //!   test says so), the link cut for 3 s during the run (lease 20 s): the clouds' and the fused
 //!   poses' digests are equal on both sides, and the base station's map, built at the bridged fused
 //!   poses, agrees with the robot's map at the simulator's true poses;
-//! - two robots and one base station: each robot's buoy fixes on their own local service, both
-//!   robots' clouds in one map;
+//! - two robots with their estimators and one base station: each robot's buoy fixes on their own
+//!   local service, both robots' clouds in one map, and a mapper per robot (its ports renamed by
+//!   `remap`, its files in its own `out_dir`) at that robot's bridged fused poses, whose map agrees
+//!   with the robot's own at the simulator's true poses;
 //! - the base station's bridge killed mid-run: restarted by its supervisor, it reconnects, gets
 //!   the end of stream and counts what was lost meanwhile; the robot's pipeline goes on.
 
@@ -513,8 +515,27 @@ height_px = 36
         "base: every cloud accounted for: {c:?}"
     );
     assert!(inserted as f64 >= 0.8 * clouds as f64, "base: {inserted} of {clouds} clouds placed at fused poses: {c:?}");
-    let truth = octree::OcTree::read_binary_file(robot.out_dir().join("map.bt")).expect("the robot's map.bt");
-    let fused = octree::OcTree::read_binary_file(base.out_dir().join("map.bt")).expect("the base's map.bt");
+    let fusion: fusion_stage::summary::FusionPart = part(&r);
+    let fused_ate = fusion.ate_m.as_ref().and_then(|a| a.fused).expect("the robot's fused ATE");
+    let (recall, precision, why) =
+        maps_agree(&robot.out_dir().join("map.bt"), &base.out_dir().join("map.bt"), fused_ate);
+    eprintln!("{why}");
+    // The fused path's error on this short mission: 0.26 m (2026-12-05). Within 3 voxels the
+    // map's agreement moves with the fused path's details, not its RMS error: recall 0.978 and
+    // precision 0.953 before FastSLAM's speed work, 0.894-0.902 and 0.819-0.833 after it at the
+    // same fused ATE (0.259 and 0.261 m); within 4 voxels 0.968 and 0.941.
+    assert!(fused_ate <= 0.4, "{why}");
+    assert!(recall >= 0.9 && precision >= 0.9, "{why}");
+}
+
+/// A map built at fused poses (`fused`) against one built at the true poses (`truth`), both
+/// map.bt files: the recall (the true map's occupied leaves with an occupied leaf of the other
+/// within k voxels), the precision (the other way round), k following the fused path's RMS error
+/// `fused_ate` m, and a line saying all of it. Asserts that at least 60 % of the true map's free
+/// leaves are free in the other.
+fn maps_agree(truth: &Path, fused: &Path, fused_ate: f64) -> (f64, f64, String) {
+    let truth = octree::OcTree::read_binary_file(truth).expect("the true-pose map.bt");
+    let fused = octree::OcTree::read_binary_file(fused).expect("the fused-pose map.bt");
     let (mut occ_n, mut occ_ok, mut free_n, mut free_ok) = (0usize, 0usize, 0usize, 0usize);
     for l in truth.leaves() {
         let theirs = fused.is_occupied(truth.key_to_coord(l.key));
@@ -527,9 +548,6 @@ height_px = 36
         }
     }
     let (occ, free) = (occ_ok as f64 / occ_n as f64, free_ok as f64 / free_n as f64);
-    // Within the fused poses' error (k voxels): the share of one map's occupied leaves with an
-    // occupied leaf of the other within k voxels (recall: the true-pose map's in the base's;
-    // precision: the base's in the true-pose map).
     let near = |of: &octree::OcTree, within: &octree::OcTree, k: i32| {
         let res = of.resolution();
         let (mut n, mut ok) = (0usize, 0usize);
@@ -547,37 +565,51 @@ height_px = 36
         }
         ok as f64 / n.max(1) as f64
     };
-    let fusion: fusion_stage::summary::FusionPart = part(&r);
-    let fused_ate = fusion.ate_m.as_ref().and_then(|a| a.fused).expect("the robot's fused ATE");
     // Clouds placed at poses with an RMS error e land within about 1.5·e of the true surfaces:
-    // the tolerance follows the fused path's own error (0.26 m here: 4 voxels of 0.1 m).
+    // the tolerance follows the fused path's own error (0.26 m: 4 voxels of 0.1 m).
     let k = ((1.5 * fused_ate / truth.resolution()).ceil() as i32).clamp(2, 6);
     let (recall, precision) = (near(&truth, &fused, k), near(&fused, &truth, k));
     let why = format!(
-        "base map at the bridged fused poses against the robot's at the true poses: {:.1} % of {occ_n} occupied and \
+        "map at the bridged fused poses against the robot's at the true poses: {:.1} % of {occ_n} occupied and \
          {:.1} % of {free_n} free leaves agree leaf by leaf; within {k} voxels, recall {recall:.3}, precision \
          {precision:.3}; the robot's fused ATE {fused_ate:.3} m",
         100.0 * occ,
         100.0 * free
     );
-    eprintln!("{why}");
-    // The fused path's error on this short mission: 0.26 m (2026-12-05). Within 3 voxels the
-    // map's agreement moves with the fused path's details, not its RMS error: recall 0.978 and
-    // precision 0.953 before FastSLAM's speed work, 0.894-0.902 and 0.819-0.833 after it at the
-    // same fused ATE (0.259 and 0.261 m); within 4 voxels 0.968 and 0.941.
-    assert!(fused_ate <= 0.4, "{why}");
-    assert!(recall >= 0.9 && precision >= 0.9, "{why}");
     assert!(free >= 0.6, "{why}");
+    (recall, precision, why)
+}
+
+/// A base station's mapper for robot `name` at its bridged fused poses: its ports renamed to the
+/// robot's (`remap`), its files in a directory of its own (`out_dir`).
+fn robot_mapper(name: &str) -> String {
+    format!(
+        r#"
+[processes.map_{name}]
+kind = "octree_mapper"
+restart = "never"
+out_dir = "{name}"
+[processes.map_{name}.remap]
+"pipeline/sensors/cloud" = "{name}/pipeline/sensors/cloud"
+"pipeline/fusion/pose" = "{name}/pipeline/fusion/pose"
+"pipeline/map/stats" = "{name}/pipeline/map/stats"
+"pipeline/map/voxels" = "{name}/pipeline/map/voxels"
+[processes.map_{name}.settings]
+pose_source = "fused"
+end_after = ["link"]
+"#
+    )
 }
 
 #[test]
-fn two_robots_feed_one_base_station_their_fixes_kept_apart_and_their_clouds_in_one_map() {
+fn two_robots_feed_one_base_station_which_maps_each_at_its_own_fused_poses() {
+    let _heavy = pipeline_tests::heavy();
     let port = free_port();
     let certs = Certs::new(&["base", "r1", "r2"], &[]);
     let tls_base = certs.tls("base", "");
     let mut base = TestRun::new("br2base");
     let base_cfg = base.write_config(
-        "end = \"end_of_stream\"\nend_of_stream_from = [\"map\", \"link\"]\nduration_s = 300",
+        "end = \"end_of_stream\"\nend_of_stream_from = [\"map\", \"map_r1\", \"map_r2\", \"link\"]\nduration_s = 300",
         &format!(
             r#"
 [processes.map]
@@ -586,10 +618,10 @@ restart = "never"
 [processes.map.settings]
 pose_source = "cloud"
 end_after = ["link"]
-
+{}{}
 [processes.link]
 kind = "bridge"
-after = ["map"]
+after = ["map", "map_r1", "map_r2"]
 restart = "never"
 [processes.link.settings]
 zenoh = {{ listen = ["tls/127.0.0.1:{port}"], {tls_base} }}
@@ -600,8 +632,14 @@ in = [
     {{ from = "r2", service = "pipeline/buoy/fix", local = "r2/pipeline/buoy/fix" }},
     {{ from = "r1", service = "pipeline/sensors/cloud" }},
     {{ from = "r2", service = "pipeline/sensors/cloud" }},
+    {{ from = "r1", service = "pipeline/sensors/cloud", local = "r1/pipeline/sensors/cloud" }},
+    {{ from = "r2", service = "pipeline/sensors/cloud", local = "r2/pipeline/sensors/cloud" }},
+    {{ from = "r1", service = "pipeline/fusion/pose", local = "r1/pipeline/fusion/pose" }},
+    {{ from = "r2", service = "pipeline/fusion/pose", local = "r2/pipeline/fusion/pose" }},
 ]
-"#
+"#,
+            robot_mapper("r1"),
+            robot_mapper("r2")
         ),
     );
     base.start_supervisor(&base_cfg, &[]);
@@ -610,33 +648,29 @@ in = [
         let tls_robot = certs.tls(name, "");
         let mut run = TestRun::new(&format!("br2{name}"));
         let cfg = run.write_config(
-            "end = \"end_of_stream\"\nend_of_stream_from = [\"link\", \"buoy\"]\nduration_s = 300",
+            "end = \"end_of_stream\"\nend_of_stream_from = [\"map\", \"link\", \"fusion\"]\nduration_s = 300",
             &format!(
                 r#"
-[processes.buoy]
-kind = "buoy_ekf"
-[processes.buoy.settings.ekf]
-mode = "spatial"
-buoys = [
-    {{ id = 0, position_m = [-10.0, -10.0, 0.0] }},
-    {{ id = 1, position_m = [130.0, -10.0, 0.0] }},
-    {{ id = 2, position_m = [130.0, 90.0, 0.0] }},
-    {{ id = 3, position_m = [-10.0, 90.0, 0.0] }},
-    {{ id = 4, position_m = [60.0, 100.0, 0.0] }},
-]
+{ESTIMATORS}
+[processes.map]
+kind = "octree_mapper"
+restart = "never"
+[processes.map.settings]
+pose_source = "cloud"
+end_after = ["ingest"]
 
 [processes.link]
 kind = "bridge"
 restart = "never"
 [processes.link.settings]
 robot = "{name}"
-end_after = ["ingest", "buoy"]
+end_after = ["ingest", "fusion"]
 zenoh = {{ connect = ["tls/127.0.0.1:{port}"], {tls_robot} }}
-out = [{{ service = "pipeline/buoy/fix" }}, {{ service = "pipeline/sensors/cloud" }}]
+out = [{{ service = "pipeline/buoy/fix" }}, {{ service = "pipeline/sensors/cloud" }}, {{ service = "pipeline/fusion/pose" }}]
 
 [processes.ingest]
 kind = "ingest"
-after = ["link", "buoy"]
+after = ["map", "link", "slam", "buoy"]
 restart = "never"
 [processes.ingest.settings]
 source = "sim"
@@ -687,12 +721,19 @@ height_px = 24
         );
         assert_eq!(fix.digest, sent_fix.digest, "{name}: its own fixes, apart");
         digests.push(fix.digest);
-        let cloud = &bb.inbound[&format!("{name}:pipeline/sensors/cloud")].counts;
         let sent_cloud = &out["pipeline/sensors/cloud"].counts;
-        assert_eq!(cloud.published, sent_cloud.sent, "{name}: {cloud:?}");
-        assert_eq!(cloud.digest, sent_cloud.digest, "{name}");
+        for route in [format!("{name}:pipeline/sensors/cloud"), format!("{name}/pipeline/sensors/cloud")] {
+            let cloud = &bb.inbound[&route].counts;
+            assert_eq!(cloud.published, sent_cloud.sent, "{route}: {cloud:?}");
+            assert_eq!(cloud.digest, sent_cloud.digest, "{route}");
+        }
+        let (pose, sent_pose) =
+            (&bb.inbound[&format!("{name}/pipeline/fusion/pose")].counts, &out["pipeline/fusion/pose"].counts);
+        assert!(sent_pose.sent > 3, "{name}: {sent_pose:?}");
+        assert_eq!((pose.published, pose.digest), (sent_pose.sent, sent_pose.digest), "{name}: {pose:?}");
         let ingest: ingest_stage::summary::IngestPart = part(&r);
-        clouds += ingest.ingest.messages.cloud;
+        let robot_clouds = ingest.ingest.messages.cloud;
+        clouds += robot_clouds;
         // `clock = "measure"` on one machine: the true offset is 0, so the estimate must lie
         // within half its round trip (the remote stamp falls between the query and the answer).
         let clock = &bb.clock[*name];
@@ -702,6 +743,27 @@ height_px = 24
         assert!(off.abs() <= rtt / 2 + 1, "{name}: offset within the round trip's bound: {clock:?}");
         assert!(rtt < 1_000_000_000, "{name}: {clock:?}");
         assert!(clock.shifted, "{name}: measure shifts even on one machine: {clock:?}");
+
+        // The base station's mapper of this robot, at its bridged fused poses: its part under
+        // `instances`, its map in its own directory, compared with the robot's own map at the
+        // simulator's true poses.
+        let own = &b["instances"][format!("map_{name}")];
+        let own: octree_mapper_stage::summary::OctreeMapperPart =
+            serde_json::from_value(own.clone()).unwrap_or_else(|e| panic!("instances.map_{name}: {e}: {own:#}"));
+        let c = &own.octree_mapper.counters;
+        assert_eq!(
+            c.clouds_inserted + c.clouds_dropped_no_pose + c.clouds_dropped_behind + c.clouds_missed,
+            robot_clouds,
+            "map_{name}: every cloud of {name} accounted for, none of the other's: {c:?}"
+        );
+        assert!(c.clouds_inserted as f64 >= 0.8 * robot_clouds as f64, "map_{name}: {c:?}");
+        let fusion: fusion_stage::summary::FusionPart = part(&r);
+        let fused_ate = fusion.ate_m.as_ref().and_then(|a| a.fused).expect("the robot's fused ATE");
+        let (recall, precision, why) =
+            maps_agree(&run.out_dir().join("map.bt"), &base.out_dir().join(name).join("map.bt"), fused_ate);
+        eprintln!("{name}: {why}");
+        assert!(fused_ate <= 0.4, "{name}: {why}");
+        assert!(recall >= 0.9 && precision >= 0.9, "{name}: {why}");
     }
     assert_ne!(digests[0], digests[1], "two robots, two different fix streams");
     let map: octree_mapper_stage::summary::OctreeMapperPart = part(&b);

@@ -136,7 +136,7 @@ fn every_shipped_config_passes_the_check() {
             assert_eq!(without.status.code(), Some(2), "{}: checked without certificates: {err}", path.display());
             assert!(err.contains("certs/ca.pem") && err.contains("supervisor certs"), "{}: {err}", path.display());
             let made = std::process::Command::new(pipeline_tests::bin("supervisor"))
-                .args(["certs", "--name", "base", "--name", "auv1"])
+                .args(["certs", "--name", "base", "--name", "auv1", "--name", "auv2"])
                 .current_dir(&tmp)
                 .output()
                 .expect("supervisor certs runs");
@@ -162,7 +162,10 @@ fn every_shipped_config_passes_the_check() {
         );
         if cwd.starts_with(std::env::temp_dir()) {
             // This host's own certificate revoked: the check names the list and the host.
-            let cn = if text.contains("certs/base.pem") { "base" } else { "auv1" };
+            let cn = ["base", "auv2", "auv1"]
+                .into_iter()
+                .find(|cn| text.contains(&format!("certs/{cn}.pem")))
+                .expect("a host certificate");
             let revoked = std::process::Command::new(pipeline_tests::bin("supervisor"))
                 .args(["certs", "--revoke", cn])
                 .current_dir(&cwd)

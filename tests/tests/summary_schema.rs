@@ -107,6 +107,14 @@ pub fn schema() -> Value {
             root["properties"][&key] = merged;
         }
     }
+    root["properties"]["instances"] = json!({
+        "type": "object",
+        "description": "The parts of the processes with an out_dir of their own (`[processes.<name>] out_dir`), by \
+                        process name: each is the part its kind writes at the top level otherwise (e.g. \
+                        `instances.map_r1.octree_mapper`), kept apart so that two processes of one kind do not \
+                        overwrite each other's keys.",
+        "additionalProperties": { "type": "object" }
+    });
     nullable_reals(&mut root);
     root
 }

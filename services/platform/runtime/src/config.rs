@@ -15,6 +15,37 @@ use serde::{Deserialize, Serialize};
 
 pub use validation::{ConfigIssue, Issues, Validate};
 
+/// Checks a process's `remap` table: each key a data service of the contract, each name a
+/// service name (chunks of `[A-Za-z0-9_.-]` joined by `/`) that is not itself a contract service
+/// (it would take that service's place with another type), no two keys on one name.
+fn check_remap(issues: &mut Issues, key: &str, remap: &BTreeMap<String, String>) {
+    use shared_types::services;
+    let chunk = |c: &str| !c.is_empty() && c.chars().all(|c| c.is_ascii_alphanumeric() || "_-.".contains(c));
+    let mut seen: BTreeMap<&str, &str> = BTreeMap::new();
+    for (from, to) in remap {
+        let k = format!("{key}.remap.\"{from}\"");
+        if services::data_service_bit(from).is_none() {
+            issues.push(
+                k.clone(),
+                format!("`{from}` is not a data service of the contract (docs/WIRE_FORMAT.md lists them)"),
+            );
+        }
+        if to.len() > 200 || !to.split('/').all(chunk) {
+            issues.push(k.clone(), format!("`{to}` is not a service name: chunks of [A-Za-z0-9_.-] joined by /"));
+        } else if services::service_spec(to).is_some()
+            || ["pipeline/control/", "pipeline/stats/", "pipeline/wake/"].iter().any(|p| to.starts_with(p))
+        {
+            issues.push(
+                k.clone(),
+                format!("`{to}` is a service of the pipeline's own: remap to a name of its own (e.g. `r1/{from}`)"),
+            );
+        }
+        if let Some(other) = seen.insert(to.as_str(), from.as_str()) {
+            issues.push(k, format!("`{other}` is remapped to `{to}` too: one name per service"));
+        }
+    }
+}
+
 /// Errors of loading or validating a config file.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
@@ -205,6 +236,23 @@ pub struct ProcessConfig {
     /// take a core as soon as it needs one on a busy machine.
     #[serde(default)]
     pub nice: i32,
+    /// Service names this process opens instead of the contract's: `contract name -> name`
+    /// (e.g. `"pipeline/sensors/cloud" = "r1/pipeline/sensors/cloud"`). Every input and output of
+    /// the process on a listed service uses the other name, with the contract service's type and
+    /// QoS; unlisted services keep their names. This is how one host runs a stage once per robot
+    /// (a mapper per robot on a base station, fed by a bridge's `local` names). A process with a
+    /// remapped input must name what it ends after (its `end_after` setting): an end of stream
+    /// says which contract services its process published, not the names they were remapped to.
+    #[serde(default)]
+    pub remap: BTreeMap<String, String>,
+    /// A directory of its own for this process's output files, relative to `run.out_dir` (e.g.
+    /// `"r1"`): two processes of one kind in a run (a mapper per robot) then do not write the
+    /// same files. Its part of summary.json goes under `instances.<process>` instead of the top
+    /// level, where a second part of the same kind would overwrite the first's keys. Its restart
+    /// state and statistics stay in the run's directory. Files it reads from its output
+    /// directory (ground_truth.tum, scene.json) are looked up there too.
+    #[serde(default)]
+    pub out_dir: Option<PathBuf>,
     /// Process-specific settings, parsed by the process's own typed settings struct.
     #[serde(default)]
     pub settings: toml::Table,
@@ -448,6 +496,29 @@ impl PipelineConfig {
                 format!("{key}.backoff_max_s"),
                 "must be >= backoff_initial_s",
             );
+            check_remap(&mut issues, &key, &p.remap);
+            if let Some(dir) = &p.out_dir {
+                let plain = dir.components().count() > 0
+                    && dir.components().all(|c| matches!(c, std::path::Component::Normal(_)));
+                issues.check(
+                    plain,
+                    format!("{key}.out_dir"),
+                    format!("`{}` must be a relative path inside run.out_dir (no `..`, not absolute)", dir.display()),
+                );
+                let reserved = ["parts", "state", "stats"].iter().any(|r| dir.starts_with(r));
+                issues.check(!reserved, format!("{key}.out_dir"), "parts/, state/ and stats/ are the run's own");
+                // Processes of one kind write files of the same names: one directory each.
+                let kind = p.kind_or(name);
+                if let Some((other, _)) = self
+                    .enabled()
+                    .find(|(n, q)| *n < name && q.kind_or(n) == kind && q.out_dir.as_ref().is_some_and(|d| d == dir))
+                {
+                    issues.push(
+                        format!("{key}.out_dir"),
+                        format!("`{}` is `{other}`'s too, a process of the same kind ({kind})", dir.display()),
+                    );
+                }
+            }
         }
         if let Err(cycle) = self.start_order() {
             issues.push(format!("processes.{}.after", cycle[0]), format!("dependency cycle: {}", cycle.join(" -> ")));
@@ -569,6 +640,52 @@ mod tests {
             let issues = parse(&format!("[processes.a]\nnice = {bad}\n")).unwrap().validate();
             assert_eq!(issues.len(), 1, "{issues:?}");
             assert_eq!(issues.iter().next().unwrap().key, "processes.a.nice");
+        }
+    }
+
+    #[test]
+    fn remaps_name_what_is_wrong_with_each_entry() {
+        let ok = "[processes.a.remap]\n\"pipeline/sensors/cloud\" = \"r1/pipeline/sensors/cloud\"\n\
+                  \"pipeline/fusion/pose\" = \"r1/pipeline/fusion/pose\"\n";
+        let c = parse(ok).unwrap();
+        assert!(c.validate().is_empty(), "{:?}", c.validate());
+        assert_eq!(c.processes["a"].remap["pipeline/sensors/cloud"], "r1/pipeline/sensors/cloud");
+        for (bad, what) in [
+            ("\"pipeline/sensors/clouds\" = \"r1/x\"", "not a data service"),
+            ("\"pipeline/control/heartbeat\" = \"r1/x\"", "not a data service"),
+            ("\"pipeline/sensors/cloud\" = \"r1//x\"", "not a service name"),
+            ("\"pipeline/sensors/cloud\" = \"r1/a b\"", "not a service name"),
+            ("\"pipeline/sensors/cloud\" = \"pipeline/slam/pose\"", "of the pipeline's own"),
+            ("\"pipeline/sensors/cloud\" = \"pipeline/control/x\"", "of the pipeline's own"),
+            ("\"pipeline/sensors/cloud\" = \"r1/x\"\n\"pipeline/slam/pose\" = \"r1/x\"", "remapped to `r1/x` too"),
+        ] {
+            let issues = parse(&format!("[processes.a.remap]\n{bad}\n")).unwrap().validate();
+            assert_eq!(issues.len(), 1, "{bad}: {issues:?}");
+            let i = issues.iter().next().unwrap();
+            assert!(i.key.starts_with("processes.a.remap.\"pipeline/"), "{bad}: {i:?}");
+            assert!(i.message.contains(what), "{bad}: {i:?}");
+        }
+    }
+
+    #[test]
+    fn a_process_out_dir_must_be_its_own_and_inside_the_run() {
+        let c = parse(
+            "[processes.a]\nout_dir = \"r1\"\n[processes.b]\nout_dir = \"r2/map\"\n\
+             [processes.c]\nkind = \"recorder\"\nout_dir = \"r1\"\n",
+        )
+        .unwrap();
+        assert!(c.validate().is_empty(), "{:?}", c.validate());
+        for (bad, what) in [
+            ("\"../x\"", "relative path inside"),
+            ("\"/tmp/x\"", "relative path inside"),
+            ("\"\"", "relative path inside"),
+            ("\"parts\"", "the run's own"),
+            ("\"r1\"\n[processes.b]\nkind = \"a\"\nout_dir = \"r1\"", "`a`'s too, a process of the same kind (a)"),
+        ] {
+            let issues = parse(&format!("[processes.a]\nout_dir = {bad}\n")).unwrap().validate();
+            assert_eq!(issues.len(), 1, "{bad}: {issues:?}");
+            let i = issues.iter().next().unwrap();
+            assert!(i.key.ends_with(".out_dir") && i.message.contains(what), "{bad}: {i:?}");
         }
     }
 

@@ -53,8 +53,11 @@ pub struct ProcessContext {
     pub config: PipelineConfig,
     /// The iceoryx2 scope (from the supervisor's environment, else from the config).
     pub scope: IoxScope,
-    /// Output directory of the run.
+    /// Where this process writes its output files: the run's directory, or the process's own
+    /// `out_dir` inside it.
     pub out_dir: PathBuf,
+    /// The run's output directory (summary parts, restart state, statistics).
+    pub run_dir: PathBuf,
     /// Log format in effect.
     pub log_format: LogFormat,
 }
@@ -71,9 +74,13 @@ impl ProcessContext {
             root: config.iceoryx_root(),
             base_config: config.iceoryx_config_file(),
         });
-        let out_dir = std::env::var_os(ENV_OUT_DIR).map(PathBuf::from).unwrap_or_else(|| config.run.out_dir.clone());
+        let run_dir = std::env::var_os(ENV_OUT_DIR).map(PathBuf::from).unwrap_or_else(|| config.run.out_dir.clone());
+        let out_dir = match &config.processes[&args.name].out_dir {
+            Some(own) => run_dir.join(own),
+            None => run_dir.clone(),
+        };
         let log_format = args.log_format.unwrap_or(config.run.log_format);
-        Ok(Self { name: args.name.clone(), config, scope, out_dir, log_format })
+        Ok(Self { name: args.name.clone(), config, scope, out_dir, run_dir, log_format })
     }
 
     /// This process's typed, validated settings.
@@ -89,14 +96,15 @@ impl ProcessContext {
             heartbeat_interval: Duration::from_secs_f64(self.config.run.heartbeat_interval_s),
             stats_interval: Duration::from_secs_f64(self.config.run.stats_interval_s),
             publish_control: true,
-            final_stats_dir: Some(self.out_dir.join("stats")),
+            final_stats_dir: Some(self.run_dir.join("stats")),
             extra_subscribers: self.config.run.extra_subscribers,
+            remap: self.config.processes[&self.name].remap.clone(),
         }
     }
 
     /// Where this process writes its part of summary.json (merged by the supervisor).
     pub fn summary_part_path(&self) -> PathBuf {
-        self.out_dir.join("parts").join(format!("{}.json", self.name))
+        self.run_dir.join("parts").join(format!("{}.json", self.name))
     }
 }
 
@@ -119,6 +127,9 @@ pub struct RuntimeOptions {
     /// `max_nodes` where this runtime opens it ([`Qos::with_extra`]), as every process of the run
     /// must.
     pub extra_subscribers: usize,
+    /// The process's `remap` table (`contract name -> name`): ports on a listed service open the
+    /// other name, with the contract service's type and QoS ([`Runtime::service_name`]).
+    pub remap: std::collections::BTreeMap<String, String>,
 }
 
 impl Default for RuntimeOptions {
@@ -129,6 +140,7 @@ impl Default for RuntimeOptions {
             publish_control: true,
             final_stats_dir: None,
             extra_subscribers: 0,
+            remap: Default::default(),
         }
     }
 }
@@ -169,7 +181,7 @@ pub struct Runtime {
     /// The in-process services of a runtime under test (see [`crate::testing`]).
     bus: Option<Rc<LocalBus>>,
     started: Instant,
-    options: RuntimeOptions,
+    pub(crate) options: RuntimeOptions,
     ports: Vec<Rc<RefCell<PortStats>>>,
     listeners: Vec<Rc<Listener<ipc::Service>>>,
     connectors: Vec<Rc<dyn Fn()>>,
@@ -454,6 +466,18 @@ impl Runtime {
         self.started.elapsed()
     }
 
+    /// The name this process opens `service` under: its `remap` entry, or `service` itself.
+    pub fn service_name<'a>(&'a self, service: &'a str) -> &'a str {
+        self.options.remap.get(service).map_or(service, String::as_str)
+    }
+
+    /// The inputs opened under a remapped name (`contract name -> name`).
+    pub fn remapped_inputs(&self) -> Vec<(String, String)> {
+        let names: std::collections::BTreeSet<String> =
+            self.ports.iter().filter(|p| p.borrow().input).map(|p| p.borrow().service.clone()).collect();
+        self.options.remap.iter().filter(|(_, to)| names.contains(*to)).map(|(f, t)| (f.clone(), t.clone())).collect()
+    }
+
     fn port_stats(&mut self, service: &str, input: bool) -> Rc<RefCell<PortStats>> {
         let s = Rc::new(RefCell::new(PortStats::new(service, input)));
         self.ports.push(s.clone());
@@ -476,6 +500,7 @@ impl Runtime {
         qos: &Qos,
         delivery: Delivery,
     ) -> Result<Output<T, H>, RuntimeError> {
+        let service = &self.service_name(service).to_string();
         let stats = self.port_stats(service, false);
         self.keep_alive_for(delivery);
         let qos = &qos.with_extra(self.options.extra_subscribers);
@@ -503,6 +528,7 @@ impl Runtime {
         initial_len: usize,
         delivery: Delivery,
     ) -> Result<Output<[T], H>, RuntimeError> {
+        let service = &self.service_name(service).to_string();
         let stats = self.port_stats(service, false);
         self.keep_alive_for(delivery);
         let qos = &qos.with_extra(self.options.extra_subscribers);
@@ -557,6 +583,7 @@ impl Runtime {
         qos: &Qos,
         buffer: usize,
     ) -> Result<Input<P, H>, RuntimeError> {
+        let service = &self.service_name(service).to_string();
         let stats = self.port_stats(service, true);
         let qos = &qos.with_extra(self.options.extra_subscribers);
         let input = match self.node_or_local(service) {

@@ -161,7 +161,7 @@ pub(crate) struct Driver {
     fed: BTreeSet<String>,
     /// The summary part, once the stage has finished.
     pub(crate) part: Option<serde_json::Value>,
-    out_dir: std::path::PathBuf,
+    run_dir: std::path::PathBuf,
     name: String,
 }
 
@@ -174,7 +174,17 @@ impl Driver {
         stage: &mut S,
         restart: bool,
     ) -> Result<Self, StageError> {
-        let (mut store, restored) = StateStore::open(&ctx.out_dir, &ctx.name, restart)?;
+        let remapped = rt.remapped_inputs();
+        if stage.end_after() == EndAfter::FirstUpstream && !remapped.is_empty() {
+            let list = remapped.iter().map(|(f, t)| format!("`{f}` as `{t}`")).collect::<Vec<_>>().join(", ");
+            return Err(StageError::Settings(format!(
+                "processes.{}: its inputs {list} are remapped, so the end of stream cannot tell which \
+                 process feeds them: name the processes it ends after in its `end_after` setting",
+                ctx.name
+            )));
+        }
+        std::fs::create_dir_all(&ctx.out_dir)?;
+        let (mut store, restored) = StateStore::open(&ctx.run_dir, &ctx.name, restart)?;
         let restored_seqs = restored.as_ref().map(|r| r.input_seqs.clone());
         if let Some(r) = restored {
             let lines = r.journal.len();
@@ -203,7 +213,7 @@ impl Driver {
             ended: BTreeSet::new(),
             fed: BTreeSet::new(),
             part: None,
-            out_dir: ctx.out_dir.clone(),
+            run_dir: ctx.run_dir.clone(),
             name: ctx.name.clone(),
         })
     }
@@ -253,7 +263,7 @@ impl Driver {
             let part = summary_object(serde_json::to_value(stage.finish(rt, Ending::EndOfStream)?)?);
             rt.state().flush()?;
             let part = self.with_failures(rt, part);
-            write_summary_part(&self.out_dir, &self.name, &part)?;
+            write_summary_part(&self.run_dir, &self.name, &part)?;
             self.part = Some(part);
             if stage.sends_end_of_stream() {
                 let (last_seq, sent) = stage.end_of_stream();
@@ -272,7 +282,7 @@ impl Driver {
         tracing::info!("stopped before the end of its inputs: writing what there is");
         let part = summary_object(serde_json::to_value(stage.finish(rt, Ending::Stopped)?)?);
         let part = self.with_failures(rt, part);
-        write_summary_part(&self.out_dir, &self.name, &part)?;
+        write_summary_part(&self.run_dir, &self.name, &part)?;
         self.part = Some(part);
         Ok(())
     }

@@ -107,9 +107,13 @@ impl<S: Stage> StageHarness<S> {
         }
         let ctx = ProcessContext {
             name: name.to_string(),
-            config,
             scope: IoxScope { prefix: "local".into(), root: PathBuf::new(), base_config: None },
-            out_dir: out_dir.to_path_buf(),
+            out_dir: match &config.processes[name].out_dir {
+                Some(own) => out_dir.join(own),
+                None => out_dir.to_path_buf(),
+            },
+            run_dir: out_dir.to_path_buf(),
+            config,
             log_format: LogFormat::Text,
         };
         let settings: S::Settings = ctx.settings()?;
@@ -125,6 +129,7 @@ impl<S: Stage> StageHarness<S> {
     fn open_instance(ctx: ProcessContext, settings: S::Settings, restart: bool) -> Result<Self, TestError> {
         let bus = Rc::new(LocalBus::default());
         let mut rt = Runtime::local(&ctx.name, bus.clone());
+        rt.options.remap = ctx.config.processes[&ctx.name].remap.clone();
         let mut stage = S::open(&ctx, settings, &mut rt)?;
         let driver = Driver::new(&ctx, &mut rt, &mut stage, restart)?;
         Ok(Self { ctx, bus, rt, stage, driver, seqs: Default::default() })

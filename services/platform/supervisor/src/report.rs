@@ -239,7 +239,9 @@ pub fn summary(
         tracing::error!("the supervisor's summary does not serialise: {e}");
         json!({})
     });
-    merge_parts(&mut out, &plan.out_dir.join("parts"));
+    let own_dirs: BTreeSet<String> =
+        plan.processes.iter().filter(|p| p.config.out_dir.is_some()).map(|p| p.name.clone()).collect();
+    merge_parts(&mut out, &plan.out_dir.join("parts"), &own_dirs);
     out
 }
 
@@ -306,7 +308,10 @@ pub fn supervisor_part(
 }
 
 /// Merges every `<dir>/*.json` object into `out` (deep merge of objects; later keys win).
-fn merge_parts(out: &mut Value, dir: &Path) {
+/// Merges every part in `dir` into `out`; the part of a process in `instances` (one with an
+/// `out_dir` of its own) goes under `instances.<process>`, where it does not overwrite the keys
+/// of another process of its kind.
+fn merge_parts(out: &mut Value, dir: &Path, instances: &BTreeSet<String>) {
     let Ok(rd) = std::fs::read_dir(dir) else { return };
     let mut files: Vec<_> =
         rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.extension().is_some_and(|e| e == "json")).collect();
@@ -316,7 +321,11 @@ fn merge_parts(out: &mut Value, dir: &Path) {
             .map_err(|e| e.to_string())
             .and_then(|b| serde_json::from_slice::<Value>(&b).map_err(|e| e.to_string()))
         {
-            Ok(v @ Value::Object(_)) => deep_merge(out, v),
+            Ok(v @ Value::Object(_)) => match f.file_stem().and_then(|n| n.to_str()).filter(|n| instances.contains(*n))
+            {
+                Some(name) => deep_merge(out, json!({ "instances": { name: v } })),
+                None => deep_merge(out, v),
+            },
             Ok(_) => tracing::warn!("{}: not a JSON object; not merged into summary.json", f.display()),
             Err(e) => tracing::warn!("{}: {e}; not merged into summary.json", f.display()),
         }
@@ -430,6 +439,16 @@ pub fn render(summary: &Value) -> String {
             ));
         }
     }
+    if let Some(Value::Object(instances)) = summary.get("instances")
+        && !instances.is_empty()
+    {
+        let names: Vec<&str> = instances.keys().map(String::as_str).collect();
+        s.push_str(&format!(
+            "processes with an out_dir of their own (their files there, their summaries under summary.json \
+             `instances`): {}\n",
+            names.join(", ")
+        ));
+    }
     for (title, table) in
         [("hop latency (service -> process)", "hops"), ("end-to-end latency (since sensor input)", "end_to_end")]
     {
@@ -455,6 +474,27 @@ pub fn render(summary: &Value) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn parts_of_processes_with_their_own_out_dir_go_under_instances() {
+        let dir = tempfile::tempdir().unwrap();
+        let part = |name: &str, clouds: u64| {
+            let v = json!({ "octree_mapper": { "counters": { "clouds_inserted": clouds } } });
+            std::fs::write(dir.path().join(format!("{name}.json")), v.to_string()).unwrap();
+        };
+        part("map", 7);
+        part("map_r1", 3);
+        part("map_r2", 4);
+        let mut out = json!({ "run": {} });
+        let instances: BTreeSet<String> = ["map_r1".to_string(), "map_r2".to_string()].into();
+        merge_parts(&mut out, dir.path(), &instances);
+        assert_eq!(out["octree_mapper"]["counters"]["clouds_inserted"], 7, "{out}");
+        assert_eq!(out["instances"]["map_r1"]["octree_mapper"]["counters"]["clouds_inserted"], 3, "{out}");
+        assert_eq!(out["instances"]["map_r2"]["octree_mapper"]["counters"]["clouds_inserted"], 4, "{out}");
+        for s in [render_short(&out, dir.path(), 0), render(&out)] {
+            assert!(s.contains("their summaries under summary.json `instances`): map_r1, map_r2"), "{s}");
+        }
+    }
 
     #[test]
     fn the_short_summary_gives_the_accuracy_what_was_lost_and_the_files_but_no_latency_tables() {

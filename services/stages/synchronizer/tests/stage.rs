@@ -112,3 +112,48 @@ fn a_stop_before_the_end_writes_what_there_is() {
     assert_eq!(part["synchronizer"]["pairs"], 1, "{part}");
     assert!(h.end_of_stream().unwrap().is_none(), "a stopped stage sends no end of stream");
 }
+
+/// The synchronizer of robot `r1` on a host that runs one per robot: `remap` renames its ports.
+const REMAPPED: &str = r#"
+[processes.sync]
+kind = "synchronizer"
+[processes.sync.remap]
+"pipeline/buoy/fix" = "r1/pipeline/buoy/fix"
+"pipeline/slam/pose" = "r1/pipeline/slam/pose"
+"pipeline/sync/pair" = "r1/pipeline/sync/pair"
+[processes.sync.settings]
+"#;
+
+#[test]
+fn a_remapped_stage_reads_and_writes_its_own_names_and_must_say_what_it_ends_after() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = format!("{REMAPPED}end_after = [\"slam\", \"buoy\"]\n");
+    let mut h =
+        StageHarness::<SynchronizerStage>::from_config_str(&text, Path::new("remap.toml"), "sync", dir.path()).unwrap();
+    assert!(h.feed(BUOY_FIX, at(0.0), fix(0.0)).is_err(), "no input under the contract's name");
+    for t in 0..3 {
+        h.feed("r1/pipeline/buoy/fix", at(t as f64), fix(t as f64)).unwrap();
+    }
+    h.feed("r1/pipeline/slam/pose", at(1.5), pose()).unwrap();
+    h.wake().unwrap();
+    let under_contract = h.take::<SyncedPair, MsgHeader>(SYNC_PAIR).unwrap_or_default();
+    assert!(under_contract.is_empty(), "nothing under the contract's name");
+    let pairs = h.take::<SyncedPair, MsgHeader>("r1/pipeline/sync/pair").unwrap();
+    assert_eq!(pairs.len(), 1);
+    assert!((pairs[0].1.buoy_position_m[0] - 1.5).abs() < 0.02, "{:?}", pairs[0].1);
+    h.end_upstream("slam").unwrap();
+    h.end_upstream("buoy").unwrap();
+    let part = h.run_to_end(Duration::from_secs(5)).unwrap();
+    assert_eq!(part["synchronizer"]["pairs"], 1, "{part}");
+
+    // Without `end_after`, an end of stream could not say that it fed the renamed inputs.
+    let text = format!("{REMAPPED}end_after = []\n");
+    let e = StageHarness::<SynchronizerStage>::from_config_str(&text, Path::new("remap.toml"), "sync", dir.path())
+        .err()
+        .expect("refused");
+    let e = e.to_string();
+    assert!(
+        e.contains("`pipeline/slam/pose` as `r1/pipeline/slam/pose`") && e.contains("end_after"),
+        "the error names the remapped inputs and the setting: {e}"
+    );
+}
