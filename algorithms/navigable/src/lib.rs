@@ -763,6 +763,58 @@ fn two_ways<T: Send>(parallel: bool, len: usize, f: &(dyn Fn(std::ops::Range<usi
     })
 }
 
+/// A voxel key packed into one integer in the keys' order (21 bits a component), where every
+/// component is within ±2²⁰ voxels (±105 km at 0.1 m).
+fn packed_key(k: &VoxelKey) -> Option<u64> {
+    const HALF: i64 = 1 << 20;
+    let c = |v: i32| -> Option<u64> {
+        let u = i64::from(v) + HALF;
+        (0..2 * HALF).contains(&u).then_some(u as u64)
+    };
+    Some((c(k[0])? << 42) | (c(k[1])? << 21) | c(k[2])?)
+}
+
+fn unpacked_key(p: u64) -> VoxelKey {
+    let c = |shift: u32| (((p >> shift) & ((1 << 21) - 1)) as i64 - (1 << 20)) as i32;
+    [c(42), c(21), c(0)]
+}
+
+/// The voxels of `acc` in the keys' order: sorted as packed integers, two halves on two threads
+/// merged when `parallel` (the slowest step of a discovery before: 0.2 s for 2 M voxels).
+fn sorted_cells(acc: &PointAccumulator, parallel: bool) -> Vec<(VoxelKey, &VoxelStats)> {
+    let packed: Option<Vec<(u64, &VoxelStats)>> = acc.cells.iter().map(|(k, s)| Some((packed_key(k)?, s))).collect();
+    let Some(mut packed) = packed else {
+        let mut all: Vec<(VoxelKey, &VoxelStats)> = acc.cells.iter().map(|(k, s)| (*k, s)).collect();
+        all.sort_unstable_by_key(|(k, _)| *k);
+        return all;
+    };
+    if !parallel {
+        packed.sort_unstable_by_key(|(k, _)| *k);
+        return packed.into_iter().map(|(k, s)| (unpacked_key(k), s)).collect();
+    }
+    let mid = packed.len() / 2;
+    let (a, b) = packed.split_at_mut(mid);
+    std::thread::scope(|s| {
+        let other = s.spawn(|| b.sort_unstable_by_key(|(k, _)| *k));
+        a.sort_unstable_by_key(|(k, _)| *k);
+        other.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
+    });
+    let (a, b) = packed.split_at(mid);
+    let mut out = Vec::with_capacity(packed.len());
+    let (mut i, mut j) = (0, 0);
+    while i < a.len() && j < b.len() {
+        if a[i].0 < b[j].0 {
+            out.push((unpacked_key(a[i].0), a[i].1));
+            i += 1;
+        } else {
+            out.push((unpacked_key(b[j].0), b[j].1));
+            j += 1;
+        }
+    }
+    out.extend(a[i..].iter().chain(&b[j..]).map(|(k, s)| (unpacked_key(*k), *s)));
+    out
+}
+
 /// Navigable space and obstacles over the voxels of `acc` for which `occupied` is true (the
 /// occupancy map's verdict; pass `|_| true` to use every voxel with points).
 pub fn discover(
@@ -787,17 +839,18 @@ pub fn discover_with(
     }
     // On two threads when there are many: the occupancy tests, then the plane fits.
     let parallel = acc.cells.len() >= PARALLEL_MIN_VOXELS;
-    let all: Vec<(&VoxelKey, &VoxelStats)> = acc.cells.iter().collect();
+    // In the keys' order: neighbouring voxels one after the other, so that the occupancy tests
+    // walk the same branches of an octree one after another (in the hash map's order each test
+    // walked from the root through memory the last one had not touched: 3× slower).
+    let all = sorted_cells(acc, parallel);
     let mut is_occupied = vec![false; all.len()];
     in_two(parallel, &mut is_occupied, all.len() / 2, &|offset, part| {
         for (o, (k, _)) in part.iter_mut().zip(&all[offset..]) {
             *o = occupied(k);
         }
     });
-    let mut cells: Vec<(VoxelKey, &VoxelStats)> =
-        all.iter().zip(&is_occupied).filter(|(_, o)| **o).map(|((k, s), _)| (**k, *s)).collect();
-    drop((all, is_occupied));
-    cells.sort_unstable_by_key(|(k, _)| *k);
+    let cells: Vec<(VoxelKey, &VoxelStats)> =
+        all.into_iter().zip(is_occupied).filter(|(_, o)| *o).map(|(c, _)| c).collect();
     let (keys, stats): (Vec<VoxelKey>, Vec<&VoxelStats>) = cells.into_iter().unzip();
     let index = ChunkIndex::new(&keys);
     let mut near = index.near();
@@ -935,38 +988,42 @@ pub fn discover_with(
     for (slot, &j) in sparse.iter().enumerate() {
         slot_of[j] = slot as u32;
     }
-    // Two passes on two threads into the lists' place: how many neighbours, then which.
-    let mut near_of = vec![0u32; sparse.len() + 1];
-    in_two(parallel, &mut near_of[1..], sparse.len() / 2, &|offset, counts| {
+    // Each half of the sparse voxels' lists on a thread of its own, in one pass (no count pass:
+    // the lists stay in two halves, read where the voxel's slot falls).
+    // With each voxel's mean (`None` without points), read from its statistics here on two
+    // threads rather than one by one in the loop below.
+    type Lists = (Vec<u32>, Vec<u32>, Vec<Option<Vector3<f64>>>);
+    let build = |slots: std::ops::Range<usize>| -> Lists {
         let mut near = index.near();
-        for (c, &j) in counts.iter_mut().zip(&sparse[offset..]) {
-            *c = neighbours(&keys[j]).filter(|n| near.get(n).is_some()).count() as u32;
+        let mut offsets = Vec::with_capacity(slots.len() + 1);
+        let mut flat = Vec::with_capacity(slots.len() * 8);
+        let mut means = Vec::with_capacity(slots.len());
+        offsets.push(0u32);
+        for &j in &sparse[slots] {
+            flat.extend(neighbours(&keys[j]).filter_map(|n| near.get(&n)).map(|i| i as u32));
+            offsets.push(flat.len() as u32);
+            means.push(stats[j].mean_cov().map(|(m, _)| m));
         }
-    });
-    for s in 1..near_of.len() {
-        near_of[s] += near_of[s - 1];
-    }
-    let mut flat = vec![0u32; near_of[sparse.len()] as usize];
-    let mid = near_of[sparse.len() / 2] as usize;
-    in_two(parallel, &mut flat, mid, &|offset, part| {
-        let mut near = index.near();
-        let first = near_of.partition_point(|o| (*o as usize) < offset).min(sparse.len());
-        let first = if offset == 0 { 0 } else { first };
-        let mut out = part.iter_mut();
-        for &j in &sparse[first..] {
-            if out.len() == 0 {
-                break;
-            }
-            for i in neighbours(&keys[j]).filter_map(|n| near.get(&n)) {
-                if let Some(o) = out.next() {
-                    *o = i as u32;
-                }
-            }
-        }
-    });
+        (offsets, flat, means)
+    };
+    let half = if parallel { sparse.len() / 2 } else { sparse.len() };
+    let (low, high) = if parallel {
+        std::thread::scope(|s| {
+            let high = s.spawn(|| build(half..sparse.len()));
+            let low = build(0..half);
+            (low, high.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+        })
+    } else {
+        (build(0..sparse.len()), (vec![0], vec![], vec![]))
+    };
     let around = |j: usize| {
         let s = slot_of[j] as usize;
-        flat[near_of[s] as usize..near_of[s + 1] as usize].iter().map(|i| *i as usize)
+        let ((offsets, flat, _), s) = if s < half { (&low, s) } else { (&high, s - half) };
+        flat[offsets[s] as usize..offsets[s + 1] as usize].iter().map(|i| *i as usize)
+    };
+    let mean_of = |j: usize| {
+        let s = slot_of[j] as usize;
+        if s < half { low.2[s] } else { high.2[s - half] }
     };
     let mut work: std::collections::VecDeque<usize> = sparse.iter().copied().collect();
     let mut queued = vec![false; keys.len()];
@@ -978,7 +1035,7 @@ pub fn discover_with(
         if classes[j] != VoxelClass::Sparse {
             continue;
         }
-        let Some((mean, _)) = stats[j].mean_cov() else { continue };
+        let Some(mean) = mean_of(j) else { continue };
         let mut plane = None;
         for i in around(j) {
             if let VoxelClass::Navigable(b) = classes[i]
@@ -1001,7 +1058,7 @@ pub fn discover_with(
             }
         }
     }
-    drop((flat, near_of, slot_of));
+    drop((low, high, slot_of));
     // Obstacles ([6D] §V: the occupied voxels that are not navigable): grown from the non-planar
     // and steep voxels through adjacent voxels that are not navigable (sparse ones included).
     let seed = |c: &VoxelClass| matches!(c, VoxelClass::NonPlanar | VoxelClass::Steep(_));
@@ -1844,6 +1901,30 @@ mod tests {
                 let k = [x, y, z];
                 proptest::prop_assert_eq!(near.get(&k), keys.iter().position(|o| *o == k));
             }
+        }
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn voxels_sorted_as_packed_keys_come_in_the_keys_order(
+            keys in proptest::collection::btree_set(
+                proptest::strategy::Strategy::prop_map(
+                    (-(1i32 << 20)..(1 << 20), -40i32..40, -40i32..40), |(x, y, z)| [x, y, z]), 1..300),
+            far in proptest::option::of(proptest::prelude::any::<i32>()),
+            parallel: bool,
+        ) {
+            let mut acc = PointAccumulator::new(RES);
+            for k in &keys {
+                acc.cells.insert(*k, VoxelStats::default());
+            }
+            // A key beyond ±2^20 voxels takes the plain sort.
+            if let Some(x) = far {
+                acc.cells.insert([x, 0, 0], VoxelStats::default());
+            }
+            let mut want: Vec<VoxelKey> = acc.cells.keys().copied().collect();
+            want.sort_unstable();
+            let got: Vec<VoxelKey> = sorted_cells(&acc, parallel).into_iter().map(|(k, _)| k).collect();
+            proptest::prop_assert_eq!(got, want);
         }
     }
 
