@@ -108,7 +108,13 @@ impl<'a> tracing_subscriber::fmt::MakeWriter<'a> for MakeLineWriter {
 }
 
 fn init_with(name: &str, format: LogFormat, ansi: bool) -> Option<tracing::span::EnteredSpan> {
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    // Zenoh's Unix-socket link warns on every connect ("Can not create a new UnixSocketStream
+    // link bound to ...": a client's socket has no path of its own; zenoh-link-unixsock_stream
+    // 1.10, `new_link`). The bridge's Zenoh connects only over Unix sockets, to its own TLS
+    // relay, which reports its links' failures itself: at ERROR only, so that a WARN in a run's
+    // log means something. RUST_LOG replaces this filter whole.
+    let filter = EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| EnvFilter::new("info,zenoh_link_unixsock_stream::unicast=error"));
     iceoryx2::prelude::set_log_level(iceoryx2::prelude::LogLevel::Warn);
     // A closed stderr (output piped into `head`, a pager that quit) must not kill the process: by
     // default tracing-subscriber reports a failed write with `eprintln!`, which panics on a broken
