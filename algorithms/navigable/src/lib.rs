@@ -154,13 +154,17 @@ impl VoxelStats {
         }
     }
 
+    /// Mean of the points, m (`None` without points): [`VoxelStats::mean_cov`]'s mean, without
+    /// the covariance's work.
+    #[inline]
+    pub fn mean(&self) -> Option<Vector3<f64>> {
+        (self.n > 0).then(|| self.sum_m / self.n as f64)
+    }
+
     /// Mean and (population) covariance of the points.
     pub fn mean_cov(&self) -> Option<(Vector3<f64>, Matrix3<f64>)> {
-        if self.n == 0 {
-            return None;
-        }
+        let mean = self.mean()?;
         let n = self.n as f64;
-        let mean = self.sum_m / n;
         let cov = self.sum_sq_m2() / n - mean * mean.transpose();
         Some((mean, (cov + cov.transpose()) * 0.5))
     }
@@ -553,18 +557,50 @@ fn find(parent: &mut [usize], mut i: usize) -> usize {
     i
 }
 
-fn neighbours(k: &VoxelKey) -> impl Iterator<Item = VoxelKey> + '_ {
-    (-1..=1).flat_map(move |dx| {
-        (-1..=1).flat_map(move |dy| {
-            (-1..=1).filter(move |dz| (dx, dy, *dz) != (0, 0, 0)).map(move |dz| [k[0] + dx, k[1] + dy, k[2] + dz])
-        })
-    })
+/// The offsets from a voxel to its 26 neighbours, in the keys' order.
+const OFFSETS: [[i32; 3]; 26] = {
+    let mut out = [[0; 3]; 26];
+    let (mut n, mut dx) = (0, -1);
+    while dx <= 1 {
+        let mut dy = -1;
+        while dy <= 1 {
+            let mut dz = -1;
+            while dz <= 1 {
+                if dx != 0 || dy != 0 || dz != 0 {
+                    out[n] = [dx, dy, dz];
+                    n += 1;
+                }
+                dz += 1;
+            }
+            dy += 1;
+        }
+        dx += 1;
+    }
+    out
+};
+
+/// Each of [`OFFSETS`] as a step between the cells of one chunk of [`ChunkIndex`].
+const CELL_STEPS: [isize; 26] = {
+    let mut out = [0; 26];
+    let mut n = 0;
+    while n < 26 {
+        let d = OFFSETS[n];
+        out[n] = ((d[0] << (2 * CHUNK_SHIFT)) + (d[1] << CHUNK_SHIFT) + d[2]) as isize;
+        n += 1;
+    }
+    out
+};
+
+/// The offsets of [`OFFSETS`] after (0, 0, 0): each pair of neighbours once.
+const FORWARD: std::ops::Range<usize> = 13..26;
+
+fn neighbour(k: &VoxelKey, o: usize) -> VoxelKey {
+    let d = OFFSETS[o];
+    [k[0] + d[0], k[1] + d[1], k[2] + d[2]]
 }
 
-/// The 13 neighbours after `k` in the keys' order (the offsets after (0, 0, 0)): each pair of
-/// neighbours once.
-fn forward_neighbours(k: &VoxelKey) -> impl Iterator<Item = VoxelKey> + '_ {
-    neighbours(k).skip(13)
+fn neighbours(k: &VoxelKey) -> impl Iterator<Item = VoxelKey> + '_ {
+    (0..26).map(move |o| neighbour(k, o))
 }
 
 /// A voxel's plane fit as [`PlaneFits`] keeps it: what the classification reads, at the point
@@ -599,7 +635,7 @@ impl KeptFit {
         if self.normal[0].is_nan() {
             return None;
         }
-        let (centroid_m, _) = s.mean_cov()?;
+        let centroid_m = s.mean()?;
         Some(PlaneFit {
             centroid_m,
             normal: Vector3::new(self.normal[0] as f64, self.normal[1] as f64, self.normal[2] as f64).normalize(),
@@ -689,43 +725,79 @@ impl ChunkIndex {
         Self { chunks }
     }
 
+    /// The chunk at chunk coordinates `c`, if any voxel is in it.
+    fn chunk(&self, c: &[i32; 3]) -> Option<&[u32; CHUNK_CELLS]> {
+        self.chunks.get(c).map(|b| &**b)
+    }
+
     /// The position of voxel `k`, if it is there.
     fn get(&self, k: &VoxelKey) -> Option<usize> {
         let (c, cell) = chunk_of(k);
-        let i = self.chunks.get(&c)?[cell];
+        let i = self.chunk(&c)?[cell];
         (i != u32::MAX).then_some(i as usize)
     }
 
-    /// A lookup cache over the 3 × 3 × 3 chunks around the last voxel looked up.
+    /// A lookup cache of the chunks looked up last.
     fn near(&self) -> Near<'_> {
-        Near { index: self, centre: [i32::MIN; 3], cache: [None; 27] }
+        Near { index: self, tags: [[i32::MIN; 3]; NEAR_SLOTS], chunks: [None; NEAR_SLOTS] }
     }
 }
 
-/// Looks voxels up in a [`ChunkIndex`], remembering the chunks around the last one: lookups of
-/// one voxel's neighbours, and of the next voxel's, find their chunks without hashing.
+/// Chunks [`Near`] remembers: 4 × 4 × 4 by their coordinates' two lowest bits, so that the up to
+/// 8 chunks around one voxel, and the chunks of the voxels after it, do not evict one another.
+const NEAR_SLOTS: usize = 64;
+
+/// Looks voxels up in a [`ChunkIndex`], remembering the chunks it found last: lookups of one
+/// voxel's neighbours, and of the next voxel's, find their chunks without hashing.
 struct Near<'a> {
     index: &'a ChunkIndex,
-    centre: [i32; 3],
-    cache: [Option<Option<&'a [u32; CHUNK_CELLS]>>; 27],
+    /// The chunk coordinates of each slot (`i32::MIN`: none yet; no chunk has them).
+    tags: [[i32; 3]; NEAR_SLOTS],
+    chunks: [Option<&'a [u32; CHUNK_CELLS]>; NEAR_SLOTS],
 }
 
-impl Near<'_> {
+impl<'a> Near<'a> {
+    /// The chunk at chunk coordinates `c`, if any voxel is in it.
+    #[inline]
+    fn chunk(&mut self, c: [i32; 3]) -> Option<&'a [u32; CHUNK_CELLS]> {
+        let slot = (((c[0] & 3) << 4) | ((c[1] & 3) << 2) | (c[2] & 3)) as usize;
+        if self.tags[slot] != c {
+            self.tags[slot] = c;
+            self.chunks[slot] = self.index.chunk(&c);
+        }
+        self.chunks[slot]
+    }
+
     /// The position of voxel `k` in the key list, if it is there.
     #[inline]
     fn get(&mut self, k: &VoxelKey) -> Option<usize> {
         let (c, cell) = chunk_of(k);
-        let mut d =
-            [c[0].wrapping_sub(self.centre[0]), c[1].wrapping_sub(self.centre[1]), c[2].wrapping_sub(self.centre[2])];
-        if d.iter().any(|v| !(-1..=1).contains(v)) {
-            self.centre = c;
-            self.cache = [None; 27];
-            d = [0; 3];
+        self.chunk(c).and_then(|b| (b[cell] != u32::MAX).then_some(b[cell] as usize))
+    }
+
+    /// `f(o, j)` for each neighbour `k` + [`OFFSETS`]`[o]` (`o` in `offsets`, in order) that is in
+    /// the key list, `j` its position. A voxel inside its chunk (not on the chunk's faces: 6³ of
+    /// its 8³ cells) finds all its neighbours in that one chunk, at fixed steps from its own
+    /// cell; the others look each neighbour up.
+    #[inline]
+    fn around(&mut self, k: &VoxelKey, offsets: std::ops::Range<usize>, mut f: impl FnMut(usize, usize)) {
+        let inner = |v: i32| (1..CHUNK_MASK).contains(&(v & CHUNK_MASK));
+        if inner(k[0]) && inner(k[1]) && inner(k[2]) {
+            let (c, cell) = chunk_of(k);
+            let Some(b) = self.chunk(c) else { return };
+            for o in offsets {
+                let j = b[cell.wrapping_add_signed(CELL_STEPS[o])];
+                if j != u32::MAX {
+                    f(o, j as usize);
+                }
+            }
+        } else {
+            for o in offsets {
+                if let Some(j) = self.get(&neighbour(k, o)) {
+                    f(o, j);
+                }
+            }
         }
-        let slot = ((d[0] + 1) * 9 + (d[1] + 1) * 3 + (d[2] + 1)) as usize;
-        let index = self.index;
-        let chunk = *self.cache[slot].get_or_insert_with(|| index.chunks.get(&c).map(|b| &**b));
-        chunk.and_then(|b| (b[cell] != u32::MAX).then_some(b[cell] as usize))
     }
 }
 
@@ -886,6 +958,8 @@ pub fn discover_with(
     let index = ChunkIndex::new(&keys);
     let mut near = index.near();
     // The class, and whether the voxel is thick only as far as the scans disagree.
+    // tan² of half the angle neighbours' normals may differ by (the collinear test below).
+    let half_angle_tan2 = (0.5 * cfg.max_normal_angle_deg).to_radians().tan().powi(2);
     let classify = |s: &VoxelStats, f: &KeptFit| -> (VoxelClass, bool) {
         if s.n < cfg.min_points {
             return (VoxelClass::Sparse, false);
@@ -898,8 +972,7 @@ pub fn discover_with(
             // its neighbours.
             Some(p)
                 if p.spread_m2 < (acc.res_m / 100.0).powi(2)
-                    || p.mse_m2
-                        > p.spread_m2 * s.n as f64 * (0.5 * cfg.max_normal_angle_deg).to_radians().tan().powi(2) =>
+                    || p.mse_m2 > p.spread_m2 * s.n as f64 * half_angle_tan2 =>
             {
                 (VoxelClass::Sparse, false)
             }
@@ -987,18 +1060,17 @@ pub fn discover_with(
             for i in r.start + start..r.end + start {
                 let VoxelClass::Navigable(a) = classes[i] else { continue };
                 let k = &keys[i];
-                for n in forward_neighbours(k) {
-                    let Some(j) = near.get(&n) else { continue };
-                    let VoxelClass::Navigable(b) = classes[j] else { continue };
+                near.around(k, FORWARD, |o, j| {
+                    let VoxelClass::Navigable(b) = classes[j] else { return };
                     if a.normal.dot(&b.normal) < max_cos {
-                        continue;
+                        return;
                     }
                     // Where the two voxels touch: both planes must pass there within the step.
-                    let touch = (acc.centre(k) + acc.centre(&n)) * 0.5;
+                    let touch = (acc.centre(k) + acc.centre(&neighbour(k, o))) * 0.5;
                     if (a.project(&touch) - b.project(&touch)).norm() <= step_m {
                         pairs.push((i as u32, j as u32));
                     }
-                }
+                });
             }
             pairs
         });
@@ -1013,7 +1085,12 @@ pub fn discover_with(
     // neighbours back on the work list, so a run of sparse voxels follows the surface.
     // Each sparse voxel's neighbours in the map are looked up once (a voxel may be examined
     // again each time a neighbour joins; most voxels of a map at poses that disagree start
-    // sparse), as lists one after the other: `near_of[slot_of[j]]..near_of[slot_of[j] + 1]`.
+    // sparse), as lists one after the other, of the neighbours that can matter to it (its
+    // candidates, `around` below): the navigable ones whose plane its points' mean lies on,
+    // flagged `ON_PLANE` (they stay so: only sparse voxels change in the loop below), and the
+    // sparse ones (which may join a region before it, and which it puts back on the work list
+    // when it joins). Its steep, non-planar and other navigable neighbours never do.
+    const ON_PLANE: u32 = 1 << 31;
     let sparse: Vec<usize> = (0..keys.len()).filter(|i| classes[*i] == VoxelClass::Sparse).collect();
     let mut slot_of = vec![u32::MAX; keys.len()];
     for (slot, &j) in sparse.iter().enumerate() {
@@ -1031,9 +1108,16 @@ pub fn discover_with(
         let mut means = Vec::with_capacity(slots.len());
         offsets.push(0u32);
         for &j in &sparse[slots] {
-            flat.extend(neighbours(&keys[j]).filter_map(|n| near.get(&n)).map(|i| i as u32));
+            let mean = stats[j].mean();
+            near.around(&keys[j], 0..26, |_, i| match classes[i] {
+                VoxelClass::Sparse => flat.push(i as u32),
+                VoxelClass::Navigable(b) if mean.is_some_and(|m| b.normal.dot(&(m - b.centroid_m)).abs() <= step_m) => {
+                    flat.push(i as u32 | ON_PLANE)
+                }
+                _ => {}
+            });
             offsets.push(flat.len() as u32);
-            means.push(stats[j].mean_cov().map(|(m, _)| m));
+            means.push(mean);
         }
         (offsets, flat, means)
     };
@@ -1050,7 +1134,9 @@ pub fn discover_with(
     let around = |j: usize| {
         let s = slot_of[j] as usize;
         let ((offsets, flat, _), s) = if s < half { (&low, s) } else { (&high, s - half) };
-        flat[offsets[s] as usize..offsets[s + 1] as usize].iter().map(|i| *i as usize)
+        flat[offsets[s] as usize..offsets[s + 1] as usize]
+            .iter()
+            .map(|&e| ((e & !ON_PLANE) as usize, e & ON_PLANE != 0))
     };
     let mean_of = |j: usize| {
         let s = slot_of[j] as usize;
@@ -1068,8 +1154,15 @@ pub fn discover_with(
         }
         let Some(mean) = mean_of(j) else { continue };
         let mut plane = None;
-        for i in around(j) {
-            if let VoxelClass::Navigable(b) = classes[i]
+        for (i, on_plane) in around(j) {
+            if on_plane {
+                if plane.is_none()
+                    && let VoxelClass::Navigable(b) = classes[i]
+                {
+                    plane = Some(b);
+                }
+                join(&mut parent, i, j);
+            } else if let VoxelClass::Navigable(b) = classes[i]
                 && b.normal.dot(&(mean - b.centroid_m)).abs() <= step_m
             {
                 plane.get_or_insert(b);
@@ -1082,7 +1175,7 @@ pub fn discover_with(
         // unchanged, so that a run of them cannot creep away from the surface a step at a time
         // (up a wall, one row of voxels after another).
         classes[j] = VoxelClass::Navigable(if thick[j] { PlaneFit { centroid_m: mean, ..plane } } else { plane });
-        for i in around(j) {
+        for (i, _) in around(j).filter(|(_, on_plane)| !on_plane) {
             if classes[i] == VoxelClass::Sparse && !queued[i] {
                 queued[i] = true;
                 work.push_back(i);
@@ -1106,15 +1199,12 @@ pub fn discover_with(
         let mut members = vec![];
         while let Some(i) = stack.pop() {
             members.push(i);
-            for n in neighbours(&keys[i]) {
-                if let Some(j) = near.get(&n)
-                    && obstacle_of[j].is_none()
-                    && blocking(&classes[j])
-                {
+            near.around(&keys[i], 0..26, |_, j| {
+                if obstacle_of[j].is_none() && blocking(&classes[j]) {
                     obstacle_of[j] = Some(o);
                     stack.push(j);
                 }
-            }
+            });
         }
         members_of.push(members);
     }
@@ -1145,13 +1235,12 @@ pub fn discover_with(
             }
         }
         let (normal, centre) = (normal.normalize(), centre / around.len() as f64);
-        let rises =
-            members.iter().any(|&i| stats[i].mean_cov().is_none_or(|(m, _)| normal.dot(&(m - centre)).abs() > step_m));
+        let rises = members.iter().any(|&i| stats[i].mean().is_none_or(|m| normal.dot(&(m - centre)).abs() > step_m));
         if rises || !normal.iter().all(|v| v.is_finite()) {
             continue;
         }
         for &i in members.iter() {
-            let Some((mean, _)) = stats[i].mean_cov() else { continue };
+            let Some(mean) = stats[i].mean() else { continue };
             classes[i] = VoxelClass::Navigable(PlaneFit {
                 centroid_m: mean,
                 normal,
@@ -1714,11 +1803,11 @@ mod tests {
     }
 
     #[test]
-    fn forward_neighbours_are_the_neighbours_after_the_voxel() {
+    fn the_forward_offsets_are_the_neighbours_after_the_voxel() {
         let k = [3, -2, 7];
         let after: Vec<VoxelKey> = neighbours(&k).filter(|n| n > &k).collect();
         assert_eq!(after.len(), 13);
-        assert_eq!(forward_neighbours(&k).collect::<Vec<_>>(), after);
+        assert_eq!(FORWARD.map(|o| neighbour(&k, o)).collect::<Vec<_>>(), after);
     }
 
     #[test]
@@ -1931,6 +2020,13 @@ mod tests {
             for (x, y, z) in probes {
                 let k = [x, y, z];
                 proptest::prop_assert_eq!(near.get(&k), keys.iter().position(|o| *o == k));
+                // Its neighbours in the offsets' order, inside a chunk or on its faces.
+                let mut found = vec![];
+                near.around(&k, 0..26, |o, j| found.push((o, j)));
+                let expected: Vec<(usize, usize)> = (0..26)
+                    .filter_map(|o| keys.iter().position(|other| *other == neighbour(&k, o)).map(|j| (o, j)))
+                    .collect();
+                proptest::prop_assert_eq!(found, expected);
             }
         }
     }

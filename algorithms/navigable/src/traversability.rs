@@ -90,7 +90,7 @@ impl TraversabilityGrid {
         let mut blocked: HashMap<[i32; 2], f64> = HashMap::new();
         for o in &d.obstacles {
             for k in &o.voxels {
-                let z = acc.cells().get(k).and_then(|s| s.mean_cov()).map_or((k[2] as f64 + 0.5) * res, |(m, _)| m.z);
+                let z = acc.cells().get(k).and_then(|s| s.mean()).map_or((k[2] as f64 + 0.5) * res, |m| m.z);
                 let e = blocked.entry([k[0], k[1]]).or_insert(z);
                 *e = e.max(z);
             }

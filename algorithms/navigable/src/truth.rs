@@ -134,7 +134,7 @@ pub fn score_landmarks(
 /// judged at the mean of its points: where the map puts it.
 pub fn score(d: &Discovery, acc: &PointAccumulator, truth: impl Fn(&Vector3<f64>) -> TruthClass) -> TruthScore {
     score_with(d, |k| {
-        let at = acc.cells().get(k).and_then(|s| s.mean_cov()).map_or_else(|| acc.centre(k), |(m, _)| m);
+        let at = acc.cells().get(k).and_then(|s| s.mean()).unwrap_or_else(|| acc.centre(k));
         truth(&at)
     })
 }
