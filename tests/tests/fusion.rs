@@ -132,6 +132,15 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     at_least(by_origin.recall, 0.9, "objects found");
     at_least(by_origin.precision, 0.5, "obstacle precision");
     assert!(by_origin.regions <= 50, "{by_origin:?}");
+    // Obstacles as landmarks ([6D] §VI): each rock at most 2 (issue 39's target; the wreck, 24 m
+    // long, may hold more; 2026-12-06: at most 2 on a rock, 3 on the wreck, at the true and the
+    // fused poses).
+    let landmarks = truth.landmarks.as_ref().expect("the obstacle landmarks scored");
+    let scene: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("scene.json")).expect("scene.json"))
+        .expect("scene.json as JSON");
+    let rocks = scene["scene"]["rocks"].as_array().expect("the scene's rocks").len() as u32;
+    assert!(landmarks.on_objects >= 10, "{landmarks:?}");
+    assert!(landmarks.per_object.iter().all(|o| o.object >= rocks || o.landmarks <= 2), "{rocks} rocks: {landmarks:?}");
     // End-to-end latency of the whole pipeline, as measured by its last stages.
     let fused_lat = &fusion_part.pipeline_latency_ms.stereo_to_fused_pose;
     let cloud_lat =

@@ -102,6 +102,20 @@ pub struct LandmarkScore {
     pub objects_with_several: usize,
     /// The most landmarks one object has.
     pub most_on_one_object: usize,
+    /// The landmarks on each object that has one, in the truth's object order (a large object,
+    /// a wreck or a wall, may rightly hold several where a small one, a rock, should hold one).
+    #[serde(default)]
+    pub per_object: Vec<ObjectLandmarks>,
+}
+
+/// The landmarks on one object ([`LandmarkScore::per_object`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
+pub struct ObjectLandmarks {
+    /// The object's index in the truth ([`TruthClass::Object`]).
+    pub object: u32,
+    /// Landmarks whose mean lies on it.
+    pub landmarks: usize,
 }
 
 /// Judges landmark means (with the scans each was seen in) by `truth`: how many lie on objects,
@@ -127,6 +141,7 @@ pub fn score_landmarks(
     s.objects_with_one = per_object.values().filter(|n| **n == 1).count();
     s.objects_with_several = per_object.values().filter(|n| **n > 1).count();
     s.most_on_one_object = per_object.values().copied().max().unwrap_or(0);
+    s.per_object = per_object.into_iter().map(|(object, landmarks)| ObjectLandmarks { object, landmarks }).collect();
     s
 }
 

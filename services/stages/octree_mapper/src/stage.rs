@@ -252,23 +252,27 @@ fn score_against_truth(
         let by_origin = origins.filter(|o| !o.is_empty()).map(|o| o.score(d, judge));
         (at_map, by_origin)
     };
-    let (at_map, by_origin) = match file {
+    // The rocks' count in an underwater scene: the objects before it are rocks, the one at it
+    // the wreck.
+    let (rocks, (at_map, by_origin)) = match file {
         SceneFile::Underwater { scene } => {
             let rocks = scene.rocks.len() as u32;
-            both(&|p| match scene.truth_at(p, tolerance) {
+            let scores = both(&|p| match scene.truth_at(p, tolerance) {
                 sim::scene::SceneTruth::Seabed => TruthClass::Ground,
                 sim::scene::SceneTruth::Rock(i) => TruthClass::Object(i as u32),
                 sim::scene::SceneTruth::Wreck => TruthClass::Object(rocks),
                 sim::scene::SceneTruth::Nothing => TruthClass::Nothing,
-            })
+            });
+            (Some(rocks), scores)
         }
         SceneFile::Indoor { boxes } => {
             let truth = sim::indoor::IndoorTruth::new(boxes.iter().map(|b| (b.min, b.max, b.what.as_str())));
-            both(&|p| match truth.at(p, tolerance) {
+            let scores = both(&|p| match truth.at(p, tolerance) {
                 sim::indoor::IndoorTruthAt::Floor => TruthClass::Ground,
                 sim::indoor::IndoorTruthAt::Object(i) => TruthClass::Object(i),
                 sim::indoor::IndoorTruthAt::Nothing => TruthClass::Nothing,
-            })
+            });
+            (None, scores)
         }
     };
     let share = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.3}"));
@@ -290,9 +294,15 @@ fn score_against_truth(
     };
     log("each voxel where the map put it", &at_map);
     if let Some(l) = &at_map.landmarks {
+        let rocks_and_wreck = rocks.map_or_else(String::new, |rocks| {
+            let on = |rock: bool| l.per_object.iter().filter(move |o| (o.object < rocks) == rock);
+            let on_rocks = on(true).map(|o| o.landmarks).max().unwrap_or(0);
+            let on_wreck = on(false).map(|o| o.landmarks).sum::<usize>();
+            format!("; at most {on_rocks} on one rock, {on_wreck} on the wreck")
+        });
         tracing::info!(
             "obstacle landmarks seen in {} or more scans against the truth: {} of {} on objects; {} objects with one, {} with \
-             several (at most {})",
+             several (at most {}{rocks_and_wreck})",
             l.min_scans,
             l.on_objects,
             l.landmarks,
