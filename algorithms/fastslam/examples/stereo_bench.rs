@@ -5,8 +5,8 @@
 //!
 //! Run: `cargo run --release -p fastslam --example stereo_bench`
 //! (options: `--particles 25,50,100,200 --frames 120 --warmup 10 --threads 2 --reps 2
-//! --proposal optimal|motion --seed 1 --per-frame`; `--per-frame` prints every frame's times to
-//! stderr).
+//! --proposal optimal|motion --seed 1 --modes ml,tracks,ids --per-frame`; `--per-frame` prints
+//! every frame's times to stderr, `--modes` runs only the association modes listed).
 //!
 //! The frames come from the KITTI-like simulated drive (`sim::road`, defaults): about 700
 //! observations per frame (the nearest 700 of the visible landmarks, 90 % detected, plus 3 %
@@ -38,6 +38,8 @@ struct Options {
     proposal: Proposal,
     seed: u64,
     per_frame: bool,
+    /// Association modes to run (`ml`, `tracks`, `ids`).
+    modes: Vec<String>,
 }
 
 fn parse() -> Result<Options, String> {
@@ -50,6 +52,7 @@ fn parse() -> Result<Options, String> {
         proposal: Proposal::Optimal,
         seed: 1,
         per_frame: false,
+        modes: vec!["ml".into(), "tracks".into(), "ids".into()],
     };
     let mut it = std::env::args().skip(1);
     let num = |v: Option<String>, k: &str| v.and_then(|v| v.parse::<usize>().ok()).ok_or(format!("{k} needs a number"));
@@ -67,6 +70,12 @@ fn parse() -> Result<Options, String> {
             "--warmup" => o.warmup = num(it.next(), "--warmup")?,
             "--threads" => o.threads = num(it.next(), "--threads")?,
             "--per-frame" => o.per_frame = true,
+            "--modes" => {
+                o.modes = it.next().ok_or("--modes needs a list")?.split(',').map(str::to_string).collect();
+                if let Some(m) = o.modes.iter().find(|m| !["ml", "tracks", "ids"].contains(&m.as_str())) {
+                    return Err(format!("unknown mode `{m}` (ml, tracks, ids)"));
+                }
+            }
             "--reps" => o.reps = num(it.next(), "--reps")?.max(1),
             "--seed" => o.seed = num(it.next(), "--seed")? as u64,
             "--proposal" => {
@@ -186,7 +195,7 @@ fn run(d: &Drive, o: &Options, particles: usize, assign_tracks: bool) -> Run {
         r.copies.push(rep.timing.copies_ms);
         if o.per_frame {
             eprintln!(
-                "frame {k} N={particles} tracks={assign_tracks} total {total:.1} front {:.1} weigh {:.1} resample {:.2} update {:.1} copies {:.1} obs {} matched {} new {} resampled {}",
+                "frame {k} N={particles} tracks={assign_tracks} total {total:.1} front {:.1} weigh {:.1} resample {:.2} update {:.1} copies {:.1} obs {} matched {} new {} resampled {} nis {:.9} position {:.9?}",
                 (t1 - t0).as_secs_f64() * 1e3,
                 rep.timing.weigh_ms,
                 rep.timing.resample_ms,
@@ -195,7 +204,9 @@ fn run(d: &Drive, o: &Options, particles: usize, assign_tracks: bool) -> Run {
                 obs.len(),
                 rep.matched,
                 rep.new,
-                rep.resampled
+                rep.resampled,
+                rep.mean_nis,
+                e.map_from_body.translation.vector.as_slice()
             );
         }
         cands += rep.candidates_per_observation * obs.len() as f64;
@@ -258,9 +269,10 @@ fn main() {
     let modes = [("ml", false, false), ("tracks", false, true), ("ids", true, true)];
     let mut p50s: BTreeMap<(&str, usize), f64> = BTreeMap::new();
     let mut p99s: BTreeMap<(&str, usize), f64> = BTreeMap::new();
-    for (mode, ids, assign) in modes {
+    let modes: Vec<_> = modes.into_iter().filter(|(m, _, _)| o.modes.iter().any(|x| x == m)).collect();
+    for &(mode, ids, assign) in &modes {
         let d = drive(&o, ids);
-        if mode == "ml" {
+        if std::ptr::eq(mode, modes[0].0) {
             println!("# {:.0} observations per frame", d.observations as f64 / d.frames.len().max(1) as f64);
         }
         for &n in &o.particles {
@@ -298,7 +310,7 @@ fn main() {
     println!(
         "(ms per frame; front = stereo front end, cand = candidate search, weigh = association, proposal and weights, resmp = resampling, update = landmark EKFs, copy = new particle set; cand/o = association candidates per observation; match = observations matched)"
     );
-    for (mode, _, _) in modes {
+    for &(mode, _, _) in &modes {
         let tag = match mode {
             "ml" => "max. likelihood",
             "tracks" => "front-end tracks",

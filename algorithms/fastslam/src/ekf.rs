@@ -396,11 +396,16 @@ pub fn update_inverse_depth_from(
     let mut x = x0;
     let mut c_x = Cs_chol.mahalanobis(&(s_obs - s));
     let mut chol_at_x = true;
+    // The gain at the current linearisation, once computed there (the last iteration's is
+    // the final update's).
+    let mut K_at_x: Option<Matrix3<f64>> = None;
     for _ in 0..iterations.max(1) {
         if !chol_at_x {
             chol = innovation_chol(&H)?;
+            chol_at_x = true;
         }
         let K = P * H.transpose() * chol.inverse();
+        K_at_x = Some(K);
         let step = x0 + K * (s_obs - s - H * (x0 - x)) - x;
         // Converged: the step would move the estimate by less than a thousandth of the prior's
         // standard deviation (stepᵀP⁻¹step < 10⁻⁶). The first step of a stereo observation is
@@ -417,6 +422,7 @@ pub fn update_inverse_depth_from(
             {
                 (x, s, H, c_x) = (trial, s_t, H_t, c);
                 chol_at_x = false;
+                K_at_x = None;
                 moved = true;
                 break;
             }
@@ -426,10 +432,15 @@ pub fn update_inverse_depth_from(
             break;
         }
     }
-    if !chol_at_x {
-        chol = innovation_chol(&H)?;
-    }
-    let K = P * H.transpose() * chol.inverse();
+    let K = match K_at_x {
+        Some(K) => K,
+        None => {
+            if !chol_at_x {
+                chol = innovation_chol(&H)?;
+            }
+            P * H.transpose() * chol.inverse()
+        }
+    };
     let IKH = Matrix3::identity() - K * H;
     let cov = IKH * P * IKH.transpose() + K * Cs * K.transpose();
     let cov = (cov + cov.transpose()) * 0.5;

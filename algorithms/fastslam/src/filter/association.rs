@@ -158,6 +158,7 @@ impl FastSlam {
     pub(super) fn weigh_particle(
         cfg: &FastSlamConfig,
         candidates: &[Vec<u32>],
+        order: &[u32],
         known: &[bool],
         pose_q: &[(Matrix3<f64>, Matrix3<f64>)],
         p: &mut Particle,
@@ -168,18 +169,16 @@ impl FastSlam {
         let a = &cfg.association;
         let ln2pi = (2.0 * std::f64::consts::PI).ln();
         let view = View::new(&p.pose, obs);
-        let decisions: Vec<Association> = obs
-            .iter()
-            .zip(candidates)
-            .zip(pose_q)
-            .zip(known)
-            .map(|(((o, c), q), k)| Self::associate(cfg, c, p, &view, o, q, *k))
-            .collect();
+        // Each observation on its own (in the visiting order, for the memory's sake).
+        let mut decisions: Vec<Association> = (0..obs.len()).map(|_| Association::Ambiguous).collect();
+        for &j in order {
+            let j = j as usize;
+            decisions[j] = Self::associate(cfg, &candidates[j], p, &view, &obs[j], &pose_q[j], known[j]);
+        }
         // One observation per landmark and frame: of several matched to one landmark the one
         // with the smallest normalised innovation keeps it, the others are left out.
         // (Landmark and observation packed in one u64 and sorted; in each landmark's run the
         // smallest innovation keeps it, the earlier observation on a tie.)
-        let mut decisions = decisions;
         let mut matched: Vec<u64> = decisions
             .iter()
             .enumerate()
@@ -274,18 +273,26 @@ impl FastSlam {
 
     /// Applies one particle's decisions to its map: landmark EKF updates (at the particle's
     /// current pose), new landmarks, provisional bookkeeping.
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn apply_particle(
         cfg: &FastSlamConfig,
         p: &mut Particle,
         obs: &[Observation],
+        order: &[u32],
         decisions: &[Decision],
-        first_new_id: u32,
+        new_ids: &[Option<u32>],
         frame: u32,
     ) -> ParticleFrame {
         let a = &cfg.association;
         let mut out = ParticleFrame { associations: vec![None; obs.len()], ..Default::default() };
         let view = View::new(&p.pose, obs);
-        for (j, (o, d)) in obs.iter().zip(decisions).enumerate() {
+        // Visited in `order` (the memory's sake); what depends on the order is put back in the
+        // observations' order below: the NIS sum, the created landmarks and the provisional list.
+        let mut nis_of: Vec<(u32, f64)> = vec![];
+        let first_provisional = p.provisional.len();
+        for &j in order {
+            let j = j as usize;
+            let (o, d) = (&obs[j], &decisions[j]);
             match *d {
                 Decision::Matched(id) => {
                     let pose = p.pose;
@@ -310,7 +317,7 @@ impl FastSlam {
                     };
                     let Ok(nis) = nis else { continue };
                     if lm.hits >= a.confirm_after {
-                        out.nis_sum += nis;
+                        nis_of.push((j as u32, nis));
                     }
                     lm.hits += 1;
                     lm.last_seen_frame = frame;
@@ -325,7 +332,7 @@ impl FastSlam {
                 Decision::Ambiguous => out.ambiguous += 1,
                 Decision::Rejected => out.rejected += 1,
                 Decision::New => {
-                    let id = first_new_id + j as u32;
+                    let Some(id) = new_ids[j] else { continue };
                     let lm = match (&o.stereo, view.rig_for(o)) {
                         (Some(st), Some(r)) => {
                             ekf::init_landmark_inverse_depth_from(&r.camera, &st.s, &st.cov, o.descriptor, frame)
@@ -339,7 +346,7 @@ impl FastSlam {
                         ),
                         (None, _) => init_landmark(&p.pose, &o.z_m, &o.Rz, o.descriptor, frame),
                     };
-                    out.created.push((id, lm.mean_m));
+                    out.created.push((id, j as u32, lm.mean_m));
                     p.map.insert(id, lm);
                     if a.confirm_after <= 1 {
                         p.confirmed += 1;
@@ -350,6 +357,11 @@ impl FastSlam {
                 }
             }
         }
+        // Back in the observations' order (new ids ascend with it).
+        nis_of.sort_unstable_by_key(|(j, _)| *j);
+        out.nis_sum = nis_of.iter().map(|(_, n)| n).sum();
+        out.created.sort_unstable_by_key(|(id, _, _)| *id);
+        p.provisional[first_provisional..].sort_unstable();
         // Provisional landmarks: confirmed ones leave the list, stale ones are dropped.
         let (confirm, max_age) = (a.confirm_after, a.provisional_max_age_frames);
         let mut keep = Vec::with_capacity(p.provisional.len());

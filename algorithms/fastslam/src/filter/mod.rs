@@ -47,7 +47,8 @@ struct ParticleFrame {
     rejected: usize,
     /// Σ of the normalised innovation squared of the matched confirmed landmarks.
     nis_sum: f64,
-    created: Vec<(u32, Vector3<f64>)>,
+    /// (id, observation index, position) of the landmarks created.
+    created: Vec<(u32, u32, Vector3<f64>)>,
     associations: Vec<Option<u32>>,
 }
 
@@ -442,8 +443,6 @@ impl FastSlam {
         let t_start = std::time::Instant::now();
         self.frame += 1;
         let frame = self.frame;
-        let first_new_id = self.next_id;
-        self.next_id = self.next_id.saturating_add(obs.len() as u32);
         let cfg = self.cfg.clone();
         let motion_cov = self.motion_cov + Matrix6::identity() * 1e-9;
         self.motion_cov = Matrix6::zeros();
@@ -464,10 +463,11 @@ impl FastSlam {
         // the best particle (the same for every particle to first order).
         let pose_q = motion_in_observations(&spread.0, obs, &motion_cov);
         self.stereo_candidates(obs, &known, &motion_cov, &spread, &mut candidates);
+        let order = visiting_order(&candidates);
         let t_candidates = std::time::Instant::now();
         let seeds = self.seeds();
         let decisions = self.for_each_particle(&seeds, |p, rng| {
-            Self::weigh_particle(&cfg, &candidates, &known, &pose_q, p, obs, &motion_cov, rng)
+            Self::weigh_particle(&cfg, &candidates, &order, &known, &pose_q, p, obs, &motion_cov, rng)
         });
         let best_idx = (0..self.particles.len())
             .max_by(|a, b| self.particles[*a].log_w.total_cmp(&self.particles[*b].log_w))
@@ -489,10 +489,16 @@ impl FastSlam {
         let mut old: Vec<Option<Particle>> = std::mem::take(&mut self.particles).into_iter().map(Some).collect();
         let mut survivors: Vec<(Particle, Vec<Decision>)> =
             groups.iter().map(|(i, _)| (old[*i].take().expect("each parent once"), decisions[*i].clone())).collect();
+        // The ids of this frame's new landmarks: one per observation that a surviving particle
+        // makes a landmark of (the same id in each), in observation order. Dense, so that the
+        // maps' tries stay shallow and a frame's landmarks share their leaves.
+        let first_new_id = self.next_id;
+        let new_ids = self.new_landmark_ids(obs.len(), &survivors);
         let t_resample = std::time::Instant::now();
         // 3. Landmark EKF updates, once per surviving parent, in parallel.
-        let results =
-            par_map(self.threads, &mut survivors, |(p, d)| Self::apply_particle(&cfg, p, obs, d, first_new_id, frame));
+        let results = par_map(self.threads, &mut survivors, |(p, d)| {
+            Self::apply_particle(&cfg, p, obs, &order, d, &new_ids, frame)
+        });
         let t_apply = std::time::Instant::now();
         // 4. The new particle set; the discarded particles are freed on the worker threads.
         let uniform = -(n as f64).ln();
@@ -511,7 +517,7 @@ impl FastSlam {
         self.free(garbage);
         // Register the new landmarks in the association grid (first creator's position), or
         // under their feature track.
-        self.register_new_landmarks(&results, obs, first_new_id);
+        self.register_new_landmarks(&results, obs);
         // The best particle (largest weight) always survives systematic resampling (it has
         // w ≥ 1/N, so at least one copy).
         let best_group = groups.iter().position(|(i, _)| *i == best_idx).unwrap_or(0);
@@ -537,6 +543,7 @@ impl FastSlam {
             landmarks,
             associations,
             first_new_id,
+            new_ids,
             new_segment,
             candidates_per_observation,
             rejected,
@@ -581,15 +588,35 @@ impl FastSlam {
             .collect()
     }
 
+    /// Ids for the landmarks of observations that a surviving particle (with its decisions)
+    /// makes new: consecutive from `next_id`, in observation order; `None` for the others.
+    fn new_landmark_ids(&mut self, observations: usize, survivors: &[(Particle, Vec<Decision>)]) -> Vec<Option<u32>> {
+        let mut new = vec![false; observations];
+        for (_, decisions) in survivors {
+            for (n, d) in new.iter_mut().zip(decisions) {
+                *n |= *d == Decision::New;
+            }
+        }
+        new.into_iter()
+            .map(|n| {
+                n.then(|| {
+                    let id = self.next_id;
+                    self.next_id = self.next_id.saturating_add(1);
+                    id
+                })
+            })
+            .collect()
+    }
+
     /// Registers the landmarks this frame created in the association grid (at the first
     /// creator's position) or under their feature track.
-    fn register_new_landmarks(&mut self, results: &[ParticleFrame], obs: &[Observation], first_new_id: u32) {
+    fn register_new_landmarks(&mut self, results: &[ParticleFrame], obs: &[Observation]) {
         let gate = self.cfg.association.duplicate_gate_chi2;
         let mut seen = std::collections::HashSet::new();
         for r in results {
-            for (id, pos) in &r.created {
+            for (id, j, pos) in &r.created {
                 if seen.insert(*id) {
-                    let j = (*id - first_new_id) as usize;
+                    let j = *j as usize;
                     if let Some(t) = obs[j].track_id {
                         self.tracks.insert(t, *id);
                     }
@@ -781,6 +808,21 @@ impl FastSlam {
 
 /// A landmark of a prior map: mean (m), covariance (m²), descriptor.
 pub type PriorLandmark = (Vector3<f64>, Matrix3<f64>, Option<[u8; 32]>);
+
+/// The order in which a particle visits a frame's observations: by their first candidate
+/// landmark's id, those without a candidate (new ones, whose ids are given in observation order)
+/// last. Landmarks with near ids were made together and lie near each other in memory and in the
+/// map's trie: visited in this order, a particle's map is read (and copied on write) with far
+/// fewer cache misses than in the observations' own order. Only the speed depends on it.
+fn visiting_order(candidates: &[Vec<u32>]) -> Vec<u32> {
+    let mut keys: Vec<u64> = candidates
+        .iter()
+        .enumerate()
+        .map(|(j, c)| ((c.first().copied().unwrap_or(u32::MAX) as u64) << 32) | j as u64)
+        .collect();
+    keys.sort_unstable();
+    keys.into_iter().map(|k| (k & 0xffff_ffff) as u32).collect()
+}
 
 /// Applies `f` to every item on up to `threads` threads (contiguous chunks; the first chunk on
 /// the calling thread, the others on scoped workers, none with one thread); results in item order.

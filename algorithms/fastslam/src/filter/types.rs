@@ -126,8 +126,11 @@ pub struct FrameReport {
     pub landmarks: usize,
     /// The best particle's landmark id per observation (`None`: new or left out).
     pub associations: Vec<Option<u32>>,
-    /// A landmark created from observation j of this frame has id `first_new_id + j`.
+    /// The first id this frame gave a new landmark (the next frame's first is after the last).
     pub first_new_id: u32,
+    /// Per observation, the id of the landmark it created (in every particle that made it new;
+    /// consecutive from `first_new_id` in observation order); `None` where no particle did.
+    pub new_ids: Vec<Option<u32>>,
     /// Set when this frame started a new local map.
     pub new_segment: Option<SegmentReason>,
     /// Association candidates (landmarks looked up in each particle's map) per observation.

@@ -441,13 +441,14 @@ impl FrontEnd {
             for (v, w, widen) in priors {
                 let prior = prior * (widen * widen);
                 let T0 = Isometry3::new(v * dt, w * dt).inverse(); // cur_from_prev
-                if cands.is_nan() {
-                    let (_, in_gate) = self.matches(prev, cur, &grid, &T0, Some(&prior), &all);
-                    cands = in_gate as f64 / prev.len().max(1) as f64;
-                }
                 hypotheses += 1;
                 // The prior is one rough hypothesis: refine it on the points it agrees with.
-                if let Some((T, cov)) = self.local_optimum(prev, cur, &grid, T0, prior, &all)
+                let (optimum, in_gate) = self.local_optimum(prev, cur, &grid, T0, prior, &all);
+                if cands.is_nan() {
+                    // Candidates per point in the first prior's gate (its first matching).
+                    cands = in_gate as f64 / prev.len().max(1) as f64;
+                }
+                if let Some((T, cov)) = optimum
                     && let Some((T, inl)) = self.polish(prev, cur, &grid, T, &cov)
                 {
                     best_inliers = best_inliers.max(inl.len());
@@ -737,29 +738,38 @@ impl FrontEnd {
     }
 
     /// Refines a rough motion on the `seeds` it agrees with, twice (each time matching within the
-    /// motion's current uncertainty); `None` when fewer than 6 seeds agree.
+    /// motion's current uncertainty); `None` when fewer than 6 seeds agree. Also returns the
+    /// number of (seed, current point) pairs inside the gate of the first matching, at the rough
+    /// motion.
     fn local_optimum(
         &self,
         prev: &Frame,
         cur: &Frame,
         grid: &AbGrid,
-        mut T: Isometry3<f64>,
-        mut cov: Matrix6<f64>,
+        T: Isometry3<f64>,
+        cov: Matrix6<f64>,
         seeds: &[u32],
-    ) -> Option<(Isometry3<f64>, Matrix6<f64>)> {
-        for _ in 0..2 {
-            let (m, _) = self.matches(prev, cur, grid, &T, Some(&cov), seeds);
-            if m.len() < 6 {
-                return None;
+    ) -> (Option<(Isometry3<f64>, Matrix6<f64>)>, usize) {
+        let mut first_in_gate = None;
+        let mut optimum = || {
+            let (mut T, mut cov) = (T, cov);
+            for _ in 0..2 {
+                let (m, in_gate) = self.matches(prev, cur, grid, &T, Some(&cov), seeds);
+                first_in_gate.get_or_insert(in_gate);
+                if m.len() < 6 {
+                    return None;
+                }
+                let (t, inl) = self.refine(prev, cur, &m, T, 6);
+                if inl.len() < 6 {
+                    return None;
+                }
+                cov = gn_covariance(prev, cur, &t, &inl)?.0;
+                T = t;
             }
-            let (t, inl) = self.refine(prev, cur, &m, T, 6);
-            if inl.len() < 6 {
-                return None;
-            }
-            cov = gn_covariance(prev, cur, &t, &inl)?.0;
-            T = t;
-        }
-        Some((T, cov))
+            Some((T, cov))
+        };
+        let optimum = optimum();
+        (optimum, first_in_gate.unwrap_or(0))
     }
 
     /// The prior-free search: (best motion, hypotheses scored, candidates per seed point).
@@ -905,7 +915,7 @@ impl FrontEnd {
                     // Local optimisation on the seeds: three points fix the motion only roughly;
                     // refined on the seeds it agrees with, it is precise enough to be scored
                     // within its own (now small) uncertainty.
-                    let Some((T, cov)) = self.local_optimum(prev, cur, grid, T, cov, &seeds) else { continue };
+                    let Some((T, cov)) = self.local_optimum(prev, cur, grid, T, cov, &seeds).0 else { continue };
                     let n = self.matches(prev, cur, grid, &T, None, &full).0.len();
                     if best.as_ref().is_none_or(|(b, _, _)| n > *b) {
                         best = Some((n, T, cov));
