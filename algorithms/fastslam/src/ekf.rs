@@ -143,6 +143,42 @@ impl Projection {
     }
 }
 
+/// A camera's [`Projection`] for the landmarks of one anchor, with the anchor's rotation matrix:
+/// what every landmark anchored at one camera pose shares (in FastSLAM, those one particle's
+/// line created in one frame).
+#[derive(Debug, Clone, Copy)]
+pub struct AnchorView {
+    anchor: Isometry3<f64>,
+    Ra: Matrix3<f64>,
+    proj: Projection,
+}
+
+impl AnchorView {
+    /// `camera`'s view of the landmarks anchored at `world_from_anchor`.
+    pub fn new(camera: &CameraPose, world_from_anchor: &Isometry3<f64>) -> Self {
+        let Ra = world_from_anchor.rotation.to_rotation_matrix().into_inner();
+        Self { anchor: *world_from_anchor, Ra, proj: Projection::from_rotations(camera, world_from_anchor, &Ra) }
+    }
+}
+
+/// The last [`AnchorView`] of one camera, kept while the landmarks looked at share its anchor
+/// (landmarks visited in id order mostly do): the same numbers as computing it each time.
+#[derive(Debug, Clone, Default)]
+pub struct AnchorMemo {
+    last: Option<AnchorView>,
+}
+
+impl AnchorMemo {
+    /// `camera`'s view of the landmarks anchored at `world_from_anchor` (one camera per memo).
+    pub fn get(&mut self, camera: &CameraPose, world_from_anchor: &Isometry3<f64>) -> &AnchorView {
+        match &mut self.last {
+            Some(v) if v.anchor == *world_from_anchor => {}
+            slot => *slot = Some(AnchorView::new(camera, world_from_anchor)),
+        }
+        self.last.as_ref().expect("set above")
+    }
+}
+
 /// A camera pose with its world-to-camera rotation as a matrix: what predicting many landmarks
 /// from one camera shares.
 #[derive(Debug, Clone, Copy)]
@@ -335,8 +371,19 @@ pub fn innovation_inverse_depth_from(
     s_obs: &Vector3<f64>,
     Cs: &Matrix3<f64>,
 ) -> Result<Innovation, FilterError> {
-    let (s, HL) =
-        Projection::from_camera(camera, &inv.world_from_anchor).predict(&inv.s).ok_or(FilterError::BehindCamera)?;
+    innovation_inverse_depth_in(&AnchorView::new(camera, &inv.world_from_anchor), inv, s_obs, Cs)
+}
+
+/// [`innovation_inverse_depth`] through the camera's view of the landmark's anchor (`view`, made
+/// for `inv.world_from_anchor`).
+pub fn innovation_inverse_depth_in(
+    view: &AnchorView,
+    inv: &InverseDepth,
+    s_obs: &Vector3<f64>,
+    Cs: &Matrix3<f64>,
+) -> Result<Innovation, FilterError> {
+    debug_assert!(view.anchor == inv.world_from_anchor);
+    let (s, HL) = view.proj.predict(&inv.s).ok_or(FilterError::BehindCamera)?;
     let S = HL * inv.cov * HL.transpose() + Cs;
     let S = (S + S.transpose()) * 0.5;
     let chol = Chol3::new(&S).ok_or(FilterError::NotPositiveDefinite("innovation covariance S"))?;
@@ -372,9 +419,23 @@ pub fn update_inverse_depth_from(
     iterations: usize,
 ) -> Result<f64, FilterError> {
     let inv = lm.inverse_depth.as_ref().ok_or(FilterError::NonFinite("inverse depth"))?;
+    let view = AnchorView::new(camera, &inv.world_from_anchor);
+    update_inverse_depth_in(lm, &view, s_obs, Cs, iterations)
+}
+
+/// [`update_inverse_depth`] through the camera's view of the landmark's anchor (`view`, made for
+/// the landmark's `world_from_anchor`).
+pub fn update_inverse_depth_in(
+    lm: &mut LandmarkEkf,
+    view: &AnchorView,
+    s_obs: &Vector3<f64>,
+    Cs: &Matrix3<f64>,
+    iterations: usize,
+) -> Result<f64, FilterError> {
+    let inv = lm.inverse_depth.as_ref().ok_or(FilterError::NonFinite("inverse depth"))?;
+    debug_assert!(view.anchor == inv.world_from_anchor);
     let (x0, P) = (inv.s, inv.cov);
-    let Ra = inv.world_from_anchor.rotation.to_rotation_matrix().into_inner();
-    let proj = Projection::from_rotations(camera, &inv.world_from_anchor, &Ra);
+    let (Ra, proj) = (&view.Ra, &view.proj);
     let innovation_chol = |H: &Matrix3<f64>| {
         let S = H * P * H.transpose() + Cs;
         Chol3::new(&((S + S.transpose()) * 0.5)).ok_or(FilterError::NotPositiveDefinite("innovation covariance S"))
@@ -448,7 +509,7 @@ pub fn update_inverse_depth_from(
         return Err(FilterError::NonFinite("landmark update"));
     }
     let new = InverseDepth { s: x, cov, world_from_anchor: inv.world_from_anchor };
-    let (mean, cart) = new.cartesian_with(&Ra);
+    let (mean, cart) = new.cartesian_with(Ra);
     lm.mean_m = mean;
     lm.cov_m2 = cart;
     lm.inverse_depth = Some(new);

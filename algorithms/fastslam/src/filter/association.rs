@@ -289,6 +289,7 @@ impl FastSlam {
         // Visited in `order` (the memory's sake); what depends on the order is put back in the
         // observations' order below: the NIS sum, the created landmarks and the provisional list.
         let mut nis_of: Vec<(u32, f64)> = vec![];
+        let mut anchors = ekf::AnchorMemo::default();
         let first_provisional = p.provisional.len();
         for &j in order {
             let j = j as usize;
@@ -299,10 +300,14 @@ impl FastSlam {
                     let Some(lm) = p.map.get_mut(id) else { continue };
                     // The update, and the observation's NIS against the landmark before it.
                     let nis = match (&o.stereo, lm.inverse_depth.is_some()) {
-                        (Some(st), true) => match view.rig_for(o) {
-                            Some(r) => ekf::update_inverse_depth_from(lm, &r.camera, &st.s, &st.cov, 3),
-                            None => ekf::update_inverse_depth(lm, &(pose * st.body_from_camera), &st.s, &st.cov, 3),
-                        },
+                        (Some(st), true) => {
+                            match (view.rig_for(o), lm.inverse_depth.as_ref().map(|i| i.world_from_anchor)) {
+                                (Some(r), Some(anchor)) => {
+                                    ekf::update_inverse_depth_in(lm, anchors.get(&r.camera, &anchor), &st.s, &st.cov, 3)
+                                }
+                                _ => ekf::update_inverse_depth(lm, &(pose * st.body_from_camera), &st.s, &st.cov, 3),
+                            }
+                        }
                         (Some(st), false) => {
                             let Ok(inn) = observe(&pose, lm, o) else { continue };
                             ekf::update_stereo_iterated(lm, &(pose * st.body_from_camera), &st.s, &st.cov, 4)

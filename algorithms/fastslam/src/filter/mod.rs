@@ -131,12 +131,14 @@ fn observe(pose: &Isometry3<f64>, lm: &ekf::LandmarkEkf, o: &Observation) -> Res
 pub(super) struct View {
     pub(super) pose: Isometry3<f64>,
     rig: Option<ekf::StereoRig>,
+    /// The rig camera's view of the last anchor looked at.
+    anchors: std::cell::RefCell<ekf::AnchorMemo>,
 }
 
 impl View {
     pub(super) fn new(pose: &Isometry3<f64>, obs: &[Observation]) -> Self {
         let rig = obs.iter().find_map(|o| o.stereo.as_ref()).map(|st| ekf::StereoRig::new(pose, &st.body_from_camera));
-        Self { pose: *pose, rig }
+        Self { pose: *pose, rig, anchors: Default::default() }
     }
 
     /// The rig, when `o` was made by its camera.
@@ -148,7 +150,10 @@ impl View {
     /// [`observe`] from this view.
     pub(super) fn observe(&self, lm: &ekf::LandmarkEkf, o: &Observation) -> Result<Innovation, FilterError> {
         match (self.rig_for(o), &o.stereo, &lm.inverse_depth) {
-            (Some(r), Some(st), Some(inv)) => ekf::innovation_inverse_depth_from(&r.camera, inv, &st.s, &st.cov),
+            (Some(r), Some(st), Some(inv)) => {
+                let mut anchors = self.anchors.borrow_mut();
+                ekf::innovation_inverse_depth_in(anchors.get(&r.camera, &inv.world_from_anchor), inv, &st.s, &st.cov)
+            }
             _ => observe(&self.pose, lm, o),
         }
     }

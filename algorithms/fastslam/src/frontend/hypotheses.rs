@@ -59,9 +59,7 @@ pub(super) fn agreeing(
         if let Some(c) = prior {
             S += Jx * c * Jx.transpose();
         }
-        if let Some(m) = mahalanobis(&nu, &S)
-            && m <= gate
-        {
+        if let Some(m) = mahalanobis_within(&nu, &S, gate) {
             seen[i as usize] = true;
             out.push((i, j, m));
         }

@@ -309,6 +309,19 @@ fn mahalanobis(nu: &Vector3<f64>, S: &Matrix3<f64>) -> Option<f64> {
     Some(Chol3::new(S)?.mahalanobis(nu))
 }
 
+/// νᵀS⁻¹ν when it is at most `gate`, else `None` (as `mahalanobis(ν, S).filter(|m| m <= gate)`).
+/// A pair is refused without the factorisation when one component alone is out of the gate:
+/// νᵀS⁻¹ν ≥ νᵢ²/Sᵢᵢ for a positive-definite S (the margin of 10⁻⁹ keeps the rounding of the
+/// factorised value from ever deciding otherwise). Most of a search window's points are refused
+/// so, by their disparity, which the window does not bound.
+fn mahalanobis_within(nu: &Vector3<f64>, S: &Matrix3<f64>, gate: f64) -> Option<f64> {
+    let bound = gate * (1.0 + 1e-9);
+    if (0..3).any(|i| nu[i] * nu[i] > bound * S[(i, i)]) {
+        return None;
+    }
+    mahalanobis(nu, S).filter(|m| *m <= gate)
+}
+
 /// Candidate pairs (prev index, cur index) with their normalised squared residual.
 type Pairs = Vec<(u32, u32, f64)>;
 
@@ -534,9 +547,7 @@ impl FrontEnd {
             grid.query(s[0], s[1], ra, rb, |j| {
                 let Q = &cur.pts[j];
                 let nu = s - Q.s;
-                if let Some(m) = mahalanobis(&nu, &(Sp + Q.Cs))
-                    && m <= gate
-                {
+                if let Some(m) = mahalanobis_within(&nu, &(Sp + Q.Cs), gate) {
                     pairs.push((i as u32, j as u32, m));
                 }
             });
@@ -593,9 +604,7 @@ impl FrontEnd {
             let mut best: Option<(u32, f64)> = None;
             grid.query(s[0], s[1], ra.max(1e-4), rb.max(1e-4), |j| {
                 let Q = &cur.pts[j];
-                if let Some(m) = mahalanobis(&(s - Q.s), &(Sp + Q.Cs))
-                    && m <= gate
-                {
+                if let Some(m) = mahalanobis_within(&(s - Q.s), &(Sp + Q.Cs), gate) {
                     in_gate += 1;
                     if best.is_none_or(|(_, b)| m < b) {
                         best = Some((j as u32, m));
