@@ -367,9 +367,11 @@ impl FastSlam {
         out.nis_sum = nis_of.iter().map(|(_, n)| n).sum();
         out.created.sort_unstable_by_key(|(id, _, _)| *id);
         p.provisional[first_provisional..].sort_unstable();
-        // Provisional landmarks: confirmed ones leave the list, stale ones are dropped.
+        // Provisional landmarks: confirmed ones leave the list, stale ones are dropped. Those
+        // made in this frame (seen once, now) stay without being looked up.
         let (confirm, max_age) = (a.confirm_after, a.provisional_max_age_frames);
-        let mut keep = Vec::with_capacity(p.provisional.len());
+        let fresh = p.provisional.split_off(first_provisional);
+        let mut keep = Vec::with_capacity(p.provisional.len() + fresh.len());
         for id in std::mem::take(&mut p.provisional) {
             match p.map.get(id) {
                 Some(l) if l.hits >= confirm => {}
@@ -380,6 +382,7 @@ impl FastSlam {
                 None => {}
             }
         }
+        keep.extend(fresh);
         p.provisional = keep;
         out
     }

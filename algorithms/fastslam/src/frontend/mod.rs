@@ -325,6 +325,9 @@ fn mahalanobis_within(nu: &Vector3<f64>, S: &Matrix3<f64>, gate: f64) -> Option<
 /// Candidate pairs (prev index, cur index) with their normalised squared residual.
 type Pairs = Vec<(u32, u32, f64)>;
 
+/// A motion `cur_from_prev` with its covariance.
+type Motion = (Isometry3<f64>, Matrix6<f64>);
+
 /// The prior-free search's best motion with its covariance, the hypotheses scored and the
 /// candidates per seed point.
 type SearchResult = (Option<(Isometry3<f64>, Matrix6<f64>)>, usize, f64);
@@ -758,7 +761,7 @@ impl FrontEnd {
         T: Isometry3<f64>,
         cov: Matrix6<f64>,
         seeds: &[u32],
-    ) -> (Option<(Isometry3<f64>, Matrix6<f64>)>, usize) {
+    ) -> (Option<Motion>, usize) {
         let mut first_in_gate = None;
         let mut optimum = || {
             let (mut T, mut cov) = (T, cov);
