@@ -133,3 +133,26 @@ fn a_short_simulated_run_stays_within_bounds() {
         assert!(longest.ate_m < 0.5, "{proposal:?}: ATE {} m on the longest local map: {scores:?}", longest.ate_m);
     }
 }
+
+#[test]
+fn new_landmarks_get_consecutive_ids_in_observation_order() {
+    let mut f = FastSlam::new(quiet(4)).unwrap();
+    // Three new landmarks: ids from the first free one, in observation order.
+    let frame = [obs([5.0, 0.0, 0.0], 0.05, None), obs([5.0, 2.0, 0.0], 0.05, None), obs([6.0, -2.0, 1.0], 0.05, None)];
+    let r = f.update(&frame);
+    let first = r.first_new_id;
+    assert_eq!(r.new_ids, vec![Some(first), Some(first + 1), Some(first + 2)], "{r:?}");
+    // The same three again (matched: no ids) and one new between two matched ones: the next id.
+    let mut again = frame.to_vec();
+    again.insert(1, obs([8.0, 4.0, 0.0], 0.05, None));
+    let r = f.update(&again);
+    assert_eq!(r.new_ids, vec![None, Some(first + 3), None, None], "{r:?}");
+    assert_eq!(r.first_new_id, first + 3);
+    assert_eq!(r.associations[0], Some(first));
+    assert_eq!(r.associations[3], Some(first + 2));
+    // A frame with nothing new reserves no id.
+    let r = f.update(&frame);
+    assert!(r.new_ids.iter().all(Option::is_none));
+    let r = f.update(&[obs([3.0, -4.0, 0.0], 0.05, None)]);
+    assert_eq!(r.new_ids, vec![Some(first + 4)]);
+}

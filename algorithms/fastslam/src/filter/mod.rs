@@ -960,4 +960,12 @@ mod tests {
             assert!((mean - w[i] * 10.0).abs() < 0.01, "particle {i}: mean {mean} vs {}", w[i] * 10.0);
         }
     }
+
+    #[test]
+    fn the_visiting_order_sorts_by_first_candidate_and_keeps_ties_and_new_ones_in_order() {
+        let candidates = vec![vec![7, 2], vec![], vec![3], vec![7], vec![], vec![1, 9]];
+        // By first candidate (1, 3, 7, 7), ties in observation order, those without one last.
+        assert_eq!(visiting_order(&candidates), vec![5, 2, 0, 3, 1, 4]);
+        assert!(visiting_order(&[]).is_empty());
+    }
 }
