@@ -5,8 +5,10 @@
 //!
 //! Run: `cargo run --release -p fastslam --example stereo_bench`
 //! (options: `--particles 25,50,100,200 --frames 120 --warmup 10 --threads 2 --reps 2
-//! --proposal optimal|motion --seed 1 --modes ml,tracks,ids --per-frame`; `--per-frame` prints
-//! every frame's times to stderr, `--modes` runs only the association modes listed).
+//! --proposal optimal|motion --seed 1 --modes ml,tracks,ids --resample-fraction F --per-frame`;
+//! `--per-frame` prints every frame's times to stderr, `--modes` runs only the association modes
+//! listed, `--resample-fraction 1e-9` almost never resamples: every frame then costs what the slowest
+//! frames, those without resampling, cost).
 //!
 //! The frames come from the KITTI-like simulated drive (`sim::road`, defaults): about 700
 //! observations per frame (the nearest 700 of the visible landmarks, 90 % detected, plus 3 %
@@ -40,6 +42,8 @@ struct Options {
     per_frame: bool,
     /// Association modes to run (`ml`, `tracks`, `ids`).
     modes: Vec<String>,
+    /// N_eff / N below which the filter resamples (the filter's default when `None`).
+    resample_fraction: Option<f64>,
 }
 
 fn parse() -> Result<Options, String> {
@@ -53,6 +57,7 @@ fn parse() -> Result<Options, String> {
         seed: 1,
         per_frame: false,
         modes: vec!["ml".into(), "tracks".into(), "ids".into()],
+        resample_fraction: None,
     };
     let mut it = std::env::args().skip(1);
     let num = |v: Option<String>, k: &str| v.and_then(|v| v.parse::<usize>().ok()).ok_or(format!("{k} needs a number"));
@@ -70,6 +75,10 @@ fn parse() -> Result<Options, String> {
             "--warmup" => o.warmup = num(it.next(), "--warmup")?,
             "--threads" => o.threads = num(it.next(), "--threads")?,
             "--per-frame" => o.per_frame = true,
+            "--resample-fraction" => {
+                o.resample_fraction =
+                    Some(it.next().and_then(|v| v.parse().ok()).ok_or("--resample-fraction needs a number")?)
+            }
             "--modes" => {
                 o.modes = it.next().ok_or("--modes needs a list")?.split(',').map(str::to_string).collect();
                 if let Some(m) = o.modes.iter().find(|m| !["ml", "tracks", "ids"].contains(&m.as_str())) {
@@ -155,7 +164,10 @@ fn cpu_s() -> f64 {
 }
 
 fn run(d: &Drive, o: &Options, particles: usize, assign_tracks: bool) -> Run {
-    let cfg = FastSlamConfig { particles, proposal: o.proposal, threads: o.threads, ..Default::default() };
+    let mut cfg = FastSlamConfig { particles, proposal: o.proposal, threads: o.threads, ..Default::default() };
+    if let Some(f) = o.resample_fraction {
+        cfg.resample_fraction = f;
+    }
     let mut f = FastSlam::new(cfg).expect("valid settings");
     let mut cam = CameraOnly::new(FrontEndConfig { assign_tracks, ..Default::default() }, d.body_from_camera);
     let mut r = Run::default();
