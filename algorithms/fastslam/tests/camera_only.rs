@@ -197,3 +197,55 @@ fn on_the_real_kitti_features_the_track_agrees_with_the_data_sets_visual_odometr
         assert!(o.frontend_rmse < 0.02 * path, "ids {ids}: front end RMSE {} m", o.frontend_rmse);
     }
 }
+
+/// A feature the detector misses for a frame keeps its track when it is seen again (and with
+/// `bridge_gap_frames = 0` it gets a new one); a feature seen for the first time gets a new
+/// track either way.
+#[test]
+fn a_feature_missed_for_a_frame_keeps_its_track() {
+    // The camera looks along the body's x axis (optical z forward, x right, y down).
+    let b = Isometry3::from_parts(
+        nalgebra::Translation3::new(0.0, 0.0, 0.0),
+        nalgebra::UnitQuaternion::from_matrix(&nalgebra::Matrix3::new(0.0, 0.0, 1.0, -1.0, 0.0, 0.0, 0.0, -1.0, 0.0)),
+    );
+    // 80 points in the world (camera frame at the start), 6-20 m ahead; the camera moves 0.5 m
+    // forward a frame. Point 7 is missed in the second frame; point 79 appears in the third.
+    let world: Vec<Vector3<f64>> = (0..80)
+        .map(|i| {
+            let f = i as f64;
+            Vector3::new((f * 0.37).sin() * 4.0, (f * 0.23).cos() * 2.0, 6.0 + (f * 0.61).sin().abs() * 14.0)
+        })
+        .collect();
+    let cov = nalgebra::Matrix3::from_diagonal(&Vector3::new(1e-4, 1e-4, 4e-3));
+    let frame = |k: usize, skip: &[usize]| -> Vec<Observation> {
+        (0..world.len())
+            .filter(|i| !skip.contains(i))
+            .map(|i| {
+                let p = world[i] - Vector3::new(0.0, 0.0, 0.5 * k as f64);
+                Observation::from_camera(&p, &cov, None, &b).unwrap()
+            })
+            .collect()
+    };
+    let tracks_of = |gap: u32| {
+        let mut f = FastSlam::new(FastSlamConfig { particles: 10, ..Default::default() }).unwrap();
+        let mut cam = CameraOnly::new(FrontEndConfig { bridge_gap_frames: gap, ..Default::default() }, b);
+        let mut out = vec![];
+        for (k, skip) in [(0, vec![79]), (1, vec![7, 79]), (2, vec![])] {
+            let mut obs = frame(k, &skip);
+            cam.predict(&mut f, &mut obs, 0.1);
+            f.update(&obs);
+            // Observation index → point index.
+            let ids: Vec<usize> = (0..world.len()).filter(|i| !skip.contains(i)).collect();
+            out.push(ids.into_iter().zip(obs.iter().map(|o| o.track_id.unwrap())).collect::<BTreeMap<_, _>>());
+        }
+        (out, cam.stats().bridged)
+    };
+    let (t, bridged) = tracks_of(2);
+    assert_eq!(t[2][&7], t[0][&7], "point 7 keeps its track over the frame that missed it");
+    assert_eq!(t[2][&3], t[0][&3], "a point seen throughout keeps its track");
+    assert!(t.iter().take(2).all(|f| f.values().all(|id| *id != t[2][&79])), "a new point gets a new track");
+    assert_eq!(bridged, 1);
+    let (t, bridged) = tracks_of(0);
+    assert_ne!(t[2][&7], t[0][&7], "without bridging the track ends");
+    assert_eq!(bridged, 0);
+}

@@ -38,6 +38,10 @@ pub struct FrontEndConfig {
     /// attribute ([3D] §3.1) and needs maximum likelihood only for new features. Off: every
     /// observation without a source track id goes by maximum likelihood.
     pub assign_tracks: bool,
+    /// With `assign_tracks`: frames a feature track may go unseen (the detector missed the
+    /// feature, or the registration left it out) and still be continued when the feature is seen
+    /// again, by its predicted position (0: a track ends when a frame misses it).
+    pub bridge_gap_frames: u32,
     /// When no motion is found, FastSLAM predicts by constant velocity with this σ of the
     /// change of the linear velocity, m/s.
     pub fallback_velocity_sigma_mps: f64,
@@ -63,6 +67,7 @@ impl Default for FrontEndConfig {
             huber_sigma: 2.0,
             ransac_iterations: 200,
             assign_tracks: true,
+            bridge_gap_frames: 2,
             fallback_velocity_sigma_mps: 2.0,
             fallback_angular_velocity_sigma_rps: 0.4,
             seed: 7,
@@ -89,6 +94,7 @@ impl Validate for FrontEndConfig {
         issues.check(pos(self.prior_rotation_sigma_deg), "prior_rotation_sigma_deg", "must be > 0");
         issues.check(pos(self.huber_sigma), "huber_sigma", "must be > 0");
         issues.check(self.ransac_iterations >= 1, "ransac_iterations", "must be >= 1");
+        issues.check(self.bridge_gap_frames <= 30, "bridge_gap_frames", "must be at most 30");
         issues.check(pos(self.fallback_velocity_sigma_mps), "fallback_velocity_sigma_mps", "must be > 0");
         issues.check(
             pos(self.fallback_angular_velocity_sigma_rps),
