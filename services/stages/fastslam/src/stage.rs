@@ -373,6 +373,7 @@ fn summary(
             failed: c.failed,
             mean_inliers: c.inliers as f64 / (c.by_track_ids + c.guided + c.search).max(1) as f64,
             mean_ms: stats.frontend_ms_sum / stats.frames.max(1) as f64,
+            bridged_tracks: c.bridged,
         });
         if c.failed > 0 {
             tracing::warn!(

@@ -73,6 +73,9 @@ pub struct FrontendSummary {
     pub mean_inliers: f64,
     /// Wall time of the front end per frame, ms.
     pub mean_ms: f64,
+    /// Feature tracks continued after frames that did not see their feature
+    /// (`frontend.bridge_gap_frames`).
+    pub bridged_tracks: u64,
 }
 
 /// One local map's scores against the ground truth.
