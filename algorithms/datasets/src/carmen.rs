@@ -1,7 +1,8 @@
 //! CARMEN log files (`.log`, `.clf`; plain, `.gz` or `.bz2`), the format of the Radish 2-D laser
-//! data sets: `FLASER`, `RAWLASER1..4`, `ROBOTLASER1` and `ODOM` lines are read; every other message
-//! type (`PARAM`, `NEFF`, `SYNC`, `TRUEPOS`, `RLASER`, ...) is skipped and counted by type; `#`
-//! lines are comments.
+//! data sets: `FLASER`, `RAWLASER1..4`, `ROBOTLASER1` and `ODOM` lines are read, and `PARAM` lines
+//! are kept by name (the robot's parameters, e.g. `robot_frontlaser_offset`: where the laser sits,
+//! [`CarmenLog::front_laser_offset_m`]); every other message type (`NEFF`, `SYNC`, `TRUEPOS`,
+//! `RLASER`, ...) is skipped and counted by type, and so are `PARAM` lines; `#` lines are comments.
 //!
 //! The reader is lenient line by line, strict about the file: a malformed line (too few fields, a
 //! field that is not a number, a beam count that disagrees with the line's length) is skipped,
@@ -19,6 +20,7 @@
 //!   e1..em laser_x laser_y laser_θ robot_x robot_y robot_θ tv rv forward_safety side_safety
 //!   turn_axis ipc_timestamp ipc_hostname logger_timestamp`.
 //! - `ODOM x y θ tv rv accel ipc_timestamp ipc_hostname logger_timestamp`.
+//! - `PARAM name value ipc_timestamp ipc_hostname logger_timestamp`.
 //!
 //! Stamps are the `ipc_timestamp` (when the sensor's message was sent), s.
 
@@ -107,6 +109,8 @@ pub struct CarmenLog {
     pub scans: Vec<CarmenScan>,
     /// ODOM lines in file order.
     pub odometry: Vec<CarmenOdom>,
+    /// `PARAM` lines, name → value as written (a name set twice keeps the later value).
+    pub params: BTreeMap<String, String>,
     /// Skipped and malformed lines.
     pub report: CarmenReport,
 }
@@ -167,6 +171,13 @@ pub fn read_carmen(path: &Path) -> Result<CarmenLog> {
             "ROBOTLASER1" | "ROBOTLASER2" => parse_raw(&fields, line_no, true).map(Parsed::Scan),
             k if k.starts_with("RAWLASER") => parse_raw(&fields, line_no, false).map(Parsed::Scan),
             "ODOM" => parse_odom(&fields, line_no).map(Parsed::Odom),
+            "PARAM" => {
+                *log.report.skipped_types.entry("PARAM".to_string()).or_default() += 1;
+                if let [_, name, value, ..] = fields[..] {
+                    log.params.insert(name.to_string(), value.to_string());
+                }
+                continue;
+            }
             other => {
                 *log.report.skipped_types.entry(other.to_string()).or_default() += 1;
                 continue;
@@ -318,6 +329,18 @@ fn wrap(a: f64) -> f64 {
 }
 
 impl CarmenLog {
+    /// Where the front laser sits ahead of the robot's reference point, m (CARMEN's
+    /// `robot_frontlaser_offset` parameter: along the robot's x, negative behind it), if the log
+    /// states it. The pose fields and the odometry are the robot's; the beams start at the laser.
+    /// A value that is not a finite number is reported as an error naming it.
+    pub fn front_laser_offset_m(&self) -> std::result::Result<Option<f64>, String> {
+        let Some(v) = self.params.get("robot_frontlaser_offset") else { return Ok(None) };
+        match v.parse::<f64>() {
+            Ok(x) if x.is_finite() => Ok(Some(x)),
+            _ => Err(format!("{}: PARAM robot_frontlaser_offset `{v}` is not a finite number", self.path.display())),
+        }
+    }
+
     /// The odometry pose at each scan (`None` where there is none: no pose fields, or outside
     /// the span of the ODOM lines in [`CarmenLog::odometry_in_order`]), by `source`.
     pub fn scan_odometry(&self, source: OdometrySource) -> Vec<Option<Pose2d>> {
@@ -408,6 +431,8 @@ mod tests {
         assert_eq!(log.scans[2].odometry, Some([1.0, 2.0, 0.5]));
         assert!(log.scans[2].ranges[2].is_nan(), "NaN ranges are kept for the consumer to count");
         assert_eq!(log.report.skipped_types.get("PARAM"), Some(&1));
+        assert_eq!(log.params.get("robot_x").map(String::as_str), Some("1"));
+        assert_eq!(log.front_laser_offset_m(), Ok(None));
         assert_eq!(log.report.skipped_types.get("NEFF"), Some(&1));
         assert_eq!(log.report.bad_lines, 1);
         assert!(log.report.problems[0].contains("a.log:8: FLASER"), "{:?}", log.report.problems);
@@ -473,6 +498,7 @@ mod tests {
         assert_eq!(log.odometry.len(), 9725);
         assert_eq!((log.report.bad_lines, log.report.truncated.clone()), (0, None));
         assert_eq!(log.report.skipped_types.get("NEFF"), Some(&4791));
+        assert_eq!(log.front_laser_offset_m(), Ok(Some(-0.04)));
         assert!(log.scans.iter().all(|s| s.ranges.len() == 360));
         assert!(log.scan_odometry(OdometrySource::Auto).iter().filter(|o| o.is_some()).count() > 4780);
     }

@@ -148,6 +148,16 @@ impl CarmenSource {
             warts.insert("other_message_lines_skipped", skipped as u64);
             tracing::info!("message types not replayed: {:?}", log.report.skipped_types);
         }
+        match log.front_laser_offset_m() {
+            Ok(Some(x)) if (x - settings.body_from_laser[0]).abs() > 1e-9 => tracing::info!(
+                "the log states its front laser {x:+.3} m ahead of the robot (PARAM robot_frontlaser_offset); \
+                 body_from_laser is {:?}: on a raw log whose odometry is the robot's, set \
+                 [carmen] body_from_laser = [{x}, 0.0, 0.0] (the corrected logs' poses are the laser's: keep 0 there)",
+                settings.body_from_laser
+            ),
+            Ok(_) => {}
+            Err(e) => tracing::warn!("{e}: ignored"),
+        }
         if log.scans.is_empty() {
             return Err(SourceError::Settings(format!(
                 "{}: no laser scans (FLASER, RAWLASER or ROBOTLASER1 lines) in the log",
