@@ -255,6 +255,83 @@ pub fn align(pairs: &[Correspondence], cfg: &AlignConfig) -> Result<Alignment, F
     })
 }
 
+/// χ²₆ at 0.999: a prior transform whose difference from the estimate with it exceeds this (in
+/// the prior's own covariance) disagrees with the fixes; [`align_with_prior`] reports it.
+pub const PRIOR_GATE_CHI2_6: f64 = 22.458;
+
+/// The transform as a maximum a posteriori estimate: a Gaussian prior on it (`prior`: its mean and
+/// 6×6 covariance, [`Alignment::covariance`]'s convention) and the pairs, any number of them,
+/// none included. Gauss–Newton from the prior on
+///   Σ_i r_iᵀ·S_i⁻¹·r_i + eᵀ·C⁻¹·e,  e = (t − t_p, Log(R·R_pᵀ)),
+/// the pair terms as in [`align`]; the covariance is (H + C⁻¹)⁻¹ at the solution. The prior makes
+/// collinear, small or few pairs well posed: what they do not determine it keeps.
+///
+/// Returns the alignment and the prior's χ² at the solution (eᵀ·C⁻¹·e: above
+/// [`PRIOR_GATE_CHI2_6`] the fixes disagree with the prior). Errors: a prior covariance that is
+/// not positive definite, non-finite values.
+pub fn align_with_prior(pairs: &[Correspondence], prior: &Alignment) -> Result<(Alignment, f64), FusionError> {
+    let prior_cov = (prior.covariance + prior.covariance.transpose()) * 0.5;
+    let prior_info = Cholesky::new(prior_cov).ok_or(FusionError::NotPositiveDefinite("prior covariance"))?.inverse();
+    let pairs = checked(pairs)?;
+    let r_p = prior.global_from_local.rotation.to_rotation_matrix();
+    let t_p = prior.global_from_local.translation.vector;
+    let prior_residual = |rot: &Rotation3<f64>, t: &Vector3<f64>| -> Vector6<f64> {
+        let phi = (rot * r_p.inverse()).scaled_axis();
+        let dt = t - t_p;
+        Vector6::new(dt.x, dt.y, dt.z, phi.x, phi.y, phi.z)
+    };
+    let (mut rot, mut t) = (r_p, t_p);
+    for _ in 0..50 {
+        let (h, g, _) = normal_equations(&pairs, rot.matrix(), &t)?;
+        let e = prior_residual(&rot, &t);
+        let chol = Cholesky::new(h + prior_info).ok_or(FusionError::Singular("alignment normal matrix"))?;
+        let delta = -chol.solve(&(g + prior_info * e));
+        if !delta.iter().all(|v| v.is_finite()) {
+            return Err(FusionError::Singular("alignment update"));
+        }
+        t += delta.fixed_rows::<3>(0);
+        let phi: Vector3<f64> = delta.fixed_rows::<3>(3).into_owned();
+        rot = Rotation3::new(phi) * rot;
+        if phi.norm() < 1e-12 && delta.fixed_rows::<3>(0).norm() < 1e-10 * (1.0 + t.norm()) {
+            break;
+        }
+    }
+    let (h, _, sum_sq) = normal_equations(&pairs, rot.matrix(), &t)?;
+    let covariance = Cholesky::new(h + prior_info).ok_or(FusionError::Singular("alignment normal matrix"))?.inverse();
+    let e = prior_residual(&rot, &t);
+    let chi2 = e.dot(&(prior_info * e));
+    let local: Vec<Vector3<f64>> = pairs.iter().map(|c| c.local_m).collect();
+    Ok((
+        Alignment {
+            global_from_local: Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_rotation_matrix(&rot)),
+            covariance: (covariance + covariance.transpose()) * 0.5,
+            pairs: pairs.len(),
+            rms_residual_m: if pairs.is_empty() { 0.0 } else { (sum_sq / pairs.len() as f64).sqrt() },
+            spread_ratio: spread(&local).0,
+        },
+        chi2,
+    ))
+}
+
+/// `previous` (a segment's transform) composed with `local_from_body`, a pose in that segment's
+/// frame with its 6×6 covariance over (position, body-frame rotation error): the transform of a
+/// local frame whose origin is that body pose (a new local map started there), with the
+/// covariance of both (first order; [`Alignment::covariance`]'s convention):
+/// δt = δt_prev − [R̂_prev·p]×·φ_prev + R̂_prev·δp and φ = φ_prev + R̂·ψ.
+pub fn compose_prior(previous: &Alignment, local_from_body: &Isometry3<f64>, local_cov: &Matrix6<f64>) -> Alignment {
+    let r_prev = previous.global_from_local.rotation.to_rotation_matrix().into_inner();
+    let q = r_prev * local_from_body.translation.vector;
+    let composed = previous.global_from_local * local_from_body;
+    let r_new = composed.rotation.to_rotation_matrix().into_inner();
+    let mut j_prev = Matrix6::identity();
+    j_prev.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-q.cross_matrix()));
+    let mut j_local = Matrix6::zeros();
+    j_local.fixed_view_mut::<3, 3>(0, 0).copy_from(&r_prev);
+    j_local.fixed_view_mut::<3, 3>(3, 3).copy_from(&r_new);
+    let cov = j_prev * previous.covariance * j_prev.transpose() + j_local * local_cov * j_local.transpose();
+    Alignment::from_transform(composed, (cov + cov.transpose()) * 0.5)
+}
+
 /// Collinear (or too small) geometry resolved with a heading sensor. Assumes the LOCAL FRAME IS
 /// LEVEL (its z axis is the global z axis, as for a segment whose local frame is gravity-aligned), so
 /// the rotation is R = Rz(`yaw_rad`), the local frame's yaw in the global frame (the caller derives it

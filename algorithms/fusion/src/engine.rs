@@ -31,7 +31,10 @@ use nalgebra::{Isometry3, Matrix3, Matrix6, Translation3, UnitQuaternion, Vector
 use serde::{Deserialize, Serialize};
 
 use crate::FusionError;
-use crate::align::{AlignConfig, Alignment, Correspondence, align, align_with_heading};
+use crate::align::{
+    AlignConfig, Alignment, Correspondence, PRIOR_GATE_CHI2_6, align, align_with_heading, align_with_prior,
+    compose_prior,
+};
 use crate::bspline::{LocalPathSpline, PathSample};
 use crate::fuse::{FuseOutcome, chi2_3_quantile, fuse};
 use crate::global_map::{GlobalLandmark, MapLandmark, MergeConfig, build_global_map};
@@ -58,6 +61,19 @@ pub struct FusionConfig {
     /// A window whose path is too straight for a rotation keeps the segment's rotation and
     /// re-estimates the translation alone.
     pub local_window_s: f64,
+    /// A new local map starts where the SLAM body was (its frame is the body frame at that
+    /// instant): when its first pose follows the previous local map's last within this many
+    /// seconds, its transform starts as the previous one composed with that pose (extrapolated
+    /// to the new map's first stamp), with both covariances, and the buoy fixes refine it as a
+    /// prior ([`crate::align::align_with_prior`]) instead of the transform waiting for fixes
+    /// and then resting on the first few alone. 0 = off.
+    pub handover_max_gap_s: f64,
+    /// σ of the roll and pitch of a local map's frame about level, deg, where the transform's
+    /// rotation comes from the compass (a local map without a handover, with heading readings):
+    /// the frame is the body frame where the map started, and a vehicle trimmed level starts
+    /// within a few degrees of it. Its yaw's σ is the compass's own, not shrunk by averaging
+    /// (a compass's deviation is correlated in time).
+    pub level_sigma_deg: f64,
 }
 
 impl Default for FusionConfig {
@@ -69,6 +85,8 @@ impl Default for FusionConfig {
             merge: MergeConfig::default(),
             use_heading: true,
             local_window_s: 10.0,
+            handover_max_gap_s: 1.0,
+            level_sigma_deg: 5.0,
         }
     }
 }
@@ -82,6 +100,12 @@ impl Validate for FusionConfig {
         }
         if !(self.local_window_s.is_finite() && self.local_window_s >= 0.0) {
             issues.push("local_window_s", "must be >= 0 (0 = off)");
+        }
+        if !(self.handover_max_gap_s.is_finite() && self.handover_max_gap_s >= 0.0) {
+            issues.push("handover_max_gap_s", "must be >= 0 (0 = off)");
+        }
+        if !(self.level_sigma_deg.is_finite() && self.level_sigma_deg > 0.0 && self.level_sigma_deg <= 90.0) {
+            issues.push("level_sigma_deg", "must be in (0, 90]");
         }
     }
 }
@@ -179,6 +203,23 @@ pub enum SegmentStatus {
         /// Heading readings used.
         readings: usize,
     },
+    /// The previous local map's transform carried over to where this one starts, refined by the
+    /// fixes inside this one ([`FusionConfig::handover_max_gap_s`]).
+    AlignedWithPrior {
+        /// Fixes used.
+        fixes: usize,
+    },
+}
+
+/// Where a local map started in the one before it ([`FusionConfig::handover_max_gap_s`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Handover {
+    /// The previous local map.
+    pub from: u32,
+    /// The new map's origin in the previous map's frame (`previous_from_local`).
+    pub previous_from_local: Isometry3<f64>,
+    /// Its 6×6 covariance over (position, body-frame rotation error).
+    pub covariance: Matrix6<f64>,
 }
 
 /// One local map.
@@ -200,6 +241,11 @@ pub struct Segment {
     /// explain (drift, an optimistic SLAM covariance), estimated from the alignment residuals
     /// (see [`excess_covariance`]) and added to every mapped camera estimate, m².
     pub excess_cov_m2: Matrix3<f64>,
+    /// Where this local map started in the previous one, when it followed it closely enough.
+    pub handover: Option<Handover>,
+    /// The fixes disagreed with the handover's prior (χ²₆ above 0.999), so the transform rests
+    /// on the fixes alone.
+    pub prior_rejected: bool,
     fixes_used: usize,
     no_overlap: u32,
     requested: bool,
@@ -215,6 +261,8 @@ impl Segment {
             status: SegmentStatus::WaitingForFixes { fixes: 0 },
             landmarks: vec![],
             excess_cov_m2: Matrix3::zeros(),
+            handover: None,
+            prior_rejected: false,
             fixes_used: 0,
             no_overlap: 0,
             requested: false,
@@ -330,9 +378,50 @@ impl Fusion {
         &self.fixes[a..b.max(a)]
     }
 
-    /// Re-estimates a segment's transform from all fixes inside its span (§6.1-6.3).
-    fn realign(cfg: &AlignConfig, seg: &mut Segment, fixes: &[FixInput], headings: &[HeadingInput]) {
+    /// Re-estimates a segment's transform from all fixes inside its span (§6.1-6.3), from
+    /// `prior` (the handover's) when there is one.
+    fn realign(
+        fcfg: &FusionConfig,
+        seg: &mut Segment,
+        fixes: &[FixInput],
+        headings: &[HeadingInput],
+        handover: Option<&Alignment>,
+    ) {
+        let cfg = &fcfg.align;
         seg.fixes_used = fixes.len();
+        // The prior: the handover's, else the compass's yaw about a level frame (with a fix
+        // at least: it says nothing of the translation).
+        let prior = match handover {
+            Some(h) => Some((*h, None)),
+            None if fcfg.use_heading && !fixes.is_empty() => Self::local_frame_yaw_prior(seg, headings)
+                .map(|(yaw, sigma, n)| (Self::heading_prior(yaw, sigma, fcfg.level_sigma_deg.to_radians()), Some(n))),
+            None => None,
+        };
+        if let Some((prior, readings)) = prior
+            && !seg.prior_rejected
+        {
+            let pairs = Self::correspondences(seg, fixes);
+            match align_with_prior(&pairs, &prior) {
+                Ok((a, chi2))
+                    if (chi2 <= PRIOR_GATE_CHI2_6 || pairs.len() < cfg.min_pairs.max(3))
+                        && (readings.is_none() || !pairs.is_empty()) =>
+                {
+                    seg.excess_cov_m2 = excess_covariance(&a, &pairs);
+                    seg.alignment = Some(a);
+                    seg.status = match readings {
+                        None => SegmentStatus::AlignedWithPrior { fixes: pairs.len() },
+                        Some(readings) => SegmentStatus::AlignedWithHeading { readings },
+                    };
+                    return;
+                }
+                Ok(_) if pairs.is_empty() => {}
+                // The fixes disagree with the prior (or it is unusable): they decide alone.
+                _ => {
+                    seg.prior_rejected = true;
+                    seg.alignment = None;
+                }
+            }
+        }
         if fixes.len() < cfg.min_pairs.max(1) || seg.samples.len() < 2 {
             if seg.alignment.is_none() {
                 seg.status = SegmentStatus::WaitingForFixes { fixes: fixes.len() };
@@ -346,18 +435,7 @@ impl Fusion {
                 return;
             }
         };
-        let pairs: Vec<Correspondence> = fixes
-            .iter()
-            .filter_map(|f| {
-                let (local_m, local_cov_m2) = spline.evaluate(f.t_s).ok()?;
-                Some(Correspondence {
-                    local_m,
-                    local_cov_m2: drift_free(&local_cov_m2),
-                    global_m: f.position_m,
-                    global_cov_m2: f.covariance_m2,
-                })
-            })
-            .collect();
+        let pairs = Self::pairs_on(&spline, fixes);
         match align(&pairs, cfg) {
             Ok(a) => {
                 seg.excess_cov_m2 = excess_covariance(&a, &pairs);
@@ -381,6 +459,101 @@ impl Fusion {
                 }
             }
         }
+    }
+
+    /// The prior of a transform whose rotation is the compass's: yaw `yaw_rad` (σ `yaw_sigma_rad`)
+    /// about a level frame (roll and pitch σ `level_sigma_rad`), the translation unknown (σ 1 km).
+    fn heading_prior(yaw_rad: f64, yaw_sigma_rad: f64, level_sigma_rad: f64) -> Alignment {
+        let mut cov = Matrix6::zeros();
+        for i in 0..3 {
+            cov[(i, i)] = 1e6;
+        }
+        cov[(3, 3)] = level_sigma_rad * level_sigma_rad;
+        cov[(4, 4)] = level_sigma_rad * level_sigma_rad;
+        cov[(5, 5)] = yaw_sigma_rad * yaw_sigma_rad;
+        Alignment::from_transform(
+            Isometry3::from_parts(Translation3::identity(), UnitQuaternion::from_euler_angles(0.0, 0.0, yaw_rad)),
+            cov,
+        )
+    }
+
+    /// The fixes paired with the segment's local path (its B-spline at their stamps); none while
+    /// the path has fewer than two samples.
+    fn correspondences(seg: &Segment, fixes: &[FixInput]) -> Vec<Correspondence> {
+        match LocalPathSpline::fit(&seg.samples) {
+            Ok(spline) if seg.samples.len() >= 2 => Self::pairs_on(&spline, fixes),
+            _ => vec![],
+        }
+    }
+
+    fn pairs_on(spline: &LocalPathSpline, fixes: &[FixInput]) -> Vec<Correspondence> {
+        fixes
+            .iter()
+            .filter_map(|f| {
+                let (local_m, local_cov_m2) = spline.evaluate(f.t_s).ok()?;
+                Some(Correspondence {
+                    local_m,
+                    local_cov_m2: drift_free(&local_cov_m2),
+                    global_m: f.position_m,
+                    global_cov_m2: f.covariance_m2,
+                })
+            })
+            .collect()
+    }
+
+    /// The prior of a segment's transform from its handover: the previous local map's current
+    /// transform composed with where this one started in it.
+    fn handover_prior(&self, seg: &Segment) -> Option<Alignment> {
+        let h = seg.handover.as_ref()?;
+        let prev = self.segments.get(&h.from)?;
+        let a = prev.alignment.as_ref()?;
+        let mut cov = h.covariance;
+        let extra = prev.excess_cov_m2;
+        cov.fixed_view_mut::<3, 3>(0, 0).zip_apply(&extra, |c, e| *c += e);
+        Some(compose_prior(a, &h.previous_from_local, &cov))
+    }
+
+    /// The handover of a local map whose first pose is `first`: where it started in the local
+    /// map seen last before it, extrapolated from that map's last two poses to `first`'s stamp
+    /// (the new map's frame is the body frame at that stamp). `None` when there is no such map,
+    /// or the gap is wider than [`FusionConfig::handover_max_gap_s`].
+    fn handover_for(&self, first: &PairInput) -> Option<Handover> {
+        let max_gap = self.cfg.handover_max_gap_s;
+        if max_gap <= 0.0 {
+            return None;
+        }
+        let prev = self
+            .segments
+            .values()
+            .filter(|s| s.id != first.segment && s.pairs.last().is_some_and(|p| p.t_s < first.t_s))
+            .max_by(|a, b| a.pairs[a.pairs.len() - 1].t_s.total_cmp(&b.pairs[b.pairs.len() - 1].t_s))?;
+        let last = prev.pairs.last()?;
+        if first.t_s - last.t_s > max_gap {
+            return None;
+        }
+        // Constant velocity over the gap, from the two last poses; its error taken as a quarter
+        // of the step (σ), at least 1 cm and 1 mrad.
+        let mut pose = last.local_from_body;
+        let (mut sigma_p, mut sigma_r) = (0.01, 1e-3);
+        if let Some(before) = prev.pairs.len().checked_sub(2).map(|i| &prev.pairs[i])
+            && last.t_s > before.t_s
+        {
+            let step = before.local_from_body.inverse() * last.local_from_body;
+            let k = (first.t_s - last.t_s) / (last.t_s - before.t_s);
+            let scaled = Isometry3::from_parts(
+                Translation3::from(step.translation.vector * k),
+                UnitQuaternion::from_scaled_axis(step.rotation.scaled_axis() * k),
+            );
+            pose *= scaled;
+            sigma_p = (0.25 * scaled.translation.vector.norm()).max(sigma_p);
+            sigma_r = (0.25 * scaled.rotation.angle()).max(sigma_r);
+        }
+        let mut covariance = last.local_covariance;
+        for i in 0..3 {
+            covariance[(i, i)] += sigma_p * sigma_p;
+            covariance[(3 + i, 3 + i)] += sigma_r * sigma_r;
+        }
+        Some(Handover { from: prev.id, previous_from_local: pose, covariance })
     }
 
     /// The yaw of the segment's local frame in the world from heading readings: compass yaw
@@ -410,6 +583,14 @@ impl Fusion {
         let scatter = (-2.0 * r.max(1e-12).ln()).max(0.0); // circular variance
         let sigma = ((var / n).max(scatter) / n).sqrt();
         Some((s.atan2(c), sigma.max(1e-4), headings.len()))
+    }
+
+    /// [`Fusion::local_frame_yaw`] with σ no smaller than one reading's: for a prior that stands
+    /// for the whole local map, whose compass errors are not independent over it.
+    fn local_frame_yaw_prior(seg: &Segment, headings: &[HeadingInput]) -> Option<(f64, f64, usize)> {
+        let (yaw, sigma, n) = Self::local_frame_yaw(seg, headings)?;
+        let one = (headings.iter().map(|h| h.sigma_rad * h.sigma_rad).sum::<f64>() / n as f64).sqrt();
+        Some((yaw, sigma.max(one), n))
     }
 
     /// The global pose of one pair with the segment's current transform (no side effects).
@@ -493,7 +674,17 @@ impl Fusion {
         Self::check_pair(pair)?;
         let zero = Matrix3::zeros();
         let seg = self.segments.get(&pair.segment);
-        Ok(self.pose_of(pair, seg.and_then(|s| s.alignment.as_ref()), seg.map_or(&zero, |s| &s.excess_cov_m2)))
+        // A local map not seen yet starts with its handover's transform, as its first pair will.
+        let carried = match seg {
+            Some(s) if s.alignment.is_some() || !s.pairs.is_empty() => None,
+            _ => self.handover_for(pair).and_then(|h| {
+                let mut new = Segment::new(pair.segment);
+                new.handover = Some(h);
+                self.handover_prior(&new)
+            }),
+        };
+        let alignment = seg.and_then(|s| s.alignment.as_ref()).or(carried.as_ref());
+        Ok(self.pose_of(pair, alignment, seg.map_or(&zero, |s| &s.excess_cov_m2)))
     }
 
     fn check_pair(pair: &PairInput) -> Result<(), FusionError> {
@@ -511,7 +702,19 @@ impl Fusion {
 
     fn push_checked_pair(&mut self, pair: PairInput) -> Result<FusedOutput, FusionError> {
         let id = pair.segment;
+        let first = self.segments.get(&id).is_none_or(|s| s.pairs.is_empty());
+        let handover = if first { self.handover_for(&pair) } else { None };
         let seg = self.segments.entry(id).or_insert_with(|| Segment::new(id));
+        if first && handover.is_some() {
+            seg.handover = handover;
+            let seg = &self.segments[&id];
+            if let Some(prior) = self.handover_prior(seg) {
+                let seg = self.segments.get_mut(&id).expect("inserted above");
+                seg.alignment = Some(prior);
+                seg.status = SegmentStatus::AlignedWithPrior { fixes: 0 };
+            }
+        }
+        let seg = self.segments.get_mut(&id).expect("inserted above");
         if seg.samples.last().is_none_or(|s| pair.t_s > s.t_s) {
             seg.samples.push(PathSample {
                 t_s: pair.t_s,
@@ -526,10 +729,11 @@ impl Fusion {
         if n_fixes != self.segments[&id].fixes_used {
             let fixes = self.fixes_between(from, to).to_vec();
             let headings = if self.cfg.use_heading { self.headings_between(from, to).to_vec() } else { vec![] };
-            let cfg = self.cfg.align.clone();
+            let cfg = self.cfg.clone();
+            let prior = self.handover_prior(&self.segments[&id]);
             let seg = self.segments.get_mut(&id).expect("inserted above");
             let before = seg.alignment.as_ref().map(|a| a.global_from_local);
-            Self::realign(&cfg, seg, &fixes, &headings);
+            Self::realign(&cfg, seg, &fixes, &headings, prior.as_ref());
             realigned = seg.alignment.as_ref().map(|a| a.global_from_local) != before;
         }
         let seg = &self.segments[&id];
@@ -580,7 +784,7 @@ impl Fusion {
     /// The end of the run: every segment aligned with all its fixes, every pose mapped and fused
     /// again (the globally consistent path), and the global landmark map.
     pub fn finish(&mut self) -> FinalResult {
-        let cfg = self.cfg.align.clone();
+        let cfg = self.cfg.clone();
         let ids: Vec<u32> = self.segments.keys().copied().collect();
         for id in &ids {
             let seg = &self.segments[id];
@@ -590,9 +794,13 @@ impl Fusion {
             let (from, to) = (seg.samples[0].t_s, seg.samples[seg.samples.len() - 1].t_s);
             let fixes = self.fixes_between(from, to).to_vec();
             let headings = if self.cfg.use_heading { self.headings_between(from, to).to_vec() } else { vec![] };
+            // The previous local map is final already (ids ascend with time): its transform
+            // carries over.
+            let prior = self.handover_prior(&self.segments[id]);
             let seg = self.segments.get_mut(id).expect("listed");
             seg.fixes_used = usize::MAX; // force
-            Self::realign(&cfg, seg, &fixes, &headings);
+            seg.prior_rejected = false;
+            Self::realign(&cfg, seg, &fixes, &headings, prior.as_ref());
         }
         self.last_orientation = None;
         let mut path = vec![];

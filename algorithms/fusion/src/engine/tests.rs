@@ -212,7 +212,8 @@ fn a_compass_resolves_a_collinear_segment() {
 
 #[test]
 fn camera_and_buoy_that_stop_overlapping_request_one_new_local_map() {
-    let cfg = FusionConfig { no_overlap_frames: 5, ..Default::default() };
+    // (Without the handover: this test's segment 1 is not in the body frame where it starts.)
+    let cfg = FusionConfig { no_overlap_frames: 5, handover_max_gap_s: 0.0, ..Default::default() };
     let mut f = Fusion::new(cfg).unwrap();
     for k in 0..300 {
         let t = k as f64 * 0.1;
@@ -237,6 +238,85 @@ fn camera_and_buoy_that_stop_overlapping_request_one_new_local_map() {
     // A new segment starts waiting for its own fixes.
     let out = f.push_pair(pair(32.0, 1, truth_at(32.0), 0.1)).unwrap();
     assert_eq!(out.source, Source::BuoyOnly);
+}
+
+/// A body pose on the lawnmower curve, heading along it, with a small roll and pitch.
+fn body_at(t: f64) -> Isometry3<f64> {
+    let v = truth_at(t + 0.01) - truth_at(t - 0.01);
+    Isometry3::from_parts(
+        Translation3::from(truth_at(t)),
+        UnitQuaternion::from_euler_angles(0.02 * (t / 3.0).sin(), 0.01, v.y.atan2(v.x)),
+    )
+}
+
+/// Pairs of two local maps: the first in frame `world_from_local()` up to `switch_s`, the second
+/// in the body frame at its first stamp (as FastSLAM starts a new local map), fixes every second
+/// from `fixes_from_s` on (buoy σ 0.1 m, exact here).
+fn two_local_maps(
+    cfg: FusionConfig,
+    switch_s: f64,
+    fixes_from_s: f64,
+    fix_offset: Vector3<f64>,
+) -> (Fusion, Vec<FusedOutput>) {
+    let mut f = Fusion::new(cfg).unwrap();
+    let mut outs = vec![];
+    let origin2 = body_at(switch_s);
+    for k in 0..400 {
+        let t = k as f64 * 0.1;
+        if k % 10 == 0 && t >= fixes_from_s {
+            let offset = if t >= switch_s { fix_offset } else { Vector3::zeros() };
+            f.push_fix(FixInput {
+                t_s: t,
+                position_m: truth_at(t) + offset,
+                covariance_m2: Matrix3::identity() * 0.01,
+            })
+            .unwrap();
+        }
+        let (segment, frame) = if t < switch_s - 1e-9 { (0, world_from_local()) } else { (1, origin2) };
+        let mut p = pair(t, segment, truth_at(t), 0.1);
+        p.local_from_body = frame.inverse() * body_at(t);
+        outs.push(f.push_pair(p).unwrap());
+    }
+    (f, outs)
+}
+
+#[test]
+fn a_new_local_map_starts_from_the_previous_transform_and_the_fixes_refine_it() {
+    let (f, outs) = two_local_maps(FusionConfig::default(), 20.0, 0.0, Vector3::zeros());
+    let seg = f.segment(1).unwrap();
+    let h = seg.handover.as_ref().expect("a handover");
+    assert_eq!(h.from, 0);
+    // Its first pose is mapped by the carried transform (no buoy-only pose, no wait for fixes):
+    // position and attitude as the truth's.
+    let first = outs.iter().find(|o| o.segment == 1).unwrap();
+    assert_ne!(first.source, Source::BuoyOnly);
+    assert!((first.world_from_body.translation.vector - truth_at(20.0)).norm() < 0.05, "{first:?}");
+    assert!(first.world_from_body.rotation.angle_to(&body_at(20.0).rotation) < 0.01);
+    assert!(outs.iter().filter(|o| o.segment == 1).all(|o| o.source != Source::BuoyOnly));
+    assert!(matches!(seg.status, SegmentStatus::AlignedWithPrior { fixes } if fixes > 10), "{:?}", seg.status);
+    assert!(seg.alignment.unwrap().global_from_local.rotation.angle_to(&body_at(20.0).rotation) < 0.01);
+    // A predicted pose of a map not seen yet is carried over too.
+    let (g, _) = two_local_maps(FusionConfig::default(), 40.0, 0.0, Vector3::zeros());
+    let mut p = pair(40.0, 1, truth_at(40.0), 0.1);
+    p.local_from_body = Isometry3::identity();
+    let predicted = g.predict_pair(&p).unwrap();
+    assert_ne!(predicted.source, Source::BuoyOnly);
+    assert!((predicted.world_from_body.translation.vector - truth_at(40.0)).norm() < 0.05, "{predicted:?}");
+    // Off: the new map waits for its own fixes, buoy only meanwhile.
+    let (_, outs) =
+        two_local_maps(FusionConfig { handover_max_gap_s: 0.0, ..Default::default() }, 20.0, 0.0, Vector3::zeros());
+    assert_eq!(outs.iter().find(|o| o.segment == 1).unwrap().source, Source::BuoyOnly);
+}
+
+#[test]
+fn fixes_that_disagree_with_the_carried_transform_replace_it() {
+    // After the switch the fixes read 3 m off (σ 0.1 m): not what the carried transform says.
+    let (f, _) = two_local_maps(FusionConfig::default(), 20.0, 0.0, Vector3::new(3.0, 0.0, 0.0));
+    let seg = f.segment(1).unwrap();
+    assert!(seg.prior_rejected);
+    assert_eq!(seg.status, SegmentStatus::Aligned);
+    let t = seg.alignment.unwrap().global_from_local.translation.vector;
+    assert!((t - (body_at(20.0).translation.vector + Vector3::new(3.0, 0.0, 0.0))).norm() < 0.1, "{t}");
 }
 
 #[test]

@@ -173,6 +173,8 @@ fn write_segment_transforms(out_dir: &Path, engine: &Fusion) -> Result<usize, St
                 "pairs": a.map(|a| a.pairs),
                 "rms_residual_m": a.map(|a| a.rms_residual_m),
                 "spread_ratio": a.map(|a| a.spread_ratio),
+                "handed_over_from": s.handover.as_ref().map(|h| h.from),
+                "prior_rejected": s.prior_rejected,
             })
         })
         .collect();
@@ -254,6 +256,8 @@ pub fn write_outputs(
             final_: final_sources,
             segments,
             segments_aligned: engine.segments().filter(|s| s.alignment.is_some()).count(),
+            segments_handed_over: engine.segments().filter(|s| s.handover.is_some()).count(),
+            priors_rejected: engine.segments().filter(|s| s.prior_rejected).count(),
             new_local_maps_requested: log.segment_requests,
             global_landmarks: result.global_map.len(),
             global_landmarks_merged: merged,

@@ -167,6 +167,13 @@ impl FusionStage {
             // Log changes of kind (waiting, degenerate, aligned), not every new fix count.
             let kind = std::mem::discriminant(&seg.status);
             if self.statuses.get(&out.segment) != Some(&kind) {
+                if seg.prior_rejected {
+                    tracing::warn!(
+                        segment = out.segment,
+                        "the fixes disagree with the transform carried over from the previous local map (or with \
+                         the compass's level frame): aligned with the fixes alone"
+                    );
+                }
                 tracing::info!(segment = out.segment, "local map: {:?}", seg.status);
                 self.statuses.insert(out.segment, kind);
             }

@@ -36,6 +36,13 @@ pub struct FusionSummary {
     pub segments: usize,
     /// Local maps aligned to the world.
     pub segments_aligned: usize,
+    /// Local maps whose transform started from the previous one's, carried over to where they
+    /// began (`handover_max_gap_s`).
+    pub segments_handed_over: usize,
+    /// Of those, the local maps whose fixes disagreed with the carried transform (χ²₆ above
+    /// 0.999), aligned with their fixes alone (and local maps whose fixes disagreed with the
+    /// compass's level prior).
+    pub priors_rejected: usize,
     /// New local maps fusion asked SLAM for.
     pub new_local_maps_requested: u64,
     /// Landmarks in the global map.
