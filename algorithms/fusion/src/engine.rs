@@ -501,6 +501,12 @@ impl Fusion {
             .collect()
     }
 
+    /// The prior a local map's transform started from (its handover's: the previous local map's
+    /// current transform composed with where this one started in it), if it had one.
+    pub fn handover_prior_of(&self, segment: u32) -> Option<Alignment> {
+        self.handover_prior(self.segments.get(&segment)?)
+    }
+
     /// The prior of a segment's transform from its handover: the previous local map's current
     /// transform composed with where this one started in it.
     fn handover_prior(&self, seg: &Segment) -> Option<Alignment> {

@@ -174,6 +174,14 @@ fn write_segment_transforms(out_dir: &Path, engine: &Fusion) -> Result<usize, St
                 "rms_residual_m": a.map(|a| a.rms_residual_m),
                 "spread_ratio": a.map(|a| a.spread_ratio),
                 "handed_over_from": s.handover.as_ref().map(|h| h.from),
+                // The prior's σ: translation (m) and rotation (deg, world x, y, z).
+                "handover_prior_sd": engine.handover_prior_of(s.id).map(|p| {
+                    let sd = |i: usize| p.covariance[(i, i)].max(0.0).sqrt();
+                    serde_json::json!({
+                        "translation_m": [sd(0), sd(1), sd(2)],
+                        "rotation_deg": [sd(3).to_degrees(), sd(4).to_degrees(), sd(5).to_degrees()],
+                    })
+                }),
                 "prior_rejected": s.prior_rejected,
             })
         })
