@@ -259,7 +259,7 @@ pub fn align(pairs: &[Correspondence], cfg: &AlignConfig) -> Result<Alignment, F
 /// the prior's own covariance) disagrees with the fixes; [`align_with_prior`] reports it.
 pub const PRIOR_GATE_CHI2_6: f64 = 22.458;
 
-/// The transform as a maximum a posteriori estimate: a Gaussian prior on it (`prior`: its mean and
+/// The transform as a maximum a posteriori estimate (EQUATIONS §6.3a): a Gaussian prior on it (`prior`: its mean and
 /// 6×6 covariance, [`Alignment::covariance`]'s convention) and the pairs, any number of them,
 /// none included. Gauss–Newton from the prior on
 ///   Σ_i r_iᵀ·S_i⁻¹·r_i + eᵀ·C⁻¹·e,  e = (t − t_p, Log(R·R_pᵀ)),
@@ -313,7 +313,7 @@ pub fn align_with_prior(pairs: &[Correspondence], prior: &Alignment) -> Result<(
     ))
 }
 
-/// `previous` (a segment's transform) composed with `local_from_body`, a pose in that segment's
+/// (EQUATIONS §6.3a) `previous` (a segment's transform) composed with `local_from_body`, a pose in that segment's
 /// frame with its 6×6 covariance over (position, body-frame rotation error): the transform of a
 /// local frame whose origin is that body pose (a new local map started there), with the
 /// covariance of both (first order; [`Alignment::covariance`]'s convention):
