@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use buoy::{BuoyConfig, BuoyEkf, Estimate, Mode, RangeOutcome};
 use geometry::ProcessInput;
-use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
 use pipeline_runtime::Validate;
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
@@ -139,6 +139,25 @@ struct PendingRanges {
     received: Instant,
 }
 
+/// One estimate of the filter, in the world frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrajectorySample {
+    /// Stamp, s.
+    pub t_s: f64,
+    /// Position, m.
+    pub position_m: Vector3<f64>,
+    /// Heading, rad, once known.
+    pub heading_rad: Option<f64>,
+    /// Covariance of the position, m².
+    pub covariance_m2: Matrix3<f64>,
+}
+
+impl TrajectorySample {
+    fn of(t_s: f64, e: &buoy::Estimate) -> Self {
+        Self { t_s, position_m: e.position_m, heading_rad: e.heading_rad, covariance_m2: e.covariance_m2 }
+    }
+}
+
 /// The process state around the estimator: input ordering, the trajectory and counters.
 pub struct BuoyState {
     settings: BuoyEkfSettings,
@@ -157,9 +176,9 @@ pub struct BuoyState {
     /// Every odometry input applied, with its stamp (for dead reckoning).
     pub inputs: Vec<(f64, ProcessInput)>,
     /// The estimate after every odometry input and every ranges message once initialised:
-    /// (t, position, heading if known). Fixes are published at the buoy rate only; this is the
-    /// filter's estimate at every time it has one (the ATE and `buoy_ekf.tum`).
-    pub trajectory: Vec<(f64, Vector3<f64>, Option<f64>)>,
+    /// Fixes are published at the buoy rate only; this is the filter's estimate at every time it
+    /// has one (the ATE, the NEES and `buoy_ekf.tum`).
+    pub trajectory: Vec<TrajectorySample>,
     /// Messages or values rejected before the filter (NaN, out of order), by reason.
     pub invalid: std::collections::BTreeMap<String, u64>,
     /// Errors the filter returned (unknown buoy, non-finite, not positive definite), by message.
@@ -378,7 +397,7 @@ impl BuoyState {
     /// Records the estimate at `t` (after an odometry input, once initialised) in the trajectory.
     fn record(&mut self, t: f64) {
         if let Some(Ok(e)) = self.ekf.as_ref().filter(|e| e.is_initialised()).map(|e| e.estimate()) {
-            self.trajectory.push((t, e.position_m, e.heading_rad));
+            self.trajectory.push(TrajectorySample::of(t, &e));
         }
     }
 
@@ -531,7 +550,7 @@ impl BuoyState {
         }
         match estimate? {
             Ok(estimate) => {
-                self.trajectory.push((t, estimate.position_m, estimate.heading_rad));
+                self.trajectory.push(TrajectorySample::of(t, &estimate));
                 Some(Fix { stamp_ns: r.stamp_ns, origin_ns: r.origin_ns, estimate, used, rejected })
             }
             Err(e) => {

@@ -11,9 +11,9 @@ use pipeline_runtime::{Input, Output, ProcessContext, Restart, Runtime, Wake};
 use shared_types::services::{BUOY_FIX, BUOY_RANGES, DEPTH, ODOMETRY};
 use shared_types::*;
 
-use crate::summary::{BuoyAte, BuoyEkfPart, BuoyEkfSummary, PerBuoy, RangeBias, RejectedShare};
+use crate::summary::{BuoyAte, BuoyEkfPart, BuoyEkfSummary, BuoyNees, BuoyNeesPart, PerBuoy, RangeBias, RejectedShare};
 use crate::{BuoyEkfSettings, BuoyState, fix_pose};
-use geometry::trajectory::{ate_nearest, dead_reckoning};
+use geometry::trajectory::{ate_nearest, dead_reckoning, position_nees};
 use pipeline_runtime::summary::finite;
 
 /// The `buoy_ekf` stage.
@@ -141,7 +141,7 @@ fn summary(
         );
     }
     let planar = settings.ekf.mode == Mode::Planar;
-    let poses: Vec<_> = st.trajectory.iter().map(|(t, p, h)| (*t, fix_pose(p, *h))).collect();
+    let poses: Vec<_> = st.trajectory.iter().map(|s| (s.t_s, fix_pose(&s.position_m, s.heading_rad))).collect();
     geometry::tum::write_tum(&out_dir.join("buoy_ekf.tum"), poses.iter().map(|(t, p)| (*t, p)))?;
     let counters = st.ekf().map(|e| e.counters().clone()).unwrap_or_default();
     let estimate = st.ekf().filter(|e| e.is_initialised()).and_then(|e| e.estimate().ok());
@@ -189,13 +189,48 @@ fn summary(
             filter_errors: st.filter_errors.clone(),
         },
         ate_m: None,
+        nees: None,
     };
     let gt_path = out_dir.join(&settings.ground_truth);
     match geometry::tum::read_tum(&gt_path) {
         Ok(truth) if !truth.is_empty() => {
             let truth_p: Vec<(f64, Vector3<f64>)> = truth.iter().map(|(t, p)| (*t, p.translation.vector)).collect();
-            let est: Vec<(f64, Vector3<f64>)> = st.trajectory.iter().map(|(t, p, _)| (*t, *p)).collect();
+            let est: Vec<(f64, Vector3<f64>)> = st.trajectory.iter().map(|s| (s.t_s, s.position_m)).collect();
             let ate = ate_nearest(&est, &truth_p, planar);
+            // The covariance's consistency: the truth interpolated to each estimate's stamp
+            // between rows at most 1 s apart on either side.
+            let with_cov: Vec<_> = st.trajectory.iter().map(|s| (s.t_s, s.position_m, s.covariance_m2)).collect();
+            if let Some(n) = position_nees(&with_cov, &truth_p, planar, 1.0) {
+                tracing::info!(
+                    "position NEES {:.2} over {} estimates ({} degrees of freedom; per axis x, y, z {:.2}, {:.2}, {:.2}; consistent within [{:.2}, {:.2}] at 95 %: {})",
+                    n.mean,
+                    n.samples,
+                    n.dof,
+                    n.per_axis[0],
+                    n.per_axis[1],
+                    n.per_axis[2],
+                    n.interval_95.0,
+                    n.interval_95.1,
+                    if n.consistent() {
+                        "yes"
+                    } else if n.mean < n.interval_95.0 {
+                        "no, the covariance is too large"
+                    } else {
+                        "no, the covariance is too small"
+                    }
+                );
+                part.nees = Some(BuoyNeesPart {
+                    buoy_ekf: BuoyNees {
+                        position: finite(n.mean),
+                        dof: n.dof,
+                        samples: n.samples,
+                        per_axis: n.per_axis,
+                        skipped: n.skipped,
+                        interval_95: [n.interval_95.0, n.interval_95.1],
+                        consistent: n.consistent(),
+                    },
+                });
+            }
             let mut ates = BuoyAte { buoy_ekf: finite(ate), dead_reckoning: None };
             if let Some((t0, u0)) = st.inputs.first() {
                 // Dead reckoning from the ground-truth pose at the start of the first input.

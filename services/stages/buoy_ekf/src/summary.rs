@@ -1,5 +1,6 @@
 //! The buoy EKF's part of summary.json (`buoy_ekf`, and `ate_m.buoy_ekf`,
-//! `ate_m.dead_reckoning` when a ground truth is there), described in docs/summary.schema.json.
+//! `ate_m.dead_reckoning` and `nees.buoy_ekf` when a ground truth is there), described in
+//! docs/summary.schema.json.
 
 use std::collections::BTreeMap;
 
@@ -14,6 +15,36 @@ pub struct BuoyEkfPart {
     /// Accuracy against the ground truth (when the source wrote one).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ate_m: Option<BuoyAte>,
+    /// Consistency of the covariance against the ground truth (when the source wrote one).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nees: Option<BuoyNeesPart>,
+}
+
+/// `nees`: what the buoy EKF adds to it.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+pub struct BuoyNeesPart {
+    /// The position's NEES over the filter's estimates.
+    pub buoy_ekf: BuoyNees,
+}
+
+/// `nees.buoy_ekf`: the mean position NEES of the filter's estimates against the ground truth
+/// (docs/EQUATIONS.md §8a), with Bar-Shalom's 95 % interval for that mean.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+pub struct BuoyNees {
+    /// Mean NEES of the position (`dof` when consistent).
+    pub position: Option<f64>,
+    /// Degrees of freedom of one sample: 3, or 2 in planar mode (x and y).
+    pub dof: usize,
+    /// Estimates scored.
+    pub samples: usize,
+    /// Mean of eₖ² / Pₖₖ per axis, [x, y, z] (1 each when consistent; z is 0 in planar mode).
+    pub per_axis: [f64; 3],
+    /// Estimates not scored (outside the ground truth, or a covariance not positive definite).
+    pub skipped: usize,
+    /// The 95 % interval of the mean for a consistent filter, [low, high].
+    pub interval_95: [f64; 2],
+    /// Whether the mean lies in the interval (below: covariances too large; above: too small).
+    pub consistent: bool,
 }
 
 /// `buoy_ekf`: fixes, ranges taken and refused, calibration.
