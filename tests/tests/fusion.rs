@@ -59,6 +59,16 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     assert!(fused <= 1.02 * fused_ate.slam_global.unwrap(), "{ate:#}");
     let nees = slam_part.nees.as_ref().and_then(|n| n.slam_position);
     assert!(nees.is_some_and(|n| (0.2158..=9.3484).contains(&n)), "honest SLAM covariance: {:#}", s["nees"]);
+    // The final path's covariance no more optimistic than the buoy EKF's that it rests on: the
+    // fixes' correlation in time accounted for (docs/EQUATIONS.md §5.3; 39 without, 5.1 with,
+    // against the buoy EKF's 5.7 on 2026-12-07). Neither is consistent yet (3 when it is).
+    let fused_nees = fusion_part.nees.as_ref().and_then(|n| n.fused.as_ref()).and_then(|n| n.position);
+    let buoy_nees = buoy_part.nees.as_ref().and_then(|n| n.buoy_ekf.position).expect("buoy EKF NEES");
+    assert!(
+        fused_nees.is_some_and(|n| n <= 1.2 * buoy_nees),
+        "final path NEES against the buoy EKF's: {:#}",
+        s["nees"]
+    );
     let f = &fusion_part.fusion;
     assert_eq!(f.poses, slam_part.slam.frames, "one global pose per SLAM pose: {f:#?}");
     assert!(f.segments_aligned >= 1, "{f:#?}");

@@ -36,7 +36,8 @@ use crate::align::{
     compose_prior,
 };
 use crate::bspline::{LocalPathSpline, PathSample};
-use crate::fuse::{FuseOutcome, chi2_3_quantile, fuse};
+use crate::correlation::FixCorrelation;
+use crate::fuse::{CorrelatedErrors, FuseOutcome, chi2_3_quantile, fuse, fuse_correlated};
 use crate::global_map::{GlobalLandmark, MapLandmark, MergeConfig, build_global_map};
 use validation::{ConfigIssue, Issues, Validate};
 
@@ -292,6 +293,8 @@ pub struct FinalResult {
     pub slam_world: Vec<(f64, Isometry3<f64>)>,
     /// The global landmark map.
     pub global_map: Vec<GlobalLandmark>,
+    /// The buoy fixes' error autocorrelation the final path's covariances account for.
+    pub fix_correlation: FixCorrelation,
 }
 
 fn finite3(v: &Vector3<f64>) -> bool {
@@ -601,11 +604,14 @@ impl Fusion {
 
     /// The global pose of one pair with the segment's current transform (no side effects).
     fn pose_of(&self, p: &PairInput, alignment: Option<&Alignment>, excess_cov_m2: &Matrix3<f64>) -> FusedOutput {
-        self.pose_of_with(p, alignment, excess_cov_m2, None, &Matrix3::zeros())
+        self.pose_of_with(p, alignment, excess_cov_m2, None, &Matrix3::zeros(), None)
     }
 
     /// [`Fusion::pose_of`] with the local position's covariance replaced (a local alignment
-    /// removes the drift before the window: only the drift within it is left).
+    /// removes the drift before the window: only the drift within it is left), the buoy's
+    /// widened by `buoy_extra_cov_m2`, and, with `correlated`, the buoy fixes' errors correlated
+    /// in time: the transform's covariance as the weights take it is the least-squares one, the
+    /// pose's reported covariance that of its real errors ([`Correlated`], [`fuse_correlated`]).
     fn pose_of_with(
         &self,
         p: &PairInput,
@@ -613,6 +619,7 @@ impl Fusion {
         excess_cov_m2: &Matrix3<f64>,
         local_cov_override: Option<Matrix3<f64>>,
         buoy_extra_cov_m2: &Matrix3<f64>,
+        correlated: Option<Correlated>,
     ) -> FusedOutput {
         let local_pos = p.local_from_body.translation.vector;
         let local_cov3: Matrix3<f64> =
@@ -622,17 +629,31 @@ impl Fusion {
             Some(a) => {
                 let (x_c, p_c) = a.map_point(&local_pos, &local_cov3);
                 let p_c = p_c + excess_cov_m2;
+                // The transform's covariance for the errors the pose really has.
+                let mut honest = *a;
+                honest.covariance *= correlated.map_or(1.0, |c| c.inflation);
+                let camera_cov_m2 = honest.map_point(&local_pos, &local_cov3).1 + excess_cov_m2;
                 let rotation = a.global_from_local.rotation * p.local_from_body.rotation;
                 let rot_cov = p.local_covariance.fixed_view::<3, 3>(3, 3).into_owned()
-                    + body_rotation_cov(&rotation, &a.covariance.fixed_view::<3, 3>(3, 3).into_owned());
+                    + body_rotation_cov(&rotation, &honest.covariance.fixed_view::<3, 3>(3, 3).into_owned());
                 cov.fixed_view_mut::<3, 3>(3, 3).copy_from(&rot_cov);
                 let buoy_cov = p.buoy_cov_m2 + buoy_extra_cov_m2;
-                let (position, pos_cov, source, m) = match fuse(&x_c, &p_c, &p.buoy_m, &buoy_cov, self.gate_chi2) {
+                let fused = match correlated {
+                    Some(c) => {
+                        let cross_cov_m2 = joint_cross_covariance(&camera_cov_m2, &buoy_cov, c.buoy_share);
+                        let errors = CorrelatedErrors { camera_cov_m2, cross_cov_m2 };
+                        fuse_correlated(&x_c, &p_c, &p.buoy_m, &buoy_cov, &errors, self.gate_chi2)
+                    }
+                    None => fuse(&x_c, &p_c, &p.buoy_m, &buoy_cov, self.gate_chi2),
+                };
+                let (position, pos_cov, source, m) = match fused {
                     Ok(FuseOutcome::Fused { position_m, covariance_m2, mahalanobis }) => {
                         (position_m, covariance_m2, Source::Fused, Some(mahalanobis))
                     }
-                    Ok(FuseOutcome::NoOverlap { mahalanobis }) => (x_c, p_c, Source::CameraOnly, Some(mahalanobis)),
-                    Err(_) => (x_c, p_c, Source::CameraOnly, None),
+                    Ok(FuseOutcome::NoOverlap { mahalanobis }) => {
+                        (x_c, camera_cov_m2, Source::CameraOnly, Some(mahalanobis))
+                    }
+                    Err(_) => (x_c, camera_cov_m2, Source::CameraOnly, None),
                 };
                 cov.fixed_view_mut::<3, 3>(0, 0).copy_from(&pos_cov);
                 FusedOutput {
@@ -811,14 +832,27 @@ impl Fusion {
         self.last_orientation = None;
         let mut path = vec![];
         let mut slam_world = vec![];
+        // How correlated the fixes' errors are, from the whole local maps' residuals: what a
+        // window's transform and its buoy fix share (docs/EQUATIONS.md §5.3).
+        let residuals: Vec<Vec<Vector3<f64>>> =
+            ids.iter().filter_map(|id| self.local_aligner(&self.segments[id])).map(|l| l.residuals()).collect();
+        let corr = FixCorrelation::from_residuals(residuals.iter().map(Vec::as_slice), MAX_CORRELATION_LAG);
         for id in &ids {
             let seg = &self.segments[id];
             let local = self.local_aligner(seg);
             for p in &seg.pairs {
-                let (out, a) = match local.as_ref().and_then(|l| l.at(p, &self.cfg.align)) {
-                    Some((a, buoy_extra, local_cov)) => {
-                        (self.pose_of_with(p, Some(&a), &Matrix3::zeros(), Some(local_cov), &buoy_extra), Some(a))
-                    }
+                let (out, a) = match local.as_ref().and_then(|l| l.at(p, &self.cfg.align, &corr)) {
+                    Some(LocalFit { alignment: a, buoy_extra_cov_m2, local_cov_m2, correlated }) => (
+                        self.pose_of_with(
+                            p,
+                            Some(&a),
+                            &Matrix3::zeros(),
+                            Some(local_cov_m2),
+                            &buoy_extra_cov_m2,
+                            Some(correlated),
+                        ),
+                        Some(a),
+                    ),
                     None => (self.pose_of(p, seg.alignment.as_ref(), &seg.excess_cov_m2), seg.alignment),
                 };
                 if let Some(a) = a {
@@ -839,8 +873,23 @@ impl Fusion {
             .filter(|(_, l)| !l.is_empty())
             .collect();
         let global_map = build_global_map(&aligned, &self.cfg.merge);
-        FinalResult { path, slam_world, global_map }
+        FinalResult { path, slam_world, global_map, fix_correlation: corr }
     }
+}
+
+/// The cross-covariance P_cb = `share`·P_b between a camera estimate with covariance `p_c` and a
+/// buoy position with covariance `p_b`, capped direction by direction so that a joint covariance
+/// can have it: P_c − P_cb·P_b⁻¹·P_cbᵀ ⪰ 0. In coordinates where P_b is the identity
+/// (P_b = L·Lᵀ), P_c has eigenvalues λᵢ along uᵢ and the cross-covariance is share·I; along each
+/// uᵢ the share is at most √λᵢ (zero when P_b is singular).
+fn joint_cross_covariance(p_c: &Matrix3<f64>, p_b: &Matrix3<f64>, share: f64) -> Matrix3<f64> {
+    let Some(l) = nalgebra::Cholesky::new(*p_b).map(|c| c.l()) else { return Matrix3::zeros() };
+    let Some(l_inv) = l.try_inverse() else { return Matrix3::zeros() };
+    let m = l_inv * p_c * l_inv.transpose();
+    let mut eig = ((m + m.transpose()) * 0.5).symmetric_eigen();
+    // Just inside the bound, so that the difference's covariance stays positive definite.
+    eig.eigenvalues.iter_mut().for_each(|lambda| *lambda = share.clamp(0.0, 1.0).min(0.999 * lambda.max(0.0).sqrt()));
+    l * eig.recompose() * l.transpose()
 }
 
 /// The covariance a local path position brings into an alignment. The SLAM covariance grows
@@ -860,13 +909,50 @@ struct LocalAligner<'a> {
     window_s: f64,
 }
 
+/// Longest lag, in fixes, of the fixes' error autocorrelation ([`FixCorrelation`]).
+const MAX_CORRELATION_LAG: usize = 60;
+
+/// What the buoy fixes' correlation in time does to a pose mapped with a window's transform
+/// (docs/EQUATIONS.md §5.3).
+#[derive(Debug, Clone, Copy)]
+struct Correlated {
+    /// How much larger the transform's covariance is than the least-squares fit's, which takes
+    /// the fixes as independent ([`FixCorrelation::mean_inflation`]).
+    inflation: f64,
+    /// The correlation of the pose's buoy position with the window's mean fix, as a share of its
+    /// covariance ([`FixCorrelation::with_mean`]).
+    buoy_share: f64,
+}
+
+/// A window's transform for one pose ([`LocalAligner::at`]).
+struct LocalFit {
+    /// The transform fitted to the window's fixes (the least-squares covariance).
+    alignment: Alignment,
+    /// What the residuals show beyond the fixes' covariance, added to the buoy's, m².
+    buoy_extra_cov_m2: Matrix3<f64>,
+    /// The local position's covariance within the window, m².
+    local_cov_m2: Matrix3<f64>,
+    /// The fixes' correlation's effect on the pose.
+    correlated: Correlated,
+}
+
 impl LocalAligner<'_> {
+    /// The residuals g − T·l of the segment's transform at every fix inside it, in time order.
+    fn residuals(&self) -> Vec<Vector3<f64>> {
+        let Some(a) = self.seg.alignment.as_ref() else { return vec![] };
+        self.pairs
+            .iter()
+            .map(|(_, c)| c.global_m - a.global_from_local.transform_point(&c.local_m.into()).coords)
+            .collect()
+    }
+
     /// The transform, the fixes' extra covariance and the local-position covariance for pose
-    /// `p`: fitted to
-    /// the fixes within the window around it; a window too straight for a rotation keeps the
-    /// segment's rotation and fits the translation; `None` (the segment's transform then) with
-    /// fewer than 7 fixes in the window.
-    fn at(&self, p: &PairInput, cfg: &AlignConfig) -> Option<(Alignment, Matrix3<f64>, Matrix3<f64>)> {
+    /// `p`: fitted to the fixes within the window around it; a window too straight for a
+    /// rotation keeps the segment's rotation and fits the translation; `None` (the segment's
+    /// transform then) with fewer than 7 fixes in the window. The fixes' errors correlate in time
+    /// (`corr`): the transform's covariance is that of a mean of fewer independent fixes, and the
+    /// pose's own buoy position shares part of its error.
+    fn at(&self, p: &PairInput, cfg: &AlignConfig, corr: &FixCorrelation) -> Option<LocalFit> {
         let seg_a = self.seg.alignment.as_ref()?;
         let w = self.window_s;
         let a = self.pairs.partition_point(|(t, _)| *t < p.t_s - w);
@@ -902,7 +988,18 @@ impl LocalAligner<'_> {
         let mut local = local;
         let scale = (chi2 / (dof - 6.0).max(1.0)).max(1.0);
         local.covariance *= scale;
-        Some((local, excess, rel))
+        // Where the pose lies among the window's fixes (fractional index), for its buoy
+        // position's share of the window's mean error.
+        let times = &self.pairs[a..b];
+        let k = times.partition_point(|(t, _)| *t <= p.t_s);
+        let at = match (k.checked_sub(1).map(|i| times[i].0), times.get(k).map(|x| x.0)) {
+            (Some(t0), Some(t1)) if t1 > t0 => (k - 1) as f64 + (p.t_s - t0) / (t1 - t0),
+            (Some(_), _) => (k - 1) as f64,
+            _ => 0.0,
+        };
+        let correlated =
+            Correlated { inflation: corr.mean_inflation(window.len()), buoy_share: corr.with_mean(window.len(), at) };
+        Some(LocalFit { alignment: local, buoy_extra_cov_m2: excess, local_cov_m2: rel, correlated })
     }
 }
 

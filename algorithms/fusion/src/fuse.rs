@@ -64,6 +64,70 @@ pub fn fuse(
     }
 }
 
+/// How the camera and buoy errors really behave, for [`fuse_correlated`]: the camera estimate's
+/// error covariance and its cross-covariance with the buoy's, E[e_c·e_bᵀ].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CorrelatedErrors {
+    /// The camera estimate's error covariance, m² (global frame).
+    pub camera_cov_m2: Matrix3<f64>,
+    /// E[e_c·e_bᵀ], m².
+    pub cross_cov_m2: Matrix3<f64>,
+}
+
+/// Eq 31's estimate, its weights from `p_camera_m2` and `p_buoy_m2` as [`fuse`] takes them,
+/// with the covariance it has when the errors behave as `errors` says (docs/EQUATIONS.md §5.3):
+/// with K = P_c·(P_c + P_b)⁻¹, X = X_c + K·(X_b − X_c) and
+///   P = (I − K)·P̃_c·(I − K)ᵀ + K·P_b·Kᵀ + (I − K)·P_cb·Kᵀ + K·P_cbᵀ·(I − K)ᵀ
+/// (P̃_c = `errors.camera_cov_m2`, P_cb = `errors.cross_cov_m2`), gated on the difference against
+/// its own covariance, d² = (X_b − X_c)ᵀ·(P̃_c + P_b − P_cb − P_cbᵀ)⁻¹·(X_b − X_c). With
+/// P̃_c = P_c and P_cb = 0 this is eq 31-32 ([`fuse`]).
+///
+/// The weights stay the paper's: on the simulated mission the gain that is optimal for the
+/// correlation model (Bar-Shalom & Campo 1986) was measured and trusted the buoy more, for a
+/// larger error than eq 31's (docs/fusion.md, "Covariances").
+///
+/// Errors as [`fuse`]'s, and [`FusionError::NotPositiveDefinite`] when the covariance of the
+/// difference is not positive definite (no joint covariance has that cross-covariance).
+pub fn fuse_correlated(
+    x_camera_m: &Vector3<f64>,
+    p_camera_m2: &Matrix3<f64>,
+    x_buoy_m: &Vector3<f64>,
+    p_buoy_m2: &Matrix3<f64>,
+    errors: &CorrelatedErrors,
+    gate_chi2: f64,
+) -> Result<FuseOutcome, FusionError> {
+    if gate_chi2.is_nan() || gate_chi2 < 0.0 {
+        return Err(FusionError::InvalidArgument("gate_chi2 must be >= 0"));
+    }
+    if !(x_camera_m.iter().all(|v| v.is_finite()) && x_buoy_m.iter().all(|v| v.is_finite())) {
+        return Err(FusionError::NonFinite("camera or buoy position"));
+    }
+    if !errors.cross_cov_m2.iter().all(|v| v.is_finite()) {
+        return Err(FusionError::NonFinite("cross-covariance"));
+    }
+    let p_c = check_covariance("camera covariance", p_camera_m2)?;
+    let p_b = check_covariance("buoy covariance", p_buoy_m2)?;
+    let p_c_true = check_covariance("camera error covariance", &errors.camera_cov_m2)?;
+    let p_cb = errors.cross_cov_m2;
+    let s_diff = symmetrise(&(p_c_true + p_b - p_cb - p_cb.transpose()));
+    let chol = Cholesky::new(s_diff).ok_or(FusionError::NotPositiveDefinite("covariance of the difference"))?;
+    let diff = x_buoy_m - x_camera_m;
+    let d2 = diff.dot(&chol.solve(&diff));
+    if d2 > gate_chi2 {
+        return Ok(FuseOutcome::NoOverlap { mahalanobis: d2 });
+    }
+    // K = P_c·S⁻¹ = (S⁻¹·P_c)ᵀ (both symmetric).
+    let k = Cholesky::new(p_c + p_b)
+        .ok_or(FusionError::NotPositiveDefinite("sum of the covariances"))?
+        .solve(&p_c)
+        .transpose();
+    let x = x_camera_m + k * diff;
+    let i_k = Matrix3::identity() - k;
+    let cross = i_k * p_cb * k.transpose();
+    let p = i_k * p_c_true * i_k.transpose() + k * p_b * k.transpose() + cross + cross.transpose();
+    Ok(FuseOutcome::Fused { position_m: x, covariance_m2: symmetrise(&p), mahalanobis: d2 })
+}
+
 /// Eq 31-32 on inputs already checked (finite, symmetric PSD): (X_v, P_v, d²). The sum of the two
 /// covariances must be positive definite.
 pub(crate) fn fuse_unchecked(
@@ -190,6 +254,71 @@ mod tests {
             FuseOutcome::Fused { position_m, covariance_m2, mahalanobis } => (position_m, covariance_m2, mahalanobis),
             FuseOutcome::NoOverlap { mahalanobis } => panic!("not fused, d² = {mahalanobis}"),
         }
+    }
+
+    #[test]
+    fn correlated_fusion_keeps_eq_31s_estimate_and_reports_its_covariance() {
+        let (x_c, x_b) = (Vector3::new(1.0, 2.0, -3.0), Vector3::new(1.3, 1.8, -3.1));
+        let p_c = Matrix3::new(0.04, 0.01, 0.0, 0.01, 0.05, 0.0, 0.0, 0.0, 0.02);
+        let p_b = Matrix3::from_diagonal(&Vector3::new(0.09, 0.06, 0.01));
+        let a = fused(fuse(&x_c, &p_c, &x_b, &p_b, f64::INFINITY).unwrap());
+        let independent = CorrelatedErrors { camera_cov_m2: p_c, cross_cov_m2: Matrix3::zeros() };
+        let b = fused(fuse_correlated(&x_c, &p_c, &x_b, &p_b, &independent, f64::INFINITY).unwrap());
+        assert!((a.0 - b.0).norm() < 1e-12 && (a.1 - b.1).norm() < 1e-12 && (a.2 - b.2).abs() < 1e-9);
+        // Errors that move together: the same estimate, a larger covariance than eq 32's.
+        let together = CorrelatedErrors { camera_cov_m2: p_c, cross_cov_m2: p_c * 0.5 };
+        let (x, p, _) = fused(fuse_correlated(&x_c, &p_c, &x_b, &p_b, &together, f64::INFINITY).unwrap());
+        assert!((x - a.0).norm() < 1e-12 && p.trace() > a.1.trace(), "{p} against {}", a.1);
+        // Fully correlated equal estimates gain nothing from fusing.
+        let same = CorrelatedErrors { camera_cov_m2: p_b, cross_cov_m2: p_b * (1.0 - 1e-9) };
+        let (_, p, _) = fused(fuse_correlated(&x_c, &p_b, &x_b, &p_b, &same, f64::INFINITY).unwrap());
+        assert!((p - p_b).norm() < 1e-6, "{p}");
+        // A cross-covariance no joint covariance can have is refused.
+        let impossible = CorrelatedErrors { camera_cov_m2: p_c, cross_cov_m2: p_b * 3.0 };
+        assert!(matches!(
+            fuse_correlated(&x_c, &p_c, &x_b, &p_b, &impossible, f64::INFINITY),
+            Err(FusionError::NotPositiveDefinite(_))
+        ));
+    }
+
+    #[test]
+    fn correlated_fusion_matches_a_monte_carlo_of_correlated_errors() {
+        // e_b ~ N(0, P_b); e_c = 0.6·e_b + n, n ~ N(0, Q): P̃_c = 0.36 P_b + Q, P_cb = 0.6 P_b. The
+        // weights come from a camera covariance taken as 0.2 P_b (too small, as when the fixes
+        // behind a transform are taken as independent).
+        let p_b = Matrix3::from_diagonal(&Vector3::new(0.09, 0.04, 0.01));
+        let q = Matrix3::from_diagonal(&Vector3::new(0.01, 0.02, 0.005));
+        let errors = CorrelatedErrors { camera_cov_m2: p_b * 0.36 + q, cross_cov_m2: p_b * 0.6 };
+        let mut s = 99u64;
+        let mut g = || {
+            let mut u = || {
+                s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                ((s >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+            };
+            let (u1, u2) = (u(), u());
+            (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+        };
+        let (mut sum, n) = (Matrix3::zeros(), 20000);
+        let mut p = Matrix3::zeros();
+        for _ in 0..n {
+            let e_b = Vector3::new(g() * 0.3, g() * 0.2, g() * 0.1);
+            let e_c = e_b * 0.6 + Vector3::new(g() * 0.1, g() * 0.02f64.sqrt(), g() * 0.005f64.sqrt());
+            let (x, pp, _) = fused(fuse_correlated(&e_c, &(p_b * 0.2), &e_b, &p_b, &errors, f64::INFINITY).unwrap());
+            sum += x * x.transpose();
+            p = pp;
+        }
+        let empirical = sum / n as f64;
+        for i in 0..3 {
+            assert!(
+                (empirical[(i, i)] / p[(i, i)] - 1.0).abs() < 0.05,
+                "axis {i}: {} against {}",
+                empirical[(i, i)],
+                p[(i, i)]
+            );
+        }
+        // Taken as independent, eq 32 would report far less than the errors have.
+        let (_, p32, _) = fused(fuse(&Vector3::zeros(), &(p_b * 0.2), &Vector3::zeros(), &p_b, f64::INFINITY).unwrap());
+        assert!(p32[(0, 0)] < 0.6 * empirical[(0, 0)], "{} against {}", p32[(0, 0)], empirical[(0, 0)]);
     }
 
     #[test]

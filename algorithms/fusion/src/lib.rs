@@ -8,6 +8,7 @@
 
 pub mod align;
 pub mod bspline;
+pub mod correlation;
 pub mod engine;
 pub mod error;
 pub mod fuse;

@@ -51,6 +51,60 @@ impl CountedPercentiles {
     }
 }
 
+/// The mean position NEES of an estimator's estimates against the ground truth (`nees.<estimator>`
+/// with a position covariance: docs/EQUATIONS.md §8a), with Bar-Shalom's 95 % interval for that
+/// mean. The estimator computes it (`geometry::trajectory::position_nees`); this is its summary.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+pub struct PositionNees {
+    /// Mean NEES of the position (`dof` when consistent).
+    pub position: Option<f64>,
+    /// Degrees of freedom of one sample: 3, or 2 in planar mode (x and y).
+    pub dof: usize,
+    /// Estimates scored.
+    pub samples: usize,
+    /// Mean of eₖ² / Pₖₖ per axis, [x, y, z] (1 each when consistent; z is 0 in planar mode).
+    pub per_axis: [f64; 3],
+    /// Estimates not scored (outside the ground truth, or a covariance not positive definite).
+    pub skipped: usize,
+    /// The 95 % interval of the mean for a consistent estimator, [low, high].
+    pub interval_95: [f64; 2],
+    /// Whether the mean lies in the interval (below: covariances too large; above: too small).
+    pub consistent: bool,
+}
+
+impl PositionNees {
+    /// From the estimator's numbers: `mean` NEES over `samples` estimates of `dof` degrees of
+    /// freedom each, its `per_axis` means, the estimates `skipped` and the 95 % interval of the
+    /// mean; `consistent` is whether the mean lies in that interval.
+    pub fn new(
+        mean: f64,
+        dof: usize,
+        samples: usize,
+        per_axis: [f64; 3],
+        skipped: usize,
+        interval_95: (f64, f64),
+    ) -> Self {
+        Self {
+            position: finite(mean),
+            dof,
+            samples,
+            per_axis,
+            skipped,
+            interval_95: [interval_95.0, interval_95.1],
+            consistent: mean >= interval_95.0 && mean <= interval_95.1,
+        }
+    }
+
+    /// The verdict in words, for the log: "yes", or which way the covariance is off.
+    pub fn verdict(&self) -> &'static str {
+        match self.position {
+            _ if self.consistent => "yes",
+            Some(m) if m < self.interval_95[0] => "no, the covariance is too large",
+            _ => "no, the covariance is too small",
+        }
+    }
+}
+
 /// Reads a `#[serde(flatten)]` `Option<T>` strictly: `None` when none of `T`'s own keys (its
 /// schema's properties) is there, else `T`, whose errors propagate. serde alone reads a
 /// flattened `Option` whose keys do not fit `T` as `None`, which would hide a broken or renamed

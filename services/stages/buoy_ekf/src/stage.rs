@@ -11,10 +11,10 @@ use pipeline_runtime::{Input, Output, ProcessContext, Restart, Runtime, Wake};
 use shared_types::services::{BUOY_FIX, BUOY_RANGES, DEPTH, ODOMETRY};
 use shared_types::*;
 
-use crate::summary::{BuoyAte, BuoyEkfPart, BuoyEkfSummary, BuoyNees, BuoyNeesPart, PerBuoy, RangeBias, RejectedShare};
+use crate::summary::{BuoyAte, BuoyEkfPart, BuoyEkfSummary, BuoyNeesPart, PerBuoy, RangeBias, RejectedShare};
 use crate::{BuoyEkfSettings, BuoyState, fix_pose};
 use geometry::trajectory::{ate_nearest, dead_reckoning, position_nees};
-use pipeline_runtime::summary::finite;
+use pipeline_runtime::summary::{PositionNees, finite};
 
 /// The `buoy_ekf` stage.
 pub struct BuoyEkfStage {
@@ -201,6 +201,7 @@ fn summary(
             // between rows at most 1 s apart on either side.
             let with_cov: Vec<_> = st.trajectory.iter().map(|s| (s.t_s, s.position_m, s.covariance_m2)).collect();
             if let Some(n) = position_nees(&with_cov, &truth_p, planar, 1.0) {
+                let nees = PositionNees::new(n.mean, n.dof, n.samples, n.per_axis, n.skipped, n.interval_95);
                 tracing::info!(
                     "position NEES {:.2} over {} estimates ({} degrees of freedom; per axis x, y, z {:.2}, {:.2}, {:.2}; consistent within [{:.2}, {:.2}] at 95 %: {})",
                     n.mean,
@@ -211,25 +212,9 @@ fn summary(
                     n.per_axis[2],
                     n.interval_95.0,
                     n.interval_95.1,
-                    if n.consistent() {
-                        "yes"
-                    } else if n.mean < n.interval_95.0 {
-                        "no, the covariance is too large"
-                    } else {
-                        "no, the covariance is too small"
-                    }
+                    nees.verdict()
                 );
-                part.nees = Some(BuoyNeesPart {
-                    buoy_ekf: BuoyNees {
-                        position: finite(n.mean),
-                        dof: n.dof,
-                        samples: n.samples,
-                        per_axis: n.per_axis,
-                        skipped: n.skipped,
-                        interval_95: [n.interval_95.0, n.interval_95.1],
-                        consistent: n.consistent(),
-                    },
-                });
+                part.nees = Some(BuoyNeesPart { buoy_ekf: nees });
             }
             let mut ates = BuoyAte { buoy_ekf: finite(ate), dead_reckoning: None };
             if let Some((t0, u0)) = st.inputs.first() {

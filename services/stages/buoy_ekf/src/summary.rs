@@ -4,6 +4,7 @@
 
 use std::collections::BTreeMap;
 
+use pipeline_runtime::summary::PositionNees;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -24,27 +25,7 @@ pub struct BuoyEkfPart {
 #[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
 pub struct BuoyNeesPart {
     /// The position's NEES over the filter's estimates.
-    pub buoy_ekf: BuoyNees,
-}
-
-/// `nees.buoy_ekf`: the mean position NEES of the filter's estimates against the ground truth
-/// (docs/EQUATIONS.md §8a), with Bar-Shalom's 95 % interval for that mean.
-#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
-pub struct BuoyNees {
-    /// Mean NEES of the position (`dof` when consistent).
-    pub position: Option<f64>,
-    /// Degrees of freedom of one sample: 3, or 2 in planar mode (x and y).
-    pub dof: usize,
-    /// Estimates scored.
-    pub samples: usize,
-    /// Mean of eₖ² / Pₖₖ per axis, [x, y, z] (1 each when consistent; z is 0 in planar mode).
-    pub per_axis: [f64; 3],
-    /// Estimates not scored (outside the ground truth, or a covariance not positive definite).
-    pub skipped: usize,
-    /// The 95 % interval of the mean for a consistent filter, [low, high].
-    pub interval_95: [f64; 2],
-    /// Whether the mean lies in the interval (below: covariances too large; above: too small).
-    pub consistent: bool,
+    pub buoy_ekf: PositionNees,
 }
 
 /// `buoy_ekf`: fixes, ranges taken and refused, calibration.

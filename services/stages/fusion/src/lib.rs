@@ -10,8 +10,8 @@ pub mod journal;
 pub mod stage;
 pub mod summary;
 
-use pipeline_runtime::summary::{CountedPercentiles, finite};
-use summary::{FusedAte, FusedLatency, FusionPart, FusionSummary};
+use pipeline_runtime::summary::{CountedPercentiles, PositionNees, finite};
+use summary::{FusedAte, FusedLatency, FusedNees, FusionPart, FusionSummary};
 
 use fusion::engine::{FinalResult, FixInput, Fusion, FusionConfig, PairInput, Source};
 use fusion::global_map::MapLandmark;
@@ -131,6 +131,8 @@ impl SourceCounts {
 pub struct RunLog {
     /// The published (live) fused poses: (t, world_from_body).
     pub live: Vec<(f64, Isometry3<f64>)>,
+    /// The live poses' position covariances (world frame, m²), one per entry of `live`.
+    pub live_position_cov_m2: Vec<Matrix3<f64>>,
     /// The buoy positions synchronised to the SLAM poses: (t, position).
     pub buoy: Vec<(f64, Vector3<f64>)>,
     /// Counts of the live poses.
@@ -271,12 +273,14 @@ pub fn write_outputs(
             global_landmarks_merged: merged,
             invalid_inputs: log.invalid.clone(),
             predicted: log.predicted.len(),
+            fix_error_autocorrelation: result.fix_correlation.rho().to_vec(),
         },
         pipeline_latency_ms: FusedLatency {
             stereo_to_fused_pose: CountedPercentiles::of(&log.stereo_to_fused_ms),
             stereo_to_first_fused_pose: CountedPercentiles::of(&log.stereo_to_first_fused_ms),
         },
         ate_m: None,
+        nees: None,
     };
     let truth = geometry::tum::read_tum(&out_dir.join(&settings.ground_truth));
     let truth = match truth {
@@ -301,6 +305,35 @@ pub fn write_outputs(
         };
         tracing::info!("ATE (3-D, nearest stamp, no alignment): {}", serde_json::to_string(&ates)?);
         part.ate_m = Some(ates);
+        // The covariances' consistency: the truth interpolated to each pose's stamp between rows
+        // at most 1 s apart on either side (docs/EQUATIONS.md §8a).
+        let nees = |est: Vec<(f64, Vector3<f64>, Matrix3<f64>)>, name: &str| {
+            let n = geometry::trajectory::position_nees(&est, &tp, false, 1.0)?;
+            let nees = PositionNees::new(n.mean, n.dof, n.samples, n.per_axis, n.skipped, n.interval_95);
+            tracing::info!(
+                "{name}: position NEES {:.2} over {} poses (per axis x, y, z {:.2}, {:.2}, {:.2}; consistent within [{:.2}, {:.2}] at 95 %: {})",
+                n.mean,
+                n.samples,
+                n.per_axis[0],
+                n.per_axis[1],
+                n.per_axis[2],
+                n.interval_95.0,
+                n.interval_95.1,
+                nees.verdict()
+            );
+            Some(nees)
+        };
+        let live: Vec<_> =
+            log.live.iter().zip(&log.live_position_cov_m2).map(|((t, p), c)| (*t, p.translation.vector, *c)).collect();
+        let path: Vec<_> = result
+            .path
+            .iter()
+            .map(|o| (o.t_s, o.world_from_body.translation.vector, o.covariance.fixed_view::<3, 3>(0, 0).into_owned()))
+            .collect();
+        let (fused_live, fused) = (nees(live, "live fused poses"), nees(path, "final fused path"));
+        if fused_live.is_some() || fused.is_some() {
+            part.nees = Some(FusedNees { fused, fused_live });
+        }
         series_truth = tp.iter().map(|(_, p)| (p.x, p.y)).collect();
     }
     if settings.plot {

@@ -142,6 +142,7 @@ impl FusionStage {
         };
         log.buoy.push((t_s, buoy));
         log.live.push((out.t_s, out.world_from_body));
+        log.live_position_cov_m2.push(out.covariance.fixed_view::<3, 3>(0, 0).into_owned());
         log.live_sources.add(out.source);
         if !was_predicted {
             log.first.push((out.t_s, out.world_from_body));
@@ -255,6 +256,7 @@ impl Stage for FusionStage {
                     if let Ok(out) = engine.push_pair(*p) {
                         log.buoy.push((t_s, buoy));
                         log.live.push((out.t_s, out.world_from_body));
+                        log.live_position_cov_m2.push(out.covariance.fixed_view::<3, 3>(0, 0).into_owned());
                         log.live_sources.add(out.source);
                         log.segment_requests += u64::from(out.request_new_segment);
                     }

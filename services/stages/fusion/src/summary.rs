@@ -3,7 +3,7 @@
 
 use std::collections::BTreeMap;
 
-use pipeline_runtime::summary::CountedPercentiles;
+use pipeline_runtime::summary::{CountedPercentiles, PositionNees};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -19,6 +19,19 @@ pub struct FusionPart {
     /// Accuracy against the ground truth (when the source wrote one).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ate_m: Option<FusedAte>,
+    /// The covariances' consistency against the ground truth (when the source wrote one).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nees: Option<FusedNees>,
+}
+
+/// `nees` (fusion's keys): the mean position NEES of the fused poses against the ground truth,
+/// their position covariance being the upper-left 3×3 block of the published 6×6 (world frame).
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+pub struct FusedNees {
+    /// The final fused path (`fused_global.tum`).
+    pub fused: Option<PositionNees>,
+    /// The fused poses as published live (`fused_live.tum`).
+    pub fused_live: Option<PositionNees>,
 }
 
 /// `fusion`: the fused path, the local maps' alignment, the global map.
@@ -53,6 +66,10 @@ pub struct FusionSummary {
     pub invalid_inputs: BTreeMap<String, u64>,
     /// Predicted poses published (before their pair proper).
     pub predicted: usize,
+    /// The buoy fixes' error autocorrelation by lag in fixes, from the local maps' alignment
+    /// residuals (lag 0 first, then while positive): what the final path's covariances account
+    /// for (docs/EQUATIONS.md §5.3).
+    pub fix_error_autocorrelation: Vec<f64>,
 }
 
 /// `pipeline_latency_ms` (fusion's keys), ms.
