@@ -161,6 +161,12 @@ pub struct MotionConfig {
     /// A prediction between odometry inputs (to a range's stamp) holds the last input's speed
     /// and turn rate for up to this long after it ended; beyond, the constant-velocity model, s.
     pub input_hold_s: f64,
+    /// Odometry from a vehicle that pitches and rolls: the rotation increments are integrated
+    /// into an attitude whose roll and pitch relax to level with this time constant, s, and the
+    /// world yaw increment and the horizontal speed are taken from it
+    /// ([`crate::attitude::LevelledAttitude`]; docs/EQUATIONS.md §5.0). 0 takes the body's z
+    /// increment as the yaw increment and the speed as horizontal (a vehicle that stays level).
+    pub level_time_constant_s: f64,
 }
 
 impl Default for MotionConfig {
@@ -174,6 +180,7 @@ impl Default for MotionConfig {
             turn_bias_prior_sigma_rps: 0.01,
             turn_bias_random_walk_rps_per_sqrt_s: 1e-4,
             input_hold_s: 1.0,
+            level_time_constant_s: 20.0,
         }
     }
 }
@@ -434,6 +441,7 @@ impl Validate for BuoyConfig {
             "must be >= 0",
         );
         issues.check(nonneg(m.input_hold_s), "motion.input_hold_s", "must be >= 0");
+        issues.check(nonneg(m.level_time_constant_s), "motion.level_time_constant_s", "must be >= 0");
         let i = &self.init;
         issues.check(pos(i.window_s), "init.window_s", "must be > 0");
         issues.check(i.min_buoys >= 3, "init.min_buoys", "must be >= 3");

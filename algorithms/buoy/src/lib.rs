@@ -25,6 +25,7 @@
 //! metric); indoor UWB 0.08 m (dead reckoning 0.23 m). What carries Plaza2 is the range scale
 //! state: its ranges read about 7 % long. Without it (global bias only) this filter gets 1.4 m.
 
+pub mod attitude;
 pub mod chi2;
 pub mod config;
 pub mod ekf;

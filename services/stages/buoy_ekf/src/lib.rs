@@ -197,6 +197,9 @@ pub struct BuoyState {
     applied: Vec<Applied>,
     /// Replaying a journal: the log stays quiet (the killed instance said it all already).
     replaying: bool,
+    /// The attitude the odometry's rotation increments build, for the world yaw increment and
+    /// the horizontal speed (`ekf.motion.level_time_constant_s`).
+    attitude: buoy::attitude::LevelledAttitude,
 }
 
 /// Wall time between two warnings that the filter still waits for its initialisation.
@@ -213,7 +216,9 @@ fn stamp_s(ns: u64) -> f64 {
 impl BuoyState {
     /// A new state; the estimator starts at the first message's stamp.
     pub fn new(settings: BuoyEkfSettings) -> Self {
+        let attitude = buoy::attitude::LevelledAttitude::new(settings.ekf.motion.level_time_constant_s);
         Self {
+            attitude,
             settings,
             ekf: None,
             odometry: VecDeque::new(),
@@ -430,11 +435,13 @@ impl BuoyState {
             t,
             ProcessInput { v_mps: u.v_mps, delta_theta_rad: Vector3::from(u.delta_theta_rad), dt_s: u.dt_s },
         ));
+        // The body-frame increments in the filter's planar terms (world yaw, horizontal speed).
+        let planar = self.attitude.step(&Vector3::from(u.delta_theta_rad), u.dt_s);
         let input = buoy::OdometryInput {
             dt_s: u.dt_s,
-            v_mps: u.v_mps,
-            dtheta_rad: u.delta_theta_rad[2],
-            var_v: u.input_covariance[0].max(0.0),
+            v_mps: u.v_mps * planar.horizontal_fraction,
+            dtheta_rad: planar.yaw_increment_rad,
+            var_v: u.input_covariance[0].max(0.0) * planar.horizontal_fraction.powi(2),
             var_dtheta: u.input_covariance[15].max(0.0),
         };
         let result =

@@ -7,7 +7,7 @@
 //! buoy's covariance instead of its own, and the buoy error's autocorrelation against the truth,
 //! to compare with the engine's estimate.
 //!
-//! `cargo run --release -p fusion_stage --example nees_replay -- out/default`
+//! `cargo run --release -p fusion_stage --example fusion_nees_replay -- out/default`
 
 use std::path::PathBuf;
 
