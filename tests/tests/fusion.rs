@@ -69,6 +69,10 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
         "final path NEES against the buoy EKF's: {:#}",
         s["nees"]
     );
+    // The ranges' innovations consistent with their covariance (mean NIS 0.97 in [0.94, 1.07] on
+    // 2026-12-07; 1.10 before the odometry's attitude fix, docs/buoy_ekf.md).
+    let nis = buoy_part.buoy_ekf.range_nis.as_ref().expect("the ranges' NIS");
+    assert!(nis.consistent, "range NIS: {nis:?}");
     let f = &fusion_part.fusion;
     assert_eq!(f.poses, slam_part.slam.frames, "one global pose per SLAM pose: {f:#?}");
     assert!(f.segments_aligned >= 1, "{f:#?}");

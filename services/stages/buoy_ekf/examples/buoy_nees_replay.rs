@@ -1,7 +1,8 @@
 //! Replays a run's buoy EKF journal (`<out>/state/buoy/journal`) into a new filter with the
 //! settings of `[processes.<name>.settings]` in a config (and overrides of its `ekf` keys), and
 //! scores the estimates against `<out>/ground_truth.tum`: the ATE and the mean position NEES
-//! (docs/EQUATIONS.md §8a), overall and by eighths of the run.
+//! (docs/EQUATIONS.md §8a), overall and by eighths of the run, and the mean NIS of the ranges
+//! taken.
 //!
 //! `cargo run --release -p buoy_ekf_stage --example buoy_nees_replay -- out/default config/default.toml
 //! [buoy ['motion = { level_time_constant_s = 10.0 }' ...]] [--truth-attitude]`
@@ -91,7 +92,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         })
         .collect();
     println!(
-        "fixes {fixes} ATE {ate:.3} m NEES {:.2} [{:.2}, {:.2}] x {:.2} y {:.2} z {:.2} eighths {}",
+        "fixes {fixes} ATE {ate:.3} m NEES {:.2} [{:.2}, {:.2}] x {:.2} y {:.2} z {:.2} eighths {} range NIS {:.3} ({} ranges)",
         n.mean,
         n.interval_95.0,
         n.interval_95.1,
@@ -99,6 +100,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         n.per_axis[1],
         n.per_axis[2],
         eighths.join(" "),
+        state.range_nis.0 / state.range_nis.1.max(1) as f64,
+        state.range_nis.1,
     );
     Ok(())
 }

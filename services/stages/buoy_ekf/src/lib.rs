@@ -197,6 +197,9 @@ pub struct BuoyState {
     applied: Vec<Applied>,
     /// Replaying a journal: the log stays quiet (the killed instance said it all already).
     replaying: bool,
+    /// Sum and count of the normalised innovations ν²/S of the ranges the filter took (the NIS
+    /// test, `buoy_ekf.range_nis`).
+    pub range_nis: (f64, u64),
     /// The attitude the odometry's rotation increments build, for the world yaw increment and
     /// the horizontal speed (`ekf.motion.level_time_constant_s`).
     attitude: buoy::attitude::LevelledAttitude,
@@ -219,6 +222,7 @@ impl BuoyState {
         let attitude = buoy::attitude::LevelledAttitude::new(settings.ekf.motion.level_time_constant_s);
         Self {
             attitude,
+            range_nis: (0.0, 0),
             settings,
             ekf: None,
             odometry: VecDeque::new(),
@@ -494,9 +498,17 @@ impl BuoyState {
         let restarts_before = ekf.counters().reinitialisations;
         let switches_before = ekf.counters().outlier_branch_switches;
         let corrections_before = ekf.counters().start_corrections;
+        let mut nis_taken = (0.0, 0u64);
         for b in &r.ranges {
             match ekf.update_range(b.buoy_id, b.range_m, b.sigma_m) {
-                Ok(RangeOutcome::Accepted { .. } | RangeOutcome::Initialised) => used += 1,
+                Ok(RangeOutcome::Accepted { nis, .. }) => {
+                    used += 1;
+                    if nis.is_finite() {
+                        nis_taken.0 += nis;
+                        nis_taken.1 += 1;
+                    }
+                }
+                Ok(RangeOutcome::Initialised) => used += 1,
                 Ok(RangeOutcome::Rejected { .. }) => rejected += 1,
                 Ok(RangeOutcome::Waiting(why)) => {
                     waiting += 1;
@@ -534,6 +546,8 @@ impl BuoyState {
             );
         }
         self.waiting += waiting;
+        self.range_nis.0 += nis_taken.0;
+        self.range_nis.1 += nis_taken.1;
         if reason.is_some() {
             self.waiting_reason = reason;
             self.waiting_since_s.get_or_insert(t);

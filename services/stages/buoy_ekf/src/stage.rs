@@ -11,7 +11,7 @@ use pipeline_runtime::{Input, Output, ProcessContext, Restart, Runtime, Wake};
 use shared_types::services::{BUOY_FIX, BUOY_RANGES, DEPTH, ODOMETRY};
 use shared_types::*;
 
-use crate::summary::{BuoyAte, BuoyEkfPart, BuoyEkfSummary, BuoyNeesPart, PerBuoy, RangeBias, RejectedShare};
+use crate::summary::{BuoyAte, BuoyEkfPart, BuoyEkfSummary, BuoyNeesPart, PerBuoy, RangeBias, RangeNis, RejectedShare};
 use crate::{BuoyEkfSettings, BuoyState, fix_pose};
 use geometry::trajectory::{ate_nearest, dead_reckoning, position_nees};
 use pipeline_runtime::summary::{PositionNees, finite};
@@ -151,6 +151,7 @@ fn summary(
             fixes: fixes_sent,
             trajectory_samples: st.trajectory.len(),
             ranges_accepted: counters.accepted,
+            range_nis: range_nis(st.range_nis),
             ranges_rejected: counters.rejected,
             recoveries: counters.recoveries,
             reinitialisations: counters.reinitialisations,
@@ -238,4 +239,21 @@ fn summary(
         Err(e) => tracing::info!("no accuracy evaluation: {e}"),
     }
     Ok(part)
+}
+
+/// The NIS test of the ranges taken: (sum of ν²/S, count) → mean, interval, verdict.
+fn range_nis((sum, n): (f64, u64)) -> Option<RangeNis> {
+    let (lo, hi) = geometry::stats::mean_chi2_interval(1, usize::try_from(n).ok()?, 0.95)?;
+    let mean = sum / n as f64;
+    tracing::info!(
+        "range NIS {mean:.2} over {n} ranges taken (χ²₁ each: consistent within [{lo:.3}, {hi:.3}] at 95 %: {})",
+        if (lo..=hi).contains(&mean) {
+            "yes"
+        } else if mean < lo {
+            "no, the innovations' covariance is too large"
+        } else {
+            "no, the innovations' covariance is too small"
+        }
+    );
+    Some(RangeNis { mean: finite(mean), samples: n, interval_95: [lo, hi], consistent: (lo..=hi).contains(&mean) })
 }

@@ -28,6 +28,25 @@ pub struct BuoyNeesPart {
     pub buoy_ekf: PositionNees,
 }
 
+/// `buoy_ekf.range_nis`: the mean normalised innovation squared ν²/S of the ranges the filter
+/// took (χ²₁ each when the filter is consistent: mean 1), with Bar-Shalom's 95 % interval for
+/// that mean (docs/EQUATIONS.md §8a). The gate (`range.gate_probability`) leaves out the largest
+/// innovations, which lowers a consistent filter's mean by about 1 − p of the gate's probability
+/// mass beyond it (under 0.01 at 0.999).
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct RangeNis {
+    /// Mean ν²/S over the ranges taken.
+    pub mean: Option<f64>,
+    /// Ranges scored.
+    pub samples: u64,
+    /// The 95 % interval of the mean for a consistent filter, [low, high].
+    pub interval_95: [f64; 2],
+    /// Whether the mean lies in it (below: the innovations' covariance is too large; above: too
+    /// small).
+    pub consistent: bool,
+}
+
 /// `buoy_ekf`: fixes, ranges taken and refused, calibration.
 #[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
@@ -38,6 +57,9 @@ pub struct BuoyEkfSummary {
     pub trajectory_samples: usize,
     /// Ranges the filter took.
     pub ranges_accepted: u64,
+    /// The NIS test of the ranges taken (none taken: absent).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub range_nis: Option<RangeNis>,
     /// Ranges refused by the gate, or taken and undone.
     pub ranges_rejected: u64,
     /// Recoveries after a run of refused ranges.
