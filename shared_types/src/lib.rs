@@ -22,7 +22,9 @@ pub use types::*;
 /// new version in its type name (`slam_pipeline::v2::SlamDiagnostics`); the others keep theirs.
 /// Version 2: `SlamDiagnostics` grew (motion source, registration, candidates, NIS), and the
 /// `StereoObservation` flag `STEREO_HAS_TRACK_ID` (no layout change).
-pub const WIRE_VERSION: u32 = 2;
+/// Version 3: `BuoyFix` grew the cross-covariance with the previous fix
+/// (`slam_pipeline::v3::BuoyFix`).
+pub const WIRE_VERSION: u32 = 3;
 
 /// Layouts of every wire type, in documentation order.
 pub fn all_layouts() -> Vec<TypeLayout> {

@@ -302,8 +302,9 @@ wire_type! {
 }
 
 wire_type! {
-    /// A global position fix of the buoy EKF (`pipeline/buoy/fix`).
-    type_name = "slam_pipeline::v1::BuoyFix", size = 128;
+    /// A global position fix of the buoy EKF (`pipeline/buoy/fix`). Version 3: the
+    /// cross-covariance with the previous fix.
+    type_name = "slam_pipeline::v3::BuoyFix", size = 208;
     pub struct BuoyFix {
         /// Position in the world frame, m.
         pub position_m: [f64; 3],
@@ -315,6 +316,13 @@ wire_type! {
         pub ranges_used: u32,
         /// Ranges rejected by the gate since the previous fix.
         pub ranges_rejected: u32,
+        /// Stamp of the previous fix of the same estimator that `cross_covariance_prev_m2`
+        /// refers to, ns; 0 when there is none (then the synchronizer treats this fix's error
+        /// as independent of the previous one's, [3D] eq 30).
+        pub prev_fix_stamp_ns: u64,
+        /// cov(e_prev, e_this): the cross-covariance of the previous fix's position error (rows)
+        /// with this one's (columns), 3×3 row-major, m² (docs/EQUATIONS.md §5.1a).
+        pub cross_covariance_prev_m2: [f64; 9],
     }
 }
 

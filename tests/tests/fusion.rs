@@ -69,6 +69,21 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
         "final path NEES against the buoy EKF's: {:#}",
         s["nees"]
     );
+    // The buoy positions interpolated to the SLAM poses' stamps as honest as the fixes they come
+    // from: the fixes' cross-covariances taken into the interpolation (docs/EQUATIONS.md §5.1a;
+    // 2.89 against the EKF's 2.93 on 2026-12-07, 3.49 by eq 30 as if the fixes were independent).
+    let synced_nees = fusion_part.nees.as_ref().and_then(|n| n.buoy.as_ref()).and_then(|n| n.position);
+    assert!(
+        synced_nees.is_some_and(|n| n <= 1.1 * buoy_nees),
+        "synchronised buoy positions' NEES against the buoy EKF's: {:#}",
+        s["nees"]
+    );
+    let poses = &s["synchronizer"]["poses"];
+    let (correlated, interpolated) = (poses["correlated"].as_u64(), poses["interpolated"].as_u64());
+    assert!(
+        correlated.zip(interpolated).is_some_and(|(c, i)| c as f64 >= 0.8 * i as f64),
+        "most interpolations with the fixes' cross-covariances: {poses:#}"
+    );
     // The ranges' innovations consistent with their covariance (mean NIS 0.97 in [0.94, 1.07] on
     // 2026-12-07; 1.10 before the odometry's attitude fix, docs/buoy_ekf.md).
     let nis = buoy_part.buoy_ekf.range_nis.as_ref().expect("the ranges' NIS");

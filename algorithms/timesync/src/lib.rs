@@ -4,7 +4,10 @@
 //! The buoy estimate at a camera stamp t_k is the quadratic Lagrange interpolation of three buoy
 //! fixes, X(t_k) = ξ1·X1 + ξ2·X2 + ξ3·X3, with ξ3 as corrected in EQUATIONS §9 (ξ1 + ξ2 + ξ3 = 1), and
 //! the covariance P(t_k) = ξ1²·P1 + ξ2²·P2 + ξ3²·P3 (eq 30, which treats the three fixes as
-//! independent). With only two fixes: linear interpolation (flagged). [`lagrange_weights`] and
+//! independent). With only two fixes: linear interpolation (flagged). A fix that brings the
+//! cross-covariance of its error with the previous fix's ([`CrossPrev`], from the estimator that
+//! made both) gets the covariance of the weighted sum of correlated errors instead,
+//! P(t_k) = Σᵢ Σⱼ ξᵢξⱼ·Cᵢⱼ (docs/EQUATIONS.md §5.1a). [`lagrange_weights`] and
 //! [`interpolate`] are the formulas; [`Synchronizer`] is the buffer and the waiting policy. It is
 //! pure logic: every time (stamps, "now") is passed in, on the one clock all sensors share.
 //!
@@ -91,6 +94,16 @@ pub fn linear_weights(t: f64, ts: [f64; 2]) -> Result<[f64; 2], SyncError> {
     Ok([1.0 - a, a])
 }
 
+/// The cross-covariance of a fix's error with the previous fix's, from the estimator that made
+/// both.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CrossPrev {
+    /// Stamp of the previous fix, s.
+    pub prev_t_s: f64,
+    /// cov(e_prev, e_this), m² (rows: the previous fix's axes).
+    pub covariance_m2: Matrix3<f64>,
+}
+
 /// A buoy fix: the buoy estimator's output at a stamp.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Fix {
@@ -104,6 +117,8 @@ pub struct Fix {
     pub covariance_m2: Matrix3<f64>,
     /// Velocity, m/s (used to extrapolate).
     pub velocity_mps: Vector3<f64>,
+    /// The cross-covariance with the previous fix, when its estimator gives it.
+    pub cross_prev: Option<CrossPrev>,
 }
 
 impl Fix {
@@ -116,6 +131,7 @@ impl Fix {
             .iter()
             .chain(self.velocity_mps.iter())
             .chain(self.covariance_m2.iter())
+            .chain(self.cross_prev.iter().flat_map(|c| c.covariance_m2.iter().chain(std::iter::once(&c.prev_t_s))))
             .all(|v| v.is_finite())
         {
             return Err(SyncError::NonFinite("fix position, velocity or covariance"));
@@ -134,14 +150,29 @@ impl Fix {
 pub struct Interpolation {
     /// Σ ξᵢ·pᵢ, m.
     pub position_m: Vector3<f64>,
-    /// Σ ξᵢ²·Pᵢ (eq 30), m².
+    /// Σ ξᵢ²·Pᵢ (eq 30), or with the fixes' cross-covariances Σᵢ Σⱼ ξᵢξⱼ·Cᵢⱼ, m².
     pub covariance_m2: Matrix3<f64>,
     /// The weights ξᵢ, in the order of the fixes.
     pub weights: Vec<f64>,
+    /// The fixes' cross-covariances were used (every consecutive pair brought its own and the
+    /// result is positive semi-definite); else eq 30.
+    pub correlated: bool,
+}
+
+/// Stamps of a fix and its predecessor named by [`CrossPrev::prev_t_s`] agree within this, s.
+const SAME_STAMP_S: f64 = 1e-6;
+
+/// cov(e_i, e_j) of two consecutive fixes, when the later one names the earlier as its previous.
+fn consecutive_cross(earlier: &Fix, later: &Fix) -> Option<Matrix3<f64>> {
+    later.cross_prev.filter(|c| (c.prev_t_s - earlier.t_s).abs() <= SAME_STAMP_S).map(|c| c.covariance_m2)
 }
 
 /// Interpolates 2 (linear) or 3 (quadratic) fixes to `t`: position Σξᵢpᵢ, covariance Σξᵢ²Pᵢ
-/// (eq 30). Another number of fixes, or repeated stamps, is [`SyncError::RepeatedStamps`].
+/// (eq 30); where every fix after the first brings its cross-covariance with the one before it,
+/// the covariance of the correlated sum, Σᵢ Σⱼ ξᵢξⱼ·Cᵢⱼ with Cᵢᵢ = Pᵢ and, for the first and the
+/// third of three, C₁₃ = C₁₂·P₂⁺·C₂₃ (the errors taken as Markov in the position: what the
+/// third fix knows of the first it knows through the second; docs/EQUATIONS.md §5.1a). Another
+/// number of fixes, or repeated stamps, is [`SyncError::RepeatedStamps`].
 pub fn interpolate(t: f64, fixes: &[Fix]) -> Result<Interpolation, SyncError> {
     let weights: Vec<f64> = match fixes {
         [a, b] => linear_weights(t, [a.t_s, b.t_s])?.to_vec(),
@@ -149,9 +180,28 @@ pub fn interpolate(t: f64, fixes: &[Fix]) -> Result<Interpolation, SyncError> {
         _ => return Err(SyncError::RepeatedStamps),
     };
     let position_m = fixes.iter().zip(&weights).fold(Vector3::zeros(), |acc, (f, w)| acc + f.position_m * *w);
-    let covariance_m2 =
-        fixes.iter().zip(&weights).fold(Matrix3::zeros(), |acc, (f, w)| acc + f.covariance_m2 * (w * w));
-    Ok(Interpolation { position_m, covariance_m2, weights })
+    let independent = fixes.iter().zip(&weights).fold(Matrix3::zeros(), |acc, (f, w)| acc + f.covariance_m2 * (w * w));
+    let cross: Option<Vec<(usize, usize, Matrix3<f64>)>> = match fixes {
+        [a, b] => consecutive_cross(a, b).map(|c| vec![(0, 1, c)]),
+        [a, b, c] => consecutive_cross(a, b).zip(consecutive_cross(b, c)).and_then(|(c12, c23)| {
+            let p2_pinv = b.covariance_m2.pseudo_inverse(1e-12 * b.covariance_m2.amax().max(1e-300)).ok()?;
+            Some(vec![(0, 1, c12), (1, 2, c23), (0, 2, c12 * p2_pinv * c23)])
+        }),
+        _ => None,
+    };
+    let correlated = cross.map(|cs| {
+        cs.iter().fold(independent, |acc, (i, j, c)| acc + (c + c.transpose()) * (weights[*i] * weights[*j]))
+    });
+    // The cross-covariances come from one estimator's model: a joint covariance they do not fit
+    // (a fix re-published, a model approximation) could give a matrix that is no covariance.
+    let psd = |m: &Matrix3<f64>| {
+        let scale = m.amax().max(1e-300);
+        m.iter().all(|v| v.is_finite()) && SymmetricEigen::new(*m).eigenvalues.min() >= -1e-9 * scale
+    };
+    match correlated.filter(psd) {
+        Some(covariance_m2) => Ok(Interpolation { position_m, covariance_m2, weights, correlated: true }),
+        None => Ok(Interpolation { position_m, covariance_m2: independent, weights, correlated: false }),
+    }
 }
 
 /// Settings of the [`Synchronizer`] (see the module docs for the rules).
@@ -247,6 +297,8 @@ pub struct SyncResult {
     pub fixes_used: usize,
     /// Stamp of the newest fix used, s.
     pub newest_fix_s: f64,
+    /// The covariance accounts for the fixes' correlation ([`Interpolation::correlated`]).
+    pub correlated: bool,
 }
 
 /// Why no synchronised position can be given.
@@ -389,6 +441,7 @@ impl Synchronizer {
                 flags: SyncFlags::default(),
                 fixes_used: 1,
                 newest_fix_s: f.t_s,
+                correlated: false,
             }));
         }
         if t_s > newest.t_s {
@@ -420,7 +473,7 @@ impl Synchronizer {
         } else {
             vec![f[a], f[b]]
         };
-        let Interpolation { position_m, covariance_m2, .. } = interpolate(t_s, &used)?;
+        let Interpolation { position_m, covariance_m2, correlated, .. } = interpolate(t_s, &used)?;
         Ok(SyncDecision::Ready(SyncResult {
             t_s,
             position_m,
@@ -428,6 +481,7 @@ impl Synchronizer {
             flags: SyncFlags { interpolated: true, linear: used.len() == 2, extrapolated: false, gap: false },
             fixes_used: used.len(),
             newest_fix_s: used.iter().map(|u| u.t_s).fold(f64::NEG_INFINITY, f64::max),
+            correlated,
         }))
     }
 
@@ -444,6 +498,7 @@ impl Synchronizer {
             flags: SyncFlags { interpolated: false, linear: false, extrapolated: true, gap },
             fixes_used: 1,
             newest_fix_s: fix.t_s,
+            correlated: false,
         })
     }
 }
@@ -460,6 +515,7 @@ mod tests {
             position_m: Vector3::new(x, 2.0 * x, -1.0),
             covariance_m2: Matrix3::identity() * 0.01,
             velocity_mps: Vector3::new(1.0, 2.0, 0.0),
+            cross_prev: None,
         }
     }
 
@@ -534,16 +590,77 @@ mod tests {
             position_m: Vector3::new(t, 0.0, 0.0),
             covariance_m2: p,
             velocity_mps: Vector3::zeros(),
+            cross_prev: None,
         };
         let p1 = Matrix3::from_diagonal(&Vector3::new(9.0, 0.0, 0.0));
         let p2 = Matrix3::new(1.0, 0.5, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0, 2.0);
         let p3 = Matrix3::from_diagonal(&Vector3::new(0.0, 18.0, 9.0));
-        let Interpolation { position_m: p, covariance_m2: cov, weights: w } =
+        let Interpolation { position_m: p, covariance_m2: cov, weights: w, correlated } =
             interpolate(2.0, &[mk(0.0, p1), mk(1.0, p2), mk(3.0, p3)]).unwrap();
+        assert!(!correlated, "no cross-covariances given: eq 30");
         let expected = Matrix3::new(2.0, 0.5, 0.0, 0.5, 3.0, 0.0, 0.0, 0.0, 3.0);
         assert!((cov - expected).amax() < 1e-12, "{cov}");
         assert!((p.x - 2.0).abs() < 1e-12, "a line through (t, t) gives t: {p}");
         assert_eq!(w.len(), 3);
+    }
+
+    /// Fixes whose errors follow an AR(1) process (ρ per fix, per axis; z independent) with
+    /// their cross-covariances: the interpolated covariance is the sample covariance of the
+    /// interpolated error (20,000 draws), and larger than eq 30's, which is what the errors
+    /// are not.
+    #[test]
+    fn correlated_fixes_give_the_covariance_of_the_correlated_sum() {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let (sigma, rho) = (Vector3::new(0.3, 0.2, 0.1), Vector3::new(0.9, 0.8, 0.0));
+        let p = Matrix3::from_diagonal(&sigma.component_mul(&sigma));
+        let c = Matrix3::from_diagonal(&sigma.component_mul(&sigma).component_mul(&rho));
+        let mk = |t: f64, prev: Option<f64>| Fix {
+            t_s: t,
+            seq: 0,
+            position_m: Vector3::zeros(),
+            covariance_m2: p,
+            velocity_mps: Vector3::zeros(),
+            cross_prev: prev.map(|prev_t_s| CrossPrev { prev_t_s, covariance_m2: c }),
+        };
+        let fixes = [mk(0.0, None), mk(1.0, Some(0.0)), mk(2.0, Some(1.0))];
+        let t = 1.5;
+        let got = interpolate(t, &fixes).unwrap();
+        assert!(got.correlated);
+        let eq30 = interpolate(t, &fixes.map(|f| Fix { cross_prev: None, ..f })).unwrap();
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(5);
+        let n01 = Normal::new(0.0, 1.0).unwrap();
+        let draws = 20_000;
+        let mut sample = Matrix3::zeros();
+        for _ in 0..draws {
+            let mut e = Vector3::from_fn(|a, _| sigma[a] * n01.sample(&mut rng));
+            let mut sum = e * got.weights[0];
+            for w in &got.weights[1..] {
+                e = Vector3::from_fn(|a, _| {
+                    rho[a] * e[a] + (1.0 - rho[a] * rho[a]).sqrt() * sigma[a] * n01.sample(&mut rng)
+                });
+                sum += e * *w;
+            }
+            sample += sum * sum.transpose() / draws as f64;
+        }
+        for a in 0..3 {
+            let v = got.covariance_m2[(a, a)];
+            // The sample variance of n draws is within 4·√(2/n) ≈ 4 % of the variance.
+            assert!((sample[(a, a)] / v - 1.0).abs() < 0.04, "axis {a}: {sample} against {}", got.covariance_m2);
+        }
+        assert!(got.covariance_m2[(0, 0)] > 1.3 * eq30.covariance_m2[(0, 0)], "correlated x: larger than eq 30's");
+        assert!((got.covariance_m2[(2, 2)] - eq30.covariance_m2[(2, 2)]).abs() < 1e-15, "independent z: eq 30's");
+        // A fix that names another predecessor (one in between was lost) is not linked: eq 30.
+        let broken = [mk(0.0, None), mk(1.0, Some(0.5)), mk(2.0, Some(1.0))];
+        let b = interpolate(t, &broken).unwrap();
+        assert!(!b.correlated && (b.covariance_m2 - eq30.covariance_m2).amax() < 1e-15);
+        // Cross-covariances no joint covariance has (larger than the variances): eq 30.
+        let bad = |t: f64, prev: Option<f64>| Fix {
+            cross_prev: prev.map(|prev_t_s| CrossPrev { prev_t_s, covariance_m2: -p * 3.0 }),
+            ..mk(t, None)
+        };
+        let b = interpolate(t, &[bad(0.0, None), bad(1.0, Some(0.0)), bad(2.0, Some(1.0))]).unwrap();
+        assert!(!b.correlated && (b.covariance_m2 - eq30.covariance_m2).amax() < 1e-15, "{}", b.covariance_m2);
     }
 
     #[test]

@@ -325,7 +325,7 @@ impl BuoyEkf {
                 P[(a, b)] = cov[(a, b)];
             }
         }
-        Gaussian { x, P }
+        Gaussian::new(x, P)
     }
 
     /// Advances every hypothesis by `dt` with the held input (if fresh) or constant velocity.
@@ -646,6 +646,42 @@ impl BuoyEkf {
             self.confirm_start();
         }
         Ok(RangeOutcome::Rejected { innovation_m: info.nu0, nis: info.nis, recovery })
+    }
+
+    /// Marks the estimate now as a published fix, and returns the cross-covariance of the
+    /// position error at the previously marked fix with the position error now,
+    /// cov(e_prev, e_now) (m², the position block: x, y and in spatial mode z; zeros elsewhere),
+    /// carried through every prediction and update in between (docs/EQUATIONS.md §5.1a). `None`
+    /// when there is no previous mark or it was lost: a re-start, a position reset, a Gaussian sum
+    /// (heading not yet known) or an undone range since.
+    pub fn mark_fix(&mut self) -> Option<Matrix3<f64>> {
+        let d = self.model.lay.d;
+        if let Some(sh) = &mut self.shadow {
+            // The shadow branch's error against this fix is not tracked.
+            sh.g.cross = None;
+        }
+        match &mut self.phase {
+            Phase::Single(g) => {
+                let prev = g.cross.take().map(|X| {
+                    let mut c = Matrix3::zeros();
+                    for a in 0..d {
+                        for b in 0..d {
+                            c[(a, b)] = X[(a, b)];
+                        }
+                    }
+                    c
+                });
+                g.cross = Some(g.P.rows(0, d).into_owned());
+                prev
+            }
+            Phase::Mixture(hyps) => {
+                for h in hyps.iter_mut() {
+                    h.g.cross = None;
+                }
+                None
+            }
+            Phase::Waiting => None,
+        }
     }
 
     /// The trilateration assumed zero bias and unit scale; their prior uncertainty propagates

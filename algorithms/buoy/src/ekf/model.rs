@@ -63,6 +63,26 @@ impl Layout {
 pub(crate) struct Gaussian {
     pub(crate) x: DVector<f64>,
     pub(crate) P: DMatrix<f64>,
+    /// cov(e_m, e): the cross-covariance of the position error at the last published fix (the
+    /// mark, d rows) with this state's error (n columns), carried through every prediction
+    /// (·Fᵀ) and update (·(I − KH)ᵀ) since (docs/EQUATIONS.md §5.1a); `None` when not known
+    /// (no mark yet, or a reset or merge since).
+    pub(crate) cross: Option<DMatrix<f64>>,
+}
+
+impl Gaussian {
+    /// A Gaussian with no mark.
+    pub(crate) fn new(x: DVector<f64>, P: DMatrix<f64>) -> Self {
+        Self { x, P, cross: None }
+    }
+
+    /// The error of state `i` no longer depends on the mark's (a reset to a prior): its column
+    /// of the cross-covariance is zero.
+    pub(crate) fn forget_state(&mut self, i: usize) {
+        if let Some(X) = &mut self.cross {
+            X.column_mut(i).fill(0.0);
+        }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -197,6 +217,9 @@ impl Model {
         g.x = &F * &g.x;
         g.P = &F * &g.P * F.transpose() + Q;
         symmetrise(&mut g.P);
+        if let Some(X) = &mut g.cross {
+            *X = &*X * F.transpose();
+        }
     }
 
     /// The odometry transition over `dt` with speed `v` and turn `dtheta`: the new state, its
@@ -274,6 +297,9 @@ impl Model {
         g.x = x;
         g.P = &F * &g.P * F.transpose() + Q;
         symmetrise(&mut g.P);
+        if let Some(X) = &mut g.cross {
+            *X = &*X * F.transpose();
+        }
     }
 
     /// Kalman update with measurement Jacobian `H` (m × n), innovation `nu`, noise `R`, gate
@@ -456,6 +482,10 @@ impl Model {
         g.x = x;
         g.x[self.lay.psi] = wrap_angle(g.x[self.lay.psi]);
         g.P = P;
+        // e⁺ = (I − KH)·e⁻ − K·v, v independent of the mark's error.
+        if let Some(X) = &mut g.cross {
+            *X = &*X * IKH.transpose();
+        }
         Ok(())
     }
 
@@ -502,6 +532,7 @@ impl Model {
     pub(crate) fn reset_position(&self, g: &mut Gaussian, p: &Vector3<f64>, cov: &Matrix3<f64>) {
         let d = self.lay.d;
         for k in 0..d {
+            g.forget_state(k);
             g.x[k] = p[k];
             g.P.row_mut(k).fill(0.0);
             g.P.column_mut(k).fill(0.0);
@@ -534,7 +565,7 @@ impl Model {
         }
         symmetrise(&mut P);
         mean[psi] = wrap_angle(mean[psi]);
-        Gaussian { x: mean, P }
+        Gaussian::new(mean, P)
     }
 }
 

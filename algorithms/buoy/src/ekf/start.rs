@@ -172,6 +172,8 @@ impl BuoyEkf {
             }
             None => self.initial_gaussian(&fix.position_m, &cov),
         };
+        // A re-start: the new position's error does not follow from the last fix's.
+        g.cross = None;
         g.P.row_mut(l.psi).fill(0.0);
         g.P.column_mut(l.psi).fill(0.0);
         match fix.heading_rad {
@@ -308,6 +310,7 @@ impl BuoyEkf {
         self.shadow = None;
         let var = self.model.cfg.range.bias_prior_sigma_m.powi(2);
         if let Phase::Single(g) = &mut self.phase {
+            g.forget_state(i);
             g.P.row_mut(i).fill(0.0);
             g.P.column_mut(i).fill(0.0);
             g.P[(i, i)] = var;

@@ -4,7 +4,7 @@
 
 use super::*;
 use crate::config::{BuoyEntry, InitMethod};
-use nalgebra::Vector2;
+use nalgebra::{Matrix2, Vector2};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use rand_xoshiro::Xoshiro256PlusPlus;
@@ -719,4 +719,99 @@ fn a_range_inside_an_odometry_interval_gets_the_input_pro_rata() {
     }
     assert!((ea.heading_rad.unwrap() - eb.heading_rad.unwrap()).abs() < 1e-12);
     assert!((ea.heading_rad.unwrap() - (0.4 + 20.0 * 0.02)).abs() < 1e-12);
+}
+
+/// The cross-covariance of two published fixes' errors ([`BuoyEkf::mark_fix`]) is what the errors
+/// do: a linear case (constant velocity, position fixes) simulated from the filter's own model,
+/// 4,000 times, the sample cross-covariance of the errors at t = 1 s and t = 2 s against the
+/// filter's (the same in every run: it does not depend on the data).
+#[test]
+fn the_cross_covariance_of_successive_fixes_is_that_of_their_errors() {
+    let mut cfg = planar_config(BiasMode::None);
+    cfg.init.method = InitMethod::Prior;
+    cfg.init.prior_position_m = [20.0, 10.0, 0.0];
+    cfg.init.prior_position_sigma_m = 2.0;
+    cfg.init.prior_heading_rad = Some(0.0);
+    let q = cfg.motion.accel_sigma_mps2.powi(2);
+    let sv = cfg.init.initial_speed_sigma_mps;
+    let r = 1.5f64;
+    let mut rng = Xoshiro256PlusPlus::seed_from_u64(3);
+    let n01 = Normal::new(0.0, 1.0).unwrap();
+    let runs = 4000;
+    let mut skipped = 0;
+    let (mut emp, mut model) = (Matrix2::<f64>::zeros(), None::<Matrix3<f64>>);
+    let (mut var1, mut var2) = (Matrix2::<f64>::zeros(), Matrix2::<f64>::zeros());
+    for _ in 0..runs {
+        let mut ekf = BuoyEkf::new(cfg.clone(), 0.0).unwrap();
+        // Truth per axis: position, velocity.
+        let mut truth: Vec<[f64; 2]> = (0..2)
+            .map(|a| [cfg.init.prior_position_m[a] + 2.0 * n01.sample(&mut rng), sv * n01.sample(&mut rng)])
+            .collect();
+        let mut errors = vec![];
+        for k in 1..=2 {
+            // One second of white-noise acceleration, exactly: (p, v) noise [1/3, 1/2; 1/2, 1]·q.
+            for t in truth.iter_mut() {
+                let (a, b) = (n01.sample(&mut rng), n01.sample(&mut rng));
+                let l11 = (q / 3.0).sqrt();
+                let l21 = (q / 2.0) / l11;
+                let l22 = (q - l21 * l21).sqrt();
+                t[0] += t[1] + l11 * a;
+                t[1] += l21 * a + l22 * b;
+            }
+            ekf.predict_to(k as f64).unwrap();
+            let z = Vector3::new(truth[0][0] + r * n01.sample(&mut rng), truth[1][0] + r * n01.sample(&mut rng), 0.0);
+            let outcome = ekf.update_position_fix(&z, &(Matrix3::identity() * r * r)).unwrap();
+            let c = ekf.mark_fix();
+            if !matches!(outcome, FixOutcome::Accepted { .. }) {
+                // Gated out (a tail draw) and reset to the fix: the link to the last fix is cut.
+                assert!(outcome != FixOutcome::Reset || k == 1 || c.is_some_and(|c| c.amax() == 0.0), "{c:?}");
+                skipped += 1;
+                break;
+            }
+            assert_eq!(c.is_some(), k == 2, "a cross-covariance from the second fix on");
+            if let Some(c) = c {
+                if let Some(m) = model {
+                    assert!((m - c).amax() < 1e-12, "the same in every run: {m} {c}");
+                }
+                model = Some(c);
+            }
+            let e = ekf.estimate().unwrap().position_m;
+            errors.push(Vector2::new(e.x - truth[0][0], e.y - truth[1][0]));
+        }
+        if errors.len() < 2 {
+            continue;
+        }
+        emp += errors[0] * errors[1].transpose() / runs as f64;
+        var1 += errors[0] * errors[0].transpose() / runs as f64;
+        var2 += errors[1] * errors[1].transpose() / runs as f64;
+    }
+    assert!(skipped < runs / 100, "{skipped} runs with a fix gated out");
+    let used = (runs - skipped) as f64;
+    let (emp, var1, var2) = (emp * runs as f64 / used, var1 * runs as f64 / used, var2 * runs as f64 / used);
+    let m = model.unwrap();
+    let m2 = m.fixed_view::<2, 2>(0, 0).into_owned();
+    assert!(m[(2, 2)] == 0.0, "planar: no z");
+    for a in 0..2 {
+        // The sample mean of e1·e2 over n pairs has a standard error of about
+        // √((σ1²σ2² + c²)/n): within 4 of them.
+        let se = ((var1[(a, a)] * var2[(a, a)] + m2[(a, a)].powi(2)) / used).sqrt();
+        assert!((emp[(a, a)] - m2[(a, a)]).abs() < 4.0 * se, "axis {a}: sample {emp} against the filter's {m2}");
+        // The diagonal of P itself, to the same standard (2σ⁴/n).
+        let p2 = ekf_variance_at_second_fix(&cfg, r);
+        assert!((var2[(a, a)] - p2).abs() < 4.0 * p2 * (2.0 / used).sqrt(), "axis {a}: {var2} against {p2}");
+        assert!(m2[(a, a)] > 0.1 * var1[(a, a)], "the errors correlate: {m2} against the variance {var1}");
+    }
+    let se = (var1[(0, 0)] * var2[(1, 1)] / used).sqrt();
+    assert!(emp[(0, 1)].abs() < 4.0 * se, "no correlation across axes: {emp}");
+}
+
+/// The filter's position variance (x) after the second fix of the test above.
+fn ekf_variance_at_second_fix(cfg: &BuoyConfig, r: f64) -> f64 {
+    let mut ekf = BuoyEkf::new(cfg.clone(), 0.0).unwrap();
+    for k in 1..=2 {
+        ekf.predict_to(k as f64).unwrap();
+        let p = Vector3::from(cfg.init.prior_position_m);
+        ekf.update_position_fix(&p, &(Matrix3::identity() * r * r)).unwrap();
+    }
+    ekf.estimate().unwrap().covariance_m2[(0, 0)]
 }

@@ -92,7 +92,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         })
         .collect();
     println!(
-        "fixes {fixes} ATE {ate:.3} m NEES {:.2} [{:.2}, {:.2}] x {:.2} y {:.2} z {:.2} eighths {} range NIS {:.3} ({} ranges)",
+        "fixes {} ATE {ate:.3} m NEES {:.2} [{:.2}, {:.2}] x {:.2} y {:.2} z {:.2} eighths {} range NIS {:.3} ({} ranges)",
+        fixes.len(),
         n.mean,
         n.interval_95.0,
         n.interval_95.1,
@@ -103,5 +104,53 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         state.range_nis.0 / state.range_nis.1.max(1) as f64,
         state.range_nis.1,
     );
+    // The fixes interpolated to the truth's stamps (as the synchronizer does to the camera's:
+    // two fixes before and one after), with their cross-covariances and without (eq 30).
+    let sync: Vec<timesync::Fix> = fixes
+        .iter()
+        .map(|f| timesync::Fix {
+            t_s: f.stamp_ns as f64 / 1e9,
+            seq: 0,
+            position_m: f.estimate.position_m,
+            covariance_m2: f.estimate.covariance_m2,
+            velocity_mps: f.estimate.velocity_mps,
+            cross_prev: f
+                .cross_prev
+                .map(|(prev_ns, c)| timesync::CrossPrev { prev_t_s: prev_ns as f64 / 1e9, covariance_m2: c }),
+        })
+        .collect();
+    let linked = sync.iter().filter(|f| f.cross_prev.is_some()).count();
+    for with_cross in [false, true] {
+        let mut est = vec![];
+        let mut correlated = 0;
+        for (t, _) in &truth {
+            let b = sync.partition_point(|f| f.t_s < *t);
+            if b < 2 || b >= sync.len() || sync[b].t_s - sync[b - 2].t_s > 5.0 {
+                continue;
+            }
+            let used: Vec<timesync::Fix> = sync[b - 2..=b]
+                .iter()
+                .map(|f| if with_cross { *f } else { timesync::Fix { cross_prev: None, ..*f } })
+                .collect();
+            let i = timesync::interpolate(*t, &used)?;
+            correlated += usize::from(i.correlated);
+            est.push((*t, i.position_m, i.covariance_m2));
+        }
+        let n = position_nees(&est, &truth, false, 1.0).ok_or("nothing scored")?;
+        println!(
+            "interpolated at the truth's stamps, {}: NEES {:.2} [{:.2}, {:.2}] x {:.2} y {:.2} z {:.2} ({} of {} with \
+             the fixes' correlation; {linked} of {} fixes linked to the one before)",
+            if with_cross { "the fixes' cross-covariances" } else { "eq 30" },
+            n.mean,
+            n.interval_95.0,
+            n.interval_95.1,
+            n.per_axis[0],
+            n.per_axis[1],
+            n.per_axis[2],
+            correlated,
+            est.len(),
+            sync.len()
+        );
+    }
     Ok(())
 }

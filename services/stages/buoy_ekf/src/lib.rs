@@ -100,6 +100,11 @@ pub struct Fix {
     pub used: u32,
     /// Ranges of the message rejected (gate, invalid, unknown buoy).
     pub rejected: u32,
+    /// The stamp of the fix published before this one (ns) and the cross-covariance of that
+    /// fix's position error with this one's, cov(e_prev, e_this) (m², the filter's model,
+    /// [`buoy::BuoyEkf::mark_fix`]); `None` after a re-start, a reset or while the heading is a
+    /// mixture.
+    pub cross_prev: Option<(u64, Matrix3<f64>)>,
 }
 
 /// An input as the filter took it, in the order it took them: the journal's unit. Replaying
@@ -193,6 +198,8 @@ pub struct BuoyState {
     waiting_since_s: Option<f64>,
     /// Time of the last event applied, ns.
     last_ns: Option<u64>,
+    /// Stamp of the last fix published, ns.
+    last_fix_ns: Option<u64>,
     /// The inputs taken since the last [`BuoyState::take_applied`] (for the journal).
     applied: Vec<Applied>,
     /// Replaying a journal: the log stays quiet (the killed instance said it all already).
@@ -240,6 +247,7 @@ impl BuoyState {
             waiting_warned: None,
             waiting_since_s: None,
             last_ns: None,
+            last_fix_ns: None,
             applied: vec![],
             replaying: false,
         }
@@ -253,9 +261,9 @@ impl BuoyState {
     /// Takes `inputs` (a killed instance's journal, [`BuoyState::take_applied`]) as they were
     /// taken then, without publishing: the filter, trajectory and counters end up as the killed
     /// instance left them. Returns the fixes it had published.
-    pub fn replay(&mut self, inputs: Vec<Applied>) -> usize {
+    pub fn replay(&mut self, inputs: Vec<Applied>) -> Vec<Fix> {
         self.replaying = true;
-        let mut fixes = 0;
+        let mut fixes = vec![];
         for a in inputs {
             match a {
                 Applied::Odometry { stamp_ns, input } => {
@@ -268,7 +276,7 @@ impl BuoyState {
                 Applied::Ranges { stamp_ns, origin_ns, ranges } => {
                     self.saw(stamp_ns);
                     let r = PendingRanges { stamp_ns, origin_ns, ranges, received: Instant::now() };
-                    fixes += usize::from(self.apply_ranges(r).is_some());
+                    fixes.extend(self.apply_ranges(r));
                 }
                 Applied::Depth { stamp_ns, reading } => {
                     self.saw(stamp_ns);
@@ -521,6 +529,12 @@ impl BuoyState {
             }
         }
         let estimate = ekf.is_initialised().then(|| ekf.estimate());
+        // A fix is published with this estimate: the filter marks it, and gives its error's
+        // cross-covariance with the fix before.
+        let cross = match &estimate {
+            Some(Ok(_)) => ekf.mark_fix(),
+            _ => None,
+        };
         if ekf.counters().reinitialisations > restarts_before && !quiet {
             tracing::warn!(
                 data_time_s = t,
@@ -572,7 +586,9 @@ impl BuoyState {
         match estimate? {
             Ok(estimate) => {
                 self.trajectory.push(TrajectorySample::of(t, &estimate));
-                Some(Fix { stamp_ns: r.stamp_ns, origin_ns: r.origin_ns, estimate, used, rejected })
+                let cross_prev = self.last_fix_ns.zip(cross);
+                self.last_fix_ns = Some(r.stamp_ns);
+                Some(Fix { stamp_ns: r.stamp_ns, origin_ns: r.origin_ns, estimate, used, rejected, cross_prev })
             }
             Err(e) => {
                 Self::count(&mut self.filter_errors, format!("estimate: {e}"));

@@ -54,7 +54,7 @@ impl Stage for BuoyEkfStage {
     fn restore(&mut self, restart: Restart) -> Result<usize, StageError> {
         let (inputs, lines) = crate::journal::parse(&restart.journal);
         let n = inputs.len();
-        let fixes = self.st.replay(inputs);
+        let fixes = self.st.replay(inputs).len();
         self.was_initialised = self.st.ekf().is_some_and(|e| e.is_initialised());
         tracing::info!(
             inputs = n,
@@ -92,6 +92,8 @@ impl Stage for BuoyEkfStage {
                     velocity_mps: e.velocity_mps.into(),
                     ranges_used: f.used,
                     ranges_rejected: f.rejected,
+                    prev_fix_stamp_ns: f.cross_prev.map_or(0, |(t, _)| t),
+                    cross_covariance_prev_m2: f.cross_prev.map_or([0.0; 9], |(_, c)| convert::mat3_to_row_major(&c)),
                 },
             )?;
         }

@@ -135,6 +135,8 @@ pub struct RunLog {
     pub live_position_cov_m2: Vec<Matrix3<f64>>,
     /// The buoy positions synchronised to the SLAM poses: (t, position).
     pub buoy: Vec<(f64, Vector3<f64>)>,
+    /// Their covariances (m²), one per entry of `buoy`.
+    pub buoy_cov_m2: Vec<Matrix3<f64>>,
     /// Counts of the live poses.
     pub live_sources: SourceCounts,
     /// New local maps requested.
@@ -330,9 +332,11 @@ pub fn write_outputs(
             .iter()
             .map(|o| (o.t_s, o.world_from_body.translation.vector, o.covariance.fixed_view::<3, 3>(0, 0).into_owned()))
             .collect();
+        let synced: Vec<_> = log.buoy.iter().zip(&log.buoy_cov_m2).map(|((t, p), c)| (*t, *p, *c)).collect();
+        let buoy = nees(synced, "buoy positions synchronised to the SLAM poses");
         let (fused_live, fused) = (nees(live, "live fused poses"), nees(path, "final fused path"));
-        if fused_live.is_some() || fused.is_some() {
-            part.nees = Some(FusedNees { fused, fused_live });
+        if fused_live.is_some() || fused.is_some() || buoy.is_some() {
+            part.nees = Some(FusedNees { fused, fused_live, buoy });
         }
         series_truth = tp.iter().map(|(_, p)| (p.x, p.y)).collect();
     }

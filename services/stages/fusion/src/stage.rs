@@ -130,7 +130,7 @@ impl FusionStage {
         if was_predicted {
             stamps.pop_front();
         }
-        let (buoy, t_s) = (pair.buoy_m, pair.t_s);
+        let (buoy, buoy_cov, t_s) = (pair.buoy_m, pair.buoy_cov_m2, pair.t_s);
         crate::journal::record(rt.state(), &Entry::Pair(Box::new(pair.clone())));
         let log = &mut self.log;
         let out = match self.engine.push_pair(pair) {
@@ -141,6 +141,7 @@ impl FusionStage {
             }
         };
         log.buoy.push((t_s, buoy));
+        log.buoy_cov_m2.push(buoy_cov);
         log.live.push((out.t_s, out.world_from_body));
         log.live_position_cov_m2.push(out.covariance.fixed_view::<3, 3>(0, 0).into_owned());
         log.live_sources.add(out.source);
@@ -252,9 +253,10 @@ impl Stage for FusionStage {
                     engine.push_heading(h).map_err(|e| StageError::msg(format!("journalled heading: {e}")))?
                 }
                 Entry::Pair(p) => {
-                    let (t_s, buoy) = (p.t_s, p.buoy_m);
+                    let (t_s, buoy, buoy_cov) = (p.t_s, p.buoy_m, p.buoy_cov_m2);
                     if let Ok(out) = engine.push_pair(*p) {
                         log.buoy.push((t_s, buoy));
+                        log.buoy_cov_m2.push(buoy_cov);
                         log.live.push((out.t_s, out.world_from_body));
                         log.live_position_cov_m2.push(out.covariance.fixed_view::<3, 3>(0, 0).into_owned());
                         log.live_sources.add(out.source);

@@ -32,6 +32,10 @@ pub struct FusedNees {
     pub fused: Option<PositionNees>,
     /// The fused poses as published live (`fused_live.tum`).
     pub fused_live: Option<PositionNees>,
+    /// The buoy positions the synchronizer paired with the SLAM poses (interpolated between
+    /// fixes with their cross-covariances, docs/EQUATIONS.md §5.1a), what fusion takes.
+    #[serde(default)]
+    pub buoy: Option<PositionNees>,
 }
 
 /// `fusion`: the fused path, the local maps' alignment, the global map.

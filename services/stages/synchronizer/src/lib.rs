@@ -15,7 +15,7 @@ use pipeline_runtime::Validate;
 use pipeline_runtime::{Issues, ProcessSettings};
 use serde::{Deserialize, Serialize};
 use shared_types::{BuoyFix, MsgHeader, PoseEstimate};
-use timesync::{Fix, SyncConfig, SyncDecision, SyncResult, Synchronizer};
+use timesync::{CrossPrev, Fix, SyncConfig, SyncDecision, SyncResult, Synchronizer};
 
 /// Settings of the `synchronizer` process.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -86,6 +86,10 @@ pub struct SyncStats {
     pub interpolated: u64,
     /// ... of which linear.
     pub linear: u64,
+    /// ... of which with the fixes' cross-covariances (docs/EQUATIONS.md §5.1a; the others by
+    /// [3D] eq 30, as independent fixes: a fix without its link to the one before, from an
+    /// estimator that does not give it, after a re-start or a lost fix).
+    pub correlated: u64,
     /// Poses paired by extrapolation.
     pub extrapolated: u64,
     /// Poses with a gap between the fixes around them.
@@ -138,6 +142,10 @@ impl SyncState {
             position_m: Vector3::from(fix.position_m),
             covariance_m2: Matrix3::from_row_slice(&fix.covariance_m2),
             velocity_mps: Vector3::from(fix.velocity_mps),
+            cross_prev: (fix.prev_fix_stamp_ns != 0).then(|| CrossPrev {
+                prev_t_s: fix.prev_fix_stamp_ns as f64 / 1e9,
+                covariance_m2: Matrix3::from_row_slice(&fix.cross_covariance_prev_m2),
+            }),
         };
         if self.sync.insert(f).is_err() {
             self.stats.invalid_fixes += 1;
@@ -210,6 +218,7 @@ impl SyncState {
             let f = result.flags;
             self.stats.interpolated += u64::from(!f.extrapolated);
             self.stats.linear += u64::from(f.linear);
+            self.stats.correlated += u64::from(result.correlated);
             self.stats.extrapolated += u64::from(f.extrapolated);
             self.stats.gap += u64::from(f.gap);
             self.added_latency_s.push(waited.as_secs_f64());
@@ -240,6 +249,7 @@ mod tests {
             velocity_mps: [1.0, 2.0, 0.0],
             ranges_used: 4,
             ranges_rejected: 0,
+            ..Default::default()
         }
     }
 
@@ -264,6 +274,40 @@ mod tests {
         assert!(!b.flags.extrapolated && b.flags.interpolated);
         assert!((b.position_m - Vector3::new(2.5, 5.0, 0.0)).norm() < 1e-9, "{}", b.position_m);
         assert!((out[0].added_latency_s - 0.01).abs() < 1e-6);
+    }
+
+    /// Fixes that bring their cross-covariance with the fix before (ρ = 0.9 here) give the pair
+    /// the covariance of the correlated sum, larger than eq 30's, and are counted; a fix whose
+    /// link names another fix than the one before it is taken as independent (eq 30).
+    #[test]
+    fn fixes_with_their_cross_covariance_give_the_correlated_covariance() {
+        let linked = |t: f64| BuoyFix {
+            prev_fix_stamp_ns: ((t - 1.0) * 1e9) as u64,
+            cross_covariance_prev_m2: [0.09, 0.0, 0.0, 0.0, 0.09, 0.0, 0.0, 0.0, 0.09],
+            ..fix_at(t)
+        };
+        let run = |fixes: [BuoyFix; 3]| {
+            let mut st = SyncState::new(&SynchronizerSettings::default()).unwrap();
+            let t0 = Instant::now();
+            for (k, f) in fixes.iter().enumerate() {
+                st.push_fix(&header(1.0 + k as f64, k as u64), f);
+            }
+            st.push_pose(header(2.5, 0), pose(), t0);
+            let out = st.step(t0, false);
+            assert_eq!(out.len(), 1);
+            (out[0].buoy.covariance_m2[(0, 0)], st.stats.correlated)
+        };
+        let (independent, n0) = run([fix_at(1.0), fix_at(2.0), fix_at(3.0)]);
+        let (correlated, n1) = run([fix_at(1.0), linked(2.0), linked(3.0)]);
+        let (broken, n2) = run([fix_at(1.0), BuoyFix { prev_fix_stamp_ns: 1_500_000_000, ..linked(2.0) }, linked(3.0)]);
+        assert_eq!((n0, n1, n2), (0, 1, 0));
+        // Weights at 2.5 s of fixes at 1, 2, 3 s: (−1/8, 3/4, 3/8); eq 30 gives Σξ²·0.1.
+        let w = [-0.125, 0.75, 0.375];
+        let eq30 = w.iter().map(|x| x * x).sum::<f64>() * 0.1;
+        assert!((independent - eq30).abs() < 1e-12 && (broken - eq30).abs() < 1e-12, "{independent} {broken}");
+        // With ρ = 0.9 between neighbours and 0.81 across two (0.09·0.1⁻¹·0.09).
+        let corr = eq30 + 2.0 * (w[0] * w[1] * 0.09 + w[1] * w[2] * 0.09 + w[0] * w[2] * 0.081);
+        assert!((correlated - corr).abs() < 1e-12, "{correlated} against {corr}");
     }
 
     #[test]

@@ -31,6 +31,7 @@ fn fix(t_s: f64) -> BuoyFix {
         velocity_mps: [1.0, 0.0, 0.0],
         ranges_used: 4,
         ranges_rejected: 0,
+        ..Default::default()
     }
 }
 
