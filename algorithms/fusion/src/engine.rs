@@ -247,6 +247,9 @@ pub struct Segment {
     /// The fixes disagreed with the handover's prior (χ²₆ above 0.999), so the transform rests
     /// on the fixes alone.
     pub prior_rejected: bool,
+    /// The residuals g − T·l of its transform at its fixes, in time order (for the fixes'
+    /// correlation during the run).
+    residuals: Vec<Vector3<f64>>,
     fixes_used: usize,
     no_overlap: u32,
     requested: bool,
@@ -264,6 +267,7 @@ impl Segment {
             excess_cov_m2: Matrix3::zeros(),
             handover: None,
             prior_rejected: false,
+            residuals: vec![],
             fixes_used: 0,
             no_overlap: 0,
             requested: false,
@@ -281,6 +285,9 @@ pub struct Fusion {
     /// Heading readings sorted by time.
     headings: Vec<HeadingInput>,
     last_orientation: Option<UnitQuaternion<f64>>,
+    /// The fixes' error autocorrelation from the local maps' residuals so far (docs/EQUATIONS.md
+    /// §5.3), for the live poses; re-estimated whenever a local map's transform changes.
+    live_correlation: FixCorrelation,
 }
 
 /// The end-of-run result.
@@ -315,7 +322,15 @@ impl Fusion {
         let gate_chi2 = chi2_3_quantile(cfg.gate_probability).ok_or_else(|| {
             vec![ConfigIssue { key: "gate_probability".into(), message: "no χ²₃ quantile for it".into() }]
         })?;
-        Ok(Self { cfg, gate_chi2, segments: BTreeMap::new(), fixes: vec![], headings: vec![], last_orientation: None })
+        Ok(Self {
+            cfg,
+            gate_chi2,
+            segments: BTreeMap::new(),
+            fixes: vec![],
+            headings: vec![],
+            last_orientation: None,
+            live_correlation: FixCorrelation::default(),
+        })
     }
 
     /// The settings.
@@ -410,6 +425,7 @@ impl Fusion {
                         && (readings.is_none() || !pairs.is_empty()) =>
                 {
                     seg.excess_cov_m2 = excess_covariance(&a, &pairs);
+                    seg.residuals = residuals_of(&a, &pairs);
                     seg.alignment = Some(a);
                     seg.status = match readings {
                         None => SegmentStatus::AlignedWithPrior { fixes: pairs.len() },
@@ -442,6 +458,7 @@ impl Fusion {
         match align(&pairs, cfg) {
             Ok(a) => {
                 seg.excess_cov_m2 = excess_covariance(&a, &pairs);
+                seg.residuals = residuals_of(&a, &pairs);
                 seg.alignment = Some(a);
                 seg.status = SegmentStatus::Aligned;
             }
@@ -454,6 +471,7 @@ impl Fusion {
                     && let Ok(a) = align_with_heading(&pairs, yaw, sigma)
                 {
                     seg.excess_cov_m2 = excess_covariance(&a, &pairs);
+                    seg.residuals = residuals_of(&a, &pairs);
                     seg.alignment = Some(a);
                     seg.status = SegmentStatus::AlignedWithHeading { readings: n };
                 } else if seg.alignment.is_none() {
@@ -710,8 +728,29 @@ impl Fusion {
                 self.handover_prior(&new)
             }),
         };
-        let alignment = seg.and_then(|s| s.alignment.as_ref()).or(carried.as_ref());
-        Ok(self.pose_of(pair, alignment, seg.map_or(&zero, |s| &s.excess_cov_m2)))
+        match (seg, carried) {
+            (Some(s), None) => Ok(self.live_pose(pair, s)),
+            (s, carried) => Ok(self.pose_of(pair, carried.as_ref(), s.map_or(&zero, |s| &s.excess_cov_m2))),
+        }
+    }
+
+    /// The live pose of `pair` in its segment `seg`: mapped with the segment's transform, whose
+    /// covariance (least squares over the segment's fixes, as if independent) is inflated for
+    /// the fixes' correlation estimated so far ([`Fusion::live_correlation`]), and whose error
+    /// the pose's own buoy position shares as the segment's latest fix does (docs/EQUATIONS.md
+    /// §5.3).
+    fn live_pose(&self, pair: &PairInput, seg: &Segment) -> FusedOutput {
+        match &seg.alignment {
+            Some(a) if seg.residuals.len() >= 2 => {
+                let n = seg.residuals.len();
+                let correlated = Correlated {
+                    inflation: self.live_correlation.mean_inflation(n),
+                    buoy_share: self.live_correlation.with_mean(n, (n - 1) as f64),
+                };
+                self.pose_of_with(pair, Some(a), &seg.excess_cov_m2, None, &Matrix3::zeros(), Some(correlated))
+            }
+            _ => self.pose_of(pair, seg.alignment.as_ref(), &seg.excess_cov_m2),
+        }
     }
 
     fn check_pair(pair: &PairInput) -> Result<(), FusionError> {
@@ -763,8 +802,16 @@ impl Fusion {
             Self::realign(&cfg, seg, &fixes, &headings, prior.as_ref());
             realigned = seg.alignment.as_ref().map(|a| a.global_from_local) != before;
         }
-        let seg = &self.segments[&id];
-        let mut out = self.pose_of(&pair, seg.alignment.as_ref(), &seg.excess_cov_m2);
+        // The fixes' correlation from every local map's residuals so far: the live pose is
+        // mapped with its local map's transform, fitted to that map's fixes as if independent
+        // (docs/EQUATIONS.md §5.3, with the pose just after the map's latest fix).
+        if realigned {
+            self.live_correlation = FixCorrelation::from_residuals(
+                self.segments.values().map(|s| s.residuals.as_slice()),
+                MAX_CORRELATION_LAG,
+            );
+        }
+        let mut out = self.live_pose(&pair, &self.segments[&id]);
         out.realigned = realigned;
         let seg = self.segments.get_mut(&id).expect("exists");
         match out.source {
@@ -890,6 +937,11 @@ fn joint_cross_covariance(p_c: &Matrix3<f64>, p_b: &Matrix3<f64>, share: f64) ->
     // Just inside the bound, so that the difference's covariance stays positive definite.
     eig.eigenvalues.iter_mut().for_each(|lambda| *lambda = share.clamp(0.0, 1.0).min(0.999 * lambda.max(0.0).sqrt()));
     l * eig.recompose() * l.transpose()
+}
+
+/// The residuals g − T·l of `a` at `pairs`.
+fn residuals_of(a: &Alignment, pairs: &[Correspondence]) -> Vec<Vector3<f64>> {
+    pairs.iter().map(|c| c.global_m - a.global_from_local.transform_point(&c.local_m.into()).coords).collect()
 }
 
 /// The covariance a local path position brings into an alignment. The SLAM covariance grows

@@ -331,7 +331,7 @@ fn bad_inputs_are_errors() {
 }
 
 #[test]
-fn the_final_paths_covariance_holds_when_the_fixes_errors_are_correlated_in_time() {
+fn the_final_and_live_covariances_hold_when_the_fixes_errors_are_correlated_in_time() {
     // Fixes every second whose errors follow an AR(1) process (ρ = 0.8 from one fix to the
     // next, σ 0.3 m per axis, each fix's covariance honest on its own), the buoy positions of the
     // pairs interpolated between them as the synchronizer does. A window's transform averages
@@ -339,7 +339,7 @@ fn the_final_paths_covariance_holds_when_the_fixes_errors_are_correlated_in_time
     // most of its error: taken as independent, the final path's position NEES comes out far
     // above 3 (39 on the simulated mission; docs/fusion.md).
     let (sigma, rho) = (0.3f64, 0.8f64);
-    let mut nees = vec![];
+    let (mut nees, mut live_nees) = (vec![], vec![]);
     for seed in 1..=4u64 {
         let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed);
         let n = Normal::new(0.0, 1.0).unwrap();
@@ -353,6 +353,7 @@ fn the_final_paths_covariance_holds_when_the_fixes_errors_are_correlated_in_time
             })
             .collect();
         let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        let mut live = vec![];
         for k in 0..1200 {
             let t = k as f64 * 0.1;
             if k % 10 == 0 {
@@ -361,7 +362,15 @@ fn the_final_paths_covariance_holds_when_the_fixes_errors_are_correlated_in_time
             }
             let (i, w) = (k / 10, (k % 10) as f64 / 10.0);
             let buoy = truth_at(t) + errors[i] * (1.0 - w) + errors[i + 1] * w;
-            f.push_pair(pair(t, 0, buoy, sigma)).unwrap();
+            let o = f.push_pair(pair(t, 0, buoy, sigma)).unwrap();
+            // The live poses once the local map's transform rests on 20 fixes or more.
+            if t >= 20.0 {
+                live.push((
+                    t,
+                    o.world_from_body.translation.vector,
+                    o.covariance.fixed_view::<3, 3>(0, 0).into_owned(),
+                ));
+            }
         }
         let fin = f.finish();
         let r1 = fin.fix_correlation.rho().get(1).copied().unwrap_or(0.0);
@@ -373,9 +382,14 @@ fn the_final_paths_covariance_holds_when_the_fixes_errors_are_correlated_in_time
             .collect();
         let truth: Vec<_> = (0..1200).map(|k| (k as f64 * 0.1, truth_at(k as f64 * 0.1))).collect();
         nees.push(geometry::trajectory::position_nees(&est, &truth, false, 1.0).unwrap().mean);
+        live_nees.push(geometry::trajectory::position_nees(&live, &truth, false, 1.0).unwrap().mean);
     }
     // Four missions of 120 s with errors correlated over seconds: about 50 independent samples
     // of the mean error in all, not 4,800 (a mean of 3 when consistent).
     let mean = nees.iter().sum::<f64>() / nees.len() as f64;
     assert!((1.5..=4.5).contains(&mean), "final path NEES {mean:.2} (by seed {nees:.2?}): not about 3");
+    // The live poses too: their local map's transform is fitted to all its fixes as if
+    // independent; the correlation estimated from the residuals so far accounts for them.
+    let mean = live_nees.iter().sum::<f64>() / live_nees.len() as f64;
+    assert!((1.5..=4.5).contains(&mean), "live NEES {mean:.2} (by seed {live_nees:.2?}): not about 3");
 }
