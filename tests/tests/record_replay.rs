@@ -58,8 +58,8 @@ fn read_mcap(path: &Path) -> (BTreeMap<String, u64>, Fixes) {
         *counts.entry(m.channel.topic.clone()).or_default() += 1;
         if m.channel.topic == "pipeline/buoy/fix" {
             let schema = m.channel.schema.as_ref().expect("schema");
-            assert_eq!(schema.name, "slam_pipeline::v1::BuoyFix");
-            assert_eq!(m.data.len(), 32 + 128, "MsgHeader + BuoyFix");
+            assert_eq!(schema.name, "slam_pipeline::v3::BuoyFix");
+            assert_eq!(m.data.len(), 32 + 208, "MsgHeader + BuoyFix (wire version 3)");
             let stamp = u64::from_le_bytes(m.data[..8].try_into().unwrap());
             let publish = u64::from_le_bytes(m.data[24..32].try_into().unwrap());
             assert_eq!(m.publish_time, publish, "publish_time is the header's publish_ns");
