@@ -7,11 +7,15 @@
 //! ```sh
 //! cargo run --release -p navigable --example nsd_eval -- [--poses truth|out/default/fused_live.tum]
 //!     [--settings nsd.toml] [--res 0.1] [--clouds N] [--tolerance M] [--landmarks] [--indoor]
-//!     [--refresh-every 85] [--repeat N]
+//!     [--refresh-every 85] [--repeat N] [--seed S] [--regions]
 //! ```
 //!
 //! `--repeat N`: the discovery at the end run N times on the same map (its time as the minimum
 //! and the median of the N: one run's time on a shared machine varies by a third).
+//!
+//! `--seed S`: the simulator's seed (`[processes.ingest.settings.sim] seed`; 1 by default).
+//! `--regions`: prints every obstacle and every region but the largest, with the truth of their
+//! voxels' points and what lies around them (why a region did not join the ground).
 //!
 //! `--refresh-every N`: the plane fits refreshed every N clouds, as the mapper does every
 //! `fits_refresh_interval_s` (5 s: about 85 of the main job's clouds), so that the discovery
@@ -47,6 +51,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut indoor = false;
     let mut refresh_every = 85usize;
     let mut repeat = 1usize;
+    let mut regions_report = false;
+    let mut seed: Option<u64> = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut value = || args.next().ok_or_else(|| format!("{a} needs a value"));
@@ -63,6 +69,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "--indoor" => indoor = true,
             "--refresh-every" => refresh_every = value()?.parse()?,
             "--repeat" => repeat = value()?.parse::<usize>()?.max(1),
+            "--regions" => regions_report = true,
+            "--seed" => seed = Some(value()?.parse()?),
             other => return Err(format!("unknown argument {other}").into()),
         }
     }
@@ -78,7 +86,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     let max_range = if indoor { 6.0 } else { 14.0 };
     let tolerance = if tolerance > 0.0 { tolerance } else { res };
-    let sim_cfg = sim::SimConfig::default();
+    let mut sim_cfg = sim::SimConfig::default();
+    if let Some(seed) = seed {
+        sim_cfg.seed = seed;
+    }
     let pitch = sim_cfg.sensors.depth_camera.pitch_down_deg.to_radians();
     let body_from_sensor = geometry::body_from_camera(&Vector3::new(0.6, 0.0, -0.3), pitch);
     let trajectory = match &poses {
@@ -240,6 +251,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         println!("obstacle landmarks per object: {:?}", l.per_object);
         at_map.landmarks = Some(l);
     }
+    if regions_report {
+        report_regions(&d, &acc, &origins, judge);
+    }
     let by_points = origins.score(&d, judge);
     for (name, s) in [("judged where the map puts it", at_map), ("judged by its points' true origin", by_points)] {
         println!(
@@ -261,4 +275,206 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         );
     }
     Ok(())
+}
+
+/// `--regions`: every region but the largest, with what its voxels' true origins are and what
+/// lies around it (why it did not join its neighbours).
+fn report_regions(
+    d: &navigable::Discovery,
+    acc: &PointAccumulator,
+    origins: &navigable::truth::TrueOrigins,
+    judge: &(dyn Fn(&Vector3<f64>) -> TruthClass + Sync),
+) {
+    use navigable::VoxelClass;
+    use std::collections::HashMap;
+    let mut region_of: HashMap<navigable::VoxelKey, usize> = HashMap::new();
+    for (r, reg) in d.regions.iter().enumerate() {
+        for k in &reg.voxels {
+            region_of.insert(*k, r);
+        }
+    }
+    let mut obstacle_of: HashMap<navigable::VoxelKey, usize> = HashMap::new();
+    for (o, ob) in d.obstacles.iter().enumerate() {
+        for k in &ob.voxels {
+            obstacle_of.insert(*k, o);
+        }
+    }
+    let max_cos = 20f64.to_radians().cos();
+    for (o, ob) in d.obstacles.iter().enumerate() {
+        let (mut ground, mut object, mut other) = (0, 0, 0);
+        let mut objects = std::collections::BTreeMap::new();
+        let (mut steep, mut nonplanar, mut nav, mut sparse) = (0, 0, 0, 0);
+        let mut zs = vec![];
+        for k in &ob.voxels {
+            zs.push(acc.centre(k).z);
+            match origins.mean(k).map(|m| judge(&m)) {
+                Some(TruthClass::Ground) => ground += 1,
+                Some(TruthClass::Object(i)) => {
+                    object += 1;
+                    *objects.entry(i).or_insert(0) += 1;
+                }
+                _ => other += 1,
+            }
+            match d.classes.get(k) {
+                Some(VoxelClass::Steep(_)) => steep += 1,
+                Some(VoxelClass::NonPlanar) => nonplanar += 1,
+                Some(VoxelClass::Navigable(_)) => nav += 1,
+                _ => sparse += 1,
+            }
+        }
+        // Around: the largest region's voxels beside it, their z.
+        let mut foot = vec![];
+        for k in &ob.voxels {
+            for dx in -1..=1 {
+                for dy in -1..=1 {
+                    for dz in -1..=1 {
+                        let n = [k[0] + dx, k[1] + dy, k[2] + dz];
+                        if region_of.get(&n) == Some(&0) {
+                            foot.push(acc.centre(&n).z);
+                        }
+                    }
+                }
+            }
+        }
+        foot.sort_by(f64::total_cmp);
+        zs.sort_by(f64::total_cmp);
+        let f = foot.get(foot.len() / 2).copied().unwrap_or(f64::NAN);
+        println!(
+            "obstacle {o}: {} voxels at ({:.1}, {:.1}, {:.2}); origins ground {ground} object {object} {:?} other {other}; steep {steep} non-planar {nonplanar} navigable {nav} sparse {sparse}; foot {} voxels, top {:.2} m above it, median {:.2}",
+            ob.voxels.len(),
+            ob.mean_m.x,
+            ob.mean_m.y,
+            ob.mean_m.z,
+            objects,
+            foot.len(),
+            zs.last().unwrap() - f,
+            zs[zs.len() / 2] - f
+        );
+    }
+    for (r, reg) in d.regions.iter().enumerate() {
+        let (mut ground, mut object, mut nothing) = (0, 0, 0);
+        let mut centre = Vector3::zeros();
+        for k in &reg.voxels {
+            centre += acc.centre(k);
+            match origins.mean(k).map(|m| judge(&m)) {
+                Some(TruthClass::Ground) => ground += 1,
+                Some(TruthClass::Object(_)) => object += 1,
+                _ => nothing += 1,
+            }
+        }
+        centre /= reg.voxels.len() as f64;
+        let mut zs: Vec<f64> = reg.voxels.iter().map(|k| acc.centre(k).z).collect();
+        zs.sort_by(f64::total_cmp);
+        let q = |x: f64| zs[((zs.len() as f64 - 1.0) * x) as usize];
+        println!(
+            "  region {r} z: q01 {:.2} q10 {:.2} q50 {:.2} q90 {:.2} q99 {:.2}",
+            q(0.01),
+            q(0.1),
+            q(0.5),
+            q(0.9),
+            q(0.99)
+        );
+        // Around: (other region: normal fails, step fails, joinable), obstacle, sparse, patch, absent.
+        let (mut normal_fail, mut step_fail, mut other_ok, mut obst, mut sparse, mut patch, mut absent) =
+            (0, 0, 0, 0, 0, 0, 0);
+        let mut step_gaps = vec![];
+        let mut other_regions = std::collections::BTreeSet::new();
+        for k in &reg.voxels {
+            let Some(VoxelClass::Navigable(a)) = d.classes.get(k) else { continue };
+            for dx in -1..=1 {
+                for dy in -1..=1 {
+                    for dz in -1..=1 {
+                        if (dx, dy, dz) == (0, 0, 0) {
+                            continue;
+                        }
+                        let n = [k[0] + dx, k[1] + dy, k[2] + dz];
+                        match d.classes.get(&n) {
+                            None => absent += 1,
+                            Some(VoxelClass::Navigable(b)) => {
+                                let Some(&o) = region_of.get(&n) else { continue };
+                                if o == r {
+                                    continue;
+                                }
+                                other_regions.insert(o);
+                                let touch = (acc.centre(k) + acc.centre(&n)) * 0.5;
+                                let gap = (a.project(&touch) - b.project(&touch)).norm();
+                                if a.normal.dot(&b.normal) < max_cos {
+                                    normal_fail += 1;
+                                } else if gap > d.step_m {
+                                    step_fail += 1;
+                                    step_gaps.push(gap);
+                                } else {
+                                    other_ok += 1;
+                                }
+                            }
+                            Some(VoxelClass::Sparse) => sparse += 1,
+                            Some(VoxelClass::Patch(_)) => patch += 1,
+                            Some(_) => {
+                                if obstacle_of.contains_key(&n) {
+                                    obst += 1
+                                } else {
+                                    sparse += 1
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        // Height above the foot of each obstacle touched: the largest region's voxels beside it.
+        let mut heights = vec![];
+        {
+            let mut touched = std::collections::BTreeSet::new();
+            for k in &reg.voxels {
+                for dx in -1..=1 {
+                    for dy in -1..=1 {
+                        for dz in -1..=1 {
+                            if let Some(&o) = obstacle_of.get(&[k[0] + dx, k[1] + dy, k[2] + dz]) {
+                                touched.insert(o);
+                            }
+                        }
+                    }
+                }
+            }
+            for o in touched {
+                let mut foot = vec![];
+                let mut top: f64 = f64::NEG_INFINITY;
+                for k in &d.obstacles[o].voxels {
+                    top = top.max(acc.centre(k).z);
+                    for dx in -1..=1 {
+                        for dy in -1..=1 {
+                            for dz in -1..=1 {
+                                let n = [k[0] + dx, k[1] + dy, k[2] + dz];
+                                if region_of.get(&n) == Some(&0) {
+                                    foot.push(acc.centre(&n).z);
+                                }
+                            }
+                        }
+                    }
+                }
+                if foot.is_empty() {
+                    heights.push((o, f64::NAN, f64::NAN));
+                    continue;
+                }
+                foot.sort_by(f64::total_cmp);
+                let f = foot[foot.len() / 2];
+                let mut zs: Vec<f64> = reg.voxels.iter().map(|k| acc.centre(k).z - f).collect();
+                zs.sort_by(f64::total_cmp);
+                heights.push((o, zs[zs.len() / 2], top - f));
+            }
+        }
+        let heights: Vec<String> = heights.iter().map(|(o, h, t)| format!("o{o}: {h:.2}/{t:.2}")).collect();
+        println!("  heights above foot (region/obstacle top): {}", heights.join(", "));
+        step_gaps.sort_by(f64::total_cmp);
+        let med = step_gaps.get(step_gaps.len() / 2).copied().unwrap_or(0.0);
+        println!(
+            "region {r}: {} voxels at ({:.1}, {:.1}, {:.2}), slope {:.1} deg; origins ground {ground} object {object} none {nothing}; around: other regions {:?} (normal {normal_fail}, step {step_fail} median {med:.3} m, joinable {other_ok}), obstacle {obst}, sparse/unjoined {sparse}, patch {patch}, absent {absent}",
+            reg.voxels.len(),
+            centre.x,
+            centre.y,
+            centre.z,
+            reg.normal.z.clamp(-1.0, 1.0).acos().to_degrees(),
+            other_regions.iter().take(5).collect::<Vec<_>>()
+        );
+    }
 }

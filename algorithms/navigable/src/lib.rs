@@ -16,7 +16,10 @@
 //! 4. Obstacles: seeds are the non-planar voxels; each grows through adjacent occupied voxels that
 //!    are not navigable (non-planar, or planar but too steep: walls, box sides). Each obstacle is
 //!    a Gaussian (mean and covariance of its points), and obstacles of different scans or maps
-//!    are associated by the Bhattacharyya distance ([`associate_obstacles`]).
+//!    are associated by the Bhattacharyya distance ([`associate_obstacles`]). Against the ground
+//!    (the largest region) beside an obstacle, its foot: a region that rises above the foot is
+//!    the obstacle's top and joins it; an obstacle whose shape lies within the foot's scatter is
+//!    ground (EQUATIONS §7, "The ground and an obstacle's foot").
 //! 5. [`write_navigable_ply`] and [`write_obstacles_ply`] write the two layers (navigable voxel
 //!    patches with their region, obstacles as meshes of their voxels' outer faces).
 //! 6. [`traversability::TraversabilityGrid`]: a 2.5-D grid of class, height and slope per
@@ -1283,6 +1286,9 @@ pub fn discover_with(
     // obstacle voxels beside or above.
     let mut below: BTreeMap<(usize, usize), usize> = BTreeMap::new();
     let mut beside_or_above: BTreeMap<usize, usize> = BTreeMap::new();
+    // The ground: the largest region. Each obstacle's foot: the ground's voxels beside it.
+    let ground = regions.iter().max_by_key(|(root, m)| (m.len(), std::cmp::Reverse(**root))).map(|(r, _)| *r);
+    let mut foot_of: Vec<Vec<usize>> = vec![vec![]; members_of.len()];
     for (o, members) in members_of.iter().enumerate() {
         for &j in members {
             for n in neighbours(&keys[j]) {
@@ -1291,6 +1297,9 @@ pub fn discover_with(
                     continue;
                 }
                 let root = find(&mut parent, i);
+                if Some(root) == ground {
+                    foot_of[o].push(i);
+                }
                 if keys[j][2] < n[2] {
                     *below.entry((root, o)).or_default() += 1;
                 } else {
@@ -1317,6 +1326,133 @@ pub fn discover_with(
         for i in regions.remove(&root).unwrap_or_default() {
             obstacle_of[i] = Some(o);
             members_of[o].push(i);
+        }
+    }
+    // A region that rises above the foot of an obstacle it touches is on that obstacle, whatever
+    // the obstacle voxels around it (where passes disagree a rock's top is doubled, and parts of
+    // its flank lie beside or above the top's voxels): the foot's plane (a least-squares plane
+    // through the ground's voxels beside the obstacle) against the region's voxels, on median,
+    // by more than the step and more than twice the foot's own scatter about its plane. The
+    // ground itself, and a region at the foot's height (ground the obstacle's shadow cut off),
+    // stay. A region that joins an obstacle brings the regions that touch it in the next pass.
+    if let Some(ground) = ground {
+        let mut foot_plane: Vec<Option<FootPlane>> = vec![None; members_of.len()];
+        for (o, foot) in foot_of.iter_mut().enumerate() {
+            foot.sort_unstable();
+            foot.dedup();
+            foot_plane[o] = FootPlane::fit(foot.iter().filter_map(|&i| stats[i].mean()));
+        }
+        loop {
+            let mut joined = false;
+            let roots: Vec<usize> = regions.keys().copied().filter(|r| *r != ground).collect();
+            for root in roots {
+                let members = &regions[&root];
+                let mut touched: Vec<usize> = members
+                    .iter()
+                    .flat_map(|&i| {
+                        neighbours(&keys[i])
+                            .filter_map(|n| near.get(&n).and_then(|j| obstacle_of[j]))
+                            .collect::<Vec<_>>()
+                    })
+                    .collect();
+                touched.sort_unstable();
+                touched.dedup();
+                let on: Vec<usize> = touched
+                    .into_iter()
+                    .filter(|&o| {
+                        foot_plane[o].is_some_and(|f| {
+                            let mut h: Vec<f64> =
+                                members.iter().filter_map(|&i| stats[i].mean()).map(|m| f.height(&m)).collect();
+                            median(&mut h) > step_m.max(2.0 * f.sigma_m)
+                        })
+                    })
+                    .collect();
+                let Some(&into) = on.iter().max_by_key(|o| (members_of[**o].len(), std::cmp::Reverse(**o))) else {
+                    continue;
+                };
+                for &o in on.iter().filter(|o| **o != into) {
+                    for i in std::mem::take(&mut members_of[o]) {
+                        obstacle_of[i] = Some(into);
+                        members_of[into].push(i);
+                    }
+                    let foot = std::mem::take(&mut foot_of[o]);
+                    foot_of[into].extend(foot);
+                }
+                if on.len() > 1 {
+                    foot_of[into].sort_unstable();
+                    foot_of[into].dedup();
+                    foot_plane[into] = FootPlane::fit(foot_of[into].iter().filter_map(|&i| stats[i].mean()));
+                }
+                for i in regions.remove(&root).unwrap_or_default() {
+                    obstacle_of[i] = Some(into);
+                    members_of[into].push(i);
+                }
+                joined = true;
+            }
+            if !joined {
+                break;
+            }
+        }
+        // An obstacle whose shape lies within the ground beside it by the step and the ground's
+        // scatter, above and below (a few steep voxels where two passes over the seabed
+        // disagree, the foot's own voxels on both sheets), is that ground: its voxels take the
+        // foot's plane and join the ground. Only what stands out of the ground's scatter is an
+        // obstacle. (Below too: where the largest region is not the ground but an object's top,
+        // as in a scan that sees mostly a boulder, the boulder's flanks hang below that "foot".)
+        for (o, members) in members_of.iter_mut().enumerate() {
+            let Some(f) = foot_plane[o] else { continue };
+            if members.is_empty() {
+                continue;
+            }
+            // Judged by the voxels that show a shape (steep, not planar, or a top it took): the
+            // sparse voxels it grew through show none, and where passes disagree they are
+            // thick, their means anywhere between the sheets.
+            // Each against the ground near it: the plane through the 16 foot voxels nearest to it
+            // horizontally and their scatter about it (a large obstacle's foot spans a curved
+            // seabed, and where the ground region took in some raised voxels, a shelf's top
+            // beside a wall, only its nearby part says where the floor is). The largest of k
+            // heights off a Gaussian surface exceeds z(1 − 0.025/k)·σ with 5 % probability at
+            // most (two-sided, Bonferroni): 1.96σ for one voxel, 2.39σ for 3, 2.84σ for 11; a
+            // shape voxel beyond that, and beyond the step, stands out of the ground. Judged
+            // voxel by voxel until one stands out; an obstacle whose judgement would take more
+            // than `LOCAL_FOOT_WORK` distances stands (it is no patch of a few voxels).
+            let shape: Vec<Vector3<f64>> = members
+                .iter()
+                .filter(|&&i| !matches!(classes[i], VoxelClass::Sparse))
+                .filter_map(|&i| stats[i].mean())
+                .collect();
+            let foot: Vec<Vector3<f64>> = foot_of[o].iter().filter_map(|&i| stats[i].mean()).collect();
+            if shape.is_empty() || foot.len() < 3 || shape.len() * foot.len() > LOCAL_FOOT_WORK {
+                continue;
+            }
+            let z = geometry::stats::normal_quantile(1.0 - 0.025 / shape.len() as f64).unwrap_or(2.0);
+            let mut near: Vec<(f64, usize)> = Vec::with_capacity(foot.len());
+            let stands_out = shape.iter().any(|m| {
+                near.clear();
+                near.extend(foot.iter().enumerate().map(|(j, p)| ((p - m).xy().norm_squared(), j)));
+                if near.len() > LOCAL_FOOT {
+                    near.select_nth_unstable_by(LOCAL_FOOT, |a, b| a.0.total_cmp(&b.0));
+                    near.truncate(LOCAL_FOOT);
+                }
+                FootPlane::fit(near.iter().map(|(_, j)| foot[*j]))
+                    .is_none_or(|l| l.height(m).abs() > step_m.max(z * l.sigma_m))
+            });
+            if stands_out {
+                continue;
+            }
+            let normal = Vector3::new(-f.slope[0], -f.slope[1], 1.0).normalize();
+            for i in members.drain(..) {
+                obstacle_of[i] = None;
+                let Some(mean) = stats[i].mean() else { continue };
+                classes[i] = VoxelClass::Navigable(PlaneFit {
+                    centroid_m: mean,
+                    normal,
+                    mse_m2: 0.0,
+                    spread_m2: 0.0,
+                    within_scans: false,
+                });
+                regions.entry(ground).or_default().push(i);
+            }
         }
     }
     // A region smaller than `min_region_area_m2` is no space a vehicle can use: when it touches
@@ -1382,6 +1518,81 @@ pub fn discover_with(
     }
     obstacles.sort_by_key(|o| std::cmp::Reverse(o.voxels.len()));
     Ok(Discovery { classes: ClassMap { keys, classes, index }, regions, obstacles, surface_sigma_m, step_m, fitted })
+}
+
+/// Foot voxels a local ground plane is fitted to ([`discover_with`]: whether an obstacle stands
+/// out of the ground).
+const LOCAL_FOOT: usize = 16;
+/// At most this many shape voxels × foot voxels are searched for the local ground; an obstacle
+/// beyond it is not judged (it stands).
+const LOCAL_FOOT_WORK: usize = 4_000_000;
+
+/// The ground beside an obstacle: a plane z = z₀ + a·(x − x₀) + b·(y − y₀) through its voxels'
+/// means, fitted robustly ([`FootPlane::fit`]; level through their mean when they do not span a
+/// plane), and their scatter about it.
+#[derive(Debug, Clone, Copy)]
+struct FootPlane {
+    /// The means' centroid, m.
+    centre_m: Vector3<f64>,
+    /// Slopes dz/dx, dz/dy.
+    slope: [f64; 2],
+    /// The means' scatter off the plane, m: the Gaussian σ of their median absolute height.
+    sigma_m: f64,
+}
+
+impl FootPlane {
+    /// The plane through `points` (`None` without any), robust to a few voxels off the ground
+    /// (a piece of furniture's top that joined the floor, a second sheet): the least-squares
+    /// plane, then again through the points within 3 σ of it, σ = 1.4826 × the median absolute
+    /// height off the plane (the MAD's Gaussian σ), which is also the scatter kept.
+    fn fit(points: impl Iterator<Item = Vector3<f64>>) -> Option<FootPlane> {
+        let points: Vec<Vector3<f64>> = points.collect();
+        let first = Self::least_squares(&points)?;
+        let sigma = first.mad_sigma(&points);
+        let inliers: Vec<Vector3<f64>> =
+            points.iter().filter(|p| first.height(p).abs() <= 3.0 * sigma).copied().collect();
+        let mut plane = Self::least_squares(&inliers).unwrap_or(first);
+        plane.sigma_m = plane.mad_sigma(&points);
+        Some(plane)
+    }
+
+    /// 1.4826 × the median of |height| over `points` (0 without points).
+    fn mad_sigma(&self, points: &[Vector3<f64>]) -> f64 {
+        let mut h: Vec<f64> = points.iter().map(|p| self.height(p).abs()).collect();
+        1.4826 * median(&mut h)
+    }
+
+    /// The least-squares plane (its `sigma_m` left 0).
+    fn least_squares(points: &[Vector3<f64>]) -> Option<FootPlane> {
+        if points.is_empty() {
+            return None;
+        }
+        let centre_m = points.iter().sum::<Vector3<f64>>() / points.len() as f64;
+        let (mut sxx, mut sxy, mut syy, mut sxz, mut syz) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for p in points {
+            let d = p - centre_m;
+            sxx += d.x * d.x;
+            sxy += d.x * d.y;
+            syy += d.y * d.y;
+            sxz += d.x * d.z;
+            syz += d.y * d.z;
+        }
+        let det = sxx * syy - sxy * sxy;
+        // Spanning a plane: both horizontal spreads and not along a line (the determinant against
+        // the spreads' product, scale-free).
+        let slope = if points.len() >= 3 && det > 1e-6 * (sxx * syy).max(f64::MIN_POSITIVE) {
+            [(sxz * syy - syz * sxy) / det, (syz * sxx - sxz * sxy) / det]
+        } else {
+            [0.0, 0.0]
+        };
+        Some(FootPlane { centre_m, slope, sigma_m: 0.0 })
+    }
+
+    /// How far `p` lies above the plane (vertically), m.
+    fn height(&self, p: &Vector3<f64>) -> f64 {
+        let d = p - self.centre_m;
+        d.z - self.slope[0] * d.x - self.slope[1] * d.y
+    }
 }
 
 /// What an occupied voxel of the map is, for a viewer.
@@ -1900,6 +2111,75 @@ mod tests {
         let text = String::from_utf8_lossy(&bytes);
         assert!(text.contains("format binary_little_endian 1.0") && text.contains("element face"));
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A floor z = 0.033 over [0, 4] × [0, 4] m with a rock on it: a sphere of radius 1 m centred
+    /// 0.3 m below the floor at (2, 2), seen from above by two passes whose poses disagree on the
+    /// rock by `dx_m` along x and `dz_m` in height (two scans, merged as the mapper merges them).
+    fn rock_on_the_floor(dx_m: f64, dz_m: f64) -> PointAccumulator {
+        let (c, r) = (Vector3::new(2.0, 2.0, 0.033 - 0.3), 1.0);
+        let mut acc = PointAccumulator::new(RES);
+        for pass in 0..2 {
+            let mut scan = PointAccumulator::new(RES);
+            let (lx, lz) = (pass as f64 * dx_m, pass as f64 * dz_m);
+            surface(&mut scan, (0.0, 4.0), (0.0, 4.0), |x, y| {
+                let d2 = (x - lx - c.x).powi(2) + (y - c.y).powi(2);
+                let on_rock = (r * r - d2).max(0.0).sqrt() + c.z;
+                if on_rock > 0.033 { on_rock + lz } else { 0.033 }
+            });
+            acc.merge(&scan).unwrap();
+        }
+        acc
+    }
+
+    #[test]
+    fn a_rocks_top_is_the_rocks_even_where_two_passes_disagree_on_it() {
+        // Passes 12-20 cm apart in height put the rock's top in two layers of voxels, with the
+        // flank of one pass beside the top of the other: the top of the obstacle voxels around
+        // was not enough to tell (before 2026-12-07 the upper sheet stayed a region of its own).
+        for (dx_m, dz_m) in [(0.0, 0.0), (0.1, 0.12), (0.0, 0.2)] {
+            let acc = rock_on_the_floor(dx_m, dz_m);
+            let d = run(&acc);
+            // The floor around is one region; the rock (its steep flanks and its gently sloping
+            // top, 0.7 m above the floor) is one obstacle.
+            let sizes: Vec<usize> = d.regions.iter().map(|r| r.voxels.len()).collect();
+            assert_eq!(sizes.len(), 1, "dx {dx_m}, dz {dz_m}: regions {sizes:?}");
+            assert!(d.regions[0].voxels.iter().all(|k| k[2] == 0), "dx {dx_m}, dz {dz_m}: the floor");
+            let obstacles: Vec<usize> = d.obstacles.iter().map(|o| o.voxels.len()).collect();
+            assert_eq!(obstacles.len(), 1, "dx {dx_m}, dz {dz_m}: {obstacles:?}");
+            let apex = d.obstacles[0].voxels.iter().filter(|k| k[2] >= 6).count();
+            assert!(apex >= 10, "dx {dx_m}, dz {dz_m}: the rock's top is the obstacle's ({apex} voxels at its height)");
+        }
+    }
+
+    #[test]
+    fn the_foot_plane_is_the_least_squares_plane_and_its_scatter() {
+        let mut rng = 7u64;
+        let points: Vec<Vector3<f64>> = (0..400)
+            .map(|i| {
+                let (x, y) = ((i % 20) as f64 * 0.1, (i / 20) as f64 * 0.1);
+                Vector3::new(x, y, 1.0 + 0.1 * x - 0.05 * y + 0.02 * uniform(&mut rng))
+            })
+            .collect();
+        let f = FootPlane::fit(points.iter().copied()).unwrap();
+        assert!((f.slope[0] - 0.1).abs() < 2e-3 && (f.slope[1] + 0.05).abs() < 2e-3, "{:?}", f.slope);
+        // Uniform noise of width 0.02 m: the median absolute height 0.005 m, × 1.4826.
+        assert!((f.sigma_m - 1.4826 * 0.005).abs() < 1e-3, "{}", f.sigma_m);
+        assert!((f.height(&Vector3::new(1.0, 1.0, 1.55)) - 0.5).abs() < 5e-3);
+        // A tenth of the points a metre up (a table's top that joined the floor): the same
+        // plane and scatter.
+        let mut with_tops = points.clone();
+        for p in with_tops.iter_mut().step_by(10) {
+            p.z += 1.0;
+        }
+        let g = FootPlane::fit(with_tops.iter().copied()).unwrap();
+        assert!((g.slope[0] - 0.1).abs() < 2e-3 && (g.slope[1] + 0.05).abs() < 2e-3, "{:?}", g.slope);
+        assert!(g.sigma_m < 0.012 && (g.height(&Vector3::new(1.0, 1.0, 1.55)) - 0.5).abs() < 5e-3, "{g:?}");
+        // Points along a line span no plane: level through their mean.
+        let line = FootPlane::fit((0..10).map(|i| Vector3::new(i as f64, 2.0 * i as f64, i as f64))).unwrap();
+        assert_eq!(line.slope, [0.0, 0.0]);
+        assert!((line.height(&Vector3::new(0.0, 0.0, 4.5))).abs() < 1e-12);
+        assert!(FootPlane::fit(std::iter::empty()).is_none());
     }
 
     /// A reproducible uniform number in [-0.5, 0.5).
