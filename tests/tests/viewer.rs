@@ -140,7 +140,18 @@ duration_s = 200"#;
     let c = &mapper.octree_mapper.counters;
     let (inserted, missed) = (c.clouds_inserted, c.clouds_missed);
     let dropped = c.clouds_dropped_behind + c.clouds_dropped_no_pose;
-    assert_eq!(inserted + missed + dropped, sent, "{c:?}");
+    // A cloud that never reached the mapper (its queue full) is counted by the publisher as
+    // undelivered to `map`, and by the mapper as missed once a later cloud shows the gap in the
+    // sequence numbers: the last cloud's loss only the publisher can see (2026-12-07 in CI: 15
+    // inserted, 1 missed, 1 undelivered at the end, of 17).
+    let undelivered: u64 = sup
+        .undelivered
+        .iter()
+        .filter(|u| u.publisher == "ingest" && u.service == "pipeline/sensors/cloud" && u.consumer == "map")
+        .map(|u| u.messages)
+        .sum();
+    assert!(missed <= undelivered, "every gap the mapper saw was a failed delivery: {c:?}, {:?}", sup.undelivered);
+    assert_eq!(inserted + undelivered + dropped, sent, "{c:?}, {:?}", sup.undelivered);
     // This test's mapper also sends its full voxel map every second (voxels_full_interval_s), so
     // at 4x real time it misses some of the 17 clouds on a loaded machine (CI: 1 and 2).
     assert!(inserted * 2 >= sent, "the mapper took most clouds: {c:?}");
