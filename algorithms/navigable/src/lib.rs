@@ -1315,8 +1315,11 @@ pub fn discover_with(
         e.1.push((o, n));
     }
     let mut tops = vec![];
+    // Never the ground: where passes over the seabed disagree, a lower sheet of steep and
+    // non-planar voxels can lie under most of it, and the whole seabed would become one obstacle.
     for (root, (n_below, by_obstacle)) in below_by_region {
-        if n_below > beside_or_above.get(&root).copied().unwrap_or(0)
+        if Some(root) != ground
+            && n_below > beside_or_above.get(&root).copied().unwrap_or(0)
             && let Some(&(o, _)) = by_obstacle.iter().max_by_key(|(o, n)| (*n, std::cmp::Reverse(*o)))
         {
             tops.push((root, o));
@@ -2150,6 +2153,38 @@ mod tests {
             let apex = d.obstacles[0].voxels.iter().filter(|k| k[2] >= 6).count();
             assert!(apex >= 10, "dx {dx_m}, dz {dz_m}: the rock's top is the obstacle's ({apex} voxels at its height)");
         }
+    }
+
+    #[test]
+    fn the_ground_stays_ground_over_a_sheet_of_obstacle_voxels_below_it() {
+        // A floor over [0, 4] × [0, 4] m and, just below most of it, a layer of
+        // scattered points (a second pass whose pose put the seabed lower, seen as clutter): the
+        // obstacle voxels the floor touches lie below it, as under a rock's top. The floor is
+        // still the ground (before 2026-12-07 it joined the obstacle under it, and the map had
+        // no ground at all: the main job's test once saw that).
+        let mut acc = PointAccumulator::new(RES);
+        surface(&mut acc, (0.0, 4.0), (0.0, 4.0), |_, _| 0.05);
+        let mut rng = 11u64;
+        for i in 0..30 {
+            for j in 0..30 {
+                for _ in 0..40 {
+                    let (x, y) = (
+                        0.5 + (i as f64 + 0.5 + uniform(&mut rng)) * RES,
+                        0.5 + (j as f64 + 0.5 + uniform(&mut rng)) * 0.1,
+                    );
+                    acc.add(&Vector3::new(x, y, -0.05 + uniform(&mut rng) * 0.09));
+                }
+            }
+        }
+        let d = run(&acc);
+        let floor: usize = d.regions.iter().take(1).map(|r| r.voxels.iter().filter(|k| k[2] == 0).count()).sum();
+        assert!(
+            floor >= 1500,
+            "the floor's 1,600 voxels are the largest region: {floor}; regions {:?}, obstacles {:?}",
+            d.regions.iter().map(|r| r.voxels.len()).collect::<Vec<_>>(),
+            d.obstacles.iter().map(|o| o.voxels.len()).collect::<Vec<_>>()
+        );
+        assert!(d.obstacles.iter().all(|o| o.voxels.iter().all(|k| k[2] < 0)), "no floor voxel in an obstacle");
     }
 
     #[test]
