@@ -137,6 +137,14 @@ port = PORT
     assert!(truth.precision.is_some_and(|p| p >= 0.9), "{truth:?}");
     assert!(truth.recall.is_some_and(|r| r >= 0.7), "{truth:?}");
     assert!(truth.agreement.is_some_and(|a| a >= 0.8), "{truth:?}");
+    // Judged where each voxel's points truly came from (the classification without the poses'
+    // error): issue 39's 95 %. Since a column of steep surface is filled from its top down
+    // (EQUATIONS §7, 2026-12-07) the floor region no longer climbs the walls seen a line per
+    // scan: 0.928 before, 0.966 at the true poses (`nsd_eval --poses truth --indoor`).
+    let by_origin = end.truth_by_origin.as_ref().expect("the clouds carry the simulator's true poses");
+    eprintln!("judged by origin: {by_origin:?}");
+    assert!(by_origin.agreement.is_some_and(|a| a >= 0.95), "{by_origin:?}");
+    assert!(by_origin.regions <= 50 && by_origin.precision.is_some_and(|p| p >= 0.9), "{by_origin:?}");
 
     let out = run.out_dir();
     let scene: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("scene.json")).unwrap()).unwrap();

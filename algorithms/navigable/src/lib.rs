@@ -1006,10 +1006,16 @@ pub fn discover_with(
     // Written in place, each thread into its half (a class is 80 bytes: a million voxels' are
     // not copied from halves into a whole).
     let mut classes = vec![VoxelClass::Sparse; keys.len()];
-    let mut thick = vec![false; keys.len()];
-    let classify_into = |offset: usize, classes: &mut [VoxelClass], thick: &mut [bool]| -> (usize, Vec<f64>) {
+    // Per voxel: THICK (left to its neighbours only because its scans disagree) and STEEP_FIT
+    // (its own points, fewer than a class needs or from scans that disagree, fit a plane steeper
+    // than `max_slope_deg`).
+    const THICK: u8 = 1;
+    const STEEP_FIT: u8 = 2;
+    let max_slope_cos = cfg.max_slope_deg.to_radians().cos();
+    let mut flags = vec![0u8; keys.len()];
+    let classify_into = |offset: usize, classes: &mut [VoxelClass], flags: &mut [u8]| -> (usize, Vec<f64>) {
         let (mut fitted, mut spread) = (0, vec![]);
-        for (j, (c, t)) in classes.iter_mut().zip(thick.iter_mut()).enumerate() {
+        for (j, (c, t)) in classes.iter_mut().zip(flags.iter_mut()).enumerate() {
             let i = offset + j;
             let s = stats[i];
             let f = match fits.fits.get(&keys[i]) {
@@ -1019,7 +1025,12 @@ pub fn discover_with(
                     KeptFit::of(s)
                 }
             };
-            (*c, *t) = classify(s, &f);
+            let (class, thick) = classify(s, &f);
+            *c = class;
+            *t = if thick { THICK } else { 0 };
+            if !f.normal[0].is_nan() && (f.normal[2] as f64) < max_slope_cos {
+                *t |= STEEP_FIT;
+            }
             spread.extend(surface_spread(s, c));
         }
         (fitted, spread)
@@ -1027,7 +1038,7 @@ pub fn discover_with(
     let (fitted, mut spread) = if parallel {
         let half = keys.len() / 2;
         let (c0, c1) = classes.split_at_mut(half);
-        let (t0, t1) = thick.split_at_mut(half);
+        let (t0, t1) = flags.split_at_mut(half);
         std::thread::scope(|s| {
             let other = s.spawn(|| classify_into(half, c1, t1));
             let (f0, mut s0) = classify_into(0, c0, t0);
@@ -1036,7 +1047,7 @@ pub fn discover_with(
             (f0 + f1, s0)
         })
     } else {
-        classify_into(0, &mut classes, &mut thick)
+        classify_into(0, &mut classes, &mut flags)
     };
     // How thick the map's surfaces are: the points' spread off their voxel's plane, over all of
     // a voxel's scans (the sensor's noise plus the poses' disagreement between scans; the median
@@ -1156,6 +1167,20 @@ pub fn discover_with(
             continue;
         }
         let Some(mean) = mean_of(j) else { continue };
+        // A column of steep surface (this voxel's points and those of the voxel directly above it
+        // fit planes steeper than `max_slope_deg`) is filled from its top down, never up: a
+        // voxel of it joins a region only once the voxel above it has. A wall seen a line per
+        // scan is such a column with no region at its top, and the floor no longer climbs it
+        // one voxel after another; where passes over the seabed disagree, the upper sheet joins
+        // the seabed first and the voxels under it follow (EQUATIONS §7). When the voxel above
+        // joins, this one is put back on the work list (it is among its neighbours).
+        if flags[j] & STEEP_FIT != 0
+            && near
+                .get(&[keys[j][0], keys[j][1], keys[j][2] + 1])
+                .is_some_and(|a| flags[a] & STEEP_FIT != 0 && !matches!(classes[a], VoxelClass::Navigable(_)))
+        {
+            continue;
+        }
         let mut plane = None;
         for (i, on_plane) in around(j) {
             if on_plane {
@@ -1177,7 +1202,8 @@ pub fn discover_with(
         // plane through its points' mean. A voxel with too few points takes the plane it lies on
         // unchanged, so that a run of them cannot creep away from the surface a step at a time
         // (up a wall, one row of voxels after another).
-        classes[j] = VoxelClass::Navigable(if thick[j] { PlaneFit { centroid_m: mean, ..plane } } else { plane });
+        classes[j] =
+            VoxelClass::Navigable(if flags[j] & THICK != 0 { PlaneFit { centroid_m: mean, ..plane } } else { plane });
         for (i, _) in around(j).filter(|(_, on_plane)| !on_plane) {
             if classes[i] == VoxelClass::Sparse && !queued[i] {
                 queued[i] = true;
