@@ -428,6 +428,8 @@ pub const VOXEL_OCCUPIED: u32 = 0;
 pub const VOXEL_NAVIGABLE: u32 = 1;
 /// `Voxel::class` value: obstacle.
 pub const VOXEL_OBSTACLE: u32 = 2;
+/// `Voxel::class` value: wall (a large steep plane with no top: a building's walls).
+pub const VOXEL_WALL: u32 = 3;
 
 wire_type! {
     /// An occupied octree leaf (slice on `pipeline/map/voxels`), world frame.
@@ -439,7 +441,7 @@ wire_type! {
         pub size_m: f32,
         /// Occupancy probability.
         pub occupancy: f32,
-        /// 0 occupied, 1 navigable, 2 obstacle; in a delta also [`VOXEL_CLASS_REMOVED`].
+        /// 0 occupied, 1 navigable, 2 obstacle, 3 wall; in a delta also [`VOXEL_CLASS_REMOVED`].
         pub class: u32,
     }
 }

@@ -153,7 +153,7 @@ fn the_default_config_ends_with_a_fused_path_better_than_buoy_and_slam() {
     // obstacles against the truth").
     let truth = end.truth.as_ref().expect("the navigable space scored against scene.json");
     let v = &end.voxels;
-    assert_eq!(truth.voxels, v.navigable + v.steep + v.non_planar + v.sparse + v.patch, "{truth:?}");
+    assert_eq!(truth.voxels, v.navigable + v.steep + v.non_planar + v.sparse + v.patch + v.wall, "{truth:?}");
     assert!(truth.ground.voxels > truth.voxels / 10 && truth.objects_observed >= 10, "{truth:?}");
     assert_eq!(truth.regions, end.navigable_regions, "{truth:?}");
     // Judged where each voxel's points truly came from (the classification without the fused

@@ -123,28 +123,33 @@ port = PORT
     assert_eq!(rebuild.clouds_without_pose, 0);
     // The navigable space and obstacles scored against the scene's boxes (issue 39,
     // docs/octree_mapper.md): every classified voxel judged, the floor and the furniture seen;
-    // the floor one region (2026-12-05 with 30 particles: 0.995 of it in the largest of 23
-    // regions), the obstacles all on objects (precision 1.0), 8 of the 10 objects found, 0.885 of
-    // the voxels in agreement (the walls' and the furniture's lowest rows go to the floor).
+    // the floor one region. Since 2026-12-07 the walls are a class of their own (EQUATIONS §7
+    // "Walls"), in the map and in the truth: the furniture against them is found (8 of 8 pieces
+    // of furniture, where 6 of 8 were before, two merged with the walls), and the components
+    // left on walls count against the precision (0.833 at these grid SLAM poses: a wall doubled
+    // by the poses' error and clutter beside a shelf; 1.000 at the true poses,
+    // `nsd_eval --indoor`).
     let end = m.end_of_stream.as_ref().expect("the end of stream's navigable space");
     let truth = end.truth.as_ref().expect("the layers scored against scene.json");
     let v = &end.voxels;
     eprintln!("against the truth: {truth:?}");
-    assert_eq!(truth.voxels, v.navigable + v.steep + v.non_planar + v.sparse + v.patch, "{truth:?}");
+    let by_origin = end.truth_by_origin.as_ref().expect("the clouds carry the simulator's true poses");
+    eprintln!("judged by origin: {by_origin:?}");
+    assert_eq!(truth.voxels, v.navigable + v.steep + v.non_planar + v.sparse + v.patch + v.wall, "{truth:?}");
     assert!(truth.ground.voxels > 0 && truth.objects_observed >= 3, "{truth:?}");
     assert!(truth.largest_region_ground_share.is_some_and(|s| s >= 0.9), "{truth:?}");
     assert!(truth.regions <= 50, "{truth:?}");
-    assert!(truth.precision.is_some_and(|p| p >= 0.9), "{truth:?}");
-    assert!(truth.recall.is_some_and(|r| r >= 0.7), "{truth:?}");
+    assert!(truth.precision.is_some_and(|p| p >= 0.8), "{truth:?}");
+    assert!(truth.recall.is_some_and(|r| r >= 0.9), "{truth:?}");
+    assert!(truth.wall.share().is_some_and(|s| s >= 0.85), "{truth:?}");
     assert!(truth.agreement.is_some_and(|a| a >= 0.8), "{truth:?}");
     // Judged where each voxel's points truly came from (the classification without the poses'
     // error): issue 39's 95 %. Since a column of steep surface is filled from its top down
     // (EQUATIONS §7, 2026-12-07) the floor region no longer climbs the walls seen a line per
     // scan: 0.928 before, 0.966 at the true poses (`nsd_eval --poses truth --indoor`).
-    let by_origin = end.truth_by_origin.as_ref().expect("the clouds carry the simulator's true poses");
-    eprintln!("judged by origin: {by_origin:?}");
     assert!(by_origin.agreement.is_some_and(|a| a >= 0.95), "{by_origin:?}");
-    assert!(by_origin.regions <= 50 && by_origin.precision.is_some_and(|p| p >= 0.9), "{by_origin:?}");
+    assert!(by_origin.regions <= 50 && by_origin.precision.is_some_and(|p| p >= 0.8), "{by_origin:?}");
+    assert!(by_origin.recall.is_some_and(|r| r >= 0.9), "{by_origin:?}");
 
     let out = run.out_dir();
     let scene: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("scene.json")).unwrap()).unwrap();

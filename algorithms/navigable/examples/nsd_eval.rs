@@ -7,7 +7,7 @@
 //! ```sh
 //! cargo run --release -p navigable --example nsd_eval -- [--poses truth|out/default/fused_live.tum]
 //!     [--settings nsd.toml] [--res 0.1] [--clouds N] [--tolerance M] [--landmarks] [--indoor]
-//!     [--refresh-every 85] [--repeat N] [--seed S] [--regions]
+//!     [--refresh-every 85] [--repeat N] [--seed S] [--regions] [--ring]
 //! ```
 //!
 //! `--repeat N`: the discovery at the end run N times on the same map (its time as the minimum
@@ -22,6 +22,7 @@
 //! at the end, whose time is printed, fits only what changed after the last refresh (0: no
 //! refreshes, every voxel fitted at the end).
 //!
+//! `--ring`: `--indoor` in the 148 m ring building (`config/indoor_ring.toml`'s).
 //! `--indoor`: the indoor mission's depth clouds instead (`sim::indoor`, its default building,
 //! 0.05 m voxels, 6 m range, true poses only) against its boxes.
 //!
@@ -53,6 +54,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut repeat = 1usize;
     let mut regions_report = false;
     let mut seed: Option<u64> = None;
+    let mut ring = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut value = || args.next().ok_or_else(|| format!("{a} needs a value"));
@@ -67,6 +69,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "--tolerance" => tolerance = value()?.parse()?,
             "--landmarks" => track = true,
             "--indoor" => indoor = true,
+            "--ring" => {
+                indoor = true;
+                ring = true;
+            }
             "--refresh-every" => refresh_every = value()?.parse()?,
             "--repeat" => repeat = value()?.parse::<usize>()?.max(1),
             "--regions" => regions_report = true,
@@ -101,7 +107,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     type Cloud = (f64, Isometry3<f64>, Vec<[f32; 3]>);
     type Judge = Box<dyn Fn(&Vector3<f64>) -> TruthClass + Sync>;
     let (clouds_in, judge): (Box<dyn Iterator<Item = Cloud>>, Judge) = if indoor {
-        let mut sim = sim::indoor::IndoorSim::new(sim::indoor::IndoorConfig::default())?;
+        let mut indoor_cfg = sim::indoor::IndoorConfig::default();
+        if ring {
+            indoor_cfg.building = sim::indoor::Building::Ring;
+        }
+        let mut sim = sim::indoor::IndoorSim::new(indoor_cfg)?;
         let truth = sim::indoor::IndoorTruth::new(sim.scene().boxes.iter().map(|b| (b.min, b.max, b.what)));
         let clouds = std::iter::from_fn(move || sim.next_events()).flatten().filter_map(|e| match e {
             sim::indoor::IndoorEvent::Cloud { t_s, world_from_camera, points } => {
@@ -114,6 +124,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             Box::new(move |p: &Vector3<f64>| match truth.at(p, tolerance) {
                 sim::indoor::IndoorTruthAt::Floor => TruthClass::Ground,
                 sim::indoor::IndoorTruthAt::Object(i) => TruthClass::Object(i),
+                sim::indoor::IndoorTruthAt::Wall => TruthClass::Wall,
                 sim::indoor::IndoorTruthAt::Nothing => TruthClass::Nothing,
             }),
         )
@@ -257,12 +268,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let by_points = origins.score(&d, judge);
     for (name, s) in [("judged where the map puts it", at_map), ("judged by its points' true origin", by_points)] {
         println!(
-            "{name}: agreement {:.3}; ground navigable {:.3} ({} voxels); object in obstacles {:.3} ({}); nothing in neither {:.3} ({}); objects {} / {} (split {}), components {} (precision {:.3}); regions {}, largest {:.3} of the ground",
+            "{name}: agreement {:.3}; ground navigable {:.3} ({} voxels); object in obstacles {:.3} ({}); wall in walls {:.3} ({}, walls {}); nothing in none {:.3} ({}); objects {} / {} (split {}), components {} (precision {:.3}); regions {}, largest {:.3} of the ground",
             s.agreement.unwrap_or(f64::NAN),
             s.ground.share().unwrap_or(f64::NAN),
             s.ground.voxels,
             s.object.share().unwrap_or(f64::NAN),
             s.object.voxels,
+            s.wall.share().unwrap_or(f64::NAN),
+            s.wall.voxels,
+            d.walls.len(),
             s.nothing.share().unwrap_or(f64::NAN),
             s.nothing.voxels,
             s.objects_found,
@@ -301,7 +315,7 @@ fn report_regions(
     }
     let max_cos = 20f64.to_radians().cos();
     for (o, ob) in d.obstacles.iter().enumerate() {
-        let (mut ground, mut object, mut other) = (0, 0, 0);
+        let (mut ground, mut object, mut wall, mut other) = (0, 0, 0, 0);
         let mut objects = std::collections::BTreeMap::new();
         let (mut steep, mut nonplanar, mut nav, mut sparse) = (0, 0, 0, 0);
         let mut zs = vec![];
@@ -313,6 +327,7 @@ fn report_regions(
                     object += 1;
                     *objects.entry(i).or_insert(0) += 1;
                 }
+                Some(TruthClass::Wall) => wall += 1,
                 _ => other += 1,
             }
             match d.classes.get(k) {
@@ -340,7 +355,7 @@ fn report_regions(
         zs.sort_by(f64::total_cmp);
         let f = foot.get(foot.len() / 2).copied().unwrap_or(f64::NAN);
         println!(
-            "obstacle {o}: {} voxels at ({:.1}, {:.1}, {:.2}); origins ground {ground} object {object} {:?} other {other}; steep {steep} non-planar {nonplanar} navigable {nav} sparse {sparse}; foot {} voxels, top {:.2} m above it, median {:.2}",
+            "obstacle {o}: {} voxels at ({:.1}, {:.1}, {:.2}); origins ground {ground} object {object} {:?} wall {wall} other {other}; steep {steep} non-planar {nonplanar} navigable {nav} sparse {sparse}; foot {} voxels, top {:.2} m above it, median {:.2}",
             ob.voxels.len(),
             ob.mean_m.x,
             ob.mean_m.y,

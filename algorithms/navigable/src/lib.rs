@@ -36,7 +36,7 @@ pub mod truth;
 
 use std::collections::{BTreeMap, HashMap};
 
-use rustc_hash::FxHashMap;
+use rustc_hash::{FxHashMap, FxHashSet};
 use std::io::Write;
 use std::path::Path;
 
@@ -278,6 +278,11 @@ pub struct NsdConfig {
     /// they join the obstacles they touch (planar patches on an object's surface) or are left
     /// as patches.
     pub min_region_area_m2: f64,
+    /// A wall spans at least this along its plane ([`Wall`]), m (0: no walls, every steep
+    /// surface is an obstacle's).
+    pub min_wall_length_m: f64,
+    /// ... and at least this tall, m.
+    pub min_wall_height_m: f64,
 }
 
 impl Default for NsdConfig {
@@ -290,6 +295,8 @@ impl Default for NsdConfig {
             max_normal_angle_deg: 20.0,
             min_obstacle_voxels: 3,
             min_region_area_m2: 0.25,
+            min_wall_length_m: 2.0,
+            min_wall_height_m: 1.3,
         }
     }
 }
@@ -308,6 +315,16 @@ impl Validate for NsdConfig {
         issues.check(
             self.min_region_area_m2.is_finite() && self.min_region_area_m2 >= 0.0,
             "min_region_area_m2",
+            "must be >= 0",
+        );
+        issues.check(
+            self.min_wall_length_m.is_finite() && self.min_wall_length_m >= 0.0,
+            "min_wall_length_m",
+            "must be >= 0",
+        );
+        issues.check(
+            self.min_wall_height_m.is_finite() && self.min_wall_height_m >= 0.0,
+            "min_wall_height_m",
             "must be >= 0",
         );
     }
@@ -423,6 +440,9 @@ pub enum VoxelClass {
     Patch(PlaneFit),
     /// Too few points to tell.
     Sparse,
+    /// Part of a wall ([`Wall`]): the plane it lies on (its own, or the wall's where its own
+    /// points were too few to tell).
+    Wall(PlaneFit),
 }
 
 /// A navigable region.
@@ -449,6 +469,21 @@ pub struct Obstacle {
     pub points: u32,
 }
 
+/// A wall: a vertical plane holding a piece at least `min_wall_length_m` long and
+/// `min_wall_height_m` high with no top (a building's walls; the side of a box whose top was
+/// seen is the box's), with the plane's other pieces as high and what lies on or behind it
+/// (corners, door jambs and recesses). Not an obstacle: what stands in front of it is one of
+/// its own (EQUATIONS §7 "Walls").
+#[derive(Debug, Clone, PartialEq)]
+pub struct Wall {
+    /// Its voxels.
+    pub voxels: Vec<VoxelKey>,
+    /// Mean normal (horizontal sign arbitrary).
+    pub normal: Vector3<f64>,
+    /// Area (voxel faces), m².
+    pub area_m2: f64,
+}
+
 /// The result of a discovery.
 #[derive(Debug, Clone, Default)]
 pub struct Discovery {
@@ -458,6 +493,8 @@ pub struct Discovery {
     pub regions: Vec<NavigableRegion>,
     /// Obstacles, largest first.
     pub obstacles: Vec<Obstacle>,
+    /// Walls, largest first.
+    pub walls: Vec<Wall>,
     /// How thick the map's surfaces are: the median, over the navigable voxels seen in several
     /// scans, of the RMS distance of their points to their plane (the sensor's noise and the
     /// poses' disagreement between scans), m.
@@ -533,6 +570,8 @@ pub struct ClassCounts {
     pub sparse: usize,
     /// [`VoxelClass::Patch`].
     pub patch: usize,
+    /// [`VoxelClass::Wall`].
+    pub wall: usize,
 }
 
 impl Discovery {
@@ -546,6 +585,7 @@ impl Discovery {
                 VoxelClass::NonPlanar => c.non_planar += 1,
                 VoxelClass::Sparse => c.sparse += 1,
                 VoxelClass::Patch(_) => c.patch += 1,
+                VoxelClass::Wall(_) => c.wall += 1,
             }
         }
         c
@@ -1009,8 +1049,6 @@ pub fn discover_with(
     // Per voxel: THICK (left to its neighbours only because its scans disagree) and STEEP_FIT
     // (its own points, fewer than a class needs or from scans that disagree, fit a plane steeper
     // than `max_slope_deg`).
-    const THICK: u8 = 1;
-    const STEEP_FIT: u8 = 2;
     let max_slope_cos = cfg.max_slope_deg.to_radians().cos();
     let mut flags = vec![0u8; keys.len()];
     let classify_into = |offset: usize, classes: &mut [VoxelClass], flags: &mut [u8]| -> (usize, Vec<f64>) {
@@ -1215,7 +1253,7 @@ pub fn discover_with(
     // Obstacles ([6D] §V: the occupied voxels that are not navigable): grown from the non-planar
     // and steep voxels through adjacent voxels that are not navigable (sparse ones included).
     let seed = |c: &VoxelClass| matches!(c, VoxelClass::NonPlanar | VoxelClass::Steep(_));
-    let blocking = |c: &VoxelClass| !matches!(c, VoxelClass::Navigable(_));
+    let blocking = |c: &VoxelClass| !matches!(c, VoxelClass::Navigable(_) | VoxelClass::Wall(_));
     let mut obstacle_of: Vec<Option<usize>> = vec![None; keys.len()];
     let mut members_of: Vec<Vec<usize>> = vec![];
     for s in 0..keys.len() {
@@ -1303,6 +1341,34 @@ pub fn discover_with(
         if matches!(c, VoxelClass::Navigable(_)) {
             let r = find(&mut parent, i);
             regions.entry(r).or_default().push(i);
+        }
+    }
+    // Walls (EQUATIONS §7 "Walls"): the large steep planes with no top are carved out of the
+    // obstacles (and out of the small regions along them); what is left of an obstacle falls into
+    // its connected pieces.
+    let mut wall_of: Vec<u32> = vec![u32::MAX; keys.len()];
+    let walls_members = carve_walls(
+        &Voxels { keys: &keys, stats: &stats, index: &index, acc },
+        &mut classes,
+        &mut parent,
+        &regions,
+        &mut members_of,
+        &mut obstacle_of,
+        &mut wall_of,
+        step_m,
+        cfg,
+    );
+    if !walls_members.is_empty() {
+        for members in regions.values_mut() {
+            members.retain(|&i| matches!(classes[i], VoxelClass::Navigable(_)));
+        }
+        regions.retain(|_, m| !m.is_empty());
+        // The pieces of obstacles the walls left, by the same rule.
+        let shaped = |m: &Vec<usize>| m.iter().filter(|i| seed(&classes[**i])).count();
+        for members in members_of.iter_mut().filter(|m| shaped(m) < cfg.min_obstacle_voxels) {
+            for i in members.drain(..) {
+                obstacle_of[i] = None;
+            }
         }
     }
     // A region that lies on top of an obstacle (most of the obstacle voxels it touches are below
@@ -1546,8 +1612,493 @@ pub fn discover_with(
         obstacles.push(Obstacle { voxels: members.iter().map(|i| keys[*i]).collect(), mean_m, cov_m2, points: all.n });
     }
     obstacles.sort_by_key(|o| std::cmp::Reverse(o.voxels.len()));
-    Ok(Discovery { classes: ClassMap { keys, classes, index }, regions, obstacles, surface_sigma_m, step_m, fitted })
+    let mut walls: Vec<Wall> = walls_members
+        .into_iter()
+        .filter(|m| !m.is_empty())
+        .map(|members| {
+            let mut normal = Vector3::zeros();
+            for &i in &members {
+                if let VoxelClass::Wall(p) = classes[i] {
+                    normal += if normal.dot(&p.normal) < 0.0 { -p.normal } else { p.normal };
+                }
+            }
+            Wall {
+                voxels: members.iter().map(|i| keys[*i]).collect(),
+                normal: normal.normalize(),
+                area_m2: members.len() as f64 * res2,
+            }
+        })
+        .collect();
+    walls.sort_by_key(|w| std::cmp::Reverse(w.voxels.len()));
+    Ok(Discovery {
+        classes: ClassMap { keys, classes, index },
+        regions,
+        obstacles,
+        walls,
+        surface_sigma_m,
+        step_m,
+        fitted,
+    })
 }
+
+/// What [`carve_walls`] reads of a discovery's voxels.
+struct Voxels<'a> {
+    keys: &'a [VoxelKey],
+    stats: &'a [&'a VoxelStats],
+    index: &'a ChunkIndex,
+    acc: &'a PointAccumulator,
+}
+
+/// How far off a wall's plane a voxel's points' mean may lie and still be on it, m: the step, or
+/// twice the points' own scatter along the plane's normal where that is larger (a far wall seen
+/// by a depth camera whose noise grows with the range).
+fn wall_tolerance(s: &VoxelStats, normal: &Vector3<f64>, step_m: f64) -> f64 {
+    let sigma = s.mean_cov().map_or(0.0, |(_, c)| (normal.transpose() * c * normal)[(0, 0)].max(0.0).sqrt());
+    step_m.max(2.0 * sigma)
+}
+
+/// Walls (EQUATIONS §7 "Walls"), carved out of the obstacles. The candidates: the obstacles'
+/// voxels and the navigable voxels of every region but the largest (where a wall is seen a line
+/// per scan, a voxel's points can fit a level plane: small regions along the wall). The columns
+/// of candidates at least half `min_wall_height_m` tall vote, each with its voxels, for every
+/// vertical plane through their means' horizontal centroid, by the plane's horizontal direction
+/// ([`WALL_AZIMUTH_BIN_DEG`]) and offset (the voxel size): a Hough transform (Borrmann et al.
+/// 2011, "The 3D Hough Transform for plane detection in point clouds", here in the plane of
+/// the floor, for vertical planes). The planes with the most votes first: each refitted to the
+/// candidates in its band and followed from them through the candidates whose means lie on it
+/// ([`wall_tolerance`]); each connected piece is a wall when it spans `min_wall_length_m`
+/// horizontally along its plane and `min_wall_height_m` vertically, and has no top: under half
+/// of its highest voxels (per column) have, beside or just above them and at least two voxels
+/// off the plane, a navigable voxel of a region of at least `min_region_area_m2` (a box's side
+/// whose top was seen is the box's; a building's wall rises out of view). The wall voxels'
+/// class becomes [`VoxelClass::Wall`] with the wall's plane, and each obstacle that lost voxels
+/// falls into its connected pieces (new obstacles at the end of `members_of`). Returns each
+/// wall's voxels.
+#[allow(clippy::too_many_arguments)]
+fn carve_walls(
+    v: &Voxels,
+    classes: &mut [VoxelClass],
+    parent: &mut [usize],
+    regions: &BTreeMap<usize, Vec<usize>>,
+    members_of: &mut Vec<Vec<usize>>,
+    obstacle_of: &mut [Option<usize>],
+    wall_of: &mut [u32],
+    step_m: f64,
+    cfg: &NsdConfig,
+) -> Vec<Vec<usize>> {
+    let mut walls: Vec<Vec<usize>> = vec![];
+    if cfg.min_wall_length_m <= 0.0 || members_of.is_empty() {
+        return walls;
+    }
+    let (keys, stats, res) = (v.keys, v.stats, v.acc.res_m);
+    let mut near = v.index.near();
+    let max_slope_cos = cfg.max_slope_deg.to_radians().cos();
+    // A wall of the least size has (length × height / res²) voxels; a plane needs a tenth of
+    // them in votes to be followed.
+    let min_votes = ((cfg.min_wall_length_m * cfg.min_wall_height_m / (res * res)) / 10.0).max(3.0) as u32;
+    // Regions' sizes by root, and the largest (the ground).
+    let size: FxHashMap<usize, u32> = regions.iter().map(|(r, m)| (*r, m.len() as u32)).collect();
+    let ground = regions.iter().max_by_key(|(r, m)| (m.len(), std::cmp::Reverse(**r))).map(|(r, _)| *r);
+    let mut candidate = vec![false; keys.len()];
+    for &i in members_of.iter().flatten() {
+        candidate[i] = stats[i].n > 0;
+    }
+    for (_, m) in regions.iter().filter(|(r, _)| Some(**r) != ground) {
+        for &i in m {
+            candidate[i] = stats[i].n > 0;
+        }
+    }
+    // The columns: (x, y) → their candidates (and the means' horizontal centroid below).
+    let mut columns: FxHashMap<(i32, i32), Vec<usize>> = FxHashMap::default();
+    let candidates = members_of
+        .iter()
+        .flatten()
+        .chain(regions.iter().filter(|(r, _)| Some(**r) != ground).flat_map(|(_, m)| m.iter()));
+    for &i in candidates {
+        if candidate[i] {
+            columns.entry((keys[i][0], keys[i][1])).or_default().push(i);
+        }
+    }
+    for col in columns.values_mut() {
+        col.sort_unstable();
+    }
+    let min_column = ((0.5 * cfg.min_wall_height_m / res).ceil() as i32).max(1);
+    let mut tall: Vec<(f64, f64, Vec<usize>)> = columns
+        .into_values()
+        .filter(|c| {
+            let (lo, hi) = c.iter().fold((i32::MAX, i32::MIN), |(lo, hi), &i| (lo.min(keys[i][2]), hi.max(keys[i][2])));
+            hi - lo + 1 >= min_column
+        })
+        .map(|c| {
+            let sum = c.iter().filter_map(|&i| stats[i].mean()).fold(Vector3::zeros(), |a, m| a + m);
+            let n = c.len() as f64;
+            (sum.x / n, sum.y / n, c)
+        })
+        .collect();
+    tall.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    if tall.is_empty() {
+        return walls;
+    }
+    let bin_rad = WALL_AZIMUTH_BIN_DEG.to_radians();
+    let az_bins = (std::f64::consts::PI / bin_rad).round() as usize;
+    let directions: Vec<(f64, f64)> =
+        (0..az_bins).map(|a| ((a as f64 * bin_rad).cos(), (a as f64 * bin_rad).sin())).collect();
+    // The votes, per direction over the offsets the columns span.
+    let reach = tall.iter().map(|(x, y, _)| x.hypot(*y)).fold(0.0, f64::max);
+    let half = (reach / res).ceil() as i64 + 1;
+    let mut votes = vec![0u32; az_bins * (2 * half as usize + 1)];
+    let bin = |a: usize, x: f64, y: f64| {
+        let (c, s) = directions[a];
+        a * (2 * half as usize + 1) + (((c * x + s * y) / res).round() as i64 + half) as usize
+    };
+    for (x, y, _) in &tall {
+        for a in 0..az_bins {
+            votes[bin(a, *x, *y)] += 1;
+        }
+    }
+    // A plane needs a quarter of the columns a wall of the least length has.
+    let min_columns = ((0.25 * cfg.min_wall_length_m / res).ceil() as u32).max(3);
+    // Per direction, the columns by their offset along it (a band's columns found by bisection).
+    let by_offset: Vec<Vec<(f64, usize)>> = directions
+        .iter()
+        .map(|(c, s)| {
+            let mut v: Vec<(f64, usize)> = tall.iter().enumerate().map(|(k, (x, y, _))| (c * x + s * y, k)).collect();
+            v.sort_by(|a, b| a.0.total_cmp(&b.0));
+            v
+        })
+        .collect();
+    let mut peaks: Vec<(u32, usize)> =
+        votes.iter().enumerate().filter(|(_, n)| **n >= min_columns).map(|(b, n)| (*n, b)).collect();
+    peaks.sort_by_key(|(n, b)| (std::cmp::Reverse(*n), *b));
+    // The navigable voxels of the regions but the largest (tops a piece's upper edge may have).
+    let raised: Vec<usize> =
+        regions.iter().filter(|(r, _)| Some(**r) != ground).flat_map(|(_, m)| m.iter().copied()).collect();
+    let mut tried = vec![false; keys.len()];
+    let mut cut = vec![false; members_of.len()];
+    // Each wall's plane (a point on it, its normal) and how far off it its voxels may lie.
+    let mut planes: Vec<(Vector3<f64>, Vector3<f64>, f64)> = vec![];
+    // The peak each wall's plane came from (the pieces of one plane share it).
+    let mut plane_of_wall: Vec<usize> = vec![];
+    for (peak, (_, b)) in peaks.into_iter().enumerate() {
+        let a = b / (2 * half as usize + 1);
+        let offset = ((b % (2 * half as usize + 1)) as i64 - half) as f64 * res;
+        // The seeds: the candidates not yet tried in the columns of the bin's band.
+        let band = &by_offset[a];
+        let from = band.partition_point(|(d, _)| *d < offset - 0.5 * res);
+        let mut seeds: Vec<usize> = vec![];
+        for &(_, k) in band[from..].iter().take_while(|(d, _)| *d <= offset + 0.5 * res) {
+            seeds.extend(tall[k].2.iter().copied().filter(|&i| !tried[i] && wall_of[i] == u32::MAX));
+        }
+        if (seeds.len() as u32) < min_votes {
+            continue;
+        }
+        // The band's columns must span half a wall's least length along it.
+        let (c, s) = directions[a];
+        let (alo, ahi) = band[from..]
+            .iter()
+            .take_while(|(d, _)| *d <= offset + 0.5 * res)
+            .map(|&(_, k)| -s * tall[k].0 + c * tall[k].1)
+            .fold((f64::MAX, f64::MIN), |(lo, hi), v| (lo.min(v), hi.max(v)));
+        if ahi - alo + res < 0.5 * cfg.min_wall_length_m {
+            continue;
+        }
+        let means: Vec<Vector3<f64>> = seeds.iter().filter_map(|&i| stats[i].mean()).collect();
+        let Some((centre, normal, _)) = plane_with_thinness(&means) else { continue };
+        let along = Vector3::z().cross(&normal);
+        if along.norm() < 1e-9 || normal.z.abs() >= max_slope_cos {
+            continue;
+        }
+        let along = along.normalize();
+        // The wall's own scatter about its plane (the seeds' median distance as a Gaussian σ):
+        // a far wall seen by a depth camera is as thick as the camera's noise there.
+        let mut off: Vec<f64> = means.iter().map(|m| normal.dot(&(m - centre)).abs()).collect();
+        let within = step_m.max(3.0 * 1.4826 * median(&mut off));
+        let on = |i: usize, wall_of: &[u32], tried: &[bool]| {
+            !tried[i]
+                && candidate[i]
+                && wall_of[i] == u32::MAX
+                && stats[i]
+                    .mean()
+                    .is_some_and(|m| normal.dot(&(m - centre)).abs() <= wall_tolerance(stats[i], &normal, within))
+        };
+        let mut taken = vec![];
+        for &s in &seeds {
+            if !on(s, wall_of, &tried) {
+                continue;
+            }
+            // One connected piece of the plane.
+            let mut piece = vec![s];
+            tried[s] = true;
+            let mut k = 0;
+            while k < piece.len() {
+                let i = piece[k];
+                k += 1;
+                let mut next = vec![];
+                near.around(&keys[i], 0..26, |_, j| next.push(j));
+                for j in next {
+                    if on(j, wall_of, &tried) {
+                        tried[j] = true;
+                        piece.push(j);
+                    }
+                }
+            }
+            let (mut lo, mut hi, mut zlo, mut zhi) = (f64::MAX, f64::MIN, i32::MAX, i32::MIN);
+            for &i in &piece {
+                let a = along.dot(&v.acc.centre(&keys[i]));
+                lo = lo.min(a);
+                hi = hi.max(a);
+                zlo = zlo.min(keys[i][2]);
+                zhi = zhi.max(keys[i][2]);
+            }
+            if f64::from(zhi - zlo + 1) * res < cfg.min_wall_height_m {
+                continue;
+            }
+            // A wall fills its extent (where nothing stands in front of it); a plane through a
+            // rock meets only the rock's outline.
+            let cells: FxHashSet<(i64, i32)> = piece
+                .iter()
+                .map(|&i| (((along.dot(&v.acc.centre(&keys[i])) - lo) / res).round() as i64, keys[i][2]))
+                .collect();
+            let fill = cells.len() as f64 / (((hi - lo) / res).round() + 1.0) / f64::from(zhi - zlo + 1);
+            let long = hi - lo + res >= cfg.min_wall_length_m && fill >= WALL_MIN_FILL;
+            // The top of the piece at each step along it: its highest voxel there.
+            let mut top: HashMap<i64, VoxelKey> = HashMap::new();
+            for &i in &piece {
+                let k = keys[i];
+                let t = top.entry(((along.dot(&v.acc.centre(&k)) - lo) / res).round() as i64).or_insert(k);
+                if k[2] > t[2] {
+                    *t = k;
+                }
+            }
+            let min_top = (cfg.min_region_area_m2 / (res * res)).ceil().max(1.0) as u32;
+            // A top: a region's voxel beside or just above the highest voxel of a column, at
+            // least two voxels off the plane (not the voxels along the wall's own top edge,
+            // whose points, a line per scan, can fit a level plane).
+            // Judged along its upper edge (the steps whose top is within two voxels of the
+            // piece's highest): a box's side meets the box's top there, and what the plane meets
+            // beside the box (lower things on the floor beside it) is not judged.
+            top.retain(|_, k| k[2] >= zhi - 2);
+            let in_piece: FxHashSet<usize> = piece.iter().copied().collect();
+            let cover = ((0.5 * cfg.min_wall_height_m / res).ceil() as i32).max(1);
+            // A top reaches further off the plane than a thin wall is thick (its other face's
+            // upper edge can fit level planes too).
+            let off = (3.0 * res).max(WALL_TOP_OFF_M);
+            let reach = (off / res).ceil() as i32 + 1;
+            let covered = top
+                .values()
+                .filter(|[x, y, z]| {
+                    // A surface of the map going on above it, over half the least wall height (a
+                    // wall rises out of view; a side whose upper part went to another plane,
+                    // where passes disagree, does not; a thin wall's other face, seen a little
+                    // higher, is no such surface).
+                    (-1..=1)
+                        .flat_map(|dx| (-1..=1).flat_map(move |dy| (1..=cover).map(move |dz| [x + dx, y + dy, z + dz])))
+                        .filter(|k| near.get(k).is_some_and(|j| !in_piece.contains(&j)))
+                        .count()
+                        >= cover as usize
+                        || (-reach..=reach).any(|dx| {
+                            (-reach..=reach).any(|dy| {
+                                (-1..=1).any(|dz| {
+                                    near.get(&[x + dx, y + dy, z + dz]).is_some_and(|j| {
+                                        matches!(classes[j], VoxelClass::Navigable(_))
+                                            && size.get(&find(parent, j)).is_some_and(|n| *n >= min_top)
+                                            && stats[j].mean().is_some_and(|m| normal.dot(&(m - centre)).abs() >= off)
+                                    })
+                                })
+                            })
+                        })
+                })
+                .count();
+            // Or a surface a vehicle could stand on lies above the piece's upper edge, within
+            // the piece's height of its plane and along its extent: where passes disagree, a
+            // box's side falls into pieces on several planes, and its top into a region beside
+            // them.
+            if 2 * covered >= top.len() {
+                continue;
+            }
+            let height_m = f64::from(zhi - zlo + 1) * res;
+            let above = raised
+                .iter()
+                .filter(|&&j| {
+                    keys[j][2] > zhi
+                        && size.get(&find(parent, j)).is_some_and(|n| *n >= min_top)
+                        && stats[j].mean().is_some_and(|m| {
+                            let a = along.dot(&m);
+                            normal.dot(&(m - centre)).abs() <= height_m && a >= lo - res && a <= hi + res
+                        })
+                })
+                .count();
+            if (above as u32) < min_top {
+                taken.push((long, piece));
+            }
+        }
+        // The pieces of a plane that holds a wall (a piece long enough) are all that wall's, where
+        // furniture in front of it or a wall across it cut it into pieces.
+        if !taken.iter().any(|(long, _)| *long) {
+            continue;
+        }
+        for (_, piece) in taken {
+            let w = walls.len() as u32;
+            for &i in &piece {
+                wall_of[i] = w;
+                if let Some(o) = obstacle_of[i].take() {
+                    cut[o] = true;
+                }
+                let mean = stats[i].mean().unwrap_or(centre);
+                classes[i] = VoxelClass::Wall(PlaneFit {
+                    centroid_m: mean - normal * normal.dot(&(mean - centre)),
+                    normal,
+                    mse_m2: 0.0,
+                    spread_m2: 0.0,
+                    within_scans: false,
+                });
+            }
+            walls.push(piece);
+            planes.push((centre, normal, within));
+            plane_of_wall.push(peak);
+        }
+    }
+    // What is left of each obstacle that lost voxels, in connected pieces: the first keeps its
+    // index.
+    for o in (0..cut.len()).filter(|&o| cut[o]) {
+        let mut left: Vec<usize> =
+            std::mem::take(&mut members_of[o]).into_iter().filter(|&i| obstacle_of[i] == Some(o)).collect();
+        left.sort_unstable();
+        for &i in &left {
+            obstacle_of[i] = None;
+        }
+        for &s in &left {
+            if obstacle_of[s].is_some() {
+                continue;
+            }
+            let into = if members_of[o].is_empty() { o } else { members_of.len() };
+            if into != o {
+                members_of.push(vec![]);
+            }
+            obstacle_of[s] = Some(into);
+            let mut piece = vec![s];
+            let mut k = 0;
+            while k < piece.len() {
+                let i = piece[k];
+                k += 1;
+                near.around(&keys[i], 0..26, |_, j| {
+                    if obstacle_of[j].is_none() && left.binary_search(&j).is_ok() {
+                        obstacle_of[j] = Some(into);
+                        piece.push(j);
+                    }
+                });
+            }
+            members_of[into] = piece;
+        }
+    }
+    // Each wall's front: the side its foot meets the ground on (the building's rooms and
+    // corridors); unknown where it meets no ground.
+    // Judged over all the pieces of a plane together (a door's recess has floor behind the wall's
+    // plane).
+    let mut side_of_plane: Vec<f64> = vec![0.0; plane_of_wall.iter().max().map_or(0, |p| p + 1)];
+    for (w, piece) in walls.iter().enumerate() {
+        let (centre, normal, _) = planes[w];
+        for &i in piece {
+            near.around(&keys[i], 0..26, |_, j| {
+                if matches!(classes[j], VoxelClass::Navigable(_))
+                    && let Some(m) = stats[j].mean()
+                {
+                    side_of_plane[plane_of_wall[w]] += normal.dot(&(m - centre)).signum();
+                }
+            });
+        }
+    }
+    let ground_side: Vec<Option<Vector3<f64>>> = (0..walls.len())
+        .map(|w| {
+            let side = side_of_plane[plane_of_wall[w]];
+            (side != 0.0).then(|| planes[w].1 * side.signum())
+        })
+        .collect();
+    // An obstacle within two voxels of a wall that lies on its plane or behind it (where two walls meet,
+    // a door's jambs and recess, a wall's end: at most a tenth of its voxels more than w, or a
+    // voxel, in front of it) is part of it; what stands in front of a wall (furniture against
+    // it) stays an obstacle.
+    for members in members_of.iter_mut() {
+        // The walls within two voxels of it (where the poses disagree, a wall's points can land
+        // a few centimetres behind it, apart from it).
+        let mut touched: Vec<u32> = vec![];
+        for &i in members.iter() {
+            let k = keys[i];
+            for n in (-2..=2)
+                .flat_map(|dx| (-2..=2).flat_map(move |dy| (-2..=2).map(move |dz| [k[0] + dx, k[1] + dy, k[2] + dz])))
+            {
+                if let Some(j) = near.get(&n)
+                    && wall_of[j] != u32::MAX
+                {
+                    touched.push(wall_of[j]);
+                }
+            }
+        }
+        touched.sort_unstable();
+        touched.dedup();
+        let into = touched.into_iter().find(|&w| {
+            let (centre, _, within) = planes[w as usize];
+            let beyond = within.max(res);
+            ground_side[w as usize].is_some_and(|front| {
+                let in_front = members
+                    .iter()
+                    .filter(|&&i| stats[i].mean().is_some_and(|m| front.dot(&(m - centre)) > beyond))
+                    .count();
+                in_front * 10 <= members.len()
+            })
+        });
+        let Some(w) = into else { continue };
+        let (centre, normal, _) = planes[w as usize];
+        for i in members.drain(..) {
+            obstacle_of[i] = None;
+            wall_of[i] = w;
+            let mean = stats[i].mean().unwrap_or(centre);
+            classes[i] = VoxelClass::Wall(PlaneFit {
+                centroid_m: mean,
+                normal,
+                mse_m2: 0.0,
+                spread_m2: 0.0,
+                within_scans: false,
+            });
+            walls[w as usize].push(i);
+        }
+    }
+    walls
+}
+
+/// The least-squares plane through `points`: their centroid, the unit normal of least spread,
+/// and whether they are thin about it (the least spread under a quarter of the middle one).
+/// `None` under 3 points or without a finite fit.
+fn plane_with_thinness(points: &[Vector3<f64>]) -> Option<(Vector3<f64>, Vector3<f64>, bool)> {
+    if points.len() < 3 {
+        return None;
+    }
+    let centre = points.iter().sum::<Vector3<f64>>() / points.len() as f64;
+    let cov = points.iter().map(|p| (p - centre) * (p - centre).transpose()).sum::<Matrix3<f64>>();
+    if !cov.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let eig = SymmetricEigen::new(cov);
+    let i = eig.eigenvalues.imin();
+    let normal: Vector3<f64> = eig.eigenvectors.column(i).into_owned();
+    let thin = eig.eigenvalues[i] < 0.25 * middle(&eig.eigenvalues);
+    (normal.norm() > 0.0).then(|| (centre, normal.normalize(), thin))
+}
+
+/// The share of its extent (along it × its height, in voxels) a piece of a plane must fill to be
+/// a wall in [`carve_walls`].
+const WALL_MIN_FILL: f64 = 0.5;
+/// How far off a wall's plane a region must reach to be its top in [`carve_walls`] (more than an
+/// interior wall is thick), m.
+const WALL_TOP_OFF_M: f64 = 0.2;
+/// Bins of a wall's horizontal direction in [`carve_walls`]'s vote, deg.
+const WALL_AZIMUTH_BIN_DEG: f64 = 3.0;
+
+/// A voxel left to its neighbours only because its scans disagree ([`discover_with`]'s flags).
+const THICK: u8 = 1;
+/// A voxel whose own points (fewer than a class needs, or from scans that disagree) fit a plane
+/// steeper than `max_slope_deg`.
+const STEEP_FIT: u8 = 2;
 
 /// Foot voxels a local ground plane is fitted to ([`discover_with`]: whether an obstacle stands
 /// out of the ground).
@@ -1633,6 +2184,8 @@ pub enum MapVoxelClass {
     Navigable,
     /// Part of an obstacle.
     Obstacle,
+    /// Part of a wall ([`Wall`]).
+    Wall,
 }
 
 /// One occupied leaf of the occupancy map with its class.
@@ -1697,6 +2250,7 @@ fn leaf_voxel(
             let k = points.key(&Vector3::from(c));
             match d.classes.get(&k) {
                 Some(VoxelClass::Navigable(_)) => MapVoxelClass::Navigable,
+                Some(VoxelClass::Wall(_)) => MapVoxelClass::Wall,
                 _ if obstacle.contains(&k) => MapVoxelClass::Obstacle,
                 _ => MapVoxelClass::Occupied,
             }
@@ -1927,13 +2481,30 @@ pub fn write_navigable_ply(path: &Path, acc: &PointAccumulator, d: &Discovery) -
 /// no other voxel of the same obstacle covers (its outer surface), corners shared within an
 /// obstacle; vertices carry `obstacle` (index into [`Discovery::obstacles`]).
 pub fn write_obstacles_ply(path: &Path, acc: &PointAccumulator, d: &Discovery) -> Result<(), NavigableError> {
+    write_voxel_meshes_ply(path, acc, d.obstacles.iter().map(|o| &o.voxels[..]), "obstacle")
+}
+
+/// The walls as meshes, as [`write_obstacles_ply`] writes the obstacles: the outer faces of each
+/// wall's voxels, each vertex with its wall's index (`property int wall`).
+pub fn write_walls_ply(path: &Path, acc: &PointAccumulator, d: &Discovery) -> Result<(), NavigableError> {
+    write_voxel_meshes_ply(path, acc, d.walls.iter().map(|w| &w.voxels[..]), "wall")
+}
+
+/// Each set of voxels as the outer faces of its voxels (binary PLY), each vertex with its set's
+/// index as `property int <what>`.
+fn write_voxel_meshes_ply<'a>(
+    path: &Path,
+    acc: &PointAccumulator,
+    sets: impl Iterator<Item = &'a [VoxelKey]>,
+    what: &str,
+) -> Result<(), NavigableError> {
     let r = acc.res_m;
     let mut vertices: Vec<([f32; 3], i32)> = vec![];
     let mut faces: Vec<[u32; 4]> = vec![];
-    for (o, obstacle) in d.obstacles.iter().enumerate() {
-        let set: std::collections::HashSet<VoxelKey> = obstacle.voxels.iter().copied().collect();
+    for (o, voxels) in sets.enumerate() {
+        let set: std::collections::HashSet<VoxelKey> = voxels.iter().copied().collect();
         let mut corners: HashMap<VoxelKey, u32> = HashMap::new();
-        for k in &obstacle.voxels {
+        for k in voxels {
             for axis in 0..3 {
                 for side in [0i32, 1] {
                     let mut n = *k;
@@ -1960,7 +2531,7 @@ pub fn write_obstacles_ply(path: &Path, acc: &PointAccumulator, d: &Discovery) -
     }
     let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(io_err(path))?);
     let header = format!(
-        "ply\nformat binary_little_endian 1.0\ncomment obstacles: outer voxel faces\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty int obstacle\nelement face {}\nproperty list uchar uint vertex_indices\nend_header\n",
+        "ply\nformat binary_little_endian 1.0\ncomment {what}s: outer voxel faces\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty int {what}\nelement face {}\nproperty list uchar uint vertex_indices\nend_header\n",
         vertices.len(),
         faces.len()
     );
@@ -2211,6 +2782,91 @@ mod tests {
             d.obstacles.iter().map(|o| o.voxels.len()).collect::<Vec<_>>()
         );
         assert!(d.obstacles.iter().all(|o| o.voxels.iter().all(|k| k[2] < 0)), "no floor voxel in an obstacle");
+    }
+
+    /// A vertical face y = y0 over x, z ranges.
+    fn wall_y(acc: &mut PointAccumulator, y0: f64, x: (f64, f64), z: (f64, f64)) {
+        let mut xi = x.0 + 0.005;
+        while xi < x.1 {
+            let mut zi = z.0 + 0.005;
+            while zi < z.1 {
+                acc.add(&Vector3::new(xi, y0, zi));
+                zi += 0.01;
+            }
+            xi += 0.01;
+        }
+    }
+
+    /// A 6 × 5 m room's floor with two of its walls (2 m seen, no top) and a cabinet against one.
+    fn room_with_a_cabinet(acc: &mut PointAccumulator) {
+        surface(acc, (0.0, 6.0), (0.0, 5.0), |_, _| 0.05);
+        wall(acc, 0.02, (0.0, 5.0), (0.05, 2.05));
+        wall_y(acc, 4.98, (0.0, 6.0), (0.05, 2.05));
+        // The cabinet: x 0.02-0.62, y 2-3, 1.2 m high (front, sides, top).
+        wall(acc, 0.62, (2.0, 3.0), (0.05, 1.25));
+        wall_y(acc, 2.0, (0.02, 0.62), (0.05, 1.25));
+        wall_y(acc, 3.0, (0.02, 0.62), (0.05, 1.25));
+        surface(acc, (0.02, 0.62), (2.0, 3.0), |_, _| 1.25);
+    }
+
+    #[test]
+    fn a_rooms_walls_are_walls_and_a_cabinet_against_one_is_an_obstacle_of_its_own() {
+        let mut acc = PointAccumulator::new(RES);
+        room_with_a_cabinet(&mut acc);
+        let d = run(&acc);
+        let in_walls: std::collections::HashSet<VoxelKey> =
+            d.walls.iter().flat_map(|w| w.voxels.iter().copied()).collect();
+        // Both walls' faces away from the cabinet are walls.
+        let k = |x: f64, y: f64, z: f64| acc.key(&Vector3::new(x, y, z));
+        for p in [k(0.02, 0.5, 1.0), k(0.02, 4.5, 1.5), k(3.0, 4.98, 1.0), k(5.5, 4.98, 0.5)] {
+            assert!(
+                in_walls.contains(&p),
+                "{p:?} in a wall; walls {:?}",
+                d.walls.iter().map(|w| w.voxels.len()).collect::<Vec<_>>()
+            );
+        }
+        // The cabinet's front is an obstacle's, and no obstacle holds a wall voxel.
+        let front = k(0.62, 2.5, 0.6);
+        let cabinet: Vec<&Obstacle> = d.obstacles.iter().filter(|o| o.voxels.contains(&front)).collect();
+        assert_eq!(cabinet.len(), 1, "obstacles {:?}", d.obstacles.iter().map(|o| o.voxels.len()).collect::<Vec<_>>());
+        assert!(d.obstacles.iter().all(|o| o.voxels.iter().all(|v| !in_walls.contains(v))));
+        // Judged with the scene's truth: the cabinet is found, apart from the walls.
+        let truth = |p: &Vector3<f64>| {
+            if p.x <= 0.72 && (1.9..=3.1).contains(&p.y) && p.z <= 1.35 && p.x > 0.1 {
+                truth::TruthClass::Object(0)
+            } else if p.x < 0.12 || p.y > 4.88 {
+                truth::TruthClass::Wall
+            } else if p.z < 0.15 {
+                truth::TruthClass::Ground
+            } else {
+                truth::TruthClass::Nothing
+            }
+        };
+        let score = truth::score(&d, &acc, truth);
+        assert_eq!((score.objects_found, score.objects_observed), (1, 1), "{score:?}");
+        assert!(score.wall.share().is_some_and(|s| s > 0.9), "{score:?}");
+        // Without walls (`min_wall_length_m = 0`) the cabinet is part of the walls' obstacle.
+        let without = discover(&acc, |_| true, &NsdConfig { min_wall_length_m: 0.0, ..Default::default() }).unwrap();
+        assert!(without.walls.is_empty());
+        let with_front: Vec<&Obstacle> = without.obstacles.iter().filter(|o| o.voxels.contains(&front)).collect();
+        assert!(with_front.iter().all(|o| o.voxels.contains(&k(0.02, 0.5, 1.0))), "one obstacle with the wall");
+    }
+
+    #[test]
+    fn a_box_whose_top_was_seen_is_an_obstacle_and_no_wall() {
+        // A 4 × 2 m box 1.8 m high on a floor, its top seen (a wreck's hull, a container): its
+        // long sides are planes 4 m long and 1.8 m high, but they have a top.
+        let mut acc = PointAccumulator::new(RES);
+        surface(&mut acc, (0.0, 8.0), (0.0, 6.0), |_, _| 0.05);
+        wall(&mut acc, 2.0, (2.0, 4.0), (0.05, 1.85));
+        wall(&mut acc, 6.0, (2.0, 4.0), (0.05, 1.85));
+        wall_y(&mut acc, 2.0, (2.0, 6.0), (0.05, 1.85));
+        wall_y(&mut acc, 4.0, (2.0, 6.0), (0.05, 1.85));
+        surface(&mut acc, (2.0, 6.0), (2.0, 4.0), |_, _| 1.85);
+        let d = run(&acc);
+        assert!(d.walls.is_empty(), "walls {:?}", d.walls.iter().map(|w| w.voxels.len()).collect::<Vec<_>>());
+        let side = acc.key(&Vector3::new(4.0, 2.0, 1.0));
+        assert!(d.obstacles.iter().any(|o| o.voxels.contains(&side)));
     }
 
     #[test]

@@ -5,8 +5,8 @@
 //!   height is that voxel's plane at the cell's centre, the slope its normal's angle to world z
 //!   (of the largest region's voxel when several regions pass through the column, the highest
 //!   of them when one region does twice);
-//! - **obstacle**: the column holds an obstacle voxel; the height is the highest mean of the
-//!   points of its obstacle voxels (the slope is not defined: NaN);
+//! - **obstacle**: the column holds an obstacle or a wall voxel; the height is the highest mean
+//!   of the points of those voxels (the slope is not defined: NaN);
 //! - **unknown**: neither (height and slope NaN).
 //!
 //! Written as the map_server files of the 2-D grid (`<stem>.pgm` + `<stem>.yaml`: navigable
@@ -88,8 +88,8 @@ impl TraversabilityGrid {
             }
         }
         let mut blocked: HashMap<[i32; 2], f64> = HashMap::new();
-        for o in &d.obstacles {
-            for k in &o.voxels {
+        for o in d.obstacles.iter().map(|o| &o.voxels).chain(d.walls.iter().map(|w| &w.voxels)) {
+            for k in o {
                 let z = acc.cells().get(k).and_then(|s| s.mean()).map_or((k[2] as f64 + 0.5) * res, |m| m.z);
                 let e = blocked.entry([k[0], k[1]]).or_insert(z);
                 *e = e.max(z);

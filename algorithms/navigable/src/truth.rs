@@ -3,9 +3,11 @@
 //!
 //! Each voxel the discovery classified is judged at the mean of its points (nearer the surface
 //! than the voxel's centre) by a `truth` function that says what the scene holds there
-//! ([`TruthClass`]: the seabed or floor, object `i`, or nothing: noise, far points). Then:
+//! ([`TruthClass`]: the seabed or floor, object `i`, a building's wall, or nothing: noise, far
+//! points). Then:
 //! - **per true class**, the share of its observed voxels the map puts in the matching class:
-//!   ground (the seabed, a floor) → navigable (in a region), object → obstacle, nothing → neither;
+//!   ground (the seabed, a floor) → navigable (in a region), object → obstacle, wall → wall,
+//!   nothing → none of them;
 //! - **objects**: the obstacles are joined into components where their voxels touch
 //!   (26-neighbourhood); a component is matched to the object most of its voxels belong to
 //!   (none when most belong to no object). Recall: objects with a matched component over the
@@ -27,6 +29,8 @@ pub enum TruthClass {
     Ground,
     /// Object `i` (a rock, a wreck, a piece of furniture): an obstacle.
     Object(u32),
+    /// A building's wall: a [`crate::Wall`].
+    Wall,
     /// Nothing the scene knows: noise, points beyond the scene.
     Nothing,
 }
@@ -60,6 +64,9 @@ pub struct TruthScore {
     pub object: ClassAgreement,
     /// Voxels of nothing put in neither.
     pub nothing: ClassAgreement,
+    /// A building's wall voxels put in a wall (none in a scene without walls).
+    #[serde(default)]
+    pub wall: ClassAgreement,
     /// All voxels in agreement over all voxels judged (`null` without voxels).
     pub agreement: Option<f64>,
     /// Objects with at least one voxel judged theirs.
@@ -218,17 +225,21 @@ pub fn score_with(d: &Discovery, judge: impl Fn(&VoxelKey) -> TruthClass) -> Tru
     // Fx-hashed (SipHash over a million keys was most of the score's time).
     let navigable: rustc_hash::FxHashSet<VoxelKey> = d.regions.iter().flat_map(|r| r.voxels.iter().copied()).collect();
     let obstacle: rustc_hash::FxHashSet<VoxelKey> = d.obstacles.iter().flat_map(|o| o.voxels.iter().copied()).collect();
+    let wall: rustc_hash::FxHashSet<VoxelKey> = d.walls.iter().flat_map(|w| w.voxels.iter().copied()).collect();
     let mut s = TruthScore { voxels: judged.len(), regions: d.regions.len(), ..Default::default() };
     for (k, t) in &judged {
         let (class, agrees) = match t {
             TruthClass::Ground => (&mut s.ground, navigable.contains(k)),
             TruthClass::Object(_) => (&mut s.object, obstacle.contains(k)),
-            TruthClass::Nothing => (&mut s.nothing, !navigable.contains(k) && !obstacle.contains(k)),
+            TruthClass::Nothing => {
+                (&mut s.nothing, !navigable.contains(k) && !obstacle.contains(k) && !wall.contains(k))
+            }
+            TruthClass::Wall => (&mut s.wall, wall.contains(k)),
         };
         class.voxels += 1;
         class.agreeing += usize::from(agrees);
     }
-    let agreeing = s.ground.agreeing + s.object.agreeing + s.nothing.agreeing;
+    let agreeing = s.ground.agreeing + s.object.agreeing + s.nothing.agreeing + s.wall.agreeing;
     s.agreement = (s.voxels > 0).then(|| agreeing as f64 / s.voxels as f64);
     if let Some(largest) = d.regions.first() {
         let on_ground = largest.voxels.iter().filter(|k| judged.get(*k) == Some(&TruthClass::Ground)).count();

@@ -92,8 +92,10 @@ pub enum Building {
 pub enum IndoorTruthAt {
     /// The floor's top: where the robot drives.
     Floor,
-    /// Object `i`: a group of touching boxes of one kind, walls with walls (the building's
-    /// shell) and furniture with furniture (a table's top and legs are one table).
+    /// A wall of the building (its shell: walls, door jambs, pillars are furniture).
+    Wall,
+    /// Object `i`: a group of touching pieces of furniture (a table's top and legs are one
+    /// table).
     Object(u32),
     /// Nothing the scene knows.
     Nothing,
@@ -103,14 +105,14 @@ pub enum IndoorTruthAt {
 /// navigable space and obstacles.
 #[derive(Debug, Clone, PartialEq)]
 pub struct IndoorTruth {
-    /// (lower corner, upper corner, `None` for the floor or the object's index), m.
-    boxes: Vec<([f64; 3], [f64; 3], Option<u32>)>,
+    /// (lower corner, upper corner, what the box is: the floor, a wall or an object), m.
+    boxes: Vec<([f64; 3], [f64; 3], IndoorTruthAt)>,
     objects: u32,
 }
 
 impl IndoorTruth {
-    /// Groups `boxes` (lower corner, upper corner, what: `floor`, `wall` or a kind of furniture)
-    /// into objects: boxes of the same category (wall or furniture) that touch or overlap.
+    /// Groups `boxes` (lower corner, upper corner, what: `floor`, `wall` or a kind of furniture):
+    /// touching or overlapping pieces of furniture into objects; the walls are the building's.
     pub fn new<'a>(boxes: impl IntoIterator<Item = ([f64; 3], [f64; 3], &'a str)>) -> Self {
         let all: Vec<([f64; 3], [f64; 3], &str)> = boxes.into_iter().collect();
         let mut parent: Vec<usize> = (0..all.len()).collect();
@@ -127,7 +129,7 @@ impl IndoorTruth {
         for i in 0..all.len() {
             for j in i + 1..all.len() {
                 let (a, b) = (&all[i], &all[j]);
-                if a.2 != "floor" && b.2 != "floor" && (a.2 == "wall") == (b.2 == "wall") && touch(a, b) {
+                if ![a.2, b.2].iter().any(|w| *w == "floor" || *w == "wall") && touch(a, b) {
                     let (ri, rj) = (root(&mut parent, i), root(&mut parent, j));
                     parent[ri.max(rj)] = ri.min(rj);
                 }
@@ -137,33 +139,41 @@ impl IndoorTruth {
         let boxes = (0..all.len())
             .map(|i| {
                 let (min, max, what) = all[i];
-                let id = (what != "floor").then(|| {
-                    let r = root(&mut parent, i);
-                    let n = ids.len() as u32;
-                    *ids.entry(r).or_insert(n)
-                });
-                (min, max, id)
+                let at = match what {
+                    "floor" => IndoorTruthAt::Floor,
+                    "wall" => IndoorTruthAt::Wall,
+                    _ => {
+                        let r = root(&mut parent, i);
+                        let n = ids.len() as u32;
+                        IndoorTruthAt::Object(*ids.entry(r).or_insert(n))
+                    }
+                };
+                (min, max, at)
             })
             .collect();
         Self { boxes, objects: ids.len() as u32 }
     }
 
-    /// Objects (groups of boxes).
+    /// Objects (groups of touching pieces of furniture).
     pub fn objects(&self) -> u32 {
         self.objects
     }
 
-    /// What the scene holds at `p` (m), within `tolerance_m` of a box: an object first, then the
-    /// floor's top face, else nothing.
+    /// What the scene holds at `p` (m), within `tolerance_m` of a box: an object first, then a
+    /// wall, then the floor's top face, else nothing.
     pub fn at(&self, p: &Vector3<f64>, tolerance_m: f64) -> IndoorTruthAt {
         let near = |min: &[f64; 3], max: &[f64; 3]| {
             (0..3).all(|k| p[k] >= min[k] - tolerance_m && p[k] <= max[k] + tolerance_m)
         };
-        if let Some(id) = self.boxes.iter().filter(|b| near(&b.0, &b.1)).find_map(|b| b.2) {
-            return IndoorTruthAt::Object(id);
+        let touching = || self.boxes.iter().filter(|b| near(&b.0, &b.1));
+        if let Some(object) = touching().find(|b| matches!(b.2, IndoorTruthAt::Object(_))) {
+            return object.2;
         }
-        let on_floor = self.boxes.iter().any(|(min, max, id)| {
-            id.is_none()
+        if touching().any(|b| b.2 == IndoorTruthAt::Wall) {
+            return IndoorTruthAt::Wall;
+        }
+        let on_floor = self.boxes.iter().any(|(min, max, what)| {
+            *what == IndoorTruthAt::Floor
                 && (0..2).all(|k| p[k] >= min[k] - tolerance_m && p[k] <= max[k] + tolerance_m)
                 && (p.z - max[2]).abs() <= tolerance_m
         });
@@ -820,13 +830,17 @@ mod tests {
             let c = Vector3::new((b.min[0] + b.max[0]) / 2.0, (b.min[1] + b.max[1]) / 2.0, (b.min[2] + b.max[2]) / 2.0);
             truth.at(&c, 0.05)
         };
-        // A table's top and its legs are one object; the walls are another; a crate a third.
+        // A table's top and its legs are one object, a crate another; the walls are no object.
         let (top, leg, wall, krate) = (id_of("table_top"), id_of("table_leg"), id_of("wall"), id_of("crate"));
         assert!(matches!(top, IndoorTruthAt::Object(_)), "{top:?}");
         assert_eq!(top, leg);
-        assert_ne!(top, wall);
+        assert_eq!(wall, IndoorTruthAt::Wall);
+        assert!(matches!(krate, IndoorTruthAt::Object(_)), "{krate:?}");
         assert_ne!(krate, top);
-        assert_ne!(krate, wall);
+        // A cabinet against the corridor's north wall is an object of its own.
+        let cabinet = scene.boxes.iter().find(|b| b.what == "cabinet").expect("cabinet");
+        let back = Vector3::new((cabinet.min[0] + cabinet.max[0]) / 2.0, cabinet.max[1] - 0.01, 0.5);
+        assert!(matches!(truth.at(&back, 0.05), IndoorTruthAt::Object(_)));
         // The floor's top, away from everything; the air above it.
         let floor = scene.boxes.iter().find(|b| b.what == "floor").expect("floor");
         let clear = (0..400)

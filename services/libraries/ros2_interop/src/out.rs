@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use shared_types::voxel_stream::{self, VoxelKey};
 use shared_types::{
     FRAME_LOCAL_MAP, FUSED_REFINED, FusedPose, Landmark, LandmarkMapHeader, OccupancyCell, OccupancyGridHeader,
-    PlanarOdometry, PlanarPose, PoseEstimate, VOXEL_OBSTACLE, Voxel, VoxelSetHeader,
+    PlanarOdometry, PlanarPose, PoseEstimate, VOXEL_OBSTACLE, VOXEL_WALL, Voxel, VoxelSetHeader,
 };
 
 use crate::convert;
@@ -840,22 +840,33 @@ impl Translator {
                 if !v.has_full {
                     return None;
                 }
-                let pts = v
-                    .voxels
-                    .values()
-                    .filter(|v| v.class == VOXEL_OBSTACLE)
-                    .map(|v| Point { x: v.center_m[0] as f64, y: v.center_m[1] as f64, z: v.center_m[2] as f64 })
-                    .collect();
+                // The obstacles, and the walls (which block as they do) in a marker of their own.
+                let of_class = |class: u32| {
+                    v.voxels
+                        .values()
+                        .filter(|v| v.class == class)
+                        .map(|v| Point { x: v.center_m[0] as f64, y: v.center_m[1] as f64, z: v.center_m[2] as f64 })
+                        .collect()
+                };
                 let m = list_marker(
                     v.stamp_ns,
                     &f.map,
                     "obstacles",
                     MARKER_CUBE_LIST,
                     v.resolution_m,
-                    pts,
+                    of_class(VOXEL_OBSTACLE),
                     [1.0, 0.3, 0.1],
                 );
-                RosOut::Markers(MarkerArray { markers: vec![m] })
+                let w = list_marker(
+                    v.stamp_ns,
+                    &f.map,
+                    "walls",
+                    MARKER_CUBE_LIST,
+                    v.resolution_m,
+                    of_class(VOXEL_WALL),
+                    [0.6, 0.6, 0.6],
+                );
+                RosOut::Markers(MarkerArray { markers: vec![m, w] })
             }
             OutKind::Landmarks => {
                 let (stamp, frame, pts) = self.landmarks.as_ref()?;

@@ -94,6 +94,7 @@ fn end_of_run(
                     .map_err(StageError::stage)?;
                 navigable::write_obstacles_ply(&out_dir.join("obstacles.ply"), &st.points, &d)
                     .map_err(StageError::stage)?;
+                navigable::write_walls_ply(&out_dir.join("walls.ply"), &st.points, &d).map_err(StageError::stage)?;
                 let grid = navigable::traversability::TraversabilityGrid::from_discovery(&st.points, &d);
                 grid.write(out_dir, "traversability").map_err(StageError::stage)?;
                 let (nav, blocked, unknown) = grid.counts();
@@ -158,10 +159,12 @@ fn end_of_run(
                     non_planar: c.non_planar,
                     sparse: c.sparse,
                     patch: c.patch,
+                    wall: c.wall,
                 },
                 navigable_regions: d.regions.len(),
                 navigable_area_m2: d.regions.iter().map(|r| r.area_m2).sum::<f64>(),
                 obstacles: d.obstacles.len(),
+                walls: d.walls.len(),
                 obstacle_landmarks: st.obstacles.landmarks.len(),
                 obstacle_landmarks_seen_in_2_or_more_scans: st
                     .obstacles
@@ -270,6 +273,7 @@ fn score_against_truth(
             let scores = both(&|p| match truth.at(p, tolerance) {
                 sim::indoor::IndoorTruthAt::Floor => TruthClass::Ground,
                 sim::indoor::IndoorTruthAt::Object(i) => TruthClass::Object(i),
+                sim::indoor::IndoorTruthAt::Wall => TruthClass::Wall,
                 sim::indoor::IndoorTruthAt::Nothing => TruthClass::Nothing,
             });
             (None, scores)

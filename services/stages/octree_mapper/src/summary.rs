@@ -58,6 +58,10 @@ pub struct MapperEnd {
     pub navigable_area_m2: f64,
     /// Obstacles (the non-planar rest, as components).
     pub obstacles: usize,
+    /// Walls (large steep planes with no top: a building's walls; not obstacles, but they block
+    /// as obstacles do in the traversability grid).
+    #[serde(default)]
+    pub walls: usize,
     /// Obstacle landmarks tracked across scans.
     pub obstacle_landmarks: usize,
     /// Of those, the ones seen in two or more scans.
@@ -113,6 +117,9 @@ pub struct VoxelClasses {
     pub sparse: usize,
     /// Planar and level, in a patch smaller than `nsd.min_region_area_m2` touching no obstacle.
     pub patch: usize,
+    /// Part of a wall (`walls`).
+    #[serde(default)]
+    pub wall: usize,
 }
 
 /// `octree_mapper.voxel_stream`: messages and MB of full sets and deltas, and the MB a stream of

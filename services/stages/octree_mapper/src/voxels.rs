@@ -47,8 +47,8 @@ pub struct VoxelStreamCounters {
 /// a voxel delta re-reads only the cubes the scans since the last message changed.
 pub const VOXEL_REGION_DEPTH: u8 = 11;
 
-/// The map's occupied voxels in wire form, each classified by `classes` (navigable, obstacle)
-/// or all plain occupied.
+/// The map's occupied voxels in wire form, each classified by `classes` (navigable, obstacle,
+/// wall) or all plain occupied.
 pub fn all_voxels(st: &MapperState, classes: Option<&navigable::Discovery>) -> Vec<Voxel> {
     navigable::occupied_voxels(&st.tree, &st.points, classes).into_iter().map(wire_voxel).collect()
 }
@@ -70,6 +70,7 @@ fn wire_voxel(v: navigable::MapVoxel) -> Voxel {
             navigable::MapVoxelClass::Occupied => 0,
             navigable::MapVoxelClass::Navigable => 1,
             navigable::MapVoxelClass::Obstacle => 2,
+            navigable::MapVoxelClass::Wall => 3,
         },
     }
 }

@@ -83,13 +83,14 @@ fn voxels_wait_for_a_full_set_and_a_gap_asks_for_a_new_one() {
     t.voxels(&h(0, VOXELS_DELTA), &[v(0.25, 0)]);
     t.flush(true, &mut out);
     assert!(out.is_empty(), "a delta before any full set is not a map");
-    t.voxels(&h(1, VOXELS_FULL), &[v(0.25, 0), v(1.25, VOXEL_OBSTACLE)]);
+    t.voxels(&h(1, VOXELS_FULL), &[v(0.25, 0), v(1.25, VOXEL_OBSTACLE), v(2.25, VOXEL_WALL), v(2.75, VOXEL_WALL)]);
     t.flush(true, &mut out);
     assert_eq!(out.len(), 2);
     let RosOut::Cloud(c) = &out[0].msg else { panic!() };
-    assert_eq!(c.width * c.height, 2);
+    assert_eq!(c.width * c.height, 4);
     let RosOut::Markers(m) = &out[1].msg else { panic!() };
-    assert_eq!(m.markers[0].points.len(), 1);
+    assert_eq!(m.markers[0].points.len(), 1, "the obstacles");
+    assert_eq!((&*m.markers[1].ns, m.markers[1].points.len()), ("walls", 2));
     out.clear();
     t.voxels(&h(5, VOXELS_DELTA), &[v(2.25, 0)]);
     assert_eq!(t.voxel_gaps().0, 3);
