@@ -1822,6 +1822,7 @@ fn carve_walls(
                     .is_some_and(|m| normal.dot(&(m - centre)).abs() <= wall_tolerance(stats[i], &normal, within))
         };
         let mut taken = vec![];
+        let mut sized = vec![];
         for &s in &seeds {
             if !on(s, wall_of, &tried) {
                 continue;
@@ -1861,6 +1862,13 @@ fn carve_walls(
                 .collect();
             let fill = cells.len() as f64 / (((hi - lo) / res).round() + 1.0) / f64::from(zhi - zlo + 1);
             let long = hi - lo + res >= cfg.min_wall_length_m && fill >= WALL_MIN_FILL;
+            sized.push((long, piece, lo, hi, zhi, zlo));
+        }
+        // Only a plane that holds a long piece can hold a wall: the tops are judged there alone.
+        if !sized.iter().any(|p| p.0) {
+            continue;
+        }
+        for (long, piece, lo, hi, zhi, zlo) in sized {
             // The top of the piece at each step along it: its highest voxel there.
             let mut top: HashMap<i64, VoxelKey> = HashMap::new();
             for &i in &piece {
@@ -1990,6 +1998,9 @@ fn carve_walls(
             }
             members_of[into] = piece;
         }
+    }
+    if walls.is_empty() {
+        return walls;
     }
     // Each wall's front: the side its foot meets the ground on (the building's rooms and
     // corridors); unknown where it meets no ground.
