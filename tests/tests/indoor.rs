@@ -126,9 +126,12 @@ port = PORT
     // the floor one region. Since 2026-12-07 the walls are a class of their own (EQUATIONS §7
     // "Walls"), in the map and in the truth: the furniture against them is found (8 of 8 pieces
     // of furniture, where 6 of 8 were before, two merged with the walls), and the components
-    // left on walls count against the precision (0.833 at these grid SLAM poses: a wall doubled
-    // by the poses' error and clutter beside a shelf; 1.000 at the true poses,
-    // `nsd_eval --indoor`).
+    // left on walls count against the precision: 0.833 at these grid SLAM poses until a wall's
+    // front was judged by the floor beyond its thickness (the floor right under a wall the
+    // poses' error doubled lies on both sides of it) and what stands out of a wall by under two
+    // voxels was taken as the wall's (a pass's sheet a few centimetres off): 0.909 since
+    // (2026-12-07), 1.000 at the true poses (`nsd_eval --indoor`; `--indoor --poses
+    // <grid_slam.tum>` gives this run's numbers offline). The issue's 0.9.
     let end = m.end_of_stream.as_ref().expect("the end of stream's navigable space");
     let truth = end.truth.as_ref().expect("the layers scored against scene.json");
     let v = &end.voxels;
@@ -139,16 +142,16 @@ port = PORT
     assert!(truth.ground.voxels > 0 && truth.objects_observed >= 3, "{truth:?}");
     assert!(truth.largest_region_ground_share.is_some_and(|s| s >= 0.9), "{truth:?}");
     assert!(truth.regions <= 50, "{truth:?}");
-    assert!(truth.precision.is_some_and(|p| p >= 0.8), "{truth:?}");
+    assert!(truth.precision.is_some_and(|p| p >= 0.9), "{truth:?}");
     assert!(truth.recall.is_some_and(|r| r >= 0.9), "{truth:?}");
-    assert!(truth.wall.share().is_some_and(|s| s >= 0.85), "{truth:?}");
+    assert!(truth.wall.share().is_some_and(|s| s >= 0.9), "{truth:?}");
     assert!(truth.agreement.is_some_and(|a| a >= 0.8), "{truth:?}");
     // Judged where each voxel's points truly came from (the classification without the poses'
     // error): issue 39's 95 %. Since a column of steep surface is filled from its top down
     // (EQUATIONS §7, 2026-12-07) the floor region no longer climbs the walls seen a line per
     // scan: 0.928 before, 0.966 at the true poses (`nsd_eval --poses truth --indoor`).
     assert!(by_origin.agreement.is_some_and(|a| a >= 0.95), "{by_origin:?}");
-    assert!(by_origin.regions <= 50 && by_origin.precision.is_some_and(|p| p >= 0.8), "{by_origin:?}");
+    assert!(by_origin.regions <= 50 && by_origin.precision.is_some_and(|p| p >= 0.9), "{by_origin:?}");
     assert!(by_origin.recall.is_some_and(|r| r >= 0.9), "{by_origin:?}");
 
     let out = run.out_dir();

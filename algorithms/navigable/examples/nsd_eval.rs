@@ -24,7 +24,9 @@
 //!
 //! `--ring`: `--indoor` in the 148 m ring building (`config/indoor_ring.toml`'s).
 //! `--indoor`: the indoor mission's depth clouds instead (`sim::indoor`, its default building,
-//! 0.05 m voxels, 6 m range, true poses only) against its boxes.
+//! 0.05 m voxels, 6 m range) against its boxes; with `--poses` a grid SLAM path of the indoor
+//! mission (`grid_slam.tum` of `config/indoor.toml`'s run: the body's poses, the depth camera's
+//! mounting from the indoor simulator's settings).
 //!
 //! `--poses FILE`: TUM `world_from_body` poses (interpolated at each cloud's stamp; the depth
 //! camera's mounting from the simulator's settings). `--settings`: a TOML file with the keys of
@@ -85,9 +87,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         None => NsdConfig { max_plane_mse_m2: 0.0004, ..Default::default() },
     };
     if indoor {
-        if poses.is_some() {
-            return Err("--indoor takes the true poses only (no --poses FILE)".into());
-        }
         res = 0.05;
     }
     let max_range = if indoor { 6.0 } else { 14.0 };
@@ -97,7 +96,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         sim_cfg.seed = seed;
     }
     let pitch = sim_cfg.sensors.depth_camera.pitch_down_deg.to_radians();
-    let body_from_sensor = geometry::body_from_camera(&Vector3::new(0.6, 0.0, -0.3), pitch);
+    let mut body_from_sensor = geometry::body_from_camera(&Vector3::new(0.6, 0.0, -0.3), pitch);
     let trajectory = match &poses {
         Some(p) => Some(geometry::tum::read_tum(p)?),
         None => None,
@@ -112,6 +111,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             indoor_cfg.building = sim::indoor::Building::Ring;
         }
         let mut sim = sim::indoor::IndoorSim::new(indoor_cfg)?;
+        body_from_sensor = sim.body_from_camera();
         let truth = sim::indoor::IndoorTruth::new(sim.scene().boxes.iter().map(|b| (b.min, b.max, b.what)));
         let clouds = std::iter::from_fn(move || sim.next_events()).flatten().filter_map(|e| match e {
             sim::indoor::IndoorEvent::Cloud { t_s, world_from_camera, points } => {

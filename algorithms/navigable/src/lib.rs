@@ -2003,20 +2003,29 @@ fn carve_walls(
         return walls;
     }
     // Each wall's front: the side its foot meets the ground on (the building's rooms and
-    // corridors); unknown where it meets no ground.
+    // corridors); unknown where it meets no ground. The ground is looked for off the wall's
+    // plane by more than the wall is thick (`within`) and up to three voxels further, on both
+    // sides of each of its voxels: the floor right under a wall lies on both sides of its plane
+    // (where passes disagree by centimetres, floor points land behind the wall too), the room's
+    // floor goes on in front of it.
     // Judged over all the pieces of a plane together (a door's recess has floor behind the wall's
     // plane).
     let mut side_of_plane: Vec<f64> = vec![0.0; plane_of_wall.iter().max().map_or(0, |p| p + 1)];
     for (w, piece) in walls.iter().enumerate() {
-        let (centre, normal, _) = planes[w];
+        let (centre, normal, within) = planes[w];
         for &i in piece {
-            near.around(&keys[i], 0..26, |_, j| {
-                if matches!(classes[j], VoxelClass::Navigable(_))
-                    && let Some(m) = stats[j].mean()
-                {
-                    side_of_plane[plane_of_wall[w]] += normal.dot(&(m - centre)).signum();
+            let Some(m) = stats[i].mean() else { continue };
+            let on_plane = m - normal * normal.dot(&(m - centre));
+            for side in [-1.0, 1.0] {
+                for t in 0..3 {
+                    let p = on_plane + normal * (side * (within + (t as f64 + 0.5) * res));
+                    if let Some(j) = near.get(&v.acc.key(&p))
+                        && matches!(classes[j], VoxelClass::Navigable(_))
+                    {
+                        side_of_plane[plane_of_wall[w]] += side;
+                    }
                 }
-            });
+            }
         }
     }
     let ground_side: Vec<Option<Vector3<f64>>> = (0..walls.len())
@@ -2026,9 +2035,9 @@ fn carve_walls(
         })
         .collect();
     // An obstacle within two voxels of a wall that lies on its plane or behind it (where two walls meet,
-    // a door's jambs and recess, a wall's end: at most a tenth of its voxels more than w, or a
-    // voxel, in front of it) is part of it; what stands in front of a wall (furniture against
-    // it) stays an obstacle.
+    // a door's jambs and recess, a wall's end, a pass's sheet a few centimetres off: at most a
+    // tenth of its voxels more than w, or two voxels, in front of it) is part of it; what stands
+    // in front of a wall by more (furniture against it) stays an obstacle.
     for members in members_of.iter_mut() {
         // The walls within two voxels of it (where the poses disagree, a wall's points can land
         // a few centimetres behind it, apart from it).
@@ -2049,7 +2058,7 @@ fn carve_walls(
         touched.dedup();
         let into = touched.into_iter().find(|&w| {
             let (centre, _, within) = planes[w as usize];
-            let beyond = within.max(res);
+            let beyond = within.max(2.0 * res);
             ground_side[w as usize].is_some_and(|front| {
                 let in_front = members
                     .iter()
@@ -2861,6 +2870,29 @@ mod tests {
         assert!(without.walls.is_empty());
         let with_front: Vec<&Obstacle> = without.obstacles.iter().filter(|o| o.voxels.contains(&front)).collect();
         assert!(with_front.iter().all(|o| o.voxels.contains(&k(0.02, 0.5, 1.0))), "one obstacle with the wall");
+    }
+
+    #[test]
+    fn a_wall_doubled_behind_by_one_pass_with_floor_points_behind_it_is_one_wall() {
+        // A room's floor in front of a wall (y = 4.98); one pass, its pose 9 cm off, put a short
+        // sheet of the wall and a strip of floor behind the wall's plane. The floor right at the
+        // wall lies on both sides of it; the room's floor goes on in front only: the wall's front
+        // is the room's side, and the sheet behind the wall is the wall's, no obstacle.
+        let mut acc = PointAccumulator::new(RES);
+        surface(&mut acc, (0.0, 6.0), (0.0, 4.9), |_, _| 0.05);
+        wall_y(&mut acc, 4.98, (0.0, 6.0), (0.05, 2.05));
+        surface(&mut acc, (0.0, 6.0), (5.0, 5.1), |_, _| 0.06);
+        wall_y(&mut acc, 5.07, (1.0, 2.5), (0.05, 1.65));
+        let d = run(&acc);
+        let k = |x: f64, y: f64, z: f64| acc.key(&Vector3::new(x, y, z));
+        let sheet = k(1.75, 5.07, 1.0);
+        assert!(
+            d.walls.iter().any(|w| w.voxels.contains(&sheet)),
+            "walls {:?}, obstacles {:?}",
+            d.walls.iter().map(|w| (w.voxels.len(), w.normal)).collect::<Vec<_>>(),
+            d.obstacles.iter().map(|o| (o.voxels.len(), o.mean_m)).collect::<Vec<_>>()
+        );
+        assert!(d.obstacles.iter().all(|o| !o.voxels.contains(&sheet)));
     }
 
     #[test]
