@@ -2874,18 +2874,21 @@ mod tests {
 
     #[test]
     fn a_wall_doubled_behind_by_one_pass_with_floor_points_behind_it_is_one_wall() {
-        // A room's floor in front of a wall (y = 4.98); one pass, its pose 9 cm off, put a short
-        // sheet of the wall and a strip of floor behind the wall's plane. The floor right at the
-        // wall lies on both sides of it; the room's floor goes on in front only: the wall's front
-        // is the room's side, and the sheet behind the wall is the wall's, no obstacle.
+        // A room's floor in front of a wall (y = 4.98), none in the row of voxels along the
+        // wall's foot (there the floor's voxels hold the wall's points too); one pass, its pose
+        // 14 cm off, put a strip of floor and a short sheet of the wall behind the wall's plane.
+        // The floor's voxels next to the wall are then all behind it: the wall's front is judged
+        // by the floor beyond its thickness (the room), and the sheet behind the wall is the
+        // wall's, no obstacle. Judged by the wall's 26 neighbours (the rule before), the front
+        // was the strip's side, the sheet stood in front of the wall, and stayed an obstacle.
         let mut acc = PointAccumulator::new(RES);
-        surface(&mut acc, (0.0, 6.0), (0.0, 4.9), |_, _| 0.05);
+        surface(&mut acc, (0.0, 6.0), (0.0, 4.8), |_, _| 0.05);
         wall_y(&mut acc, 4.98, (0.0, 6.0), (0.05, 2.05));
         surface(&mut acc, (0.0, 6.0), (5.0, 5.1), |_, _| 0.06);
-        wall_y(&mut acc, 5.07, (1.0, 2.5), (0.05, 1.65));
+        wall_y(&mut acc, 5.12, (1.0, 2.5), (0.15, 1.65));
         let d = run(&acc);
         let k = |x: f64, y: f64, z: f64| acc.key(&Vector3::new(x, y, z));
-        let sheet = k(1.75, 5.07, 1.0);
+        let sheet = k(1.75, 5.12, 1.0);
         assert!(
             d.walls.iter().any(|w| w.voxels.contains(&sheet)),
             "walls {:?}, obstacles {:?}",
