@@ -66,6 +66,9 @@ fn send_voxels(
     Ok(())
 }
 
+/// A cloud's insertion that takes longer is reported (the heartbeat goes on meanwhile).
+const SLOW_INSERTION: Duration = Duration::from_secs(1);
+
 /// The end-of-run work (map.bt, navigable space, PLY layers, the classified voxels) on a worker
 /// thread, while this thread keeps the heartbeats going (a large map takes seconds).
 fn end_of_run(
@@ -423,6 +426,8 @@ impl OctreeMapperStage {
     fn periodic_outputs(&mut self, rt: &mut Runtime, inputs_ended: bool) -> Result<(), StageError> {
         if self.fits_every.is_some_and(|e| self.last_fits.elapsed() >= e) && !inputs_ended {
             self.last_fits = Instant::now();
+            // Bounded work; its table of fits grows by rehashing at once, as the insertion's.
+            let _alive = rt.hold_heartbeat();
             let fitted = self.st.refresh_fits();
             tracing::debug!(fitted, kept = self.st.fits.len(), "plane fits refreshed");
         }
@@ -509,6 +514,10 @@ impl Stage for OctreeMapperStage {
         {
             let (occupied, free) = self.st.tree.num_occupied_free_leaves();
             tracing::info!(occupied, free, "restarted: the map starts from the killed instance's last checkpoint");
+            tracing::warn!(
+                "restarted: the points' statistics of the killed instance are not in its checkpoint; the navigable \
+                 space, obstacles and walls at the end come from the clouds inserted from now on"
+            );
         }
         Ok(0)
     }
@@ -520,7 +529,22 @@ impl Stage for OctreeMapperStage {
         // One cloud per wake-up, so the inputs are drained (and late clouds dropped) between.
         let st = &mut self.st;
         let before = (st.counters.clouds_dropped_behind, st.counters.clouds_dropped_no_pose);
-        st.step(Instant::now(), inputs_ended, 1)?;
+        // A cloud's insertion is bounded work, but when the voxels' statistics outgrow their
+        // table it is rehashed at once (1-2 M voxels: seconds on a loaded machine, where the
+        // main job's mapper was killed for a silent heartbeat, 2026-12-07): the heartbeat goes on
+        // meanwhile, and an insertion that long is reported.
+        let started = Instant::now();
+        let alive = rt.hold_heartbeat();
+        st.step(started, inputs_ended, 1)?;
+        drop(alive);
+        if started.elapsed() > SLOW_INSERTION {
+            tracing::warn!(
+                seconds = started.elapsed().as_secs_f64(),
+                voxels = st.points.cells().len(),
+                "a cloud's insertion took over {} s (the voxels' statistics table grew)",
+                SLOW_INSERTION.as_secs_f64()
+            );
+        }
         self.clouds.count_dropped(
             "insertion behind (when_behind = drop_oldest)",
             st.counters.clouds_dropped_behind - before.0,
