@@ -245,7 +245,13 @@ fn a_base_station_not_up_is_unreachable_not_a_refusal() {
     let port = free_port();
     let robot = Relays::start(&[], &[format!("tls/127.0.0.1:{port}")], &tls[0], &Default::default()).unwrap();
     let mut r = UnixStream::connect(socket(&robot.zenoh_connect[0])).unwrap();
-    r.write_all(&init(zid_of("auv1"), &[])).unwrap();
+    // The relay may find the base station unreachable and close the session's link before the
+    // first message is written: a broken pipe then is that same closing (CI, 2026-12-07).
+    match r.write_all(&init(zid_of("auv1"), &[])) {
+        Ok(()) => {}
+        Err(e) if matches!(e.kind(), std::io::ErrorKind::BrokenPipe | std::io::ErrorKind::ConnectionReset) => {}
+        Err(e) => panic!("writing the session's first message: {e}"),
+    }
     r.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
     let mut buf = [0u8; 16];
     assert_eq!(r.read(&mut buf).unwrap_or(0), 0, "the session's link closes");
