@@ -475,7 +475,7 @@ assert ctypes.sizeof(PlanarPose) == 112, "PlanarPose size"
 assert ctypes.alignment(PlanarPose) == 8, "PlanarPose alignment"
 
 class OccupancyGridHeader(ctypes.Structure):
-    """User header of `pipeline/grid_slam/grid`: an occupancy grid whose cells are the slice"""
+    """User header of `pipeline/grid_slam/grid` (an occupancy grid whose cells are the slice"""
 
     _fields_ = [
         ("msg", MsgHeader),
@@ -507,6 +507,24 @@ class OccupancyCell(ctypes.Structure):
 
 assert ctypes.sizeof(OccupancyCell) == 1, "OccupancyCell size"
 assert ctypes.alignment(OccupancyCell) == 1, "OccupancyCell alignment"
+
+class TraversabilityCell(ctypes.Structure):
+    """One cell of the 2.5-D traversability grid (slice on `pipeline/map/traversability`, headed"""
+
+    _fields_ = [
+        ("height_m", ctypes.c_float),
+        ("slope_deg", ctypes.c_float),
+        ("class", ctypes.c_uint8),
+        ("_reserved", (ctypes.c_uint8) * 3),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        return "slam_pipeline::v1::TraversabilityCell"
+
+
+assert ctypes.sizeof(TraversabilityCell) == 12, "TraversabilityCell size"
+assert ctypes.alignment(TraversabilityCell) == 4, "TraversabilityCell alignment"
 
 class Heartbeat(ctypes.Structure):
     """Liveness and readiness of a process (`pipeline/control/heartbeat`), sent periodically."""
@@ -585,6 +603,7 @@ SERVICES = {
     "pipeline/fusion/map": {"payload": "[Landmark]", "user_header": "LandmarkMapHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 4, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/map/stats": {"payload": "MapStats", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 6, "max_nodes": 32, "subscriber_max_buffer_size": 4, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/map/voxels": {"payload": "[Voxel]", "user_header": "VoxelSetHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 1, "subscriber_max_borrowed_samples": 1, "history_size": 0, "enable_safe_overflow": True},
+    "pipeline/map/traversability": {"payload": "[TraversabilityCell]", "user_header": "OccupancyGridHeader", "max_publishers": 2, "max_subscribers": 4, "max_nodes": 32, "subscriber_max_buffer_size": 1, "subscriber_max_borrowed_samples": 1, "history_size": 0, "enable_safe_overflow": True},
     "pipeline/sensors/laser": {"payload": "[LaserRange]", "user_header": "LaserScanHeader", "max_publishers": 2, "max_subscribers": 6, "max_nodes": 32, "subscriber_max_buffer_size": 16, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": False},
     "pipeline/sensors/planar_odometry": {"payload": "PlanarOdometry", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 6, "max_nodes": 32, "subscriber_max_buffer_size": 64, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": False},
     "pipeline/grid_slam/pose": {"payload": "PlanarPose", "user_header": "MsgHeader", "max_publishers": 2, "max_subscribers": 6, "max_nodes": 32, "subscriber_max_buffer_size": 1024, "subscriber_max_borrowed_samples": 2, "history_size": 0, "enable_safe_overflow": True},

@@ -11,7 +11,8 @@ use ::foxglove::messages::{
 
 use crate::layout::WireType;
 use crate::{
-    CLOUD_HAS_POSE, CloudHeader, CloudPoint, Landmark, LandmarkMapHeader, OccupancyCell, OccupancyGridHeader, Voxel,
+    CLOUD_HAS_POSE, CloudHeader, CloudPoint, Landmark, LandmarkMapHeader, OccupancyCell, OccupancyGridHeader,
+    TraversabilityCell, Voxel,
 };
 
 /// The frame every channel is in.
@@ -112,6 +113,33 @@ pub fn grid(h: &OccupancyGridHeader, cells: &[OccupancyCell]) -> Grid {
     }
 }
 
+/// The 2.5-D traversability grid: its cells' bytes as they are on the wire (fields `height`
+/// float32 m, `slope` float32 deg, `class` uint8: 0 unknown, 1 navigable, 2 obstacle), at z 0.
+pub fn traversability(h: &OccupancyGridHeader, cells: &[TraversabilityCell]) -> Grid {
+    let field =
+        |name: &str, offset: u32, t: NumericType| PackedElementField { name: name.into(), offset, r#type: t as i32 };
+    let stride = size_of::<TraversabilityCell>() as u32;
+    let mut data = Vec::with_capacity(cells.len() * stride as usize);
+    for c in cells {
+        data.extend_from_slice(c.as_bytes());
+    }
+    Grid {
+        timestamp: stamp(h.msg.stamp_ns),
+        frame_id: FRAME.into(),
+        pose: Some(pose([h.origin_m[0], h.origin_m[1], 0.0], [0.0, 0.0, 0.0, 1.0])),
+        column_count: h.width,
+        cell_size: Some(Vector2 { x: h.resolution_m, y: h.resolution_m }),
+        row_stride: h.width * stride,
+        cell_stride: stride,
+        fields: vec![
+            field("height", std::mem::offset_of!(TraversabilityCell, height_m) as u32, NumericType::Float32),
+            field("slope", std::mem::offset_of!(TraversabilityCell, slope_deg) as u32, NumericType::Float32),
+            field("class", std::mem::offset_of!(TraversabilityCell, class) as u32, NumericType::Uint8),
+        ],
+        data: data.into(),
+    }
+}
+
 /// The elements of a slice payload held as bytes (a recorded message); `None` when the length is
 /// not a whole number of elements.
 pub fn elements<T: WireType>(bytes: &[u8]) -> Option<Vec<T>> {
@@ -201,6 +229,31 @@ mod tests {
     }
 
     #[test]
+    fn a_traversability_grid_keeps_its_cells_bytes_and_names_their_three_fields() {
+        use crate::{TRAVERSABILITY_NAVIGABLE, TRAVERSABILITY_OBSTACLE, services as s};
+        use ::foxglove::Decode;
+        let h =
+            OccupancyGridHeader { resolution_m: 0.1, origin_m: [-1.0, 2.0], width: 2, height: 1, ..Default::default() };
+        let cells = [
+            TraversabilityCell { height_m: -20.25, slope_deg: 3.5, class: TRAVERSABILITY_NAVIGABLE, _reserved: [0; 3] },
+            TraversabilityCell { height_m: -18.0, slope_deg: 0.0, class: TRAVERSABILITY_OBSTACLE, _reserved: [0; 3] },
+        ];
+        let data = [h.as_bytes(), cells[0].as_bytes(), cells[1].as_bytes()].concat();
+        let g = Grid::decode(&encode_recorded(s::MAP_TRAVERSABILITY, &data).unwrap()[..]).unwrap();
+        assert_eq!(mirror_of(s::MAP_TRAVERSABILITY).unwrap().topic, "/traversability");
+        assert_eq!((g.column_count, g.row_stride, g.cell_stride), (2, 24, 12));
+        let names: Vec<&str> = g.fields.iter().map(|f| f.name.as_str()).collect();
+        assert_eq!(names, ["height", "slope", "class"]);
+        // Each field read where the grid says it is, in the second cell.
+        let at = |f: usize| 12 + g.fields[f].offset as usize;
+        assert_eq!(f32::from_le_bytes(g.data[at(0)..at(0) + 4].try_into().unwrap()), -18.0);
+        assert_eq!(g.data[at(2)], TRAVERSABILITY_OBSTACLE);
+        assert_eq!(f32::from_le_bytes(g.data[g.fields[1].offset as usize..][..4].try_into().unwrap()), 3.5);
+        assert_eq!(g.fields[2].r#type, NumericType::Uint8 as i32);
+        assert!(encode_recorded(s::MAP_TRAVERSABILITY, &data[..data.len() - 1]).is_none(), "a partial cell");
+    }
+
+    #[test]
     fn landmarks_become_points_with_their_observation_counts() {
         let l = Landmark { mean_m: [1.5, -2.5, 30.0], observation_count: 12, ..Default::default() };
         let c = landmarks(&LandmarkMapHeader::default(), &[l, l]);
@@ -239,7 +292,8 @@ fn mirror<T: ::foxglove::Encode>(topic: &'static str) -> Option<Mirror> {
 /// The Foxglove channel a recording writes next to `service`'s raw one: poses as
 /// `foxglove.PoseInFrame` (`/slam/pose`, `/buoy/pose`, `/fused/pose`, `/grid_slam/pose`), clouds,
 /// landmark maps and the octree's full voxel sets as `foxglove.PointCloud` (`/cloud`,
-/// `/slam/landmarks`, `/landmarks`, `/octree`), the 2-D grid as `foxglove.Grid` (`/grid`).
+/// `/slam/landmarks`, `/landmarks`, `/octree`), the 2-D grid and the traversability grid as
+/// `foxglove.Grid` (`/grid`, `/traversability`).
 pub fn mirror_of(service: &str) -> Option<Mirror> {
     use crate::services as s;
     match service {
@@ -252,6 +306,7 @@ pub fn mirror_of(service: &str) -> Option<Mirror> {
         s::FUSION_MAP => mirror::<PointCloud>("/landmarks"),
         s::MAP_VOXELS => mirror::<PointCloud>("/octree"),
         s::GRID_SLAM_GRID => mirror::<Grid>("/grid"),
+        s::MAP_TRAVERSABILITY => mirror::<Grid>("/traversability"),
         _ => None,
     }
 }
@@ -307,6 +362,10 @@ pub fn encode_recorded(service: &str, data: &[u8]) -> Option<Vec<u8>> {
         s::GRID_SLAM_GRID => {
             let (h, p) = split::<OccupancyGridHeader>(data)?;
             encoded(&grid(&h, &elements::<OccupancyCell>(p)?))
+        }
+        s::MAP_TRAVERSABILITY => {
+            let (h, p) = split::<OccupancyGridHeader>(data)?;
+            encoded(&traversability(&h, &elements::<TraversabilityCell>(p)?))
         }
         _ => None,
     }

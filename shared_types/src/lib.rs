@@ -55,6 +55,7 @@ pub fn all_layouts() -> Vec<TypeLayout> {
         TypeLayout::of::<PlanarPose>(),
         TypeLayout::of::<OccupancyGridHeader>(),
         TypeLayout::of::<OccupancyCell>(),
+        TypeLayout::of::<TraversabilityCell>(),
         TypeLayout::of::<Heartbeat>(),
         TypeLayout::of::<EndOfStream>(),
         TypeLayout::of::<ControlCommand>(),

@@ -128,6 +128,10 @@ pub const FUSION_MAP: &str = "pipeline/fusion/map";
 pub const MAP_STATS: &str = "pipeline/map/stats";
 /// Occupied voxels, `[Voxel]` with a [`crate::VoxelSetHeader`].
 pub const MAP_VOXELS: &str = "pipeline/map/voxels";
+/// The octree mapper's 2.5-D traversability grid ([`crate::OccupancyGridHeader`] +
+/// `[TraversabilityCell]`), sent after each discovery of the navigable space (at the end of the
+/// run, and every `traversability_interval_s` when set).
+pub const MAP_TRAVERSABILITY: &str = "pipeline/map/traversability";
 /// Planar laser scans ([`crate::LaserScanHeader`] + `[LaserRange]`).
 pub const LASER: &str = "pipeline/sensors/laser";
 /// Planar wheel odometry, [`crate::PlanarOdometry`].
@@ -211,6 +215,18 @@ pub const SERVICES: &[ServiceSpec] = &[
             subscriber_borrowed: 1,
             publisher_loans: 1,
             ..Qos::stream(2 + WATCHERS, 16 * 1024)
+        },
+    ),
+    spec(
+        MAP_TRAVERSABILITY,
+        "[TraversabilityCell]",
+        "OccupancyGridHeader",
+        // Large (the main job's: 0.8 M cells, 10 MB) and rare: zero-copy, newest wins.
+        Qos {
+            subscriber_buffer: 1,
+            subscriber_borrowed: 1,
+            publisher_loans: 1,
+            ..Qos::stream(2 + WATCHERS, 1024 * 1024)
         },
     ),
     spec(LASER, "[LaserRange]", "LaserScanHeader", Qos::sensor(4 + WATCHERS, 16, 1024)),

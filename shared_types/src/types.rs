@@ -556,8 +556,9 @@ wire_type! {
 }
 
 wire_type! {
-    /// User header of `pipeline/grid_slam/grid`: an occupancy grid whose cells are the slice
-    /// payload ([`OccupancyCell`], row-major, first row at the lowest y, as nav_msgs/OccupancyGrid).
+    /// User header of `pipeline/grid_slam/grid` (an occupancy grid whose cells are the slice
+    /// payload, [`OccupancyCell`]) and of `pipeline/map/traversability` ([`TraversabilityCell`]):
+    /// row-major, first row at the lowest y, as nav_msgs/OccupancyGrid.
     type_name = "slam_pipeline::v1::OccupancyGridHeader", size = 64;
     pub struct OccupancyGridHeader {
         /// Common header.
@@ -579,6 +580,32 @@ wire_type! {
     pub struct OccupancyCell {
         /// Occupancy, percent, or −1.
         pub value: i8,
+    }
+}
+
+/// `TraversabilityCell::class`: nothing classified in the column.
+pub const TRAVERSABILITY_UNKNOWN: u8 = 0;
+/// `TraversabilityCell::class`: the column is part of a navigable region.
+pub const TRAVERSABILITY_NAVIGABLE: u8 = 1;
+/// `TraversabilityCell::class`: the column holds an obstacle (or wall) voxel.
+pub const TRAVERSABILITY_OBSTACLE: u8 = 2;
+
+wire_type! {
+    /// One cell of the 2.5-D traversability grid (slice on `pipeline/map/traversability`, headed
+    /// by an [`OccupancyGridHeader`]: row-major, the first row at the lowest y, x and y in the
+    /// map's world frame).
+    type_name = "slam_pipeline::v1::TraversabilityCell", size = 12;
+    pub struct TraversabilityCell {
+        /// World z of the navigable surface at the cell's centre, or of the obstacle's top, m
+        /// (0 in an unknown cell: the wire carries no NaN, which the checks on a bridged or
+        /// external message refuse).
+        pub height_m: f32,
+        /// The navigable surface's slope, deg (0 unless navigable).
+        pub slope_deg: f32,
+        /// `TRAVERSABILITY_*`: 0 unknown, 1 navigable, 2 obstacle.
+        pub class: u8,
+        /// Zero.
+        pub _reserved: [u8; 3],
     }
 }
 

@@ -47,6 +47,23 @@ def summary(schema, m):
     if schema == "foxglove.Log":
         return {"name": m.name, "message": m.message}
     if schema == "foxglove.Grid":
-        return {"columns": m.column_count, "cells": len(m.data), "frame_id": m.frame_id,
-                "cell_size": m.cell_size.x}
+        stride = m.cell_stride or 1
+        out = {"columns": m.column_count, "cells": len(m.data) // stride, "frame_id": m.frame_id,
+               "cell_size": m.cell_size.x, "fields": [f.name for f in m.fields]}
+        # A `class` field (uint8: the traversability grid's 0 unknown, 1 navigable, 2 obstacle)
+        # is counted per value, and a `height` field (float32) checked finite, cell by cell
+        # where the grid's own offsets say.
+        by_name = {f.name: f for f in m.fields}
+        if "class" in by_name:
+            off = by_name["class"].offset
+            counts = {}
+            for i in range(out["cells"]):
+                c = m.data[i * stride + off]
+                counts[c] = counts.get(c, 0) + 1
+            out["class_counts"] = {str(k): v for k, v in sorted(counts.items())}
+        if "height" in by_name:
+            off = by_name["height"].offset
+            out["heights_finite"] = all(
+                math.isfinite(struct.unpack_from("<f", m.data, i * stride + off)[0]) for i in range(out["cells"]))
+        return out
     return {}

@@ -614,6 +614,7 @@ out_dir = "{name}"
 "pipeline/fusion/pose" = "{name}/pipeline/fusion/pose"
 "pipeline/map/stats" = "{name}/pipeline/map/stats"
 "pipeline/map/voxels" = "{name}/pipeline/map/voxels"
+"pipeline/map/traversability" = "{name}/pipeline/map/traversability"
 [processes.map_{name}.settings]
 pose_source = "fused"
 end_after = ["link"]

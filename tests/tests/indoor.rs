@@ -43,6 +43,7 @@ pose_source = "grid_slam"
 max_range_m = 6.0
 end_after = ["ingest", "slam2d"]
 rebuild_from = "grid_slam.tum"
+traversability_interval_s = 5.0
 truth_scene = "scene.json"
 [processes.map.settings.mount]
 offset_m = [0.1, 0.0, 0.6]
@@ -70,6 +71,7 @@ port = PORT
         .arg(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("python/foxglove_ws_client.py"))
         .args(["--url", &format!("ws://127.0.0.1:{port}"), "--timeout-s", "400", "--min-messages", "2"])
         .args(["--want", "/grid", "--want", "/grid_slam/path", "--at-least", "/grid_slam/path", "poses", "2"])
+        .args(["--want", "/traversability"])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -92,6 +94,17 @@ port = PORT
     let columns = grid["last"]["columns"].as_u64().unwrap_or(0);
     assert!(columns >= 40 && grid["last"]["cells"].as_u64().unwrap_or(0) >= 40 * columns, "{seen:#}");
     assert!((grid["last"]["cell_size"].as_f64().unwrap_or(0.0) - 0.05).abs() < 1e-9, "{seen:#}");
+    // The mapper's 2.5-D traversability grid of the map so far (`traversability_interval_s`):
+    // the floor navigable, the furniture and walls obstacles, at the map's 0.05 m, every cell's
+    // height finite (0 where unknown: the class says what is defined).
+    let trav = &seen["topics"]["/traversability"];
+    assert_eq!(trav["schema"], "foxglove.Grid", "{seen:#}");
+    assert_eq!(trav["last"]["fields"], serde_json::json!(["height", "slope", "class"]), "{seen:#}");
+    assert!((trav["last"]["cell_size"].as_f64().unwrap_or(0.0) - 0.05).abs() < 1e-9, "{seen:#}");
+    assert_eq!(trav["last"]["heights_finite"], true, "{seen:#}");
+    eprintln!("traversability grid: {}", trav["last"]);
+    let class = |c: &str| trav["last"]["class_counts"][c].as_u64().unwrap_or(0);
+    assert!(class("1") >= 400 && class("2") >= 40, "a floor of 1 m² and obstacles: {seen:#}");
     assert_eq!(path["schema"], "foxglove.PosesInFrame", "{seen:#}");
     assert!(path["last"]["poses"].as_u64().unwrap_or(0) >= 2, "{seen:#}");
     assert_eq!(path["last"]["finite"], true, "{seen:#}");

@@ -275,6 +275,8 @@ fn the_main_jobs_outputs_reach_a_cyclone_subscriber_near_the_ground_truth() {
             "/octomap_point_cloud_centers:cloud",
             "/slam/landmarks:markers",
             "/slam/obstacles:markers",
+            "/slam/traversability:map",
+            "/slam/traversability/cloud:cloud",
             "/tf:tf",
             "/tf_static:tf",
         ],
@@ -317,6 +319,24 @@ fn the_main_jobs_outputs_reach_a_cyclone_subscriber_near_the_ground_truth() {
     assert!(cloud["width"].as_u64().unwrap() > 100, "{cloud}");
     assert_eq!(cloud["bytes"], cloud["width"].as_u64().unwrap() * 16);
     assert!(heard["/slam/landmarks"]["count"].as_u64().unwrap() >= 1, "{heard}");
+    // The mapper's traversability grid at the end of its run, as Nav2 takes a map (navigable 0,
+    // obstacle 100, unknown -1) at the map's 0.1 m, and its known cells as an elevation cloud.
+    let trav = &heard["/slam/traversability"]["last"];
+    assert!(heard["/slam/traversability"]["count"].as_u64().unwrap_or(0) >= 1, "{heard}");
+    assert!((trav["resolution"].as_f64().unwrap() - 0.1).abs() < 1e-6, "{trav}");
+    let (w, h) = (trav["width"].as_u64().unwrap(), trav["height"].as_u64().unwrap());
+    assert_eq!(trav["cells"], w * h, "{trav}");
+    let known = trav["known"].as_u64().unwrap();
+    eprintln!("traversability through ROS 2: {trav}");
+    assert!(known > 1000, "the seabed seen in 40 s: {trav}");
+    let elevation = &heard["/slam/traversability/cloud"]["last"];
+    assert_eq!(
+        elevation["fields"],
+        serde_json::json!([["x", 0, 7], ["y", 4, 7], ["z", 8, 7], ["slope", 12, 7], ["class", 16, 7]]),
+        "{elevation}"
+    );
+    assert_eq!(elevation["width"], known, "one point per known cell: {elevation}");
+    assert_eq!(elevation["bytes"], known * 20, "{elevation}");
     let statics = heard["/tf_static"]["last"]["transforms"].as_array().unwrap().len();
     assert_eq!(statics, 5, "four mounts and map -> odom: {heard}");
     assert_eq!(heard["/tf"]["last"]["transforms"][0][0], "odom");

@@ -13,7 +13,8 @@ use nalgebra::{Isometry3, Matrix6, Quaternion as NQuaternion, Translation3, Unit
 use shared_types::convert::{mat6_from_row_major, mat6_to_row_major};
 use shared_types::{
     BuoyRange, DepthReading, HeadingReading, LASER_MAX_IS_NO_RETURN, LaserScanHeader, ODOM_HAS_VELOCITY,
-    OccupancyGridHeader, OdometryInput, PlanarOdometry, PlanarPose, PoseEstimate, Voxel,
+    OccupancyGridHeader, OdometryInput, PlanarOdometry, PlanarPose, PoseEstimate, TRAVERSABILITY_NAVIGABLE,
+    TRAVERSABILITY_OBSTACLE, TraversabilityCell, Voxel,
 };
 
 use crate::msgs::*;
@@ -622,6 +623,65 @@ pub fn occupancy_grid(stamp_ns: u64, frame_id: &str, h: &OccupancyGridHeader, ce
     }
 }
 
+/// The octree mapper's traversability grid as `nav_msgs/OccupancyGrid`, as Nav2's costmaps and
+/// map_server take a map: navigable 0 (free), obstacle 100 (occupied), unknown −1, in the same
+/// cell order (the first row at the lowest y) at z 0.
+pub fn traversability_grid(
+    stamp_ns: u64,
+    frame_id: &str,
+    h: &OccupancyGridHeader,
+    cells: &[TraversabilityCell],
+) -> OccupancyGrid<'static> {
+    let occupancy: Vec<i8> = cells
+        .iter()
+        .map(|c| match c.class {
+            TRAVERSABILITY_NAVIGABLE => 0,
+            TRAVERSABILITY_OBSTACLE => 100,
+            _ => -1,
+        })
+        .collect();
+    occupancy_grid(stamp_ns, frame_id, h, &occupancy)
+}
+
+/// The traversability grid's known cells as `sensor_msgs/PointCloud2` (an elevation cloud RViz
+/// shows as the surface): one point per navigable or obstacle cell at its centre and height,
+/// fields `x`, `y`, `z` (m), `slope` (deg, 0 on an obstacle) and `class` (1 navigable, 2
+/// obstacle), FLOAT32, little-endian.
+pub fn traversability_cloud(
+    stamp_ns: u64,
+    frame_id: &str,
+    h: &OccupancyGridHeader,
+    cells: &[TraversabilityCell],
+) -> PointCloud2<'static> {
+    let mut data = Vec::new();
+    let mut n = 0u32;
+    let width = h.width.max(1) as usize;
+    for (i, c) in cells.iter().enumerate() {
+        if c.class != TRAVERSABILITY_NAVIGABLE && c.class != TRAVERSABILITY_OBSTACLE {
+            continue;
+        }
+        let (col, row) = ((i % width) as f64, (i / width) as f64);
+        let x = (h.origin_m[0] + (col + 0.5) * h.resolution_m) as f32;
+        let y = (h.origin_m[1] + (row + 0.5) * h.resolution_m) as f32;
+        for f in [x, y, c.height_m, c.slope_deg, c.class as f32] {
+            data.extend_from_slice(&f.to_le_bytes());
+        }
+        n += 1;
+    }
+    let field = |name: &str, offset| PointField { name: name.into(), offset, datatype: POINT_FIELD_FLOAT32, count: 1 };
+    PointCloud2 {
+        header: header(stamp_ns, frame_id),
+        height: 1,
+        width: n,
+        fields: vec![field("x", 0), field("y", 4), field("z", 8), field("slope", 12), field("class", 16)],
+        is_bigendian: false,
+        point_step: 20,
+        row_step: 20 * n,
+        data: Bytes::owned(data),
+        is_dense: true,
+    }
+}
+
 /// Occupied voxels as `sensor_msgs/PointCloud2` (like octomap_server's centres cloud): fields
 /// `x`, `y`, `z` (voxel centre, m) and `occupancy` (probability), FLOAT32, little-endian.
 pub fn voxel_cloud<'v>(
@@ -679,6 +739,35 @@ mod tests {
             },
             twist: TwistWithCovariance::default(),
         }
+    }
+
+    #[test]
+    fn the_traversability_grid_is_a_nav2_map_and_an_elevation_cloud_of_its_known_cells() {
+        let h = OccupancyGridHeader {
+            resolution_m: 0.5,
+            origin_m: [10.0, -4.0],
+            width: 2,
+            height: 2,
+            ..Default::default()
+        };
+        let cell = |class, height_m, slope_deg| TraversabilityCell { height_m, slope_deg, class, _reserved: [0; 3] };
+        let cells = [
+            cell(TRAVERSABILITY_NAVIGABLE, -20.0, 4.0),
+            cell(0, 0.0, 0.0),
+            cell(0, 0.0, 0.0),
+            cell(TRAVERSABILITY_OBSTACLE, -18.5, 0.0),
+        ];
+        let g = traversability_grid(7, "map", &h, &cells);
+        assert_eq!(g.data.0.iter().map(|&b| b as i8).collect::<Vec<_>>(), [0, -1, -1, 100]);
+        assert_eq!((g.info.width, g.info.height, g.info.resolution), (2, 2, 0.5));
+        assert_eq!((g.info.origin.position.x, g.info.origin.position.y), (10.0, -4.0));
+        let c = traversability_cloud(7, "map", &h, &cells);
+        assert_eq!((c.width, c.point_step), (2, 20));
+        let f = |p: usize, k: usize| f32::from_le_bytes(c.data.0[p * 20 + k * 4..][..4].try_into().unwrap());
+        // The obstacle: column 1, row 1: the centre (10.75, −3.25), its top, class 2.
+        assert_eq!([f(1, 0), f(1, 1), f(1, 2), f(1, 4)], [10.75, -3.25, -18.5, 2.0]);
+        assert_eq!([f(0, 0), f(0, 1), f(0, 2), f(0, 3)], [10.25, -3.75, -20.0, 4.0]);
+        assert_eq!(c.fields.iter().map(|f| f.name.as_str()).collect::<Vec<_>>(), ["x", "y", "z", "slope", "class"]);
     }
 
     #[test]

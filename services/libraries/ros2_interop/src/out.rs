@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use shared_types::voxel_stream::{self, VoxelKey};
 use shared_types::{
     FRAME_LOCAL_MAP, FUSED_REFINED, FusedPose, Landmark, LandmarkMapHeader, OccupancyCell, OccupancyGridHeader,
-    PlanarOdometry, PlanarPose, PoseEstimate, VOXEL_OBSTACLE, VOXEL_WALL, Voxel, VoxelSetHeader,
+    PlanarOdometry, PlanarPose, PoseEstimate, TraversabilityCell, VOXEL_OBSTACLE, VOXEL_WALL, Voxel, VoxelSetHeader,
 };
 
 use crate::convert;
@@ -130,6 +130,13 @@ pub enum OutKind {
     Landmarks,
     /// The obstacle voxels of `pipeline/map/voxels` as a `visualization_msgs/MarkerArray` of cubes.
     Obstacles,
+    /// `pipeline/map/traversability` (the octree mapper's 2.5-D traversability grid) as
+    /// `nav_msgs/OccupancyGrid` (navigable 0, obstacle 100, unknown −1; transient local, as
+    /// map_server): the map a Nav2 planner takes.
+    Traversability,
+    /// `pipeline/map/traversability`'s known cells as `sensor_msgs/PointCloud2` (x, y, z the
+    /// surface's height, slope, class): the elevation a 3-D planner or RViz takes.
+    TraversabilityCloud,
     /// `/tf`: `map → odom → base_link` from the fused pose (`from = "fused"`) or grid SLAM's
     /// (`from = "grid_slam"`); with `odom = "planar_odometry"` the odometry gives `odom →
     /// base_link` and the pose `map → odom`, else `map → odom` is the identity (on `/tf_static`).
@@ -152,6 +159,8 @@ impl OutKind {
             OutKind::Voxels => "/octomap_point_cloud_centers",
             OutKind::Landmarks => "/slam/landmarks",
             OutKind::Obstacles => "/slam/obstacles",
+            OutKind::Traversability => "/slam/traversability",
+            OutKind::TraversabilityCloud => "/slam/traversability/cloud",
             OutKind::Tf => "/tf",
         }
     }
@@ -161,7 +170,12 @@ impl OutKind {
     /// acknowledged (a replay as fast as possible sends them in bursts).
     pub fn default_qos(self) -> TopicQos {
         match self {
-            OutKind::Map | OutKind::Voxels | OutKind::Landmarks | OutKind::Obstacles => TopicQos::MAP,
+            OutKind::Map
+            | OutKind::Voxels
+            | OutKind::Landmarks
+            | OutKind::Obstacles
+            | OutKind::Traversability
+            | OutKind::TraversabilityCloud => TopicQos::MAP,
             OutKind::Tf
             | OutKind::FusedOdometry
             | OutKind::FusedPose
@@ -193,6 +207,8 @@ impl OutKind {
                 | OutKind::Voxels
                 | OutKind::Landmarks
                 | OutKind::Obstacles
+                | OutKind::Traversability
+                | OutKind::TraversabilityCloud
         )
     }
 
@@ -203,8 +219,8 @@ impl OutKind {
             OutKind::FusedOdometry | OutKind::SlamOdometry | OutKind::GridSlamOdometry => Odometry::TYPE_NAME,
             OutKind::FusedPose | OutKind::GridSlamPose => PoseWithCovarianceStamped::TYPE_NAME,
             OutKind::FusedPath | OutKind::SlamPath | OutKind::GridSlamPath => Path::TYPE_NAME,
-            OutKind::Map => OccupancyGrid::TYPE_NAME,
-            OutKind::Voxels => PointCloud2::TYPE_NAME,
+            OutKind::Map | OutKind::Traversability => OccupancyGrid::TYPE_NAME,
+            OutKind::Voxels | OutKind::TraversabilityCloud => PointCloud2::TYPE_NAME,
             OutKind::Landmarks | OutKind::Obstacles => MarkerArray::TYPE_NAME,
             OutKind::Tf => TFMessage::TYPE_NAME,
         }
@@ -425,6 +441,8 @@ pub struct Needs {
     pub grid: bool,
     /// `pipeline/map/voxels`.
     pub voxels: bool,
+    /// `pipeline/map/traversability`.
+    pub traversability: bool,
     /// `pipeline/fusion/map`.
     pub landmarks: bool,
     /// `pipeline/sensors/planar_odometry`.
@@ -494,6 +512,7 @@ pub struct Translator {
     frames: Frames,
     voxels: VoxelMap,
     grid: Option<(u64, OccupancyGridHeader, Vec<i8>)>,
+    traversability: Option<(u64, OccupancyGridHeader, Vec<TraversabilityCell>)>,
     landmarks: Option<(u64, u32, Vec<Point>)>,
     /// Recent planar odometry (`odom_from_body`) by stamp, for `map → odom`.
     odometry: BTreeMap<u64, Isometry3<f64>>,
@@ -514,6 +533,7 @@ impl Translator {
             frames: frames.clone(),
             voxels: VoxelMap::default(),
             grid: None,
+            traversability: None,
             landmarks: None,
             odometry: BTreeMap::new(),
             taken: 0,
@@ -540,6 +560,7 @@ impl Translator {
             }),
             grid: any(&|c| c.what == Map),
             voxels: any(&|c| matches!(c.what, Voxels | Obstacles)),
+            traversability: any(&|c| matches!(c.what, Traversability | TraversabilityCloud)),
             landmarks: any(&|c| c.what == Landmarks),
             odometry: any(&|c| c.what == Tf && c.odom == TfOdom::PlanarOdometry),
         }
@@ -758,6 +779,18 @@ impl Translator {
         self.each(h.msg.publish_ns, |c| c.what == OutKind::Map, |_, _, s, _| Self::touch(s));
     }
 
+    /// `pipeline/map/traversability`: the newest grid is kept for the `traversability` and
+    /// `traversability_cloud` routes.
+    pub fn traversability(&mut self, h: &OccupancyGridHeader, cells: &[TraversabilityCell]) {
+        self.taken += 1;
+        self.traversability = Some((h.msg.stamp_ns, *h, cells.to_vec()));
+        self.each(
+            h.msg.publish_ns,
+            |c| matches!(c.what, OutKind::Traversability | OutKind::TraversabilityCloud),
+            |_, _, s, _| Self::touch(s),
+        );
+    }
+
     /// `pipeline/map/voxels` (a full set or a delta).
     pub fn voxels(&mut self, h: &VoxelSetHeader, voxels: &[Voxel]) {
         self.taken += 1;
@@ -830,6 +863,14 @@ impl Translator {
             OutKind::Map => {
                 let (stamp, h, cells) = self.grid.as_ref()?;
                 RosOut::Grid(convert::occupancy_grid(*stamp, &f.map, h, cells))
+            }
+            OutKind::Traversability => {
+                let (stamp, h, cells) = self.traversability.as_ref()?;
+                RosOut::Grid(convert::traversability_grid(*stamp, &f.map, h, cells))
+            }
+            OutKind::TraversabilityCloud => {
+                let (stamp, h, cells) = self.traversability.as_ref()?;
+                RosOut::Cloud(convert::traversability_cloud(*stamp, &f.map, h, cells))
             }
             OutKind::Voxels => {
                 let v = &self.voxels;

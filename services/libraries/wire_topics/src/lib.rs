@@ -27,6 +27,7 @@ pub const TOPICS: &[Topic] = &[
     Topic::slice::<Landmark, LandmarkMapHeader>(services::FUSION_MAP, true),
     Topic::fixed::<MapStats, MsgHeader>(services::MAP_STATS, true),
     Topic::slice::<Voxel, VoxelSetHeader>(services::MAP_VOXELS, true),
+    Topic::slice::<TraversabilityCell, OccupancyGridHeader>(services::MAP_TRAVERSABILITY, true),
     Topic::slice::<LaserRange, LaserScanHeader>(services::LASER, true),
     Topic::fixed::<PlanarOdometry, MsgHeader>(services::PLANAR_ODOMETRY, true),
     Topic::fixed::<PlanarPose, MsgHeader>(services::GRID_SLAM_POSE, true),

@@ -166,6 +166,13 @@ pub struct MapperSettings {
     /// points since the last refresh get their plane fit, so that the navigable-space discovery
     /// at the end fits only what changed after the last one (0 = none: it fits every voxel).
     pub fits_refresh_interval_s: f64,
+    /// Period of a discovery of the navigable space during the run (wall time), s, whose 2.5-D
+    /// traversability grid goes out on `pipeline/map/traversability` (the viewer's and the ROS 2
+    /// gateway's `traversability`) for a planner that runs beside the mapper. Each takes what the
+    /// discovery at the end takes on the map so far (the main job's end: about 1-2 s on two
+    /// cores, while the insertion waits), so it is for small maps; 0 = none: the grid goes out
+    /// once, after the discovery at the end of stream.
+    pub traversability_interval_s: f64,
     /// At the end, score the navigable space and the obstacles against the simulated scene's
     /// truth in this file (relative to the output directory; the `sim` and `indoor` sources
     /// write `scene.json`): summary.json `octree_mapper.truth`. Empty: no scoring.
@@ -196,6 +203,7 @@ impl Default for MapperSettings {
             end_after: vec!["ingest".into(), "fusion".into()],
             checkpoint_interval_s: 10.0,
             fits_refresh_interval_s: 5.0,
+            traversability_interval_s: 0.0,
             rebuild_from: String::new(),
             rebuild_max_clouds: 5000,
             truth_scene: String::new(),
@@ -206,8 +214,9 @@ impl Default for MapperSettings {
 
 impl ProcessSettings for MapperSettings {
     fn shm_estimate_bytes(&self, _extra_subscribers: usize) -> u64 {
-        // Stats and the voxel slice (grows by powers of two).
-        (1 << 20) + (64 << 20)
+        // Stats, the voxel slice and the traversability grid's (both grow by powers of two; the
+        // main job's grid is 0.8 M cells of 12 bytes).
+        (1 << 20) + (64 << 20) + (16 << 20)
     }
 }
 
@@ -232,6 +241,7 @@ impl Validate for MapperSettings {
         for (k, v) in [
             ("checkpoint_interval_s", self.checkpoint_interval_s),
             ("fits_refresh_interval_s", self.fits_refresh_interval_s),
+            ("traversability_interval_s", self.traversability_interval_s),
         ] {
             issues.check(v.is_finite() && v >= 0.0, k, "must be >= 0");
         }

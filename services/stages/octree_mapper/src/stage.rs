@@ -10,7 +10,9 @@ use pipeline_runtime::{Input, Output, ProcessContext, Restart, Runtime, Wake};
 
 /// The snapshot key of the occupancy checkpoint (`<out>/state/<process>/map.bt`).
 const CHECKPOINT: &str = "map.bt";
-use shared_types::services::{CLOUD, COMMAND, FUSION_POSE, GRID_SLAM_POSE3D, MAP_STATS, MAP_VOXELS, SLAM_POSE};
+use shared_types::services::{
+    CLOUD, COMMAND, FUSION_POSE, GRID_SLAM_POSE3D, MAP_STATS, MAP_TRAVERSABILITY, MAP_VOXELS, SLAM_POSE,
+};
 use shared_types::*;
 
 use crate::summary::{
@@ -71,15 +73,52 @@ const SLOW_INSERTION: Duration = Duration::from_secs(1);
 
 /// The end-of-run work (map.bt, navigable space, PLY layers, the classified voxels) on a worker
 /// thread, while this thread keeps the heartbeats going (a large map takes seconds).
-fn end_of_run(
-    rt: &mut Runtime,
-    st: &MapperState,
-    out_dir: &std::path::Path,
-) -> Result<(navigable::Discovery, Vec<Voxel>, OctreeMapperPart), StageError> {
+/// Sends `grid` on `pipeline/map/traversability`, written into the loaned slice in place (a
+/// grid without cells is not sent). NaN heights and slopes (undefined) go out as 0: the class
+/// says what is defined.
+fn send_traversability(
+    out: &mut Output<[TraversabilityCell], OccupancyGridHeader>,
+    grid: &navigable::traversability::TraversabilityGrid,
+    stamp_ns: u64,
+) -> Result<(), StageError> {
+    use navigable::traversability::CellClass;
+    let n = grid.width * grid.height;
+    if n == 0 {
+        return Ok(());
+    }
+    let defined = |v: f32| if v.is_finite() { v } else { 0.0 };
+    let mut s = out.loan_slice_uninit(n)?.write_from_fn(|i| TraversabilityCell {
+        height_m: defined(grid.height_m[i]),
+        slope_deg: defined(grid.slope_deg[i]),
+        class: match grid.class[i] {
+            CellClass::Unknown => TRAVERSABILITY_UNKNOWN,
+            CellClass::Navigable => TRAVERSABILITY_NAVIGABLE,
+            CellClass::Obstacle => TRAVERSABILITY_OBSTACLE,
+        },
+        _reserved: [0; 3],
+    });
+    *s.user_header_mut() = OccupancyGridHeader {
+        msg: MsgHeader { stamp_ns, ..Default::default() },
+        resolution_m: grid.resolution_m,
+        origin_m: [grid.origin_m.0, grid.origin_m.1],
+        width: grid.width as u32,
+        height: grid.height as u32,
+    };
+    out.send(s)?;
+    Ok(())
+}
+
+/// What the end of the run computed: the discovery, the voxels with their classes, the 2.5-D
+/// traversability grid and the summary part.
+type EndOfRunOutputs =
+    (navigable::Discovery, Vec<Voxel>, navigable::traversability::TraversabilityGrid, OctreeMapperPart);
+
+fn end_of_run(rt: &mut Runtime, st: &MapperState, out_dir: &std::path::Path) -> Result<EndOfRunOutputs, StageError> {
     std::fs::create_dir_all(out_dir)?;
     type Scores = (Option<navigable::truth::TruthScore>, Option<navigable::truth::TruthScore>);
-    type EndOfRun = (navigable::Discovery, Vec<Voxel>, Scores, EndOfRunWork);
-    let (d, voxels, (truth, truth_by_origin), work) = std::thread::scope(|s| {
+    type EndOfRun =
+        (navigable::Discovery, Vec<Voxel>, navigable::traversability::TraversabilityGrid, Scores, EndOfRunWork);
+    let (d, voxels, grid, (truth, truth_by_origin), work) = std::thread::scope(|s| {
         let worker = s.spawn(|| -> Result<EndOfRun, StageError> {
             let t0 = Instant::now();
             st.tree.write_binary_file(out_dir.join("map.bt")).map_err(StageError::stage)?;
@@ -87,7 +126,7 @@ fn end_of_run(
             let d = st.discover()?;
             let t2 = Instant::now();
             // The score against the truth beside the layers (the machine's second core).
-            let (voxels, truth) = std::thread::scope(|inner| -> Result<_, StageError> {
+            let (voxels, grid, truth) = std::thread::scope(|inner| -> Result<_, StageError> {
                 let scoring = inner.spawn(|| {
                     let landmarks: Vec<(nalgebra::Vector3<f64>, u32)> =
                         st.obstacles.landmarks.iter().filter_map(|l| Some((l.stats.mean_cov()?.0, l.scans))).collect();
@@ -110,7 +149,7 @@ fn end_of_run(
                 );
                 let voxels = build_voxels(st, Some(&d));
                 let truth = scoring.join().map_err(|_| StageError::msg("the truth scoring panicked"))?;
-                Ok((voxels, truth))
+                Ok((voxels, grid, truth))
             })?;
             let work = EndOfRunWork {
                 map_bt_ms: (t1 - t0).as_secs_f64() * 1e3,
@@ -131,7 +170,7 @@ fn end_of_run(
                 d.step_m * 1e3,
                 work.layers_ms
             );
-            Ok((d, voxels, truth, work))
+            Ok((d, voxels, grid, truth, work))
         });
         while !worker.is_finished() {
             rt.keep_alive();
@@ -191,7 +230,7 @@ fn end_of_run(
         obstacles = d.obstacles.len(),
         "map written"
     );
-    Ok((d, voxels, part))
+    Ok((d, voxels, grid, part))
 }
 
 /// The `octree_mapper` stage.
@@ -210,7 +249,10 @@ pub struct OctreeMapperStage {
     commands: Input<ControlCommand, MsgHeader>,
     stats_out: Output<MapStats, MsgHeader>,
     voxels_out: Output<[Voxel], VoxelSetHeader>,
+    traversability_out: Output<[TraversabilityCell], OccupancyGridHeader>,
     voxel_stream: VoxelStream,
+    traversability_every: Option<Duration>,
+    last_traversability: Instant,
     stats_every: Option<Duration>,
     voxels_every: Option<Duration>,
     fits_every: Option<Duration>,
@@ -431,6 +473,26 @@ impl OctreeMapperStage {
             let fitted = self.st.refresh_fits();
             tracing::debug!(fitted, kept = self.st.fits.len(), "plane fits refreshed");
         }
+        if self.traversability_every.is_some_and(|e| self.last_traversability.elapsed() >= e) && !inputs_ended {
+            // The discovery of the map so far and its grid for a planner beside the mapper; the
+            // insertion waits meanwhile (bounded work: the heartbeat goes on).
+            let _alive = rt.hold_heartbeat();
+            let t0 = Instant::now();
+            let d = self.st.discover()?;
+            let grid = navigable::traversability::TraversabilityGrid::from_discovery(&self.st.points, &d);
+            send_traversability(&mut self.traversability_out, &grid, self.last_stamp)?;
+            let (navigable, obstacle, unknown) = grid.counts();
+            tracing::debug!(
+                navigable,
+                obstacle,
+                unknown,
+                ms = t0.elapsed().as_secs_f64() * 1e3,
+                "traversability grid of the map so far sent"
+            );
+            // The period counts from the end of this one: a discovery longer than the period
+            // does not run back to back.
+            self.last_traversability = Instant::now();
+        }
         if self.checkpoint_every.is_some_and(|e| self.last_checkpoint.elapsed() >= e) && !inputs_ended {
             self.last_checkpoint = Instant::now();
             // Serialising and writing the whole tree takes seconds on a large map on a loaded
@@ -475,6 +537,10 @@ impl Stage for OctreeMapperStage {
             commands: rt.input(COMMAND)?,
             stats_out: rt.output(MAP_STATS)?,
             voxels_out: rt.output_slice(MAP_VOXELS, 16 * 1024)?,
+            traversability_out: rt.output_slice(MAP_TRAVERSABILITY, 1024 * 1024)?,
+            traversability_every: (settings.traversability_interval_s > 0.0)
+                .then(|| Duration::from_secs_f64(settings.traversability_interval_s)),
+            last_traversability: Instant::now(),
             voxel_stream: VoxelStream::new(
                 crate::voxels::RegionGrid {
                     resolution_m: settings.resolution_m,
@@ -616,7 +682,8 @@ impl Stage for OctreeMapperStage {
             }
         }
         if ending == Ending::EndOfStream {
-            let (d, voxels, mut part) = end_of_run(rt, &self.st, &self.out_dir)?;
+            let (d, voxels, grid, mut part) = end_of_run(rt, &self.st, &self.out_dir)?;
+            send_traversability(&mut self.traversability_out, &grid, self.last_stamp)?;
 
             let header = MsgHeader { stamp_ns: self.last_stamp, ..Default::default() };
             self.stats_out.send_value(header, stats_msg(&self.st, d.regions.len() as u32, d.obstacles.len() as u32))?;

@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 use shared_types::services::*;
 use shared_types::{
     FusedPose, Landmark, LandmarkMapHeader, MsgHeader, OccupancyCell, OccupancyGridHeader, PlanarOdometry, PlanarPose,
-    PoseEstimate, Voxel, VoxelSetHeader, WireType,
+    PoseEstimate, TraversabilityCell, Voxel, VoxelSetHeader, WireType,
 };
 
 use crate::error::RecorderError;
@@ -73,6 +73,7 @@ impl Ros2Recording {
             (n.grid_pose, GRID_SLAM_POSE),
             (n.grid, GRID_SLAM_GRID),
             (n.voxels, MAP_VOXELS),
+            (n.traversability, MAP_TRAVERSABILITY),
             (n.landmarks, FUSION_MAP),
         ]
         .into_iter()
@@ -220,6 +221,9 @@ fn translate(t: &mut Translator, service: &str, data: &[u8], out: &mut Vec<Emitt
         }
         GRID_SLAM_GRID => slice::<OccupancyGridHeader, OccupancyCell>(data).map(|(h, c)| t.grid(&h, &c)),
         MAP_VOXELS => slice::<VoxelSetHeader, Voxel>(data).map(|(h, v)| t.voxels(&h, &v)),
+        MAP_TRAVERSABILITY => {
+            slice::<OccupancyGridHeader, TraversabilityCell>(data).map(|(h, c)| t.traversability(&h, &c))
+        }
         FUSION_MAP => slice::<LandmarkMapHeader, Landmark>(data).map(|(h, l)| t.landmarks(&h, &l)),
         _ => None,
     };

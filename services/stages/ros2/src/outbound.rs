@@ -14,7 +14,7 @@ use serde::Serialize;
 use shared_types::services::*;
 use shared_types::{
     COMMAND_VOXEL_SNAPSHOT, ControlCommand, FusedPose, Landmark, LandmarkMapHeader, MsgHeader, OccupancyCell,
-    OccupancyGridHeader, PlanarOdometry, PlanarPose, PoseEstimate, Voxel, VoxelSetHeader,
+    OccupancyGridHeader, PlanarOdometry, PlanarPose, PoseEstimate, TraversabilityCell, Voxel, VoxelSetHeader,
 };
 
 use crate::dds::{DdsError, RosNode, err};
@@ -117,8 +117,8 @@ impl OutRoute {
             OutKind::FusedPath | OutKind::SlamPath | OutKind::GridSlamPath => {
                 OutPub::Path(publisher(node, &topic, &name)?)
             }
-            OutKind::Map => OutPub::Grid(publisher(node, &topic, &name)?),
-            OutKind::Voxels => OutPub::Cloud(publisher(node, &topic, &name)?),
+            OutKind::Map | OutKind::Traversability => OutPub::Grid(publisher(node, &topic, &name)?),
+            OutKind::Voxels | OutKind::TraversabilityCloud => OutPub::Cloud(publisher(node, &topic, &name)?),
             OutKind::Landmarks | OutKind::Obstacles => OutPub::Markers(publisher(node, &topic, &name)?),
             OutKind::Tf => OutPub::Tf(publisher(node, &topic, &name)?),
         };
@@ -234,6 +234,7 @@ struct OutInputs {
     grid_pose: Option<Input<PlanarPose, MsgHeader>>,
     grid: Option<Input<[OccupancyCell], OccupancyGridHeader>>,
     voxels: Option<Input<[Voxel], VoxelSetHeader>>,
+    traversability: Option<Input<[TraversabilityCell], OccupancyGridHeader>>,
     landmarks: Option<Input<[Landmark], LandmarkMapHeader>>,
     odometry: Option<Input<PlanarOdometry, MsgHeader>>,
     /// To ask the mapper for a full voxel set.
@@ -281,6 +282,9 @@ impl Outbound {
         if needs.voxels {
             inputs.voxels = Some(rt.input(MAP_VOXELS)?);
             inputs.commands = Some(rt.output::<ControlCommand, MsgHeader>(COMMAND)?);
+        }
+        if needs.traversability {
+            inputs.traversability = Some(rt.input(MAP_TRAVERSABILITY)?);
         }
         if needs.landmarks {
             inputs.landmarks = Some(rt.input(FUSION_MAP)?);
@@ -387,6 +391,11 @@ impl Outbound {
         if let Some(i) = &self.inputs.voxels {
             while let Some(r) = i.receive()? {
                 t.voxels(r.user_header(), r.payload());
+            }
+        }
+        if let Some(i) = &self.inputs.traversability {
+            while let Some(r) = i.receive()? {
+                t.traversability(r.user_header(), r.payload());
             }
         }
         if t.wants_voxel_snapshot()

@@ -134,6 +134,7 @@ pub struct ViewerStage {
     slam_landmarks: Option<Input<[Landmark], LandmarkMapHeader>>,
     voxels: Option<Input<[Voxel], VoxelSetHeader>>,
     grid: Option<Input<[OccupancyCell], OccupancyGridHeader>>,
+    traversability: Option<Input<[TraversabilityCell], OccupancyGridHeader>>,
     heartbeats: Option<Input<Heartbeat, MsgHeader>>,
     /// Asks the octree mapper for a full voxel set when a client watches `/octree` and none is held.
     commands: Option<Output<ControlCommand, MsgHeader>>,
@@ -148,6 +149,11 @@ pub struct ViewerStage {
     landmarks_ch: Channel<PointCloud>,
     octree_ch: Channel<PointCloud>,
     grid_ch: Channel<Grid>,
+    traversability_ch: Channel<Grid>,
+    /// The newest traversability grid, shown again to a client that starts watching after it
+    /// came (the mapper sends one at the end of its run, or one every so often).
+    traversability_latest: Option<Grid>,
+    traversability_watched: bool,
     processes_ch: Channel<Log>,
     counts: BTreeMap<&'static str, Counts>,
     cloud_every: Every,
@@ -416,6 +422,33 @@ impl ViewerStage {
         Ok(())
     }
 
+    /// The newest traversability grid, logged when it comes and again when a client starts
+    /// watching `/traversability` (the mapper sends it rarely: at its end, or every
+    /// `traversability_interval_s`).
+    fn drain_traversability(&mut self) -> Result<(), StageError> {
+        let Some(i) = &self.traversability else { return Ok(()) };
+        let watched = self.traversability_ch.has_sinks();
+        let mut fresh = false;
+        while let Some(s) = i.receive()? {
+            let c = self.counts.entry("/traversability").or_default();
+            c.received += 1;
+            self.traversability_latest = Some(fx::traversability(s.user_header(), s.payload()));
+            fresh = true;
+        }
+        let newly_watched = watched && !self.traversability_watched;
+        self.traversability_watched = watched;
+        if let Some(m) = &self.traversability_latest
+            && watched
+            && (fresh || newly_watched)
+        {
+            self.counts.entry("/traversability").or_default().logged += 1;
+            self.traversability_ch.log(m);
+        } else if fresh && !watched {
+            self.counts.entry("/traversability").or_default().skipped_unwatched += 1;
+        }
+        Ok(())
+    }
+
     fn drain_processes(&mut self) -> Result<(), StageError> {
         if let Some(i) = &self.heartbeats {
             while let Some(s) = i.receive()? {
@@ -538,6 +571,7 @@ impl Stage for ViewerStage {
         let slam_landmarks = open(ns, services::SLAM_LANDMARKS, rt.input(services::SLAM_LANDMARKS));
         let voxels = open(ns, services::MAP_VOXELS, rt.input(services::MAP_VOXELS));
         let grid = open(ns, services::GRID_SLAM_GRID, rt.input(services::GRID_SLAM_GRID));
+        let traversability = open(ns, services::MAP_TRAVERSABILITY, rt.input(services::MAP_TRAVERSABILITY));
         let heartbeats = open(ns, services::HEARTBEAT, rt.input_with_qos(services::HEARTBEAT, &CONTROL_QOS));
         let commands = match &voxels {
             Some(_) => open(ns, services::COMMAND, rt.output::<ControlCommand, MsgHeader>(services::COMMAND)),
@@ -562,6 +596,7 @@ impl Stage for ViewerStage {
         let landmarks_ch = context.channel_builder("/landmarks").build();
         let octree_ch = context.channel_builder("/octree").build();
         let grid_ch = context.channel_builder("/grid").build();
+        let traversability_ch = context.channel_builder("/traversability").build();
         let processes_ch = context.channel_builder("/processes").build();
         let (server, gate, port) = start_server(&context, ctx, &settings)?;
         Ok(Self {
@@ -586,6 +621,7 @@ impl Stage for ViewerStage {
             slam_landmarks,
             voxels,
             grid,
+            traversability,
             heartbeats,
             commands,
             snapshot_asked: None,
@@ -604,6 +640,9 @@ impl Stage for ViewerStage {
             landmarks_ch,
             octree_ch,
             grid_ch,
+            traversability_ch,
+            traversability_latest: None,
+            traversability_watched: false,
             processes_ch,
             counts: BTreeMap::new(),
             octree: HashMap::new(),
@@ -651,6 +690,7 @@ impl Stage for ViewerStage {
         self.drain_landmarks()?;
         self.drain_octree()?;
         self.drain_grid()?;
+        self.drain_traversability()?;
         self.drain_processes()?;
         Ok(Step::Idle)
     }

@@ -133,11 +133,12 @@ macro_rules! for_each_wire_type {
         $m!(PlanarPose, 26, $($arg),*);
         $m!(OccupancyGridHeader, 27, $($arg),*);
         $m!(OccupancyCell, 28, $($arg),*);
+        $m!(TraversabilityCell, 29, $($arg),*);
     };
 }
 
 /// Number of fixed-size types above; a test checks it against `all_layouts()`.
-const FIXED_TYPES: usize = 29;
+const FIXED_TYPES: usize = 30;
 
 fn subscribe(rt: &mut Runtime, timeout: Duration) -> anyhow::Result<()> {
     let mut checks: Vec<Box<dyn Check>> = vec![];
