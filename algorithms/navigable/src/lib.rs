@@ -975,6 +975,35 @@ pub fn discover_with(
     cfg: &NsdConfig,
     fits: &PlaneFits,
 ) -> Result<Discovery, NavigableError> {
+    discover_in(acc, |k| if occupied(k) { MapCell::Occupied } else { MapCell::Unknown }, cfg, fits)
+}
+
+/// What the occupancy map says of a voxel ([`discover_in`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MapCell {
+    /// Occupied.
+    Occupied,
+    /// Observed free (a ray passed through it).
+    Free,
+    /// Not observed, or not known to the caller.
+    Unknown,
+}
+
+/// How many voxels of a region are sampled for the side it was seen from.
+const SIDE_SAMPLES: usize = 256;
+
+/// [`discover_with`] on a map that also says which voxels are observed free (`cell`): a region
+/// of at least a vehicle's footprint (`min_region_area_m2`) seen from below (free space under
+/// most of its voxels, and under more of them than above them: a ceiling, an overhang's
+/// underside) is no ground a vehicle stands on, and its voxels are left as patches
+/// ([`VoxelClass::Patch`]), neither ground nor an obstacle. Without free space (`Unknown` for
+/// all that is not occupied) the result is [`discover_with`]'s.
+pub fn discover_in(
+    acc: &PointAccumulator,
+    cell: impl Fn(&VoxelKey) -> MapCell + Sync,
+    cfg: &NsdConfig,
+    fits: &PlaneFits,
+) -> Result<Discovery, NavigableError> {
     if let Some(validation::ConfigIssue { key, message }) = cfg.issues().into_iter().next() {
         return Err(NavigableError::Config { key, message });
     }
@@ -987,7 +1016,7 @@ pub fn discover_with(
     let mut is_occupied = vec![false; all.len()];
     in_two(parallel, &mut is_occupied, all.len() / 2, &|offset, part| {
         for (i, o) in part.iter_mut().enumerate() {
-            *o = occupied(&all.get(offset + i).0);
+            *o = cell(&all.get(offset + i).0) == MapCell::Occupied;
         }
     });
     let n = is_occupied.iter().filter(|o| **o).count();
@@ -1341,6 +1370,35 @@ pub fn discover_with(
         if matches!(c, VoxelClass::Navigable(_)) {
             let r = find(&mut parent, i);
             regions.entry(r).or_default().push(i);
+        }
+    }
+    // A region seen from below is an underside (a ceiling): the free space the sensor saw it
+    // through lies under it. Judged on up to `SIDE_SAMPLES` of its voxels, evenly spread: the
+    // voxel above and the one below each, free or not. One smaller than a vehicle's footprint
+    // is left to the rule of small regions below (it joins the obstacle it touches: the
+    // underside of a table top seen from a camera lower than it is the table's).
+    let footprint_voxels = cfg.min_region_area_m2 / (acc.res_m * acc.res_m);
+    let undersides: Vec<usize> = regions
+        .iter()
+        .filter(|(_, m)| m.len() as f64 >= footprint_voxels)
+        .filter(|(_, m)| {
+            let step = m.len().div_ceil(SIDE_SAMPLES).max(1);
+            let (mut above, mut below, mut n) = (0usize, 0usize, 0usize);
+            for &i in m.iter().step_by(step) {
+                let k = keys[i];
+                above += usize::from(cell(&[k[0], k[1], k[2] + 1]) == MapCell::Free);
+                below += usize::from(cell(&[k[0], k[1], k[2] - 1]) == MapCell::Free);
+                n += 1;
+            }
+            below > above && 2 * below > n
+        })
+        .map(|(r, _)| *r)
+        .collect();
+    for r in undersides {
+        for i in regions.remove(&r).unwrap_or_default() {
+            if let VoxelClass::Navigable(p) = classes[i] {
+                classes[i] = VoxelClass::Patch(p);
+            }
         }
     }
     // Walls (EQUATIONS §7 "Walls"): the large steep planes with no top are carved out of the
@@ -2870,6 +2928,42 @@ mod tests {
         assert!(without.walls.is_empty());
         let with_front: Vec<&Obstacle> = without.obstacles.iter().filter(|o| o.voxels.contains(&front)).collect();
         assert!(with_front.iter().all(|o| o.voxels.contains(&k(0.02, 0.5, 1.0))), "one obstacle with the wall");
+    }
+
+    #[test]
+    fn a_ceiling_seen_from_below_is_no_region_and_the_walls_under_it_stay_walls() {
+        let mut acc = PointAccumulator::new(RES);
+        room_with_a_cabinet(&mut acc);
+        surface(&mut acc, (0.0, 6.0), (0.0, 5.0), |_, _| 2.05);
+        // The map: the points' voxels occupied, the room's inside (but the cabinet) seen free
+        // through, the rest (behind the walls, above the ceiling) unknown.
+        let cell = |k: &VoxelKey| {
+            let c = acc.centre(k);
+            let in_cabinet = c.x < 0.62 && (2.0..3.0).contains(&c.y) && c.z < 1.25;
+            if acc.cells().contains_key(k) {
+                MapCell::Occupied
+            } else if c.x > 0.02 && c.y < 4.98 && c.z > 0.05 && c.z < 2.05 && c.y > 0.0 && c.x < 6.0 && !in_cabinet {
+                MapCell::Free
+            } else {
+                MapCell::Unknown
+            }
+        };
+        let k = |x: f64, y: f64, z: f64| acc.key(&Vector3::new(x, y, z));
+        let ceiling = k(3.0, 2.5, 2.05);
+        let d = discover_in(&acc, cell, &NsdConfig::default(), &PlaneFits::new()).unwrap();
+        assert!(matches!(d.classes.get(&ceiling), Some(VoxelClass::Patch(_))), "{:?}", d.classes.get(&ceiling));
+        assert!(d.regions.iter().all(|r| !r.voxels.contains(&ceiling)));
+        assert!(d.obstacles.iter().all(|o| !o.voxels.contains(&ceiling)));
+        assert!(d.regions[0].voxels.contains(&k(3.0, 2.5, 0.05)), "the floor is the largest region");
+        let in_walls: std::collections::HashSet<VoxelKey> =
+            d.walls.iter().flat_map(|w| w.voxels.iter().copied()).collect();
+        for p in [k(0.02, 0.5, 1.0), k(0.02, 4.5, 1.5), k(3.0, 4.98, 1.0), k(5.5, 4.98, 0.5)] {
+            assert!(in_walls.contains(&p), "{p:?} in a wall");
+        }
+        // Without the free space the map says nothing of the side it was seen from: the ceiling
+        // is a region of its own.
+        let blind = run(&acc);
+        assert!(blind.regions.iter().any(|r| r.voxels.contains(&ceiling)));
     }
 
     #[test]

@@ -629,11 +629,17 @@ impl MapperState {
     pub fn discover(&self) -> Result<Discovery, MapperError> {
         let res = self.settings.resolution_m;
         let tree = &self.tree;
-        let occupied = |k: &navigable::VoxelKey| {
+        // Occupied, observed free, or unknown: the free space says from which side a surface was
+        // seen (a ceiling is no ground).
+        let cell = |k: &navigable::VoxelKey| {
             let c = [(k[0] as f64 + 0.5) * res, (k[1] as f64 + 0.5) * res, (k[2] as f64 + 0.5) * res];
-            tree.is_occupied(c).unwrap_or(false)
+            match tree.search(c) {
+                Some(l) if tree.is_occupied_log_odds(l) => navigable::MapCell::Occupied,
+                Some(_) => navigable::MapCell::Free,
+                None => navigable::MapCell::Unknown,
+            }
         };
-        Ok(navigable::discover_with(&self.points, occupied, &self.settings.nsd, &self.fits)?)
+        Ok(navigable::discover_in(&self.points, cell, &self.settings.nsd, &self.fits)?)
     }
 }
 
@@ -753,9 +759,11 @@ mod tests {
         let settings = MapperSettings { pose_source: PoseSource::Cloud, ..Default::default() };
         let mut st = MapperState::new(settings.clone()).unwrap();
         let now = Instant::now();
-        // A floor 2 m below the sensor (optical z down), seen from positions 0.5 m apart.
+        // A floor 2 m below the sensor (the pose has no rotation: the points are in the world's
+        // axes), seen from positions 0.5 m apart. (At z +2 m it would be a ceiling, seen from
+        // below, and no region.)
         let floor: Vec<[f32; 3]> =
-            (0..4000).map(|i| [(i % 80) as f32 * 0.025 - 1.0, (i / 80) as f32 * 0.025 - 0.6, 2.0]).collect();
+            (0..4000).map(|i| [(i % 80) as f32 * 0.025 - 1.0, (i / 80) as f32 * 0.025 - 0.6, -2.0]).collect();
         let push = |st: &mut MapperState, x: f64| {
             st.push_cloud(PendingCloud {
                 stamp_ns: 0,
