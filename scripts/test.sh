@@ -23,7 +23,8 @@ if ! python3 -c 'import websockets.sync.client, google.protobuf.message_factory'
 fi
 # Python test dependency: tests/tests/ros2_bags.rs writes and reads rosbag2 bags with `rosbags`
 # (PyPI; with numpy), an implementation of ROS 2 bags and CDR that no one here wrote. Installed only
-# when missing.
+# when missing. (numpy is also what algorithms/navigable/tests/bench_scene.rs needs to run the
+# OctoMap benchmark's ../shared/bench/octomap/gen_scene.py.)
 if ! python3 -c 'import rosbags.rosbag2, rosbags.highlevel, numpy' >/dev/null 2>&1; then
     python3 -m pip install --quiet 'rosbags>=0.10'
 fi

@@ -89,6 +89,12 @@ pub enum LineErrorKind {
     /// The line is not valid UTF-8.
     #[error("line is not valid UTF-8")]
     NotUtf8,
+    /// A record type the format does not have.
+    #[error("unknown record `{text}`")]
+    UnknownRecord {
+        /// The line's first field.
+        text: String,
+    },
     /// The line has the wrong number of whitespace-separated fields.
     #[error("expected {expected} numbers, got {got}")]
     ColumnCount {
@@ -224,6 +230,12 @@ pub enum FileErrorKind {
     /// The file has no data lines where at least one is required.
     #[error("no data lines")]
     NoData,
+    /// An OctoMap benchmark file (`scans.bin`, `scene.txt`) is malformed.
+    #[error("{what}")]
+    OctomapBench {
+        /// What is wrong.
+        what: String,
+    },
     /// A directory holds no run of a data set.
     #[error("no data set run here: expected {expected}")]
     NoRun {

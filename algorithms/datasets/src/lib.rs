@@ -6,7 +6,8 @@
 //! - [`scan`]: OctoMap's plain-text point clouds (`scan.dat`, with optional `NODE` poses);
 //! - [`ply`]: PLY point clouds (ASCII and binary), plus a writer;
 //! - [`carmen`]: CARMEN 2-D laser logs (FLASER, RAWLASER, ROBOTLASER1, ODOM; plain or gzip);
-//! - [`depth`]: 16-bit depth images (PNG or raw) and their back-projection to points.
+//! - [`depth`]: 16-bit depth images (PNG or raw) and their back-projection to points;
+//! - [`octomap_bench`]: the OctoMap reference benchmark's depth frames and scene.
 //!
 //! This is a pure library: no IPC, no logging, no panics on bad input. Every failure is a
 //! [`DatasetError`] whose message names the file and, for text, the 1-based line, e.g.
@@ -18,6 +19,7 @@ pub mod carmen;
 pub mod depth;
 pub mod error;
 mod lines;
+pub mod octomap_bench;
 pub mod plaza2;
 pub mod ply;
 pub mod scan;

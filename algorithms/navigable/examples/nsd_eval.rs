@@ -119,8 +119,23 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     type Cloud = (f64, Isometry3<f64>, Vec<[f32; 3]>);
     type Judge = Box<dyn Fn(&Vector3<f64>) -> TruthClass + Sync>;
     let (clouds_in, judge): (Box<dyn Iterator<Item = Cloud>>, Judge) = if let Some(dir) = &bench_scene {
-        let (frames, truth) = bench::load(dir, tolerance)?;
-        (Box::new(frames.into_iter()), Box::new(move |p: &Vector3<f64>| truth.at(p)))
+        use datasets::octomap_bench::{BenchTruth, read_bench_scans, read_bench_scene};
+        let scene = read_bench_scene(dir.join("scene.txt"))?;
+        // Each frame as a sensor at its origin with the world's axes, a second apart.
+        let frames = read_bench_scans(dir.join("scans.bin"))?.into_iter().enumerate().map(|(i, f)| {
+            let o = f.origin_m;
+            let pose = Isometry3::translation(o[0] as f64, o[1] as f64, o[2] as f64);
+            (i as f64, pose, f.points_m.iter().map(|p| [p[0] - o[0], p[1] - o[1], p[2] - o[2]]).collect())
+        });
+        (
+            Box::new(frames),
+            Box::new(move |p: &Vector3<f64>| match scene.at([p.x, p.y, p.z], tolerance) {
+                BenchTruth::Object(i) => TruthClass::Object(i),
+                BenchTruth::Wall => TruthClass::Wall,
+                BenchTruth::Floor => TruthClass::Ground,
+                BenchTruth::Ceiling | BenchTruth::Nothing => TruthClass::Nothing,
+            }),
+        )
     } else if indoor {
         let mut indoor_cfg = sim::indoor::IndoorConfig::default();
         if ring {
@@ -529,129 +544,5 @@ fn report_regions(
             reg.normal.z.clamp(-1.0, 1.0).acos().to_degrees(),
             other_regions.iter().take(5).collect::<Vec<_>>()
         );
-    }
-}
-
-/// The OctoMap reference benchmark's scene (`--bench-scene`): its frames and its truth.
-mod bench {
-    use std::path::Path;
-
-    use nalgebra::{Isometry3, Translation3, Vector3};
-    use navigable::truth::TruthClass;
-
-    /// A solid of the scene: a box (min, max) or a vertical cylinder (centre x, y, radius, z range).
-    enum Solid {
-        Box([f64; 3], [f64; 3]),
-        Cylinder([f64; 2], f64, [f64; 2]),
-    }
-
-    impl Solid {
-        fn bounds(&self) -> ([f64; 3], [f64; 3]) {
-            match self {
-                Solid::Box(a, b) => (*a, *b),
-                Solid::Cylinder(c, r, z) => ([c[0] - r, c[1] - r, z[0]], [c[0] + r, c[1] + r, z[1]]),
-            }
-        }
-        fn near(&self, p: &Vector3<f64>, tol: f64) -> bool {
-            match self {
-                Solid::Box(a, b) => (0..3).all(|k| p[k] >= a[k] - tol && p[k] <= b[k] + tol),
-                Solid::Cylinder(c, r, z) => {
-                    (p.x - c[0]).hypot(p.y - c[1]) <= r + tol && p.z >= z[0] - tol && p.z <= z[1] + tol
-                }
-            }
-        }
-    }
-
-    /// The scene's truth at a point.
-    pub struct Truth {
-        room: ([f64; 3], [f64; 3]),
-        solids: Vec<(Solid, u32)>,
-        tol: f64,
-    }
-
-    impl Truth {
-        pub fn at(&self, p: &Vector3<f64>) -> TruthClass {
-            let tol = self.tol;
-            if let Some((_, object)) = self.solids.iter().find(|(s, _)| s.near(p, tol)) {
-                return TruthClass::Object(*object);
-            }
-            let (a, b) = self.room;
-            let inside = |k: usize| p[k] >= a[k] - tol && p[k] <= b[k] + tol;
-            if !(0..3).all(inside) {
-                return TruthClass::Nothing;
-            }
-            if (0..2).any(|k| (p[k] - a[k]).abs() <= tol || (p[k] - b[k]).abs() <= tol) {
-                return TruthClass::Wall;
-            }
-            if (p.z - a[2]).abs() <= tol { TruthClass::Ground } else { TruthClass::Nothing }
-        }
-    }
-
-    type Frame = (f64, Isometry3<f64>, Vec<[f32; 3]>);
-
-    fn f32_at(b: &[u8], at: usize) -> Result<f32, String> {
-        Ok(f32::from_le_bytes(b.get(at..at + 4).ok_or("scans.bin is truncated")?.try_into().map_err(|_| "?")?))
-    }
-
-    fn u32_at(b: &[u8], at: usize) -> Result<u32, String> {
-        Ok(u32::from_le_bytes(b.get(at..at + 4).ok_or("scans.bin is truncated")?.try_into().map_err(|_| "?")?))
-    }
-
-    /// Reads `dir/scans.bin` (the frames: each its sensor origin and its world points, given here
-    /// as a sensor frame at the origin with the world's axes, one second apart) and
-    /// `dir/scene.txt` (the truth, judged within `tol`).
-    pub fn load(dir: &Path, tol: f64) -> Result<(Vec<Frame>, Truth), Box<dyn std::error::Error>> {
-        let scans = dir.join("scans.bin");
-        let b = std::fs::read(&scans).map_err(|e| {
-            format!("{}: {e} (make it: python3 ../shared/bench/octomap/gen_scene.py --out DIR)", scans.display())
-        })?;
-        if b.get(..8) != Some(b"OCTSCAN1".as_slice()) {
-            return Err(format!("{}: not an OCTSCAN1 file", scans.display()).into());
-        }
-        let n = u32_at(&b, 8)? as usize;
-        let mut at = 16;
-        let mut frames = Vec::with_capacity(n);
-        for i in 0..n {
-            let o = [f32_at(&b, at)?, f32_at(&b, at + 4)?, f32_at(&b, at + 8)?];
-            let m = u32_at(&b, at + 12)? as usize;
-            at += 16;
-            let mut points = Vec::with_capacity(m);
-            for j in 0..m {
-                let q = at + 12 * j;
-                points.push([f32_at(&b, q)? - o[0], f32_at(&b, q + 4)? - o[1], f32_at(&b, q + 8)? - o[2]]);
-            }
-            at += 12 * m;
-            let pose =
-                Isometry3::from_parts(Translation3::new(o[0] as f64, o[1] as f64, o[2] as f64), Default::default());
-            frames.push((i as f64, pose, points));
-        }
-        let text = std::fs::read_to_string(dir.join("scene.txt"))?;
-        let mut room = None;
-        let mut solids = vec![];
-        for line in text.lines().filter(|l| !l.trim_start().starts_with('#') && !l.trim().is_empty()) {
-            let f: Vec<&str> = line.split_whitespace().collect();
-            let v = |i: usize| -> Result<f64, String> {
-                f.get(i).and_then(|x| x.parse().ok()).ok_or_else(|| format!("scene.txt: bad line `{line}`"))
-            };
-            match f[0] {
-                "room" => room = Some(([v(1)?, v(2)?, v(3)?], [v(4)?, v(5)?, v(6)?])),
-                "box" => solids.push(Solid::Box([v(1)?, v(2)?, v(3)?], [v(4)?, v(5)?, v(6)?])),
-                "cyl" => solids.push(Solid::Cylinder([v(1)?, v(2)?], v(3)?, [v(4)?, v(5)?])),
-                _ => {}
-            }
-        }
-        // Touching solids are one object (the table and the box on it).
-        let mut object: Vec<u32> = (0..solids.len() as u32).collect();
-        for i in 0..solids.len() {
-            for j in 0..i {
-                let ((a0, a1), (b0, b1)) = (solids[i].bounds(), solids[j].bounds());
-                if (0..3).all(|k| a0[k] <= b1[k] + 1e-6 && b0[k] <= a1[k] + 1e-6) {
-                    let (x, y) = (object[i], object[j]);
-                    object.iter_mut().filter(|o| **o == x).for_each(|o| *o = y);
-                }
-            }
-        }
-        let room = room.ok_or("scene.txt has no room line")?;
-        Ok((frames, Truth { room, solids: solids.into_iter().zip(object).collect(), tol }))
     }
 }
