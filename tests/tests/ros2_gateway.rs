@@ -249,12 +249,14 @@ fn the_main_jobs_outputs_reach_a_cyclone_subscriber_near_the_ground_truth() {
     let ns = NetNs::required("r2m");
     let mut run = TestRun::new("ros2main");
     let ros2 = Path::new(env!("CARGO_MANIFEST_DIR")).join("../config/ros2.toml");
-    // config/ros2.toml on a 40 s mission; the run table is this test's.
+    // config/ros2.toml on a 40 s mission; the run table is this test's. The gateway stays up
+    // 3 s at the end (`linger_s`, 1 by default): under the test command's load the Python
+    // reader acknowledges the last messages later.
     let cfg = run.write_config(
         "end = \"end_of_stream\"\nend_of_stream_from = [\"monitor\", \"slam\", \"buoy\", \"sync\", \"fusion\", \"map\", \"ros\"]",
         &format!(
             "extends = \"{}\"\n[processes.ingest.settings.sim.mission]\nmax_duration_s = 40.0\n\
-             [processes.ros.settings]\nrecord_bag = \"ros2_bag\"\nrecord_bag_compression = \"lz4\"\n",
+             [processes.ros.settings]\nrecord_bag = \"ros2_bag\"\nrecord_bag_compression = \"lz4\"\nlinger_s = 3.0\n",
             ros2.canonicalize().unwrap().display()
         ),
     );

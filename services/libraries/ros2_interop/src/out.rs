@@ -181,7 +181,7 @@ impl OutKind {
             | OutKind::FusedPose
             | OutKind::SlamOdometry
             | OutKind::GridSlamOdometry
-            | OutKind::GridSlamPose => TopicQos { depth: 100, ..TopicQos::DEFAULT },
+            | OutKind::GridSlamPose => TopicQos { depth: 1000, ..TopicQos::DEFAULT },
             _ => TopicQos::DEFAULT,
         }
     }
